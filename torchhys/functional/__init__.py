@@ -1,0 +1,3 @@
+"""Pure tensor functions: the functional core of torchhys."""
+
+__all__: list[str] = []

@@ -1,0 +1,3 @@
+"""Simulated hysteretic plants."""
+
+__all__: list[str] = []
