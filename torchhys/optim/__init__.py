@@ -1,3 +1,6 @@
-"""Optimizers."""
+"""Optimizers: conjugate gradient with Powell-Beale restarts and its line searches."""
 
-__all__: list[str] = []
+from torchhys.optim.line_search import LineSearchResult
+from torchhys.optim.powell_beale import PowellBealeCG
+
+__all__ = ["LineSearchResult", "PowellBealeCG"]
