@@ -4,8 +4,15 @@ The functional core lives in :mod:`torchhys.functional`; the ``nn.Module`` wrapp
 that hold parameters and state are re-exported here.
 """
 
+from torchhys.backlash import Backlash, BacklashCell
+from torchhys.prandtl_ishlinskii import PrandtlIshlinskii, PrandtlIshlinskiiInverse
+
 __version__ = "0.1.0"
 
 __all__ = [
     "__version__",
+    "Backlash",
+    "BacklashCell",
+    "PrandtlIshlinskii",
+    "PrandtlIshlinskiiInverse",
 ]

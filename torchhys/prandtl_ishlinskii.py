@@ -1,0 +1,136 @@
+"""Prandtl-Ishlinskii hysteresis model and its analytic inverse (the classical compensator)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from torchhys.backlash import _Widths
+from torchhys.functional.backlash import backlash
+from torchhys.functional.prandtl_ishlinskii import (
+    _check_weights,
+    prandtl_ishlinskii_inverse_parameters,
+)
+
+__all__ = ["PrandtlIshlinskii", "PrandtlIshlinskiiInverse"]
+
+
+class PrandtlIshlinskii(_Widths):
+    """Prandtl-Ishlinskii model ``H[x] = w0 * x + sum_i w_i * y_i`` of N play operators.
+
+    The paper's simulated plant (Section 5.2) is
+    ``PrandtlIshlinskii(torch.linspace(1/6, 15/6, 15))``: unit weights, no linear
+    term, zero initial state.
+
+    Args:
+        widths: full dead-band widths d_i >= 0, shape (N,).
+        weights: weights w_i, shape (N,); ones if None.
+        linear_weight: weight w0 of the linear term.
+        learnable: make widths, weights and linear weight trainable (widths stay
+            non-negative through softplus).
+
+    Shape:
+        - x: (time,) or (batch, time)
+        - state: play-operator outputs before the first sample, (N,) or (batch, N);
+          zeros if None
+        - returns ``(H, final_state)``: H has the shape of x; final_state holds the
+          play-operator outputs at the last sample, (N,) or (batch, N), to pass to the
+          next call on the continuation of the sequence.
+    """
+
+    def __init__(
+        self,
+        widths: Tensor | list[float],
+        weights: Tensor | list[float] | None = None,
+        *,
+        linear_weight: float = 0.0,
+        learnable: bool = False,
+    ) -> None:
+        super().__init__(widths, learnable=learnable)
+        n = self.n_operators
+        dtype = self.get_widths().dtype
+        w = torch.ones(n, dtype=dtype) if weights is None else torch.as_tensor(weights)
+        w = w.to(dtype) if w.is_floating_point() else w.to(dtype)
+        _check_weights(w, n)
+        w0 = torch.tensor(float(linear_weight), dtype=dtype)
+        if not torch.isfinite(w0):
+            raise ValueError(f"linear_weight must be finite, got {linear_weight}")
+        if learnable:
+            self.weights = nn.Parameter(w.clone())
+            self.linear_weight = nn.Parameter(w0)
+        else:
+            self.register_buffer("weights", w.clone())
+            self.register_buffer("linear_weight", w0)
+
+    def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        y = backlash(x, self.get_widths(), y0=state)
+        h = self.linear_weight.to(y.dtype) * x + y @ self.weights.to(y.dtype)
+        return h, y[..., -1, :]
+
+    def inverse(self) -> PrandtlIshlinskiiInverse:
+        """The exact inverse model, built from the current parameters (detached).
+
+        Raises:
+            ValueError: when the initial loading curve is not strictly increasing.
+        """
+        return PrandtlIshlinskiiInverse(self)
+
+    def inverse_state(self, state: Tensor) -> Tensor:
+        """Map this model's play-operator state to the inverse model's initial state.
+
+        With zero state (the default) the inverse state is zero too.
+
+        Args:
+            state: play-operator outputs, (N,) or (batch, N).
+
+        Returns:
+            The inverse model's play-operator state, (M,) or (batch, M), M the
+            number of operators with positive width.
+        """
+        p = prandtl_ishlinskii_inverse_parameters(
+            self.get_widths().detach(), self.weights.detach(), self.linear_weight.detach()
+        )
+        z = state[..., p.order]
+        w = self.weights.detach()[p.order].to(z.dtype)
+        # z'_j = s_j z_j + sum_{i>j} w_i z_i
+        tail = torch.flip(torch.cumsum(torch.flip(w * z, [-1]), -1), [-1]) - w * z
+        return p.cumulative[1:].to(z.dtype) * z + tail
+
+
+class PrandtlIshlinskiiInverse(nn.Module):
+    """The analytic inverse of a :class:`PrandtlIshlinskii` model: a compensator.
+
+    The inverse is itself a Prandtl-Ishlinskii model of the *output*, with the
+    play thresholds and weights of the classical inversion rule (see
+    :func:`torchhys.functional.prandtl_ishlinskii_inverse_parameters`). Feeding a
+    desired output y_d through it gives the command u with ``H[u] = y_d``.
+
+    Args:
+        model: the Prandtl-Ishlinskii model to invert (its parameters are copied).
+
+    Raises:
+        ValueError: when the model's initial loading curve is not strictly increasing
+            (e.g. the paper's plant, which has no linear term).
+
+    Shape:
+        - y: desired output, (time,) or (batch, time)
+        - state: inverse play state, (M,) or (batch, M); zeros if None (matching a
+          forward model at zero state); see :meth:`PrandtlIshlinskii.inverse_state`
+        - returns ``(u, final_state)``, u the shape of y.
+    """
+
+    def __init__(self, model: PrandtlIshlinskii) -> None:
+        super().__init__()
+        p = prandtl_ishlinskii_inverse_parameters(
+            model.get_widths().detach(), model.weights.detach(), model.linear_weight.detach()
+        )
+        self.register_buffer("widths", p.widths.clone())
+        self.register_buffer("weights", p.weights.clone())
+        self.register_buffer("linear_weight", p.linear_weight.clone())
+
+    def forward(self, y: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        if self.widths.numel() == 0:  # purely linear model
+            return self.linear_weight.to(y.dtype) * y, y.new_zeros(y.shape[:-1] + (0,))
+        z = backlash(y, self.widths, y0=state)
+        u = self.linear_weight.to(y.dtype) * y + z @ self.weights.to(z.dtype)
+        return u, z[..., -1, :]
