@@ -4,6 +4,7 @@ The functional core lives in :mod:`torchhys.functional`; the ``nn.Module`` wrapp
 that hold parameters and state are re-exported here.
 """
 
+from torchhys import optim
 from torchhys.backlash import Backlash, BacklashCell
 from torchhys.prandtl_ishlinskii import PrandtlIshlinskii, PrandtlIshlinskiiInverse
 
@@ -11,6 +12,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "__version__",
+    "optim",
     "Backlash",
     "BacklashCell",
     "PrandtlIshlinskii",
