@@ -34,7 +34,7 @@ PhiFn = Callable[[float], tuple[float, float, Tensor]]
 _NONFINITE_SHRINK = 0.1
 # Bounds on an extrapolated step, as multiples of the current step.
 _EXTRAPOLATE_MIN = 1.1
-_EXTRAPOLATE_MAX = 4.0
+_EXTRAPOLATE_MAX = 10.0
 
 
 class LineSearchResult(NamedTuple):
@@ -109,7 +109,7 @@ def charalambous(
     ``lo + 0.1 (hi - lo)``. The search stops when
 
     * both conditions hold (``"ok"``);
-    * the bracket is narrower than ``a1 / scale_tol`` and ``lo > 0`` (``"tolerance"``, ``lo``
+    * ``lo > 0`` and the bracket is narrower than ``lo / scale_tol`` (``"tolerance"``, ``lo``
       is returned);
     * no decrease was found and the bracket ``[0, hi]`` is shorter than ``min_step``
       (``"minimum_step"``, failure);
@@ -124,14 +124,13 @@ def charalambous(
         alpha: sufficient-decrease constant.
         beta: slope constant, ``alpha < beta < 1``.
         gamma: minimum relative distance of an interpolated step from the bracket ends.
-        scale_tol: ratio of the first step to the bracket width at which the search stops.
+        scale_tol: ratio of the best step to the bracket width at which the search stops.
         min_step: smallest step worth trying while no decrease has been found.
         max_evals: maximum number of calls to ``phi``.
 
     Returns:
         A :class:`LineSearchResult`.
     """
-    tol = a1 / scale_tol
     lo, f_lo, s_lo, g_lo = 0.0, f0, s0, None
     hi, f_hi, s_hi = math.inf, math.nan, math.nan
     prev, f_prev, s_prev = 0.0, f0, s0
@@ -154,7 +153,7 @@ def charalambous(
             a_next = min(max(step, low), high) if math.isfinite(step) else high
         else:
             width = abs(hi - lo)
-            if lo > 0.0 and width < tol:
+            if lo > 0.0 and width * scale_tol < lo:
                 return LineSearchResult(lo, f_lo, g_lo, evals, "tolerance")
             if lo == 0.0 and hi < min_step:
                 return LineSearchResult(0.0, f0, None, evals, "minimum_step")

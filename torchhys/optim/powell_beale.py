@@ -76,8 +76,8 @@ class PowellBealeCG(torch.optim.Optimizer):
         beta: slope constant, ``alpha < beta < 1``.
         gamma: interpolation safeguard, ``0 < gamma < 0.5``.
         delta: first trial step of the first iteration, positive.
-        scale_tol: first trial step over the bracket width at which the Charalambous search
-            stops, positive.
+        scale_tol: best step over the bracket width at which the Charalambous search stops,
+            positive.
         minstep: smallest parameter-space step length ``a ||d||`` worth trying, ``>= 0``.
         max_evals: maximum loss evaluations per line search, ``>= 1``.
         tolerance_grad: stop (converged) when ``max |g| <= tolerance_grad``, ``>= 0``.
