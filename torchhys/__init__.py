@@ -4,7 +4,7 @@ The functional core lives in :mod:`torchhys.functional`; the ``nn.Module`` wrapp
 that hold parameters and state are re-exported here.
 """
 
-from torchhys import optim
+from torchhys import optim, plants, signals
 from torchhys.backlash import Backlash, BacklashCell
 from torchhys.prandtl_ishlinskii import PrandtlIshlinskii, PrandtlIshlinskiiInverse
 
@@ -12,6 +12,8 @@ __version__ = "0.1.0"
 
 __all__ = [
     "__version__",
+    "plants",
+    "signals",
     "optim",
     "Backlash",
     "BacklashCell",
