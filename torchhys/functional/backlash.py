@@ -29,8 +29,18 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from torchhys._checks import as_batched_sequence, check_finite, check_floating, check_tensor
-from torchhys._checks import check_widths
+from torchhys._checks import (
+    as_batched_sequence,
+    check_finite,
+    check_floating,
+    check_tensor,
+    check_widths,
+)
+from torchhys.functional._kernel import (
+    kernel_available,
+    play_backward_kernel,
+    play_forward_kernel,
+)
 
 __all__ = ["backlash", "play_step"]
 
@@ -164,6 +174,11 @@ class _PlayScan(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x: Tensor, r: Tensor, y0: Tensor) -> Tensor:  # type: ignore[override]
+        ctx.kernel = kernel_available(x, r, y0)
+        if ctx.kernel:
+            y = play_forward_kernel(x, r, y0)
+            ctx.save_for_backward(x, r, y0, y)
+            return y
         ybuf = _scan_forward(x, r, y0)
         ctx.save_for_backward(x, r, y0, ybuf)
         return ybuf[:, : x.shape[1]]
@@ -172,7 +187,10 @@ class _PlayScan(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, grad_y: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
         x, r, y0, ybuf = ctx.saved_tensors
-        grad_x, grad_r, grad_y0 = _scan_backward(grad_y, x, r, y0, ybuf)
+        if ctx.kernel:
+            grad_x, grad_r, grad_y0 = play_backward_kernel(grad_y, x, r, y0, ybuf)
+        else:
+            grad_x, grad_r, grad_y0 = _scan_backward(grad_y, x, r, y0, ybuf)
         return (
             grad_x if ctx.needs_input_grad[0] else None,
             grad_r if ctx.needs_input_grad[1] else None,

@@ -7,8 +7,12 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchhys._checks import as_batched_sequence, check_finite, check_floating, check_tensor
-from torchhys._checks import check_widths
+from torchhys._checks import (
+    check_finite,
+    check_floating,
+    check_tensor,
+    check_widths,
+)
 from torchhys.functional.backlash import backlash
 
 __all__ = ["PIInverseParameters", "prandtl_ishlinskii", "prandtl_ishlinskii_inverse_parameters"]
