@@ -6,6 +6,7 @@ that hold parameters and state are re-exported here.
 
 from torchhys import optim, plants, signals
 from torchhys.backlash import Backlash, BacklashCell
+from torchhys.eiho import EIHO, ZhaoTanOperator
 from torchhys.prandtl_ishlinskii import PrandtlIshlinskii, PrandtlIshlinskiiInverse
 
 __version__ = "0.1.0"
@@ -16,6 +17,8 @@ __all__ = [
     "signals",
     "optim",
     "Backlash",
+    "EIHO",
+    "ZhaoTanOperator",
     "BacklashCell",
     "PrandtlIshlinskii",
     "PrandtlIshlinskiiInverse",

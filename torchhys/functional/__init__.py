@@ -1,12 +1,22 @@
 """Pure tensor functions: the functional core of torchhys."""
 
+from torchhys.functional._branch import BranchState
 from torchhys.functional.backlash import backlash, play_step
+from torchhys.functional.eiho import NonCausalWarning, eiho, segment_coefficients, zhao_tan
 from torchhys.functional.prandtl_ishlinskii import (
     prandtl_ishlinskii,
     prandtl_ishlinskii_inverse_parameters,
 )
+from torchhys.functional.turning_points import estimate_threshold, turning_points
 
 __all__: list[str] = [
+    "BranchState",
+    "NonCausalWarning",
+    "eiho",
+    "estimate_threshold",
+    "segment_coefficients",
+    "turning_points",
+    "zhao_tan",
     "backlash",
     "play_step",
     "prandtl_ishlinskii",

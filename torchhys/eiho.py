@@ -1,0 +1,184 @@
+"""``nn.Module`` wrappers of the branch operators: :class:`EIHO` and :class:`ZhaoTanOperator`."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import torch
+from torch import Tensor, nn
+
+from torchhys.functional._branch import BranchState
+from torchhys.functional.eiho import NonCausalWarning, eiho, segment_coefficients, zhao_tan
+from torchhys.functional.turning_points import estimate_threshold
+
+__all__ = ["EIHO", "ZhaoTanOperator"]
+
+_A_FORMULAS = ("sqrt", "paper")
+
+
+def _threshold_buffer(threshold: float | str) -> Tensor:
+    if threshold == "auto":
+        return torch.tensor(float("nan"))
+    if isinstance(threshold, bool) or not isinstance(threshold, (int, float)):
+        raise TypeError(f"threshold must be a number or 'auto', got {threshold!r}")
+    if not math.isfinite(threshold) or threshold < 0:
+        raise ValueError(f"threshold must be a finite number >= 0 or 'auto', got {threshold!r}")
+    return torch.tensor(float(threshold))
+
+
+class _TurningPointOperator(nn.Module):
+    """Holds the detector threshold (a buffer; NaN until an ``"auto"`` one is calibrated)."""
+
+    n_outputs: int = 1
+
+    def __init__(self, threshold: float | str, rule: str, max_depth: int) -> None:
+        super().__init__()
+        if rule not in ("recent", "dominant"):
+            raise ValueError(f"rule must be 'recent' or 'dominant', got {rule!r}")
+        self.rule = rule
+        self.max_depth = max_depth
+        self.register_buffer("threshold", _threshold_buffer(threshold))
+
+    def calibrate_threshold(self, x: Tensor) -> Tensor:
+        """Set the threshold from data: the median of :func:`estimate_threshold` over rows."""
+        th = estimate_threshold(x).reshape(-1).median().detach()
+        self.threshold.copy_(th)
+        return th
+
+    def _threshold(self) -> Tensor:
+        if bool(torch.isnan(self.threshold)):
+            raise ValueError(
+                "threshold='auto' is not calibrated yet: call calibrate_threshold(x) on "
+                "representative data first (a per-chunk estimate would break streaming)"
+            )
+        return self.threshold
+
+
+class EIHO(_TurningPointOperator):
+    """Elementary inverse hysteresis operator, Eq. (2), with streaming state.
+
+    Modes of ``a``:
+        * a positive number, or a pair ``(ascending, descending)``: fixed (causal);
+        * ``"learnable"``: positive parameter(s) ``exp(log_a)`` (one, or one per direction
+          with ``per_direction=True``), trained with the network (causal);
+        * ``"segment"``: the paper's per-segment ``a_i`` from the training targets with
+          ``a_formula`` (``"sqrt"``: ``|dy| / |dx|^(1/2)``, consistent with Eq. (2);
+          ``"paper"``: Eq. (19) as printed, ``|dy| / dx^2``). **Not causal**: pass
+          ``target=`` (whole record) or precomputed ``segment_a=`` to :meth:`forward`.
+
+    Args:
+        a: see above.
+        rule: ``"recent"`` (Eq. (2) as printed) or ``"dominant"`` (return-point memory).
+        a_formula: formula of the ``"segment"`` mode.
+        threshold: reversal threshold of the turning-point detector, or ``"auto"`` (then
+            call :meth:`calibrate_threshold` before :meth:`forward`).
+        per_direction: with ``a="learnable"``, learn ascending and descending values.
+        a_init: initial value of a learnable ``a``.
+        max_depth: stack size of the ``"dominant"`` rule.
+        eps: linear zone of the square root (see :func:`torchhys.functional.eiho`).
+
+    Shapes:
+        ``forward(x)``: x (time,) or (batch, time) -> f of the same shape, and a
+        :class:`~torchhys.functional.BranchState` (tensors (batch, ...)).
+    """
+
+    def __init__(
+        self, *, a: float | tuple[float, float] | str = 1.0, rule: str = "recent",
+        a_formula: str = "sqrt", threshold: float | str = 0.0, per_direction: bool = False,
+        a_init: float = 1.0, max_depth: int = 32, eps: float = 1e-8,
+    ) -> None:
+        super().__init__(threshold, rule, max_depth)
+        if a_formula not in _A_FORMULAS:
+            raise ValueError(f"a_formula must be one of {_A_FORMULAS}, got {a_formula!r}")
+        self.a_formula, self.eps = a_formula, eps
+        self.per_segment = a == "segment"
+        if a == "learnable":
+            if not (math.isfinite(a_init) and a_init > 0):
+                raise ValueError(f"a_init must be a positive number, got {a_init!r}")
+            self.log_a = nn.Parameter(torch.full((2 if per_direction else 1,), math.log(a_init)))
+        elif self.per_segment:
+            warnings.warn(
+                "EIHO(a='segment') uses the target's next extremum: not causal, for replaying "
+                "recorded data only", NonCausalWarning, stacklevel=2,
+            )
+        elif isinstance(a, str):
+            raise ValueError(
+                f"a must be a positive number, a pair, 'learnable' or 'segment', got {a!r}"
+            )
+        else:
+            pair = (a, a) if isinstance(a, (int, float)) else tuple(a)
+            if len(pair) != 2 or not all(isinstance(v, (int, float)) and v > 0 for v in pair):
+                raise ValueError(f"a must be positive (a number or a pair), got {a!r}")
+            self.register_buffer("a_fixed", torch.tensor([float(v) for v in pair]))
+
+    def coefficient(self) -> Tensor:
+        """The causal coefficients ``(ascending, descending)``, shape (2,)."""
+        if hasattr(self, "log_a"):
+            return torch.exp(self.log_a).expand(2)
+        if self.per_segment:
+            raise ValueError("a='segment' has no fixed coefficient: it comes from targets")
+        return self.a_fixed
+
+    def segment_coefficients(self, x: Tensor, target: Tensor) -> Tensor:
+        """Per-segment ``a_i`` of a whole record (x, target) with this operator's settings."""
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NonCausalWarning)
+            return segment_coefficients(
+                x, target, threshold=self._threshold(), formula=self.a_formula
+            )
+
+    def forward(
+        self, x: Tensor, state: BranchState | None = None, *,
+        target: Tensor | None = None, segment_a: Tensor | None = None,
+    ) -> tuple[Tensor, BranchState]:
+        """Apply the operator to ``x`` (time,) or (batch, time), continuing from ``state``.
+
+        ``target`` (same shape as ``x``, the whole record) or ``segment_a`` (from
+        :meth:`segment_coefficients`, for chunked replay) are required with ``a="segment"``.
+        """
+        if self.per_segment:
+            if segment_a is None:
+                if target is None:
+                    raise ValueError(
+                        "EIHO(a='segment') needs target= (the recorded outputs) or segment_a=: "
+                        "per-segment coefficients come from the target's extrema"
+                    )
+                segment_a = self.segment_coefficients(x, target)
+            a = segment_a
+        else:
+            a = self.coefficient()
+        return eiho(
+            x, a.to(x.dtype) if x.is_floating_point() else a, rule=self.rule,
+            threshold=self._threshold(), state=state, per_segment=self.per_segment,
+            eps=self.eps, max_depth=self.max_depth,
+        )
+
+    def extra_repr(self) -> str:
+        mode = "segment" if self.per_segment else ("learnable" if hasattr(self, "log_a") else "")
+        return f"rule={self.rule!r}, a={mode or self.a_fixed.tolist()}"
+
+
+class ZhaoTanOperator(_TurningPointOperator):
+    """Zhao-Tan's operator ``f = (1 - exp(-|x - x_p|)) (x - x_p) + f(x_p)`` (Ref. [8]).
+
+    Same turning-point machinery, rules, threshold and streaming state as :class:`EIHO`.
+
+    Args:
+        rule: ``"recent"`` or ``"dominant"``.
+        threshold: reversal threshold or ``"auto"`` (then call :meth:`calibrate_threshold`).
+        max_depth: stack size of the ``"dominant"`` rule.
+    """
+
+    def __init__(
+        self, *, rule: str = "recent", threshold: float | str = 0.0, max_depth: int = 32
+    ) -> None:
+        super().__init__(threshold, rule, max_depth)
+
+    def forward(
+        self, x: Tensor, state: BranchState | None = None
+    ) -> tuple[Tensor, BranchState]:
+        """Apply the operator to ``x`` (time,) or (batch, time), continuing from ``state``."""
+        return zhao_tan(
+            x, rule=self.rule, threshold=self._threshold(), state=state, max_depth=self.max_depth
+        )

@@ -1,0 +1,223 @@
+"""Shared machinery of the branch operators anchored at turning points (EIHO, Zhao-Tan).
+
+Both operators follow ``f(x) = f(x_e) +/- g(|x - x_e|)`` on the branch that starts at the
+anchor ``x_e`` (a turning point), with ``g(u) = a sqrt(u)`` (EIHO) or
+``g(u) = (1 - exp(-u)) u`` (Zhao-Tan). They share the turning-point machinery here.
+
+Between a turning point and its confirmation (when ``threshold > 0``) the output follows
+the *tentative* reversed branch from the running extremum ``M``:
+``f = f(M) - d g(|x - M|)``. If the reversal is confirmed, that is the new branch anyway;
+if the input returns past ``M`` instead, it retraces that branch back to ``f(M)`` and the
+old branch continues (a sub-threshold excursion leaves no memory). So the output is a
+causal function of the input history, continuous where the input is, and with
+``threshold=0`` it is exactly Eq. (2) with every reversal starting a new branch.
+
+Rules for the anchor ``x_e``:
+    * ``"recent"``: the last turning point (Eq. (2) as printed). Branch values at turning
+      points are cumulative sums: no loop at all.
+    * ``"dominant"``: return-point memory. Turning points are kept on a stack
+      ``[start, tp_1, tp_2, ...]`` (alternating maxima/minima). When the running extremum
+      reaches the turning point that opened the current minor loop (the entry below the
+      top), the loop's two entries are popped and the branch continues from the enclosing
+      anchor. The stack is a fixed-size tensor of ``max_depth`` entries plus a depth counter;
+      when a push would overflow it, the two oldest entries above the start are discarded
+      (the outermost loop is forgotten). The stack is updated in a loop over *turning
+      points* (not samples); per-sample anchors are then gathers.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchhys._checks import as_batched_sequence, check_finite, check_floating, check_tensor
+from torchhys.functional.turning_points import resolve_threshold, zigzag
+
+__all__ = ["BranchState", "branch_operator", "check_a", "initial_branch_state", "safe_sqrt"]
+
+_RULES = ("recent", "dominant")
+
+
+class BranchState(NamedTuple):
+    """Streaming state of a branch operator (batch ``B``, stack depth ``D``)."""
+
+    play: Tensor
+    """(B,) detector (play operator) state."""
+    direction: Tensor
+    """(B,) long: direction of the committed branch, +1, -1 or 0 (not yet set)."""
+    extremum: Tensor
+    """(B,) running extremum of the input since the current anchor."""
+    stack_x: Tensor
+    """(B, D) input values of the anchors (entry 0: the start)."""
+    stack_f: Tensor
+    """(B, D) operator outputs at the anchors."""
+    stack_seg: Tensor
+    """(B, D) long: segment number of the branch that starts at each anchor."""
+    depth: Tensor
+    """(B,) long: number of valid stack entries (>= 1)."""
+    segment: Tensor
+    """(B,) long: number of turning points confirmed so far."""
+
+
+def initial_branch_state(x0: Tensor, depth: int, f0: Tensor | None = None) -> BranchState:
+    """Fresh state anchored at the first samples ``x0`` (B,), with ``f = f0`` (default 0)."""
+    B = x0.shape[0]
+    f0 = x0.new_zeros(B) if f0 is None else f0
+    stack_x = torch.cat([x0[:, None], x0.new_zeros(B, depth - 1)], dim=1)
+    stack_f = torch.cat([f0[:, None], f0.new_zeros(B, depth - 1)], dim=1)
+    zeros = torch.zeros(B, dtype=torch.long, device=x0.device)
+    return BranchState(
+        x0.detach(), zeros, x0, stack_x, stack_f, torch.zeros_like(stack_x, dtype=torch.long),
+        torch.ones_like(zeros), zeros,
+    )
+
+
+def safe_sqrt(u: Tensor, eps: float) -> Tensor:
+    """``sqrt(u)`` for ``u >= eps``, ``u / sqrt(eps)`` below: zero at 0, slope <= 1/sqrt(eps).
+
+    Keeps gradients finite at ``x = x_e``; the value differs from ``sqrt(u)`` by less than
+    ``sqrt(eps) / 4`` and only for ``0 < u < eps``.
+    """
+    big = u >= eps
+    return torch.where(big, torch.sqrt(torch.where(big, u, torch.ones_like(u))), u / eps**0.5)
+
+
+def _g(u: Tensor, a: Tensor, kind: str, eps: float) -> Tensor:
+    if kind == "eiho":
+        return a * safe_sqrt(u, eps)
+    return (1.0 - torch.exp(-u)) * u
+
+
+def _coef(a: Tensor, direction: Tensor, seg: Tensor, per_segment: bool) -> Tensor:
+    """Branch coefficient: a (2,) = (ascending, descending) or a (B, K) per segment."""
+    if per_segment:
+        return a.gather(1, seg.clamp(min=0, max=a.shape[1] - 1).reshape(a.shape[0], -1)).reshape(
+            seg.shape
+        )
+    return torch.where(direction >= 0, a[0], a[1])
+
+
+def _pops(stack_x: Tensor, depth: Tensor, m: Tensor, d: Tensor) -> Tensor:
+    """Number of nested minor loops closed by the running extremum ``m`` (shapes (..., D))."""
+    i = torch.arange(stack_x.shape[-1], device=stack_x.device)
+    top = (depth - 1).unsqueeze(-1)
+    cand = (i <= top - 1) & (i >= 1) & ((top - 1 - i) % 2 == 0) & (d != 0).unsqueeze(-1)
+    passed = (d.unsqueeze(-1) * (m.unsqueeze(-1) - stack_x)) >= 0
+    failed = torch.where(cand & ~passed, i, -1).amax(dim=-1, keepdim=True)
+    return (cand & (i > failed)).sum(dim=-1)
+
+
+def _dominant_stacks(
+    state: BranchState, v: Tensor, d_prev: Tensor, confirm: Tensor, a: Tensor,
+    kind: str, per_segment: bool, eps: float,
+) -> tuple[BranchState, list[Tensor]]:
+    """Update the stack at every confirmed turning point; return per-segment snapshots."""
+    B, T = v.shape
+    D = state.stack_x.shape[1]
+    sx, sf, ss, depth = state.stack_x, state.stack_f, state.stack_seg, state.depth
+    n_conf = confirm.sum(dim=1)
+    K = int(n_conf.max()) if T > 0 else 0
+    order = torch.where(confirm, torch.arange(T, device=v.device), T).sort(dim=1).values[:, :K]
+    snaps = [[sx, sf, ss, depth]]
+    rows = torch.arange(B, device=v.device)
+    for j in range(K):
+        c = order[:, j].clamp(max=T - 1)
+        valid = order[:, j] < T
+        vj, dj = v[rows, c], d_prev[rows, c]
+        top = depth - 1 - 2 * _pops(sx, depth, vj.detach(), dj)
+        ax, af, aseg = sx[rows, top], sf[rows, top], ss[rows, top]
+        fv = af + dj * _g((vj - ax).abs(), _coef(a, dj, aseg, per_segment), kind, eps)
+        pos = top + 1
+        full = pos >= D
+        pos = torch.where(full, pos - 2, pos)
+        hot = torch.nn.functional.one_hot(pos, D).bool()
+        new = []
+        for t, val in ((sx, vj), (sf, fv), (ss, state.segment + j + 1)):
+            shifted = torch.where(full[:, None], torch.cat([t[:, :1], t[:, 3:], t[:, -2:]], 1), t)
+            new.append(torch.where(valid[:, None], torch.where(hot, val[:, None], shifted), t))
+        sx, sf, ss = new
+        depth = torch.where(valid, pos + 1, depth)
+        snaps.append([sx, sf, ss, depth])
+    stacked = [torch.stack([s[k] for s in snaps], dim=1) for k in range(4)]
+    return state._replace(stack_x=sx, stack_f=sf, stack_seg=ss, depth=depth), stacked
+
+
+def branch_operator(
+    x: Tensor, a: Tensor, kind: str, rule: str, threshold: float | str | Tensor,
+    state: BranchState | None, per_segment: bool, eps: float, max_depth: int,
+) -> tuple[Tensor, BranchState]:
+    xb, squeezed = as_batched_sequence(x, "x")
+    if rule not in _RULES:
+        raise ValueError(f"rule must be one of {_RULES}, got {rule!r}")
+    B, T = xb.shape
+    depth = max_depth if rule == "dominant" else 1
+    if state is None:
+        state = initial_branch_state(xb[:, 0], depth)
+    elif state.stack_x.shape != (B, depth):
+        raise ValueError(
+            f"state must come from the same operator and batch: stack shape {(B, depth)} "
+            f"expected, got {tuple(state.stack_x.shape)}"
+        )
+    th = resolve_threshold(threshold, xb)
+    z = zigzag(xb, th, state.play, state.direction)
+    d = z.direction
+    d_prev = torch.cat([state.direction[:, None], d[:, :-1]], dim=1)
+    last = z.extremum
+    last_prev = torch.cat([last.new_full((B, 1), -1), last[:, :-1]], dim=1)
+    M = torch.where(last >= 0, xb.gather(1, last.clamp(min=0)), state.extremum[:, None])
+    v = torch.where(last_prev >= 0, xb.gather(1, last_prev.clamp(min=0)), state.extremum[:, None])
+    seg_local = z.confirm.long().cumsum(dim=1)
+    segment = state.segment[:, None] + seg_local
+    if rule == "recent":
+        idx = torch.arange(T, device=xb.device).expand(B, T)
+        lc = torch.where(z.confirm, idx, -1).cummax(dim=1).values
+        x_a = torch.where(lc >= 0, v.gather(1, lc.clamp(min=0)), state.stack_x[:, :1])
+        x_a_prev = torch.cat([state.stack_x[:, :1], x_a[:, :-1]], dim=1)
+        coef = _coef(a, d_prev, segment - 1, per_segment)
+        inc = torch.where(z.confirm, d_prev * _g((v - x_a_prev).abs(), coef, kind, eps), 0.0)
+        f_a = state.stack_f[:, :1] + inc.cumsum(dim=1)
+        seg_a = segment
+        new_state = state._replace(
+            stack_x=x_a[:, -1:], stack_f=f_a[:, -1:], stack_seg=segment[:, -1:]
+        )
+    else:
+        new_state, (sx, sf, ss, sdepth) = _dominant_stacks(
+            state, v, d_prev, z.confirm, a, kind, per_segment, eps
+        )
+        D = sx.shape[-1]
+        g_idx = seg_local[..., None].expand(B, T, D)
+        sx_t, sf_t, ss_t = (s.gather(1, g_idx) for s in (sx, sf, ss))
+        depth_t = sdepth.gather(1, seg_local)
+        top = (depth_t - 1 - 2 * _pops(sx_t, depth_t, M.detach(), d))[..., None]
+        x_a, f_a, seg_a = (s.gather(2, top)[..., 0] for s in (sx_t, sf_t, ss_t))
+    f_m = f_a + d * _g((M - x_a).abs(), _coef(a, d, seg_a, per_segment), kind, eps)
+    s = torch.where(d != 0, -d, torch.sign(xb.detach() - M.detach()).long())
+    u = torch.relu(s * (xb - M))
+    seg_rev = torch.where(d != 0, segment + 1, segment)
+    f = f_m + s * _g(u, _coef(a, s, seg_rev, per_segment), kind, eps)
+    new_state = new_state._replace(
+        play=z.play, direction=d[:, -1], extremum=M[:, -1], segment=segment[:, -1]
+    )
+    return (f[0] if squeezed else f), new_state
+
+
+def check_a(a: Tensor, per_segment: bool, batch: int) -> Tensor:
+    check_tensor(a, "a")
+    check_floating(a, "a")
+    check_finite(a, "a")
+    if per_segment:
+        if a.dim() == 1:
+            a = a.unsqueeze(0)
+        if a.dim() != 2 or a.shape[0] != batch or a.shape[1] == 0:
+            raise ValueError(
+                f"per-segment a must have shape (batch={batch}, segments), got {tuple(a.shape)}"
+            )
+    else:
+        if a.numel() not in (1, 2) or a.dim() > 1:
+            raise ValueError(f"a must be a scalar or (ascending, descending), got {tuple(a.shape)}")
+        a = a.reshape(-1).expand(2)
+    if bool((a <= 0).any()):
+        raise ValueError(f"a must be positive, got minimum {a.min().item():.6g}")
+    return a

@@ -1,0 +1,180 @@
+"""The elementary inverse hysteresis operator (EIHO, Eq. (2)) and Zhao-Tan's operator.
+
+See :mod:`torchhys.functional._branch` for the shared turning-point machinery (rules
+``"recent"`` / ``"dominant"``, behaviour between a turning point and its confirmation).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import torch
+from torch import Tensor
+
+from torchhys._checks import as_batched_sequence
+from torchhys.functional._branch import BranchState, branch_operator, check_a
+from torchhys.functional.turning_points import turning_points
+
+__all__ = ["NonCausalWarning", "eiho", "segment_coefficients", "zhao_tan"]
+
+_FORMULAS = ("sqrt", "paper")
+
+
+class NonCausalWarning(UserWarning):
+    """A result uses future samples (e.g. the paper's per-segment coefficients)."""
+
+
+def _check_depth(max_depth: int) -> None:
+    if isinstance(max_depth, bool) or not isinstance(max_depth, int) or max_depth < 3:
+        raise ValueError(f"max_depth must be an int >= 3, got {max_depth!r}")
+
+
+def eiho(
+    x: Tensor,
+    a: Tensor | float = 1.0,
+    *,
+    rule: str = "recent",
+    threshold: float | str | Tensor = 0.0,
+    state: BranchState | None = None,
+    per_segment: bool = False,
+    eps: float = 1e-8,
+    max_depth: int = 32,
+) -> tuple[Tensor, BranchState]:
+    """Elementary inverse hysteresis operator, Eq. (2).
+
+    ``f(x) = f(x_e) + a (x - x_e)^(1/2)`` while ``x`` increases and
+    ``f(x) = f(x_e) - a (x_e - x)^(1/2)`` while it decreases, ``x_e`` being the anchor
+    turning point chosen by ``rule``. A fresh state starts at ``x_e = x[0]``, ``f = 0``.
+
+    Supports batches, autograd in ``x`` and ``a`` (finite everywhere: the square root has a
+    bounded slope below ``eps``, see :func:`safe_sqrt`), and streaming: calling it on
+    consecutive chunks with the returned state equals one call on the whole sequence.
+
+    Args:
+        x: input, (time,) or (batch, time).
+        a: positive coefficient: a scalar, ``(ascending, descending)`` of shape (2,), or with
+            ``per_segment=True`` one per branch, shape (batch, segments) (segment ``k``
+            starts at the ``k``-th confirmed turning point; the last value is reused).
+        rule: ``"recent"`` (last turning point, Eq. (2) as printed) or ``"dominant"``
+            (return-point memory, bounded on periodic inputs).
+        threshold: reversal threshold of the turning-point detector (see
+            :func:`turning_points`); ``"auto"`` is estimated per call, so stream with a number.
+        state: :class:`BranchState` from a previous call, or None for a fresh start.
+        per_segment: index ``a`` by branch number (see :func:`segment_coefficients`).
+        eps: below ``|x - x_e| = eps`` (squared input units) the square root is linear.
+        max_depth: stack size of the ``"dominant"`` rule (>= 3; on overflow the two oldest
+            turning points above the start are forgotten).
+
+    Returns:
+        ``(f, state)``: ``f`` of the shape of ``x``; state tensors have a leading batch
+        dimension (1 for a 1-D input).
+
+    Raises:
+        TypeError, ValueError: bad ``x`` (shape, dtype, NaN/inf), ``a``, ``rule``,
+            ``threshold``, ``state`` or ``max_depth``, each naming the argument.
+
+    References:
+        Eq. (2) of "A neural networks based model of inverse hysteresis" (Neurocomputing,
+        2011).
+    """
+    xb, _ = as_batched_sequence(x, "x")
+    _check_depth(max_depth)
+    a_t = check_a(a if isinstance(a, Tensor) else xb.new_tensor(a), per_segment, xb.shape[0])
+    return branch_operator(
+        x, a_t.to(xb.dtype), "eiho", rule, threshold, state, per_segment, eps, max_depth
+    )
+
+
+def zhao_tan(
+    x: Tensor,
+    *,
+    rule: str = "recent",
+    threshold: float | str | Tensor = 0.0,
+    state: BranchState | None = None,
+    max_depth: int = 32,
+) -> tuple[Tensor, BranchState]:
+    """Zhao and Tan's expanded-input-space operator (the paper's Ref. [8]).
+
+    ``f(x) = (1 - exp(-|x - x_p|)) (x - x_p) + f(x_p)``, ``x_p`` the anchor turning point.
+    This form is the project's definition (as usually quoted; not checked against the
+    primary text). Same machinery, arguments and guarantees as :func:`eiho`; smooth at
+    ``x = x_p``.
+
+    Args:
+        x: input, (time,) or (batch, time).
+        rule: ``"recent"`` or ``"dominant"``.
+        threshold: reversal threshold of the turning-point detector.
+        state: state from a previous call, or None.
+        max_depth: stack size of the ``"dominant"`` rule.
+
+    Returns:
+        ``(f, state)`` as for :func:`eiho`.
+
+    References:
+        Zhao and Tan, expanded input space neural network model of hysteresis.
+    """
+    xb, _ = as_batched_sequence(x, "x")
+    _check_depth(max_depth)
+    a = xb.new_ones(2)
+    return branch_operator(x, a, "zhao_tan", rule, threshold, state, False, 0.0, max_depth)
+
+
+def segment_coefficients(
+    x: Tensor, y: Tensor, *, threshold: float | str | Tensor = 0.0, formula: str = "sqrt",
+    min_step: float = 1e-12,
+) -> Tensor:
+    """The paper's per-segment coefficients ``a_i`` from recorded (input, target) data.
+
+    For consecutive turning points ``(x_i, y_i)``, ``(x_{i+1}, y_{i+1})`` of the input
+    (the start and the last sample close the first and last segments):
+    ``"sqrt"``: ``a_i = |y_{i+1} - y_i| / |x_{i+1} - x_i|^(1/2)`` (consistent with Eq. (2):
+    the EIHO then passes through every output extremum); ``"paper"``: Eq. (19) as printed,
+    ``a_i = |y_{i+1} - y_i| / (x_{i+1} - x_i)^2``.
+
+    Not causal: ``a_i`` uses the target's *next* extremum. Use it to reproduce the paper's
+    protocol on recorded data, not in a deployed compensator (a :class:`NonCausalWarning`
+    says so).
+
+    Args:
+        x: operator input, (time,) or (batch, time).
+        y: targets, same shape.
+        threshold: reversal threshold of the turning-point detector.
+        formula: ``"sqrt"`` (default) or ``"paper"``.
+        min_step: lower bound on ``|x_{i+1} - x_i|`` and on ``a_i`` (keeps them positive).
+
+    Returns:
+        ``a``, shape (batch, segments) (``segments`` = most turning points in a row + 1;
+        shorter rows repeat their last value). Detached.
+
+    Raises:
+        ValueError: mismatched shapes, NaN/inf, unknown ``formula``.
+    """
+    warnings.warn(
+        "per-segment coefficients use the target's next extremum: the operator is not "
+        "causal (fine for replaying recorded data, not for a deployed compensator)",
+        NonCausalWarning, stacklevel=2,
+    )
+    xb, _ = as_batched_sequence(x, "x")
+    yb, _ = as_batched_sequence(y, "y")
+    if yb.shape != xb.shape:
+        raise ValueError(f"y must have the shape of x {tuple(x.shape)}, got {tuple(y.shape)}")
+    if formula not in _FORMULAS:
+        raise ValueError(f"formula must be one of {_FORMULAS}, got {formula!r}")
+    mask = turning_points(xb, threshold=threshold)
+    mask[:, 0] = True
+    mask[:, -1] = True
+    B, T = xb.shape
+    n = mask.sum(dim=1)
+    order = torch.where(mask, torch.arange(T), T).sort(dim=1).values[:, : int(n.max())]
+    order = torch.minimum(order, (order.gather(1, (n - 1)[:, None])))  # pad with last index
+    xe, ye = xb.detach().gather(1, order), yb.detach().gather(1, order)
+    dx = (xe[:, 1:] - xe[:, :-1]).abs().clamp(min=min_step)
+    dy = (ye[:, 1:] - ye[:, :-1]).abs()
+    power = 0.5 if formula == "sqrt" else 2.0
+    a = (dy / dx**power).clamp(min=min_step)
+    if T < 2 or a.shape[1] == 0:
+        return xb.new_ones(B, 1)
+    # Rows with fewer segments repeat their last real coefficient.
+    k = torch.arange(a.shape[1]).expand(B, -1)
+    last = a.gather(1, (n - 2).clamp(min=0)[:, None])
+    return torch.where(k <= (n - 2)[:, None], a, last)
