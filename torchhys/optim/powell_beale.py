@@ -215,7 +215,7 @@ class PowellBealeCG(torch.optim.Optimizer):
 
         def phi(a: float) -> tuple[float, float, Tensor]:
             self._set_params(torch.add(x0, d, alpha=a))
-            f = float(closure())
+            f = float(closure().detach())
             g = self._flat_grad()
             return f, _dot(g, d), g
 
@@ -264,7 +264,7 @@ class PowellBealeCG(torch.optim.Optimizer):
                          restarts=dict.fromkeys(_RESTART_REASONS, 0), last_restart=None)
         state["stop_reason"] = None
         orig_loss = closure()
-        f, g = float(orig_loss), self._flat_grad()
+        f, g = float(orig_loss.detach()), self._flat_grad()
         state["func_evals"] += 1
         if not (math.isfinite(f) and bool(torch.isfinite(g).all())):
             state["stop_reason"] = "non_finite_loss"
