@@ -7,6 +7,7 @@ that hold parameters and state are re-exported here.
 from torchhys import optim, plants, signals
 from torchhys.backlash import Backlash, BacklashCell
 from torchhys.eiho import EIHO, ZhaoTanOperator
+from torchhys.networks import InverseHysteresisNet
 from torchhys.prandtl_ishlinskii import PrandtlIshlinskii, PrandtlIshlinskiiInverse
 
 __version__ = "0.1.0"
@@ -18,6 +19,7 @@ __all__ = [
     "optim",
     "Backlash",
     "EIHO",
+    "InverseHysteresisNet",
     "ZhaoTanOperator",
     "BacklashCell",
     "PrandtlIshlinskii",

@@ -168,17 +168,28 @@ class ZhaoTanOperator(_TurningPointOperator):
         rule: ``"recent"`` or ``"dominant"``.
         threshold: reversal threshold or ``"auto"`` (then call :meth:`calibrate_threshold`).
         max_depth: stack size of the ``"dominant"`` rule.
+        scale: input scale ``s`` (> 0): ``f = s * zt(x / s)``, i.e.
+            ``(1 - exp(-|x - x_p| / s)) (x - x_p) + f(x_p)``. With ``s = 1`` (the published
+            form) an input of large range makes ``f`` almost ``x`` plus a constant; set ``s``
+            near the input's spread.
     """
 
     def __init__(
-        self, *, rule: str = "recent", threshold: float | str = 0.0, max_depth: int = 32
+        self, *, rule: str = "recent", threshold: float | str = 0.0, max_depth: int = 32,
+        scale: float = 1.0,
     ) -> None:
         super().__init__(threshold, rule, max_depth)
+        if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
+            raise ValueError(f"scale must be a positive number, got {scale!r}")
+        self.scale = float(scale)
 
     def forward(
         self, x: Tensor, state: BranchState | None = None
     ) -> tuple[Tensor, BranchState]:
         """Apply the operator to ``x`` (time,) or (batch, time), continuing from ``state``."""
-        return zhao_tan(
-            x, rule=self.rule, threshold=self._threshold(), state=state, max_depth=self.max_depth
+        s = self.scale
+        f, state = zhao_tan(
+            x / s, rule=self.rule, threshold=self._threshold() / s, state=state,
+            max_depth=self.max_depth,
         )
+        return f * s, state

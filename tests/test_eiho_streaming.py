@@ -1,0 +1,97 @@
+"""Streaming: chunked calls with the carried state equal one call on the whole sequence."""
+
+from __future__ import annotations
+
+import warnings
+
+import pytest
+import torch
+from test_turning_points import random_walk
+
+from torchhys import EIHO, InverseHysteresisNet, ZhaoTanOperator
+from torchhys.functional import NonCausalWarning
+
+
+def chunks(x: torch.Tensor, sizes: list[int]) -> list[torch.Tensor]:
+    out, start = [], 0
+    while start < x.shape[-1]:
+        size = sizes[len(out) % len(sizes)]
+        out.append(x[..., start : start + size])
+        start += size
+    return out
+
+
+def run_chunked(module: torch.nn.Module, x: torch.Tensor, sizes: list[int], **kw) -> torch.Tensor:
+    state, outs = None, []
+    for c in chunks(x, sizes):
+        y, state = module(c, state, **kw)
+        outs.append(y)
+    return torch.cat(outs, dim=-1)
+
+
+def batch() -> torch.Tensor:
+    return torch.stack([random_walk(s, T=120, quantize=s % 2 == 0) for s in range(3)])
+
+
+A_MODES = [1.5, (1.5, 0.5), "learnable"]
+
+
+@pytest.mark.parametrize("rule", ["recent", "dominant"])
+@pytest.mark.parametrize("a", A_MODES)
+@pytest.mark.parametrize("threshold", [0.0, 0.75])
+@pytest.mark.parametrize("sizes", [[1], [7, 1, 30]])
+def test_eiho_chunked_equals_whole(rule: str, a: object, threshold: float, sizes: list[int]):
+    op = EIHO(a=a, rule=rule, threshold=threshold, max_depth=6).double()
+    x = batch()
+    whole, _ = op(x)
+    torch.testing.assert_close(run_chunked(op, x, sizes), whole, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("rule", ["recent", "dominant"])
+@pytest.mark.parametrize("a_formula", ["sqrt", "paper"])
+def test_per_segment_chunked_equals_whole(rule: str, a_formula: str) -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NonCausalWarning)
+        op = EIHO(a="segment", rule=rule, a_formula=a_formula, threshold=0.5).double()
+    x = batch()
+    y = torch.sin(x)
+    whole, _ = op(x, target=y)
+    seg_a = op.segment_coefficients(x, y)
+    chunked = run_chunked(op, x, [1, 13], segment_a=seg_a)
+    torch.testing.assert_close(chunked, whole, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("rule", ["recent", "dominant"])
+def test_zhao_tan_chunked_equals_whole(rule: str) -> None:
+    op = ZhaoTanOperator(rule=rule, threshold=0.5, scale=3.0)
+    x = batch()
+    whole, _ = op(x)
+    torch.testing.assert_close(run_chunked(op, x, [1, 5, 11]), whole, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("operator", ["eiho", "zhao_tan", None])
+def test_network_chunked_equals_whole(operator: str | None) -> None:
+    torch.manual_seed(0)
+    net = InverseHysteresisNet(operator, hidden=8, operator_kwargs={}).double()
+    x = batch()
+    net.fit_normalization(x, torch.tanh(x))
+    whole, _ = net(x)
+    torch.testing.assert_close(run_chunked(net, x, [1, 9]), whole, rtol=1e-12, atol=1e-12)
+
+
+def test_expanded_network_chunked_equals_whole() -> None:
+    torch.manual_seed(0)
+    ops = [EIHO(a=0.5), EIHO(a=2.0, rule="dominant", threshold=0.3), ZhaoTanOperator()]
+    net = InverseHysteresisNet(ops, hidden=8, activation="tanh").double()
+    x = batch()
+    net.fit_normalization(x, torch.tanh(x))
+    whole, _ = net(x)
+    torch.testing.assert_close(run_chunked(net, x, [3, 1]), whole, rtol=1e-12, atol=1e-12)
+
+
+def test_one_dimensional_input_streams() -> None:
+    op = EIHO(a=1.0, rule="dominant").double()
+    x = random_walk(7, T=60)
+    whole, _ = op(x)
+    assert whole.shape == x.shape
+    torch.testing.assert_close(run_chunked(op, x, [1]), whole, rtol=1e-12, atol=1e-12)

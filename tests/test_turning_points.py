@@ -1,0 +1,104 @@
+"""turning_points: reference loop, noise threshold, flat stretches, batches, bad input."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from _branch_reference import ref_turning_points
+
+from torchhys.functional import estimate_threshold, turning_points
+
+
+def random_walk(seed: int, T: int = 300, quantize: bool = True) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    steps = torch.randn(T, generator=g, dtype=torch.float64)
+    steps[torch.rand(T, generator=g) < 0.2] = 0.0  # flat stretches / repeated samples
+    x = steps.cumsum(0)
+    return (x * 4).round() / 4 if quantize else x  # quantized: exact ties with the threshold
+
+
+@pytest.mark.parametrize("seed", range(8))
+@pytest.mark.parametrize("threshold", [0.0, 0.5, 1.0, 2.5])
+def test_matches_reference_loop(seed: int, threshold: float) -> None:
+    x = random_walk(seed, quantize=seed % 2 == 0)
+    mask = turning_points(x, threshold=threshold)
+    assert mask.dtype == torch.bool and mask.shape == x.shape
+    assert mask.tolist() == ref_turning_points(x.tolist(), threshold)
+
+
+def test_sine_marks_the_extrema() -> None:
+    t = torch.arange(2000, dtype=torch.float64) * (20 * math.pi / 2000)
+    mask = turning_points(torch.sin(t))
+    idx = mask.nonzero().flatten()
+    assert len(idx) == 20
+    assert torch.allclose(torch.sin(t[idx]).abs(), torch.ones(20, dtype=torch.float64), atol=1e-4)
+
+
+def noisy_sine(seed: int = 0) -> torch.Tensor:
+    t = torch.linspace(0, 10 * 2 * math.pi, 4000, dtype=torch.float64)
+    g = torch.Generator().manual_seed(seed)
+    return torch.sin(t) + 0.005 * 2.0 * torch.randn(t.shape, generator=g, dtype=torch.float64)
+
+
+def test_noise_needs_a_threshold() -> None:
+    x = noisy_sine()
+    assert int(turning_points(x).sum()) > 500  # every wiggle counts without a threshold
+    assert int(turning_points(x, threshold=0.1).sum()) == 20
+    assert int(turning_points(x, threshold="auto").sum()) == 20
+
+
+def test_auto_threshold_estimates_noise_level() -> None:
+    th = float(estimate_threshold(noisy_sine(1)))
+    assert 0.5 * 10 * 0.01 < th < 2 * 10 * 0.01  # factor 10 times sigma = 0.01
+
+
+def test_flat_stretches_are_not_turning_points() -> None:
+    x = torch.tensor([0.0, 0, 0, 1, 1, 1, 2, 2, 2, 2, 1, 1, 0, 0, 1], dtype=torch.float64)
+    mask = turning_points(x)
+    assert mask.nonzero().flatten().tolist() == [6, 12]  # first sample of each flat extremum
+    assert not turning_points(torch.zeros(10)).any()
+
+
+def test_threshold_is_strict() -> None:
+    x = torch.tensor([0.0, 2.0, 1.0, 3.0, 1.0], dtype=torch.float64)
+    assert turning_points(x, threshold=1.0).nonzero().flatten().tolist() == [3]
+    assert turning_points(x, threshold=0.99).nonzero().flatten().tolist() == [1, 2, 3]
+
+
+def test_batch_consistency() -> None:
+    xs = torch.stack([random_walk(s) for s in range(4)])
+    batched = turning_points(xs, threshold=0.5)
+    for row, x in zip(batched, xs, strict=True):
+        assert torch.equal(row, turning_points(x, threshold=0.5))
+    per_row = torch.tensor([0.0, 0.5, 1.0, 2.0], dtype=torch.float64)
+    batched = turning_points(xs, threshold=per_row)
+    for row, x, th in zip(batched, xs, per_row.tolist(), strict=True):
+        assert torch.equal(row, turning_points(x, threshold=th))
+
+
+def test_single_sample_and_float32() -> None:
+    assert turning_points(torch.tensor([1.0])).tolist() == [False]
+    x = random_walk(3).float()
+    assert turning_points(x, threshold=0.5).tolist() == ref_turning_points(x.tolist(), 0.5)
+
+
+@pytest.mark.parametrize(
+    "x, kwargs, error, match",
+    [
+        (torch.tensor([0.0, float("nan")]), {}, ValueError, "x must be finite"),
+        (torch.tensor([0.0, float("inf")]), {}, ValueError, "x must be finite"),
+        (torch.zeros(2, 3, 4), {}, ValueError, r"x must have shape .* got shape \(2, 3, 4\)"),
+        (torch.zeros(0), {}, ValueError, "at least one sample"),
+        (torch.arange(5), {}, TypeError, "x must have a floating-point dtype"),
+        ([0.0, 1.0], {}, TypeError, "x must be a torch.Tensor"),
+        (torch.zeros(5), {"threshold": -1.0}, ValueError, "threshold must be .* got -1.0"),
+        (torch.zeros(5), {"threshold": "median"}, ValueError, "threshold must be .*'median'"),
+        (torch.zeros(5), {"threshold": float("nan")}, ValueError, "threshold"),
+        (torch.zeros(2), {"threshold": "auto"}, ValueError, "at least 3 samples"),
+    ],
+)
+def test_bad_input(x: object, kwargs: dict, error: type, match: str) -> None:
+    with pytest.raises(error, match=match):
+        turning_points(x, **kwargs)  # type: ignore[arg-type]
