@@ -109,6 +109,7 @@ def test_streaming_equals_whole_sequence() -> None:
     first = bouc_wen_state(u[:300], t[:300])
     second = bouc_wen_state(u[299:], t[299:], w0=first[-1])
     torch.testing.assert_close(torch.cat([first, second[1:]]), whole)
+    torch.testing.assert_close(bouc_wen_state(u[:1], t[:1], w0=0.3), u.new_full((1,), 0.3))
 
 
 def test_flat_input_holds_state() -> None:

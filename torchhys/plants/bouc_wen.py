@@ -13,7 +13,9 @@ increasing ``t`` gives the same output). The default solver exploits this: one c
 Runge-Kutta-4 step (or ``substeps`` of them) in the input variable per sample interval,
 which equals RK4 in time on the sample grid. The adaptive solvers of ``torchdiffeq``
 (``method="dopri5"`` etc.) are available too and are told about the kinks through
-``jump_t``; they are slower (every sample restarts the step) and serve as a cross-check.
+``jump_t``; they are several times slower (every sample restarts the step) and serve as
+a cross-check. Cost is one Python-level step per sample: on one CPU core 2500 samples take
+about 0.2 s without autograd; with autograd the backward pass dominates (about 1.4 s).
 
 The piezo form of Low and Guo (1995), ``y = d_p u - h`` with
 ``dh/dt = alpha d_p du/dt - beta |du/dt| h |h|^(n-1) - gamma du/dt |h|^n``, is the case
@@ -46,7 +48,8 @@ DEFAULTS: dict[str, float] = {
 ``k_w = -1`` makes ``y`` lag ``u`` in a counter-clockwise, piezo-like loop whose branches
 stay monotone because ``k_x > A + (beta - gamma) A / (beta + gamma)``. ``|w|`` stays below
 ``A / (beta + gamma) = 1.25``. For ``u = 6 sin(t)`` the output spans about +-4.77 and the
-loop is about 2.0 wide at ``u = 0`` (21 % of the output range).
+loop is about 2.0 wide at ``u = 0`` (21 % of the output range); on the paper's input
+``4 sin(0.5 t) + 2 sin(3 t)`` (+-5.87) from ``w0 = 0`` it spans about -4.97 .. 4.83.
 """
 
 _ADAPTIVE = ("dopri5", "dopri8", "bosh3", "fehlberg2", "adaptive_heun")
@@ -68,6 +71,15 @@ def _scalar(name: str, value: float | Tensor, like: Tensor) -> Tensor:
     return out
 
 
+def _check_options(method: str, substeps: int, rtol: float, atol: float) -> None:
+    if method not in _METHODS:
+        raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
+    if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
+        raise ValueError(f"substeps must be an int >= 1, got {substeps!r}")
+    if not (rtol > 0 and atol > 0):
+        raise ValueError(f"rtol and atol must be > 0, got rtol={rtol}, atol={atol}")
+
+
 def _check_inputs(
     u: Tensor, t: Tensor, w0: float | Tensor | None, method: str, substeps: int,
     rtol: float, atol: float,
@@ -86,12 +98,7 @@ def _check_inputs(
                          f"got shape {tuple(u.shape)}")
     if t.numel() > 1 and not bool((t[1:] > t[:-1]).all()):
         raise ValueError("t must be strictly increasing")
-    if method not in _METHODS:
-        raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
-    if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
-        raise ValueError(f"substeps must be an int >= 1, got {substeps!r}")
-    if not (rtol > 0 and atol > 0):
-        raise ValueError(f"rtol and atol must be > 0, got rtol={rtol}, atol={atol}")
+    _check_options(method, substeps, rtol, atol)
     batch = u.shape[:-1]
     if w0 is None:
         w0 = u.new_zeros(batch)
@@ -248,6 +255,10 @@ class BoucWen(nn.Module):
     ``n = 1`` (the default, as in Low and Guo's piezo model) is a stationary point of that
     map: a model built with ``n = 1`` keeps it; build it with ``n > 1`` to identify ``n``.
 
+    Identification: the coefficients are redundant, ``(A, beta, gamma, k_w)`` and
+    ``(c A, c^(1-n) beta, c^(1-n) gamma, k_w / c)`` give the same output for any ``c > 0``,
+    so hold one of them fixed, e.g. ``model.k_w.requires_grad_(False)``.
+
     Args:
         A, beta, gamma, n, k_x, k_w: Initial coefficients (defaults :data:`DEFAULTS`).
         learnable: Register the coefficients as ``nn.Parameter`` (else as buffers).
@@ -280,7 +291,7 @@ class BoucWen(nn.Module):
                 raise ValueError(f"{name} must be a finite float, got {value!r}")
         if n < 1:
             raise ValueError(f"n must be >= 1, got {n}")
-        _check_inputs(torch.zeros(2), torch.arange(2.0), None, method, substeps, rtol, atol)
+        _check_options(method, substeps, rtol, atol)
         values["n_root"] = math.sqrt(n - 1.0)
         del values["n"]
         for name, value in values.items():
