@@ -37,6 +37,11 @@ def _ratio(num: float, den: float) -> float:
     return num / den if den != 0.0 else 0.0
 
 
+def _accepted(res: LineSearchResult, f0: float) -> bool:
+    """A search result moves the parameters only with a positive step that lowers the loss."""
+    return res.step > 0.0 and res.grad is not None and res.loss < f0
+
+
 class PowellBealeCG(torch.optim.Optimizer):
     """Conjugate gradient with Powell-Beale restarts (``traincgb``) on one flat vector.
 
@@ -60,12 +65,15 @@ class PowellBealeCG(torch.optim.Optimizer):
 
     The step along ``d_k`` comes from a line search: ``"charalambous"`` (default, as
     ``traincgb``'s ``srchcha``), ``"strong_wolfe"``, or a callable
-    ``search(phi, f0, s0, a1) -> LineSearchResult`` (see :mod:`torchhys.optim.line_search`).
+    ``search(phi, f0, s0, a1) -> LineSearchResult`` (see :mod:`torchhys.optim.line_search`;
+    ``phi(a)`` evaluates the closure at ``x + a d`` and the result's ``grad`` must belong to
+    ``x + step d``; a result that does not lower the loss is rejected).
     The first trial step is ``delta`` at the first iteration, afterwards
     ``2 (f_{k-1} - f_k) / |d_k.g_k|`` (falling back to the previous step when that is not
     positive and finite). When a search along a conjugate direction finds no decrease, it is
     retried once along ``-g_k`` (``"failed_search"``); when that fails too the parameters
-    are left unchanged and :attr:`stop_reason` says why. The loss therefore never increases.
+    are left unchanged, :attr:`stop_reason` says why and the next :meth:`step` starts afresh
+    from steepest descent. The loss therefore never increases.
 
     Args:
         params: iterable of parameters (one parameter group), float32 or float64, all of
@@ -277,13 +285,14 @@ class PowellBealeCG(torch.optim.Optimizer):
             d = self._direction(state, g)
             res = self._search(closure, x0, d, f, g, self._first_step(state, f, _dot(g, d)))
             state["func_evals"] += res.evals
-            if res.step == 0.0 and state["last_restart"] not in ("initial", "not_downhill"):
+            if not _accepted(res, f) and state["last_restart"] not in ("initial", "not_downhill"):
                 d = self._restart(state, g.neg(), "failed_search")
                 res = self._search(closure, x0, d, f, g, self._first_step(state, f, _dot(g, d)))
                 state["func_evals"] += res.evals
-            if res.step == 0.0 or res.grad is None:
+            if not _accepted(res, f):
                 self._set_params(x0)
-                state.update(stop_reason=res.status, d=None, prev_flat_grad=None)
+                reason = res.status if res.step == 0.0 else "no_decrease"
+                state.update(stop_reason=reason, d=None, prev_flat_grad=None)
                 break
             self._set_params(torch.add(x0, d, alpha=res.step))
             state.update(d=d, prev_flat_grad=g, t=res.step, prev_loss=f, loss=res.loss)
