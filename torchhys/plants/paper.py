@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from torchhys.functional.prandtl_ishlinskii import prandtl_ishlinskii
+from torchhys.signals import sum_of_sines, time_grid
 
 __all__ = ["Simulation", "fig6_simulation", "paper_simulation", "paper_plant_widths"]
 
@@ -22,14 +23,6 @@ class Simulation(NamedTuple):
     """Plant input, shape (T,): the inverse model's target."""
     h: Tensor
     """Plant output H[x], shape (T,): the inverse model's input."""
-
-
-def _time(dt: float, t_end: float, dtype: torch.dtype) -> Tensor:
-    if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt must be a positive finite number, got {dt!r}")
-    if not (isinstance(t_end, (int, float)) and math.isfinite(t_end) and t_end > dt):
-        raise ValueError(f"t_end must be a finite number larger than dt={dt}, got {t_end!r}")
-    return torch.arange(0.0, t_end, dt, dtype=torch.float64).to(dtype)
 
 
 def paper_plant_widths(dtype: torch.dtype = torch.float32) -> Tensor:
@@ -62,8 +55,8 @@ def paper_simulation(
         :class:`Simulation` ``(t, x, h)``, each of shape (T,). ``h`` is the inverse
         model's input and ``x`` its target.
     """
-    t = _time(dt, t_end, torch.float64)
-    x = 4.0 * torch.sin(0.5 * t) + 2.0 * torch.sin(3.0 * t)
+    t = time_grid(dt=dt, t_end=t_end, dtype=torch.float64)
+    x = sum_of_sines(t, amplitudes=(4.0, 2.0), frequencies=(0.5, 3.0))
     h = _simulate(x, paper_plant_widths(torch.float64), dtype)
     return Simulation(t.to(dtype), x.to(dtype), h)
 
@@ -84,7 +77,7 @@ def fig6_simulation(
     Returns:
         :class:`Simulation` ``(t, x, h)``, each of shape (T,).
     """
-    t = _time(dt, t_end, torch.float64)
-    x = 2.0 * torch.sin(3.0 * t) + 3.0 * torch.sin(0.5 * t)
+    t = time_grid(dt=dt, t_end=t_end, dtype=torch.float64)
+    x = sum_of_sines(t, amplitudes=(2.0, 3.0), frequencies=(3.0, 0.5))
     widths = torch.linspace(0.5, 5.0, 10, dtype=torch.float64)
     return Simulation(t.to(dtype), x.to(dtype), _simulate(x, widths, dtype))
