@@ -29,9 +29,9 @@ if [ ! -x "$PY" ]; then
 fi
 
 STAMP="$ENV_DIR/.torchhys-installed"
-# find_spec locates the package without importing it (importing torch takes seconds)
+# check the installed distribution without importing it (importing torch takes seconds)
 if [ -f "$STAMP" ] && [ "$STAMP" -nt pyproject.toml ] \
-    && "$PY" -c "import importlib.util as u, sys; sys.exit(u.find_spec('torchhys') is None)"; then
+    && "$PY" -c "import importlib.metadata as m; m.version('torchhys')" 2>/dev/null; then
     exit 0
 fi
 
