@@ -63,12 +63,19 @@ def play_step(x_t: Tensor, r: Tensor, y_prev: Tensor) -> Tensor:
 
 
 def _chunking(T: int) -> tuple[int, int]:
-    """Chunk length K and number of chunks C with C * K >= T."""
+    """Chunk length K and number of chunks C with C * K >= T.
+
+    K is near sqrt(T / 2), which balances the two passes over K positions against the
+    pass over C chunks; a divisor of T within 30% of it is preferred (no padding).
+    """
     if T <= 64:
         return T, 1
-    K = max(8, int(math.sqrt(T / 2.0)))
-    C = -(-T // K)
-    return K, C
+    target = max(8, int(math.sqrt(T / 2.0)))
+    for delta in range(0, int(0.3 * target) + 1):
+        for K in (target + delta, target - delta):
+            if K >= 8 and T % K == 0:
+                return K, T // K
+    return target, -(-T // target)
 
 
 def _padded_chunks(x: Tensor, K: int, C: int) -> Tensor:
@@ -112,6 +119,26 @@ def _scan_forward(x: Tensor, r: Tensor, y0: Tensor) -> Tensor:
     return y.view(B, C * K, N)
 
 
+def _clamp_signs(xc: Tensor, r: Tensor, y0: Tensor, yc: Tensor) -> Tensor:
+    """Which bound was active at each sample: +1 (x + r), -1 (x - r), 0 (none), as int8.
+
+    xc (B, C, K, 1), yc (B, C, K, N) -> (K, B, C, N): position-major, so that the scans
+    read contiguous slices. Computed a block of chunks at a time so that the
+    temporaries stay a fraction of the output's size.
+    """
+    B, C, K, N = yc.shape
+    sign = torch.empty(K, B, C, N, dtype=torch.int8, device=yc.device)
+    first_prev = torch.cat([y0.unsqueeze(1), yc[:, :-1, K - 1]], dim=1)  # (B, C, N)
+    step = max(1, C // 8)
+    for c0 in range(0, C, step):
+        c1 = min(C, c0 + step)
+        prev = torch.cat([first_prev[:, c0:c1, None], yc[:, c0:c1, :-1]], dim=2)
+        xb = xc[:, c0:c1]
+        high = (prev > xb + r).to(torch.int8)
+        sign[:, :, c0:c1] = high.sub_((prev < xb - r).to(torch.int8)).permute(2, 0, 1, 3)
+    return sign
+
+
 def _scan_backward(
     g: Tensor, x: Tensor, r: Tensor, y0: Tensor, ybuf: Tensor
 ) -> tuple[Tensor, Tensor, Tensor]:
@@ -124,27 +151,17 @@ def _scan_backward(
     if pad:
         g = torch.cat([g, g.new_zeros(B, pad, N)], dim=1)
     gc = g.reshape(B, C, K, N)
-    yc = ybuf.view(B, C, K, N)
-    # the output before the first sample of each chunk
-    first_prev = torch.cat([y0.unsqueeze(1), yc[:, :-1, K - 1]], dim=1)  # (B, C, N)
-
-    def masks(k: int) -> tuple[Tensor, Tensor]:
-        prev = yc[:, :, k - 1] if k > 0 else first_prev
-        low = prev < xc[:, :, k] - r
-        high = prev > xc[:, :, k] + r
-        return low, high
+    sign = _clamp_signs(xc, r, y0, ybuf.view(B, C, K, N))  # (K, B, C, N) int8
 
     if C > 1:
         # pass 1: local adjoint at each chunk start (no inflow) and its inflow gain
         lam = gc[:, :, K - 1].clone()
         gain = torch.ones_like(lam)
         for k in range(K - 2, -1, -1):
-            low, high = masks(k + 1)
-            passing = ~(low | high)
+            passing = sign[k + 1] == 0
             lam = gc[:, :, k] + lam * passing
             gain = gain * passing
-        low, high = masks(0)
-        passing0 = ~(low | high)
+        passing0 = sign[0] == 0
         # carries: inflow into the last sample of each chunk, from the next chunk
         inflow = torch.zeros(B, C, N, dtype=g.dtype, device=g.device)
         mu = torch.zeros(B, N, dtype=g.dtype, device=g.device)
@@ -156,15 +173,17 @@ def _scan_backward(
         inflow = torch.zeros(B, 1, N, dtype=g.dtype, device=g.device)
     # pass 2: the adjoint, reduced on the fly
     grad_x = torch.empty(B, C, K, dtype=g.dtype, device=g.device)
-    grad_r = torch.zeros(N, dtype=g.dtype, device=g.device)
+    acc_r = torch.zeros(B, C, N, dtype=g.dtype, device=g.device)
     lam = inflow
     passing_next = None
     for k in range(K - 1, -1, -1):
         lam = gc[:, :, k] + (inflow if passing_next is None else lam * passing_next)
-        low, high = masks(k)
-        grad_x[:, :, k] = (lam * (low | high)).sum(-1)
-        grad_r += (lam * high).sum((0, 1)) - (lam * low).sum((0, 1))
-        passing_next = ~(low | high)
+        sk = sign[k].to(g.dtype)
+        contrib = lam * sk  # +lam where clamped at x + r, -lam at x - r
+        acc_r += contrib
+        grad_x[:, :, k] = (contrib * sk).sum(-1)
+        passing_next = sign[k] == 0
+    grad_r = acc_r.sum((0, 1))
     grad_y0 = lam[:, 0] * passing_next[:, 0]
     return grad_x.view(B, C * K)[:, :T], grad_r, grad_y0
 
