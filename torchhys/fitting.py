@@ -1,4 +1,6 @@
-"""Full-batch training of inverse-hysteresis networks (Adam, then L-BFGS)."""
+"""Fitting: full-batch training of inverse-hysteresis networks (Adam, then L-BFGS), and the
+least-squares identification of Prandtl-Ishlinskii models (a causal inverse model of a
+hysteretic plant, or a feature for the network)."""
 
 from __future__ import annotations
 
@@ -9,9 +11,12 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchhys._checks import as_batched_sequence, check_widths
+from torchhys.functional.backlash import backlash
 from torchhys.networks import InverseHysteresisNet
+from torchhys.prandtl_ishlinskii import PrandtlIshlinskii
 
-__all__ = ["FitResult", "fit_full_batch"]
+__all__ = ["FitResult", "fit_full_batch", "fit_prandtl_ishlinskii", "play_width_grid"]
 
 
 class FitResult(NamedTuple):
@@ -97,3 +102,94 @@ def fit_full_batch(
     if not math.isfinite(mse):
         raise FloatingPointError(f"training diverged: final MSE {mse}")
     return FitResult(mse, adam_epochs + done, time.perf_counter() - start)
+
+
+def play_width_grid(u: Tensor, n: int = 30, *, power: float = 3.0) -> Tensor:
+    """Dead-band widths ``span(u) (k / n)^power``, ``k = 1..n``, for a model of input ``u``.
+
+    The inverse of a Prandtl-Ishlinskii plant is a Prandtl-Ishlinskii model of the plant's
+    output whose loading curve bends most right after a reversal (its thresholds
+    ``r'_j = sum_{i<=j} w_i (r_j - r_i)`` grow quadratically for evenly spaced plant widths,
+    and a plant without a linear term makes the inverse jump at every reversal). A grid
+    dense at small widths (``power=3``) covers both: its smallest width (``span / n^3``)
+    acts as a direction-of-motion feature, its largest is the span of ``u``.
+
+    Args:
+        u: the model's input, (time,) or (batch, time) (only its range is used).
+        n: number of widths, >= 1.
+        power: grid exponent, > 0 (1: evenly spaced).
+
+    Returns:
+        Full widths, shape (n,), increasing, dtype of ``u``.
+
+    Raises:
+        TypeError, ValueError: bad ``u``, ``n`` or ``power``; a constant ``u``.
+    """
+    ub, _ = as_batched_sequence(u, "u")
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise ValueError(f"n must be an int >= 1, got {n!r}")
+    if not (isinstance(power, (int, float)) and math.isfinite(power) and power > 0):
+        raise ValueError(f"power must be a positive number, got {power!r}")
+    span = (ub.max() - ub.min()).detach()
+    if float(span) == 0.0:
+        raise ValueError("u is constant: its span gives no scale for the widths")
+    k = torch.arange(1, n + 1, dtype=ub.dtype, device=ub.device)
+    return span * (k / n) ** power
+
+
+def fit_prandtl_ishlinskii(
+    u: Tensor, y: Tensor, widths: Tensor, *, ridge: float = 0.0, learnable: bool = False,
+) -> PrandtlIshlinskii:
+    """Least-squares Prandtl-Ishlinskii model ``y ~ w0 u + sum_i w_i play_{d_i}[u]``.
+
+    With the widths fixed the output is linear in the weights, so they solve a linear
+    least-squares problem (the classical identification of a PI model). Fitted from the
+    plant's output ``u = h`` to its input ``y = x`` it is a causal inverse model of the
+    plant: the exact inverse of an invertible PI plant when ``widths`` holds its inverse
+    thresholds (:func:`~torchhys.functional.prandtl_ishlinskii_inverse_parameters`), and a
+    strong one from a dense :func:`play_width_grid` otherwise. Use it as a compensator, or as
+    an operator of :class:`~torchhys.InverseHysteresisNet` (the network then models the
+    residual). Play states start at zero, as in the returned model.
+
+    Args:
+        u: model input, (time,) or (batch, time) (rows are independent records).
+        y: target, same shape.
+        widths: full dead-band widths d_i >= 0, shape (N,).
+        ridge: Tikhonov weight: minimizes ``mean(residual^2) + ridge * |w|^2`` (w without
+            ``w0``), >= 0.
+        learnable: return a model with trainable widths and weights.
+
+    Returns:
+        :class:`~torchhys.PrandtlIshlinskii` in the dtype of ``u`` (detached parameters).
+
+    Raises:
+        TypeError, ValueError: bad or mismatched ``u``, ``y``, ``widths``, ``ridge``.
+
+    References:
+        K. Kuhnen, "Modeling, identification and compensation of complex hysteretic
+        nonlinearities: a modified Prandtl-Ishlinskii approach", European Journal of
+        Control 9(4), 2003.
+    """
+    ub, _ = as_batched_sequence(u, "u")
+    yb, _ = as_batched_sequence(y, "y")
+    if yb.shape != ub.shape:
+        raise ValueError(f"y must have the shape of u {tuple(u.shape)}, got {tuple(y.shape)}")
+    check_widths(widths, "widths")
+    if not (isinstance(ridge, (int, float)) and math.isfinite(ridge) and ridge >= 0):
+        raise ValueError(f"ridge must be a finite number >= 0, got {ridge!r}")
+    with torch.no_grad():
+        ub64, yb64 = ub.detach().double().cpu(), yb.detach().double().cpu()
+        plays = backlash(ub64, widths.detach().double().cpu())
+        design = torch.cat([ub64.unsqueeze(-1), plays], dim=-1).reshape(-1, widths.shape[0] + 1)
+        n = design.shape[0]
+        target = yb64.reshape(-1, 1)
+        if ridge > 0:
+            penalty = torch.eye(widths.shape[0] + 1, dtype=torch.float64)[1:] * math.sqrt(ridge)
+            design = torch.cat([design / math.sqrt(n), penalty])
+            target = torch.cat([target / math.sqrt(n), target.new_zeros(widths.shape[0], 1)])
+        w = torch.linalg.lstsq(design, target, driver="gelsd").solution[:, 0]  # rank-revealing
+    model = PrandtlIshlinskii(
+        widths.detach().to(ub.dtype), w[1:].to(ub.dtype), linear_weight=float(w[0]),
+        learnable=learnable,
+    )
+    return model.to(ub.device)

@@ -36,7 +36,13 @@ class PrandtlIshlinskii(_Widths):
         - returns ``(H, final_state)``: H has the shape of x; final_state holds the
           play-operator outputs at the last sample, (N,) or (batch, N), to pass to the
           next call on the continuation of the sequence.
+
+    Usable as an operator of :class:`~torchhys.InverseHysteresisNet` (one output feature),
+    e.g. a least-squares inverse from :func:`torchhys.fitting.fit_prandtl_ishlinskii`.
     """
+
+    #: Number of output features when used as an operator of an InverseHysteresisNet.
+    n_outputs: int = 1
 
     def __init__(
         self,
