@@ -10,11 +10,17 @@ first evaluated point whose loss falls below a target, on
 * a small MLP regression (1-20-20-1, tanh, 200 samples of sin(3x) + x / 2, float64) from
   three seeded initialisations, target mean squared error < 1e-4.
 
-Every method evaluates the same torch function; a run stops at the target or after
-``BUDGET`` evaluations. scipy is optional: its rows are skipped with a message when it is not
-installed. Prints a markdown table.
+Every method evaluates the same torch function through one counting closure: each call
+counts once, including the evaluation at the start of each ``PowellBealeCG.step`` and scipy's
+evaluation at the starting point (the count equals scipy's ``nfev``). A run stops at the
+target or after ``BUDGET`` evaluations. PowellBealeCG runs with ``iterations_per_step=50``
+and, as a training loop calls it, with one iteration per ``step`` (with and without
+``reuse_evaluation``). scipy is optional: its rows are skipped with a message when it is not
+installed. Prints a markdown table; ``--starts K`` then prints, for PowellBealeCG's default
+and scipy's CG, the evaluations from K further starts per problem family (MLP
+initialisations 3, 4, ...; Rosenbrock starts perturbed by seeded N(0, 0.5^2) noise).
 
-Usage: ``python benchmarks/cg.py [--repeats 3]``
+Usage: ``python benchmarks/cg.py [--repeats 3] [--starts 0]``
 """
 
 from __future__ import annotations
@@ -118,9 +124,11 @@ PROBLEMS = [
 ]
 
 
-def run_powell_beale(problem: Problem, line_search: str) -> Outcome:
+def run_powell_beale(problem: Problem, line_search: str, iterations_per_step: int = 50,
+                     reuse: bool = False) -> Outcome:
     params = problem.make_params()
-    opt = PowellBealeCG(params, iterations_per_step=50, line_search=line_search)
+    opt = PowellBealeCG(params, iterations_per_step=iterations_per_step,
+                        line_search=line_search, reuse_evaluation=reuse)
     counter = Counter(problem, params)
     try:
         while opt.stop_reason is None:
@@ -191,6 +199,10 @@ def run_scipy_cg(problem: Problem) -> Outcome:
 
 METHODS: dict[str, Callable[[Problem], Outcome]] = {
     "PowellBealeCG (charalambous)": lambda p: run_powell_beale(p, "charalambous"),
+    "PowellBealeCG (charalambous), 1 iteration/step": lambda p: run_powell_beale(
+        p, "charalambous", 1),
+    "PowellBealeCG (charalambous), 1 iteration/step, reuse": lambda p: run_powell_beale(
+        p, "charalambous", 1, True),
     "PowellBealeCG (strong_wolfe)": lambda p: run_powell_beale(p, "strong_wolfe"),
     "scipy CG": run_scipy_cg,
     "torch LBFGS (strong_wolfe)": run_lbfgs,
@@ -198,9 +210,51 @@ METHODS: dict[str, Callable[[Problem], Outcome]] = {
 }
 
 
+def perturbed_rosenbrock_start(n: int, seed: int) -> Callable[[], list[torch.Tensor]]:
+    gen = torch.Generator().manual_seed(seed)
+    x0 = rosenbrock_start(n)()[0].detach()
+    x0 = x0 + 0.5 * torch.randn(n, generator=gen, dtype=torch.float64)
+    return lambda: [x0.clone().requires_grad_()]
+
+
+def further_starts(k: int) -> dict[str, list[Problem]]:
+    """K further starts per problem family, none of them among ``PROBLEMS``."""
+    families: dict[str, list[Problem]] = {}
+    for name, n, loss in [("ext. Rosenbrock n=10", 10, extended_rosenbrock),
+                          ("ext. Rosenbrock n=100", 100, extended_rosenbrock),
+                          ("chained Rosenbrock n=10", 10, chained_rosenbrock)]:
+        families[name] = [Problem(name, perturbed_rosenbrock_start(n, s), loss, 1e-8, 1e-2)
+                          for s in range(k)]
+    families["MLP 1-20-20-1 regression"] = [
+        Problem("MLP", mlp_start(s), mlp_loss, 1e-4, 1e-2) for s in range(3, 3 + k)
+    ]
+    return families
+
+
+def print_starts(k: int) -> None:
+    """Evaluations of PowellBealeCG's default and scipy's CG from further starts; the
+    evaluation counts are compared over the starts from which both reach the target."""
+    print(f"\n| family ({k} further starts) | reached (ours / scipy) | evals, median (ours / "
+          "scipy) | ours <= scipy | median ratio ours / scipy |")
+    print("|---|---:|---:|---:|---:|")
+    for name, problems in further_starts(k).items():
+        ours = [run_powell_beale(p, "charalambous") for p in problems]
+        theirs = [run_scipy_cg(p) for p in problems]
+        pairs = [(a.evals, b.evals) for a, b in zip(ours, theirs, strict=True)
+                 if a.reached and b.reached]
+        if not pairs:
+            continue
+        print(f"| {name} | {sum(o.reached for o in ours)} / {sum(o.reached for o in theirs)} | "
+              f"{statistics.median(a for a, _ in pairs):g} / "
+              f"{statistics.median(b for _, b in pairs):g} | "
+              f"{sum(a <= b for a, b in pairs)}/{len(pairs)} | "
+              f"{statistics.median(a / b for a, b in pairs):.2f} |", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--starts", type=int, default=0)
     args = parser.parse_args()
     torch.set_num_threads(1)
     try:
@@ -220,6 +274,8 @@ def main() -> None:
             print(f"| {problem.name} | {name} | {outcome.evals} | {outcome.iterations} | "
                   f"{statistics.median(times):.3f} | {outcome.final:.2e} | "
                   f"{'yes' if outcome.reached else 'no'} |", flush=True)
+    if args.starts > 0 and "scipy CG" in METHODS:
+        print_starts(args.starts)
 
 
 if __name__ == "__main__":

@@ -116,3 +116,12 @@ def test_charalambous_stops_on_a_narrow_bracket_with_the_best_point():
     assert res.status == "tolerance"
     assert res.loss < 0.0 and res.loss == abs(res.step - 1.0) - 1.0
     assert len(calls) < 100
+
+
+@pytest.mark.parametrize("search", SEARCHES)
+def test_a_first_trial_that_meets_both_conditions_is_accepted_at_once(search):
+    # phi'(1.05) = 0.1 * phi'(0) / (-1): within beta = 0.1 of a zero slope, no interpolation.
+    phi, calls = make_phi(lambda a: (a - 1.0) ** 2, lambda a: 2.0 * (a - 1.0))
+    res = search(phi, 1.0, -2.0, 1.05, alpha=1e-3, beta=0.1)
+    assert res.status == "ok" and res.evals == 1 and calls == [1.05]
+    assert res.step == 1.05 and res.loss == pytest.approx(0.0025)

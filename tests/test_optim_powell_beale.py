@@ -181,3 +181,40 @@ def test_not_downhill_rule_replaces_the_direction_by_steepest_descent():
 def test_failed_conjugate_search_retries_along_steepest_descent():
     state, g = _one_crafted_step(_orthogonal_to, _orthogonal_to, max_evals=1, delta=1e6)
     assert state["restarts"]["failed_search"] == 1
+
+
+# --- first trial step ------------------------------------------------------------------
+def _first_trials(fun, x0, iterations=1, **options):
+    trials = []
+
+    def recording(phi, f0, s0, a1):
+        trials.append((a1, f0, s0))
+        return exact_quadratic_search(phi, f0, s0, a1)
+
+    x, opt, closure = make(fun, x0, line_search=recording, tolerance_grad=0.0, **options)
+    for _ in range(iterations):
+        opt.step(closure)
+    return trials
+
+
+@pytest.mark.parametrize("offset,delta", [(0.0, 0.01), (0.0, 50.0), (-100.0, 0.01)])
+def test_first_trial_of_the_first_iteration_follows_traincgb(offset, delta):
+    a, b = spd_quadratic(5)
+    fun = lambda x: 0.5 * x @ a @ x - b @ x + 0.5 * b @ torch.linalg.solve(a, b) + offset  # noqa: E731
+    x0 = torch.ones(5, dtype=torch.float64)
+    (a1, f0, s0), = _first_trials(fun, x0, delta=delta)
+    g_norm = current_grad(fun, x0).norm().item()
+    assert s0 == pytest.approx(-(g_norm**2))
+    # delta is a length along the unit direction; 2 f0 / |s0| reaches a loss of 0 on a
+    # quadratic model and does not count when f0 <= 0.
+    expected = max(delta / g_norm, 2.0 * f0 / abs(s0)) if f0 > 0 else delta / g_norm
+    assert a1 == pytest.approx(expected, rel=1e-12)
+    assert (f0 > 0) == (offset == 0.0)
+
+
+def test_later_first_trials_assume_the_previous_decrease():
+    a, b = spd_quadratic(6)
+    fun = lambda x: 0.5 * x @ a @ x - b @ x  # noqa: E731
+    trials = _first_trials(fun, torch.ones(6, dtype=torch.float64), iterations=4)
+    for (_, f_prev, _), (a1, f, s0) in zip(trials, trials[1:], strict=False):
+        assert a1 == pytest.approx(2.0 * (f_prev - f) / abs(s0), rel=1e-12)

@@ -94,19 +94,20 @@ def _run(params, opt, steps):
         opt.step(closure)
 
 
-def test_resume_from_state_dict_equals_uninterrupted_run():
+@pytest.mark.parametrize("reuse", [False, True])
+def test_resume_from_state_dict_equals_uninterrupted_run(reuse):
     ref = _two_params()
-    ref_opt = PowellBealeCG(ref, tolerance_grad=0.0)
+    ref_opt = PowellBealeCG(ref, tolerance_grad=0.0, reuse_evaluation=reuse)
     _run(ref, ref_opt, 24)
     first = _two_params()
-    opt = PowellBealeCG(first, tolerance_grad=0.0)
+    opt = PowellBealeCG(first, tolerance_grad=0.0, reuse_evaluation=reuse)
     _run(first, opt, 11)
     buffer = io.BytesIO()
     torch.save({"params": [p.detach() for p in first], "opt": opt.state_dict()}, buffer)
     buffer.seek(0)
     saved = torch.load(buffer)
     resumed = [p.clone().requires_grad_(True) for p in saved["params"]]
-    opt2 = PowellBealeCG(resumed, tolerance_grad=0.0)
+    opt2 = PowellBealeCG(resumed, tolerance_grad=0.0, reuse_evaluation=reuse)
     opt2.load_state_dict(saved["opt"])
     _run(resumed, opt2, 13)
     for a, b in zip(ref, resumed, strict=True):
@@ -122,6 +123,63 @@ def test_float32_and_float64(dtype):
     assert all(p.dtype == dtype for p in params)
     assert opt.state[params[0]]["d_t"].dtype == dtype
     assert float(_loss(params).detach()) < (1e-6 if dtype == torch.float32 else 1e-10)
+
+
+# --- reusing the evaluation at the end of the previous step ----------------------------
+def _counted(params, **options):
+    opt = PowellBealeCG(params, tolerance_grad=0.0, **options)
+    calls = [0]
+
+    def closure():
+        calls[0] += 1
+        opt.zero_grad()
+        loss = _loss(params)
+        loss.backward()
+        return loss
+
+    return opt, closure, calls
+
+
+def test_reuse_makes_single_iteration_steps_cost_what_one_long_step_costs():
+    long_params = _two_params()
+    long_opt, closure, long_calls = _counted(long_params, iterations_per_step=12)
+    long_opt.step(closure)
+    for reuse, extra in [(True, 0), (False, 11)]:
+        params = _two_params()
+        opt, closure, calls = _counted(params, reuse_evaluation=reuse)
+        ends = []
+        for _ in range(12):
+            returned = opt.step(closure)
+            if ends:  # the loss before this step is the one the previous step ended at
+                assert float(returned.detach()) == ends[-1]
+            ends.append(opt.state[params[0]]["loss"])
+        assert all(torch.equal(a, b) for a, b in zip(params, long_params, strict=True))
+        assert calls[0] == long_calls[0] + extra == opt.state[params[0]]["func_evals"]
+
+
+def test_a_state_dict_without_the_reuse_option_loads():
+    params = _two_params()
+    opt, closure, _ = _counted(params)
+    opt.step(closure)
+    saved = opt.state_dict()
+    del saved["param_groups"][0]["reuse_evaluation"]
+    opt2, closure2, _ = _counted(params)
+    opt2.load_state_dict(saved)
+    assert opt2.param_groups[0]["reuse_evaluation"] is False
+    opt2.step(closure2)
+
+
+def test_reuse_evaluates_again_when_the_parameters_changed():
+    params = _two_params()
+    opt, closure, calls = _counted(params, reuse_evaluation=True)
+    opt.step(closure)
+    with torch.no_grad():
+        params[1].add_(1e-3)
+    expected = float(_loss(params).detach())
+    before = calls[0]
+    returned = opt.step(closure)
+    assert float(returned.detach()) == expected
+    assert calls[0] > before + 1  # the start was evaluated, then the line search ran
 
 
 def test_several_shapes_follow_the_flat_trajectory():
@@ -172,6 +230,7 @@ def test_parameter_without_grad_counts_as_zero_gradient():
         (dict(line_search="armijo"), ValueError, "charalambous"),
         (dict(line_search=3), TypeError, "line_search"),
         (dict(alpha="small"), TypeError, "alpha"),
+        (dict(reuse_evaluation=1), TypeError, "reuse_evaluation"),
     ],
 )
 def test_bad_options_raise(options, error, match):

@@ -1,7 +1,9 @@
 """PowellBealeCG against an independent float64 reference written with numpy and plain loops.
 
 The reference follows the documented method (Beale's three-term recurrence, Powell's
-restart tests, the Charalambous-style cubic search with its safeguards) without sharing
+restart tests, the Charalambous-style cubic search with its safeguards, and traincgb's first
+trial step: at the first iteration the larger of the unit-direction length ``delta`` and the
+minimizer ``2 f_0 / |slope|`` of the quadratic whose minimum value is 0) without sharing
 any code with the library; the cubic step comes from fitted polynomial coefficients.
 """
 
@@ -116,9 +118,12 @@ def reference_cg(fg, x0, iterations, alpha=1e-3, beta=0.1, gamma=0.1, delta=0.01
         if reason is not None:
             d_t, y_t, since = d, None, 0
         slope = d @ g
-        a1 = delta if f_old is None else 2.0 * (f_old - f) / abs(slope)
-        if not (np.isfinite(a1) and a1 > 0.0):
-            a1 = step_old
+        if f_old is None:  # traincgb: unit-length direction, change in loss taken as f
+            a1 = max(delta / np.linalg.norm(d), 2.0 * f / abs(slope))
+        else:
+            a1 = 2.0 * (f_old - f) / abs(slope)
+            if not (np.isfinite(a1) and a1 > 0.0):
+                a1 = step_old
 
         def phi(a, d=d, x=x):
             fa, ga = fg(x + a * d)

@@ -47,6 +47,10 @@ def check_options(options: Mapping[str, Any], searches: Mapping[str, Any]) -> No
     for name in ("minstep", "tolerance_grad"):
         if not options[name] >= 0.0:
             raise ValueError(f"{name} must be non-negative; got {options[name]}")
+    if not isinstance(options["reuse_evaluation"], bool):
+        raise TypeError(
+            f"reuse_evaluation must be a bool; got {type(options['reuse_evaluation']).__name__}"
+        )
     every = options["restart_every"]
     if every is not None and (not _is_int(every) or every < 1):
         raise ValueError(f"restart_every must be None or an int >= 1; got {every!r}")

@@ -8,6 +8,7 @@ References:
     C. Charalambous, "Conjugate gradient algorithm for efficient training of artificial
     neural networks", IEE Proceedings G 139(3), 1992.
     M. T. Hagan, H. B. Demuth and M. H. Beale, "Neural Network Design", chapter 12.
+    J. Nocedal and S. J. Wright, "Numerical Optimization", 2nd ed., Springer, 2006, sec. 3.5.
 """
 
 from __future__ import annotations
@@ -68,9 +69,16 @@ class PowellBealeCG(torch.optim.Optimizer):
     ``search(phi, f0, s0, a1) -> LineSearchResult`` (see :mod:`torchhys.optim.line_search`;
     ``phi(a)`` evaluates the closure at ``x + a d`` and the result's ``grad`` must belong to
     ``x + step d``; a result that does not lower the loss is rejected).
-    The first trial step is ``delta`` at the first iteration, afterwards
-    ``2 (f_{k-1} - f_k) / |d_k.g_k|`` (falling back to the previous step when that is not
-    positive and finite). When a search along a conjugate direction finds no decrease, it is
+    The first trial step of the first iteration is that of ``traincgb`` (whose directions
+    have unit length): the larger of the parameter-space length ``delta`` and the minimizer
+    ``2 f_0 / |d_0.g_0|`` of the quadratic with value ``f_0`` and slope ``d_0.g_0`` at ``0``
+    and minimum value ``0``, i.e. ``max(delta / ||d_0||, 2 f_0 / |d_0.g_0|)``; only
+    ``delta / ||d_0||`` counts when ``f_0 <= 0``. Later it is
+    ``2 (f_{k-1} - f_k) / |d_k.g_k|`` (Nocedal and Wright, eq. 3.61), or the previous step
+    when that is not positive and finite. ``traincgb`` also raises a later first trial to at
+    least the previous step and ``delta``; that is left out here, since it makes the first
+    trial overshoot and costs more evaluations per search.
+    When a search along a conjugate direction finds no decrease, it is
     retried once along ``-g_k`` (``"failed_search"``); when that fails too the parameters
     are left unchanged, :attr:`stop_reason` says why and the next :meth:`step` starts afresh
     from steepest descent. The loss therefore never increases.
@@ -83,7 +91,8 @@ class PowellBealeCG(torch.optim.Optimizer):
         alpha: sufficient-decrease constant, ``0 < alpha < beta``.
         beta: slope constant, ``alpha < beta < 1``.
         gamma: interpolation safeguard, ``0 < gamma < 0.5``.
-        delta: first trial step of the first iteration, positive.
+        delta: parameter-space length ``a ||d||`` of the smallest first trial of the first
+            iteration, positive.
         scale_tol: best step over the bracket width at which the Charalambous search stops,
             positive.
         minstep: smallest parameter-space step length ``a ||d||`` worth trying, ``>= 0``.
@@ -91,6 +100,12 @@ class PowellBealeCG(torch.optim.Optimizer):
         tolerance_grad: stop (converged) when ``max |g| <= tolerance_grad``, ``>= 0``.
         restart_every: iterations per Beale cycle, ``None`` for ``n``.
         orthogonality: threshold of Powell's orthogonality test, positive.
+        reuse_evaluation: when ``True``, a :meth:`step` that finds the parameters exactly as
+            the previous one left them reuses the loss and gradient computed there instead of
+            calling ``closure`` first, saving one evaluation per call (one per iteration with
+            ``iterations_per_step=1``). Only valid when ``closure`` is a deterministic
+            function of the parameters across calls (full batch, no dropout, unchanged data);
+            Lightning's automatic optimization expects every ``step`` to call the closure.
 
     Attributes:
         stop_reason: why the last :meth:`step` call stopped early, or ``None``:
@@ -101,7 +116,9 @@ class PowellBealeCG(torch.optim.Optimizer):
             ``d_t``, ``y_t`` (shape ``(n,)`` or ``None``), the counters ``n_iter``,
             ``func_evals``, ``since_restart``, a dict ``restarts`` counting restarts by
             reason, ``last_restart`` (reason at the last iteration or ``None``), the last
-            step ``t`` and the losses ``prev_loss``, ``loss``.
+            step ``t`` and the losses ``prev_loss``, ``loss``; with ``reuse_evaluation`` also
+            ``eval_params``, ``eval_loss``, ``eval_grad``: the flat parameters at the end of the
+            last :meth:`step` that ended at a finite loss, and the loss and flat gradient there.
 
     Raises:
         ValueError: for an invalid option, more than one parameter group, or mixed dtypes.
@@ -124,12 +141,13 @@ class PowellBealeCG(torch.optim.Optimizer):
         tolerance_grad: float = 1e-10,
         restart_every: int | None = None,
         orthogonality: float = 0.2,
+        reuse_evaluation: bool = False,
     ) -> None:
         defaults = dict(
             iterations_per_step=iterations_per_step, line_search=line_search, alpha=alpha,
             beta=beta, gamma=gamma, delta=delta, scale_tol=scale_tol, minstep=minstep,
             max_evals=max_evals, tolerance_grad=tolerance_grad, restart_every=restart_every,
-            orthogonality=orthogonality,
+            orthogonality=orthogonality, reuse_evaluation=reuse_evaluation,
         )
         check_options(defaults, _SEARCHES)
         super().__init__(params, defaults)
@@ -146,6 +164,11 @@ class PowellBealeCG(torch.optim.Optimizer):
         if len(dtypes) != 1:
             raise ValueError(f"parameters must share one dtype and device; got {dtypes}")
         self._numel = sum(p.numel() for p in self._params)
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        super().__setstate__(state)
+        for group in self.param_groups:  # state dicts saved before the option existed
+            group.setdefault("reuse_evaluation", False)
 
     # ----------------------------------------------------------------------------------
     @property
@@ -238,12 +261,25 @@ class PowellBealeCG(torch.optim.Optimizer):
             search = partial(_SEARCHES[search], **kwargs)
         return search(phi, f0, s0, a1)
 
-    def _first_step(self, state: dict[str, Any], f: float, s0: float) -> float:
-        prev_loss, t = state["prev_loss"], state["t"]
-        if prev_loss is None:
-            return self.param_groups[0]["delta"]
-        a1 = 2.0 * (prev_loss - f) / abs(s0)
-        return a1 if math.isfinite(a1) and a1 > 0.0 else t
+    def _first_step(self, state: dict[str, Any], f: float, d: Tensor, s0: float) -> float:
+        """First trial step along ``d`` (shape ``(n,)``) with slope ``s0 = g.d``."""
+        if state["prev_loss"] is None:
+            a1 = self.param_groups[0]["delta"] / float(torch.linalg.vector_norm(d))
+            estimate = 2.0 * f / abs(s0)
+            return max(a1, estimate) if math.isfinite(estimate) else a1
+        a1 = 2.0 * (state["prev_loss"] - f) / abs(s0)
+        return a1 if math.isfinite(a1) and a1 > 0.0 else state["t"]
+
+    def _evaluate(self, closure: Callable[[], Tensor]) -> tuple[Tensor, float, Tensor]:
+        """Loss tensor, loss and flat gradient ``(n,)`` at the current parameters."""
+        state = self._state
+        if self.param_groups[0]["reuse_evaluation"] and state.get("eval_params") is not None:
+            if torch.equal(state["eval_params"], self._flat_params()):
+                f = state["eval_loss"]
+                return state["eval_grad"].new_tensor(f), f, state["eval_grad"]
+        loss = closure()
+        state["func_evals"] += 1
+        return loss, float(loss.detach()), self._flat_grad()
 
     # ----------------------------------------------------------------------------------
     @torch.no_grad()
@@ -252,10 +288,12 @@ class PowellBealeCG(torch.optim.Optimizer):
 
         Args:
             closure: re-evaluates the model, calls ``backward`` and returns the loss
-                (a scalar tensor). Called once at the start and once per line-search trial.
+                (a scalar tensor). Called once at the start (unless ``reuse_evaluation``
+                applies) and once per line-search trial.
 
         Returns:
-            The loss at the parameters before the step (as returned by ``closure``).
+            The loss at the parameters before the step (as returned by ``closure``, or the
+            reused value as a tensor of the parameters' dtype).
 
         Raises:
             TypeError: when ``closure`` is missing or not callable.
@@ -271,9 +309,7 @@ class PowellBealeCG(torch.optim.Optimizer):
                          n_iter=0, func_evals=0, t=group["delta"], prev_loss=None, loss=None,
                          restarts=dict.fromkeys(_RESTART_REASONS, 0), last_restart=None)
         state["stop_reason"] = None
-        orig_loss = closure()
-        f, g = float(orig_loss.detach()), self._flat_grad()
-        state["func_evals"] += 1
+        orig_loss, f, g = self._evaluate(closure)
         if not (math.isfinite(f) and bool(torch.isfinite(g).all())):
             state["stop_reason"] = "non_finite_loss"
             return orig_loss
@@ -283,11 +319,11 @@ class PowellBealeCG(torch.optim.Optimizer):
                 break
             x0 = self._flat_params()
             d = self._direction(state, g)
-            res = self._search(closure, x0, d, f, g, self._first_step(state, f, _dot(g, d)))
+            res = self._search(closure, x0, d, f, g, self._first_step(state, f, d, _dot(g, d)))
             state["func_evals"] += res.evals
             if not _accepted(res, f) and state["last_restart"] not in ("initial", "not_downhill"):
                 d = self._restart(state, g.neg(), "failed_search")
-                res = self._search(closure, x0, d, f, g, self._first_step(state, f, _dot(g, d)))
+                res = self._search(closure, x0, d, f, g, self._first_step(state, f, d, _dot(g, d)))
                 state["func_evals"] += res.evals
             if not _accepted(res, f):
                 self._set_params(x0)
@@ -298,4 +334,6 @@ class PowellBealeCG(torch.optim.Optimizer):
             state.update(d=d, prev_flat_grad=g, t=res.step, prev_loss=f, loss=res.loss)
             state["n_iter"] += 1
             f, g = res.loss, res.grad
+        if group["reuse_evaluation"]:  # f and g belong to the parameters as they are now
+            state.update(eval_params=self._flat_params(), eval_loss=f, eval_grad=g)
         return orig_loss
