@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 
 def ref_turning_points(x: list[float], threshold: float) -> list[bool]:
@@ -29,10 +30,16 @@ def _g(u: float, a: float, kind: str) -> float:
 def ref_branch(
     x: list[float], *, a_up: float = 1.0, a_down: float = 1.0, threshold: float = 0.0,
     rule: str = "recent", kind: str = "eiho", depth: int = 32, a_seg: list[float] | None = None,
+    a_anchor: Callable[[int, float], float] | None = None,
 ) -> list[float]:
-    """The branch operator (EIHO / Zhao-Tan) written as a per-sample loop."""
+    """The branch operator (EIHO / Zhao-Tan) written as a per-sample loop.
 
-    def coef(s: int, seg: int) -> float:
+    ``a_anchor(direction, x_e)``: a coefficient that depends on the branch's start point.
+    """
+
+    def coef(s: int, seg: int, x_e: float) -> float:
+        if a_anchor is not None:
+            return a_anchor(s, x_e)
         if a_seg is not None:
             return a_seg[min(seg, len(a_seg) - 1)]
         return a_up if s >= 0 else a_down
@@ -60,7 +67,7 @@ def ref_branch(
             if d != 0 and moved != d:
                 top = anchor(stack, m, d) if rule == "dominant" else len(stack) - 1
                 ax, af, aseg = stack[top]
-                fv = af + d * _g(abs(m - ax), coef(d, aseg), kind)
+                fv = af + d * _g(abs(m - ax), coef(d, aseg, ax), kind)
                 nseg += 1
                 if rule == "recent":
                     stack = [(m, fv, nseg)]
@@ -72,8 +79,8 @@ def ref_branch(
             d, m = moved, xt
         top = anchor(stack, m, d) if rule == "dominant" else len(stack) - 1
         ax, af, aseg = stack[top]
-        f_m = af + d * _g(abs(m - ax), coef(d, aseg), kind)
+        f_m = af + d * _g(abs(m - ax), coef(d, aseg, ax), kind)
         s = -d if d != 0 else (1 if xt > m else (-1 if xt < m else 0))
         u = max(s * (xt - m), 0.0)
-        out.append(f_m + s * _g(u, coef(s, nseg + 1 if d != 0 else nseg), kind))
+        out.append(f_m + s * _g(u, coef(s, nseg + 1 if d != 0 else nseg, m), kind))
     return out

@@ -62,6 +62,10 @@ class EIHO(_TurningPointOperator):
         * a positive number, or a pair ``(ascending, descending)``: fixed (causal);
         * ``"learnable"``: positive parameter(s) ``exp(log_a)`` (one, or one per direction
           with ``per_direction=True``), trained with the network (causal);
+        * ``"anchored"``: a learned positive function of the branch's start point ``x_e``
+          (causal): ``a_d(x_e) = exp(log_a_d + k_d (x_e - anchor_center) / anchor_scale)``,
+          one ``(log_a_d, k_d)`` per direction, ``k`` starting at 0 (a constant ``a_init``);
+          set ``anchor_center`` / ``anchor_scale`` near the input's mean and spread;
         * ``"segment"``: the paper's per-segment ``a_i`` from the training targets with
           ``a_formula`` (``"sqrt"``: ``|dy| / |dx|^(1/2)``, consistent with Eq. (2);
           ``"paper"``: Eq. (19) as printed, ``|dy| / dx^2``). **Not causal**: pass
@@ -77,6 +81,8 @@ class EIHO(_TurningPointOperator):
         a_init: initial value of a learnable ``a``.
         max_depth: stack size of the ``"dominant"`` rule.
         eps: linear zone of the square root (see :func:`torchhys.functional.eiho`).
+        anchor_center: with ``a="anchored"``, the input level where ``a_d = exp(log_a_d)``.
+        anchor_scale: with ``a="anchored"``, the input scale of ``k`` (> 0).
 
     Shapes:
         ``forward(x)``: x (time,) or (batch, time) -> f of the same shape, and a
@@ -87,16 +93,29 @@ class EIHO(_TurningPointOperator):
         self, *, a: float | tuple[float, float] | str = 1.0, rule: str = "recent",
         a_formula: str = "sqrt", threshold: float | str = 0.0, per_direction: bool = False,
         a_init: float = 1.0, max_depth: int = 32, eps: float = 1e-8,
+        anchor_center: float = 0.0, anchor_scale: float = 1.0,
     ) -> None:
         super().__init__(threshold, rule, max_depth)
         if a_formula not in _A_FORMULAS:
             raise ValueError(f"a_formula must be one of {_A_FORMULAS}, got {a_formula!r}")
         self.a_formula, self.eps = a_formula, eps
         self.per_segment = a == "segment"
-        if a == "learnable":
+        if a in ("learnable", "anchored"):
             if not (math.isfinite(a_init) and a_init > 0):
                 raise ValueError(f"a_init must be a positive number, got {a_init!r}")
-            self.log_a = nn.Parameter(torch.full((2 if per_direction else 1,), math.log(a_init)))
+            n_a = 2 if (per_direction or a == "anchored") else 1
+            self.log_a = nn.Parameter(torch.full((n_a,), math.log(a_init)))
+            if a == "anchored":
+                ok = math.isfinite(anchor_center) and math.isfinite(anchor_scale)
+                if not (ok and anchor_scale > 0):
+                    raise ValueError(
+                        "anchor_center must be finite and anchor_scale positive, got "
+                        f"{anchor_center!r}, {anchor_scale!r}"
+                    )
+                self.anchor_slope = nn.Parameter(torch.zeros(2))
+                self.register_buffer(
+                    "anchor_norm", torch.tensor([float(anchor_center), float(anchor_scale)])
+                )
         elif self.per_segment:
             warnings.warn(
                 "EIHO(a='segment') uses the target's next extremum: not causal, for replaying "
@@ -104,7 +123,8 @@ class EIHO(_TurningPointOperator):
             )
         elif isinstance(a, str):
             raise ValueError(
-                f"a must be a positive number, a pair, 'learnable' or 'segment', got {a!r}"
+                "a must be a positive number, a pair, 'learnable', 'anchored' or 'segment', "
+                f"got {a!r}"
             )
         else:
             pair = (a, a) if isinstance(a, (int, float)) else tuple(a)
@@ -113,7 +133,10 @@ class EIHO(_TurningPointOperator):
             self.register_buffer("a_fixed", torch.tensor([float(v) for v in pair]))
 
     def coefficient(self) -> Tensor:
-        """The causal coefficients ``(ascending, descending)``, shape (2,)."""
+        """The causal coefficients ``(ascending, descending)``, shape (2,).
+
+        With ``a="anchored"``: their values for a branch starting at ``anchor_center``.
+        """
         if hasattr(self, "log_a"):
             return torch.exp(self.log_a).expand(2)
         if self.per_segment:
@@ -148,14 +171,21 @@ class EIHO(_TurningPointOperator):
             a = segment_a
         else:
             a = self.coefficient()
+        slope = None
+        if hasattr(self, "anchor_slope"):
+            # a_d exp(k_d (x_e - c) / s) = [a_d exp(-k_d c / s)] exp((k_d / s) x_e)
+            slope = self.anchor_slope / self.anchor_norm[1]
+            a = a * torch.exp(-slope * self.anchor_norm[0])
+            slope = slope.to(x.dtype) if x.is_floating_point() else slope
         return eiho(
             x, a.to(x.dtype) if x.is_floating_point() else a, rule=self.rule,
             threshold=self._threshold(), state=state, per_segment=self.per_segment,
-            eps=self.eps, max_depth=self.max_depth,
+            eps=self.eps, max_depth=self.max_depth, anchor_slope=slope,
         )
 
     def extra_repr(self) -> str:
         mode = "segment" if self.per_segment else ("learnable" if hasattr(self, "log_a") else "")
+        mode = "anchored" if hasattr(self, "anchor_slope") else mode
         return f"rule={self.rule!r}, a={mode or self.a_fixed.tolist()}"
 
 

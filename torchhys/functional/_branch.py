@@ -23,6 +23,10 @@ Rules for the anchor ``x_e``:
       when a push would overflow it, the two oldest entries above the start are discarded
       (the outermost loop is forgotten). The stack is updated in a loop over *turning
       points* (not samples); per-sample anchors are then gathers.
+
+Coefficients: fixed per direction, per segment (the paper's non-causal ``a_i``), or, with
+``anchor_slope``, a function of the branch's anchor ``a_d exp(k_d x_e)`` (the tentative
+reversed branch is anchored at the running extremum).
 """
 
 from __future__ import annotations
@@ -90,13 +94,23 @@ def _g(u: Tensor, a: Tensor, kind: str, eps: float) -> Tensor:
     return (1.0 - torch.exp(-u)) * u
 
 
-def _coef(a: Tensor, direction: Tensor, seg: Tensor, per_segment: bool) -> Tensor:
-    """Branch coefficient: a (2,) = (ascending, descending) or a (B, K) per segment."""
+def _coef(
+    a: Tensor, direction: Tensor, seg: Tensor, per_segment: bool,
+    anchor: Tensor | None = None, slope: Tensor | None = None,
+) -> Tensor:
+    """Branch coefficient: a (2,) = (ascending, descending) or a (B, K) per segment.
+
+    With ``slope`` (2,), the coefficient of a branch depends on its anchor (start point):
+    ``a_d exp(slope_d * anchor)``.
+    """
     if per_segment:
         return a.gather(1, seg.clamp(min=0, max=a.shape[1] - 1).reshape(a.shape[0], -1)).reshape(
             seg.shape
         )
-    return torch.where(direction >= 0, a[0], a[1])
+    base = torch.where(direction >= 0, a[0], a[1])
+    if slope is None or anchor is None:
+        return base
+    return base * torch.exp(torch.where(direction >= 0, slope[0], slope[1]) * anchor)
 
 
 def _pops(stack_x: Tensor, depth: Tensor, m: Tensor, d: Tensor) -> Tensor:
@@ -111,7 +125,7 @@ def _pops(stack_x: Tensor, depth: Tensor, m: Tensor, d: Tensor) -> Tensor:
 
 def _dominant_stacks(
     state: BranchState, v: Tensor, d_prev: Tensor, confirm: Tensor, a: Tensor,
-    kind: str, per_segment: bool, eps: float,
+    kind: str, per_segment: bool, eps: float, slope: Tensor | None = None,
 ) -> tuple[BranchState, list[Tensor]]:
     """Update the stack at every confirmed turning point; return per-segment snapshots."""
     B, T = v.shape
@@ -128,7 +142,8 @@ def _dominant_stacks(
         vj, dj = v[rows, c], d_prev[rows, c]
         top = depth - 1 - 2 * _pops(sx, depth, vj.detach(), dj)
         ax, af, aseg = sx[rows, top], sf[rows, top], ss[rows, top]
-        fv = af + dj * _g((vj - ax).abs(), _coef(a, dj, aseg, per_segment), kind, eps)
+        coef = _coef(a, dj, aseg, per_segment, ax, slope)
+        fv = af + dj * _g((vj - ax).abs(), coef, kind, eps)
         pos = top + 1
         full = pos >= D
         pos = torch.where(full, pos - 2, pos)
@@ -147,6 +162,7 @@ def _dominant_stacks(
 def branch_operator(
     x: Tensor, a: Tensor, kind: str, rule: str, threshold: float | str | Tensor,
     state: BranchState | None, per_segment: bool, eps: float, max_depth: int,
+    anchor_slope: Tensor | None = None,
 ) -> tuple[Tensor, BranchState]:
     xb, squeezed = as_batched_sequence(x, "x")
     if rule not in _RULES:
@@ -175,7 +191,7 @@ def branch_operator(
         lc = torch.where(z.confirm, idx, -1).cummax(dim=1).values
         x_a = torch.where(lc >= 0, v.gather(1, lc.clamp(min=0)), state.stack_x[:, :1])
         x_a_prev = torch.cat([state.stack_x[:, :1], x_a[:, :-1]], dim=1)
-        coef = _coef(a, d_prev, segment - 1, per_segment)
+        coef = _coef(a, d_prev, segment - 1, per_segment, x_a_prev, anchor_slope)
         inc = torch.where(z.confirm, d_prev * _g((v - x_a_prev).abs(), coef, kind, eps), 0.0)
         f_a = state.stack_f[:, :1] + inc.cumsum(dim=1)
         seg_a = segment
@@ -184,7 +200,7 @@ def branch_operator(
         )
     else:
         new_state, (sx, sf, ss, sdepth) = _dominant_stacks(
-            state, v, d_prev, z.confirm, a, kind, per_segment, eps
+            state, v, d_prev, z.confirm, a, kind, per_segment, eps, anchor_slope
         )
         D = sx.shape[-1]
         g_idx = seg_local[..., None].expand(B, T, D)
@@ -192,11 +208,12 @@ def branch_operator(
         depth_t = sdepth.gather(1, seg_local)
         top = (depth_t - 1 - 2 * _pops(sx_t, depth_t, M.detach(), d))[..., None]
         x_a, f_a, seg_a = (s.gather(2, top)[..., 0] for s in (sx_t, sf_t, ss_t))
-    f_m = f_a + d * _g((M - x_a).abs(), _coef(a, d, seg_a, per_segment), kind, eps)
+    coef_a = _coef(a, d, seg_a, per_segment, x_a, anchor_slope)
+    f_m = f_a + d * _g((M - x_a).abs(), coef_a, kind, eps)
     s = torch.where(d != 0, -d, torch.sign(xb.detach() - M.detach()).long())
     u = torch.relu(s * (xb - M))
     seg_rev = torch.where(d != 0, segment + 1, segment)
-    f = f_m + s * _g(u, _coef(a, s, seg_rev, per_segment), kind, eps)
+    f = f_m + s * _g(u, _coef(a, s, seg_rev, per_segment, M, anchor_slope), kind, eps)
     new_state = new_state._replace(
         play=z.play, direction=d[:, -1], extremum=M[:, -1], segment=segment[:, -1]
     )

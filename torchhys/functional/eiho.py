@@ -11,7 +11,7 @@ import warnings
 import torch
 from torch import Tensor
 
-from torchhys._checks import as_batched_sequence
+from torchhys._checks import as_batched_sequence, check_finite, check_floating
 from torchhys.functional._branch import BranchState, branch_operator, check_a
 from torchhys.functional.turning_points import turning_points
 
@@ -39,6 +39,7 @@ def eiho(
     per_segment: bool = False,
     eps: float = 1e-8,
     max_depth: int = 32,
+    anchor_slope: Tensor | float | None = None,
 ) -> tuple[Tensor, BranchState]:
     """Elementary inverse hysteresis operator, Eq. (2).
 
@@ -64,6 +65,10 @@ def eiho(
         eps: below ``|x - x_e| = eps`` (squared input units) the square root is linear.
         max_depth: stack size of the ``"dominant"`` rule (>= 3; on overflow the two oldest
             turning points above the start are forgotten).
+        anchor_slope: ``k``, a scalar or ``(ascending, descending)``: the coefficient of a
+            branch becomes a positive function of its start point ``x_e``,
+            ``a_d exp(k_d x_e)`` (causal; ``k = 0`` is a constant ``a``). Not with
+            ``per_segment``.
 
     Returns:
         ``(f, state)``: ``f`` of the shape of ``x``; state tensors have a leading batch
@@ -80,9 +85,26 @@ def eiho(
     xb, _ = as_batched_sequence(x, "x")
     _check_depth(max_depth)
     a_t = check_a(a if isinstance(a, Tensor) else xb.new_tensor(a), per_segment, xb.shape[0])
+    slope = None if anchor_slope is None else _check_slope(anchor_slope, per_segment, xb)
     return branch_operator(
-        x, a_t.to(xb.dtype), "eiho", rule, threshold, state, per_segment, eps, max_depth
+        x, a_t.to(xb.dtype), "eiho", rule, threshold, state, per_segment, eps, max_depth,
+        anchor_slope=slope,
     )
+
+
+def _check_slope(anchor_slope: Tensor | float, per_segment: bool, xb: Tensor) -> Tensor:
+    if per_segment:
+        raise ValueError("anchor_slope cannot be combined with per_segment coefficients")
+    if isinstance(anchor_slope, bool) or not isinstance(anchor_slope, (Tensor, int, float)):
+        raise TypeError(f"anchor_slope must be a tensor or a number, got {anchor_slope!r}")
+    k = anchor_slope if isinstance(anchor_slope, Tensor) else xb.new_tensor(anchor_slope)
+    check_floating(k, "anchor_slope")
+    check_finite(k, "anchor_slope")
+    if k.numel() not in (1, 2) or k.dim() > 1:
+        raise ValueError(
+            f"anchor_slope must be a scalar or (ascending, descending), got {tuple(k.shape)}"
+        )
+    return k.reshape(-1).expand(2).to(xb.dtype)
 
 
 def zhao_tan(
