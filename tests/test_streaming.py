@@ -1,0 +1,159 @@
+"""Streaming compensator: the per-sample step equals the eager sequence implementation."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from test_turning_points import random_walk
+
+from torchhys import (
+    EIHO,
+    Backlash,
+    InverseHysteresisNet,
+    PrandtlIshlinskii,
+    ZhaoTanOperator,
+    signals,
+)
+from torchhys.streaming import StreamingCompensator
+
+
+def inputs(T: int = 400) -> torch.Tensor:
+    """Random walks with flat stretches and exact ties, noise, nested minor loops."""
+    rows = [random_walk(s, T=T, quantize=s % 2 == 0) for s in range(3)]
+    t = torch.linspace(0.0, 10.0, T, dtype=torch.float64)
+    g = torch.Generator().manual_seed(7)
+    rows.append(3 * torch.sin(t) + 0.05 * torch.randn(T, generator=g, dtype=torch.float64))
+    rows.append(signals.nested_reversals(t, amplitude=4.0, n_reversals=24, ratio=0.85))
+    return torch.stack(rows)
+
+
+def net_of(ops: list, dtype: torch.dtype, x: torch.Tensor) -> InverseHysteresisNet:
+    torch.manual_seed(0)
+    net = InverseHysteresisNet(ops, hidden=6).to(dtype)
+    net.fit_normalization(x.to(dtype), torch.tanh(x.to(dtype)))
+    return net
+
+
+def steps_of(comp: StreamingCompensator, x: torch.Tensor) -> torch.Tensor:
+    comp.reset()
+    return torch.stack([comp.step(xt) for xt in x.unbind(-1)], dim=-1)
+
+
+RULES = ["recent", "dominant"]
+THRESHOLDS = [0.0, 0.5, 1.0]
+A_MODES = [1.5, (1.5, 0.5), "learnable"]
+
+
+@pytest.mark.parametrize("rule", RULES)
+@pytest.mark.parametrize("threshold", THRESHOLDS)
+@pytest.mark.parametrize("a", A_MODES)
+def test_eiho_network_step_equals_sequence(rule: str, threshold: float, a: object) -> None:
+    x = inputs()
+    op = EIHO(a=a, rule=rule, threshold=threshold, max_depth=6, a_init=0.7)
+    net = net_of([op], torch.float64, x)
+    with torch.no_grad():
+        ref, _ = net(x)
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    torch.testing.assert_close(comp(x), ref, rtol=0, atol=1e-12)
+    torch.testing.assert_close(steps_of(comp, x), ref, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("rule", RULES)
+@pytest.mark.parametrize("threshold", [0.0, 0.75])
+def test_operator_features_step_equal_sequence_float32(rule: str, threshold: float) -> None:
+    """Each operator's output, step by step, equals its sequence forward (float32)."""
+    x = inputs().float()
+    ops = [EIHO(a=(1.2, 0.8), rule=rule, threshold=threshold, max_depth=4),
+           ZhaoTanOperator(rule=rule, threshold=threshold, scale=2.5),
+           Backlash(torch.tensor([0.0, 0.3, 1.0, 2.5]))]
+    net = net_of(ops, torch.float32, x)
+    with torch.no_grad():
+        feats, _ = net.features(x)
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    state = comp.initial_state(x.shape[0])
+    started = torch.zeros(x.shape[0], dtype=torch.bool)
+    per_op = [[] for _ in comp.ops]
+    o = 4
+    op_states = []
+    for i in range(len(comp.ops)):
+        op_states.append(state[o:o + comp.n_states[i]])
+        o += comp.n_states[i]
+    for xt in x.unbind(-1):
+        for i, op in enumerate(comp.ops):
+            f, op_states[i] = op.step(xt, op_states[i], started)
+            per_op[i].append(f)
+        started = torch.ones_like(started)
+    got = torch.cat([torch.stack(p, dim=1) for p in per_op], dim=-1)
+    # bit-exact: the step repeats the sequence arithmetic operation by operation
+    torch.testing.assert_close(got, feats[..., 1:], rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("rule", RULES)
+def test_zhao_tan_and_plays_network(rule: str) -> None:
+    x = inputs()
+    ops = [ZhaoTanOperator(rule=rule, threshold=0.5, scale=3.0), Backlash([0.2, 1.0, 2.0])]
+    net = net_of(ops, torch.float64, x)
+    with torch.no_grad():
+        ref, _ = net(x)
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    torch.testing.assert_close(comp(x), ref, rtol=0, atol=1e-12)
+
+
+def test_dominant_stack_overflow_matches() -> None:
+    """Deeply nested loops overflow a small stack: the oldest entries are forgotten alike."""
+    t = torch.linspace(0.0, 1.0, 3000, dtype=torch.float64)
+    x = signals.nested_reversals(t, amplitude=5.0, n_reversals=40, ratio=0.9)[None]
+    net = net_of([EIHO(a=1.0, rule="dominant", max_depth=3)], torch.float64, x)
+    with torch.no_grad():
+        ref, _ = net(x)
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    torch.testing.assert_close(comp(x), ref, rtol=0, atol=1e-12)
+
+
+def test_float32_network_to_1e6() -> None:
+    x = inputs(1000).float()
+    ops = [EIHO(a=1.0, rule="dominant", threshold=0.25), Backlash(torch.linspace(0.1, 2.0, 8))]
+    net = net_of(ops, torch.float32, x)
+    with torch.no_grad():
+        ref, _ = net(x)
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    torch.testing.assert_close(comp(x), ref, rtol=0, atol=1e-6)
+    torch.testing.assert_close(steps_of(comp, x), comp(x), rtol=0, atol=0)
+
+
+def test_pi_inverse_compensator() -> None:
+    pi = PrandtlIshlinskii(torch.linspace(0.2, 2.0, 6).double(), linear_weight=0.5)
+    inv = pi.inverse()
+    y = 3 * torch.sin(torch.linspace(0, 12, 500, dtype=torch.float64))[None]
+    ref, _ = inv(y)
+    comp = StreamingCompensator(inv, limits=(-100, 100))
+    torch.testing.assert_close(comp(y), ref, rtol=0, atol=1e-12)
+    # and it inverts the plant
+    h, _ = pi(comp(y))
+    torch.testing.assert_close(h, y, rtol=0, atol=1e-9)
+
+
+def test_batch_consistency_and_shapes() -> None:
+    x = inputs(200)
+    net = net_of([EIHO(a=1.0, rule="dominant", threshold=0.5)], torch.float64, x)
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    whole = comp(x)
+    assert whole.shape == x.shape
+    for b in range(x.shape[0]):
+        row = comp(x[b])
+        assert row.shape == x[b].shape
+        torch.testing.assert_close(row, whole[b], rtol=0, atol=1e-12)  # matmul blocking
+    assert comp(x[:, :0]).shape == (x.shape[0], 0)
+
+
+def test_forward_leaves_stored_state_alone() -> None:
+    x = inputs(50)
+    net = net_of([EIHO(a=1.0, rule="recent")], torch.float64, x)
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    first = [comp.step(xt) for xt in x[:, :10].unbind(-1)]
+    comp(x)
+    rest = [comp.step(xt) for xt in x[:, 10:].unbind(-1)]
+    torch.testing.assert_close(torch.stack(first + rest, -1), comp(x), rtol=0, atol=0)
+    assert math.isfinite(float(comp(x).sum()))

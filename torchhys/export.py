@@ -1,0 +1,209 @@
+"""Export a trained compensator for deployment: TorchScript, or torch.export + AOTInductor.
+
+Both formats wrap a :class:`~torchhys.streaming.StreamingCompensator`: the saved artefact
+takes the desired output in physical units and returns the saturated command, with NaN/inf
+inputs held and counted. Neither needs torchhys to load.
+
+* :func:`to_torchscript`: a ``torch.jit`` module with ``forward(x)`` (whole sequence from a
+  fresh state), ``step(x_t)`` (state kept inside), ``reset()`` and ``nonfinite_count()``;
+  loads with ``torch.jit.load`` (Python) or ``torch::jit::load`` (C++).
+* :func:`to_aoti`: an AOTInductor package (``.pt2``) of the explicit-state step
+  ``(x_t, *state) -> (u_t, *state)``; the fresh state is all zeros, its shapes and dtypes
+  are in the package metadata (``state_spec``, see :func:`state_spec_string`); load it with
+  :func:`load_aoti` or ``torch::inductor::AOTIModelPackageLoader`` (C++).
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from torchhys.streaming import StreamingCompensator
+
+__all__ = [
+    "AOTIStepper", "load_aoti", "load_torchscript", "state_spec_string", "to_aoti",
+    "to_torchscript",
+]
+
+_DTYPE_NAMES = {torch.bool: "bool", torch.long: "int64", torch.float32: "float32",
+                torch.float64: "float64"}
+_NAME_DTYPES = {v: k for k, v in _DTYPE_NAMES.items()}
+
+
+def _compensator(
+    model: nn.Module, limits: tuple[float, float] | None, initial_command: float
+) -> StreamingCompensator:
+    if isinstance(model, StreamingCompensator):
+        if limits is not None:
+            raise ValueError("limits are fixed when the StreamingCompensator is built")
+        return model
+    return StreamingCompensator(model, limits=limits, initial_command=initial_command)
+
+
+def _check_path(path: str | os.PathLike) -> str:
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"path must be a str or os.PathLike, got {type(path).__name__}")
+    path = os.fspath(path)
+    parent = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(parent):
+        raise ValueError(f"the directory of path {path!r} does not exist")
+    return path
+
+
+def to_torchscript(
+    model: nn.Module, path: str | os.PathLike, *, limits: tuple[float, float] | None = None,
+    initial_command: float = 0.0,
+) -> torch.jit.ScriptModule:
+    """Script the streaming compensator of ``model`` and save it to ``path``.
+
+    ``torch.jit.script`` is deprecated in torch 2.13 (its successor is ``torch.export``, see
+    :func:`to_aoti`). TorchScript is kept because it is what many C++ controllers load
+    today (``torch::jit::load``), so exactly that ``DeprecationWarning`` is caught around
+    the scripting call; every other warning still reaches the caller.
+
+    Args:
+        model: an :class:`~torchhys.InverseHysteresisNet` with causal operators, a
+            :class:`~torchhys.PrandtlIshlinskiiInverse`, or a built
+            :class:`~torchhys.streaming.StreamingCompensator`.
+        path: output file (conventionally ``.pt``).
+        limits: ``(low, high)`` command saturation; default: the training output range
+            (:func:`~torchhys.streaming.default_limits`).
+        initial_command: command held until the first finite input.
+
+    Returns:
+        The scripted module (also saved). Its methods: ``forward(x)`` x (time,) or
+        (batch, time) -> same shape; ``step(x_t)`` (batch,) -> (batch,); ``reset()``;
+        ``nonfinite_count()`` (batch,); ``step_explicit(x_t, state)``; ``initial_state(b)``.
+
+    Raises:
+        ValueError, TypeError: see :class:`~torchhys.streaming.StreamingCompensator`; a
+            missing output directory.
+    """
+    path = _check_path(path)
+    comp = _compensator(model, limits, initial_command).eval()
+    with warnings.catch_warnings():
+        warnings.filterwarnings(
+            "ignore", message=r"`torch\.jit\.script` is deprecated", category=DeprecationWarning
+        )
+        scripted = torch.jit.script(comp)
+    scripted.save(path)
+    return scripted
+
+
+def load_torchscript(path: str | os.PathLike) -> torch.jit.ScriptModule:
+    """Load a file written by :func:`to_torchscript` (``torch.jit.load``, CPU).
+
+    ``torch.jit.load`` is deprecated in torch 2.13 like ``torch.jit.script``; exactly that
+    ``DeprecationWarning`` is caught here, for the same reason. Plain ``torch.jit.load``
+    works as well (no torchhys needed).
+    """
+    with warnings.catch_warnings():
+        warnings.filterwarnings(
+            "ignore", message=r"`torch\.jit\.load` is deprecated", category=DeprecationWarning
+        )
+        return torch.jit.load(os.fspath(path), map_location="cpu")
+
+
+def state_spec_string(comp: StreamingCompensator, batch: int = 1) -> str:
+    """The fresh state as ``"dtype:d0,d1;dtype:d0;..."`` (all zeros), for C++ loaders."""
+    parts = []
+    for t in comp.initial_state(batch):
+        parts.append(_DTYPE_NAMES[t.dtype] + ":" + ",".join(str(d) for d in t.shape))
+    return ";".join(parts)
+
+
+def _parse_state_spec(spec: str) -> list[Tensor]:
+    out = []
+    for part in spec.split(";"):
+        name, dims = part.split(":")
+        shape = [int(d) for d in dims.split(",") if d]
+        out.append(torch.zeros(shape, dtype=_NAME_DTYPES[name]))
+    return out
+
+
+class _ExplicitStep(nn.Module):
+    def __init__(self, comp: StreamingCompensator) -> None:
+        super().__init__()
+        self.comp = comp
+
+    def forward(self, x: Tensor, *state: Tensor) -> tuple[Tensor, ...]:
+        u, new = self.comp.step_explicit(x, list(state))
+        return (u, *new)
+
+
+def to_aoti(
+    model: nn.Module, path: str | os.PathLike, *, limits: tuple[float, float] | None = None,
+    initial_command: float = 0.0, batch: int = 1, inductor_configs: dict[str, Any] | None = None,
+) -> str:
+    """Compile the explicit-state step with ``torch.export`` + AOTInductor into a package.
+
+    The package runs ``(x_t (batch,), *state) -> (u_t (batch,), *state)``. The fresh state
+    is all zeros; its shapes and dtypes are stored in the package metadata under
+    ``"state_spec"`` (format of :func:`state_spec_string`) and ``"n_state"``, together with
+    ``"low"``/``"high"`` (the saturation limits). Compiling takes a minute or more on a
+    small CPU.
+
+    Args:
+        model, limits, initial_command: as :func:`to_torchscript`.
+        path: output package (``.pt2``).
+        batch: batch size the package is compiled for (static).
+        inductor_configs: extra AOTInductor options.
+
+    Returns:
+        The package path.
+    """
+    path = _check_path(path)
+    if isinstance(batch, bool) or not isinstance(batch, int) or batch < 1:
+        raise ValueError(f"batch must be a positive int, got {batch!r}")
+    comp = _compensator(model, limits, initial_command).eval()
+    state = comp.initial_state(batch)
+    x = torch.zeros(batch, dtype=comp.low.dtype)
+    with torch.no_grad():
+        ep = torch.export.export(_ExplicitStep(comp), (x, *state), strict=False)
+    metadata = {
+        "state_spec": state_spec_string(comp, batch), "n_state": str(len(state)),
+        "low": repr(float(comp.low)), "high": repr(float(comp.high)), "batch": str(batch),
+        "dtype": _DTYPE_NAMES[comp.low.dtype],
+    }
+    configs = {"aot_inductor.metadata": metadata, **(inductor_configs or {})}
+    return torch._inductor.aoti_compile_and_package(
+        ep, package_path=path, inductor_configs=configs
+    )
+
+
+class AOTIStepper:
+    """Python runner of an AOTI package from :func:`to_aoti`: ``step``, ``reset``, counter.
+
+    Args:
+        path: the ``.pt2`` package.
+    """
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.runner = torch._inductor.aoti_load_package(os.fspath(path))
+        meta = self.runner.get_metadata()
+        self.spec = meta["state_spec"]
+        self.low, self.high = float(meta["low"]), float(meta["high"])
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to the fresh (all-zero) state."""
+        self.state = _parse_state_spec(self.spec)
+
+    def step(self, x_t: Tensor) -> Tensor:
+        """One sample, x_t (batch,) -> command (batch,)."""
+        out = self.runner(x_t.to(self.state[1].dtype), *self.state)
+        self.state = list(out[1:])
+        return out[0]
+
+    def nonfinite_count(self) -> Tensor:
+        """Samples held because the input was NaN or inf, per row."""
+        return self.state[3]
+
+
+def load_aoti(path: str | os.PathLike) -> AOTIStepper:
+    """Load a package written by :func:`to_aoti` (see :class:`AOTIStepper`)."""
+    return AOTIStepper(path)

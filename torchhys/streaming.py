@@ -1,0 +1,268 @@
+"""A deployable, sample-by-sample compensator built from a trained inverse model.
+
+:class:`StreamingCompensator` turns an :class:`~torchhys.InverseHysteresisNet` (any causal
+mix of :class:`~torchhys.EIHO`, :class:`~torchhys.ZhaoTanOperator` and
+:class:`~torchhys.Backlash` operators) or a :class:`~torchhys.PrandtlIshlinskiiInverse`
+into a module that takes the desired output in physical units, one sample at a time, and
+returns the saturated actuator command. It is written for export (explicit tensor state,
+no data-dependent Python control flow): see :mod:`torchhys.export`.
+
+Safety: the command is saturated to ``[low, high]``; a NaN or inf input sample (or a
+command that would not be finite) holds the last valid command, leaves the operator state
+as it was and is counted (:meth:`StreamingCompensator.nonfinite_count`).
+"""
+
+import copy
+import math
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor, nn
+
+from torchhys._streaming_ops import BranchStep, PlayStep
+from torchhys.backlash import Backlash
+from torchhys.eiho import EIHO, ZhaoTanOperator
+from torchhys.networks import InverseHysteresisNet
+from torchhys.prandtl_ishlinskii import PrandtlIshlinskiiInverse
+
+__all__ = ["StreamingCompensator", "default_limits"]
+
+#: Number of leading safety-state tensors: started, last input, held command, counter.
+N_SAFETY_STATE = 4
+
+
+class _NetHead(nn.Module):
+    """Normalization, hidden layer, output layer and de-normalization of the network."""
+
+    def __init__(self, net: InverseHysteresisNet) -> None:
+        super().__init__()
+        for name in ("in_mean", "in_std", "out_mean", "out_std"):
+            self.register_buffer(name, getattr(net, name).detach().clone())
+        self.hidden = copy.deepcopy(net.hidden).requires_grad_(False)
+        self.activation = copy.deepcopy(net.activation)
+        self.output = copy.deepcopy(net.output).requires_grad_(False)
+
+    def forward(self, features: Tensor) -> Tensor:
+        z = (features - self.in_mean) / self.in_std
+        out = self.output(self.activation(self.hidden(z))).squeeze(-1)
+        return out * self.out_std + self.out_mean
+
+
+class _PIHead(nn.Module):
+    """``u = w0 y + sum_i w_i z_i`` of an analytic Prandtl-Ishlinskii inverse."""
+
+    def __init__(self, inverse: PrandtlIshlinskiiInverse) -> None:
+        super().__init__()
+        self.register_buffer("linear_weight", inverse.linear_weight.detach().clone())
+        self.register_buffer("weights", inverse.weights.detach().clone())
+
+    def forward(self, features: Tensor) -> Tensor:
+        y, z = features[:, 0], features[:, 1:]
+        return self.linear_weight * y + z @ self.weights
+
+
+def _threshold(op: nn.Module) -> Tensor:
+    th = op.threshold.detach()
+    if bool(torch.isnan(th)):
+        raise ValueError(
+            f"{type(op).__name__} has threshold='auto' but was never calibrated: call "
+            "calibrate_threshold(x) (or fit_normalization) before building a compensator"
+        )
+    return th
+
+
+def _step_module(op: nn.Module, dtype: torch.dtype) -> nn.Module:
+    if isinstance(op, EIHO):
+        if op.per_segment:
+            raise ValueError(
+                "EIHO(a='segment') cannot be deployed: its per-segment coefficients come from "
+                "the target's next extremum (not causal). Train with a fixed or learnable a."
+            )
+        a = op.coefficient().detach().to(dtype).reshape(-1).expand(2)
+        r = 0.5 * _threshold(op).to(dtype)
+        return BranchStep("eiho", op.rule, a, r, op.max_depth, op.eps, 1.0)
+    if isinstance(op, ZhaoTanOperator):
+        r = 0.5 * (_threshold(op) / op.scale).to(dtype)
+        return BranchStep("zhao_tan", op.rule, torch.ones(2, dtype=dtype), r, op.max_depth,
+                          0.0, op.scale)
+    if isinstance(op, Backlash):
+        return PlayStep(0.5 * op.get_widths().detach().to(dtype))
+    raise TypeError(
+        "StreamingCompensator supports EIHO, ZhaoTanOperator and Backlash operators, got "
+        f"{type(op).__name__}"
+    )
+
+
+def default_limits(model: nn.Module) -> tuple[float, float]:
+    """Command limits of a model: its recorded training-target range.
+
+    Uses ``model.out_min`` / ``model.out_max`` when the model records them, else the
+    normalization of an :class:`~torchhys.InverseHysteresisNet`: ``out_mean +/- 3 out_std``
+    (covers the range of any sine-like target with a margin).
+
+    Raises:
+        ValueError: the model records no output range (a :class:`PrandtlIshlinskiiInverse`,
+            or a network whose normalization was never fitted): pass ``limits=``.
+    """
+    lo, hi = getattr(model, "out_min", None), getattr(model, "out_max", None)
+    if isinstance(lo, Tensor) and isinstance(hi, Tensor):
+        return float(lo), float(hi)
+    if isinstance(model, InverseHysteresisNet):
+        mean, std = float(model.out_mean), float(model.out_std)
+        if not (mean == 0.0 and std == 1.0):
+            return mean - 3.0 * std, mean + 3.0 * std
+    raise ValueError(
+        f"{type(model).__name__} records no training output range (normalization not fitted, "
+        "or an analytic inverse): pass limits=(low, high) in command units"
+    )
+
+
+def _check_limits(limits: Sequence[float]) -> tuple[float, float]:
+    if isinstance(limits, (str, bytes)) or len(limits) != 2:
+        raise ValueError(f"limits must be a pair (low, high), got {limits!r}")
+    low, high = (float(v) for v in limits)
+    if not (math.isfinite(low) and math.isfinite(high) and low < high):
+        raise ValueError(f"limits must be finite with low < high, got ({low}, {high})")
+    return low, high
+
+
+class StreamingCompensator(nn.Module):
+    """A causal feedforward compensator, one sample at a time, in physical units.
+
+    Args:
+        model: a trained :class:`~torchhys.InverseHysteresisNet` (causal operators only) or
+            a :class:`~torchhys.PrandtlIshlinskiiInverse`. Parameters are copied (detached).
+        limits: ``(low, high)`` saturation of the command; default :func:`default_limits`.
+        initial_command: command held before the first finite input (saturated).
+
+    Methods (all exported):
+        ``forward(x)``: x (time,) or (batch, time) -> u of the same shape, from a fresh state
+        (does not touch the stored state). ``step(x_t)``: x_t (batch,) -> u_t (batch,),
+        advancing the stored state. ``reset()``. ``nonfinite_count()``: (batch,) long.
+        ``step_explicit(x_t, state) -> (u_t, state)`` and ``initial_state(batch)``: the same
+        step with the state passed explicitly (a list of tensors, all zeros when fresh).
+
+    Raises:
+        ValueError: a non-causal operator (``EIHO(a="segment")``), an uncalibrated
+            ``threshold="auto"``, bad ``limits``.
+        TypeError: an unsupported model or operator.
+    """
+
+    n_states: list[int]
+    templates: list[Tensor]
+    state: list[Tensor]
+    n_steps: int
+
+    def __init__(
+        self, model: InverseHysteresisNet | PrandtlIshlinskiiInverse, *,
+        limits: Sequence[float] | None = None, initial_command: float = 0.0,
+    ) -> None:
+        super().__init__()
+        if isinstance(model, InverseHysteresisNet):
+            dtype = model.output.weight.dtype
+            ops = [_step_module(op, dtype) for op in model.operators]
+            self.head = _NetHead(model)
+        elif isinstance(model, PrandtlIshlinskiiInverse):
+            dtype = model.weights.dtype
+            if model.widths.numel() == 0:
+                raise ValueError("a purely linear PrandtlIshlinskiiInverse needs no compensator")
+            ops = [PlayStep(0.5 * model.widths.detach().to(dtype))]
+            self.head = _PIHead(model)
+        else:
+            raise TypeError(
+                "StreamingCompensator needs an InverseHysteresisNet or a "
+                f"PrandtlIshlinskiiInverse, got {type(model).__name__}"
+            )
+        low, high = _check_limits(default_limits(model) if limits is None else limits)
+        self.ops = nn.ModuleList(ops)
+        self.register_buffer("low", torch.tensor(low, dtype=dtype))
+        self.register_buffer("high", torch.tensor(high, dtype=dtype))
+        u0 = min(max(float(initial_command), low), high)
+        self.register_buffer("u0", torch.tensor(u0, dtype=dtype))
+        spec: list[tuple[list[int], torch.dtype]] = [
+            ([], torch.bool), ([], dtype), ([], dtype), ([], torch.long)
+        ]
+        self.n_states = []
+        for op in ops:
+            s = op.state_spec()
+            self.n_states.append(len(s))
+            spec.extend(s)
+        self.templates = [torch.zeros([1] + shape, dtype=dt) for shape, dt in spec]
+        self.state = self.initial_state(1)
+        self.n_steps = 0
+
+    @torch.jit.export
+    def initial_state(self, batch: int) -> list[Tensor]:
+        """Fresh state for ``batch`` rows: a list of zero tensors (see ``state_spec``)."""
+        return [t.new_zeros([batch] + list(t.shape[1:])) for t in self.templates]
+
+    @torch.jit.export
+    def step_explicit(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
+        """One sample with an explicit state: x (batch,) -> (u (batch,), new state)."""
+        started, last_x, u_hold, count = state[0], state[1], state[2], state[3]
+        finite = torch.isfinite(x)
+        xs = torch.where(finite, x, last_x)
+        feats: list[Tensor] = [xs.unsqueeze(-1)]
+        new_state: list[Tensor] = []
+        o = 4  # N_SAFETY_STATE
+        for i, op in enumerate(self.ops):
+            n = self.n_states[i]
+            f, s = op.step(xs, state[o:o + n], started)
+            feats.append(f)
+            new_state.extend(s)
+            o += n
+        u = self.head(torch.cat(feats, dim=-1))
+        u = torch.minimum(torch.maximum(u, self.low), self.high)
+        ok = finite & torch.isfinite(u)
+        u = torch.where(ok, u, torch.where(started, u_hold, self.u0))
+        head = [started | finite, xs, u, count + (~ok).to(torch.long)]
+        return u, head + new_state
+
+    @torch.jit.export
+    def step(self, x_t: Tensor) -> Tensor:
+        """Advance the stored state by one sample: x_t (batch,) -> command (batch,)."""
+        if x_t.dim() != 1:
+            raise ValueError(
+                "step expects one sample per row, shape (batch,), got shape " + str(x_t.shape)
+            )
+        if x_t.shape[0] != self.state[0].shape[0]:
+            if self.n_steps != 0:
+                raise ValueError(
+                    "step: batch " + str(x_t.shape[0]) + " differs from the running batch "
+                    + str(self.state[0].shape[0]) + "; call reset() first"
+                )
+            self.state = self.initial_state(x_t.shape[0])
+        u, s = self.step_explicit(x_t.to(self.low.dtype), self.state)
+        self.state = s
+        self.n_steps += 1
+        return u
+
+    @torch.jit.export
+    def reset(self) -> None:
+        """Back to the fresh state (the counter too); the next ``step`` may change the batch."""
+        self.state = self.initial_state(self.state[0].shape[0])
+        self.n_steps = 0
+
+    @torch.jit.export
+    def nonfinite_count(self) -> Tensor:
+        """Samples held because the input (or the command) was NaN or inf, per row (batch,)."""
+        return self.state[3]
+
+    def forward(self, x: Tensor) -> Tensor:
+        """Commands for a whole sequence from a fresh state: (time,) or (batch, time)."""
+        if x.dim() not in (1, 2):
+            raise ValueError(
+                "x must have shape (time,) or (batch, time), got shape " + str(x.shape)
+            )
+        xb = x.to(self.low.dtype)
+        if x.dim() == 1:
+            xb = xb.unsqueeze(0)
+        state = self.initial_state(xb.shape[0])
+        outs: list[Tensor] = []
+        for xt in xb.unbind(1):
+            u, state = self.step_explicit(xt, state)
+            outs.append(u)
+        if len(outs) == 0:
+            return x.to(self.low.dtype)
+        y = torch.stack(outs, dim=1)
+        return y[0] if x.dim() == 1 else y
