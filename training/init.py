@@ -1,0 +1,57 @@
+"""Initializations of the one-hidden-layer inverse-hysteresis network."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+__all__ = ["INITS", "initialize"]
+
+INITS = ("default", "nguyen_widrow")
+
+
+@torch.no_grad()
+def nguyen_widrow(hidden: nn.Linear, output: nn.Linear, *, scale: float = 1.0) -> None:
+    """Nguyen-Widrow initialization of ``hidden`` for standardized inputs.
+
+    Each hidden unit gets a random direction of length ``beta = 0.7 H^(1/F) scale``
+    (``H`` units, ``F`` inputs) and a bias uniform in ``[-beta, beta]``, so that the units'
+    active regions tile the input range instead of all sitting near the origin (PyTorch's
+    default for ``F = 2`` or ``3`` inputs gives nearly linear, nearly identical sigmoid
+    units). The output layer keeps PyTorch's uniform weights and starts at a zero bias (the
+    normalized output's mean).
+
+    References:
+        D. Nguyen and B. Widrow, "Improving the learning speed of 2-layer neural networks by
+        choosing initial values of the adaptive weights", IJCNN 1990.
+    """
+    n_hidden, n_in = hidden.weight.shape
+    beta = 0.7 * n_hidden ** (1.0 / n_in) * scale
+    w = torch.rand_like(hidden.weight) * 2 - 1
+    w = w / w.norm(dim=1, keepdim=True).clamp_min(1e-12) * beta
+    hidden.weight.copy_(w)
+    hidden.bias.copy_((torch.rand_like(hidden.bias) * 2 - 1) * beta)
+    bound = 1.0 / math.sqrt(n_hidden)
+    output.weight.uniform_(-bound, bound)
+    output.bias.zero_()
+
+
+def initialize(net: nn.Module, init: str) -> None:
+    """Apply the named initialization (``"default"``: PyTorch's, left as is) to ``net``.
+
+    ``net`` must have ``hidden`` and ``output`` ``nn.Linear`` layers (as
+    :class:`torchhys.InverseHysteresisNet`) for ``"nguyen_widrow"``.
+    """
+    if init not in INITS:
+        raise ValueError(f"init must be one of {INITS}, got {init!r}")
+    if init == "default":
+        return
+    hidden, output = getattr(net, "hidden", None), getattr(net, "output", None)
+    if not (isinstance(hidden, nn.Linear) and isinstance(output, nn.Linear)):
+        raise ValueError(
+            f"init={init!r} needs a network with nn.Linear 'hidden' and 'output' layers, "
+            f"got {type(net).__name__}"
+        )
+    nguyen_widrow(hidden, output)

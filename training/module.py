@@ -1,0 +1,258 @@
+"""``InverseHysteresisModule``: Lightning training of :class:`torchhys.InverseHysteresisNet`."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import lightning as L
+import torch
+import torch.nn.functional as F
+from lightning.pytorch.trainer.states import TrainerFn
+from torch import Tensor, nn
+from torchmetrics import MeanSquaredError
+
+from torchhys import InverseHysteresisNet
+from torchhys.optim import PowellBealeCG
+from training.init import initialize
+
+__all__ = ["CLOSURE_OPTIMIZERS", "OPTIMIZERS", "InverseHysteresisModule"]
+
+OPTIMIZERS: dict[str, type[torch.optim.Optimizer]] = {
+    "adam": torch.optim.Adam,
+    "cg": PowellBealeCG,
+    "lbfgs": torch.optim.LBFGS,
+}
+"""Optimizers by name. ``cg`` is conjugate gradient with Powell-Beale restarts."""
+CLOSURE_OPTIMIZERS = frozenset({"cg", "lbfgs"})
+"""Optimizers that re-evaluate the loss in a line search: trained full-batch, manually."""
+_FULL_PRECISION = ("32-true", "64-true", "32", "64")
+
+Batch = tuple[Tensor, ...]
+"""``(x, y)`` or ``(x, y, warmup)``: x, y (batch, time); ``warmup`` leading samples of the
+sequence (the preceding record) are excluded from the metrics."""
+
+
+def _unpack(batch: Batch) -> tuple[Tensor, Tensor, int]:
+    if len(batch) == 2:
+        return batch[0], batch[1], 0
+    x, y, warmup = batch
+    return x, y, int(warmup.reshape(-1)[0]) if isinstance(warmup, Tensor) else int(warmup)
+
+
+def check_closure_trainer(trainer: Any, optimizer: str) -> None:
+    """Raise ``ValueError`` for trainer options that break a closure optimizer's line search.
+
+    Gradient clipping would clip every trial point, gradient accumulation would mix trial
+    points, and mixed precision makes the loss too coarse for a line search (a gradient
+    scaler, as with ``16-mixed`` on a GPU, cannot take a closure at all).
+    """
+    where = f"optimizer={optimizer!r} (a closure optimizer with a line search)"
+    clip = getattr(trainer, "gradient_clip_val", None)
+    if clip is not None and clip > 0:
+        raise ValueError(
+            f"Trainer(gradient_clip_val={clip}) cannot be combined with {where}: clipping "
+            "would distort every line-search trial. Remove gradient_clip_val, or use Adam."
+        )
+    accumulate = getattr(trainer, "accumulate_grad_batches", 1)
+    if accumulate != 1:
+        raise ValueError(
+            f"Trainer(accumulate_grad_batches={accumulate}) cannot be combined with {where}: "
+            "the closure computes the full-batch loss itself. Remove accumulate_grad_batches."
+        )
+    plugin = getattr(trainer, "precision_plugin", None)
+    precision = str(getattr(trainer, "precision", "32-true"))
+    if getattr(plugin, "scaler", None) is not None or precision not in _FULL_PRECISION:
+        scaler = " uses a gradient scaler, which cannot take a closure, and" if getattr(
+            plugin, "scaler", None) is not None else ""
+        raise ValueError(
+            f"Trainer(precision={precision!r}){scaler} cannot be combined with {where}: a "
+            "line search needs a full-precision loss (16-mixed falls back to bf16-mixed on "
+            "the CPU). Use precision='32-true' or '64-true'."
+        )
+
+
+class InverseHysteresisModule(L.LightningModule):
+    """Train an inverse-hysteresis network (and any learnable ``a``) on full sequences.
+
+    Batches are ``(x, y)`` of shape (batch, time): the inverse model's input (the plant's
+    output) and target (the plant's input), in physical units. The network's normalization
+    is fitted on the training data of the attached :class:`training.HysteresisDataModule`
+    (or any datamodule with ``train_tensors() -> (x, y)``) in :meth:`setup`, and saved in
+    checkpoints with the weights.
+
+    Optimizers: ``"adam"`` (automatic optimization: gradient clipping, accumulation and
+    mixed precision work as usual), ``"cg"`` (:class:`torchhys.optim.PowellBealeCG`) and
+    ``"lbfgs"``. The closure optimizers run with manual optimization: the closure computes
+    the full-batch loss and its gradient (all-reduced across DDP ranks, so every rank's line
+    search sees the same values), and the logged ``train_loss`` is the loss at the
+    parameters after the step, not an average over line-search trials. Combining them with
+    gradient clipping, accumulation or mixed precision raises ``ValueError`` when the
+    module is attached to a ``Trainer`` for fitting.
+
+    Per-segment EIHOs (``operator_kwargs={"a": "segment"}``, not causal) get the batch's
+    targets as ``target``. Operator outputs that depend on no trainable parameter are
+    computed once per batch (and cached across epochs), not in every closure call.
+
+    Args:
+        net: a ready network (a plain ``nn.Module`` with ``features``/``head``/
+            ``fit_normalization`` like :class:`torchhys.InverseHysteresisNet`); when given,
+            ``operator``, ``hidden``, ``activation``, ``operator_kwargs`` are ignored and
+            ``load_from_checkpoint`` needs it passed again.
+        operator: ``"eiho"``, ``"zhao_tan"``, a list of those, or None (plain network).
+        hidden: hidden units.
+        activation: hidden activation (``"sigmoid"`` in the paper).
+        operator_kwargs: keyword arguments of the operators (e.g. ``{"a": "segment"}``).
+        init: ``"nguyen_widrow"`` or ``"default"`` (PyTorch's initialization).
+        optimizer: ``"adam"``, ``"cg"`` or ``"lbfgs"``.
+        lr: learning rate of Adam and LBFGS (CG has no learning rate).
+        optimizer_kwargs: further keyword arguments of the optimizer.
+    """
+
+    def __init__(
+        self, net: nn.Module | None = None, *, operator: str | list[str] | None = "eiho",
+        hidden: int = 168, activation: str = "sigmoid", operator_kwargs: dict | None = None,
+        init: str = "nguyen_widrow", optimizer: str = "cg", lr: float = 1e-2,
+        optimizer_kwargs: dict | None = None,
+    ) -> None:
+        super().__init__()
+        if optimizer not in OPTIMIZERS:
+            raise ValueError(f"optimizer must be one of {sorted(OPTIMIZERS)}, got {optimizer!r}")
+        self.save_hyperparameters(ignore=["net"])
+        if net is None:
+            net = InverseHysteresisNet(
+                operator, hidden, activation=activation, operator_kwargs=operator_kwargs
+            )
+            initialize(net, init)
+        self.net = net
+        self.optimizer_name = optimizer
+        self.automatic_optimization = optimizer not in CLOSURE_OPTIMIZERS
+        self.register_buffer("normalization_fitted", torch.tensor(False))
+        self.val_mse, self.test_mse = MeanSquaredError(), MeanSquaredError()
+        self._feature_cache: dict[str, tuple[Tensor, Tensor, Tensor]] = {}
+
+    # --- checks -------------------------------------------------------------------------
+    @property
+    def trainer(self) -> L.Trainer:  # type: ignore[override]
+        return L.LightningModule.trainer.fget(self)  # type: ignore[attr-defined]
+
+    @trainer.setter
+    def trainer(self, trainer: L.Trainer | None) -> None:
+        # Attaching happens before Lightning's own loop checks: fail with a clear ValueError.
+        if (
+            trainer is not None and not self.automatic_optimization
+            and getattr(getattr(trainer, "state", None), "fn", None) == TrainerFn.FITTING
+        ):
+            check_closure_trainer(trainer, self.optimizer_name)
+        L.LightningModule.trainer.fset(self, trainer)  # type: ignore[attr-defined]
+
+    # --- data-dependent set-up ----------------------------------------------------------
+    def setup(self, stage: str) -> None:
+        """Fit the network's normalization on the datamodule's training part (once)."""
+        if bool(self.normalization_fitted):
+            return
+        dm = getattr(self.trainer, "datamodule", None)
+        if dm is None or not hasattr(dm, "train_tensors"):
+            return
+        x, y = dm.train_tensors()
+        self.fit_normalization(x, y)
+
+    def fit_normalization(self, x: Tensor, y: Tensor) -> None:
+        """Fit the network's normalization to training data (physical units), (batch, time)."""
+        ref = next(iter(self.net.buffers()), None)
+        dtype = ref.dtype if ref is not None else torch.get_default_dtype()
+        self.net.fit_normalization(x.to(dtype), y.to(dtype))
+        self.normalization_fitted.fill_(True)
+        self._feature_cache.clear()
+
+    # --- the model ----------------------------------------------------------------------
+    def _fixed_operators(self) -> bool:
+        return not any(p.requires_grad for p in self.net.operators.parameters())
+
+    def _features(self, x: Tensor, y: Tensor, key: str) -> Tensor:
+        """Operator features of (x, y), cached when they depend on no trainable parameter."""
+        cached = self._feature_cache.get(key)
+        if cached is not None:
+            cx, cy, feats = cached
+            if cx.shape == x.shape and cx.dtype == x.dtype and torch.equal(cx, x) and (
+                torch.equal(cy, y)
+            ):
+                return feats
+        with torch.no_grad():
+            feats, _ = self.net.features(x, target=y)
+        self._feature_cache[key] = (x.detach().clone(), y.detach().clone(), feats)
+        return feats
+
+    def forward(self, x: Tensor, target: Tensor | None = None) -> Tensor:
+        """Model output for ``x`` (batch, time) or (time,); ``target`` for per-segment EIHOs."""
+        return self.net(x, target=target)[0]
+
+    def _predict(self, x: Tensor, y: Tensor, key: str) -> Callable[[], Tensor]:
+        """A function computing the prediction for the whole batch, (batch, time)."""
+        x = x.to(self.dtype)
+        y = y.to(self.dtype)
+        if self._fixed_operators():
+            feats = self._features(x, y, key)
+            return lambda: self.net.head(feats)
+        return lambda: self.net(x, target=y)[0]
+
+    def _global_mean(self, value: Tensor) -> Tensor:
+        if self.trainer.world_size > 1:
+            return self.trainer.strategy.reduce(value, reduce_op="mean")
+        return value
+
+    # --- training -----------------------------------------------------------------------
+    def training_step(self, batch: Batch, batch_idx: int) -> Tensor | None:
+        x, y, _ = _unpack(batch)
+        y = y.to(self.dtype)
+        predict = self._predict(x, y, "train")
+        if self.automatic_optimization:
+            loss = F.mse_loss(predict(), y)
+            self.log("train_loss", loss.detach(), on_step=False, on_epoch=True,
+                     prog_bar=True, sync_dist=True)
+            return loss
+        opt = self.optimizers()
+
+        def closure() -> Tensor:
+            opt.zero_grad()
+            loss = F.mse_loss(predict(), y)
+            self.manual_backward(loss)  # DDP averages the gradients across ranks
+            return self._global_mean(loss.detach())
+
+        opt.step(closure=closure)
+        with torch.no_grad():
+            loss = self._global_mean(F.mse_loss(predict(), y))
+        self.log("train_loss", loss, on_step=False, on_epoch=True, prog_bar=True)
+        return None
+
+    def _evaluate(self, batch: Batch, stage: str) -> None:
+        x, y, warmup = _unpack(batch)
+        y = y.to(self.dtype)
+        with torch.no_grad():
+            pred = self._predict(x, y, stage)()
+        metric = self.val_mse if stage == "val" else self.test_mse
+        metric(pred[..., warmup:].reshape(-1), y[..., warmup:].reshape(-1))
+        self.log(f"{stage}_mse", metric, on_step=False, on_epoch=True, prog_bar=True)
+
+    def validation_step(self, batch: Batch, batch_idx: int) -> None:
+        self._evaluate(batch, "val")
+
+    def test_step(self, batch: Batch, batch_idx: int) -> None:
+        self._evaluate(batch, "test")
+
+    def predict_step(self, batch: Batch, batch_idx: int) -> Tensor:
+        """The model output over the whole batch, (batch, time)."""
+        x, y, _ = _unpack(batch)
+        with torch.no_grad():
+            return self._predict(x, y, "predict")()
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        if not self.automatic_optimization:
+            check_closure_trainer(self.trainer, self.optimizer_name)
+        kwargs = dict(self.hparams.get("optimizer_kwargs") or {})
+        if self.optimizer_name != "cg":
+            kwargs.setdefault("lr", self.hparams.get("lr", 1e-2))
+        if self.optimizer_name == "lbfgs":
+            kwargs.setdefault("line_search_fn", "strong_wolfe")
+        params = [p for p in self.parameters() if p.requires_grad]
+        return OPTIMIZERS[self.optimizer_name](params, **kwargs)
