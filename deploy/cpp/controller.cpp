@@ -1,0 +1,188 @@
+// Fixed-rate feedforward controller running an exported torchhys compensator.
+//
+//   controller MODEL REF.csv OUT.csv [--rate HZ] [--format torchscript|aoti]
+//
+// MODEL is a TorchScript file from torchhys.export.to_torchscript (methods step, reset,
+// nonfinite_count) or an AOTInductor package (.pt2) from torchhys.export.to_aoti (explicit
+// state; the fresh state is all zeros, its shapes and dtypes in the package metadata
+// "state_spec"). REF.csv holds the reference trajectory (desired displacement), one value
+// per line in its first column; lines that do not start with a number (a header) are
+// skipped. OUT.csv receives "y_ref,u" per sample. --rate HZ paces the loop with a steady
+// clock (default 1000; 0 runs as fast as possible). Prints the per-sample step latency
+// (median, p99, max, in microseconds) and the number of held non-finite samples.
+#include <torch/script.h>
+#include <torch/torch.h>
+
+#ifdef TORCHHYS_AOTI
+#include <torch/csrc/inductor/aoti_package/model_package_loader.h>
+#endif
+
+#include <algorithm>
+#include <chrono>
+#include <cstdio>
+#include <cstdlib>
+#include <fstream>
+#include <iostream>
+#include <memory>
+#include <sstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+std::vector<double> read_reference(const std::string& path) {
+  std::ifstream in(path);
+  if (!in) throw std::runtime_error("cannot open reference file " + path);
+  std::vector<double> ref;
+  std::string line;
+  while (std::getline(in, line)) {
+    std::string first = line.substr(0, line.find(','));
+    char* end = nullptr;
+    double v = std::strtod(first.c_str(), &end);
+    if (end == first.c_str()) continue;  // header or empty line
+    ref.push_back(v);
+  }
+  return ref;
+}
+
+// One compensator behind a common interface: step(x) -> u for a batch of one.
+struct Stepper {
+  virtual ~Stepper() = default;
+  virtual double step(double x) = 0;
+  virtual int64_t nonfinite() = 0;
+};
+
+struct ScriptStepper : Stepper {
+  torch::jit::Module module;
+  at::ScalarType dtype;
+  explicit ScriptStepper(const std::string& path) : module(torch::jit::load(path)) {
+    module.eval();
+    dtype = module.attr("low").toTensor().scalar_type();
+    module.get_method("reset")({});
+  }
+  double step(double x) override {
+    at::Tensor xt = torch::full({1}, x, torch::TensorOptions().dtype(dtype));
+    return module.get_method("step")({xt}).toTensor().item<double>();
+  }
+  int64_t nonfinite() override {
+    return module.get_method("nonfinite_count")({}).toTensor().sum().item<int64_t>();
+  }
+};
+
+#ifdef TORCHHYS_AOTI
+at::ScalarType parse_dtype(const std::string& name) {
+  if (name == "bool") return at::kBool;
+  if (name == "int64") return at::kLong;
+  if (name == "float32") return at::kFloat;
+  if (name == "float64") return at::kDouble;
+  throw std::runtime_error("unknown dtype in state_spec: " + name);
+}
+
+struct AotiStepper : Stepper {
+  std::unique_ptr<torch::inductor::AOTIModelPackageLoader> loader;
+  std::vector<at::Tensor> inputs;  // [x, state...]
+  at::ScalarType dtype;
+  explicit AotiStepper(const std::string& path)
+      : loader(std::make_unique<torch::inductor::AOTIModelPackageLoader>(path)) {
+    auto meta = loader->get_metadata();
+    dtype = parse_dtype(meta.at("dtype"));
+    inputs.push_back(torch::zeros({1}, torch::TensorOptions().dtype(dtype)));
+    std::stringstream spec(meta.at("state_spec"));
+    std::string part;
+    while (std::getline(spec, part, ';')) {
+      auto colon = part.find(':');
+      std::vector<int64_t> shape;
+      std::stringstream dims(part.substr(colon + 1));
+      std::string d;
+      while (std::getline(dims, d, ',')) shape.push_back(std::stoll(d));
+      inputs.push_back(
+          torch::zeros(shape, torch::TensorOptions().dtype(parse_dtype(part.substr(0, colon)))));
+    }
+  }
+  double step(double x) override {
+    inputs[0].fill_(x);
+    std::vector<at::Tensor> out = loader->run(inputs);
+    for (size_t i = 1; i < out.size(); ++i) inputs[i] = out[i];
+    return out[0].item<double>();
+  }
+  int64_t nonfinite() override { return inputs[4].sum().item<int64_t>(); }
+};
+#endif
+
+bool ends_with(const std::string& s, const std::string& suffix) {
+  return s.size() >= suffix.size() && s.compare(s.size() - suffix.size(), suffix.size(), suffix) == 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  if (argc < 4) {
+    std::cerr << "usage: " << argv[0]
+              << " MODEL REF.csv OUT.csv [--rate HZ] [--format torchscript|aoti]\n";
+    return 2;
+  }
+  std::string model_path = argv[1], ref_path = argv[2], out_path = argv[3];
+  double rate = 1000.0;
+  std::string format = ends_with(model_path, ".pt2") ? "aoti" : "torchscript";
+  for (int i = 4; i + 1 < argc; i += 2) {
+    std::string opt = argv[i];
+    if (opt == "--rate") rate = std::atof(argv[i + 1]);
+    else if (opt == "--format") format = argv[i + 1];
+    else { std::cerr << "unknown option " << opt << "\n"; return 2; }
+  }
+  try {
+    at::set_num_threads(1);
+    torch::NoGradGuard no_grad;
+    std::unique_ptr<Stepper> stepper;
+    if (format == "torchscript") {
+      stepper = std::make_unique<ScriptStepper>(model_path);
+    } else if (format == "aoti") {
+#ifdef TORCHHYS_AOTI
+      stepper = std::make_unique<AotiStepper>(model_path);
+#else
+      std::cerr << "this controller was built without AOTInductor support\n";
+      return 2;
+#endif
+    } else {
+      std::cerr << "unknown format " << format << "\n";
+      return 2;
+    }
+    std::vector<double> ref = read_reference(ref_path);
+    std::vector<double> cmd(ref.size());
+    std::vector<double> latency_us(ref.size());
+    const auto period = rate > 0 ? std::chrono::duration_cast<Clock::duration>(
+                                       std::chrono::duration<double>(1.0 / rate))
+                                 : Clock::duration::zero();
+    auto next = Clock::now();
+    for (size_t t = 0; t < ref.size(); ++t) {
+      if (rate > 0) {
+        std::this_thread::sleep_until(next);
+        next += period;
+      }
+      auto t0 = Clock::now();
+      cmd[t] = stepper->step(ref[t]);
+      auto t1 = Clock::now();
+      latency_us[t] = std::chrono::duration<double, std::micro>(t1 - t0).count();
+    }
+    std::FILE* out = std::fopen(out_path.c_str(), "w");
+    if (!out) throw std::runtime_error("cannot write " + out_path);
+    std::fprintf(out, "y_ref,u\n");
+    for (size_t t = 0; t < ref.size(); ++t) std::fprintf(out, "%.17g,%.17g\n", ref[t], cmd[t]);
+    std::fclose(out);
+    std::vector<double> sorted = latency_us;
+    std::sort(sorted.begin(), sorted.end());
+    auto pct = [&](double q) {
+      return sorted.empty() ? 0.0 : sorted[std::min(sorted.size() - 1, size_t(q * sorted.size()))];
+    };
+    std::printf("format %s samples %zu median_us %.3f p99_us %.3f max_us %.3f nonfinite %lld\n",
+                format.c_str(), ref.size(), pct(0.5), pct(0.99),
+                sorted.empty() ? 0.0 : sorted.back(), (long long)stepper->nonfinite());
+  } catch (const std::exception& e) {
+    std::cerr << "error: " << e.what() << "\n";
+    return 1;
+  }
+  return 0;
+}
