@@ -157,3 +157,14 @@ def test_forward_leaves_stored_state_alone() -> None:
     rest = [comp.step(xt) for xt in x[:, 10:].unbind(-1)]
     torch.testing.assert_close(torch.stack(first + rest, -1), comp(x), rtol=0, atol=0)
     assert math.isfinite(float(comp(x).sum()))
+
+
+def test_pi_operator_in_a_network() -> None:
+    x = inputs(300)
+    pi = PrandtlIshlinskii(torch.tensor([0.3, 1.0, 2.0]), torch.tensor([0.5, 1.0, -0.2]),
+                           linear_weight=0.7)
+    net = net_of([pi, EIHO(a=1.0, rule="recent", threshold=0.5)], torch.float64, x)
+    with torch.no_grad():
+        ref, _ = net(x)
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    torch.testing.assert_close(comp(x), ref, rtol=0, atol=1e-12)

@@ -17,7 +17,7 @@ re-anchored at the current one.
 import torch
 from torch import Tensor, nn
 
-__all__ = ["BranchStep", "PlayStep"]
+__all__ = ["BranchStep", "PIStep", "PlayStep"]
 
 
 class PlayStep(nn.Module):
@@ -40,6 +40,24 @@ class PlayStep(nn.Module):
         xc = x.unsqueeze(-1)
         y = torch.minimum(torch.maximum(state[0], xc - self.r), xc + self.r)
         return y, [y]
+
+
+class PIStep(PlayStep):
+    """Prandtl-Ishlinskii output ``w0 x + sum_i w_i y_i`` of N plays; state ``[y (B, N)]``."""
+
+    def __init__(self, r: Tensor, weights: Tensor, linear_weight: Tensor) -> None:
+        super().__init__(r)
+        self.register_buffer("weights", weights.detach().clone())
+        self.register_buffer("linear_weight", linear_weight.detach().clone())
+        self.n_out = 1
+
+    def state_spec(self) -> list[tuple[list[int], torch.dtype]]:
+        return [([int(self.r.shape[0])], self.r.dtype)]
+
+    def step(self, x: Tensor, state: list[Tensor], started: Tensor) -> tuple[Tensor, list[Tensor]]:
+        xc = x.unsqueeze(-1)
+        y = torch.minimum(torch.maximum(state[0], xc - self.r), xc + self.r)
+        return (self.linear_weight * x + y @ self.weights).unsqueeze(-1), [y]
 
 
 def _safe_sqrt(u: Tensor, eps: float) -> Tensor:

@@ -1,11 +1,12 @@
 """A deployable, sample-by-sample compensator built from a trained inverse model.
 
 :class:`StreamingCompensator` turns an :class:`~torchhys.InverseHysteresisNet` (any causal
-mix of :class:`~torchhys.EIHO`, :class:`~torchhys.ZhaoTanOperator` and
-:class:`~torchhys.Backlash` operators) or a :class:`~torchhys.PrandtlIshlinskiiInverse`
-into a module that takes the desired output in physical units, one sample at a time, and
-returns the saturated actuator command. It is written for export (explicit tensor state,
-no data-dependent Python control flow): see :mod:`torchhys.export`.
+mix of :class:`~torchhys.EIHO`, :class:`~torchhys.ZhaoTanOperator`, :class:`~torchhys.Backlash`
+and :class:`~torchhys.PrandtlIshlinskii` operators) or a
+:class:`~torchhys.PrandtlIshlinskiiInverse` into a module that takes the desired output in
+physical units, one sample at a time, and returns the saturated actuator command. It is
+written for export (explicit tensor state, no data-dependent Python control flow): see
+:mod:`torchhys.export`.
 
 Safety: the command is saturated to ``[low, high]``; a NaN or inf input sample (or a
 command that would not be finite) holds the last valid command, leaves the operator state
@@ -19,11 +20,11 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-from torchhys._streaming_ops import BranchStep, PlayStep
+from torchhys._streaming_ops import BranchStep, PIStep, PlayStep
 from torchhys.backlash import Backlash
 from torchhys.eiho import EIHO, ZhaoTanOperator
 from torchhys.networks import InverseHysteresisNet
-from torchhys.prandtl_ishlinskii import PrandtlIshlinskiiInverse
+from torchhys.prandtl_ishlinskii import PrandtlIshlinskii, PrandtlIshlinskiiInverse
 
 __all__ = ["StreamingCompensator", "default_limits"]
 
@@ -78,6 +79,11 @@ def _step_module(op: nn.Module, dtype: torch.dtype) -> nn.Module:
                 "EIHO(a='segment') cannot be deployed: its per-segment coefficients come from "
                 "the target's next extremum (not causal). Train with a fixed or learnable a."
             )
+        if hasattr(op, "anchor_slope"):
+            raise ValueError(
+                "EIHO(a='anchored') is not supported by the streaming compensator yet; "
+                "deploy a fixed or learnable a"
+            )
         a = op.coefficient().detach().to(dtype).reshape(-1).expand(2)
         r = 0.5 * _threshold(op).to(dtype)
         return BranchStep("eiho", op.rule, a, r, op.max_depth, op.eps, 1.0)
@@ -87,8 +93,12 @@ def _step_module(op: nn.Module, dtype: torch.dtype) -> nn.Module:
                           0.0, op.scale)
     if isinstance(op, Backlash):
         return PlayStep(0.5 * op.get_widths().detach().to(dtype))
+    if isinstance(op, PrandtlIshlinskii):
+        return PIStep(0.5 * op.get_widths().detach().to(dtype), op.weights.detach().to(dtype),
+                      op.linear_weight.detach().to(dtype))
     raise TypeError(
-        "StreamingCompensator supports EIHO, ZhaoTanOperator and Backlash operators, got "
+        "StreamingCompensator supports EIHO, ZhaoTanOperator, Backlash and PrandtlIshlinskii "
+        "operators, got "
         f"{type(op).__name__}"
     )
 
