@@ -1,0 +1,121 @@
+"""Per-sample step latency of the deployed compensator: Python, TorchScript, C++, AOTI.
+
+    python benchmarks/latency.py [--samples 5000] [--skip-aoti]
+
+Two compensators (weights do not matter for latency): the compensation benchmark's EIHO
+network (dominant-rule EIHO + 16 play operators of the input, 64 hidden units) and a
+network of 16 play operators alone. Each path runs ``step`` on a batch of one, one thread;
+the C++ rows use deploy/cpp/controller (built on first use, ``--rate 0``), which times each
+step with a steady clock. Median and p99 in microseconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from torchhys import EIHO, Backlash, InverseHysteresisNet
+from torchhys.export import load_aoti, load_torchscript, to_aoti, to_torchscript
+from torchhys.streaming import StreamingCompensator
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def controller() -> Path:
+    src = [ROOT / "deploy" / "cpp" / "controller.cpp", ROOT / "deploy" / "cpp" / "build.sh"]
+    h = hashlib.sha256(torch.__version__.encode())
+    for s in src:
+        h.update(s.read_bytes())
+    out = ROOT / "build" / "cpp-test" / h.hexdigest()[:16]
+    if not (out / "controller").exists():
+        subprocess.run(["bash", str(src[1]), str(out)], check=True,
+                       env=dict(os.environ, PYTHON=sys.executable))
+    return out / "controller"
+
+
+def models() -> dict[str, InverseHysteresisNet]:
+    t = torch.linspace(0, 60, 2000)
+    y = 70 * torch.sin(t) * torch.exp(-t / 60)
+    plays = torch.linspace(0.0, 56.0, 16)
+    nets = {
+        "EIHO + 16 plays": InverseHysteresisNet([EIHO(a=0.5, rule="dominant"), Backlash(plays)],
+                                                hidden=64),
+        "16 plays": InverseHysteresisNet(Backlash(plays), hidden=64),
+    }
+    for net in nets.values():
+        net.fit_normalization(y, y / 12)
+    return nets
+
+
+def reference(n: int) -> torch.Tensor:
+    t = torch.linspace(0, 100, n)
+    return 60 * torch.sin(t) * torch.cos(0.13 * t)
+
+
+def time_python(step, x: torch.Tensor) -> tuple[float, float]:
+    samples = [x[i:i + 1] for i in range(x.numel())]
+    with torch.no_grad():
+        for s in samples[:200]:
+            step(s)
+        ts = []
+        for s in samples:
+            t0 = time.perf_counter_ns()
+            step(s)
+            ts.append(time.perf_counter_ns() - t0)
+    ts.sort()
+    return ts[len(ts) // 2] / 1e3, ts[int(0.99 * len(ts))] / 1e3
+
+
+def time_cpp(binary: Path, model: Path, x: torch.Tensor, tmp: Path) -> tuple[float, float]:
+    ref = tmp / "ref.csv"
+    ref.write_text("y_ref\n" + "\n".join(f"{v:.9g}" for v in x.tolist()) + "\n")
+    res = subprocess.run([str(binary), str(model), str(ref), str(tmp / "out.csv"), "--rate",
+                          "0"], capture_output=True, text=True, check=True)
+    fields = res.stdout.split()
+    values = dict(zip(fields[::2], fields[1::2], strict=False))
+    return float(values["median_us"]), float(values["p99_us"])
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--samples", type=int, default=5000)
+    parser.add_argument("--skip-aoti", action="store_true", help="skip the (slow) AOTI compile")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    x = reference(args.samples)
+    binary = controller()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        for name, net in models().items():
+            comp = StreamingCompensator(net, limits=(-10.0, 10.0))
+            rows.append((name, "eager Python", *time_python(comp.step, x)))
+            ts_path = tmp / "comp.pt"
+            to_torchscript(comp, ts_path)
+            rows.append((name, "TorchScript, Python", *time_python(
+                load_torchscript(ts_path).step, x)))
+            rows.append((name, "TorchScript, C++", *time_cpp(binary, ts_path, x, tmp)))
+            if not args.skip_aoti:
+                aoti_path = tmp / "comp.pt2"
+                start = time.perf_counter()
+                to_aoti(comp, aoti_path)
+                print(f"{name}: AOTI compile {time.perf_counter() - start:.0f} s", flush=True)
+                rows.append((name, "AOTI, Python", *time_python(load_aoti(aoti_path).step, x)))
+                rows.append((name, "AOTI, C++", *time_cpp(binary, aoti_path, x, tmp)))
+    print(f"\n{args.samples} steps, batch 1, one thread\n")
+    print("| compensator | path | median (us) | p99 (us) |")
+    print("|---|---|---|---|")
+    for name, path, med, p99 in rows:
+        print(f"| {name} | {path} | {med:.1f} | {p99:.1f} |")
+
+
+if __name__ == "__main__":
+    main()

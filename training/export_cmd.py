@@ -1,0 +1,111 @@
+"""``torchhys export``: a trained checkpoint to a deployable compensator file.
+
+    torchhys export --ckpt CKPT --format torchscript|aoti --out FILE [--limits LOW HIGH]
+
+CKPT is a checkpoint of :class:`training.InverseHysteresisModule` (Lightning's
+``{"state_dict": {"net.*": ...}, "hyper_parameters": {...}}``; the network is rebuilt from
+``operator``, ``hidden``, ``activation`` and ``operator_kwargs``) or a plain ``torch.save``d
+state dict of an :class:`torchhys.InverseHysteresisNet` (then give ``--operator``,
+``--hidden``, ``--activation`` and ``--operator-kwargs`` as it was built). Loaded with
+``weights_only=True``: no code from the file is run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import torch
+
+from torchhys import InverseHysteresisNet
+from torchhys.export import to_aoti, to_torchscript
+from torchhys.streaming import StreamingCompensator
+
+__all__ = ["build_net", "main"]
+
+_ARCH_KEYS = ("operator", "hidden", "activation", "operator_kwargs")
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="torchhys export", description=__doc__.splitlines()[0])
+    p.add_argument("--ckpt", type=Path, required=True, help="checkpoint or state dict file")
+    p.add_argument("--format", choices=("torchscript", "aoti"), required=True)
+    p.add_argument("--out", type=Path, required=True, help="output file (.pt or .pt2)")
+    p.add_argument("--limits", type=float, nargs=2, metavar=("LOW", "HIGH"),
+                   help="command saturation (default: the training output range)")
+    p.add_argument("--initial-command", type=float, default=0.0,
+                   help="command held until the first finite input (default 0)")
+    arch = p.add_argument_group("architecture of a plain state dict")
+    arch.add_argument("--operator", help='e.g. eiho, zhao_tan, none, or a JSON list')
+    arch.add_argument("--hidden", type=int)
+    arch.add_argument("--activation")
+    arch.add_argument("--operator-kwargs", help="JSON object, e.g. '{\"rule\": \"dominant\"}'")
+    return p
+
+
+def _plain_arch(args: argparse.Namespace) -> dict:
+    if args.hidden is None:
+        raise ValueError(
+            "the file holds a plain state dict: give --hidden (and --operator, --activation, "
+            "--operator-kwargs as the network was built)"
+        )
+    operator = args.operator or "eiho"
+    operator = None if operator == "none" else (
+        json.loads(operator) if operator.startswith("[") else operator)
+    return {"operator": operator, "hidden": args.hidden,
+            "activation": args.activation or "sigmoid",
+            "operator_kwargs": json.loads(args.operator_kwargs or "{}")}
+
+
+def build_net(ckpt: dict, arch: dict | None = None) -> InverseHysteresisNet:
+    """Rebuild the network of a Lightning checkpoint (or of a plain state dict + ``arch``)."""
+    if "state_dict" in ckpt:
+        hp = ckpt.get("hyper_parameters") or {}
+        missing = [k for k in ("operator", "hidden") if k not in hp]
+        if missing:
+            raise ValueError(
+                f"the checkpoint's hyper_parameters lack {missing}: the network was passed in "
+                "ready-made; export it from Python with torchhys.export instead"
+            )
+        arch = {k: hp.get(k) for k in _ARCH_KEYS}
+        state = {k[4:]: v for k, v in ckpt["state_dict"].items() if k.startswith("net.")}
+    elif arch is None:
+        raise ValueError("a plain state dict needs the architecture (see --hidden)")
+    else:
+        state = ckpt
+    net = InverseHysteresisNet(
+        arch["operator"], arch["hidden"], activation=arch.get("activation") or "sigmoid",
+        operator_kwargs=arch.get("operator_kwargs") or {},
+    )
+    net.load_state_dict(state)
+    ref = next(iter(state.values()), None)
+    return net.to(ref.dtype) if isinstance(ref, torch.Tensor) and ref.is_floating_point() else net
+
+
+def main(argv: list[str]) -> int:
+    """Run ``torchhys export``; returns the exit status (0 ok, 2 usage or input error)."""
+    args = _parser().parse_args(argv)
+    try:
+        if not args.ckpt.is_file():
+            raise ValueError(f"--ckpt {args.ckpt} does not exist")
+        ckpt = torch.load(args.ckpt, map_location="cpu", weights_only=True)
+        if not isinstance(ckpt, dict):
+            raise ValueError(f"--ckpt must hold a dict (checkpoint or state dict), got "
+                             f"{type(ckpt).__name__}")
+        net = build_net(ckpt, None if "state_dict" in ckpt else _plain_arch(args))
+        comp = StreamingCompensator(net, limits=args.limits,
+                                    initial_command=args.initial_command)
+        export = to_torchscript if args.format == "torchscript" else to_aoti
+        export(comp, args.out)
+    except (ValueError, TypeError, RuntimeError, KeyError, json.JSONDecodeError) as e:
+        print(f"torchhys export: error: {e}", file=sys.stderr)
+        return 2
+    print(f"wrote {args.out} ({args.format}); command limits [{float(comp.low):.6g}, "
+          f"{float(comp.high):.6g}]")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))
