@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> None:
     TorchhysCLI(
         InverseHysteresisModule,
         HysteresisDataModule,
-        args=args,
+        args=argv,
         seed_everything_default=0,
         save_config_kwargs={"overwrite": True},
         trainer_defaults={"log_every_n_steps": 1},

@@ -107,17 +107,24 @@ class InverseHysteresisModule(L.LightningModule):
         optimizer: ``"adam"``, ``"cg"`` or ``"lbfgs"``.
         lr: learning rate of Adam and LBFGS (CG has no learning rate).
         optimizer_kwargs: further keyword arguments of the optimizer.
+        schedule: ``None`` or ``"cosine"`` (Adam only: cosine decay of ``lr`` to 0 over
+            ``trainer.max_epochs``).
     """
 
     def __init__(
         self, net: nn.Module | None = None, *, operator: str | list[str] | None = "eiho",
         hidden: int = 168, activation: str = "sigmoid", operator_kwargs: dict | None = None,
         init: str = "nguyen_widrow", optimizer: str = "cg", lr: float = 1e-2,
-        optimizer_kwargs: dict | None = None,
+        optimizer_kwargs: dict | None = None, schedule: str | None = None,
     ) -> None:
         super().__init__()
         if optimizer not in OPTIMIZERS:
             raise ValueError(f"optimizer must be one of {sorted(OPTIMIZERS)}, got {optimizer!r}")
+        if schedule not in (None, "cosine") or (schedule and optimizer in CLOSURE_OPTIMIZERS):
+            raise ValueError(
+                f"schedule must be None or 'cosine' (with optimizer='adam'), got {schedule!r} "
+                f"with optimizer={optimizer!r}"
+            )
         self.save_hyperparameters(ignore=["net"])
         if net is None:
             net = InverseHysteresisNet(
@@ -246,7 +253,7 @@ class InverseHysteresisModule(L.LightningModule):
         with torch.no_grad():
             return self._predict(x, y, "predict")()
 
-    def configure_optimizers(self) -> torch.optim.Optimizer:
+    def configure_optimizers(self) -> Any:
         if not self.automatic_optimization:
             check_closure_trainer(self.trainer, self.optimizer_name)
         kwargs = dict(self.hparams.get("optimizer_kwargs") or {})
@@ -255,4 +262,9 @@ class InverseHysteresisModule(L.LightningModule):
         if self.optimizer_name == "lbfgs":
             kwargs.setdefault("line_search_fn", "strong_wolfe")
         params = [p for p in self.parameters() if p.requires_grad]
-        return OPTIMIZERS[self.optimizer_name](params, **kwargs)
+        opt = OPTIMIZERS[self.optimizer_name](params, **kwargs)
+        if self.hparams.get("schedule") == "cosine":
+            epochs = max(int(self.trainer.max_epochs or 1), 1)
+            sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, epochs)
+            return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "epoch"}}
+        return opt

@@ -1,71 +1,267 @@
-"""``make reproduce``: the paper's simulation experiment (Section 5.2).
+"""``make reproduce``: the paper's simulation experiment (Section 5.2), end to end.
 
-Until the full reproduction (EIHO network, Zhao-Tan network and plain MLP trained
-with conjugate gradient and Adam) lands, this runs the real part that exists: it
-simulates the paper's backlash plant (15 play operators, d_i in [1/6, 15/6]) on the
-paper's input, checks it against the analytic expectations, and plots the
-hysteresis loop and the inverse loop the models must learn, plus the Fig. 6
-illustration. Outputs go to ``runs/reproduce/``.
+EIHO-NN (per-segment a_i from the targets, Eq. (18) with the square-root formula), Zhao and
+Tan's network (Ref. [8]) and a plain network of the input alone, 168 sigmoid hidden units
+each, every one trained full-batch with conjugate gradient (Powell-Beale restarts, as the
+paper) and with Adam, through :class:`training.InverseHysteresisModule` and a Lightning
+``Trainer`` (float64, seed 0). MSE on the simulated record, as in the paper.
+
+Writes to ``--out`` (default ``runs/reproduce/``): ``results.csv``
+(``model,optimizer,hidden,epochs,seconds,mse``), ``results.md``, ``convergence.csv`` and
+the figures ``loops.png``, ``prediction.png``, ``error.png``, ``convergence.png``,
+``plant_loop.png``; ``--docs DIR`` copies the figures there (the README's).
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
+import logging
+import shutil
 import time
+import warnings
 from pathlib import Path
 
+import lightning as L
 import torch
 
+from training.data import HysteresisDataModule
+from training.module import InverseHysteresisModule
 
-def plot_plant(out_dir: Path) -> Path:
+PAPER = {"eiho": (168, 1504, 1.737e-3), "zhao_tan": (169, 1624, 3.867e-3)}
+"""The paper's Section 5.2 table: hidden units, epochs, MSE."""
+MODELS = ("eiho", "zhao_tan", "mlp")
+OPTIMIZERS = ("cg", "adam")
+EPOCHS = {"eiho": 5000, "zhao_tan": 2500, "mlp": 1000}
+"""Epochs per model, the same for both optimizers (the paper: 1504 and 1624)."""
+QUICK_EPOCHS = {"eiho": 60, "zhao_tan": 60, "mlp": 60}
+FLOOR = 3.5e-4
+"""MSE floor of any model of the history of H alone (the set-valued plateaus)."""
+
+
+def model_kwargs(model: str, h: torch.Tensor) -> dict:
+    """Module options of a model name (``eiho``, ``zhao_tan``, ``mlp``)."""
+    if model == "eiho":
+        return {"operator": "eiho", "operator_kwargs": {"a": "segment", "a_formula": "sqrt"}}
+    if model == "zhao_tan":  # input scale near the input's spread (s = 1 leaves f ~ x + c)
+        return {"operator": "zhao_tan", "operator_kwargs": {"scale": float(h.std()) / 5}}
+    if model == "mlp":
+        return {"operator": None}
+    raise ValueError(f"model must be one of {MODELS}, got {model!r}")
+
+
+class Convergence(L.Callback):
+    """Record (epoch, seconds since the start of training, logged train loss)."""
+
+    def __init__(self) -> None:
+        self.rows: list[tuple[int, float, float]] = []
+        self.start = 0.0
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.start = time.perf_counter()
+
+    def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        loss = float(trainer.callback_metrics["train_loss"])
+        self.rows.append((trainer.current_epoch + 1, time.perf_counter() - self.start, loss))
+
+
+def train_one(model: str, optimizer: str, epochs: int, *, hidden: int = 168, seed: int = 0,
+              log_dir: Path | None = None) -> dict:
+    """Train one model with one optimizer on the paper's record; return its results."""
+    L.seed_everything(seed, verbose=False)
+    dm = HysteresisDataModule(simulation="paper", split="paper")
+    dm.setup("fit")
+    opts = dict(hidden=hidden, optimizer=optimizer, init="nguyen_widrow",
+                **model_kwargs(model, dm.x))
+    if optimizer == "cg":
+        opts["optimizer_kwargs"] = {"minstep": 0.0}
+    else:
+        opts.update(lr=1e-2, schedule="cosine")
+    module = InverseHysteresisModule(**opts)
+    conv = Convergence()
+    logger = (L.pytorch.loggers.CSVLogger(log_dir, name=f"{model}_{optimizer}", version=0)
+              if log_dir is not None else False)
+    trainer = L.Trainer(
+        max_epochs=epochs, accelerator="cpu", devices=1, precision="64-true", logger=logger,
+        enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+        limit_val_batches=0, num_sanity_val_steps=0, log_every_n_steps=1, callbacks=[conv],
+    )
+    start = time.perf_counter()
+    trainer.fit(module, dm)
+    seconds = time.perf_counter() - start
+    x, y = dm.x.unsqueeze(0), dm.y.unsqueeze(0)
+    with torch.no_grad():
+        pred = module(x, target=y)[0]  # per-segment a_i from the targets (paper protocol)
+    mse = float(torch.mean((pred - y[0]) ** 2))
+    name = {"eiho": "eiho_nn", "zhao_tan": "zhao_tan_nn", "mlp": "mlp"}[model]
+    return dict(model=name, optimizer=optimizer, hidden=hidden, epochs=trainer.current_epoch,
+                seconds=seconds, mse=mse, curve=conv.rows, prediction=pred)
+
+
+def first_below(curve: list[tuple[int, float, float]], level: float) -> tuple[int, float] | None:
+    for epoch, sec, loss in curve:
+        if loss <= level:
+            return epoch, sec
+    return None
+
+
+def write_tables(results: list[dict], out: Path, wall: float) -> str:
+    with (out / "results.csv").open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["model", "optimizer", "hidden", "epochs", "seconds", "mse"])
+        for r in results:
+            w.writerow([r["model"], r["optimizer"], r["hidden"], r["epochs"],
+                        f"{r['seconds']:.1f}", f"{r['mse']:.4e}"])
+    with (out / "convergence.csv").open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["model", "optimizer", "epoch", "seconds", "train_loss"])
+        for r in results:
+            for epoch, sec, loss in r["curve"]:
+                w.writerow([r["model"], r["optimizer"], epoch, f"{sec:.3f}", f"{loss:.6e}"])
+    paper_mse = PAPER["eiho"][2]
+    lines = [
+        "| model | optimizer | hidden | epochs | seconds | MSE | epochs (s) to 1.737e-3 | "
+        "paper: hidden / epochs / MSE |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in results:
+        hit = first_below(r["curve"], paper_mse)
+        key = "eiho" if r["model"].startswith("eiho") else r["model"].replace("_nn", "")
+        ref = PAPER.get(key)
+        lines.append(
+            f"| {r['model']} | {r['optimizer']} | {r['hidden']} | {r['epochs']} | "
+            f"{r['seconds']:.1f} | {r['mse']:.3e} | "
+            f"{f'{hit[0]} ({hit[1]:.1f})' if hit else 'not reached'} | "
+            f"{f'{ref[0]} / {ref[1]} / {ref[2]:.3e}' if ref else '-'} |"
+        )
+    lines.append("")
+    lines.append(f"Total wall time: {wall:.0f} s. MSE floor of any model of H's history: "
+                 f"about {FLOOR:.1e}.")
+    table = "\n".join(lines) + "\n"
+    (out / "results.md").write_text(table)
+    return table
+
+
+def plot(results: list[dict], out: Path) -> list[Path]:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from torchhys.plants import fig6_simulation, paper_simulation
-
-    t, x, h = paper_simulation(dtype=torch.float64)
-    _, x6, h6 = fig6_simulation(dtype=torch.float64)
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
-    axes[0].plot(t, x, label="x (plant input)")
-    axes[0].plot(t, h / 15, label="H[x] / 15 (plant output)")
-    axes[0].set(xlabel="t (s)", title="Section 5.2: signals")
-    axes[0].legend(loc="lower left", fontsize=8)
-    axes[1].plot(x, h, lw=0.9)
-    axes[1].set(xlabel="x", ylabel="H[x]", title="backlash hysteresis (15 play operators)")
-    axes[2].plot(h, x, lw=0.9, color="C3", label="Section 5.2")
-    axes[2].plot(h6 * 15 / 10, x6, lw=0.7, color="C2", alpha=0.7, label="Fig. 6 (scaled)")
-    axes[2].set(xlabel="H[x] (model input)", ylabel="x (model target)",
-                title="inverse hysteresis to learn")
-    axes[2].legend(loc="lower right", fontsize=8)
-    for ax in axes:
+    dm = HysteresisDataModule()
+    dm.setup()
+    t = dm.t
+    h, x = dm.x, dm.y
+    best = {m: min((r for r in results if r["model"].startswith(m)), key=lambda r: r["mse"])
+            for m in MODELS}
+    paths = []
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4), sharey=True)
+    for ax, m in zip(axes, MODELS, strict=True):
+        r = best[m]
+        ax.plot(h, x, lw=1.6, color="0.75", label="data")
+        ax.plot(h, r["prediction"], lw=0.8, color="C3", label="model")
+        ax.set(title=f"{r['model']} ({r['optimizer']}): MSE {r['mse']:.2e}",
+               xlabel="H[x] (model input)")
         ax.grid(alpha=0.3)
+    axes[0].set_ylabel("x (target)")
+    axes[0].legend(loc="lower right", fontsize=8)
     fig.tight_layout()
-    path = out_dir / "plant_loop.png"
-    fig.savefig(path, dpi=110)
+    paths.append(out / "loops.png")
+    fig.savefig(paths[-1], dpi=110)
     plt.close(fig)
-    return path
+
+    fig, ax = plt.subplots(figsize=(11, 3.6))
+    r = best["eiho"]
+    ax.plot(t, x, lw=1.8, color="0.7", label="target x")
+    ax.plot(t, r["prediction"], lw=0.8, color="C3", label=f"{r['model']} ({r['optimizer']})")
+    ax.set(xlabel="t (s)", ylabel="x", title="prediction against target")
+    ax.legend(loc="lower left", fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    paths.append(out / "prediction.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(11, 3.6))
+    for i, m in enumerate(MODELS):
+        r = best[m]
+        ax.plot(t, r["prediction"] - x, lw=0.7, color=f"C{i}",
+                label=f"{r['model']} ({r['optimizer']})")
+    ax.set(xlabel="t (s)", ylabel="prediction - target", title="error over time",
+           ylim=(-1.0, 1.0))
+    ax.legend(loc="lower left", fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    paths.append(out / "error.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.2), sharey=True)
+    for r in results:
+        i = [m for m in MODELS if r["model"].startswith(m)][0]
+        style = "-" if r["optimizer"] == "cg" else "--"
+        curve = torch.tensor([(e, s, v) for e, s, v in r["curve"]], dtype=torch.float64)
+        label = f"{r['model']} {r['optimizer']}"
+        color = f"C{MODELS.index(i)}"
+        axes[0].plot(curve[:, 0], curve[:, 2], style, color=color, lw=1, label=label)
+        axes[1].plot(curve[:, 1], curve[:, 2], style, color=color, lw=1, label=label)
+    for ax in axes:
+        ax.axhline(PAPER["eiho"][2], color="k", lw=0.7, ls=":", label="paper EIHO-NN MSE")
+        ax.axhline(FLOOR, color="0.5", lw=0.7, ls="-.", label="plateau floor")
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3, which="both")
+    axes[0].axvline(PAPER["eiho"][1], color="k", lw=0.7, ls=":")
+    axes[0].set(xlabel="epoch", ylabel="training MSE", xscale="log",
+                title="convergence: CG (solid) against Adam (dashed)")
+    axes[1].set(xlabel="seconds", xscale="log")
+    axes[1].legend(fontsize=7, loc="upper right")
+    fig.tight_layout()
+    paths.append(out / "convergence.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+    return paths
 
 
-def main(argv: list[str] | None = None) -> None:
+def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("runs/reproduce"))
+    parser.add_argument("--quick", action="store_true", help="a few epochs (smoke run)")
+    parser.add_argument("--epochs", type=int, default=None, help="epochs of every run")
+    parser.add_argument("--models", nargs="+", default=list(MODELS), choices=MODELS)
+    parser.add_argument("--optimizers", nargs="+", default=list(OPTIMIZERS),
+                        choices=OPTIMIZERS)
+    parser.add_argument("--docs", type=Path, default=None,
+                        help="also copy the figures into this folder (e.g. docs/figures)")
+    parser.add_argument("--no-plots", action="store_true")
     args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
+    warnings.filterwarnings("ignore", ".*does not have many workers.*")
+    warnings.filterwarnings("ignore", category=UserWarning, module="torchhys")
     args.out.mkdir(parents=True, exist_ok=True)
-    from torchhys.plants import paper_simulation
-
     start = time.perf_counter()
-    t, x, h = paper_simulation(dtype=torch.float64)
-    print(f"paper simulation: {t.numel()} samples, x in [{x.min():.3f}, {x.max():.3f}], "
-          f"H[x] in [{h.min():.3f}, {h.max():.3f}]")
-    flat = (h.diff() == 0) & (x.diff() != 0)
-    print(f"samples where H[x] is flat while x moves (set-valued inverse): "
-          f"{flat.double().mean().item():.1%}")
-    path = plot_plant(args.out)
-    print(f"wrote {path} in {time.perf_counter() - start:.1f} s")
-    print("note: this is the plant part of the reproduction; the model training runs "
-          "once the EIHO network and the training issue land")
+    results = []
+    for model in args.models:
+        for opt in args.optimizers:
+            epochs = args.epochs or (QUICK_EPOCHS if args.quick else EPOCHS)[model]
+            r = train_one(model, opt, epochs, log_dir=args.out / "logs")
+            print(f"{r['model']:12s} {opt:5s} epochs {r['epochs']:5d}  {r['seconds']:6.1f} s  "
+                  f"mse {r['mse']:.3e}", flush=True)
+            results.append(r)
+    wall = time.perf_counter() - start
+    table = write_tables(results, args.out, wall)
+    print(table)
+    if not args.no_plots and set(args.models) == set(MODELS):
+        from training.reproduce_plant import plot_plant
+
+        paths = plot(results, args.out) + [plot_plant(args.out)]
+        if args.docs is not None:
+            args.docs.mkdir(parents=True, exist_ok=True)
+            for p in paths:
+                shutil.copy(p, args.docs / f"reproduce_{p.name}")
+        print("figures: " + ", ".join(str(p) for p in paths))
+    print(f"make reproduce: {time.perf_counter() - start:.0f} s in all")
+    return results
 
 
 if __name__ == "__main__":
