@@ -21,15 +21,10 @@ from training.module import InverseHysteresisModule
 
 __all__ = ["TorchhysCLI", "main"]
 
-_EXPORT_MESSAGE = (
-    "torchhys export: not available yet. Exporting a trained model as a deployable causal "
-    "compensator comes with the deployment feature; until then load the checkpoint with "
-    "training.InverseHysteresisModule.load_from_checkpoint(...)."
-)
 _DESCRIPTION = (
     "Train and evaluate inverse-hysteresis models. Subcommands: fit, validate, test, "
     "predict (LightningCLI; any option can be overridden, e.g. --trainer.max_epochs=10), "
-    "export (not available yet)."
+    "export (a trained checkpoint to a deployable compensator: torchhys export --help)."
 )
 
 
@@ -59,8 +54,9 @@ def main(argv: list[str] | None = None) -> None:
     """
     args = sys.argv[1:] if argv is None else list(argv)
     if args and args[0] == "export":
-        print(_EXPORT_MESSAGE, file=sys.stderr)
-        raise SystemExit(2)
+        from training.export_cmd import main as export_main
+
+        raise SystemExit(export_main(args[1:]))
     # Full-batch training: one sequence per step, so loader workers would only add start-up.
     warnings.filterwarnings("ignore", ".*does not have many workers.*")
     TorchhysCLI(
