@@ -8,7 +8,7 @@ from test_eiho_streaming import run_chunked
 from test_turning_points import random_walk
 
 from torchhys import InverseHysteresisNet, PrandtlIshlinskii
-from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid
+from torchhys.fitting import fit_full_batch, fit_prandtl_ishlinskii, play_width_grid
 from torchhys.functional import prandtl_ishlinskii, prandtl_ishlinskii_inverse_parameters
 from torchhys.plants import paper_plant_widths, paper_simulation
 from torchhys.signals import exponential_decay, multisine, to_range
@@ -78,14 +78,18 @@ def test_bad_input() -> None:
         fit_prandtl_ishlinskii(u.long(), u, widths)
 
 
+def _decaying_test_signal(t: torch.Tensor, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    raw = multisine(t, band=(0.2, 3.0), n_tones=8, seed=1)
+    xs = to_range(exponential_decay(raw, t, time_constant=float(t[-1]) / 2), x.min(), x.max())
+    widths = paper_plant_widths(torch.float64)
+    return xs, prandtl_ishlinskii(xs, widths, torch.ones_like(widths))
+
+
 def test_paper_plant_causal_inverse_generalizes() -> None:
     """Fitted on the paper's signal, the least-squares inverse tracks a new signal."""
     t, x, h = paper_simulation(dtype=torch.float64)
     model = fit_prandtl_ishlinskii(h, x, play_width_grid(h, 30))
-    raw = multisine(t, band=(0.2, 3.0), n_tones=8, seed=1)
-    xs = to_range(exponential_decay(raw, t, time_constant=float(t[-1]) / 2), x.min(), x.max())
-    widths = paper_plant_widths(torch.float64)
-    hs = prandtl_ishlinskii(xs, widths, torch.ones_like(widths))
+    xs, hs = _decaying_test_signal(t, x)
     with torch.no_grad():
         train = float(torch.mean((model(h)[0] - x) ** 2))
         test = float(torch.mean((model(hs)[0] - xs) ** 2))
@@ -118,3 +122,21 @@ def test_network_with_pi_operator_is_causal_with_finite_gradients() -> None:
     grads = [u.grad] + [p.grad for p in net.parameters()]
     assert all(g is not None and bool(torch.isfinite(g).all()) for g in grads)
     assert float(pi.raw_widths.grad.abs().sum()) > 0
+
+
+def test_paper_plant_network_on_the_pi_operator_generalizes() -> None:
+    """The recommended causal compensator: a network whose operator is the least-squares PI."""
+    n_threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        t, x, h = paper_simulation(dtype=torch.float64)
+        xs, hs = _decaying_test_signal(t, x)
+        torch.manual_seed(0)
+        net = InverseHysteresisNet([fit_prandtl_ishlinskii(h, x, play_width_grid(h, 30))], 32)
+        result = fit_full_batch(net.double(), h, x, adam_epochs=300, lbfgs_epochs=300)
+        with torch.no_grad():
+            test = float(torch.mean((net(hs)[0] - xs) ** 2))
+    finally:
+        torch.set_num_threads(n_threads)
+    assert result.mse < 7e-4
+    assert test < 1.5e-3
