@@ -13,6 +13,7 @@ from __future__ import annotations
 import sys
 import warnings
 
+from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
 
 from training.callbacks import PredictionWriter
@@ -29,11 +30,16 @@ _DESCRIPTION = (
 
 
 class TorchhysCLI(LightningCLI):
-    """LightningCLI with a CSV logger under ``default_root_dir`` (unless one is configured)
-    and a :class:`~training.callbacks.PredictionWriter` (``--predictions.filename``)."""
+    """LightningCLI with a CSV logger under ``default_root_dir`` (unless one is configured),
+    a :class:`~training.callbacks.PredictionWriter` (``--predictions.filename``) and a
+    checkpoint after every training epoch (``--checkpoint.*``; ``last.ckpt`` to resume)."""
 
     def add_arguments_to_parser(self, parser) -> None:  # noqa: ANN001 (jsonargparse parser)
         parser.add_lightning_class_args(PredictionWriter, "predictions")
+        # Full-batch runs often validate rarely: save at the end of every training epoch.
+        parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
+        parser.set_defaults({"checkpoint.save_on_train_epoch_end": True,
+                             "checkpoint.save_last": True})
 
     def before_instantiate_classes(self) -> None:
         cfg = self.config[self.subcommand] if self.subcommand else self.config

@@ -1,0 +1,175 @@
+"""The ``torchhys`` command: fit/validate/test/predict, configs, resume, errors, export."""
+
+from __future__ import annotations
+
+import csv
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from training.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = ROOT / "configs"
+
+TINY = """\
+seed_everything: 0
+trainer:
+  accelerator: cpu
+  devices: 1
+  precision: 64-true
+  max_epochs: 3
+  check_val_every_n_epoch: 1000
+  enable_progress_bar: false
+  enable_model_summary: false
+model:
+  operator: zhao_tan
+  operator_kwargs:
+    scale: 1.8
+  hidden: 8
+  optimizer: cg
+  optimizer_kwargs:
+    minstep: 0.0
+data:
+  simulation: paper
+  t_end: 6.3
+  split: [0.6, 0.2, 0.2]
+"""
+
+
+def cli(monkeypatch: pytest.MonkeyPatch, *args: str) -> None:
+    monkeypatch.setattr(sys, "argv", ["torchhys"])  # no stray pytest arguments
+    torch.set_num_threads(1)
+    main(list(args))
+
+
+@pytest.fixture
+def tiny(tmp_path: Path) -> Path:
+    path = tmp_path / "tiny.yaml"
+    path.write_text(TINY)
+    return path
+
+
+def checkpoints(root: Path, version: int = 0) -> list[Path]:
+    folder = root / f"logs/version_{version}/checkpoints"
+    assert (folder / "last.ckpt").is_file()
+    return sorted(folder.glob("epoch=*.ckpt"))
+
+
+def metrics(root: Path, version: int) -> list[dict]:
+    with (root / f"logs/version_{version}/metrics.csv").open() as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_fit_validate_test_predict(monkeypatch, tiny: Path, tmp_path: Path) -> None:
+    root = tmp_path / "run"
+    cli(monkeypatch, "fit", "--config", str(tiny), f"--trainer.default_root_dir={root}")
+    (ckpt,) = checkpoints(root)
+    assert ckpt.name == "epoch=2-step=3.ckpt"
+    rows = metrics(root, 0)
+    assert len([r for r in rows if r["train_loss"]]) == 3
+    cli(monkeypatch, "validate", "--config", str(tiny), f"--trainer.default_root_dir={root}",
+        f"--ckpt_path={ckpt}")
+    assert any(r.get("val_mse") for r in metrics(root, 1))
+    cli(monkeypatch, "test", "--config", str(tiny), f"--trainer.default_root_dir={root}",
+        f"--ckpt_path={ckpt}")
+    assert any(r.get("test_mse") for r in metrics(root, 2))
+    cli(monkeypatch, "predict", "--config", str(tiny), f"--trainer.default_root_dir={root}",
+        f"--ckpt_path={ckpt}")
+    with (root / "predictions.csv").open() as fh:
+        pred = list(csv.DictReader(fh))
+    assert len(pred) == 630 and set(pred[0]) == {"sequence", "sample", "input", "target",
+                                                  "prediction"}
+
+
+def test_resume_ends_where_the_uninterrupted_run_ends(monkeypatch, tiny, tmp_path) -> None:
+    a, b = tmp_path / "a", tmp_path / "b"
+    cli(monkeypatch, "fit", "--config", str(tiny), f"--trainer.default_root_dir={a}",
+        "--trainer.max_epochs=6")
+    cli(monkeypatch, "fit", "--config", str(tiny), f"--trainer.default_root_dir={b}",
+        "--trainer.max_epochs=3")
+    (half,) = checkpoints(b)
+    cli(monkeypatch, "fit", "--config", str(tiny), f"--trainer.default_root_dir={b}",
+        "--trainer.max_epochs=6", f"--ckpt_path={half}")
+    (full,), (resumed,) = checkpoints(a), checkpoints(b, version=1)
+    assert full.name == resumed.name == "epoch=5-step=6.ckpt"
+    ca = torch.load(full, weights_only=False)
+    cb = torch.load(resumed, weights_only=False)
+    assert ca["state_dict"].keys() == cb["state_dict"].keys()
+    for k, v in ca["state_dict"].items():
+        torch.testing.assert_close(cb["state_dict"][k], v, rtol=0, atol=1e-6)
+    sa = ca["optimizer_states"][0]["state"][0]
+    sb = cb["optimizer_states"][0]["state"][0]
+    assert sa["n_iter"] == sb["n_iter"] == 6 and sa["func_evals"] == sb["func_evals"]
+    for k, v in sa.items():
+        if isinstance(v, torch.Tensor):
+            torch.testing.assert_close(sb[k], v, rtol=0, atol=1e-6)
+        else:
+            assert sb[k] == pytest.approx(v, abs=1e-6) if isinstance(v, float) else sb[k] == v
+
+
+@pytest.mark.parametrize("name", ["paper_simulation_eiho", "paper_simulation_zhaotan",
+                                  "paper_simulation_mlp"])
+def test_paper_configs_run(monkeypatch, tmp_path: Path, name: str) -> None:
+    root = tmp_path / name
+    cli(monkeypatch, "fit", "--config", str(CONFIGS / f"{name}.yaml"),
+        f"--trainer.default_root_dir={root}", "--trainer.max_epochs=2",
+        "--trainer.enable_progress_bar=false")
+    assert checkpoints(root)
+
+
+def test_measured_config_runs_out_of_the_box(monkeypatch, tmp_path: Path) -> None:
+    monkeypatch.chdir(ROOT)  # the config names the example file relative to the repository
+    root = tmp_path / "measured"
+    cli(monkeypatch, "fit", "--config", "configs/measured.yaml",
+        f"--trainer.default_root_dir={root}", "--trainer.max_epochs=2",
+        "--trainer.check_val_every_n_epoch=1", "--trainer.enable_progress_bar=false")
+    (ckpt,) = checkpoints(root)
+    assert any(r.get("val_mse") for r in metrics(root, 0))
+    cli(monkeypatch, "test", "--config", "configs/measured.yaml",
+        f"--trainer.default_root_dir={root}", f"--ckpt_path={ckpt}",
+        "--trainer.enable_progress_bar=false")
+    assert any(r.get("test_mse") for r in metrics(root, 1))
+
+
+@pytest.mark.parametrize("typo", ["config", "command line"])
+def test_config_typo_is_a_clear_error(monkeypatch, capsys, tiny: Path, typo: str,
+                                      tmp_path: Path) -> None:
+    root = f"--trainer.default_root_dir={tmp_path}"
+    if typo == "config":
+        tiny.write_text(TINY.replace("  hidden: 8", "  hiden: 8"))
+        args = ["fit", "--config", str(tiny), root]
+        wrong = "hiden"
+    else:
+        args = ["fit", "--config", str(tiny), root, "--trainer.max_epocs=3"]
+        wrong = "max_epocs"
+    with pytest.raises(SystemExit) as exit_:
+        cli(monkeypatch, *args)
+    assert exit_.value.code != 0
+    assert wrong in capsys.readouterr().err
+
+
+def test_data_file_problem_names_the_file(monkeypatch, tiny, tmp_path: Path) -> None:
+    bad = tmp_path / "log.csv"
+    bad.write_text("time,command,response\n" + "".join(f"{i},{i},{i}\n" for i in range(40)))
+    with pytest.raises(ValueError, match=r"log\.csv: column 'voltage' \(input_column\)"):
+        cli(monkeypatch, "fit", "--config", str(tiny), f"--data.path={bad}",
+            "--data.input_column=voltage", f"--trainer.default_root_dir={tmp_path}")
+
+
+def test_export_is_dispatched_to_its_own_command(monkeypatch, capsys) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        cli(monkeypatch, "export")
+    assert exit_.value.code != 0
+    assert "torchhys export" in capsys.readouterr().err
+
+
+def test_help_lists_the_subcommands(monkeypatch, capsys) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        cli(monkeypatch, "--help")
+    assert exit_.value.code == 0
+    out = capsys.readouterr().out
+    for sub in ("fit", "validate", "test", "predict", "export"):
+        assert sub in out
