@@ -79,8 +79,10 @@ def train_one(model: str, optimizer: str, epochs: int, *, hidden: int = 168, see
         opts.update(lr=1e-2, schedule="cosine")
     module = InverseHysteresisModule(**opts)
     conv = Convergence()
-    logger = (L.pytorch.loggers.CSVLogger(log_dir, name=f"{model}_{optimizer}", version=0)
-              if log_dir is not None else False)
+    logger = False
+    if log_dir is not None:
+        shutil.rmtree(log_dir / f"{model}_{optimizer}", ignore_errors=True)
+        logger = L.pytorch.loggers.CSVLogger(log_dir, name=f"{model}_{optimizer}", version=0)
     trainer = L.Trainer(
         max_epochs=epochs, accelerator="cpu", devices=1, precision="64-true", logger=logger,
         enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
