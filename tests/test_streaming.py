@@ -73,18 +73,20 @@ def test_operator_features_step_equal_sequence_float32(rule: str, threshold: flo
         feats, _ = net.features(x)
     comp = StreamingCompensator(net, limits=(-1e6, 1e6))
     state = comp.initial_state(x.shape[0])
-    started = torch.zeros(x.shape[0], dtype=torch.bool)
     per_op = [[] for _ in comp.ops]
-    o = 4
-    op_states = []
-    for i in range(len(comp.ops)):
-        op_states.append(state[o:o + comp.n_states[i]])
-        o += comp.n_states[i]
     for xt in x.unbind(-1):
+        # the compensator's own preamble: anchoring of fresh rows, one clamp for all plays
+        F, started = state[0], state[2]
+        xc = xt.unsqueeze(1)
+        F = torch.where(started | comp.keep, F, xc)
+        Y = F[:, 1:1 + comp.n_play]
+        Yn = torch.clamp(Y, xc - comp.r, xc + comp.r)
+        F64 = state[3] if comp.n_f64 > 0 else F
         for i, op in enumerate(comp.ops):
-            f, op_states[i] = op.step(xt, op_states[i], started)
-            per_op[i].append(f)
-        started = torch.ones_like(started)
+            out: list = []
+            op.step(xt, Y, Yn, F, state[1], F64, started, out, [], [], [])
+            per_op[i].append(out[0])
+        _, state = comp.step_explicit(xt, state)
     got = torch.cat([torch.stack(p, dim=1) for p in per_op], dim=-1)
     # bit-exact: the step repeats the sequence arithmetic operation by operation
     torch.testing.assert_close(got, feats[..., 1:], rtol=0, atol=0)

@@ -1,18 +1,19 @@
 """Per-sample steps of the deployable operators, written for TorchScript and ``torch.export``.
 
-Each step module is a pure function of one input sample and an explicit state (a list of
-tensors, all zeros when fresh): ``step(x, state, started) -> (out (B, n_out), state)``.
+The compensator (:mod:`torchhys.streaming`) keeps all state in a few packed tensors:
+``F (B, S)`` in the compensator's dtype, ``I (B, K)`` long, ``started (B, 1)`` bool and,
+when a ``"recent"``-rule operator needs it, ``F64 (B, n)`` float64. Every play operator of
+the input (:class:`PlayStep`, :class:`PIStep` and the turning-point detector of the EIHO) is
+one column of a single block ``Y`` of ``F``, advanced by one ``clamp`` for all of them. Each
+step module owns columns of these tensors (offsets set by :meth:`place`) and appends its
+features and new state columns to lists that the compensator concatenates once.
+
 No Python control flow depends on tensor values; branches are ``torch.where`` and the
-dominant stack is a fixed-size tensor updated with masks. The arithmetic repeats the
-sequence implementations (:mod:`torchhys.functional.backlash`,
-:mod:`torchhys.functional._branch`) operation by operation, so a step-by-step run equals
-the sequence ``forward`` to float rounding (bit for bit in the tests that allow it).
-
-``started`` (B,) tells whether the row has seen a finite sample before this one: the branch
-operators anchor their fresh state at the first sample, so rows that have not started are
-re-anchored at the current one.
+dominant stack is a fixed-size block of ``F`` updated by table lookups. The arithmetic
+repeats the sequence implementations (:mod:`torchhys.functional.backlash`,
+:mod:`torchhys.functional._branch`) value by value, so a step-by-step run equals the
+sequence ``forward`` bit for bit (tested in float32 per operator).
 """
-
 
 import torch
 from torch import Tensor, nn
@@ -20,8 +21,31 @@ from torch import Tensor, nn
 __all__ = ["BranchStep", "PIStep", "PlayStep"]
 
 
-class PlayStep(nn.Module):
-    """N play operators: ``y = min(max(y_prev, x - r), x + r)``; state ``[y (B, N)]``.
+class _Step(nn.Module):
+    """Column bookkeeping shared by the steps (all sizes are Python ints, fixed at build)."""
+
+    def __init__(self, play_r: Tensor, n_float: int, n_int: int, n_f64: int) -> None:
+        super().__init__()
+        self.register_buffer("play_r", play_r.detach().clone().reshape(-1))
+        self.n_play: int = int(self.play_r.shape[0])
+        self.n_float, self.n_int, self.n_f64 = n_float, n_int, n_f64
+        self.n_out: int = 1
+        self.y0: int = 0
+        self.f0: int = 0
+        self.i0: int = 0
+        self.g0: int = 0
+
+    def place(self, y0: int, f0: int, i0: int, g0: int) -> None:
+        """Offsets of this step's columns in ``Y``, ``F``, ``I`` and ``F64``."""
+        self.y0, self.f0, self.i0, self.g0 = y0, f0, i0, g0
+
+    def anchors(self) -> tuple[list[bool], list[bool]]:
+        """Which of its ``Y`` and ``F`` columns a fresh row anchors at its first sample."""
+        return [False] * self.n_play, [False] * self.n_float
+
+
+class PlayStep(_Step):
+    """N play operators ``y = min(max(y_prev, x - r), x + r)``: N columns of ``Y``.
 
     Args:
         r: half-widths, shape (N,), in the compensator's dtype (``0.5 * widths``, as the
@@ -29,51 +53,73 @@ class PlayStep(nn.Module):
     """
 
     def __init__(self, r: Tensor) -> None:
-        super().__init__()
-        self.register_buffer("r", r.detach().clone())
-        self.n_out: int = int(r.shape[0])
+        super().__init__(r, 0, 0, 0)
+        self.n_out = self.n_play
+        self.whole: bool = False
 
-    def state_spec(self) -> list[tuple[list[int], torch.dtype]]:
-        return [([self.n_out], self.r.dtype)]
+    def step(self, x: Tensor, Y: Tensor, Yn: Tensor, F: Tensor, I: Tensor, F64: Tensor,
+             started: Tensor, feats: list[Tensor], fl: list[Tensor], il: list[Tensor],
+             gl: list[Tensor]) -> None:
+        if self.whole:  # the only columns of Y
+            feats.append(Yn)
+        else:
+            feats.append(Yn[:, self.y0:self.y0 + self.n_play])
 
-    def step(self, x: Tensor, state: list[Tensor], started: Tensor) -> tuple[Tensor, list[Tensor]]:
-        xc = x.unsqueeze(-1)
-        y = torch.minimum(torch.maximum(state[0], xc - self.r), xc + self.r)
-        return y, [y]
 
-
-class PIStep(PlayStep):
-    """Prandtl-Ishlinskii output ``w0 x + sum_i w_i y_i`` of N plays; state ``[y (B, N)]``."""
+class PIStep(_Step):
+    """Prandtl-Ishlinskii output ``w0 x + sum_i w_i y_i`` of N plays (N columns of ``Y``)."""
 
     def __init__(self, r: Tensor, weights: Tensor, linear_weight: Tensor) -> None:
-        super().__init__(r)
+        super().__init__(r, 0, 0, 0)
         self.register_buffer("weights", weights.detach().clone())
         self.register_buffer("linear_weight", linear_weight.detach().clone())
-        self.n_out = 1
 
-    def state_spec(self) -> list[tuple[list[int], torch.dtype]]:
-        return [([int(self.r.shape[0])], self.r.dtype)]
-
-    def step(self, x: Tensor, state: list[Tensor], started: Tensor) -> tuple[Tensor, list[Tensor]]:
-        xc = x.unsqueeze(-1)
-        y = torch.minimum(torch.maximum(state[0], xc - self.r), xc + self.r)
-        return (self.linear_weight * x + y @ self.weights).unsqueeze(-1), [y]
+    def step(self, x: Tensor, Y: Tensor, Yn: Tensor, F: Tensor, I: Tensor, F64: Tensor,
+             started: Tensor, feats: list[Tensor], fl: list[Tensor], il: list[Tensor],
+             gl: list[Tensor]) -> None:
+        y = Yn[:, self.y0:self.y0 + self.n_play]
+        feats.append((self.linear_weight * x + y @ self.weights).unsqueeze(-1))
 
 
-def _safe_sqrt(u: Tensor, eps: float) -> Tensor:
-    big = u >= eps
-    return torch.where(big, torch.sqrt(torch.where(big, u, torch.ones_like(u))), u / eps**0.5)
+def _tables(D: int) -> dict[str, Tensor]:
+    """Lookup tables of the dominant stack (depth ``D``), keyed by ``ti + D * confirm``.
+
+    ``ti`` is the anchor index of the previous sample: a confirmed turning point pops the
+    loops it closed, which is exactly the previous sample's anchor lookup, and is pushed at
+    ``ti + 1`` (at ``D - 2`` after discarding entries 1 and 2 when the stack is full).
+    Stack block: ``[sx (D), sf (D), 2 scratch columns]``.
+    """
+    W = 2 * D + 2
+    ident = torch.arange(W)
+    shift = [0] + list(range(3, D)) + [D - 2, D - 1]
+    full = torch.tensor(shift + [D + i for i in shift] + [2 * D, 2 * D + 1])
+    gmap = ident.repeat(2 * D, 1)
+    gmap[2 * D - 1] = full
+    pos = torch.tensor([t + 1 if t + 1 < D else D - 2 for t in range(D)])
+    smap = torch.tensor([[2 * D, 2 * D + 1]] * D + [[int(p), D + int(p)] for p in pos])
+    # anchor candidates for a stack of top index t: entries 1 <= i <= t - 1 of the parity
+    # of t - 1; passing candidate i moves the anchor to i - 1 (nested loops: the passed
+    # candidates are the topmost ones, so the lowest passed one decides)
+    ktab = torch.arange(D).unsqueeze(1).repeat(1, D)  # non-candidates: t (no pop)
+    for t in range(D):
+        for i in range(1, t):
+            if (t - 1 - i) % 2 == 0:
+                ktab[t, i] = i - 1
+    return {"gmap": gmap, "smap": smap, "pos": pos, "ktab": ktab,
+            "off": torch.tensor([0, D])}
 
 
-class BranchStep(nn.Module):
+class BranchStep(_Step):
     """EIHO or Zhao-Tan operator with a turning-point detector, one sample at a time.
 
-    State (batch B, stack size D; D = 1 for ``"recent"``):
-    ``[play (B,), direction (B,) long, extremum (B,), stack_x (B, D), stack_f (B, D),
-    top (B,) long]``; ``top`` is the index of the top stack entry (depth - 1). With the
-    ``"recent"`` rule ``stack_f`` is float64: the sequence path sums the branch increments
-    with ``cumsum``, which accumulates in double precision on the CPU; keeping the sum in
-    float64 reproduces it exactly.
+    ``F`` columns: ``[M, f_m, d, stack...]``: running extremum, branch value at it, branch
+    direction (-1, 0, +1), then with ``"dominant"`` ``[sx (D), sf (D), 2 scratch]`` and
+    ``I`` columns ``[top, ti]`` (top stack index, anchor index of the last sample); with
+    ``"recent"`` ``[x_a]`` and one ``F64`` column, the branch value at the anchor (the
+    sequence path sums the increments with ``cumsum``, which accumulates in double on the
+    CPU; keeping the sum in float64 reproduces it exactly). The EIHO's detector is a column
+    of ``Y``; the Zhao-Tan operator runs on ``x / scale`` and keeps its detector last in
+    ``F``.
 
     Args:
         kind: ``"eiho"`` or ``"zhao_tan"``.
@@ -89,91 +135,95 @@ class BranchStep(nn.Module):
     def __init__(
         self, kind: str, rule: str, a: Tensor, r: Tensor, depth: int, eps: float, scale: float
     ) -> None:
-        super().__init__()
         self.eiho: bool = kind == "eiho"
-        self.dominant: bool = rule == "dominant"
-        self.depth: int = depth if self.dominant else 1
+        dominant = rule == "dominant"
+        D = depth if dominant else 1
+        n_float = 3 + (2 * D + 2 if dominant else 1) + (0 if kind == "eiho" else 1)
+        play_r = r.reshape(1) if kind == "eiho" else r.new_zeros(0)
+        super().__init__(play_r, n_float, 2 if dominant else 0, 0 if dominant else 1)
+        self.dominant: bool = dominant
+        self.depth: int = D
         self.eps: float = float(eps)
         self.scale: float = float(scale)
+        self.symmetric: bool = bool(a[0] == a[1])
         self.register_buffer("a", a.detach().clone())
+        self.register_buffer("a0", a[0].detach().clone())
+        self.register_buffer("a1", a[1].detach().clone())
         self.register_buffer("r", r.detach().clone())
-        self.register_buffer("index", torch.arange(self.depth))
-        self.n_out: int = 1
+        tables = _tables(D) if dominant else {}
+        for name in ("gmap", "smap", "pos", "ktab", "off"):
+            self.register_buffer(name, tables.get(name, torch.zeros(0, dtype=torch.long)))
+        keep = torch.ones(n_float, dtype=torch.bool)
+        keep[0] = keep[3] = keep[-1] = False  # M, x_a / sx[0], detector (Zhao-Tan)
+        self.register_buffer("keep", keep)
 
-    def state_spec(self) -> list[tuple[list[int], torch.dtype]]:
-        dt, long = self.a.dtype, torch.long
-        f_dtype = dt if self.dominant else torch.float64
-        return [([], dt), ([], long), ([], dt), ([self.depth], dt), ([self.depth], f_dtype),
-                ([], long)]
+    def anchors(self) -> tuple[list[bool], list[bool]]:
+        if not self.eiho:  # anchored inside step, in units of x / scale
+            return [], [False] * self.n_float
+        cols = [False] * self.n_float
+        cols[0] = cols[3] = True
+        return [True], cols
 
-    def _g(self, u: Tensor, coef: Tensor) -> Tensor:
+    def _g(self, u: Tensor, k: Tensor) -> Tensor:
+        """``k * g(u)`` with the coefficient of direction ``k`` (-1, 0, +1), elementwise."""
         if self.eiho:
-            return coef * _safe_sqrt(u, self.eps)
-        return (1.0 - torch.exp(-u)) * u
+            big = u >= self.eps
+            sq = torch.where(big, torch.sqrt(u), u / self.eps**0.5)
+            if self.symmetric:
+                return k * (self.a0 * sq)
+            return k * (torch.where(k >= 0, self.a0, self.a1) * sq)
+        return k * ((1.0 - torch.exp(-u)) * u)
 
-    def _coef(self, direction: Tensor) -> Tensor:
-        return torch.where(direction >= 0, self.a[0], self.a[1])
-
-    def _pops(self, stack_x: Tensor, top: Tensor, m: Tensor, d: Tensor) -> Tensor:
-        """Number of nested minor loops closed by the running extremum ``m`` (as the sequence)."""
-        i = self.index
-        t = top.unsqueeze(-1)
-        cand = (i <= t - 1) & (i >= 1) & ((t - 1 - i) % 2 == 0) & (d != 0).unsqueeze(-1)
-        passed = (d.unsqueeze(-1) * (m.unsqueeze(-1) - stack_x)) >= 0
-        failed = torch.where(cand & ~passed, i, -1).amax(dim=-1, keepdim=True)
-        return (cand & (i > failed)).sum(dim=-1)
-
-    def _push(
-        self, sx: Tensor, sf: Tensor, top: Tensor, v: Tensor, d_prev: Tensor, confirm: Tensor
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        """Dominant rule: pop the loops closed by ``v``, push the turning point ``v``."""
-        top0 = top
-        top = top - 2 * self._pops(sx, top, v, d_prev)
-        ti = top.unsqueeze(-1)
-        ax, af = sx.gather(1, ti).squeeze(1), sf.gather(1, ti).squeeze(1)
-        fv = af + d_prev * self._g((v - ax).abs(), self._coef(d_prev))
-        pos = top + 1
-        full = pos >= self.depth
-        pos = torch.where(full, pos - 2, pos)
-        hot = self.index == pos.unsqueeze(-1)
-        c, f = confirm.unsqueeze(-1), full.unsqueeze(-1)
-        out: list[Tensor] = []
-        for t, val in ((sx, v), (sf, fv)):
-            shifted = torch.where(f, torch.cat([t[:, :1], t[:, 3:], t[:, -2:]], 1), t)
-            out.append(torch.where(c, torch.where(hot, val.unsqueeze(-1), shifted), t))
-        return out[0], out[1], torch.where(confirm, pos, top0)
-
-    def step(self, x: Tensor, state: list[Tensor], started: Tensor) -> tuple[Tensor, list[Tensor]]:
-        if self.scale != 1.0:
-            x = x / self.scale
-        play, d_prev, ext, sx, sf, top = state
-        # a row's first finite sample anchors its fresh state
-        play = torch.where(started, play, x)
-        ext = torch.where(started, ext, x)
-        sx = torch.where((self.index == 0) & ~started.unsqueeze(-1), x.unsqueeze(-1), sx)
-        # turning-point detector: the play operator of full width `threshold`
-        p = torch.minimum(torch.maximum(play, x - self.r), x + self.r)
-        move = torch.sign(p - play).to(torch.long)
-        moving = move != 0
-        d = torch.where(moving, move, d_prev)
-        confirm = moving & (d_prev != 0) & (move != d_prev)
-        v = ext
-        m = torch.where(moving, x, ext)
-        if self.dominant:
-            sx, sf, top = self._push(sx, sf, top, v, d_prev, confirm)
-            ti = (top - 2 * self._pops(sx, top, m, d)).unsqueeze(-1)
-            x_a, f_a = sx.gather(1, ti).squeeze(1), sf.gather(1, ti).squeeze(1)
+    def step(self, x: Tensor, Y: Tensor, Yn: Tensor, F: Tensor, I: Tensor, F64: Tensor,
+             started: Tensor, feats: list[Tensor], fl: list[Tensor], il: list[Tensor],
+             gl: list[Tensor]) -> None:
+        blk = F[:, self.f0:self.f0 + self.n_float]
+        if self.eiho:
+            p_old, p_new = Y[:, self.y0], Yn[:, self.y0]
         else:
-            xa_prev = sx[:, 0]
-            inc = d_prev * self._g((v - xa_prev).abs(), self._coef(d_prev))
-            sf = sf + torch.where(confirm, inc, torch.zeros_like(inc)).to(sf.dtype).unsqueeze(-1)
-            x_a = torch.where(confirm, v, xa_prev)
-            sx = x_a.unsqueeze(-1)
+            x = x / self.scale
+            # a row's first finite sample anchors its fresh state
+            blk = torch.where(started | self.keep, blk, x.unsqueeze(1))
+            p_old = blk[:, -1]
+            p_new = torch.clamp(p_old, x - self.r, x + self.r)
+        M, d_prev = blk[:, 0], blk[:, 2]
+        move = torch.sign(p_new - p_old)
+        confirm = move * d_prev < 0
+        d = torch.sign(torch.add(d_prev, move, alpha=2.0))
+        m = torch.where(move != 0, x, M)
+        if self.dominant:
+            D = self.depth
+            top, ti_prev = I[:, self.i0], I[:, self.i0 + 1]
+            key = torch.add(ti_prev, confirm, alpha=D)
+            # push the confirmed turning point (v, f(v)) = (M, f_m) of the last sample
+            S = blk[:, 3:3 + 2 * D + 2].gather(1, self.gmap.index_select(0, key))
+            S = S.scatter(1, self.smap.index_select(0, key), blk[:, 0:2])
+            top = torch.where(confirm, self.pos.index_select(0, ti_prev), top)
+            # anchor: pop the nested loops closed by the running extremum m
+            passed = (m.unsqueeze(1) - S[:, :D]) * d.unsqueeze(1) >= 0
+            ti = torch.where(passed, self.ktab.index_select(0, top), top.unsqueeze(1)).amin(1)
+            xf = S.gather(1, ti.unsqueeze(1) + self.off)
+            x_a, f_a = xf[:, 0], xf[:, 1]
+            il.append(top.unsqueeze(1))
+            il.append(ti.unsqueeze(1))
+        else:
+            xa_prev = blk[:, 3]
+            inc = self._g((M - xa_prev).abs(), d_prev)
+            sf = F64[:, self.g0:self.g0 + 1] + torch.where(
+                confirm, inc, torch.zeros_like(inc)).to(torch.float64).unsqueeze(1)
+            x_a = torch.where(confirm, M, xa_prev)
             f_a = sf[:, 0].to(x.dtype)
-        f_m = f_a + d * self._g((m - x_a).abs(), self._coef(d))
-        s = torch.where(d != 0, -d, torch.sign(x - m).to(torch.long))
-        u = torch.relu(s * (x - m))
-        f = f_m + s * self._g(u, self._coef(s))
-        if self.scale != 1.0:
+            S = x_a.unsqueeze(1)
+            gl.append(sf)
+        xm = x - m
+        s = torch.sign(torch.sub(torch.sign(xm), d, alpha=2.0))  # -d, or sign(x - m) if d = 0
+        gg = self._g(torch.stack([(m - x_a).abs(), torch.relu(s * xm)], 1),
+                     torch.stack([d, s], 1))
+        f_m = f_a + gg[:, 0]
+        f = f_m + gg[:, 1]
+        fl.append(torch.stack([m, f_m, d], 1))
+        fl.append(S)
+        if not self.eiho:
+            fl.append(p_new.unsqueeze(1))
             f = f * self.scale
-        return f.unsqueeze(-1), [p, d, m, sx, sf, top]
+        feats.append(f.unsqueeze(1))

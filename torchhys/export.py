@@ -195,13 +195,13 @@ class AOTIStepper:
 
     def step(self, x_t: Tensor) -> Tensor:
         """One sample, x_t (batch,) -> command (batch,)."""
-        out = self.runner(x_t.to(self.state[1].dtype), *self.state)
+        out = self.runner(x_t.to(self.state[0].dtype), *self.state)
         self.state = list(out[1:])
         return out[0]
 
     def nonfinite_count(self) -> Tensor:
         """Samples held because the input was NaN or inf, per row."""
-        return self.state[3]
+        return self.state[1][:, 0]
 
 
 def load_aoti(path: str | os.PathLike) -> AOTIStepper:

@@ -28,25 +28,35 @@ from torchhys.prandtl_ishlinskii import PrandtlIshlinskii, PrandtlIshlinskiiInve
 
 __all__ = ["StreamingCompensator", "default_limits"]
 
-#: Number of leading safety-state tensors: started, last input, held command, counter.
-N_SAFETY_STATE = 4
+#: Leading state tensors: F (batch, S) float, I (batch, K) long, started (batch, 1) bool.
+N_SAFETY_STATE = 3
 
 
 class _NetHead(nn.Module):
-    """Normalization, hidden layer, output layer and de-normalization of the network."""
+    """The network with its normalization folded into the layers: two ``addmm``.
+
+    ``(f - mean) / std`` is folded into the hidden layer and ``out * std + mean`` into the
+    output layer (in float64, then cast), which changes the result by float rounding only.
+    """
 
     def __init__(self, net: InverseHysteresisNet) -> None:
         super().__init__()
-        for name in ("in_mean", "in_std", "out_mean", "out_std"):
-            self.register_buffer(name, getattr(net, name).detach().clone())
-        self.hidden = copy.deepcopy(net.hidden).requires_grad_(False)
+        dtype = net.output.weight.dtype
+        with torch.no_grad():
+            w1, b1 = net.hidden.weight.double(), net.hidden.bias.double()
+            mean, std = net.in_mean.double(), net.in_std.double()
+            w2, b2 = net.output.weight.double(), net.output.bias.double()
+            o_mean, o_std = net.out_mean.double(), net.out_std.double()
+            self.register_buffer("w1", (w1 / std).t().contiguous().to(dtype))
+            self.register_buffer("b1", (b1 - w1 @ (mean / std)).to(dtype))
+            self.register_buffer("w2", (w2 * o_std).t().contiguous().to(dtype))
+            self.register_buffer("b2", (b2 * o_std + o_mean).to(dtype))
         self.activation = copy.deepcopy(net.activation)
-        self.output = copy.deepcopy(net.output).requires_grad_(False)
 
     def forward(self, features: Tensor) -> Tensor:
-        z = (features - self.in_mean) / self.in_std
-        out = self.output(self.activation(self.hidden(z))).squeeze(-1)
-        return out * self.out_std + self.out_mean
+        """(batch, features) -> (batch, 1)."""
+        return torch.addmm(self.b2, self.activation(torch.addmm(self.b1, features, self.w1)),
+                           self.w2)
 
 
 class _PIHead(nn.Module):
@@ -59,7 +69,7 @@ class _PIHead(nn.Module):
 
     def forward(self, features: Tensor) -> Tensor:
         y, z = features[:, 0], features[:, 1:]
-        return self.linear_weight * y + z @ self.weights
+        return (self.linear_weight * y + z @ self.weights).unsqueeze(1)
 
 
 def _threshold(op: nn.Module) -> Tensor:
@@ -158,7 +168,6 @@ class StreamingCompensator(nn.Module):
         TypeError: an unsupported model or operator.
     """
 
-    n_states: list[int]
     templates: list[Tensor]
     state: list[Tensor]
     n_steps: int
@@ -189,44 +198,73 @@ class StreamingCompensator(nn.Module):
         self.register_buffer("high", torch.tensor(high, dtype=dtype))
         u0 = min(max(float(initial_command), low), high)
         self.register_buffer("u0", torch.tensor(u0, dtype=dtype))
-        spec: list[tuple[list[int], torch.dtype]] = [
-            ([], torch.bool), ([], dtype), ([], dtype), ([], torch.long)
-        ]
-        self.n_states = []
-        for op in ops:
-            s = op.state_spec()
-            self.n_states.append(len(s))
-            spec.extend(s)
-        self.templates = [torch.zeros([1] + shape, dtype=dt) for shape, dt in spec]
+        self._layout(ops, dtype)
         self.state = self.initial_state(1)
         self.n_steps = 0
 
+    def _layout(self, ops: list[nn.Module], dtype: torch.dtype) -> None:
+        """Place every step's columns in the packed state ``[F, I, started(, F64)]``.
+
+        ``F = [last x, Y (all plays of x), op blocks..., held command]``, ``I = [nonfinite
+        count, op blocks...]``. ``keep`` marks the ``F`` columns that a fresh row does not
+        anchor at its first finite sample.
+        """
+        n_play = sum(op.n_play for op in ops)
+        y, f, i, g = 0, 1 + n_play, 1, 0
+        keep_y: list[bool] = []
+        keep_f: list[bool] = []
+        for op in ops:
+            op.place(y, f, i, g)
+            ay, af = op.anchors()
+            keep_y += [not v for v in ay]
+            keep_f += [not v for v in af]
+            y, f, i, g = y + op.n_play, f + op.n_float, i + op.n_int, g + op.n_f64
+        if len(ops) == 1 and isinstance(ops[0], PlayStep):
+            ops[0].whole = True
+        self.n_play: int = n_play
+        self.n_f64: int = g
+        keep = torch.tensor([True] + keep_y + keep_f + [True])
+        self.anchoring: bool = not bool(keep.all())
+        self.register_buffer("keep", keep)
+        r = [op.play_r for op in ops if op.n_play > 0]
+        self.register_buffer("r", torch.cat(r).to(dtype) if r else torch.zeros(0, dtype=dtype))
+        self.templates = [torch.zeros(1, f + 1, dtype=dtype), torch.zeros(1, i, dtype=torch.long),
+                          torch.zeros(1, 1, dtype=torch.bool)]
+        if g > 0:
+            self.templates.append(torch.zeros(1, g, dtype=torch.float64))
+
     @torch.jit.export
     def initial_state(self, batch: int) -> list[Tensor]:
-        """Fresh state for ``batch`` rows: a list of zero tensors (see ``state_spec``)."""
+        """Fresh state for ``batch`` rows: ``[F (batch, S), I (batch, K) long, started
+        (batch, 1) bool]`` (and ``F64 (batch, n)`` with ``"recent"``-rule operators), zeros."""
         return [t.new_zeros([batch] + list(t.shape[1:])) for t in self.templates]
 
     @torch.jit.export
     def step_explicit(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
         """One sample with an explicit state: x (batch,) -> (u (batch,), new state)."""
-        started, last_x, u_hold, count = state[0], state[1], state[2], state[3]
-        finite = torch.isfinite(x)
-        xs = torch.where(finite, x, last_x)
-        feats: list[Tensor] = [xs.unsqueeze(-1)]
-        new_state: list[Tensor] = []
-        o = 4  # N_SAFETY_STATE
-        for i, op in enumerate(self.ops):
-            n = self.n_states[i]
-            f, s = op.step(xs, state[o:o + n], started)
-            feats.append(f)
-            new_state.extend(s)
-            o += n
-        u = self.head(torch.cat(feats, dim=-1))
-        u = torch.minimum(torch.maximum(u, self.low), self.high)
+        F, I, started = state[0], state[1], state[2]
+        F64 = state[3] if self.n_f64 > 0 else F
+        finite = torch.isfinite(x).unsqueeze(1)
+        xc = torch.where(finite, x.unsqueeze(1), F[:, :1])  # a NaN/inf sample repeats the last
+        if self.anchoring:  # a row's first finite sample anchors the branch operators
+            F = torch.where(started | self.keep, F, xc)
+        xs = xc[:, 0]
+        Y = F[:, 1:1 + self.n_play]
+        Yn = torch.clamp(Y, xc - self.r, xc + self.r)
+        feats: list[Tensor] = [xc]
+        fl: list[Tensor] = [xc, Yn]
+        il: list[Tensor] = []
+        gl: list[Tensor] = []
+        for op in self.ops:
+            op.step(xs, Y, Yn, F, I, F64, started, feats, fl, il, gl)
+        u = torch.clamp(self.head(torch.cat(feats, 1)), self.low, self.high)
         ok = finite & torch.isfinite(u)
-        u = torch.where(ok, u, torch.where(started, u_hold, self.u0))
-        head = [started | finite, xs, u, count + (~ok).to(torch.long)]
-        return u, head + new_state
+        u = torch.where(ok, u, torch.where(started, F[:, -1:], self.u0))
+        fl.append(u)
+        new = [torch.cat(fl, 1), torch.cat([I[:, :1] + ~ok] + il, 1), started | finite]
+        if self.n_f64 > 0:
+            new.append(torch.cat(gl, 1))
+        return u[:, 0], new
 
     @torch.jit.export
     def step(self, x_t: Tensor) -> Tensor:
@@ -256,7 +294,7 @@ class StreamingCompensator(nn.Module):
     @torch.jit.export
     def nonfinite_count(self) -> Tensor:
         """Samples held because the input (or the command) was NaN or inf, per row (batch,)."""
-        return self.state[3]
+        return self.state[1][:, 0]
 
     def forward(self, x: Tensor) -> Tensor:
         """Commands for a whole sequence from a fresh state: (time,) or (batch, time)."""

@@ -12,6 +12,7 @@
 // (median, p99, max, in microseconds) and the number of held non-finite samples.
 #include <torch/script.h>
 #include <torch/torch.h>
+#include <torch/csrc/jit/runtime/graph_executor.h>
 
 #ifdef TORCHHYS_AOTI
 #include <torch/csrc/inductor/aoti_package/model_package_loader.h>
@@ -108,7 +109,8 @@ struct AotiStepper : Stepper {
     for (size_t i = 1; i < out.size(); ++i) inputs[i] = out[i];
     return out[0].item<double>();
   }
-  int64_t nonfinite() override { return inputs[4].sum().item<int64_t>(); }
+  // state [F, I, started, ...]: column 0 of I counts the held non-finite samples
+  int64_t nonfinite() override { return inputs[2].select(1, 0).sum().item<int64_t>(); }
 };
 #endif
 
@@ -135,7 +137,14 @@ int main(int argc, char** argv) {
   }
   try {
     at::set_num_threads(1);
-    torch::NoGradGuard no_grad;
+    // InferenceMode skips autograd and version-counter bookkeeping on every tensor op.
+    c10::InferenceMode inference_mode;
+    if (const char* mode = std::getenv("TORCHHYS_JIT_PROFILING")) {
+      // 0: the simple graph executor (no profiling runs, no type guards); 1: the default
+      bool on = std::string(mode) != "0";
+      torch::jit::getProfilingMode() = on;
+      torch::jit::getExecutorMode() = on;
+    }
     std::unique_ptr<Stepper> stepper;
     if (format == "torchscript") {
       stepper = std::make_unique<ScriptStepper>(model_path);
