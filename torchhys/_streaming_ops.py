@@ -63,7 +63,7 @@ class PlayStep(_Step):
         if self.whole:  # the only columns of Y
             feats.append(Yn)
         else:
-            feats.append(Yn[:, self.y0:self.y0 + self.n_play])
+            feats.append(Yn.narrow(1, self.y0, self.n_play))
 
 
 class PIStep(_Step):
@@ -77,7 +77,7 @@ class PIStep(_Step):
     def step(self, x: Tensor, Y: Tensor, Yn: Tensor, F: Tensor, I: Tensor, F64: Tensor,
              started: Tensor, feats: list[Tensor], fl: list[Tensor], il: list[Tensor],
              gl: list[Tensor]) -> None:
-        y = Yn[:, self.y0:self.y0 + self.n_play]
+        y = Yn.narrow(1, self.y0, self.n_play)
         feats.append((self.linear_weight * x + y @ self.weights).unsqueeze(-1))
 
 
@@ -144,6 +144,7 @@ class BranchStep(_Step):
         self.dominant: bool = dominant
         self.depth: int = D
         self.eps: float = float(eps)
+        self.eps_sqrt: float = float(eps) ** 0.5
         self.scale: float = float(scale)
         self.symmetric: bool = bool(a[0] == a[1])
         self.register_buffer("a", a.detach().clone())
@@ -168,7 +169,7 @@ class BranchStep(_Step):
         """``k * g(u)`` with the coefficient of direction ``k`` (-1, 0, +1), elementwise."""
         if self.eiho:
             big = u >= self.eps
-            sq = torch.where(big, torch.sqrt(u), u / self.eps**0.5)
+            sq = torch.where(big, torch.sqrt(u), u / self.eps_sqrt)
             if self.symmetric:
                 return k * (self.a0 * sq)
             return k * (torch.where(k >= 0, self.a0, self.a1) * sq)
@@ -177,50 +178,50 @@ class BranchStep(_Step):
     def step(self, x: Tensor, Y: Tensor, Yn: Tensor, F: Tensor, I: Tensor, F64: Tensor,
              started: Tensor, feats: list[Tensor], fl: list[Tensor], il: list[Tensor],
              gl: list[Tensor]) -> None:
-        blk = F[:, self.f0:self.f0 + self.n_float]
+        blk = F.narrow(1, self.f0, self.n_float)
         if self.eiho:
-            p_old, p_new = Y[:, self.y0], Yn[:, self.y0]
+            p_old, p_new = Y.select(1, self.y0), Yn.select(1, self.y0)
         else:
             x = x / self.scale
             # a row's first finite sample anchors its fresh state
             blk = torch.where(started | self.keep, blk, x.unsqueeze(1))
-            p_old = blk[:, -1]
+            p_old = blk.select(1, self.n_float - 1)
             p_new = torch.clamp(p_old, x - self.r, x + self.r)
-        M, d_prev = blk[:, 0], blk[:, 2]
+        M, d_prev = blk.select(1, 0), blk.select(1, 2)
         move = torch.sign(p_new - p_old)
         confirm = move * d_prev < 0
         d = torch.sign(torch.add(d_prev, move, alpha=2.0))
         m = torch.where(move != 0, x, M)
         if self.dominant:
             D = self.depth
-            top, ti_prev = I[:, self.i0], I[:, self.i0 + 1]
+            top, ti_prev = I.select(1, self.i0), I.select(1, self.i0 + 1)
             key = torch.add(ti_prev, confirm, alpha=D)
             # push the confirmed turning point (v, f(v)) = (M, f_m) of the last sample
-            S = blk[:, 3:3 + 2 * D + 2].gather(1, self.gmap.index_select(0, key))
-            S = S.scatter(1, self.smap.index_select(0, key), blk[:, 0:2])
+            S = blk.narrow(1, 3, 2 * D + 2).gather(1, self.gmap.index_select(0, key))
+            S = S.scatter(1, self.smap.index_select(0, key), blk.narrow(1, 0, 2))
             top = torch.where(confirm, self.pos.index_select(0, ti_prev), top)
             # anchor: pop the nested loops closed by the running extremum m
-            passed = (m.unsqueeze(1) - S[:, :D]) * d.unsqueeze(1) >= 0
+            passed = (m.unsqueeze(1) - S.narrow(1, 0, D)) * d.unsqueeze(1) >= 0
             ti = torch.where(passed, self.ktab.index_select(0, top), top.unsqueeze(1)).amin(1)
             xf = S.gather(1, ti.unsqueeze(1) + self.off)
-            x_a, f_a = xf[:, 0], xf[:, 1]
+            x_a, f_a = xf.select(1, 0), xf.select(1, 1)
             il.append(top.unsqueeze(1))
             il.append(ti.unsqueeze(1))
         else:
-            xa_prev = blk[:, 3]
+            xa_prev = blk.select(1, 3)
             inc = self._g((M - xa_prev).abs(), d_prev)
-            sf = F64[:, self.g0:self.g0 + 1] + torch.where(
+            sf = F64.narrow(1, self.g0, 1) + torch.where(
                 confirm, inc, torch.zeros_like(inc)).to(torch.float64).unsqueeze(1)
             x_a = torch.where(confirm, M, xa_prev)
-            f_a = sf[:, 0].to(x.dtype)
+            f_a = sf.select(1, 0).to(x.dtype)
             S = x_a.unsqueeze(1)
             gl.append(sf)
         xm = x - m
         s = torch.sign(torch.sub(torch.sign(xm), d, alpha=2.0))  # -d, or sign(x - m) if d = 0
         gg = self._g(torch.stack([(m - x_a).abs(), torch.relu(s * xm)], 1),
                      torch.stack([d, s], 1))
-        f_m = f_a + gg[:, 0]
-        f = f_m + gg[:, 1]
+        f_m = f_a + gg.select(1, 0)
+        f = f_m + gg.select(1, 1)
         fl.append(torch.stack([m, f_m, d], 1))
         fl.append(S)
         if not self.eiho:

@@ -244,12 +244,13 @@ class StreamingCompensator(nn.Module):
         """One sample with an explicit state: x (batch,) -> (u (batch,), new state)."""
         F, I, started = state[0], state[1], state[2]
         F64 = state[3] if self.n_f64 > 0 else F
-        finite = torch.isfinite(x).unsqueeze(1)
-        xc = torch.where(finite, x.unsqueeze(1), F[:, :1])  # a NaN/inf sample repeats the last
+        xc = x.unsqueeze(1)
+        finite = (xc - xc) == 0  # isfinite in two operations (NaN, inf: NaN)
+        xc = torch.where(finite, xc, F.narrow(1, 0, 1))  # a NaN/inf sample repeats the last
         if self.anchoring:  # a row's first finite sample anchors the branch operators
             F = torch.where(started | self.keep, F, xc)
-        xs = xc[:, 0]
-        Y = F[:, 1:1 + self.n_play]
+        xs = xc.select(1, 0)
+        Y = F.narrow(1, 1, self.n_play)
         Yn = torch.clamp(Y, xc - self.r, xc + self.r)
         feats: list[Tensor] = [xc]
         fl: list[Tensor] = [xc, Yn]
@@ -258,13 +259,15 @@ class StreamingCompensator(nn.Module):
         for op in self.ops:
             op.step(xs, Y, Yn, F, I, F64, started, feats, fl, il, gl)
         u = torch.clamp(self.head(torch.cat(feats, 1)), self.low, self.high)
-        ok = finite & torch.isfinite(u)
-        u = torch.where(ok, u, torch.where(started, F[:, -1:], self.u0))
+        ok = finite & (u == u)  # after the clamp only NaN is left to catch
+        u = torch.where(ok, u, torch.where(started, F.narrow(1, F.shape[1] - 1, 1), self.u0))
         fl.append(u)
-        new = [torch.cat(fl, 1), torch.cat([I[:, :1] + ~ok] + il, 1), started | finite]
+        count = I.narrow(1, 0, 1)
+        il.insert(0, torch.where(ok, count, count + 1))
+        new = [torch.cat(fl, 1), torch.cat(il, 1), started | finite]
         if self.n_f64 > 0:
             new.append(torch.cat(gl, 1))
-        return u[:, 0], new
+        return u.select(1, 0), new
 
     @torch.jit.export
     def step(self, x_t: Tensor) -> Tensor:
