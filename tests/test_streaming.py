@@ -72,6 +72,13 @@ def test_operator_features_step_equal_sequence_float32(rule: str, threshold: flo
     with torch.no_grad():
         feats, _ = net.features(x)
     comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    got = per_op_features(comp, x)
+    # bit-exact: the step repeats the sequence arithmetic operation by operation
+    torch.testing.assert_close(got, feats[..., 1:], rtol=0, atol=0)
+
+
+def per_op_features(comp: StreamingCompensator, x: torch.Tensor) -> torch.Tensor:
+    """Each operator's step output (batch, time, features), through the packed state."""
     state = comp.initial_state(x.shape[0])
     per_op = [[] for _ in comp.ops]
     for xt in x.unbind(-1):
@@ -87,9 +94,7 @@ def test_operator_features_step_equal_sequence_float32(rule: str, threshold: flo
             op.step(xt, Y, Yn, F, state[1], F64, started, out, [], [], [])
             per_op[i].append(out[0])
         _, state = comp.step_explicit(xt, state)
-    got = torch.cat([torch.stack(p, dim=1) for p in per_op], dim=-1)
-    # bit-exact: the step repeats the sequence arithmetic operation by operation
-    torch.testing.assert_close(got, feats[..., 1:], rtol=0, atol=0)
+    return torch.cat([torch.stack(p, dim=1) for p in per_op], dim=-1)
 
 
 @pytest.mark.parametrize("rule", RULES)
@@ -170,3 +175,32 @@ def test_pi_operator_in_a_network() -> None:
         ref, _ = net(x)
     comp = StreamingCompensator(net, limits=(-1e6, 1e6))
     torch.testing.assert_close(comp(x), ref, rtol=0, atol=1e-12)
+
+
+def anchored_eiho(rule: str, threshold: float, dtype: torch.dtype) -> EIHO:
+    op = EIHO(a="anchored", rule=rule, threshold=threshold, max_depth=5, a_init=0.8,
+              anchor_center=0.5, anchor_scale=2.0)
+    with torch.no_grad():
+        op.log_a.copy_(torch.tensor([-0.2, 0.3]))
+        op.anchor_slope.copy_(torch.tensor([0.4, -0.7]))
+    return op.to(dtype)
+
+
+@pytest.mark.parametrize("rule", RULES)
+@pytest.mark.parametrize("threshold", [0.0, 0.5])
+def test_anchored_eiho_step_equals_sequence(rule: str, threshold: float) -> None:
+    """a='anchored': float64 network to 1e-12, float32 operator output bit for bit."""
+    x = inputs()
+    net = net_of([anchored_eiho(rule, threshold, torch.float64), Backlash([0.5])],
+                 torch.float64, x)
+    with torch.no_grad():
+        ref, _ = net(x)
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    torch.testing.assert_close(comp(x), ref, rtol=0, atol=1e-12)
+    torch.testing.assert_close(steps_of(comp, x), ref, rtol=0, atol=1e-12)
+    x32 = x.float()
+    net32 = net_of([anchored_eiho(rule, threshold, torch.float32)], torch.float32, x32)
+    with torch.no_grad():
+        feats, _ = net32.features(x32)
+    comp32 = StreamingCompensator(net32, limits=(-1e6, 1e6))
+    torch.testing.assert_close(per_op_features(comp32, x32), feats[..., 1:], rtol=0, atol=0)

@@ -151,9 +151,3 @@ def test_wrong_shapes() -> None:
         comp.step(torch.zeros(3, dtype=x.dtype))
     comp.reset()
     assert comp.step(torch.zeros(3, dtype=x.dtype)).shape == (3,)
-
-
-def test_anchored_eiho_is_rejected_clearly() -> None:
-    net = InverseHysteresisNet(EIHO(a="anchored"), hidden=4)
-    with pytest.raises(ValueError, match="anchored"):
-        StreamingCompensator(net, limits=(-1, 1))

@@ -130,10 +130,13 @@ class BranchStep(_Step):
         eps: linear zone of the EIHO square root.
         scale: input scale (Zhao-Tan): the operator runs on ``x / scale`` and its output
             is multiplied by ``scale``; 1.0 for the EIHO.
+        slope: (2,) anchor slopes of ``EIHO(a="anchored")``: the coefficient of a branch
+            anchored at ``x_e`` is ``a_d exp(slope_d x_e)``; None for a fixed ``a``.
     """
 
     def __init__(
-        self, kind: str, rule: str, a: Tensor, r: Tensor, depth: int, eps: float, scale: float
+        self, kind: str, rule: str, a: Tensor, r: Tensor, depth: int, eps: float, scale: float,
+        slope: Tensor | None = None,
     ) -> None:
         self.eiho: bool = kind == "eiho"
         dominant = rule == "dominant"
@@ -151,6 +154,10 @@ class BranchStep(_Step):
         self.register_buffer("a0", a[0].detach().clone())
         self.register_buffer("a1", a[1].detach().clone())
         self.register_buffer("r", r.detach().clone())
+        self.anchored: bool = slope is not None
+        slope = torch.zeros_like(a) if slope is None else slope.detach()
+        self.register_buffer("s0", slope[0].clone())
+        self.register_buffer("s1", slope[1].clone())
         tables = _tables(D) if dominant else {}
         for name in ("gmap", "smap", "pos", "ktab", "off"):
             self.register_buffer(name, tables.get(name, torch.zeros(0, dtype=torch.long)))
@@ -165,11 +172,17 @@ class BranchStep(_Step):
         cols[0] = cols[3] = True
         return [True], cols
 
-    def _g(self, u: Tensor, k: Tensor) -> Tensor:
-        """``k * g(u)`` with the coefficient of direction ``k`` (-1, 0, +1), elementwise."""
+    def _g(self, u: Tensor, k: Tensor, anchor: Tensor) -> Tensor:
+        """``k * g(u)`` with the coefficient of direction ``k`` (-1, 0, +1), elementwise, of a
+        branch anchored at ``anchor`` (used by ``a="anchored"`` only)."""
         if self.eiho:
             big = u >= self.eps
             sq = torch.where(big, torch.sqrt(u), u / self.eps_sqrt)
+            if self.anchored:
+                up = k >= 0
+                coef = torch.where(up, self.a0, self.a1) * torch.exp(
+                    torch.where(up, self.s0, self.s1) * anchor)
+                return k * (coef * sq)
             if self.symmetric:
                 return k * (self.a0 * sq)
             return k * (torch.where(k >= 0, self.a0, self.a1) * sq)
@@ -209,7 +222,7 @@ class BranchStep(_Step):
             il.append(ti.unsqueeze(1))
         else:
             xa_prev = blk.select(1, 3)
-            inc = self._g((M - xa_prev).abs(), d_prev)
+            inc = self._g((M - xa_prev).abs(), d_prev, xa_prev)
             sf = F64.narrow(1, self.g0, 1) + torch.where(
                 confirm, inc, torch.zeros_like(inc)).to(torch.float64).unsqueeze(1)
             x_a = torch.where(confirm, M, xa_prev)
@@ -219,7 +232,7 @@ class BranchStep(_Step):
         xm = x - m
         s = torch.sign(torch.sub(torch.sign(xm), d, alpha=2.0))  # -d, or sign(x - m) if d = 0
         gg = self._g(torch.stack([(m - x_a).abs(), torch.relu(s * xm)], 1),
-                     torch.stack([d, s], 1))
+                     torch.stack([d, s], 1), torch.stack([x_a, m], 1))
         f_m = f_a + gg.select(1, 0)
         f = f_m + gg.select(1, 1)
         fl.append(torch.stack([m, f_m, d], 1))

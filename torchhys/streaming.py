@@ -89,13 +89,14 @@ def _step_module(op: nn.Module, dtype: torch.dtype) -> nn.Module:
                 "EIHO(a='segment') cannot be deployed: its per-segment coefficients come from "
                 "the target's next extremum (not causal). Train with a fixed or learnable a."
             )
-        if hasattr(op, "anchor_slope"):
-            raise ValueError(
-                "EIHO(a='anchored') is not supported by the streaming compensator yet; "
-                "deploy a fixed or learnable a"
-            )
-        a = op.coefficient().detach().to(dtype).reshape(-1).expand(2)
         r = 0.5 * _threshold(op).to(dtype)
+        if hasattr(op, "anchor_slope"):  # a_d exp(k_d (x_e - c) / s), as EIHO.forward folds it
+            with torch.no_grad():
+                slope = op.anchor_slope / op.anchor_norm[1]
+                a = op.coefficient() * torch.exp(-slope * op.anchor_norm[0])
+            return BranchStep("eiho", op.rule, a.to(dtype), r, op.max_depth, op.eps, 1.0,
+                              slope.to(dtype))
+        a = op.coefficient().detach().to(dtype).reshape(-1).expand(2)
         return BranchStep("eiho", op.rule, a, r, op.max_depth, op.eps, 1.0)
     if isinstance(op, ZhaoTanOperator):
         r = 0.5 * (_threshold(op) / op.scale).to(dtype)
@@ -221,10 +222,10 @@ class StreamingCompensator(nn.Module):
             y, f, i, g = y + op.n_play, f + op.n_float, i + op.n_int, g + op.n_f64
         if len(ops) == 1 and isinstance(ops[0], PlayStep):
             ops[0].whole = True
-        self.n_play: int = n_play
-        self.n_f64: int = g
+        self.n_play = n_play
+        self.n_f64 = g
         keep = torch.tensor([True] + keep_y + keep_f + [True])
-        self.anchoring: bool = not bool(keep.all())
+        self.anchoring = not bool(keep.all())
         self.register_buffer("keep", keep)
         r = [op.play_r for op in ops if op.n_play > 0]
         self.register_buffer("r", torch.cat(r).to(dtype) if r else torch.zeros(0, dtype=dtype))
