@@ -30,11 +30,12 @@ def _g(u: float, a: float, kind: str) -> float:
 def ref_branch(
     x: list[float], *, a_up: float = 1.0, a_down: float = 1.0, threshold: float = 0.0,
     rule: str = "recent", kind: str = "eiho", depth: int = 32, a_seg: list[float] | None = None,
-    a_anchor: Callable[[int, float], float] | None = None,
+    a_anchor: Callable[[int, float], float] | None = None, branch: bool = False,
 ) -> list[float]:
     """The branch operator (EIHO / Zhao-Tan) written as a per-sample loop.
 
     ``a_anchor(direction, x_e)``: a coefficient that depends on the branch's start point.
+    ``branch``: return ``f - f(x_e)`` (the committed anchor's output subtracted).
     """
 
     def coef(s: int, seg: int, x_e: float) -> float:
@@ -79,7 +80,7 @@ def ref_branch(
             d, m = moved, xt
         top = anchor(stack, m, d) if rule == "dominant" else len(stack) - 1
         ax, af, aseg = stack[top]
-        f_m = af + d * _g(abs(m - ax), coef(d, aseg, ax), kind)
+        f_m = (0.0 if branch else af) + d * _g(abs(m - ax), coef(d, aseg, ax), kind)
         s = -d if d != 0 else (1 if xt > m else (-1 if xt < m else 0))
         u = max(s * (xt - m), 0.0)
         out.append(f_m + s * _g(u, coef(s, nseg + 1 if d != 0 else nseg, m), kind))

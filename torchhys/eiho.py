@@ -15,6 +15,7 @@ from torchhys.functional.turning_points import estimate_threshold
 __all__ = ["EIHO", "ZhaoTanOperator"]
 
 _A_FORMULAS = ("sqrt", "paper")
+_OUTPUTS = ("level", "branch")
 
 
 def _threshold_buffer(threshold: float | str) -> Tensor:
@@ -32,11 +33,15 @@ class _TurningPointOperator(nn.Module):
 
     n_outputs: int = 1
 
-    def __init__(self, threshold: float | str, rule: str, max_depth: int) -> None:
+    def __init__(
+        self, threshold: float | str, rule: str, max_depth: int, output: str = "level"
+    ) -> None:
         super().__init__()
         if rule not in ("recent", "dominant"):
             raise ValueError(f"rule must be 'recent' or 'dominant', got {rule!r}")
-        self.rule = rule
+        if output not in _OUTPUTS:
+            raise ValueError(f"output must be one of {_OUTPUTS}, got {output!r}")
+        self.rule, self.output = rule, output
         self.max_depth = max_depth
         self.register_buffer("threshold", _threshold_buffer(threshold))
 
@@ -83,6 +88,11 @@ class EIHO(_TurningPointOperator):
         eps: linear zone of the square root (see :func:`torchhys.functional.eiho`).
         anchor_center: with ``a="anchored"``, the input level where ``a_d = exp(log_a_d)``.
         anchor_scale: with ``a="anchored"``, the input scale of ``k`` (> 0).
+        output: ``"level"`` (default): ``f`` (Eq. (2)); ``"branch"``: the branch-local value
+            ``f - f(x_e)`` (``+/- a |x - x_e|^(1/2)`` from the committed anchor ``x_e``),
+            bounded and free of the level that ``f`` accumulates along the history (a
+            network feature that generalizes to new signals); see
+            :func:`torchhys.functional.eiho`.
 
     Shapes:
         ``forward(x)``: x (time,) or (batch, time) -> f of the same shape, and a
@@ -93,9 +103,9 @@ class EIHO(_TurningPointOperator):
         self, *, a: float | tuple[float, float] | str = 1.0, rule: str = "recent",
         a_formula: str = "sqrt", threshold: float | str = 0.0, per_direction: bool = False,
         a_init: float = 1.0, max_depth: int = 32, eps: float = 1e-8,
-        anchor_center: float = 0.0, anchor_scale: float = 1.0,
+        anchor_center: float = 0.0, anchor_scale: float = 1.0, output: str = "level",
     ) -> None:
-        super().__init__(threshold, rule, max_depth)
+        super().__init__(threshold, rule, max_depth, output)
         if a_formula not in _A_FORMULAS:
             raise ValueError(f"a_formula must be one of {_A_FORMULAS}, got {a_formula!r}")
         self.a_formula, self.eps = a_formula, eps
@@ -180,13 +190,14 @@ class EIHO(_TurningPointOperator):
         return eiho(
             x, a.to(x.dtype) if x.is_floating_point() else a, rule=self.rule,
             threshold=self._threshold(), state=state, per_segment=self.per_segment,
-            eps=self.eps, max_depth=self.max_depth, anchor_slope=slope,
+            eps=self.eps, max_depth=self.max_depth, anchor_slope=slope, output=self.output,
         )
 
     def extra_repr(self) -> str:
         mode = "segment" if self.per_segment else ("learnable" if hasattr(self, "log_a") else "")
         mode = "anchored" if hasattr(self, "anchor_slope") else mode
-        return f"rule={self.rule!r}, a={mode or self.a_fixed.tolist()}"
+        out = "" if self.output == "level" else f", output={self.output!r}"
+        return f"rule={self.rule!r}, a={mode or self.a_fixed.tolist()}{out}"
 
 
 class ZhaoTanOperator(_TurningPointOperator):
@@ -202,13 +213,14 @@ class ZhaoTanOperator(_TurningPointOperator):
             ``(1 - exp(-|x - x_p| / s)) (x - x_p) + f(x_p)``. With ``s = 1`` (the published
             form) an input of large range makes ``f`` almost ``x`` plus a constant; set ``s``
             near the input's spread.
+        output: ``"level"`` (default) or ``"branch"`` (``f - f(x_p)``, as for :class:`EIHO`).
     """
 
     def __init__(
         self, *, rule: str = "recent", threshold: float | str = 0.0, max_depth: int = 32,
-        scale: float = 1.0,
+        scale: float = 1.0, output: str = "level",
     ) -> None:
-        super().__init__(threshold, rule, max_depth)
+        super().__init__(threshold, rule, max_depth, output)
         if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
             raise ValueError(f"scale must be a positive number, got {scale!r}")
         self.scale = float(scale)
@@ -220,6 +232,6 @@ class ZhaoTanOperator(_TurningPointOperator):
         s = self.scale
         f, state = zhao_tan(
             x / s, rule=self.rule, threshold=self._threshold() / s, state=state,
-            max_depth=self.max_depth,
+            max_depth=self.max_depth, output=self.output,
         )
         return f * s, state

@@ -27,6 +27,12 @@ Rules for the anchor ``x_e``:
 Coefficients: fixed per direction, per segment (the paper's non-causal ``a_i``), or, with
 ``anchor_slope``, a function of the branch's anchor ``a_d exp(k_d x_e)`` (the tentative
 reversed branch is anchored at the running extremum).
+
+Outputs: ``"level"`` (default) is ``f`` itself; ``"branch"`` is the branch-local value
+``f - f(x_e)`` with ``x_e`` the committed anchor (``+/- g(|x - x_e|)`` on a committed
+branch, plus the tentative reversed branch before a confirmation). It depends only on the
+input's excursion from the anchor and the direction, not on the anchor's level, so it does
+not drift along the history (the level of ``f`` accumulates from 0 at the first sample).
 """
 
 from __future__ import annotations
@@ -162,7 +168,7 @@ def _dominant_stacks(
 def branch_operator(
     x: Tensor, a: Tensor, kind: str, rule: str, threshold: float | str | Tensor,
     state: BranchState | None, per_segment: bool, eps: float, max_depth: int,
-    anchor_slope: Tensor | None = None,
+    anchor_slope: Tensor | None = None, branch: bool = False,
 ) -> tuple[Tensor, BranchState]:
     xb, squeezed = as_batched_sequence(x, "x")
     if rule not in _RULES:
@@ -209,7 +215,8 @@ def branch_operator(
         top = (depth_t - 1 - 2 * _pops(sx_t, depth_t, M.detach(), d))[..., None]
         x_a, f_a, seg_a = (s.gather(2, top)[..., 0] for s in (sx_t, sf_t, ss_t))
     coef_a = _coef(a, d, seg_a, per_segment, x_a, anchor_slope)
-    f_m = f_a + d * _g((M - x_a).abs(), coef_a, kind, eps)
+    base = torch.zeros_like(f_a) if branch else f_a  # "branch" output: f - f(x_e)
+    f_m = base + d * _g((M - x_a).abs(), coef_a, kind, eps)
     s = torch.where(d != 0, -d, torch.sign(xb.detach() - M.detach()).long())
     u = torch.relu(s * (xb - M))
     seg_rev = torch.where(d != 0, segment + 1, segment)

@@ -18,6 +18,7 @@ from torchhys.functional.turning_points import turning_points
 __all__ = ["NonCausalWarning", "eiho", "segment_coefficients", "zhao_tan"]
 
 _FORMULAS = ("sqrt", "paper")
+_OUTPUTS = ("level", "branch")
 
 
 class NonCausalWarning(UserWarning):
@@ -27,6 +28,12 @@ class NonCausalWarning(UserWarning):
 def _check_depth(max_depth: int) -> None:
     if isinstance(max_depth, bool) or not isinstance(max_depth, int) or max_depth < 3:
         raise ValueError(f"max_depth must be an int >= 3, got {max_depth!r}")
+
+
+def _check_output(output: str) -> bool:
+    if output not in _OUTPUTS:
+        raise ValueError(f"output must be one of {_OUTPUTS}, got {output!r}")
+    return output == "branch"
 
 
 def eiho(
@@ -40,6 +47,7 @@ def eiho(
     eps: float = 1e-8,
     max_depth: int = 32,
     anchor_slope: Tensor | float | None = None,
+    output: str = "level",
 ) -> tuple[Tensor, BranchState]:
     """Elementary inverse hysteresis operator, Eq. (2).
 
@@ -69,6 +77,11 @@ def eiho(
             branch becomes a positive function of its start point ``x_e``,
             ``a_d exp(k_d x_e)`` (causal; ``k = 0`` is a constant ``a``). Not with
             ``per_segment``.
+        output: ``"level"`` (default): ``f``; ``"branch"``: the branch-local value
+            ``f - f(x_e)`` (``x_e`` the committed anchor; between a turning point and its
+            confirmation the tentative reversed branch is included), i.e.
+            ``+/- a |x - x_e|^(1/2)`` on a committed branch: bounded and free of the level
+            that ``f`` accumulates along the history. Same state and streaming guarantees.
 
     Returns:
         ``(f, state)``: ``f`` of the shape of ``x``; state tensors have a leading batch
@@ -84,11 +97,12 @@ def eiho(
     """
     xb, _ = as_batched_sequence(x, "x")
     _check_depth(max_depth)
+    branch = _check_output(output)
     a_t = check_a(a if isinstance(a, Tensor) else xb.new_tensor(a), per_segment, xb.shape[0])
     slope = None if anchor_slope is None else _check_slope(anchor_slope, per_segment, xb)
     return branch_operator(
         x, a_t.to(xb.dtype), "eiho", rule, threshold, state, per_segment, eps, max_depth,
-        anchor_slope=slope,
+        anchor_slope=slope, branch=branch,
     )
 
 
@@ -114,6 +128,7 @@ def zhao_tan(
     threshold: float | str | Tensor = 0.0,
     state: BranchState | None = None,
     max_depth: int = 32,
+    output: str = "level",
 ) -> tuple[Tensor, BranchState]:
     """Zhao and Tan's expanded-input-space operator (the paper's Ref. [8]).
 
@@ -128,6 +143,7 @@ def zhao_tan(
         threshold: reversal threshold of the turning-point detector.
         state: state from a previous call, or None.
         max_depth: stack size of the ``"dominant"`` rule.
+        output: ``"level"`` (default) or ``"branch"`` (``f - f(x_p)``), as for :func:`eiho`.
 
     Returns:
         ``(f, state)`` as for :func:`eiho`.
@@ -137,8 +153,11 @@ def zhao_tan(
     """
     xb, _ = as_batched_sequence(x, "x")
     _check_depth(max_depth)
+    branch = _check_output(output)
     a = xb.new_ones(2)
-    return branch_operator(x, a, "zhao_tan", rule, threshold, state, False, 0.0, max_depth)
+    return branch_operator(
+        x, a, "zhao_tan", rule, threshold, state, False, 0.0, max_depth, branch=branch
+    )
 
 
 def segment_coefficients(
