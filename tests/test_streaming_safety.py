@@ -151,3 +151,11 @@ def test_wrong_shapes() -> None:
         comp.step(torch.zeros(3, dtype=x.dtype))
     comp.reset()
     assert comp.step(torch.zeros(3, dtype=x.dtype)).shape == (3,)
+
+
+@pytest.mark.parametrize("make", [lambda: EIHO(output="branch"),
+                                  lambda: ZhaoTanOperator(output="branch")])
+def test_branch_output_is_rejected_clearly(make) -> None:
+    net = InverseHysteresisNet(make(), hidden=4)
+    with pytest.raises(ValueError, match="output='branch'"):
+        StreamingCompensator(net, limits=(-1, 1))

@@ -83,6 +83,12 @@ def _threshold(op: nn.Module) -> Tensor:
 
 
 def _step_module(op: nn.Module, dtype: torch.dtype) -> nn.Module:
+    output = getattr(op, "output", "level")
+    if isinstance(op, (EIHO, ZhaoTanOperator)) and output != "level":
+        raise ValueError(
+            f"{type(op).__name__}(output={output!r}) is not supported by the streaming "
+            "compensator yet; deploy output='level'"
+        )
     if isinstance(op, EIHO):
         if op.per_segment:
             raise ValueError(
