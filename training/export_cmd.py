@@ -22,6 +22,7 @@ import torch
 from torchhys import InverseHysteresisNet
 from torchhys.export import to_aoti, to_torchscript
 from torchhys.streaming import StreamingCompensator
+from training.operators import build_operators
 
 __all__ = ["build_net", "main"]
 
@@ -38,7 +39,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--initial-command", type=float, default=0.0,
                    help="command held until the first finite input (default 0)")
     arch = p.add_argument_group("architecture of a plain state dict")
-    arch.add_argument("--operator", help='e.g. eiho, zhao_tan, none, or a JSON list')
+    arch.add_argument("--operator", help='e.g. eiho, zhao_tan, none, or a JSON list of names '
+                      'and specs such as {"name": "pi_ls", "n_widths": 30}')
     arch.add_argument("--hidden", type=int)
     arch.add_argument("--activation")
     arch.add_argument("--operator-kwargs", help="JSON object, e.g. '{\"rule\": \"dominant\"}'")
@@ -53,7 +55,7 @@ def _plain_arch(args: argparse.Namespace) -> dict:
         )
     operator = args.operator or "eiho"
     operator = None if operator == "none" else (
-        json.loads(operator) if operator.startswith("[") else operator)
+        json.loads(operator) if operator.startswith(("[", "{")) else operator)
     return {"operator": operator, "hidden": args.hidden,
             "activation": args.activation or "sigmoid",
             "operator_kwargs": json.loads(args.operator_kwargs or "{}")}
@@ -75,9 +77,11 @@ def build_net(ckpt: dict, arch: dict | None = None) -> InverseHysteresisNet:
         raise ValueError("a plain state dict needs the architecture (see --hidden)")
     else:
         state = ckpt
+    # operator specs as the training module reads them (names or {"name": ...} dicts);
+    # data-dependent ones (plays, pi_ls) get their fitted widths and weights from the state
+    operators, _ = build_operators(arch["operator"], arch.get("operator_kwargs") or {})
     net = InverseHysteresisNet(
-        arch["operator"], arch["hidden"], activation=arch.get("activation") or "sigmoid",
-        operator_kwargs=arch.get("operator_kwargs") or {},
+        operators, arch["hidden"], activation=arch.get("activation") or "sigmoid",
     )
     net.load_state_dict(state)
     ref = next(iter(state.values()), None)

@@ -15,6 +15,7 @@ from torchmetrics import MeanSquaredError
 from torchhys import InverseHysteresisNet
 from torchhys.optim import PowellBealeCG
 from training.init import initialize
+from training.operators import build_operators, fit_data_dependent
 
 __all__ = ["CLOSURE_OPTIMIZERS", "OPTIMIZERS", "InverseHysteresisModule"]
 
@@ -90,6 +91,11 @@ class InverseHysteresisModule(L.LightningModule):
     gradient clipping, accumulation or mixed precision raises ``ValueError`` when the
     module is attached to a ``Trainer`` for fitting.
 
+    Operators are given by name or as specs ``{"name": ..., **options}`` (see
+    :mod:`training.operators`): ``eiho``, ``zhao_tan``, ``plays`` (play operators of the
+    input) and ``pi_ls`` (the least-squares Prandtl-Ishlinskii model of the target from the
+    input). Data-dependent operators (``plays`` widths from the input's span, ``pi_ls``) are
+    fitted on the training split with the normalization, once, and saved in checkpoints.
     Per-segment EIHOs (``operator_kwargs={"a": "segment"}``, not causal) get the batch's
     targets as ``target``. Operator outputs that depend on no trainable parameter are
     computed once per batch (and cached across epochs), not in every closure call.
@@ -99,10 +105,13 @@ class InverseHysteresisModule(L.LightningModule):
             ``fit_normalization`` like :class:`torchhys.InverseHysteresisNet`); when given,
             ``operator``, ``hidden``, ``activation``, ``operator_kwargs`` are ignored and
             ``load_from_checkpoint`` needs it passed again.
-        operator: ``"eiho"``, ``"zhao_tan"``, a list of those, or None (plain network).
+        operator: ``"eiho"``, ``"zhao_tan"``, a spec dict such as ``{"name": "pi_ls",
+            "n_widths": 30}`` or ``{"name": "plays", "n": 16}``, a list of those, or None
+            (plain network).
         hidden: hidden units.
         activation: hidden activation (``"sigmoid"`` in the paper).
-        operator_kwargs: keyword arguments of the operators (e.g. ``{"a": "segment"}``).
+        operator_kwargs: keyword arguments of the operators given by name only (e.g.
+            ``{"a": "segment"}``); spec dicts carry their own.
         init: ``"nguyen_widrow"`` or ``"default"`` (PyTorch's initialization).
         optimizer: ``"adam"``, ``"cg"`` or ``"lbfgs"``.
         lr: learning rate of Adam and LBFGS (CG has no learning rate).
@@ -112,7 +121,8 @@ class InverseHysteresisModule(L.LightningModule):
     """
 
     def __init__(
-        self, net: nn.Module | None = None, *, operator: str | list[str] | None = "eiho",
+        self, net: nn.Module | None = None, *,
+        operator: str | dict[str, Any] | list[str | dict[str, Any]] | None = "eiho",
         hidden: int = 168, activation: str = "sigmoid", operator_kwargs: dict | None = None,
         init: str = "nguyen_widrow", optimizer: str = "cg", lr: float = 1e-2,
         optimizer_kwargs: dict | None = None, schedule: str | None = None,
@@ -126,10 +136,10 @@ class InverseHysteresisModule(L.LightningModule):
                 f"with optimizer={optimizer!r}"
             )
         self.save_hyperparameters(ignore=["net"])
+        self._fitters: dict = {}
         if net is None:
-            net = InverseHysteresisNet(
-                operator, hidden, activation=activation, operator_kwargs=operator_kwargs
-            )
+            ops, self._fitters = build_operators(operator, operator_kwargs)
+            net = InverseHysteresisNet(ops, hidden, activation=activation)
             initialize(net, init)
         self.net = net
         self.optimizer_name = optimizer
@@ -155,22 +165,30 @@ class InverseHysteresisModule(L.LightningModule):
 
     # --- data-dependent set-up ----------------------------------------------------------
     def setup(self, stage: str) -> None:
-        """Fit the network's normalization on the datamodule's training part (once)."""
+        """Fit the data-dependent operators and the normalization on the datamodule's
+        training part (once; a restored checkpoint then overwrites them)."""
         if bool(self.normalization_fitted):
             return
         dm = getattr(self.trainer, "datamodule", None)
         if dm is None or not hasattr(dm, "train_tensors"):
             return
+        if str(getattr(self.trainer, "precision", "")).startswith("64"):
+            self.net.double()  # as the precision plugin will: fit in float64 from the start
         x, y = dm.train_tensors()
         self.fit_normalization(x, y)
 
     def fit_normalization(self, x: Tensor, y: Tensor) -> None:
-        """Fit the network's normalization to training data (physical units), (batch, time)."""
+        """Fit the data-dependent operators (``plays``, ``pi_ls``), then the network's
+        normalization, to training data (physical units), (batch, time)."""
+        fit_data_dependent(self.net.operators, self._fitters, x, y)
         ref = next(iter(self.net.buffers()), None)
         dtype = ref.dtype if ref is not None else torch.get_default_dtype()
         self.net.fit_normalization(x.to(dtype), y.to(dtype))
         self.normalization_fitted.fill_(True)
         self._feature_cache.clear()
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        self._feature_cache.clear()  # features of the operators as they were before
 
     # --- the model ----------------------------------------------------------------------
     def _fixed_operators(self) -> bool:

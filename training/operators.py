@@ -1,0 +1,180 @@
+"""Operators of the expanded input space from config specs (names and keyword dicts).
+
+A spec is a name (``"eiho"``, ``"zhao_tan"``: the module's ``operator_kwargs`` apply) or a
+dict ``{"name": NAME, **kwargs}``:
+
+- ``{"name": "eiho", **EIHO kwargs}``, ``{"name": "zhao_tan", **ZhaoTanOperator kwargs}``;
+- ``{"name": "plays", "n": 16, "power": 1.0, "span_fraction": 1.0, "learnable": False}``:
+  :class:`torchhys.Backlash` of the input, full widths
+  ``span_fraction * span(x_train) (k / n)^power``, ``k = 1..n`` (or explicit ``widths``);
+- ``{"name": "pi_ls", "n_widths": 30, "power": 3.0, "ridge": 0.0, "learnable": False}``:
+  the least-squares Prandtl-Ishlinskii model of the target from the input
+  (:func:`torchhys.fitting.fit_prandtl_ishlinskii` on :func:`~torchhys.fitting.play_width_grid`).
+
+All of them are causal except an EIHO with ``a="segment"``. ``plays`` (without ``widths``)
+and ``pi_ls`` depend on the training data: they are built as placeholders of the right
+shape and fitted by :func:`fit_data_dependent` on the training split when fitting starts;
+their widths and weights are buffers (or parameters) of the network, so checkpoints and
+exports carry them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from torchhys import EIHO, Backlash, PrandtlIshlinskii, ZhaoTanOperator
+from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid
+
+__all__ = ["OPERATORS", "OperatorSpec", "build_operators", "fit_data_dependent"]
+
+OperatorSpec = str | Mapping[str, Any]
+"""``"eiho"``, ``"zhao_tan"`` or ``{"name": NAME, **kwargs}``."""
+
+Fitter = Callable[[Tensor, Tensor], nn.Module]
+"""Builds the fitted operator from the training input and target, (batch, time) each."""
+
+
+def _positive_int(spec: Mapping[str, Any], key: str, default: int) -> int:
+    n = spec.get(key, default)
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise ValueError(f"operator {spec.get('name')!r}: {key} must be an int >= 1, got {n!r}")
+    return n
+
+
+def _check_keys(spec: Mapping[str, Any], allowed: set[str]) -> None:
+    unknown = sorted(set(spec) - allowed - {"name"})
+    if unknown:
+        raise ValueError(
+            f"operator {spec['name']!r}: unknown option(s) {unknown}; valid: {sorted(allowed)}"
+        )
+
+
+def _plays(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter | None]:
+    _check_keys(spec, {"n", "power", "span_fraction", "learnable", "widths"})
+    learnable = bool(spec.get("learnable", False))
+    if spec.get("widths") is not None:
+        widths = torch.as_tensor(spec["widths"], dtype=torch.get_default_dtype())
+        return Backlash(widths, learnable=learnable), None
+    n = _positive_int(spec, "n", 16)
+    power = float(spec.get("power", 1.0))
+    fraction = float(spec.get("span_fraction", 1.0))
+    if not (power > 0 and fraction > 0):
+        raise ValueError(
+            f"operator 'plays': power and span_fraction must be > 0, got {power}, {fraction}"
+        )
+
+    def fit(x: Tensor, y: Tensor) -> nn.Module:
+        return Backlash(fraction * play_width_grid(x, n, power=power), learnable=learnable)
+
+    return Backlash(torch.arange(1, n + 1) / n, learnable=learnable), fit
+
+
+def _pi_ls(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
+    _check_keys(spec, {"n_widths", "power", "ridge", "learnable"})
+    n = _positive_int(spec, "n_widths", 30)
+    power = float(spec.get("power", 3.0))
+    ridge = float(spec.get("ridge", 0.0))
+    learnable = bool(spec.get("learnable", False))
+    if not power > 0:
+        raise ValueError(f"operator 'pi_ls': power must be > 0, got {power}")
+
+    def fit(x: Tensor, y: Tensor) -> nn.Module:
+        widths = play_width_grid(x, n, power=power)
+        return fit_prandtl_ishlinskii(x, y, widths, ridge=ridge, learnable=learnable)
+
+    placeholder = PrandtlIshlinskii(torch.arange(1, n + 1) / n, torch.zeros(n),
+                                    learnable=learnable)
+    return placeholder, fit
+
+
+def _kwargs_operator(cls: type[nn.Module]) -> Callable[[Mapping[str, Any]], tuple]:
+    def make(spec: Mapping[str, Any]) -> tuple[nn.Module, None]:
+        kwargs = {k: v for k, v in spec.items() if k != "name"}
+        try:
+            return cls(**kwargs), None
+        except TypeError as e:
+            raise ValueError(f"operator {spec['name']!r}: {e}") from e
+
+    return make
+
+
+OPERATORS: dict[str, Callable[[Mapping[str, Any]], tuple[nn.Module, Fitter | None]]] = {
+    "eiho": _kwargs_operator(EIHO),
+    "zhao_tan": _kwargs_operator(ZhaoTanOperator),
+    "plays": _plays,
+    "pi_ls": _pi_ls,
+}
+"""Operator builders by name: each returns ``(module, fitter or None)``."""
+
+
+def build_operators(
+    operator: OperatorSpec | Sequence[OperatorSpec] | None,
+    operator_kwargs: Mapping[str, Any] | None = None,
+) -> tuple[list[nn.Module], dict[int, Fitter]]:
+    """Operator modules of a spec (or list of specs), and fitters of the data-dependent ones.
+
+    Args:
+        operator: a spec, a list of specs, or None (no operator: the plain network).
+        operator_kwargs: keyword arguments of specs given by name only (``"eiho"``).
+
+    Returns:
+        ``(modules, fitters)``: ``fitters[i]`` builds the fitted ``modules[i]`` from training
+        data (see :func:`fit_data_dependent`).
+
+    Raises:
+        ValueError: an unknown name (the message lists the valid ones), a dict without
+            ``name``, unknown or bad options.
+        TypeError: a spec that is neither a name nor a dict.
+    """
+    if operator is None:
+        return [], {}
+    specs = list(operator) if isinstance(operator, (list, tuple)) else [operator]
+    modules, fitters = [], {}
+    for i, spec in enumerate(specs):
+        if isinstance(spec, str):
+            spec = {"name": spec, **dict(operator_kwargs or {})}
+        elif isinstance(spec, Mapping):
+            if "name" not in spec:
+                raise ValueError(
+                    f"operator spec {dict(spec)!r} has no 'name'; valid names: {sorted(OPERATORS)}"
+                )
+        else:
+            raise TypeError(
+                f"operator must be a name, a dict with 'name', a list of them or None, got "
+                f"{type(spec).__name__} {spec!r}"
+            )
+        if spec["name"] not in OPERATORS:
+            raise ValueError(
+                f"operator name must be one of {sorted(OPERATORS)}, got {spec['name']!r}"
+            )
+        module, fitter = OPERATORS[spec["name"]](spec)
+        modules.append(module)
+        if fitter is not None:
+            fitters[i] = fitter
+    return modules, fitters
+
+
+@torch.no_grad()
+def fit_data_dependent(operators: nn.ModuleList, fitters: Mapping[int, Fitter], x: Tensor,
+                       y: Tensor) -> None:
+    """Fit the data-dependent operators in place on training data (physical units).
+
+    The fitted module's state (widths, weights) is copied into ``operators[i]``, in that
+    module's dtype and device, so the network's structure, and its checkpoints, stay as
+    built.
+
+    Args:
+        operators: the network's operators.
+        fitters: from :func:`build_operators`.
+        x: training input, (batch, time); y: training target, same shape.
+    """
+    for i, fit in fitters.items():
+        target = operators[i]
+        ref = next(iter(target.state_dict().values()))
+        fitted = fit(x.to(torch.float64), y.to(torch.float64))
+        state = {k: v.to(ref.dtype) for k, v in fitted.state_dict().items()}
+        target.load_state_dict(state)
