@@ -4,7 +4,7 @@ The functional core lives in :mod:`torchhys.functional`; the ``nn.Module`` wrapp
 that hold parameters and state are re-exported here.
 """
 
-from torchhys import optim, plants, signals
+from torchhys import export, fitting, optim, plants, signals, streaming
 from torchhys.backlash import Backlash, BacklashCell
 from torchhys.eiho import EIHO, ZhaoTanOperator
 from torchhys.networks import InverseHysteresisNet
@@ -17,6 +17,9 @@ __all__ = [
     "plants",
     "signals",
     "optim",
+    "export",
+    "fitting",
+    "streaming",
     "Backlash",
     "EIHO",
     "InverseHysteresisNet",
