@@ -93,6 +93,10 @@ class HysteresisDataModule(L.LightningDataModule):
         split: ``"paper"`` (the whole record for train, validation and test, as the
             paper reports training MSE) or fractions ``[train, val, test]`` (sum <= 1).
         min_samples: fewest samples per non-empty split.
+        warmup: leading samples of the record left out of the training loss and of the
+            fits of data-dependent operators (with ``split="paper"`` also of the metrics):
+            the model's operators start from a zero state, a recorded plant from its own,
+            so the first samples after the start disagree (states still run through them).
 
     Raises:
         ValueError: a bad split, too few samples in a split.
@@ -104,10 +108,13 @@ class HysteresisDataModule(L.LightningDataModule):
         target_column: Column = "command", time_column: Column | None = None,
         simulation: str = "paper", dt: float = 0.01, t_end: float = 8 * math.pi,
         seed: int = 0, split: str | list[float] = "paper", min_samples: int = 16,
+        warmup: int = 0,
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
         self.fractions = _check_split(split)
+        if isinstance(warmup, bool) or not isinstance(warmup, int) or warmup < 0:
+            raise ValueError(f"warmup must be an int >= 0, got {warmup!r}")
         if path is None and simulation not in SIMULATIONS:
             raise ValueError(f"simulation must be one of {SIMULATIONS}, got {simulation!r}")
         self.t: Tensor | None = None
@@ -144,6 +151,13 @@ class HysteresisDataModule(L.LightningDataModule):
                     f"{n}), at least {hp.min_samples} are needed; record more data or change "
                     f"split={list(self.fractions) if hp.split != 'paper' else 'paper'}"
                 )
+        a, b = self.bounds["train"]
+        if b - a - hp.warmup < hp.min_samples:
+            where = hp.path if hp.path is not None else f"simulation {hp.simulation!r}"
+            raise ValueError(
+                f"{where}: warmup={hp.warmup} leaves {b - a - hp.warmup} of the {b - a} "
+                f"training samples, at least {hp.min_samples} are needed; lower warmup"
+            )
 
     def prepare_data(self) -> None:
         """Nothing to download: data are simulated or read in :meth:`setup`."""
@@ -153,10 +167,16 @@ class HysteresisDataModule(L.LightningDataModule):
             self._load()
 
     def train_tensors(self) -> tuple[Tensor, Tensor]:
-        """The training part ``(x, y)``, each (1, time), float64: fit normalizations on it."""
+        """The training part ``(x, y)``, each (1, time), float64: fit normalizations on it
+        (its first :attr:`train_warmup` samples are the warm-up)."""
         self.setup()
         a, b = self.bounds["train"]
         return self.x[a:b].unsqueeze(0), self.y[a:b].unsqueeze(0)
+
+    @property
+    def train_warmup(self) -> int:
+        """Leading samples of :meth:`train_tensors` outside the loss and data-dependent fits."""
+        return int(self.hparams.warmup)
 
     def tensors(self, stage: str) -> tuple[Tensor, Tensor, int]:
         """``(x, y, warmup)`` of ``stage``: (time,) tensors including the warm-up part."""
@@ -164,8 +184,9 @@ class HysteresisDataModule(L.LightningDataModule):
         if stage == "predict":
             return self.x, self.y, 0
         a, b = self.bounds[stage]
-        warm = 0 if self.hparams.split == "paper" else a
-        return self.x[a - warm:b], self.y[a - warm:b], warm
+        if stage == "train" or self.hparams.split == "paper":
+            return self.x[a:b], self.y[a:b], self.train_warmup
+        return self.x[:b], self.y[:b], a  # the preceding record is the warm-up
 
     def _loader(self, stage: str) -> DataLoader | list:
         a, b = self.bounds.get(stage, (0, 1)) if stage != "predict" else (0, 1)

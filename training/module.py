@@ -31,7 +31,8 @@ _FULL_PRECISION = ("32-true", "64-true", "32", "64")
 
 Batch = tuple[Tensor, ...]
 """``(x, y)`` or ``(x, y, warmup)``: x, y (batch, time); ``warmup`` leading samples of the
-sequence (the preceding record) are excluded from the metrics."""
+sequence (the preceding record, or the training warm-up) are excluded from the loss and the
+metrics."""
 
 
 def _unpack(batch: Batch) -> tuple[Tensor, Tensor, int]:
@@ -175,12 +176,13 @@ class InverseHysteresisModule(L.LightningModule):
         if str(getattr(self.trainer, "precision", "")).startswith("64"):
             self.net.double()  # as the precision plugin will: fit in float64 from the start
         x, y = dm.train_tensors()
-        self.fit_normalization(x, y)
+        self.fit_normalization(x, y, warmup=int(getattr(dm, "train_warmup", 0)))
 
-    def fit_normalization(self, x: Tensor, y: Tensor) -> None:
-        """Fit the data-dependent operators (``plays``, ``pi_ls``), then the network's
-        normalization, to training data (physical units), (batch, time)."""
-        fit_data_dependent(self.net.operators, self._fitters, x, y)
+    def fit_normalization(self, x: Tensor, y: Tensor, *, warmup: int = 0) -> None:
+        """Fit the data-dependent operators (``plays``, ``pi_ls``; without the first
+        ``warmup`` samples), then the network's normalization, to training data (physical
+        units), (batch, time)."""
+        fit_data_dependent(self.net.operators, self._fitters, x, y, warmup=warmup)
         ref = next(iter(self.net.buffers()), None)
         dtype = ref.dtype if ref is not None else torch.get_default_dtype()
         self.net.fit_normalization(x.to(dtype), y.to(dtype))
@@ -228,9 +230,14 @@ class InverseHysteresisModule(L.LightningModule):
 
     # --- training -----------------------------------------------------------------------
     def training_step(self, batch: Batch, batch_idx: int) -> Tensor | None:
-        x, y, _ = _unpack(batch)
+        x, y, warmup = _unpack(batch)
         y = y.to(self.dtype)
-        predict = self._predict(x, y, "train")
+        full = self._predict(x, y, "train")
+
+        def predict() -> Tensor:  # the warm-up samples only run the operator states
+            return full()[..., warmup:]
+
+        y = y[..., warmup:]
         if self.automatic_optimization:
             loss = F.mse_loss(predict(), y)
             self.log("train_loss", loss.detach(), on_step=False, on_epoch=True,

@@ -20,6 +20,7 @@ exports carry them.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -28,14 +29,16 @@ from torch import Tensor, nn
 
 from torchhys import EIHO, Backlash, PrandtlIshlinskii, ZhaoTanOperator
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid
+from torchhys.functional import backlash
 
 __all__ = ["OPERATORS", "OperatorSpec", "build_operators", "fit_data_dependent"]
 
 OperatorSpec = str | Mapping[str, Any]
 """``"eiho"``, ``"zhao_tan"`` or ``{"name": NAME, **kwargs}``."""
 
-Fitter = Callable[[Tensor, Tensor], nn.Module]
-"""Builds the fitted operator from the training input and target, (batch, time) each."""
+Fitter = Callable[[Tensor, Tensor, int], nn.Module]
+"""Builds the fitted operator from the training input and target, (batch, time) each, and
+the number of leading warm-up samples to leave out of the fit."""
 
 
 def _positive_int(spec: Mapping[str, Any], key: str, default: int) -> int:
@@ -67,7 +70,7 @@ def _plays(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter | None]:
             f"operator 'plays': power and span_fraction must be > 0, got {power}, {fraction}"
         )
 
-    def fit(x: Tensor, y: Tensor) -> nn.Module:
+    def fit(x: Tensor, y: Tensor, warmup: int) -> nn.Module:
         return Backlash(fraction * play_width_grid(x, n, power=power), learnable=learnable)
 
     return Backlash(torch.arange(1, n + 1) / n, learnable=learnable), fit
@@ -82,13 +85,31 @@ def _pi_ls(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     if not power > 0:
         raise ValueError(f"operator 'pi_ls': power must be > 0, got {power}")
 
-    def fit(x: Tensor, y: Tensor) -> nn.Module:
+    def fit(x: Tensor, y: Tensor, warmup: int) -> nn.Module:
         widths = play_width_grid(x, n, power=power)
-        return fit_prandtl_ishlinskii(x, y, widths, ridge=ridge, learnable=learnable)
+        if warmup == 0:
+            return fit_prandtl_ishlinskii(x, y, widths, ridge=ridge, learnable=learnable)
+        return _fit_pi_after(x, y, widths, warmup, ridge=ridge, learnable=learnable)
 
     placeholder = PrandtlIshlinskii(torch.arange(1, n + 1) / n, torch.zeros(n),
                                     learnable=learnable)
     return placeholder, fit
+
+
+def _fit_pi_after(x: Tensor, y: Tensor, widths: Tensor, warmup: int, *, ridge: float,
+                  learnable: bool) -> PrandtlIshlinskii:
+    """:func:`~torchhys.fitting.fit_prandtl_ishlinskii` on the samples after ``warmup``
+    (the play states start at zero at the first sample and run through the warm-up)."""
+    n = widths.shape[0]
+    design = torch.cat([x.unsqueeze(-1), backlash(x, widths)], dim=-1)[:, warmup:]
+    design, target = design.reshape(-1, n + 1), y[:, warmup:].reshape(-1, 1)
+    if ridge > 0:
+        rows = design.shape[0]
+        penalty = torch.eye(n + 1, dtype=design.dtype)[1:] * math.sqrt(ridge)
+        design = torch.cat([design / math.sqrt(rows), penalty])
+        target = torch.cat([target / math.sqrt(rows), target.new_zeros(n, 1)])
+    w = torch.linalg.lstsq(design, target, driver="gelsd").solution[:, 0]
+    return PrandtlIshlinskii(widths, w[1:], linear_weight=float(w[0]), learnable=learnable)
 
 
 def _kwargs_operator(cls: type[nn.Module]) -> Callable[[Mapping[str, Any]], tuple]:
@@ -160,7 +181,7 @@ def build_operators(
 
 @torch.no_grad()
 def fit_data_dependent(operators: nn.ModuleList, fitters: Mapping[int, Fitter], x: Tensor,
-                       y: Tensor) -> None:
+                       y: Tensor, *, warmup: int = 0) -> None:
     """Fit the data-dependent operators in place on training data (physical units).
 
     The fitted module's state (widths, weights) is copied into ``operators[i]``, in that
@@ -171,10 +192,17 @@ def fit_data_dependent(operators: nn.ModuleList, fitters: Mapping[int, Fitter], 
         operators: the network's operators.
         fitters: from :func:`build_operators`.
         x: training input, (batch, time); y: training target, same shape.
+        warmup: leading samples left out of least-squares fits (states run through them).
+
+    Raises:
+        ValueError: ``warmup`` not smaller than the number of samples.
     """
+    if not 0 <= warmup < x.shape[-1]:
+        raise ValueError(f"warmup must be in [0, {x.shape[-1]}) samples, got {warmup}")
     for i, fit in fitters.items():
         target = operators[i]
         ref = next(iter(target.state_dict().values()))
-        fitted = fit(x.to(torch.float64), y.to(torch.float64))
+        fitted = fit(x.reshape(-1, x.shape[-1]).to(torch.float64),
+                     y.reshape(-1, y.shape[-1]).to(torch.float64), warmup)
         state = {k: v.to(ref.dtype) for k, v in fitted.state_dict().items()}
         target.load_state_dict(state)
