@@ -3,13 +3,18 @@
 from __future__ import annotations
 
 import csv
+import os
+import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 import torch
 
+from torchhys.export import load_torchscript
+from training import HysteresisDataModule, InverseHysteresisModule
 from training.cli import main
+from training.export_cmd import main as export_main
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
@@ -37,6 +42,17 @@ data:
   t_end: 6.3
   split: [0.6, 0.2, 0.2]
 """
+
+PI_TINY = TINY.replace("""  operator: zhao_tan
+  operator_kwargs:
+    scale: 1.8
+""", """  operator:
+    - name: pi_ls
+      n_widths: 8
+    - name: plays
+      n: 3
+""")
+"""TINY with data-dependent operators (fitted on the training split at fit start)."""
 
 
 def cli(monkeypatch: pytest.MonkeyPatch, *args: str) -> None:
@@ -173,3 +189,72 @@ def test_help_lists_the_subcommands(monkeypatch, capsys) -> None:
     out = capsys.readouterr().out
     for sub in ("fit", "validate", "test", "predict", "export"):
         assert sub in out
+
+
+def test_data_dependent_operators_resume_and_export(monkeypatch, tmp_path: Path) -> None:
+    cfg = tmp_path / "pi.yaml"
+    cfg.write_text(PI_TINY)
+    a, b = tmp_path / "a", tmp_path / "b"
+    cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={a}",
+        "--trainer.max_epochs=4")
+    cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={b}",
+        "--trainer.max_epochs=2")
+    (half,) = checkpoints(b)
+    cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={b}",
+        "--trainer.max_epochs=4", f"--ckpt_path={half}")
+    (full,), (resumed,) = checkpoints(a), checkpoints(b, version=1)
+    ca = torch.load(full, weights_only=True)
+    cb = torch.load(resumed, weights_only=True)
+    assert ca["hyper_parameters"]["operator"] == [{"name": "pi_ls", "n_widths": 8},
+                                                  {"name": "plays", "n": 3}]
+    assert "net.operators.0.weights" in ca["state_dict"]
+    for k, v in ca["state_dict"].items():
+        torch.testing.assert_close(cb["state_dict"][k], v, rtol=0, atol=1e-12)
+    out = tmp_path / "comp.pt"
+    assert export_main(["--ckpt", str(full), "--format", "torchscript", "--out", str(out),
+                        "--limits", "-100", "100"]) == 0
+    module = InverseHysteresisModule.load_from_checkpoint(full)
+    dm = HysteresisDataModule(t_end=6.3)
+    dm.setup()
+    with torch.no_grad():
+        expected = module(dm.x)
+    torch.testing.assert_close(load_torchscript(out)(dm.x).double(), expected, rtol=0,
+                               atol=1e-9)
+
+
+def test_measured_config_exports(monkeypatch, tmp_path: Path) -> None:
+    monkeypatch.chdir(ROOT)
+    root = tmp_path / "measured"
+    cli(monkeypatch, "fit", "--config", "configs/measured.yaml",
+        f"--trainer.default_root_dir={root}", "--trainer.max_epochs=2",
+        "--trainer.enable_progress_bar=false")
+    out = tmp_path / "comp.pt"
+    assert export_main(["--ckpt", str(root / "logs/version_0/checkpoints/last.ckpt"),
+                        "--format", "torchscript", "--out", str(out)]) == 0
+    assert load_torchscript(out)(torch.linspace(-2.0, 2.0, 50, dtype=torch.float64)).isfinite(
+    ).all()
+
+
+@pytest.mark.slow
+def test_fit_under_ddp_on_two_cpu_processes(monkeypatch, tmp_path: Path) -> None:
+    """``--trainer.strategy=ddp --trainer.devices=2``: the CLI relaunches itself per rank;
+    full-batch CG ends where a single process ends (data-dependent operators included)."""
+    cfg = tmp_path / "pi.yaml"
+    cfg.write_text(PI_TINY)
+    single, ddp = tmp_path / "single", tmp_path / "ddp"
+    cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={single}")
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONWARNINGS": "ignore"}
+    proc = subprocess.run(
+        [sys.executable, "-m", "training.cli", "fit", "--config", str(cfg),
+         f"--trainer.default_root_dir={ddp}", "--trainer.strategy=ddp",
+         "--trainer.devices=2", "--trainer.accelerator=cpu"],
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=600, check=False,
+    )
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    (ref,), (got,) = checkpoints(single), checkpoints(ddp)
+    assert ref.name == got.name == "epoch=2-step=3.ckpt"
+    sa = torch.load(ref, weights_only=True)["state_dict"]
+    sb = torch.load(got, weights_only=True)["state_dict"]
+    assert sa.keys() == sb.keys()
+    for k, v in sa.items():
+        torch.testing.assert_close(sb[k], v, rtol=0, atol=1e-10)

@@ -83,9 +83,11 @@ def build_net(ckpt: dict, arch: dict | None = None) -> InverseHysteresisNet:
     net = InverseHysteresisNet(
         operators, arch["hidden"], activation=arch.get("activation") or "sigmoid",
     )
-    net.load_state_dict(state)
     ref = next(iter(state.values()), None)
-    return net.to(ref.dtype) if isinstance(ref, torch.Tensor) and ref.is_floating_point() else net
+    if isinstance(ref, torch.Tensor) and ref.is_floating_point():
+        net = net.to(ref.dtype)  # before loading: float64 weights are not rounded to float32
+    net.load_state_dict(state)
+    return net
 
 
 def main(argv: list[str]) -> int:

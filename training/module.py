@@ -190,7 +190,13 @@ class InverseHysteresisModule(L.LightningModule):
         self._feature_cache.clear()
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        self._feature_cache.clear()  # features of the operators as they were before
+        """Take the checkpoint's dtype before its weights are loaded (copying float64
+        weights into a float32 module would round them), and drop cached features."""
+        self._feature_cache.clear()
+        dtypes = {v.dtype for k, v in (checkpoint.get("state_dict") or {}).items()
+                  if k.startswith("net.") and isinstance(v, Tensor) and v.is_floating_point()}
+        if len(dtypes) == 1:
+            self.to(dtypes.pop())
 
     # --- the model ----------------------------------------------------------------------
     def _fixed_operators(self) -> bool:

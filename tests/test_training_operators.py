@@ -1,0 +1,159 @@
+"""Operator specs of the training module: names and dicts, data-dependent fits, warm-up."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import lightning as L
+import pytest
+import torch
+import torch.nn.functional as F
+
+from torchhys import EIHO, Backlash, PrandtlIshlinskii, ZhaoTanOperator
+from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid
+from torchhys.functional import NonCausalWarning, backlash
+from training import HysteresisDataModule, InverseHysteresisModule
+from training.operators import OPERATORS, _fit_pi_after, build_operators
+
+torch.set_num_threads(1)
+
+
+def trainer(max_epochs: int = 2, **kwargs) -> L.Trainer:
+    opts = dict(max_epochs=max_epochs, accelerator="cpu", devices=1, logger=False,
+                enable_checkpointing=False, enable_progress_bar=False,
+                enable_model_summary=False, precision="64-true", num_sanity_val_steps=0,
+                limit_val_batches=0)
+    opts.update(kwargs)
+    return L.Trainer(**opts)
+
+
+def small_data(**kwargs) -> HysteresisDataModule:
+    return HysteresisDataModule(t_end=2 * math.pi, **kwargs)
+
+
+def test_names_and_dicts_build_the_same_operators() -> None:
+    by_name, fit_a = build_operators(["eiho", "zhao_tan"], {"rule": "dominant"})
+    by_dict, fit_b = build_operators([{"name": "eiho", "rule": "dominant"},
+                                      {"name": "zhao_tan", "rule": "dominant"}])
+    assert [type(m) for m in by_name] == [type(m) for m in by_dict] == [EIHO, ZhaoTanOperator]
+    assert fit_a == fit_b == {}
+    assert build_operators(None) == ([], {})
+    ops, fitters = build_operators({"name": "pi_ls", "n_widths": 7})
+    assert isinstance(ops[0], PrandtlIshlinskii) and ops[0].n_operators == 7
+    assert list(fitters) == [0]
+    ops, fitters = build_operators([{"name": "plays", "widths": [0.1, 0.5]}, "eiho"])
+    assert isinstance(ops[0], Backlash) and fitters == {}  # explicit widths: nothing to fit
+
+
+@pytest.mark.parametrize("spec, error, match", [
+    ("preisach", ValueError, r"one of \['eiho', 'pi_ls', 'plays', 'zhao_tan'\], got 'preisach'"),
+    ({"name": "pi"}, ValueError, r"one of \['eiho', 'pi_ls', 'plays', 'zhao_tan'\]"),
+    ({"n": 3}, ValueError, r"has no 'name'; valid names: \['eiho'"),
+    ({"name": "plays", "m": 3}, ValueError, r"unknown option\(s\) \['m'\]"),
+    ({"name": "pi_ls", "n_widths": 0}, ValueError, "n_widths must be an int >= 1, got 0"),
+    ({"name": "plays", "power": -1.0}, ValueError, "power and span_fraction must be > 0"),
+    ({"name": "eiho", "b": 1}, ValueError, "operator 'eiho'"),
+    (3, TypeError, "got int 3"),
+])
+def test_bad_specs(spec, error, match) -> None:
+    assert sorted(OPERATORS) == ["eiho", "pi_ls", "plays", "zhao_tan"]
+    with pytest.raises(error, match=match):
+        build_operators([spec])
+    with pytest.raises(error, match=match):
+        InverseHysteresisModule(operator=[spec])
+
+
+def test_pi_ls_and_plays_are_fitted_on_the_training_split() -> None:
+    torch.manual_seed(0)
+    dm = small_data(split=[0.6, 0.2, 0.2])
+    module = InverseHysteresisModule(
+        operator=[{"name": "pi_ls", "n_widths": 12}, {"name": "plays", "n": 4, "power": 2.0,
+                                                      "span_fraction": 0.5}],
+        hidden=6, optimizer="cg")
+    trainer(max_epochs=1).fit(module, dm)
+    x, y = dm.train_tensors()
+    pi, plays = module.net.operators
+    expected = fit_prandtl_ishlinskii(x, y, play_width_grid(x, 12))
+    torch.testing.assert_close(pi.get_widths(), expected.get_widths())
+    torch.testing.assert_close(pi.weights, expected.weights, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(pi.linear_weight, expected.linear_weight, rtol=1e-9, atol=1e-9)
+    span = x.max() - x.min()
+    torch.testing.assert_close(plays.get_widths(),
+                               0.5 * span * (torch.arange(1, 5, dtype=x.dtype) / 4) ** 2)
+    assert pi.weights.dtype == torch.float64  # fitted in float64 under precision 64-true
+
+
+def test_fitted_operators_live_in_the_checkpoint(tmp_path) -> None:
+    torch.manual_seed(0)
+    dm = small_data(split=[0.6, 0.2, 0.2])
+    spec = [{"name": "pi_ls", "n_widths": 10}, {"name": "plays", "n": 3}]
+    module = InverseHysteresisModule(operator=spec, hidden=6, optimizer="cg")
+    t = trainer(max_epochs=2, enable_checkpointing=True, default_root_dir=tmp_path)
+    t.fit(module, dm)
+    path = tmp_path / "m.ckpt"
+    t.save_checkpoint(path)
+    loaded = InverseHysteresisModule.load_from_checkpoint(path)
+    assert loaded.hparams.operator == spec
+    for a, b in zip(module.net.state_dict().values(), loaded.net.state_dict().values(),
+                    strict=True):
+        assert torch.equal(a, b)
+    x = dm.x.unsqueeze(0)
+    torch.testing.assert_close(loaded(x), module(x), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("ridge", [0.0, 1e-3])
+def test_least_squares_after_warmup_matches_the_library_fit(ridge: float) -> None:
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randn(2, 300, generator=gen, dtype=torch.float64).cumsum(-1)
+    y = 0.3 * x + backlash(x, torch.tensor([0.5, 2.0], dtype=torch.float64)).sum(-1)
+    widths = play_width_grid(x, 8)
+    ours = _fit_pi_after(x, y, widths, 0, ridge=ridge, learnable=False)
+    ref = fit_prandtl_ishlinskii(x, y, widths, ridge=ridge)
+    torch.testing.assert_close(ours.weights, ref.weights, rtol=1e-8, atol=1e-8)
+    torch.testing.assert_close(ours.linear_weight, ref.linear_weight, rtol=1e-8, atol=1e-8)
+    # after a warm-up: the residual on the kept samples is orthogonal to the design there
+    warm = _fit_pi_after(x, y, widths, 50, ridge=0.0, learnable=False)
+    with torch.no_grad():
+        r = (warm(x)[0] - y)[:, 50:].reshape(-1)
+        design = torch.cat([x.unsqueeze(-1), backlash(x, widths)], -1)[:, 50:].reshape(-1, 9)
+    assert float((design.T @ r).abs().max()) < 1e-7 * float(design.abs().sum())
+
+
+def test_the_training_loss_leaves_out_the_warmup() -> None:
+    torch.manual_seed(0)
+    dm = small_data(warmup=100)
+    module = InverseHysteresisModule(operator=[{"name": "pi_ls", "n_widths": 8}], hidden=6,
+                                     optimizer="cg")
+    t = trainer(max_epochs=2)
+    t.fit(module, dm)
+    x, y = dm.train_tensors()
+    with torch.no_grad():
+        pred = module(x)
+    logged = float(t.callback_metrics["train_loss"])
+    assert logged == pytest.approx(float(F.mse_loss(pred[:, 100:], y[:, 100:])), rel=1e-12)
+    assert logged != pytest.approx(float(F.mse_loss(pred, y)), rel=1e-6)
+    expected = _fit_pi_after(x, y, play_width_grid(x, 8), 100, ridge=0.0, learnable=False)
+    torch.testing.assert_close(module.net.operators[0].weights, expected.weights)
+
+
+def test_bad_warmup() -> None:
+    with pytest.raises(ValueError, match="warmup must be an int >= 0"):
+        small_data(warmup=-1)
+    with pytest.raises(ValueError, match=r"warmup=620 leaves 9 of the 629 training samples"):
+        small_data(warmup=620).setup()
+
+
+def test_segment_eiho_with_the_least_squares_pi() -> None:
+    """The reproduction's eiho_pi_nn: the per-segment EIHO and the PI of h as inputs."""
+    torch.manual_seed(0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NonCausalWarning)
+        module = InverseHysteresisModule(
+            operator=[{"name": "eiho", "a": "segment", "a_formula": "sqrt"},
+                      {"name": "pi_ls", "n_widths": 30}], hidden=16, optimizer="cg")
+    dm = small_data()
+    t = trainer(max_epochs=20)
+    t.fit(module, dm)
+    assert module.net.hidden.in_features == 3
+    assert float(t.callback_metrics["train_loss"]) < 5e-3
