@@ -132,11 +132,12 @@ class BranchStep(_Step):
             is multiplied by ``scale``; 1.0 for the EIHO.
         slope: (2,) anchor slopes of ``EIHO(a="anchored")``: the coefficient of a branch
             anchored at ``x_e`` is ``a_d exp(slope_d x_e)``; None for a fixed ``a``.
+        branch: output the re-based value ``f - f(x_e)`` (``output="branch"``).
     """
 
     def __init__(
         self, kind: str, rule: str, a: Tensor, r: Tensor, depth: int, eps: float, scale: float,
-        slope: Tensor | None = None,
+        slope: Tensor | None = None, branch: bool = False,
     ) -> None:
         self.eiho: bool = kind == "eiho"
         dominant = rule == "dominant"
@@ -155,6 +156,7 @@ class BranchStep(_Step):
         self.register_buffer("a1", a[1].detach().clone())
         self.register_buffer("r", r.detach().clone())
         self.anchored: bool = slope is not None
+        self.branch: bool = branch
         slope = torch.zeros_like(a) if slope is None else slope.detach()
         self.register_buffer("s0", slope[0].clone())
         self.register_buffer("s1", slope[1].clone())
@@ -234,7 +236,7 @@ class BranchStep(_Step):
         gg = self._g(torch.stack([(m - x_a).abs(), torch.relu(s * xm)], 1),
                      torch.stack([d, s], 1), torch.stack([x_a, m], 1))
         f_m = f_a + gg.select(1, 0)
-        f = f_m + gg.select(1, 1)
+        f = (gg.select(1, 0) if self.branch else f_m) + gg.select(1, 1)  # branch: f - f(x_e)
         fl.append(torch.stack([m, f_m, d], 1))
         fl.append(S)
         if not self.eiho:

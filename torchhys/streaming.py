@@ -83,12 +83,7 @@ def _threshold(op: nn.Module) -> Tensor:
 
 
 def _step_module(op: nn.Module, dtype: torch.dtype) -> nn.Module:
-    output = getattr(op, "output", "level")
-    if isinstance(op, (EIHO, ZhaoTanOperator)) and output != "level":
-        raise ValueError(
-            f"{type(op).__name__}(output={output!r}) is not supported by the streaming "
-            "compensator yet; deploy output='level'"
-        )
+    branch = getattr(op, "output", "level") == "branch"  # re-based output f - f(x_e)
     if isinstance(op, EIHO):
         if op.per_segment:
             raise ValueError(
@@ -101,13 +96,13 @@ def _step_module(op: nn.Module, dtype: torch.dtype) -> nn.Module:
                 slope = op.anchor_slope / op.anchor_norm[1]
                 a = op.coefficient() * torch.exp(-slope * op.anchor_norm[0])
             return BranchStep("eiho", op.rule, a.to(dtype), r, op.max_depth, op.eps, 1.0,
-                              slope.to(dtype))
+                              slope.to(dtype), branch=branch)
         a = op.coefficient().detach().to(dtype).reshape(-1).expand(2)
-        return BranchStep("eiho", op.rule, a, r, op.max_depth, op.eps, 1.0)
+        return BranchStep("eiho", op.rule, a, r, op.max_depth, op.eps, 1.0, branch=branch)
     if isinstance(op, ZhaoTanOperator):
         r = 0.5 * (_threshold(op) / op.scale).to(dtype)
         return BranchStep("zhao_tan", op.rule, torch.ones(2, dtype=dtype), r, op.max_depth,
-                          0.0, op.scale)
+                          0.0, op.scale, branch=branch)
     if isinstance(op, Backlash):
         return PlayStep(0.5 * op.get_widths().detach().to(dtype))
     if isinstance(op, PrandtlIshlinskii):

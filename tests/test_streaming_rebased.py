@@ -1,0 +1,57 @@
+"""Streaming and export of the re-based branch operators (``output="branch"``)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from test_streaming import inputs, net_of, per_op_features, steps_of
+
+from torchhys import EIHO, Backlash, ZhaoTanOperator
+from torchhys.export import load_torchscript, to_torchscript
+from torchhys.streaming import StreamingCompensator
+
+
+@pytest.mark.parametrize("rule", ["recent", "dominant"])
+@pytest.mark.parametrize("threshold", [0.0, 0.5])
+@pytest.mark.parametrize("a", [1.5, (1.5, 0.5), "anchored"])
+def test_branch_eiho_network_step_equals_sequence(rule: str, threshold: float, a: object):
+    x = inputs()
+    op = EIHO(a=a, rule=rule, threshold=threshold, max_depth=6, a_init=0.7,
+              anchor_scale=2.0, output="branch")
+    net = net_of([op, Backlash([0.0, 0.5, 2.0])], torch.float64, x)
+    with torch.no_grad():
+        ref, _ = net(x)
+        level = net_of([EIHO(a=a, rule=rule, threshold=threshold, max_depth=6, a_init=0.7,
+                             anchor_scale=2.0), Backlash([0.0, 0.5, 2.0])], torch.float64, x)
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    torch.testing.assert_close(comp(x), ref, rtol=0, atol=1e-12)
+    torch.testing.assert_close(steps_of(comp, x), ref, rtol=0, atol=1e-12)
+    # the option reaches the step: the level network streams differently
+    assert not torch.allclose(StreamingCompensator(level, limits=(-1e6, 1e6))(x), ref)
+
+
+@pytest.mark.parametrize("rule", ["recent", "dominant"])
+@pytest.mark.parametrize("threshold", [0.0, 0.75])
+def test_branch_operator_features_bit_for_bit_float32(rule: str, threshold: float) -> None:
+    x = inputs().float()
+    ops = [EIHO(a=(1.2, 0.8), rule=rule, threshold=threshold, max_depth=4, output="branch"),
+           ZhaoTanOperator(rule=rule, threshold=threshold, scale=2.5, output="branch"),
+           Backlash(torch.tensor([0.0, 0.3, 1.0]))]
+    net = net_of(ops, torch.float32, x)
+    with torch.no_grad():
+        feats, _ = net.features(x)
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    torch.testing.assert_close(per_op_features(comp, x), feats[..., 1:], rtol=0, atol=0)
+
+
+def test_branch_network_torchscript_equals_eager(tmp_path) -> None:
+    x = inputs(300)
+    ops = [EIHO(a=0.9, rule="recent", threshold=0.25, output="branch"),
+           ZhaoTanOperator(rule="dominant", scale=2.0, output="branch"),
+           Backlash([0.0, 1.0])]
+    net = net_of(ops, torch.float64, x)
+    with torch.no_grad():
+        ref, _ = net(x)
+    to_torchscript(net, tmp_path / "comp.pt", limits=(-1e6, 1e6))
+    ts = load_torchscript(tmp_path / "comp.pt")
+    torch.testing.assert_close(ts(x), ref, rtol=0, atol=1e-12)
