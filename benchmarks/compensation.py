@@ -9,10 +9,20 @@ it never saw (a multisine, a decaying sine with nested minor loops, a chirp, eac
     python benchmarks/compensation.py [--out docs/figures] [--quick]
 
 Methods: no compensation (u = (y_ref - c) / k with k, c the least-squares static line
-y ~ k u + c of the training data), the analytic inverse of a Prandtl-Ishlinskii model
-identified from the training data (non-negative least squares over a play grid, linear
-weight held at least 2 % of the static gain so the inverse exists), the Zhao-Tan network
-and the EIHO network (both causal, deployable).
+y ~ k u + c of the training data: the best static, hysteresis-free gain), the analytic
+inverse of a Prandtl-Ishlinskii model identified from the training data (non-negative least
+squares over a play grid, linear weight held at least 2 % of the static gain so the inverse
+exists), the Zhao-Tan network and the EIHO network (both causal, deployable).
+
+Networks (64 sigmoid units; the play grid is 16 widths evenly spaced in [0, 0.4 range(y)]):
+    * EIHO network: ``EIHO(a=median a_i, rule="recent", output="branch")`` plus the plays.
+      The re-based EIHO ``f - f(x_e) = +/- a |x - x_e|^(1/2)`` (distance from the last
+      turning point, with its direction) tells the branches apart without the level that
+      the plain EIHO accumulates along the history.
+    * Zhao-Tan network: ``ZhaoTanOperator(rule="recent", scale=std(y)/5, output="branch")``
+      plus the plays (the same treatment of the baseline's operator).
+    * Ablations: the re-based EIHO alone; the level EIHO (``rule="dominant"``, the paper's
+      ``f``) plus the plays; the plays alone.
 """
 
 from __future__ import annotations
@@ -22,6 +32,7 @@ import math
 import tempfile
 import time
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -101,18 +112,36 @@ def identify_pi(u: torch.Tensor, y: torch.Tensor, k: float) -> PrandtlIshlinskii
     return PrandtlIshlinskii(widths, torch.from_numpy(w[1:]), linear_weight=w0_min + w[0])
 
 
-def make_networks(y: torch.Tensor, u: torch.Tensor) -> dict[str, InverseHysteresisNet]:
+#: Methods drawn in the figures' output row (besides the reference), and ablations left out
+#: of the figures.
+OUTPUT_ROW = ("no compensation", "EIHO network (re-based EIHO + 16 plays)")
+ABLATIONS = ("ablation: re-based EIHO alone", "ablation: level EIHO (dominant) + 16 plays")
+
+
+def make_networks(
+    y: torch.Tensor, u: torch.Tensor
+) -> dict[str, Callable[[], InverseHysteresisNet]]:
+    """Constructors of the networks (each seeded on its own by the caller)."""
     span = float(y.max() - y.min())
     with warnings.catch_warnings():  # a fixed a from the training record: causal when deployed
         warnings.simplefilter("ignore", NonCausalWarning)
         a = float(segment_coefficients(y, u).median())
     plays = torch.linspace(0.0, 0.4 * span, N_PLAYS)
+    scale = float(y.std()) / 5
+
+    def net(*ops: torch.nn.Module) -> InverseHysteresisNet:
+        return InverseHysteresisNet(list(ops), hidden=64)
+
+    def rebased_eiho() -> EIHO:
+        return EIHO(a=a, rule="recent", output="branch")
+
     return {
-        "Zhao-Tan network": InverseHysteresisNet(
-            ZhaoTanOperator(rule="dominant", scale=float(y.std()) / 5), hidden=64),
-        "EIHO network (EIHO + 16 plays)": InverseHysteresisNet(
-            [EIHO(a=a, rule="dominant"), Backlash(plays)], hidden=64),
-        "plays network (16 plays, no EIHO)": InverseHysteresisNet(Backlash(plays), hidden=64),
+        "Zhao-Tan network (re-based Zhao-Tan + 16 plays)": lambda: net(
+            ZhaoTanOperator(rule="recent", scale=scale, output="branch"), Backlash(plays)),
+        OUTPUT_ROW[1]: lambda: net(rebased_eiho(), Backlash(plays)),
+        ABLATIONS[0]: lambda: net(rebased_eiho()),
+        ABLATIONS[1]: lambda: net(EIHO(a=a, rule="dominant"), Backlash(plays)),
+        "ablation: 16 plays, no EIHO": lambda: net(Backlash(plays)),
     }
 
 
@@ -137,11 +166,12 @@ def run_plant(name: str, n_train: int, n_test: int, epochs: tuple[int, int], tmp
     to_torchscript(inv, pi_path, limits=limits)
     pi_comp = load_torchscript(pi_path)
     commands["PI inverse (identified)"] = {s: pi_comp(r) for s, r in refs.items()}
-    for label, net in make_networks(y_tr, u_tr).items():
+    for label, make in make_networks(y_tr, u_tr).items():
         torch.manual_seed(0)
+        net = make()
         start = time.perf_counter()
         fit = fit_full_batch(net, y_tr, u_tr, adam_epochs=epochs[0], lbfgs_epochs=epochs[1])
-        path = tmp / f"{name[:5]}-{label[:4]}.pt"
+        path = tmp / f"{name[:5]}-{len(commands)}.pt"
         to_torchscript(net, path, limits=limits)
         comp = load_torchscript(path)
         commands[label] = {s: comp(r) for s, r in refs.items()}
@@ -157,21 +187,27 @@ def plot(name: str, refs: dict, outputs: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, len(refs), figsize=(4.2 * len(refs), 5.6), sharex="col")
+    fig, axes = plt.subplots(3, len(refs), figsize=(4.4 * len(refs), 8.4), sharex="col")
     for j, (sig, ref) in enumerate(refs.items()):
-        ax, ax_e = axes[0, j], axes[1, j]
+        ax, ax_e, ax_z = axes[:, j]
         ax.plot(ref, color="k", lw=1.4, label="reference")
         for i, (m, outs) in enumerate(outputs.items()):
+            if m in ABLATIONS:
+                continue
             style = dict(lw=0.9, alpha=0.85, color=f"C{i}")
-            if m == "no compensation" or m.startswith("plays"):
+            if m in OUTPUT_ROW:
                 ax.plot(outs[sig], label=m, **style)
             ax_e.plot(outs[sig] - ref, label=m, **style)
+            if m != "no compensation":
+                ax_z.plot(outs[sig] - ref, label=m, **style)
         ax.set_title(f"{name}: {sig}", fontsize=9)
-        ax_e.set(xlabel="sample", ylabel="output - reference")
-        ax.grid(alpha=0.3)
-        ax_e.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=7)
-    axes[1, 0].legend(fontsize=7)
+        ax.set_ylabel("output")
+        ax_e.set_ylabel("output - reference")
+        ax_z.set(xlabel="sample", ylabel="error, compensators only")
+        for a in (ax, ax_e, ax_z):
+            a.grid(alpha=0.3)
+    for row in range(3):
+        axes[row, 0].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
