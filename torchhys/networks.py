@@ -76,6 +76,10 @@ class InverseHysteresisNet(nn.Module):
         self.register_buffer("in_std", torch.ones(n_features))
         self.register_buffer("out_mean", torch.zeros(()))
         self.register_buffer("out_std", torch.ones(()))
+        # range of the training targets (NaN until fitted): the default command limits of
+        # an exported compensator
+        self.register_buffer("out_min", torch.full((), float("nan")))
+        self.register_buffer("out_max", torch.full((), float("nan")))
         self.hidden = nn.Linear(n_features, hidden)
         self.activation = _ACTIVATIONS[activation]()
         self.output = nn.Linear(hidden, 1)
@@ -118,6 +122,14 @@ class InverseHysteresisNet(nn.Module):
         y = self.head(feats)
         return (y[0] if x.dim() == 1 else y), states
 
+    def _load_from_state_dict(
+        self, state_dict: dict, prefix: str, *args: object, **kwargs: object
+    ) -> None:
+        # state dicts saved before the target range was recorded: keep it unknown (NaN)
+        for name in ("out_min", "out_max"):
+            state_dict.setdefault(prefix + name, torch.full((), float("nan")))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
     @torch.no_grad()
     def fit_normalization(self, x: Tensor, y: Tensor) -> None:
         """Fit the input/output normalization buffers to training data (physical units).
@@ -153,3 +165,5 @@ class InverseHysteresisNet(nn.Module):
         self.in_std.copy_(torch.where(std > 0, std, torch.ones_like(std)))
         self.out_mean.copy_(yb.mean())
         self.out_std.copy_(yb.std())
+        self.out_min.copy_(yb.min())
+        self.out_max.copy_(yb.max())

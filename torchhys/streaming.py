@@ -118,9 +118,9 @@ def _step_module(op: nn.Module, dtype: torch.dtype) -> nn.Module:
 def default_limits(model: nn.Module) -> tuple[float, float]:
     """Command limits of a model: its recorded training-target range.
 
-    Uses ``model.out_min`` / ``model.out_max`` when the model records them, else the
-    normalization of an :class:`~torchhys.InverseHysteresisNet`: ``out_mean +/- 3 out_std``
-    (covers the range of any sine-like target with a margin).
+    Uses ``model.out_min`` / ``model.out_max`` (the training targets' range, recorded by
+    :meth:`~torchhys.InverseHysteresisNet.fit_normalization`) when they are known, else,
+    for a network saved before the range was recorded, ``out_mean +/- 3 out_std``.
 
     Raises:
         ValueError: the model records no output range (a :class:`PrandtlIshlinskiiInverse`,
@@ -128,7 +128,9 @@ def default_limits(model: nn.Module) -> tuple[float, float]:
     """
     lo, hi = getattr(model, "out_min", None), getattr(model, "out_max", None)
     if isinstance(lo, Tensor) and isinstance(hi, Tensor):
-        return float(lo), float(hi)
+        low, high = float(lo), float(hi)
+        if math.isfinite(low) and math.isfinite(high) and low < high:
+            return low, high
     if isinstance(model, InverseHysteresisNet):
         mean, std = float(model.out_mean), float(model.out_std)
         if not (mean == 0.0 and std == 1.0):
