@@ -138,3 +138,20 @@ def test_loads_in_a_fresh_process_without_torchhys(exported: dict, tmp_path) -> 
                          env=env, cwd=tmp_path, timeout=120)
     assert res.returncode == 0, res.stderr
     assert res.stdout.strip() == "ok"
+
+
+def test_scripted_batch_rows_equal_eager(tmp_path) -> None:
+    """Batch 5 through the scripted step (strided columns ``x[:, t]``) equals each row run
+    alone through eager, for the deployed EIHO network (float64)."""
+    x = inputs(200)
+    net = net_of([EIHO(a=0.9, rule="recent", output="branch"), Backlash([0.0, 0.4, 1.5])],
+                 torch.float64, x)
+    to_torchscript(net, tmp_path / "comp.pt", limits=(-50.0, 50.0))
+    loaded = load_torchscript(tmp_path / "comp.pt")
+    u = torch.stack([loaded.step(x[:, t]) for t in range(x.shape[1])], 1)
+    with torch.no_grad():
+        ref, _ = net(x)
+    for row in range(x.shape[0]):
+        alone = StreamingCompensator(net, limits=(-50.0, 50.0))(x[row])
+        torch.testing.assert_close(u[row], alone, rtol=0, atol=1e-12)
+        torch.testing.assert_close(u[row], ref[row], rtol=0, atol=1e-12)

@@ -188,15 +188,29 @@ class AOTIStepper:
         self.spec = meta["state_spec"]
         self.low, self.high = float(meta["low"]), float(meta["high"])
         self.reset()
+        self.batch = int(self.state[0].shape[0])
 
     def reset(self) -> None:
         """Back to the fresh (all-zero) state."""
         self.state = _parse_state_spec(self.spec)
 
     def step(self, x_t: Tensor) -> Tensor:
-        """One sample, x_t (batch,) -> command (batch,)."""
-        out = self.runner(x_t.to(self.state[0].dtype), *self.state)
-        self.state = list(out[1:])
+        """One sample, x_t (batch,) -> command (batch,).
+
+        The compiled kernels index their inputs with the strides seen at export (dense,
+        row-major) and do not check them at run time, so the sample is made contiguous: a
+        strided view such as ``x[:, t]`` would otherwise be read as ``x[0, t:t + batch]``.
+
+        Raises:
+            ValueError: ``x_t`` is not of shape ``(batch,)`` with the compiled batch.
+        """
+        if x_t.dim() != 1 or x_t.shape[0] != self.batch:
+            raise ValueError(
+                f"step expects shape ({self.batch},) (the compiled batch), got shape "
+                f"{tuple(x_t.shape)}"
+            )
+        out = self.runner(x_t.to(self.state[0].dtype).contiguous(), *self.state)
+        self.state = [s.contiguous() for s in out[1:]]
         return out[0]
 
     def nonfinite_count(self) -> Tensor:
