@@ -2,9 +2,11 @@
 
     python benchmarks/latency.py [--samples 5000] [--skip-aoti]
 
-Two compensators (weights do not matter for latency): the compensation benchmark's EIHO
-network (dominant-rule EIHO + 16 play operators of the input, 64 hidden units) and a
-network of 16 play operators alone. Each path runs ``step`` on a batch of one, one thread;
+Three compensators (weights do not matter for latency): the compensation benchmark's
+deployed EIHO network (``EIHO(a, rule="recent", output="branch")`` + 16 play operators of the
+input, 64 sigmoid units), the same with the level dominant-rule EIHO (its configuration before
+``output="branch"``), and a network of the 16 play operators alone (``--nets`` picks some).
+Each path runs ``step`` on a batch of one, one thread;
 the C++ rows use deploy/cpp/controller (built on first use, ``--rate 0``), which times each
 step with a steady clock. Median and p99 in microseconds.
 """
@@ -46,8 +48,10 @@ def models() -> dict[str, InverseHysteresisNet]:
     y = 70 * torch.sin(t) * torch.exp(-t / 60)
     plays = torch.linspace(0.0, 56.0, 16)
     nets = {
-        "EIHO + 16 plays": InverseHysteresisNet([EIHO(a=0.5, rule="dominant"), Backlash(plays)],
-                                                hidden=64),
+        "re-based EIHO (recent) + 16 plays": InverseHysteresisNet(
+            [EIHO(a=0.5, rule="recent", output="branch"), Backlash(plays)], hidden=64),
+        "level EIHO (dominant) + 16 plays": InverseHysteresisNet(
+            [EIHO(a=0.5, rule="dominant"), Backlash(plays)], hidden=64),
         "16 plays": InverseHysteresisNet(Backlash(plays), hidden=64),
     }
     for net in nets.values():
@@ -88,6 +92,9 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--samples", type=int, default=5000)
     parser.add_argument("--skip-aoti", action="store_true", help="skip the (slow) AOTI compile")
+    parser.add_argument("--skip-python", action="store_true", help="C++ rows only")
+    parser.add_argument("--nets", type=int, nargs="*", default=None,
+                        help="indices of the compensators to time (default: all)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     x = reference(args.samples)
@@ -95,20 +102,26 @@ def main(argv: list[str] | None = None) -> None:
     rows = []
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
-        for name, net in models().items():
+        for k, (name, net) in enumerate(models().items()):
+            if args.nets is not None and k not in args.nets:
+                continue
             comp = StreamingCompensator(net, limits=(-10.0, 10.0))
-            rows.append((name, "eager Python", *time_python(comp.step, x)))
+            if not args.skip_python:
+                rows.append((name, "eager Python", *time_python(comp.step, x)))
             ts_path = tmp / "comp.pt"
             to_torchscript(comp, ts_path)
-            rows.append((name, "TorchScript, Python", *time_python(
-                load_torchscript(ts_path).step, x)))
+            if not args.skip_python:
+                rows.append((name, "TorchScript, Python", *time_python(
+                    load_torchscript(ts_path).step, x)))
             rows.append((name, "TorchScript, C++", *time_cpp(binary, ts_path, x, tmp)))
             if not args.skip_aoti:
                 aoti_path = tmp / "comp.pt2"
                 start = time.perf_counter()
                 to_aoti(comp, aoti_path)
                 print(f"{name}: AOTI compile {time.perf_counter() - start:.0f} s", flush=True)
-                rows.append((name, "AOTI, Python", *time_python(load_aoti(aoti_path).step, x)))
+                if not args.skip_python:
+                    rows.append((name, "AOTI, Python", *time_python(
+                        load_aoti(aoti_path).step, x)))
                 rows.append((name, "AOTI, C++", *time_cpp(binary, aoti_path, x, tmp)))
     print(f"\n{args.samples} steps, batch 1, one thread\n")
     print("| compensator | path | median (us) | p99 (us) |")

@@ -143,8 +143,15 @@ class BranchStep(_Step):
         dominant = rule == "dominant"
         D = depth if dominant else 1
         n_float = 3 + (2 * D + 2 if dominant else 1) + (0 if kind == "eiho" else 1)
+        # the re-based recent-rule EIHO needs neither f_m nor the float64 sum: F = [M, d, x_a],
+        # and with threshold 0 the running extremum is the last sample: F = [d, x_a]
+        self.fast: bool = self.eiho and not dominant and branch
+        self.r_zero: bool = float(r) == 0.0
+        if self.fast:
+            n_float = 2 if self.r_zero else 3
         play_r = r.reshape(1) if kind == "eiho" else r.new_zeros(0)
-        super().__init__(play_r, n_float, 2 if dominant else 0, 0 if dominant else 1)
+        super().__init__(play_r, n_float, 2 if dominant else 0,
+                         0 if dominant or self.fast else 1)
         self.dominant: bool = dominant
         self.depth: int = D
         self.eps: float = float(eps)
@@ -164,12 +171,15 @@ class BranchStep(_Step):
         for name in ("gmap", "smap", "pos", "ktab", "off"):
             self.register_buffer(name, tables.get(name, torch.zeros(0, dtype=torch.long)))
         keep = torch.ones(n_float, dtype=torch.bool)
-        keep[0] = keep[3] = keep[-1] = False  # M, x_a / sx[0], detector (Zhao-Tan)
+        if not self.fast:
+            keep[0] = keep[3] = keep[-1] = False  # M, x_a / sx[0], detector (Zhao-Tan)
         self.register_buffer("keep", keep)
 
     def anchors(self) -> tuple[list[bool], list[bool]]:
         if not self.eiho:  # anchored inside step, in units of x / scale
             return [], [False] * self.n_float
+        if self.fast:  # [d, x_a] or [M, d, x_a]
+            return [True], ([False, True] if self.r_zero else [True, False, True])
         cols = [False] * self.n_float
         cols[0] = cols[3] = True
         return [True], cols
@@ -190,9 +200,48 @@ class BranchStep(_Step):
             return k * (torch.where(k >= 0, self.a0, self.a1) * sq)
         return k * ((1.0 - torch.exp(-u)) * u)
 
+    def _step_recent_branch(self, x: Tensor, Y: Tensor, Yn: Tensor, F: Tensor,
+                            feats: list[Tensor], fl: list[Tensor]) -> None:
+        """The re-based recent-rule EIHO: ``f = g_d(|m - x_a|) + g_s(relu(s (x - m)))``.
+
+        The same arithmetic as the general step without the branch value at the anchor. With
+        threshold 0 the detector follows the input, so the running extremum ``M`` is the
+        previous sample (the detector's old value), ``m == x`` and the second term is
+        ``g(0) = 0``: ``f = d * a_d g(|x - x_a|)`` (equal values; only the sign of a zero
+        may differ).
+        """
+        blk = F.narrow(1, self.f0, self.n_float)
+        p_old = Y.select(1, self.y0)
+        if self.r_zero:
+            d_prev, xa_prev = blk.select(1, 0), blk.select(1, 1)
+            move = torch.sign(x - p_old)
+            confirm = move * d_prev < 0
+            d = torch.sign(torch.add(d_prev, move, alpha=2.0))
+            x_a = torch.where(confirm, p_old, xa_prev)
+            f = self._g((x - x_a).abs(), d, x_a)
+            fl.append(torch.stack([d, x_a], 1))
+        else:
+            M, d_prev, xa_prev = blk.select(1, 0), blk.select(1, 1), blk.select(1, 2)
+            move = torch.sign(Yn.select(1, self.y0) - p_old)
+            confirm = move * d_prev < 0
+            d = torch.sign(torch.add(d_prev, move, alpha=2.0))
+            m = torch.where(move != 0, x, M)
+            x_a = torch.where(confirm, M, xa_prev)
+            xm = x - m
+            s = torch.sign(torch.sub(torch.sign(xm), d, alpha=2.0))
+            u = torch.stack([(m - x_a).abs(), torch.relu(s * xm)], 1)
+            anchor = torch.stack([x_a, m], 1) if self.anchored else u
+            gg = self._g(u, torch.stack([d, s], 1), anchor)
+            f = gg.select(1, 0) + gg.select(1, 1)
+            fl.append(torch.stack([m, d, x_a], 1))
+        feats.append(f.unsqueeze(1))
+
     def step(self, x: Tensor, Y: Tensor, Yn: Tensor, F: Tensor, I: Tensor, F64: Tensor,
              started: Tensor, feats: list[Tensor], fl: list[Tensor], il: list[Tensor],
              gl: list[Tensor]) -> None:
+        if self.fast:
+            self._step_recent_branch(x, Y, Yn, F, feats, fl)
+            return
         blk = F.narrow(1, self.f0, self.n_float)
         if self.eiho:
             p_old, p_new = Y.select(1, self.y0), Yn.select(1, self.y0)
