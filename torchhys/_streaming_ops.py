@@ -158,6 +158,11 @@ class BranchStep(_Step):
         self.eps_sqrt: float = float(eps) ** 0.5
         self.scale: float = float(scale)
         self.symmetric: bool = bool(a[0] == a[1])
+        # 0-dim constants in the compensator's dtype: comparing with or dividing by a Python
+        # number converts it to a tensor on every call (the same values, one copy less)
+        self.register_buffer("zero", a.new_zeros(()))
+        self.register_buffer("eps_t", torch.tensor(self.eps, dtype=a.dtype))
+        self.register_buffer("eps_sqrt_t", torch.tensor(self.eps_sqrt, dtype=a.dtype))
         self.register_buffer("a", a.detach().clone())
         self.register_buffer("a0", a[0].detach().clone())
         self.register_buffer("a1", a[1].detach().clone())
@@ -188,16 +193,16 @@ class BranchStep(_Step):
         """``k * g(u)`` with the coefficient of direction ``k`` (-1, 0, +1), elementwise, of a
         branch anchored at ``anchor`` (used by ``a="anchored"`` only)."""
         if self.eiho:
-            big = u >= self.eps
-            sq = torch.where(big, torch.sqrt(u), u / self.eps_sqrt)
+            big = u >= self.eps_t
+            sq = torch.where(big, torch.sqrt(u), u / self.eps_sqrt_t)
             if self.anchored:
-                up = k >= 0
+                up = k >= self.zero
                 coef = torch.where(up, self.a0, self.a1) * torch.exp(
                     torch.where(up, self.s0, self.s1) * anchor)
                 return k * (coef * sq)
             if self.symmetric:
                 return k * (self.a0 * sq)
-            return k * (torch.where(k >= 0, self.a0, self.a1) * sq)
+            return k * (torch.where(k >= self.zero, self.a0, self.a1) * sq)
         return k * ((1.0 - torch.exp(-u)) * u)
 
     def _step_recent_branch(self, x: Tensor, Y: Tensor, Yn: Tensor, F: Tensor,
@@ -215,7 +220,7 @@ class BranchStep(_Step):
         if self.r_zero:
             d_prev, xa_prev = blk.select(1, 0), blk.select(1, 1)
             move = torch.sign(x - p_old)
-            confirm = move * d_prev < 0
+            confirm = move * d_prev < self.zero
             d = torch.sign(torch.add(d_prev, move, alpha=2.0))
             x_a = torch.where(confirm, p_old, xa_prev)
             f = self._g((x - x_a).abs(), d, x_a)
@@ -223,9 +228,9 @@ class BranchStep(_Step):
         else:
             M, d_prev, xa_prev = blk.select(1, 0), blk.select(1, 1), blk.select(1, 2)
             move = torch.sign(Yn.select(1, self.y0) - p_old)
-            confirm = move * d_prev < 0
+            confirm = move * d_prev < self.zero
             d = torch.sign(torch.add(d_prev, move, alpha=2.0))
-            m = torch.where(move != 0, x, M)
+            m = torch.where(move != self.zero, x, M)
             x_a = torch.where(confirm, M, xa_prev)
             xm = x - m
             s = torch.sign(torch.sub(torch.sign(xm), d, alpha=2.0))
@@ -253,9 +258,9 @@ class BranchStep(_Step):
             p_new = torch.clamp(p_old, x - self.r, x + self.r)
         M, d_prev = blk.select(1, 0), blk.select(1, 2)
         move = torch.sign(p_new - p_old)
-        confirm = move * d_prev < 0
+        confirm = move * d_prev < self.zero
         d = torch.sign(torch.add(d_prev, move, alpha=2.0))
-        m = torch.where(move != 0, x, M)
+        m = torch.where(move != self.zero, x, M)
         if self.dominant:
             D = self.depth
             top, ti_prev = I.select(1, self.i0), I.select(1, self.i0 + 1)
@@ -265,7 +270,7 @@ class BranchStep(_Step):
             S = S.scatter(1, self.smap.index_select(0, key), blk.narrow(1, 0, 2))
             top = torch.where(confirm, self.pos.index_select(0, ti_prev), top)
             # anchor: pop the nested loops closed by the running extremum m
-            passed = (m.unsqueeze(1) - S.narrow(1, 0, D)) * d.unsqueeze(1) >= 0
+            passed = (m.unsqueeze(1) - S.narrow(1, 0, D)) * d.unsqueeze(1) >= self.zero
             ti = torch.where(passed, self.ktab.index_select(0, top), top.unsqueeze(1)).amin(1)
             xf = S.gather(1, ti.unsqueeze(1) + self.off)
             x_a, f_a = xf.select(1, 0), xf.select(1, 1)

@@ -249,7 +249,8 @@ class StreamingCompensator(nn.Module):
         F, I, started = state[0], state[1], state[2]
         F64 = state[3] if self.n_f64 > 0 else F
         xc = x.unsqueeze(1)
-        finite = (xc - xc) == 0  # isfinite in two operations (NaN, inf: NaN)
+        z = xc - xc  # isfinite in two operations: 0 == 0, NaN (from NaN, inf) != NaN
+        finite = z == z
         xc = torch.where(finite, xc, F.narrow(1, 0, 1))  # a NaN/inf sample repeats the last
         if self.anchoring:  # a row's first finite sample anchors the branch operators
             F = torch.where(started | self.keep, F, xc)
