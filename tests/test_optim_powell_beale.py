@@ -4,8 +4,9 @@ import math
 
 import pytest
 import torch
+from _optim_helpers import make
 
-from torchhys.optim import LineSearchResult, PowellBealeCG
+from torchhys.optim import LineSearchResult
 
 REASONS = ("initial", "orthogonality", "n_iterations", "not_downhill", "failed_search")
 
@@ -24,17 +25,6 @@ def spd_quadratic(n, cond=50.0, seed=0, dtype=torch.float64):
     return 0.5 * (a + a.T), b
 
 
-def make(fun, x0, **options):
-    x = x0.clone().requires_grad_(True)
-    opt = PowellBealeCG([x], **options)
-
-    def closure():
-        opt.zero_grad()
-        loss = fun(x)
-        loss.backward()
-        return loss
-
-    return x, opt, closure
 
 
 def exact_quadratic_search(phi, f0, s0, a1):

@@ -5,6 +5,7 @@ import math
 
 import pytest
 import torch
+from _optim_helpers import make
 
 from torchhys.optim import LineSearchResult, PowellBealeCG
 
@@ -14,17 +15,6 @@ def rosenbrock(x):
     return (100.0 * (x[1::2] - x[::2] ** 2) ** 2 + (1.0 - x[::2]) ** 2).sum()
 
 
-def make(fun, x0, **options):
-    x = x0.clone().requires_grad_(True)
-    opt = PowellBealeCG([x], **options)
-
-    def closure():
-        opt.zero_grad()
-        loss = fun(x)
-        loss.backward()
-        return loss
-
-    return x, opt, closure
 
 
 # --- robustness ------------------------------------------------------------------------
