@@ -25,6 +25,7 @@
 #include <fstream>
 #include <iostream>
 #include <memory>
+#include <optional>
 #include <sstream>
 #include <string>
 #include <thread>
@@ -56,17 +57,33 @@ struct Stepper {
   virtual int64_t nonfinite() = 0;
 };
 
+// Reads element 0 of a float32/float64 tensor without a dispatched op (item() is one).
+double first_value(const at::Tensor& t) {
+  return t.scalar_type() == at::kFloat ? double(t.const_data_ptr<float>()[0])
+                                       : t.const_data_ptr<double>()[0];
+}
+
+// Writes x into a one-element tensor of its dtype without a dispatched op.
+void set_value(at::Tensor& t, double x) {
+  if (t.scalar_type() == at::kFloat) t.mutable_data_ptr<float>()[0] = static_cast<float>(x);
+  else t.mutable_data_ptr<double>()[0] = x;
+}
+
 struct ScriptStepper : Stepper {
   torch::jit::Module module;
+  std::optional<torch::jit::Method> step_method;  // looked up once, not per sample
   at::ScalarType dtype;
   explicit ScriptStepper(const std::string& path) : module(torch::jit::load(path)) {
     module.eval();
     dtype = module.attr("low").toTensor().scalar_type();
     module.get_method("reset")({});
+    step_method = module.get_method("step");
   }
   double step(double x) override {
-    at::Tensor xt = torch::full({1}, x, torch::TensorOptions().dtype(dtype));
-    return module.get_method("step")({xt}).toTensor().item<double>();
+    // a fresh input each sample: the module may keep a reference to it in its state
+    at::Tensor xt = at::empty({1}, at::TensorOptions().dtype(dtype));
+    set_value(xt, x);
+    return first_value((*step_method)({xt}).toTensor());
   }
   int64_t nonfinite() override {
     return module.get_method("nonfinite_count")({}).toTensor().sum().item<int64_t>();
@@ -86,8 +103,10 @@ struct AotiStepper : Stepper {
   std::unique_ptr<torch::inductor::AOTIModelPackageLoader> loader;
   std::vector<at::Tensor> inputs;  // [x, state...]
   at::ScalarType dtype;
+  // single-threaded runner: this loop is the only caller, so the container's locking and
+  // runner pool are skipped
   explicit AotiStepper(const std::string& path)
-      : loader(std::make_unique<torch::inductor::AOTIModelPackageLoader>(path)) {
+      : loader(std::make_unique<torch::inductor::AOTIModelPackageLoader>(path, "model", true)) {
     auto meta = loader->get_metadata();
     dtype = parse_dtype(meta.at("dtype"));
     inputs.push_back(torch::zeros({1}, torch::TensorOptions().dtype(dtype)));
@@ -104,10 +123,16 @@ struct AotiStepper : Stepper {
     }
   }
   double step(double x) override {
-    inputs[0].fill_(x);
-    std::vector<at::Tensor> out = loader->run(inputs);
-    for (size_t i = 1; i < out.size(); ++i) inputs[i] = out[i];
-    return out[0].item<double>();
+    set_value(inputs[0], x);
+    // boxed_run takes the inputs over (no handle copies); the input buffer is kept by
+    // reference, the state tensors are replaced by the returned ones
+    std::vector<at::Tensor> args;
+    args.reserve(inputs.size());
+    args.push_back(inputs[0]);
+    for (size_t i = 1; i < inputs.size(); ++i) args.push_back(std::move(inputs[i]));
+    std::vector<at::Tensor> out = loader->boxed_run(std::move(args));
+    for (size_t i = 1; i < out.size(); ++i) inputs[i] = std::move(out[i]);
+    return first_value(out[0]);
   }
   // state [F, I, started, ...]: column 0 of I counts the held non-finite samples
   int64_t nonfinite() override { return inputs[2].select(1, 0).sum().item<int64_t>(); }
