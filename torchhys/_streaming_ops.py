@@ -215,10 +215,9 @@ class BranchStep(_Step):
         ``g(0) = 0``: ``f = d * a_d g(|x - x_a|)`` (equal values; only the sign of a zero
         may differ).
         """
-        blk = F.narrow(1, self.f0, self.n_float)
         p_old = Y.select(1, self.y0)
         if self.r_zero:
-            d_prev, xa_prev = blk.select(1, 0), blk.select(1, 1)
+            d_prev, xa_prev = F.select(1, self.f0), F.select(1, self.f0 + 1)
             move = torch.sign(x - p_old)
             confirm = move * d_prev < self.zero
             d = torch.sign(torch.add(d_prev, move, alpha=2.0))
@@ -226,6 +225,7 @@ class BranchStep(_Step):
             f = self._g((x - x_a).abs(), d, x_a)
             fl.append(torch.stack([d, x_a], 1))
         else:
+            blk = F.narrow(1, self.f0, self.n_float)
             M, d_prev, xa_prev = blk.select(1, 0), blk.select(1, 1), blk.select(1, 2)
             move = torch.sign(Yn.select(1, self.y0) - p_old)
             confirm = move * d_prev < self.zero

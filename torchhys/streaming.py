@@ -227,6 +227,7 @@ class StreamingCompensator(nn.Module):
             ops[0].whole = True
         self.n_play = n_play
         self.n_f64 = g
+        self.n_int: int = i
         keep = torch.tensor([True] + keep_y + keep_f + [True])
         self.anchoring = not bool(keep.all())
         self.register_buffer("keep", keep)
@@ -267,9 +268,13 @@ class StreamingCompensator(nn.Module):
         ok = finite & (u == u)  # after the clamp only NaN is left to catch
         u = torch.where(ok, u, torch.where(started, F.narrow(1, F.shape[1] - 1, 1), self.u0))
         fl.append(u)
-        count = I.narrow(1, 0, 1)
-        il.insert(0, torch.where(ok, count, count + 1))
-        new = [torch.cat(fl, 1), torch.cat(il, 1), started | finite]
+        if self.n_int == 1:  # the counter is the whole of I
+            I_new = torch.where(ok, I, I + 1)
+        else:
+            count = I.narrow(1, 0, 1)
+            il.insert(0, torch.where(ok, count, count + 1))
+            I_new = torch.cat(il, 1)
+        new = [torch.cat(fl, 1), I_new, started | finite]
         if self.n_f64 > 0:
             new.append(torch.cat(gl, 1))
         return u.select(1, 0), new
