@@ -33,10 +33,12 @@ N_SAFETY_STATE = 3
 
 
 class _NetHead(nn.Module):
-    """The network with its normalization folded into the layers: two ``addmm``.
+    """The network with its normalization folded into the layers: two ``linear``.
 
     ``(f - mean) / std`` is folded into the hidden layer and ``out * std + mean`` into the
     output layer (in float64, then cast), which changes the result by float rounding only.
+    ``linear`` rather than ``addmm``: TorchScript's executor splits ``addmm`` into ``mm`` and
+    ``add`` (two dispatched operations instead of one).
     """
 
     def __init__(self, net: InverseHysteresisNet) -> None:
@@ -47,16 +49,17 @@ class _NetHead(nn.Module):
             mean, std = net.in_mean.double(), net.in_std.double()
             w2, b2 = net.output.weight.double(), net.output.bias.double()
             o_mean, o_std = net.out_mean.double(), net.out_std.double()
-            self.register_buffer("w1", (w1 / std).t().contiguous().to(dtype))
+            self.register_buffer("w1", (w1 / std).to(dtype))
             self.register_buffer("b1", (b1 - w1 @ (mean / std)).to(dtype))
-            self.register_buffer("w2", (w2 * o_std).t().contiguous().to(dtype))
+            self.register_buffer("w2", (w2 * o_std).to(dtype))
             self.register_buffer("b2", (b2 * o_std + o_mean).to(dtype))
         self.activation = copy.deepcopy(net.activation)
 
     def forward(self, features: Tensor) -> Tensor:
         """(batch, features) -> (batch, 1)."""
-        return torch.addmm(self.b2, self.activation(torch.addmm(self.b1, features, self.w1)),
-                           self.w2)
+        return torch.nn.functional.linear(
+            self.activation(torch.nn.functional.linear(features, self.w1, self.b1)), self.w2,
+            self.b2)
 
 
 class _PIHead(nn.Module):
