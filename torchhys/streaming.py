@@ -296,7 +296,9 @@ class StreamingCompensator(nn.Module):
                     + str(self.state[0].shape[0]) + "; call reset() first"
                 )
             self.state = self.initial_state(x_t.shape[0])
-        u, s = self.step_explicit(x_t.to(self.low.dtype), self.state)
+        if x_t.dtype != self.low.dtype:  # a call even when it would return x_t itself
+            x_t = x_t.to(self.low.dtype)
+        u, s = self.step_explicit(x_t, self.state)
         self.state = s
         self.n_steps += 1
         return u
