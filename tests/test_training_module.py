@@ -9,6 +9,7 @@ import lightning as L
 import pytest
 import torch
 import torch.nn.functional as F
+from _training_helpers import trainer
 
 from torchhys import InverseHysteresisNet
 from torchhys.functional import NonCausalWarning
@@ -23,13 +24,6 @@ def small_data(**kwargs) -> HysteresisDataModule:
     return HysteresisDataModule(t_end=2 * math.pi, **kwargs)
 
 
-def trainer(max_epochs: int = 4, **kwargs) -> L.Trainer:
-    opts = dict(max_epochs=max_epochs, accelerator="cpu", devices=1, logger=False,
-                enable_checkpointing=False, enable_progress_bar=False,
-                enable_model_summary=False, precision="64-true", num_sanity_val_steps=0,
-                limit_val_batches=0)
-    opts.update(kwargs)
-    return L.Trainer(**opts)
 
 
 def full_batch_loss(module: InverseHysteresisModule, dm: HysteresisDataModule) -> float:

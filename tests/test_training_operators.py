@@ -5,10 +5,10 @@ from __future__ import annotations
 import math
 import warnings
 
-import lightning as L
 import pytest
 import torch
 import torch.nn.functional as F
+from _training_helpers import trainer
 
 from torchhys import EIHO, Backlash, PrandtlIshlinskii, ZhaoTanOperator
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid
@@ -19,13 +19,6 @@ from training.operators import OPERATORS, _fit_pi_after, build_operators
 torch.set_num_threads(1)
 
 
-def trainer(max_epochs: int = 2, **kwargs) -> L.Trainer:
-    opts = dict(max_epochs=max_epochs, accelerator="cpu", devices=1, logger=False,
-                enable_checkpointing=False, enable_progress_bar=False,
-                enable_model_summary=False, precision="64-true", num_sanity_val_steps=0,
-                limit_val_batches=0)
-    opts.update(kwargs)
-    return L.Trainer(**opts)
 
 
 def small_data(**kwargs) -> HysteresisDataModule:
