@@ -91,7 +91,7 @@ def per_op_features(comp: StreamingCompensator, x: torch.Tensor) -> torch.Tensor
         F64 = state[3] if comp.n_f64 > 0 else F
         for i, op in enumerate(comp.ops):
             out: list = []
-            op.step(xt, Y, Yn, F, state[1], F64, started, out, [], [], [])
+            op.step(xt, xc, Y, Yn, F, state[1], F64, started, out, [], [], [])
             per_op[i].append(out[0])
         _, state = comp.step_explicit(xt, state)
     return torch.cat([torch.stack(p, dim=1) for p in per_op], dim=-1)

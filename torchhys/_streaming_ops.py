@@ -57,9 +57,9 @@ class PlayStep(_Step):
         self.n_out = self.n_play
         self.whole: bool = False
 
-    def step(self, x: Tensor, Y: Tensor, Yn: Tensor, F: Tensor, I: Tensor, F64: Tensor,
-             started: Tensor, feats: list[Tensor], fl: list[Tensor], il: list[Tensor],
-             gl: list[Tensor]) -> None:
+    def step(self, x: Tensor, xc: Tensor, Y: Tensor, Yn: Tensor, F: Tensor, I: Tensor,
+             F64: Tensor, started: Tensor, feats: list[Tensor], fl: list[Tensor],
+             il: list[Tensor], gl: list[Tensor]) -> None:
         if self.whole:  # the only columns of Y
             feats.append(Yn)
         else:
@@ -74,9 +74,9 @@ class PIStep(_Step):
         self.register_buffer("weights", weights.detach().clone())
         self.register_buffer("linear_weight", linear_weight.detach().clone())
 
-    def step(self, x: Tensor, Y: Tensor, Yn: Tensor, F: Tensor, I: Tensor, F64: Tensor,
-             started: Tensor, feats: list[Tensor], fl: list[Tensor], il: list[Tensor],
-             gl: list[Tensor]) -> None:
+    def step(self, x: Tensor, xc: Tensor, Y: Tensor, Yn: Tensor, F: Tensor, I: Tensor,
+             F64: Tensor, started: Tensor, feats: list[Tensor], fl: list[Tensor],
+             il: list[Tensor], gl: list[Tensor]) -> None:
         y = Yn.narrow(1, self.y0, self.n_play)
         feats.append((self.linear_weight * x + y @ self.weights).unsqueeze(-1))
 
@@ -206,7 +206,7 @@ class BranchStep(_Step):
             return k * (torch.where(k >= self.zero, self.a0, self.a1) * sq)
         return k * ((1.0 - torch.exp(-u)) * u)
 
-    def _step_recent_branch(self, x: Tensor, Y: Tensor, Yn: Tensor, F: Tensor,
+    def _step_recent_branch(self, x: Tensor, xc: Tensor, Y: Tensor, Yn: Tensor, F: Tensor,
                             feats: list[Tensor], fl: list[Tensor]) -> None:
         """The re-based recent-rule EIHO: ``f = g_d(|m - x_a|) + g_s(relu(s (x - m)))``.
 
@@ -216,37 +216,41 @@ class BranchStep(_Step):
         ``g(0) = 0``: ``f = d * a_d g(|x - x_a|)`` (equal values; only the sign of a zero
         may differ).
         """
-        p_old = Y.select(1, self.y0)
         if self.r_zero:
-            d_prev, xa_prev = F.select(1, self.f0), F.select(1, self.f0 + 1)
-            move = torch.sign(x - p_old)
-            confirm = move * d_prev < self.zero
-            d = torch.sign(torch.add(d_prev, move, alpha=2.0))
-            x_a = torch.where(confirm, p_old, xa_prev)
-            f = self._g((x - x_a).abs(), d, x_a)
-            fl.append(torch.stack([d, x_a], 1))
-        else:
-            blk = F.narrow(1, self.f0, self.n_float)
-            M, d_prev, xa_prev = blk.select(1, 0), blk.select(1, 1), blk.select(1, 2)
-            move = torch.sign(Yn.select(1, self.y0) - p_old)
-            confirm = move * d_prev < self.zero
-            d = torch.sign(torch.add(d_prev, move, alpha=2.0))
-            m = torch.where(move != self.zero, x, M)
-            x_a = torch.where(confirm, M, xa_prev)
-            xm = x - m
-            s = torch.sign(torch.sub(torch.sign(xm), d, alpha=2.0))
-            u = torch.stack([(m - x_a).abs(), torch.relu(s * xm)], 1)
-            anchor = torch.stack([x_a, m], 1) if self.anchored else u
-            gg = self._g(u, torch.stack([d, s], 1), anchor)
-            f = gg.select(1, 0) + gg.select(1, 1)
-            fl.append(torch.stack([m, d, x_a], 1))
+            # columns (B, 1) throughout: no select, stack or unsqueeze
+            p_old = Y.narrow(1, self.y0, 1)
+            d_prev, xa_prev = F.narrow(1, self.f0, 1), F.narrow(1, self.f0 + 1, 1)
+            d = torch.sign(torch.add(d_prev, torch.sign(xc - p_old), alpha=2.0))
+            # a confirmed turning point is a change of d from -d_prev; the only other change,
+            # the first move (d_prev = 0), finds p_old == x_a (both anchored at the first
+            # sample, no move since), so anchoring there at p_old gives the same value
+            x_a = torch.where(d != d_prev, p_old, xa_prev)
+            feats.append(self._g((xc - x_a).abs(), d, x_a))
+            fl.append(d)
+            fl.append(x_a)
+            return
+        p_old = Y.select(1, self.y0)
+        blk = F.narrow(1, self.f0, self.n_float)
+        M, d_prev, xa_prev = blk.select(1, 0), blk.select(1, 1), blk.select(1, 2)
+        move = torch.sign(Yn.select(1, self.y0) - p_old)
+        confirm = move * d_prev < self.zero
+        d = torch.sign(torch.add(d_prev, move, alpha=2.0))
+        m = torch.where(move != self.zero, x, M)
+        x_a = torch.where(confirm, M, xa_prev)
+        xm = x - m
+        s = torch.sign(torch.sub(torch.sign(xm), d, alpha=2.0))
+        u = torch.stack([(m - x_a).abs(), torch.relu(s * xm)], 1)
+        anchor = torch.stack([x_a, m], 1) if self.anchored else u
+        gg = self._g(u, torch.stack([d, s], 1), anchor)
+        f = gg.select(1, 0) + gg.select(1, 1)
+        fl.append(torch.stack([m, d, x_a], 1))
         feats.append(f.unsqueeze(1))
 
-    def step(self, x: Tensor, Y: Tensor, Yn: Tensor, F: Tensor, I: Tensor, F64: Tensor,
-             started: Tensor, feats: list[Tensor], fl: list[Tensor], il: list[Tensor],
-             gl: list[Tensor]) -> None:
+    def step(self, x: Tensor, xc: Tensor, Y: Tensor, Yn: Tensor, F: Tensor, I: Tensor,
+             F64: Tensor, started: Tensor, feats: list[Tensor], fl: list[Tensor],
+             il: list[Tensor], gl: list[Tensor]) -> None:
         if self.fast:
-            self._step_recent_branch(x, Y, Yn, F, feats, fl)
+            self._step_recent_branch(x, xc, Y, Yn, F, feats, fl)
             return
         blk = F.narrow(1, self.f0, self.n_float)
         if self.eiho:

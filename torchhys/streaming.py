@@ -41,6 +41,10 @@ class _NetHead(nn.Module):
     ``add`` (two dispatched operations instead of one).
     """
 
+    #: the last input column is a copy of the sample with weight 0: a NaN or inf sample
+    #: makes every hidden unit NaN (0 * inf is NaN), so a non-finite command catches it
+    sentinel: bool = True
+
     def __init__(self, net: InverseHysteresisNet) -> None:
         super().__init__()
         dtype = net.output.weight.dtype
@@ -49,7 +53,9 @@ class _NetHead(nn.Module):
             mean, std = net.in_mean.double(), net.in_std.double()
             w2, b2 = net.output.weight.double(), net.output.bias.double()
             o_mean, o_std = net.out_mean.double(), net.out_std.double()
-            self.register_buffer("w1", (w1 / std).to(dtype))
+            w1s = w1 / std
+            self.register_buffer("w1", torch.cat([w1s, w1s.new_zeros(w1s.shape[0], 1)], 1)
+                                 .to(dtype))
             self.register_buffer("b1", (b1 - w1 @ (mean / std)).to(dtype))
             self.register_buffer("w2", (w2 * o_std).to(dtype))
             self.register_buffer("b2", (b2 * o_std + o_mean).to(dtype))
@@ -64,6 +70,8 @@ class _NetHead(nn.Module):
 
 class _PIHead(nn.Module):
     """``u = w0 y + sum_i w_i z_i`` of an analytic Prandtl-Ishlinskii inverse."""
+
+    sentinel: bool = False
 
     def __init__(self, inverse: PrandtlIshlinskiiInverse) -> None:
         super().__init__()
@@ -204,6 +212,9 @@ class StreamingCompensator(nn.Module):
         self.register_buffer("low", torch.tensor(low, dtype=dtype))
         self.register_buffer("high", torch.tensor(high, dtype=dtype))
         u0 = min(max(float(initial_command), low), high)
+        # with u0 = +0.0 the fresh held column (zero) is the initial command
+        self.u0_zero: bool = u0 == 0.0 and math.copysign(1.0, u0) > 0
+        self.sentinel: bool = bool(self.head.sentinel)
         self.register_buffer("u0", torch.tensor(u0, dtype=dtype))
         self._layout(ops, dtype)
         self.state = self.initial_state(1)
@@ -229,6 +240,11 @@ class StreamingCompensator(nn.Module):
         if len(ops) == 1 and isinstance(ops[0], PlayStep):
             ops[0].whole = True
         self.n_play = n_play
+        # the (batch,) sample is needed by all operators but plays and the threshold-0
+        # re-based recent EIHO, which work on (batch, 1) columns
+        self.need_xs: bool = any(
+            not isinstance(op, PlayStep) and not (isinstance(op, BranchStep) and op.fast
+                                                  and op.r_zero) for op in ops)
         self.n_f64 = g
         self.n_int: int = i
         keep = torch.tensor([True] + keep_y + keep_f + [True])
@@ -250,36 +266,43 @@ class StreamingCompensator(nn.Module):
     @torch.jit.export
     def step_explicit(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
         """One sample with an explicit state: x (batch,) -> (u (batch,), new state)."""
-        F, I, started = state[0], state[1], state[2]
-        F64 = state[3] if self.n_f64 > 0 else F
+        F0, I, started = state[0], state[1], state[2]
+        F64 = state[3] if self.n_f64 > 0 else F0
         xc = x.unsqueeze(1)
-        z = xc - xc  # isfinite in two operations: 0 == 0, NaN (from NaN, inf) != NaN
-        finite = z == z
-        xc = torch.where(finite, xc, F.narrow(1, 0, 1))  # a NaN/inf sample repeats the last
-        if self.anchoring:  # a row's first finite sample anchors the branch operators
+        F = F0
+        if self.anchoring:  # a row's first sample anchors the branch operators
             F = torch.where(started | self.keep, F, xc)
-        xs = xc.select(1, 0)
+        # a NaN or inf sample runs through (its state and command are discarded below)
         Y = F.narrow(1, 1, self.n_play)
         Yn = torch.clamp(Y, xc - self.r, xc + self.r)
+        xs = xc.select(1, 0) if self.need_xs else x
         feats: list[Tensor] = [xc]
         fl: list[Tensor] = [xc, Yn]
         il: list[Tensor] = []
         gl: list[Tensor] = []
         for op in self.ops:
-            op.step(xs, Y, Yn, F, I, F64, started, feats, fl, il, gl)
+            op.step(xs, xc, Y, Yn, F, I, F64, started, feats, fl, il, gl)
+        if self.sentinel:
+            feats.append(xc)
         u = torch.clamp(self.head(torch.cat(feats, 1)), self.low, self.high)
-        ok = finite & (u == u)  # after the clamp only NaN is left to catch
-        u = torch.where(ok, u, torch.where(started, F.narrow(1, F.shape[1] - 1, 1), self.u0))
+        if not self.sentinel:
+            u = u + (xc - xc)  # NaN from a NaN or inf sample
+        bad = u != u  # a non-finite sample or command (after the clamp only NaN is left)
         fl.append(u)
+        # a bad sample leaves the whole state as it was (the held command included)
+        F_new = torch.where(bad, F0, torch.cat(fl, 1))
         if self.n_int == 1:  # the counter is the whole of I
-            I_new = torch.where(ok, I, I + 1)
+            I_new = I + bad
         else:
-            count = I.narrow(1, 0, 1)
-            il.insert(0, torch.where(ok, count, count + 1))
-            I_new = torch.cat(il, 1)
-        new = [torch.cat(fl, 1), I_new, started | finite]
+            I_new = torch.cat([I.narrow(1, 0, 1) + bad, torch.where(
+                bad, I.narrow(1, 1, self.n_int - 1), torch.cat(il, 1))], 1)
+        new = [F_new, I_new, started >= bad]  # started | not bad
         if self.n_f64 > 0:
-            new.append(torch.cat(gl, 1))
+            new.append(torch.where(bad, F64, torch.cat(gl, 1)))
+        if self.u0_zero:  # the held column is the command (zero before the first valid one)
+            return F_new.select(1, F_new.shape[1] - 1), new
+        u = torch.where(bad, torch.where(started, F0.narrow(1, F0.shape[1] - 1, 1), self.u0),
+                        u)
         return u.select(1, 0), new
 
     @torch.jit.export
