@@ -56,11 +56,14 @@ class PlayStep(_Step):
         super().__init__(r, 0, 0, 0)
         self.n_out = self.n_play
         self.whole: bool = False
+        #: leading columns of its features that are not its own: with ``whole`` it appends
+        #: all of ``Yn``, the ``y0`` columns before its own included (they get weight 0)
+        self.lead: int = 0
 
     def step(self, x: Tensor, xc: Tensor, Y: Tensor, Yn: Tensor, F: Tensor, I: Tensor,
              F64: Tensor, started: Tensor, feats: list[Tensor], fl: list[Tensor],
              il: list[Tensor], gl: list[Tensor]) -> None:
-        if self.whole:  # the only columns of Y
+        if self.whole:  # the last columns of Y (lead = y0 columns before them)
             feats.append(Yn)
         else:
             feats.append(Yn.narrow(1, self.y0, self.n_play))
@@ -176,10 +179,22 @@ class BranchStep(_Step):
         tables = _tables(D) if dominant else {}
         for name in ("gmap", "smap", "pos", "ktab", "off"):
             self.register_buffer(name, tables.get(name, torch.zeros(0, dtype=torch.long)))
+        # threshold-0 re-based recent EIHO with one positive coefficient: its d column holds
+        # a_0 d (the branch's signed coefficient)
+        self.a0_f: float = float(a[0])
+        self.signed_d: bool = (self.fast and self.r_zero and self.symmetric
+                               and not self.anchored and self.a0_f > 0)
+        #: split of F into [.., detector, .., d, x_a, ..] (set by ``place_split``)
+        self.split: list[int] = [0]
         keep = torch.ones(n_float, dtype=torch.bool)
         if not self.fast:
             keep[0] = keep[3] = keep[-1] = False  # M, x_a / sx[0], detector (Zhao-Tan)
         self.register_buffer("keep", keep)
+
+    def place_split(self, y_col: int, width: int) -> None:
+        """Sizes of the split of ``F`` (``width`` columns, ``Y`` from column ``y_col``)."""
+        p = y_col + self.y0
+        self.split = [p, 1, self.f0 - p - 1, 1, 1, width - self.f0 - 2]
 
     def anchors(self) -> tuple[list[bool], list[bool]]:
         if not self.eiho:  # anchored inside step, in units of x / scale
@@ -217,15 +232,27 @@ class BranchStep(_Step):
         may differ).
         """
         if self.r_zero:
-            # columns (B, 1) throughout: no select, stack or unsqueeze
-            p_old = Y.narrow(1, self.y0, 1)
-            d_prev, xa_prev = F.narrow(1, self.f0, 1), F.narrow(1, self.f0 + 1, 1)
-            d = torch.sign(torch.add(d_prev, torch.sign(xc - p_old), alpha=2.0))
+            # columns (B, 1) throughout: no select, stack or unsqueeze; the detector's old
+            # value, d and x_a from one split of F
+            parts = F.split_with_sizes(self.split, 1)
+            p_old, d_prev, xa_prev = parts[1], parts[3], parts[4]
+            move = torch.sign(xc - p_old)
+            if self.signed_d:  # the d column holds a d (a0 > 0): a copysign, no multiply
+                d = torch.copysign(self.a0, torch.add(d_prev, move, alpha=2.0 * self.a0_f))
+            else:
+                d = torch.sign(torch.add(d_prev, move, alpha=2.0))
             # a confirmed turning point is a change of d from -d_prev; the only other change,
             # the first move (d_prev = 0), finds p_old == x_a (both anchored at the first
             # sample, no move since), so anchoring there at p_old gives the same value
             x_a = torch.where(d != d_prev, p_old, xa_prev)
-            feats.append(self._g((xc - x_a).abs(), d, x_a))
+            if self.signed_d:
+                # d a_0 g(u) == (a_0 d) g(u) (d is -1, 0 or +1); a_0 d is +a_0 instead of 0
+                # before the first move, where u = 0
+                u = (xc - x_a).abs()
+                sq = torch.where(u >= self.eps_t, torch.sqrt(u), u / self.eps_sqrt_t)
+                feats.append(d * sq)
+            else:
+                feats.append(self._g((xc - x_a).abs(), d, x_a))
             fl.append(d)
             fl.append(x_a)
             return

@@ -61,6 +61,16 @@ class _NetHead(nn.Module):
             self.register_buffer("b2", (b2 * o_std + o_mean).to(dtype))
         self.activation = copy.deepcopy(net.activation)
 
+    def pad(self, cols: list[int]) -> None:
+        """Input columns ``cols`` (a network feature index, or -1 for a column of weight 0;
+        the last column, the sample, is always -1)."""
+        w = self.w1[:, :-1]
+        full = w.new_zeros(w.shape[0], len(cols))
+        for j, c in enumerate(cols):
+            if c >= 0:
+                full[:, j] = w[:, c]
+        self.w1 = full
+
     def forward(self, features: Tensor) -> Tensor:
         """(batch, features) -> (batch, 1)."""
         return torch.nn.functional.linear(
@@ -237,9 +247,24 @@ class StreamingCompensator(nn.Module):
             keep_y += [not v for v in ay]
             keep_f += [not v for v in af]
             y, f, i, g = y + op.n_play, f + op.n_float, i + op.n_int, g + op.n_f64
-        if len(ops) == 1 and isinstance(ops[0], PlayStep):
-            ops[0].whole = True
+        # plays last in Y append all of Yn (no narrow); the network gives the columns
+        # before theirs weight 0
+        for op in ops:
+            if isinstance(op, PlayStep) and op.y0 + op.n_play == n_play and (
+                    op.y0 == 0 or isinstance(self.head, _NetHead)):
+                op.whole = True
+                op.lead = op.y0
+        if isinstance(self.head, _NetHead):
+            cols, k = [0], 1
+            for op in ops:
+                lead = op.lead if isinstance(op, PlayStep) else 0
+                cols += [-1] * lead + list(range(k, k + op.n_out))
+                k += op.n_out
+            self.head.pad(cols + [-1])
         self.n_play = n_play
+        for op in ops:
+            if isinstance(op, BranchStep) and op.fast and op.r_zero:
+                op.place_split(1, f + 1)
         # the (batch,) sample is needed by all operators but plays and the threshold-0
         # re-based recent EIHO, which work on (batch, 1) columns
         self.need_xs: bool = any(
