@@ -44,6 +44,20 @@ def test_branch_operator_features_bit_for_bit_float32(rule: str, threshold: floa
     torch.testing.assert_close(per_op_features(comp, x), feats[..., 1:], rtol=0, atol=0)
 
 
+def test_deployed_branch_eiho_step_bit_for_bit_float32() -> None:
+    """The deployed configuration (threshold 0, one positive coefficient: the step keeps
+    a_0 d in its d column) with plays after it, bit for bit in float32, steps == forward."""
+    x = inputs().float()
+    ops = [EIHO(a=0.5, rule="recent", output="branch"), Backlash(torch.tensor([0.0, 0.3, 1.0]))]
+    net = net_of(ops, torch.float32, x)
+    with torch.no_grad():
+        feats, _ = net.features(x)
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    assert comp.ops[0].signed_d
+    torch.testing.assert_close(per_op_features(comp, x), feats[..., 1:], rtol=0, atol=0)
+    torch.testing.assert_close(steps_of(comp, x), comp(x), rtol=0, atol=0)
+
+
 def test_branch_network_torchscript_equals_eager(tmp_path) -> None:
     x = inputs(300)
     ops = [EIHO(a=0.9, rule="recent", threshold=0.25, output="branch"),

@@ -123,7 +123,8 @@ class BranchStep(_Step):
     CPU; keeping the sum in float64 reproduces it exactly). The EIHO's detector is a column
     of ``Y``; the Zhao-Tan operator runs on ``x / scale`` and keeps its detector last in
     ``F``. The re-based (``branch``) recent-rule EIHO has a shorter step of its own: ``F``
-    columns ``[M, d, x_a]``, or ``[d, x_a]`` with threshold 0, nothing in ``I`` or ``F64``.
+    columns ``[M, d, x_a]``, or ``[d, x_a]`` with threshold 0 (``a_0 d`` in the ``d`` column
+    with one positive coefficient), nothing in ``I`` or ``F64``.
 
     Args:
         kind: ``"eiho"`` or ``"zhao_tan"``.
