@@ -160,6 +160,20 @@ def test_gradient_finite_from_zero_state_with_n_one() -> None:
         assert p.grad is not None and torch.isfinite(p.grad).all(), name
 
 
+def fit_lbfgs(model, params, u, t, y, *, max_iter: int) -> None:
+    """Identify ``params`` of ``model`` from (u, y) by one strong-Wolfe L-BFGS run."""
+    opt = torch.optim.LBFGS(params, max_iter=max_iter, tolerance_grad=1e-12,
+                            tolerance_change=1e-15, line_search_fn="strong_wolfe")
+
+    def closure() -> torch.Tensor:
+        opt.zero_grad()
+        loss = (model(u, t) - y).square().mean()
+        loss.backward()
+        return loss
+
+    opt.step(closure)
+
+
 def test_identifies_perturbed_parameters() -> None:
     """LBFGS recovers A, beta, gamma, k_x from a short record (k_w and n held fixed).
 
@@ -174,16 +188,7 @@ def test_identifies_perturbed_parameters() -> None:
     model.k_w.requires_grad_(False)
     model.n_root.requires_grad_(False)
     params = [p for p in model.parameters() if p.requires_grad]
-    opt = torch.optim.LBFGS(params, max_iter=100, tolerance_grad=1e-12,
-                            tolerance_change=1e-15, line_search_fn="strong_wolfe")
-
-    def closure() -> torch.Tensor:
-        opt.zero_grad()
-        loss = (model(u, t) - y).square().mean()
-        loss.backward()
-        return loss
-
-    opt.step(closure)
+    fit_lbfgs(model, params, u, t, y, max_iter=100)
     found = {k: float(v.detach()) for k, v in model.coefficients().items()}
     for name in ("A", "beta", "gamma", "k_x"):
         assert found[name] == pytest.approx(DEFAULTS[name], rel=1e-3), name
@@ -198,16 +203,7 @@ def test_identifies_exponent_too() -> None:
     model = BoucWen(A=0.4, beta=0.25, gamma=0.15, n=1.5, k_x=1.1).double()
     model.k_w.requires_grad_(False)
     params = [p for p in model.parameters() if p.requires_grad]
-    opt = torch.optim.LBFGS(params, max_iter=150, tolerance_grad=1e-12,
-                            tolerance_change=1e-15, line_search_fn="strong_wolfe")
-
-    def closure() -> torch.Tensor:
-        opt.zero_grad()
-        loss = (model(u, t) - y).square().mean()
-        loss.backward()
-        return loss
-
-    opt.step(closure)
+    fit_lbfgs(model, params, u, t, y, max_iter=150)
     found = {k: float(v.detach()) for k, v in model.coefficients().items()}
     expected = {**DEFAULTS, "n": 2.0}
     for name in ("A", "beta", "gamma", "n", "k_x"):

@@ -100,19 +100,25 @@ def test_fit_validate_test_predict(monkeypatch, tiny: Path, tmp_path: Path) -> N
                                                   "prediction"}
 
 
-def test_resume_ends_where_the_uninterrupted_run_ends(monkeypatch, tiny, tmp_path) -> None:
-    a, b = tmp_path / "a", tmp_path / "b"
-    cli(monkeypatch, "fit", "--config", str(tiny), f"--trainer.default_root_dir={a}",
-        "--trainer.max_epochs=6")
-    cli(monkeypatch, "fit", "--config", str(tiny), f"--trainer.default_root_dir={b}",
-        "--trainer.max_epochs=3")
+def full_and_resumed(monkeypatch, config: Path, root: Path, *, epochs: int) -> tuple[Path, Path]:
+    """Last checkpoints of an uninterrupted fit and of a fit stopped halfway and resumed."""
+    a, b = root / "a", root / "b"
+    cli(monkeypatch, "fit", "--config", str(config), f"--trainer.default_root_dir={a}",
+        f"--trainer.max_epochs={epochs}")
+    cli(monkeypatch, "fit", "--config", str(config), f"--trainer.default_root_dir={b}",
+        f"--trainer.max_epochs={epochs // 2}")
     (half,) = checkpoints(b)
-    cli(monkeypatch, "fit", "--config", str(tiny), f"--trainer.default_root_dir={b}",
-        "--trainer.max_epochs=6", f"--ckpt_path={half}")
+    cli(monkeypatch, "fit", "--config", str(config), f"--trainer.default_root_dir={b}",
+        f"--trainer.max_epochs={epochs}", f"--ckpt_path={half}")
     (full,), (resumed,) = checkpoints(a), checkpoints(b, version=1)
+    return full, resumed
+
+
+def test_resume_ends_where_the_uninterrupted_run_ends(monkeypatch, tiny, tmp_path) -> None:
+    full, resumed = full_and_resumed(monkeypatch, tiny, tmp_path, epochs=6)
     assert full.name == resumed.name == "epoch=5-step=6.ckpt"
-    ca = torch.load(full, weights_only=False)
-    cb = torch.load(resumed, weights_only=False)
+    ca = torch.load(full, weights_only=True)
+    cb = torch.load(resumed, weights_only=True)
     assert ca["state_dict"].keys() == cb["state_dict"].keys()
     for k, v in ca["state_dict"].items():
         torch.testing.assert_close(cb["state_dict"][k], v, rtol=0, atol=1e-6)
@@ -194,15 +200,7 @@ def test_help_lists_the_subcommands(monkeypatch, capsys) -> None:
 def test_data_dependent_operators_resume_and_export(monkeypatch, tmp_path: Path) -> None:
     cfg = tmp_path / "pi.yaml"
     cfg.write_text(PI_TINY)
-    a, b = tmp_path / "a", tmp_path / "b"
-    cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={a}",
-        "--trainer.max_epochs=4")
-    cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={b}",
-        "--trainer.max_epochs=2")
-    (half,) = checkpoints(b)
-    cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={b}",
-        "--trainer.max_epochs=4", f"--ckpt_path={half}")
-    (full,), (resumed,) = checkpoints(a), checkpoints(b, version=1)
+    full, resumed = full_and_resumed(monkeypatch, cfg, tmp_path, epochs=4)
     ca = torch.load(full, weights_only=True)
     cb = torch.load(resumed, weights_only=True)
     assert ca["hyper_parameters"]["operator"] == [{"name": "pi_ls", "n_widths": 8},

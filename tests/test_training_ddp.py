@@ -50,8 +50,8 @@ def run(folder: Path, devices: int) -> None:
 def test_ddp_cg_matches_a_single_process(tmp_path: Path) -> None:
     run(tmp_path / "single", devices=1)
     run(tmp_path / "ddp", devices=2)
-    ref = torch.load(tmp_path / "single/rank0.pt", weights_only=False)
-    ranks = [torch.load(tmp_path / f"ddp/rank{k}.pt", weights_only=False) for k in (0, 1)]
+    ref = torch.load(tmp_path / "single/rank0.pt", weights_only=True)
+    ranks = [torch.load(tmp_path / f"ddp/rank{k}.pt", weights_only=True) for k in (0, 1)]
     assert ref["n_iter"] == 5
     for got in ranks:
         assert got["n_iter"] == ref["n_iter"] and got["func_evals"] == ref["func_evals"]
