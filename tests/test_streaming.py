@@ -92,7 +92,8 @@ def per_op_features(comp: StreamingCompensator, x: torch.Tensor) -> torch.Tensor
         for i, op in enumerate(comp.ops):
             out: list = []
             op.step(xt, xc, Y, Yn, F, state[1], F64, started, out, [], [], [])
-            per_op[i].append(out[0][:, getattr(op, "lead", 0):])
+            # a factor the step leaves to the network (folded into its weights)
+            per_op[i].append(out[0][:, getattr(op, "lead", 0):] * getattr(op, "feature_scale", 1.0))
         _, state = comp.step_explicit(xt, state)
     return torch.cat([torch.stack(p, dim=1) for p in per_op], dim=-1)
 

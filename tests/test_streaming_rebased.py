@@ -44,17 +44,19 @@ def test_branch_operator_features_bit_for_bit_float32(rule: str, threshold: floa
     torch.testing.assert_close(per_op_features(comp, x), feats[..., 1:], rtol=0, atol=0)
 
 
-def test_deployed_branch_eiho_step_bit_for_bit_float32() -> None:
+def test_deployed_branch_eiho_step_float32() -> None:
     """The deployed configuration (threshold 0, one positive coefficient: the step keeps
-    a_0 d in its d column) with plays after it, bit for bit in float32, steps == forward."""
+    x_a and v = x - x_a and computes v / sqrt(max(|v|, eps)), a_0 left to the network) with
+    plays after it: float32 features to rounding (u rsqrt(u) against sqrt(u)), steps ==
+    forward bit for bit."""
     x = inputs().float()
     ops = [EIHO(a=0.5, rule="recent", output="branch"), Backlash(torch.tensor([0.0, 0.3, 1.0]))]
     net = net_of(ops, torch.float32, x)
     with torch.no_grad():
         feats, _ = net.features(x)
     comp = StreamingCompensator(net, limits=(-1e6, 1e6))
-    assert comp.ops[0].signed_d
-    torch.testing.assert_close(per_op_features(comp, x), feats[..., 1:], rtol=0, atol=0)
+    assert comp.ops[0].signed_v and comp.ops[0].feature_scale == 0.5
+    torch.testing.assert_close(per_op_features(comp, x), feats[..., 1:], rtol=1e-6, atol=1e-6)
     torch.testing.assert_close(steps_of(comp, x), comp(x), rtol=0, atol=0)
 
 

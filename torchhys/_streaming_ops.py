@@ -123,8 +123,9 @@ class BranchStep(_Step):
     CPU; keeping the sum in float64 reproduces it exactly). The EIHO's detector is a column
     of ``Y``; the Zhao-Tan operator runs on ``x / scale`` and keeps its detector last in
     ``F``. The re-based (``branch``) recent-rule EIHO has a shorter step of its own: ``F``
-    columns ``[M, d, x_a]``, or ``[d, x_a]`` with threshold 0 (``a_0 d`` in the ``d`` column
-    with one positive coefficient), nothing in ``I`` or ``F64``.
+    columns ``[M, d, x_a]``, or ``[d, x_a]`` with threshold 0, or ``[x_a, x - x_a]`` with
+    threshold 0, one positive coefficient and ``eps > 0`` (the network then applies the
+    coefficient: ``feature_scale``), nothing in ``I`` or ``F64``.
 
     Args:
         kind: ``"eiho"`` or ``"zhao_tan"``.
@@ -180,11 +181,14 @@ class BranchStep(_Step):
         tables = _tables(D) if dominant else {}
         for name in ("gmap", "smap", "pos", "ktab", "off"):
             self.register_buffer(name, tables.get(name, torch.zeros(0, dtype=torch.long)))
-        # threshold-0 re-based recent EIHO with one positive coefficient: its d column holds
-        # a_0 d (the branch's signed coefficient)
+        # threshold-0 re-based recent EIHO with one positive coefficient and a linear zone:
+        # F columns [x_a, v] (v = x - x_a), feature v / sqrt(max(|v|, eps)), a_0 folded
+        # into the network's weight of this feature (``feature_scale``)
         self.a0_f: float = float(a[0])
-        self.signed_d: bool = (self.fast and self.r_zero and self.symmetric
-                               and not self.anchored and self.a0_f > 0)
+        self.signed_v: bool = (self.fast and self.r_zero and self.symmetric
+                               and not self.anchored and self.a0_f > 0 and self.eps > 0)
+        #: factor the network applies to this step's feature (folded into its weights)
+        self.feature_scale: float = self.a0_f if self.signed_v else 1.0
         #: split of F into [.., detector, .., d, x_a, ..] (set by ``place_split``)
         self.split: list[int] = [0]
         keep = torch.ones(n_float, dtype=torch.bool)
@@ -200,6 +204,8 @@ class BranchStep(_Step):
     def anchors(self) -> tuple[list[bool], list[bool]]:
         if not self.eiho:  # anchored inside step, in units of x / scale
             return [], [False] * self.n_float
+        if self.signed_v:  # [x_a, v]
+            return [True], [True, False]
         if self.fast:  # [d, x_a] or [M, d, x_a]
             return [True], ([False, True] if self.r_zero else [True, False, True])
         cols = [False] * self.n_float
@@ -232,28 +238,34 @@ class BranchStep(_Step):
         ``g(0) = 0``: ``f = d * a_d g(|x - x_a|)`` (equal values; only the sign of a zero
         may differ).
         """
+        if self.r_zero and self.signed_v:
+            # columns (B, 1) throughout, from one split of F: the detector's old value
+            # (the previous sample), x_a and v = x_prev - x_a. The branch direction is the
+            # sign of v (v is 0 only before the first move): a move against it is a
+            # confirmed turning point, anchored at the previous sample. copysign compares
+            # sign bits without a product (no underflow); a zero move is never a turn.
+            parts = F.split_with_sizes(self.split, 1)
+            p_old, xa_prev, v_prev = parts[1], parts[3], parts[4]
+            delta = xc - p_old
+            x_a = torch.where(torch.copysign(delta, v_prev) != delta, p_old, xa_prev)
+            v = xc - x_a
+            # sign(v) g(|v|) = v / sqrt(max(|v|, eps)) (the coefficient a_0 is in the head)
+            feats.append(v * torch.rsqrt(torch.clamp_min(v.abs(), self.eps)))
+            fl.append(x_a)
+            fl.append(v)
+            return
         if self.r_zero:
             # columns (B, 1) throughout: no select, stack or unsqueeze; the detector's old
             # value, d and x_a from one split of F
             parts = F.split_with_sizes(self.split, 1)
             p_old, d_prev, xa_prev = parts[1], parts[3], parts[4]
             move = torch.sign(xc - p_old)
-            if self.signed_d:  # the d column holds a d (a0 > 0): a copysign, no multiply
-                d = torch.copysign(self.a0, torch.add(d_prev, move, alpha=2.0 * self.a0_f))
-            else:
-                d = torch.sign(torch.add(d_prev, move, alpha=2.0))
+            d = torch.sign(torch.add(d_prev, move, alpha=2.0))
             # a confirmed turning point is a change of d from -d_prev; the only other change,
             # the first move (d_prev = 0), finds p_old == x_a (both anchored at the first
             # sample, no move since), so anchoring there at p_old gives the same value
             x_a = torch.where(d != d_prev, p_old, xa_prev)
-            if self.signed_d:
-                # d a_0 g(u) == (a_0 d) g(u) (d is -1, 0 or +1); a_0 d is +a_0 instead of 0
-                # before the first move, where u = 0
-                u = (xc - x_a).abs()
-                sq = torch.where(u >= self.eps_t, torch.sqrt(u), u / self.eps_sqrt_t)
-                feats.append(d * sq)
-            else:
-                feats.append(self._g((xc - x_a).abs(), d, x_a))
+            feats.append(self._g((xc - x_a).abs(), d, x_a))
             fl.append(d)
             fl.append(x_a)
             return

@@ -33,49 +33,68 @@ N_SAFETY_STATE = 3
 
 
 class _NetHead(nn.Module):
-    """The network with its normalization folded into the layers: two ``linear``.
+    """The network with its normalization folded into the layers: ``addmm``, activation, ``mm``.
 
     ``(f - mean) / std`` is folded into the hidden layer and ``out * std + mean`` into the
     output layer (in float64, then cast), which changes the result by float rounding only.
-    ``linear`` rather than ``addmm``: TorchScript's executor splits ``addmm`` into ``mm`` and
-    ``add`` (two dispatched operations instead of one).
+    The output bias rides on one extra hidden unit whose activation is exactly 1 (zero input
+    weights, a bias where the activation saturates to 1 in the dtype: sigmoid, tanh, relu),
+    so the output layer is one ``mm``; ``addmm``/``mm`` instead of ``linear``, which costs a
+    bias copy and, in TorchScript, a split into two operations. For GELU (no such unit) the
+    output layer is a ``linear``.
     """
 
-    #: the last input column is a copy of the sample with weight 0: a NaN or inf sample
-    #: makes every hidden unit NaN (0 * inf is NaN), so a non-finite command catches it
+    #: the extra unit has zero input weights: a NaN or inf sample makes it NaN (0 * inf),
+    #: so a non-finite command catches the sample (for GELU: a zero-weight input column)
     sentinel: bool = True
 
     def __init__(self, net: InverseHysteresisNet) -> None:
         super().__init__()
         dtype = net.output.weight.dtype
+        self.activation = copy.deepcopy(net.activation)
         with torch.no_grad():
             w1, b1 = net.hidden.weight.double(), net.hidden.bias.double()
             mean, std = net.in_mean.double(), net.in_std.double()
             w2, b2 = net.output.weight.double(), net.output.bias.double()
             o_mean, o_std = net.out_mean.double(), net.out_std.double()
             w1s = w1 / std
-            self.register_buffer("w1", torch.cat([w1s, w1s.new_zeros(w1s.shape[0], 1)], 1)
-                                 .to(dtype))
-            self.register_buffer("b1", (b1 - w1 @ (mean / std)).to(dtype))
-            self.register_buffer("w2", (w2 * o_std).to(dtype))
-            self.register_buffer("b2", (b2 * o_std + o_mean).to(dtype))
-        self.activation = copy.deepcopy(net.activation)
+            b1f = b1 - w1 @ (mean / std)
+            w2f, b2f = w2 * o_std, b2 * o_std + o_mean
+            level = 40.0 if not isinstance(self.activation, nn.ReLU) else 1.0
+            one = self.activation(torch.tensor([level], dtype=dtype))
+            self.unit: bool = bool(one.item() == 1.0)
+            if self.unit:
+                w1s = torch.cat([w1s, w1s.new_zeros(1, w1s.shape[1])])
+                b1f = torch.cat([b1f, b1f.new_full((1,), level)])
+                w2f = torch.cat([w2f, b2f.reshape(1, 1)], 1)
+                b2f = b2f.new_zeros(1)
+            else:  # a zero-weight copy of the sample as the last input column
+                w1s = torch.cat([w1s, w1s.new_zeros(w1s.shape[0], 1)], 1)
+            self.register_buffer("w1", w1s.to(dtype))  # (hidden, features)
+            self.register_buffer("w1t", w1s.t().contiguous().to(dtype))
+            self.register_buffer("b1", b1f.to(dtype))
+            self.register_buffer("w2", w2f.to(dtype))
+            self.register_buffer("w2t", w2f.t().contiguous().to(dtype))
+            self.register_buffer("b2", b2f.to(dtype))
 
-    def pad(self, cols: list[int]) -> None:
+    def pad(self, cols: list[int], scales: list[float]) -> None:
         """Input columns ``cols`` (a network feature index, or -1 for a column of weight 0;
-        the last column, the sample, is always -1)."""
-        w = self.w1[:, :-1]
+        without the extra unit the last column, the sample, is always -1), each weight
+        column multiplied by its ``scales`` entry (a factor a step leaves to the network)."""
+        w = self.w1 if self.unit else self.w1[:, :-1]
         full = w.new_zeros(w.shape[0], len(cols))
         for j, c in enumerate(cols):
             if c >= 0:
-                full[:, j] = w[:, c]
+                full[:, j] = (w[:, c].double() * scales[j]).to(w.dtype)
         self.w1 = full
+        self.w1t = full.t().contiguous()
 
     def forward(self, features: Tensor) -> Tensor:
         """(batch, features) -> (batch, 1)."""
-        return torch.nn.functional.linear(
-            self.activation(torch.nn.functional.linear(features, self.w1, self.b1)), self.w2,
-            self.b2)
+        h = self.activation(torch.addmm(self.b1, features, self.w1t))
+        if self.unit:
+            return torch.mm(h, self.w2t)
+        return torch.nn.functional.linear(h, self.w2, self.b2)
 
 
 class _PIHead(nn.Module):
@@ -225,6 +244,7 @@ class StreamingCompensator(nn.Module):
         # with u0 = +0.0 the fresh held column (zero) is the initial command
         self.u0_zero: bool = u0 == 0.0 and math.copysign(1.0, u0) > 0
         self.sentinel: bool = bool(self.head.sentinel)
+        self.head_unit: bool = bool(getattr(self.head, "unit", False))
         self.register_buffer("u0", torch.tensor(u0, dtype=dtype))
         self._layout(ops, dtype)
         self.state = self.initial_state(1)
@@ -255,12 +275,15 @@ class StreamingCompensator(nn.Module):
                 op.whole = True
                 op.lead = op.y0
         if isinstance(self.head, _NetHead):
-            cols, k = [0], 1
+            cols, scales, k = [0], [1.0], 1
             for op in ops:
                 lead = op.lead if isinstance(op, PlayStep) else 0
                 cols += [-1] * lead + list(range(k, k + op.n_out))
+                scales += [1.0] * lead + [getattr(op, "feature_scale", 1.0)] * op.n_out
                 k += op.n_out
-            self.head.pad(cols + [-1])
+            if not self.head.unit:
+                cols, scales = cols + [-1], scales + [1.0]
+            self.head.pad(cols, scales)
         self.n_play = n_play
         for op in ops:
             if isinstance(op, BranchStep) and op.fast and op.r_zero:
@@ -307,7 +330,7 @@ class StreamingCompensator(nn.Module):
         gl: list[Tensor] = []
         for op in self.ops:
             op.step(xs, xc, Y, Yn, F, I, F64, started, feats, fl, il, gl)
-        if self.sentinel:
+        if self.sentinel and not self.head_unit:
             feats.append(xc)
         u = torch.clamp(self.head(torch.cat(feats, 1)), self.low, self.high)
         if not self.sentinel:
