@@ -16,6 +16,7 @@ from torchhys import (
     ZhaoTanOperator,
     signals,
 )
+from torchhys._streaming_ops import PlayStep
 from torchhys.streaming import StreamingCompensator
 
 
@@ -83,17 +84,16 @@ def per_op_features(comp: StreamingCompensator, x: torch.Tensor) -> torch.Tensor
     per_op = [[] for _ in comp.ops]
     for xt in x.unbind(-1):
         # the compensator's own preamble: anchoring of fresh rows, one clamp for all plays
-        F, started = state[0], state[2]
-        xc = xt.unsqueeze(1)
-        F = torch.where(started | comp.keep, F, xc)
-        Y = F[:, 1:1 + comp.n_play]
-        Yn = torch.clamp(Y, xc - comp.r, xc + comp.r)
+        xc, F, parts, Y, Yn = comp._advance(xt, state)
         F64 = state[3] if comp.n_f64 > 0 else F
         for i, op in enumerate(comp.ops):
             out: list = []
-            op.step(xt, xc, Y, Yn, F, state[1], F64, started, out, [], [], [])
+            if isinstance(op, PlayStep):  # its features are its columns of Yn
+                out.append(Yn[:, op.y0:op.y0 + op.n_play])
+            else:
+                op.step(xt, xc, Y, Yn, F, state[1], F64, state[2], parts, out, [], [], [])
             # a factor the step leaves to the network (folded into its weights)
-            per_op[i].append(out[0][:, getattr(op, "lead", 0):] * getattr(op, "feature_scale", 1.0))
+            per_op[i].append(out[0] * getattr(op, "feature_scale", 1.0))
         _, state = comp.step_explicit(xt, state)
     return torch.cat([torch.stack(p, dim=1) for p in per_op], dim=-1)
 

@@ -34,10 +34,21 @@ class _Step(nn.Module):
         self.f0: int = 0
         self.i0: int = 0
         self.g0: int = 0
+        #: index of this step's first piece in the compensator's split of ``F``
+        self.p0: int = 0
 
     def place(self, y0: int, f0: int, i0: int, g0: int) -> None:
         """Offsets of this step's columns in ``Y``, ``F``, ``I`` and ``F64``."""
         self.y0, self.f0, self.i0, self.g0 = y0, f0, i0, g0
+
+    def pieces(self) -> list[int]:
+        """Sizes of the pieces its ``F`` block is split into (by the compensator)."""
+        return [self.n_float] if self.n_float > 0 else []
+
+    def network_columns(self) -> list[int]:
+        """For each of its features: -1 for a ``Y`` column (the network reads all of
+        ``Yn``), else 1 (an appended (batch, 1) feature)."""
+        return [1] * self.n_out
 
     def anchors(self) -> tuple[list[bool], list[bool]]:
         """Which of its ``Y`` and ``F`` columns a fresh row anchors at its first sample."""
@@ -55,18 +66,14 @@ class PlayStep(_Step):
     def __init__(self, r: Tensor) -> None:
         super().__init__(r, 0, 0, 0)
         self.n_out = self.n_play
-        self.whole: bool = False
-        #: leading columns of its features that are not its own: with ``whole`` it appends
-        #: all of ``Yn``, the ``y0`` columns before its own included (they get weight 0)
-        self.lead: int = 0
+
+    def network_columns(self) -> list[int]:
+        return [-1] * self.n_out  # its features are its columns of Yn
 
     def step(self, x: Tensor, xc: Tensor, Y: Tensor, Yn: Tensor, F: Tensor, I: Tensor,
-             F64: Tensor, started: Tensor, feats: list[Tensor], fl: list[Tensor],
-             il: list[Tensor], gl: list[Tensor]) -> None:
-        if self.whole:  # the last columns of Y (lead = y0 columns before them)
-            feats.append(Yn)
-        else:
-            feats.append(Yn.narrow(1, self.y0, self.n_play))
+             F64: Tensor, started: Tensor, parts: list[Tensor], feats: list[Tensor],
+             fl: list[Tensor], il: list[Tensor], gl: list[Tensor]) -> None:
+        return None  # its columns of Yn are advanced by the compensator's clamp
 
 
 class PIStep(_Step):
@@ -78,8 +85,8 @@ class PIStep(_Step):
         self.register_buffer("linear_weight", linear_weight.detach().clone())
 
     def step(self, x: Tensor, xc: Tensor, Y: Tensor, Yn: Tensor, F: Tensor, I: Tensor,
-             F64: Tensor, started: Tensor, feats: list[Tensor], fl: list[Tensor],
-             il: list[Tensor], gl: list[Tensor]) -> None:
+             F64: Tensor, started: Tensor, parts: list[Tensor], feats: list[Tensor],
+             fl: list[Tensor], il: list[Tensor], gl: list[Tensor]) -> None:
         y = Yn.narrow(1, self.y0, self.n_play)
         feats.append((self.linear_weight * x + y @ self.weights).unsqueeze(-1))
 
@@ -155,7 +162,10 @@ class BranchStep(_Step):
         self.r_zero: bool = float(r) == 0.0
         if self.fast:
             n_float = 2 if self.r_zero else 3
-        play_r = r.reshape(1) if kind == "eiho" else r.new_zeros(0)
+        # the EIHO's detector is a play of Y, but with threshold 0 in the fast step it is the
+        # previous sample: the compensator's anchored "last x" column (piece 0)
+        play_r = r.reshape(1) if kind == "eiho" and not (self.fast and self.r_zero) \
+            else r.new_zeros(0)
         super().__init__(play_r, n_float, 2 if dominant else 0,
                          0 if dominant or self.fast else 1)
         self.dominant: bool = dominant
@@ -189,25 +199,21 @@ class BranchStep(_Step):
                                and not self.anchored and self.a0_f > 0 and self.eps > 0)
         #: factor the network applies to this step's feature (folded into its weights)
         self.feature_scale: float = self.a0_f if self.signed_v else 1.0
-        #: split of F into [.., detector, .., d, x_a, ..] (set by ``place_split``)
-        self.split: list[int] = [0]
         keep = torch.ones(n_float, dtype=torch.bool)
         if not self.fast:
             keep[0] = keep[3] = keep[-1] = False  # M, x_a / sx[0], detector (Zhao-Tan)
         self.register_buffer("keep", keep)
 
-    def place_split(self, y_col: int, width: int) -> None:
-        """Sizes of the split of ``F`` (``width`` columns, ``Y`` from column ``y_col``)."""
-        p = y_col + self.y0
-        self.split = [p, 1, self.f0 - p - 1, 1, 1, width - self.f0 - 2]
+    def pieces(self) -> list[int]:
+        return [1, 1] if self.fast and self.r_zero else super().pieces()
 
     def anchors(self) -> tuple[list[bool], list[bool]]:
         if not self.eiho:  # anchored inside step, in units of x / scale
             return [], [False] * self.n_float
         if self.signed_v:  # [x_a, v]
-            return [True], [True, False]
+            return [], [True, False]
         if self.fast:  # [d, x_a] or [M, d, x_a]
-            return [True], ([False, True] if self.r_zero else [True, False, True])
+            return ([], [False, True]) if self.r_zero else ([True], [True, False, True])
         cols = [False] * self.n_float
         cols[0] = cols[3] = True
         return [True], cols
@@ -229,7 +235,8 @@ class BranchStep(_Step):
         return k * ((1.0 - torch.exp(-u)) * u)
 
     def _step_recent_branch(self, x: Tensor, xc: Tensor, Y: Tensor, Yn: Tensor, F: Tensor,
-                            feats: list[Tensor], fl: list[Tensor]) -> None:
+                            parts: list[Tensor], feats: list[Tensor],
+                            fl: list[Tensor]) -> None:
         """The re-based recent-rule EIHO: ``f = g_d(|m - x_a|) + g_s(relu(s (x - m)))``.
 
         The same arithmetic as the general step without the branch value at the anchor. With
@@ -239,13 +246,13 @@ class BranchStep(_Step):
         may differ).
         """
         if self.r_zero and self.signed_v:
-            # columns (B, 1) throughout, from one split of F: the detector's old value
-            # (the previous sample), x_a and v = x_prev - x_a. The branch direction is the
-            # sign of v (v is 0 only before the first move): a move against it is a
-            # confirmed turning point, anchored at the previous sample. copysign compares
-            # sign bits without a product (no underflow); a zero move is never a turn.
-            parts = F.split_with_sizes(self.split, 1)
-            p_old, xa_prev, v_prev = parts[1], parts[3], parts[4]
+            # columns (B, 1) throughout, pieces of the compensator's split of F: the
+            # detector's old value (the previous sample, anchored), x_a and v = x_prev - x_a.
+            # The branch direction is the sign of v (v is 0 only before the first move): a
+            # move against it is a confirmed turning point, anchored at the previous sample.
+            # copysign compares sign bits without a product (no underflow); a zero move is
+            # never a turn.
+            p_old, xa_prev, v_prev = parts[0], parts[self.p0], parts[self.p0 + 1]
             delta = xc - p_old
             x_a = torch.where(torch.copysign(delta, v_prev) != delta, p_old, xa_prev)
             v = xc - x_a
@@ -256,9 +263,8 @@ class BranchStep(_Step):
             return
         if self.r_zero:
             # columns (B, 1) throughout: no select, stack or unsqueeze; the detector's old
-            # value, d and x_a from one split of F
-            parts = F.split_with_sizes(self.split, 1)
-            p_old, d_prev, xa_prev = parts[1], parts[3], parts[4]
+            # value (the previous sample), d and x_a are pieces of the compensator's split
+            p_old, d_prev, xa_prev = parts[0], parts[self.p0], parts[self.p0 + 1]
             move = torch.sign(xc - p_old)
             d = torch.sign(torch.add(d_prev, move, alpha=2.0))
             # a confirmed turning point is a change of d from -d_prev; the only other change,
@@ -287,10 +293,10 @@ class BranchStep(_Step):
         feats.append(f.unsqueeze(1))
 
     def step(self, x: Tensor, xc: Tensor, Y: Tensor, Yn: Tensor, F: Tensor, I: Tensor,
-             F64: Tensor, started: Tensor, feats: list[Tensor], fl: list[Tensor],
-             il: list[Tensor], gl: list[Tensor]) -> None:
+             F64: Tensor, started: Tensor, parts: list[Tensor], feats: list[Tensor],
+             fl: list[Tensor], il: list[Tensor], gl: list[Tensor]) -> None:
         if self.fast:
-            self._step_recent_branch(x, xc, Y, Yn, F, feats, fl)
+            self._step_recent_branch(x, xc, Y, Yn, F, parts, feats, fl)
             return
         blk = F.narrow(1, self.f0, self.n_float)
         if self.eiho:

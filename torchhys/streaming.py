@@ -76,40 +76,60 @@ class _NetHead(nn.Module):
             self.register_buffer("w2", w2f.to(dtype))
             self.register_buffer("w2t", w2f.t().contiguous().to(dtype))
             self.register_buffer("b2", b2f.to(dtype))
+            # the compensator's input blocks (set by ``columns``)
+            self.register_buffer("w_yt", w1s.new_zeros(0, w1s.shape[0]).to(dtype))
+            self.register_buffer("w_et", w1s.new_zeros(0, w1s.shape[0]).to(dtype))
+            self.register_buffer("w_e0", w1s.new_zeros(w1s.shape[0]).to(dtype))
 
-    def pad(self, cols: list[int], scales: list[float]) -> None:
-        """Input columns ``cols`` (a network feature index, or -1 for a column of weight 0;
-        without the extra unit the last column, the sample, is always -1), each weight
-        column multiplied by its ``scales`` entry (a factor a step leaves to the network)."""
+    def columns(self, y_cols: list[int], e_cols: list[int], scales: list[float]) -> None:
+        """Weights for the compensator's inputs: ``Yn`` (batch, len(y_cols)) and the appended
+        (batch, 1) features, ``e_cols`` of them. Each entry is a network feature index, or
+        -1 for a column of weight 0; ``scales`` (one per network feature) is a factor a step
+        leaves to the network, folded into its weight column."""
         w = self.w1 if self.unit else self.w1[:, :-1]
-        full = w.new_zeros(w.shape[0], len(cols))
-        for j, c in enumerate(cols):
-            if c >= 0:
-                full[:, j] = (w[:, c].double() * scales[j]).to(w.dtype)
-        self.w1 = full
-        self.w1t = full.t().contiguous()
 
-    def forward(self, features: Tensor) -> Tensor:
-        """(batch, features) -> (batch, 1)."""
-        h = self.activation(torch.addmm(self.b1, features, self.w1t))
+        def block(cols: list[int]) -> Tensor:
+            out = w.new_zeros(w.shape[0], len(cols))
+            for j, c in enumerate(cols):
+                if c >= 0:
+                    out[:, j] = (w[:, c].double() * scales[c]).to(w.dtype)
+            return out
+
+        self.w1 = torch.cat([block(y_cols), block(e_cols)], 1)
+        self.w_yt = block(y_cols).t().contiguous()
+        self.w_et = block(e_cols).t().contiguous()
+        self.w_e0 = self.w_et[0].clone() if len(e_cols) > 0 else w.new_zeros(w.shape[0])
+
+    def forward(self, Yn: Tensor, feats: list[Tensor]) -> Tensor:
+        """``Yn`` (batch, n) and (batch, 1) features -> (batch, 1)."""
+        z = torch.addmm(self.b1, Yn, self.w_yt)
+        if len(feats) == 1:  # (batch, 1) * (hidden,): no concatenation
+            z = torch.addcmul(z, feats[0], self.w_e0)
+        elif len(feats) > 1:
+            z = torch.addmm(z, torch.cat(feats, 1), self.w_et)
+        h = self.activation(z)
         if self.unit:
             return torch.mm(h, self.w2t)
         return torch.nn.functional.linear(h, self.w2, self.b2)
 
 
 class _PIHead(nn.Module):
-    """``u = w0 y + sum_i w_i z_i`` of an analytic Prandtl-Ishlinskii inverse."""
+    """``u = w0 y + sum_i w_i z_i`` of an analytic Prandtl-Ishlinskii inverse: one ``mm``
+    of ``Yn`` (the input's column and the plays)."""
 
     sentinel: bool = False
+    unit: bool = False
 
     def __init__(self, inverse: PrandtlIshlinskiiInverse) -> None:
         super().__init__()
         self.register_buffer("linear_weight", inverse.linear_weight.detach().clone())
         self.register_buffer("weights", inverse.weights.detach().clone())
+        self.register_buffer("w_y", torch.cat([self.linear_weight.reshape(1),
+                                               self.weights]).unsqueeze(1))
 
-    def forward(self, features: Tensor) -> Tensor:
-        y, z = features[:, 0], features[:, 1:]
-        return (self.linear_weight * y + z @ self.weights).unsqueeze(1)
+    def forward(self, Yn: Tensor, feats: list[Tensor]) -> Tensor:
+        """``Yn`` (batch, 1 + n plays) -> (batch, 1)."""
+        return torch.mm(Yn, self.w_y)
 
 
 def _threshold(op: nn.Module) -> Tensor:
@@ -253,53 +273,68 @@ class StreamingCompensator(nn.Module):
     def _layout(self, ops: list[nn.Module], dtype: torch.dtype) -> None:
         """Place every step's columns in the packed state ``[F, I, started(, F64)]``.
 
-        ``F = [last x, Y (all plays of x), op blocks..., held command]``, ``I = [nonfinite
-        count, op blocks...]``. ``keep`` marks the ``F`` columns that a fresh row does not
-        anchor at its first finite sample.
+        ``F = [last x, Y, op blocks..., held command]`` with ``Y = [x, all plays of x]``
+        (the plays of every step, the EIHO's turning-point detectors included) and ``I =
+        [nonfinite count, op blocks...]``. ``keep`` marks the ``F`` columns that a fresh row
+        does not anchor at its first finite sample; ``r_keep``/``r_anchor`` give each column
+        its half-width in the compensator's one ``clamp`` (plays: their own; every other
+        column: the dtype's largest finite value, which leaves it as it is; anchored
+        columns: 0 until the row has started, which sets them to the sample).
         """
-        n_play = sum(op.n_play for op in ops)
-        y, f, i, g = 0, 1 + n_play, 1, 0
-        keep_y: list[bool] = []
+        n_y = 1 + sum(op.n_play for op in ops)
+        y, f, i, g = 1, 1 + n_y, 1, 0
+        keep_y: list[bool] = [True]
         keep_f: list[bool] = []
+        sizes = [1, n_y]
         for op in ops:
             op.place(y, f, i, g)
+            op.p0 = len(sizes)
+            sizes += op.pieces()
             ay, af = op.anchors()
             keep_y += [not v for v in ay]
             keep_f += [not v for v in af]
             y, f, i, g = y + op.n_play, f + op.n_float, i + op.n_int, g + op.n_f64
-        # plays last in Y append all of Yn (no narrow); the network gives the columns
-        # before theirs weight 0
+        self.sizes: list[int] = sizes + [1]
+        # the network reads all of Yn (weight 0 for detectors and PI plays) and each other
+        # step's (batch, 1) feature
+        y_cols, e_cols, scales, k = [0] + [-1] * (n_y - 1), [], [1.0], 1
         for op in ops:
-            if isinstance(op, PlayStep) and op.y0 + op.n_play == n_play and (
-                    op.y0 == 0 or isinstance(self.head, _NetHead)):
-                op.whole = True
-                op.lead = op.y0
+            for j, c in enumerate(op.network_columns()):
+                if c < 0:
+                    y_cols[op.y0 + j] = k
+                else:
+                    e_cols.append(k)
+                scales.append(getattr(op, "feature_scale", 1.0))
+                k += 1
+        self.sentinel_column: bool = self.sentinel and not self.head_unit
+        if self.sentinel_column:  # the sample, weight 0
+            e_cols.append(-1)
         if isinstance(self.head, _NetHead):
-            cols, scales, k = [0], [1.0], 1
-            for op in ops:
-                lead = op.lead if isinstance(op, PlayStep) else 0
-                cols += [-1] * lead + list(range(k, k + op.n_out))
-                scales += [1.0] * lead + [getattr(op, "feature_scale", 1.0)] * op.n_out
-                k += op.n_out
-            if not self.head.unit:
-                cols, scales = cols + [-1], scales + [1.0]
-            self.head.pad(cols, scales)
-        self.n_play = n_play
-        for op in ops:
-            if isinstance(op, BranchStep) and op.fast and op.r_zero:
-                op.place_split(1, f + 1)
+            self.head.columns(y_cols, e_cols, scales)
+        self.n_y: int = n_y
+        self.n_play = n_y - 1
         # the (batch,) sample is needed by all operators but plays and the threshold-0
         # re-based recent EIHO, which work on (batch, 1) columns
         self.need_xs: bool = any(
             not isinstance(op, PlayStep) and not (isinstance(op, BranchStep) and op.fast
                                                   and op.r_zero) for op in ops)
+        # the EIHO steps with a detector in Y read its previous value, anchored
+        self.need_old_y: bool = any(
+            isinstance(op, BranchStep) and op.eiho and op.n_play > 0 for op in ops)
         self.n_f64 = g
         self.n_int: int = i
-        keep = torch.tensor([True] + keep_y + keep_f + [True])
-        self.anchoring = not bool(keep.all())
+        self.anchoring = not all(keep_y + keep_f)
+        # "last x" (column 0) is anchored when anything is: the fast steps' previous sample
+        keep = torch.tensor([not self.anchoring] + keep_y + keep_f + [True])
         self.register_buffer("keep", keep)
         r = [op.play_r for op in ops if op.n_play > 0]
-        self.register_buffer("r", torch.cat(r).to(dtype) if r else torch.zeros(0, dtype=dtype))
+        r_y = torch.cat([torch.zeros(1, dtype=dtype)] + [t.to(dtype) for t in r])
+        self.register_buffer("r", r_y[1:].clone())
+        big = torch.finfo(dtype).max
+        width = torch.full((f + 1,), big, dtype=dtype)
+        width[1:1 + n_y] = r_y
+        self.register_buffer("r_keep", torch.where(keep, width, torch.zeros_like(width)))
+        self.register_buffer("r_anchor", torch.where(keep, torch.zeros_like(width), width))
         self.templates = [torch.zeros(1, f + 1, dtype=dtype), torch.zeros(1, i, dtype=torch.long),
                           torch.zeros(1, 1, dtype=torch.bool)]
         if g > 0:
@@ -311,28 +346,44 @@ class StreamingCompensator(nn.Module):
         (batch, 1) bool]`` (and ``F64 (batch, n)`` with ``"recent"``-rule operators), zeros."""
         return [t.new_zeros([batch] + list(t.shape[1:])) for t in self.templates]
 
+    def _advance(self, x: Tensor, state: list[Tensor]
+                 ) -> tuple[Tensor, Tensor, list[Tensor], Tensor, Tensor]:
+        """The shared first part of a step: ``(xc, Fc, parts, Y, Yn)``.
+
+        ``Fc`` is the state with every play advanced and a fresh row's anchored columns set
+        to the sample, by one ``clamp``; ``parts`` its split into ``[last x, Yn, step
+        pieces..., held command]``; ``Y`` the plays before the step, anchored (only when a
+        step reads them, else ``Yn``).
+        """
+        F0, started = state[0], state[2]
+        xc = x.unsqueeze(1)
+        # a NaN or inf sample runs through (its state and command are discarded later)
+        w = torch.addcmul(self.r_keep, started, self.r_anchor) if self.anchoring \
+            else self.r_keep
+        Fc = torch.clamp(F0, xc - w, xc + w)
+        parts = Fc.split_with_sizes(self.sizes, 1)
+        Yn = parts[1]
+        Y = Yn
+        if self.need_old_y:
+            Y = torch.where(started | self.keep, F0, xc).narrow(1, 1, self.n_y)
+        return xc, Fc, parts, Y, Yn
+
     @torch.jit.export
     def step_explicit(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
         """One sample with an explicit state: x (batch,) -> (u (batch,), new state)."""
         F0, I, started = state[0], state[1], state[2]
         F64 = state[3] if self.n_f64 > 0 else F0
-        xc = x.unsqueeze(1)
-        F = F0
-        if self.anchoring:  # a row's first sample anchors the branch operators
-            F = torch.where(started | self.keep, F, xc)
-        # a NaN or inf sample runs through (its state and command are discarded below)
-        Y = F.narrow(1, 1, self.n_play)
-        Yn = torch.clamp(Y, xc - self.r, xc + self.r)
+        xc, F, parts, Y, Yn = self._advance(x, state)
         xs = xc.select(1, 0) if self.need_xs else x
-        feats: list[Tensor] = [xc]
+        feats: list[Tensor] = []
         fl: list[Tensor] = [xc, Yn]
         il: list[Tensor] = []
         gl: list[Tensor] = []
         for op in self.ops:
-            op.step(xs, xc, Y, Yn, F, I, F64, started, feats, fl, il, gl)
-        if self.sentinel and not self.head_unit:
+            op.step(xs, xc, Y, Yn, F, I, F64, started, parts, feats, fl, il, gl)
+        if self.sentinel_column:
             feats.append(xc)
-        u = torch.clamp(self.head(torch.cat(feats, 1)), self.low, self.high)
+        u = torch.clamp(self.head(Yn, feats), self.low, self.high)
         if not self.sentinel:
             u = u + (xc - xc)  # NaN from a NaN or inf sample
         bad = u != u  # a non-finite sample or command (after the clamp only NaN is left)
