@@ -2,8 +2,8 @@
 //
 //   controller MODEL REF.csv OUT.csv [--rate HZ] [--format torchscript|aoti]
 //
-// MODEL is a TorchScript file from torchhys.export.to_torchscript (methods step, reset,
-// nonfinite_count) or an AOTInductor package (.pt2) from torchhys.export.to_aoti (explicit
+// MODEL is a TorchScript file from torchhys.export.to_torchscript (frozen here and run by
+// its method step_explicit, the state kept in this program) or an AOTInductor package (.pt2) from torchhys.export.to_aoti (explicit
 // state; the fresh state is all zeros, its shapes and dtypes in the package metadata
 // "state_spec"). REF.csv holds the reference trajectory (desired displacement), one value
 // per line in its first column; lines that do not start with a number (a header) are
@@ -69,24 +69,37 @@ void set_value(at::Tensor& t, double x) {
   else t.mutable_data_ptr<double>()[0] = x;
 }
 
+// The TorchScript module, frozen (its weights and settings become constants, the branches
+// on them are folded away) and run through its explicit-state method: the state list is
+// kept here, so a step is one call of step_explicit without the attribute reads and
+// writes and the argument checks of step().
 struct ScriptStepper : Stepper {
   torch::jit::Module module;
   std::optional<torch::jit::Method> step_method;  // looked up once, not per sample
+  c10::IValue state;                              // [F, I, started(, F64)]
   at::ScalarType dtype;
-  explicit ScriptStepper(const std::string& path) : module(torch::jit::load(path)) {
-    module.eval();
-    dtype = module.attr("low").toTensor().scalar_type();
-    module.get_method("reset")({});
-    step_method = module.get_method("step");
+  explicit ScriptStepper(const std::string& path) {
+    torch::jit::Module loaded = torch::jit::load(path);
+    loaded.eval();
+    dtype = loaded.attr("low").toTensor().scalar_type();
+    state = loaded.get_method("initial_state")({int64_t(1)});
+    module = torch::jit::freeze(
+        loaded, std::vector<std::string>{"step_explicit", "initial_state"},
+        /*optimize_numerics=*/false);
+    step_method = module.get_method("step_explicit");
   }
   double step(double x) override {
-    // a fresh input each sample: the module may keep a reference to it in its state
+    // a fresh input each sample: the new state may keep a reference to it
     at::Tensor xt = at::empty({1}, at::TensorOptions().dtype(dtype));
     set_value(xt, x);
-    return first_value((*step_method)({xt}).toTensor());
+    c10::IValue out = (*step_method)({xt, state});
+    const auto& elems = out.toTupleRef().elements();
+    state = elems[1];
+    return first_value(elems[0].toTensor());
   }
+  // state [F, I, started, ...]: column 0 of I counts the held non-finite samples
   int64_t nonfinite() override {
-    return module.get_method("nonfinite_count")({}).toTensor().sum().item<int64_t>();
+    return state.toTensorList().get(1).select(1, 0).sum().item<int64_t>();
   }
 };
 
