@@ -1,6 +1,6 @@
 """Per-sample step latency of the deployed compensator: Python, TorchScript, C++, AOTI.
 
-    python benchmarks/latency.py [--samples 5000] [--skip-aoti]
+    python benchmarks/latency.py [--samples 5000] [--rounds 5] [--skip-aoti]
 
 Three compensators (weights do not matter for latency): the compensation benchmark's
 deployed EIHO network (``EIHO(a, rule="recent", output="branch")`` + 16 play operators of the
@@ -8,7 +8,11 @@ input, 64 sigmoid units), the same with the level dominant-rule EIHO (its config
 ``output="branch"``), and a network of the 16 play operators alone (``--nets`` picks some).
 Each path runs ``step`` on a batch of one, one thread;
 the C++ rows use deploy/cpp/controller (built on first use, ``--rate 0``), which times each
-step with a steady clock. Median and p99 in microseconds.
+step with a steady clock (TorchScript: the module frozen, ``step_explicit`` with the state
+held by the program; AOTI: ``boxed_run``, single-threaded runner). Every row runs
+``--rounds`` times, the rows interleaved, so that a change of load on a shared CPU touches
+all of them; the table gives the median of the round medians with their range, and the
+median of the round p99s, in microseconds.
 """
 
 from __future__ import annotations
@@ -91,43 +95,61 @@ def time_cpp(binary: Path, model: Path, x: torch.Tensor, tmp: Path) -> tuple[flo
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--samples", type=int, default=5000)
+    parser.add_argument("--rounds", type=int, default=5,
+                        help="runs of every row, interleaved; the table gives the median of "
+                        "their medians and the range (the CPU may be shared)")
     parser.add_argument("--skip-aoti", action="store_true", help="skip the (slow) AOTI compile")
     parser.add_argument("--skip-python", action="store_true", help="C++ rows only")
     parser.add_argument("--nets", type=int, nargs="*", default=None,
                         help="indices of the compensators to time (default: all)")
     args = parser.parse_args(argv)
+    if args.samples < 200 or args.rounds < 1:
+        parser.error("--samples must be at least 200 and --rounds at least 1")
     torch.set_num_threads(1)
     x = reference(args.samples)
     binary = controller()
-    rows = []
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
+        runs: list[tuple[str, str, object]] = []  # (compensator, path, () -> (median, p99))
         for k, (name, net) in enumerate(models().items()):
             if args.nets is not None and k not in args.nets:
                 continue
             comp = StreamingCompensator(net, limits=(-10.0, 10.0))
-            if not args.skip_python:
-                rows.append((name, "eager Python", *time_python(comp.step, x)))
-            ts_path = tmp / "comp.pt"
+            ts_path = tmp / f"comp{k}.pt"
             to_torchscript(comp, ts_path)
             if not args.skip_python:
-                rows.append((name, "TorchScript, Python", *time_python(
-                    load_torchscript(ts_path).step, x)))
-            rows.append((name, "TorchScript, C++", *time_cpp(binary, ts_path, x, tmp)))
+                runs.append((name, "eager Python", lambda c=comp: time_python(c.step, x)))
+                ts = load_torchscript(ts_path)
+                runs.append((name, "TorchScript, Python", lambda m=ts: time_python(m.step, x)))
+            runs.append((name, "TorchScript, C++",
+                         lambda p=ts_path: time_cpp(binary, p, x, tmp)))
             if not args.skip_aoti:
-                aoti_path = tmp / "comp.pt2"
+                aoti_path = tmp / f"comp{k}.pt2"
                 start = time.perf_counter()
                 to_aoti(comp, aoti_path)
                 print(f"{name}: AOTI compile {time.perf_counter() - start:.0f} s", flush=True)
                 if not args.skip_python:
-                    rows.append((name, "AOTI, Python", *time_python(
-                        load_aoti(aoti_path).step, x)))
-                rows.append((name, "AOTI, C++", *time_cpp(binary, aoti_path, x, tmp)))
-    print(f"\n{args.samples} steps, batch 1, one thread\n")
+                    runner = load_aoti(aoti_path)
+
+                    def run_aoti(r=runner) -> tuple[float, float]:
+                        r.reset()
+                        return time_python(r.step, x)
+
+                    runs.append((name, "AOTI, Python", run_aoti))
+                runs.append((name, "AOTI, C++", lambda p=aoti_path: time_cpp(binary, p, x, tmp)))
+        results: list[list[tuple[float, float]]] = [[] for _ in runs]
+        for _ in range(args.rounds):
+            for j, (_, _, run) in enumerate(runs):
+                results[j].append(run())
+    print(f"\n{args.samples} steps, batch 1, one thread; {args.rounds} interleaved rounds: median "
+          "of the round medians (range), median of the round p99s\n")
     print("| compensator | path | median (us) | p99 (us) |")
     print("|---|---|---|---|")
-    for name, path, med, p99 in rows:
-        print(f"| {name} | {path} | {med:.1f} | {p99:.1f} |")
+    for (name, path, _), res in zip(runs, results, strict=True):
+        meds = sorted(r[0] for r in res)
+        p99 = sorted(r[1] for r in res)[len(res) // 2]
+        spread = f" ({meds[0]:.1f} to {meds[-1]:.1f})" if len(meds) > 1 else ""
+        print(f"| {name} | {path} | {meds[len(meds) // 2]:.1f}{spread} | {p99:.1f} |")
 
 
 if __name__ == "__main__":

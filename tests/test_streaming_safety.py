@@ -162,3 +162,35 @@ def test_wrong_shapes() -> None:
         comp.step(torch.zeros(3, dtype=x.dtype))
     comp.reset()
     assert comp.step(torch.zeros(3, dtype=x.dtype)).shape == (3,)
+
+
+@pytest.mark.parametrize("activation", ["sigmoid", "tanh", "relu", "gelu"])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_deployed_network_every_activation_equals_eager_and_holds(
+        activation: str, bad: float) -> None:
+    """The deployed configuration (threshold-0 re-based recent EIHO + plays): the output bias
+    rides on a constant hidden unit (sigmoid, tanh, relu), which is also what turns a
+    non-finite sample into a NaN command; GELU has no such unit and a zero-weight input
+    column instead."""
+    torch.manual_seed(1)
+    t = torch.linspace(0, 12, 300, dtype=torch.float64)
+    x = 3 * torch.sin(t) + torch.sin(3.1 * t)
+    net = InverseHysteresisNet([EIHO(a=0.7, rule="recent", output="branch"),
+                                Backlash([0.0, 0.5, 1.5])], hidden=6,
+                               activation=activation).double()
+    net.fit_normalization(x, 2 * x + 1)
+    comp = StreamingCompensator(net, limits=(-1e3, 1e3))
+    assert comp.head.unit == (activation != "gelu")
+    with torch.no_grad():
+        ref, _ = net(x)
+    torch.testing.assert_close(comp(x), ref, rtol=0, atol=1e-12)
+    comp.reset()
+    out = []
+    for k, xt in enumerate(x.unbind(-1)):
+        if k in (0, 40, 41):
+            held = comp.step(torch.tensor([bad], dtype=x.dtype))
+            assert torch.isfinite(held).all()
+            assert k == 0 or torch.equal(held, out[-1])
+        out.append(comp.step(xt[None]))
+    assert int(comp.nonfinite_count()) == 3
+    torch.testing.assert_close(torch.cat(out), ref, rtol=0, atol=1e-12)

@@ -4,15 +4,19 @@ The compensator (:mod:`torchhys.streaming`) keeps all state in a few packed tens
 ``F (B, S)`` in the compensator's dtype, ``I (B, K)`` long, ``started (B, 1)`` bool and,
 when a ``"recent"``-rule operator needs it, ``F64 (B, n)`` float64. Every play operator of
 the input (:class:`PlayStep`, :class:`PIStep` and the turning-point detector of the EIHO) is
-one column of a single block ``Y`` of ``F``, advanced by one ``clamp`` for all of them. Each
-step module owns columns of these tensors (offsets set by :meth:`place`) and appends its
-features and new state columns to lists that the compensator concatenates once.
+one column of a single block ``Y`` of ``F``; the compensator advances all of them, and sets a
+fresh row's anchored columns to its first sample, with one ``clamp`` over the whole of ``F``,
+and splits the result once (``parts``). Each step module owns columns of these tensors
+(offsets set by :meth:`place`, pieces of the split by :meth:`pieces`), appends its (batch, 1)
+feature, if any, to a list the network reads (plays are read from ``Yn`` directly), and its
+new state columns to lists that the compensator concatenates once.
 
 No Python control flow depends on tensor values; branches are ``torch.where`` and the
 dominant stack is a fixed-size block of ``F`` updated by table lookups. The arithmetic
 repeats the sequence implementations (:mod:`torchhys.functional.backlash`,
 :mod:`torchhys.functional._branch`) value by value, so a step-by-step run equals the
-sequence ``forward`` bit for bit (tested in float32 per operator).
+sequence ``forward`` bit for bit (tested in float32 per operator), except the deployed
+threshold-0 re-based EIHO, which computes ``v / sqrt(max(|v|, eps))`` (equal to rounding).
 """
 
 import torch

@@ -312,7 +312,6 @@ class StreamingCompensator(nn.Module):
         if isinstance(self.head, _NetHead):
             self.head.columns(y_cols, e_cols, scales)
         self.n_y: int = n_y
-        self.n_play = n_y - 1
         # the (batch,) sample is needed by all operators but plays and the threshold-0
         # re-based recent EIHO, which work on (batch, 1) columns
         self.need_xs: bool = any(
@@ -327,9 +326,11 @@ class StreamingCompensator(nn.Module):
         # "last x" (column 0) is anchored when anything is: the fast steps' previous sample
         keep = torch.tensor([not self.anchoring] + keep_y + keep_f + [True])
         self.register_buffer("keep", keep)
+        self.held: int = f  # the held command, last column of F
         r = [op.play_r for op in ops if op.n_play > 0]
         r_y = torch.cat([torch.zeros(1, dtype=dtype)] + [t.to(dtype) for t in r])
-        self.register_buffer("r", r_y[1:].clone())
+        # any other column keeps its value (unless it differs from the sample by more than
+        # the largest finite value)
         big = torch.finfo(dtype).max
         width = torch.full((f + 1,), big, dtype=dtype)
         width[1:1 + n_y] = r_y
@@ -399,8 +400,8 @@ class StreamingCompensator(nn.Module):
         if self.n_f64 > 0:
             new.append(torch.where(bad, F64, torch.cat(gl, 1)))
         if self.u0_zero:  # the held column is the command (zero before the first valid one)
-            return F_new.select(1, F_new.shape[1] - 1), new
-        u = torch.where(bad, torch.where(started, F0.narrow(1, F0.shape[1] - 1, 1), self.u0),
+            return F_new.select(1, self.held), new
+        u = torch.where(bad, torch.where(started, F0.narrow(1, self.held, 1), self.u0),
                         u)
         return u.select(1, 0), new
 
