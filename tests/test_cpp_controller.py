@@ -42,14 +42,15 @@ def controller_binary() -> Path:
     return binary
 
 
-def trained_like_net() -> InverseHysteresisNet:
+def trained_like_net(deployed: bool = False) -> InverseHysteresisNet:
+    """A dominant-rule EIHO network (the general step), or the deployed configuration:
+    the threshold-0 re-based recent-rule EIHO with its own short step."""
     torch.manual_seed(0)
     t = torch.linspace(0, 30, 800)
     x = 3 * torch.sin(t) + torch.sin(2.3 * t)
-    net = InverseHysteresisNet(
-        [EIHO(a=1.0, rule="dominant", threshold=0.05), Backlash(torch.linspace(0.1, 2.0, 6))],
-        hidden=16,
-    )
+    eiho = EIHO(a=0.8, rule="recent", output="branch") if deployed else \
+        EIHO(a=1.0, rule="dominant", threshold=0.05)
+    net = InverseHysteresisNet([eiho, Backlash(torch.linspace(0.0, 2.0, 6))], hidden=16)
     net.fit_normalization(x, 0.8 * x)
     return net
 
@@ -83,10 +84,11 @@ def check_summary(stdout: str, n: int) -> None:
     assert float(values["median_us"]) > 0 and float(values["p99_us"]) >= float(values["median_us"])
 
 
-def test_cpp_torchscript_controller_matches_python(tmp_path: Path) -> None:
+@pytest.mark.parametrize("deployed", [False, True])
+def test_cpp_torchscript_controller_matches_python(tmp_path: Path, deployed: bool) -> None:
     binary = controller_binary()
     model = tmp_path / "comp.pt"
-    to_torchscript(trained_like_net(), model, limits=(-4.0, 4.0))
+    to_torchscript(trained_like_net(deployed), model, limits=(-4.0, 4.0))
     ref, y = reference(tmp_path)
     stdout, u = run_controller(binary, model, ref, tmp_path / "out.csv")
     expected = load_torchscript(model)(y).double()
@@ -114,4 +116,26 @@ def test_cpp_aoti_controller_matches_python(tmp_path: Path) -> None:
     stdout, u = run_controller(binary, model, ref, tmp_path / "out.csv")
     expected = to_torchscript(net, tmp_path / "comp.pt", limits=(-4.0, 4.0))(y).double()
     torch.testing.assert_close(u, expected, rtol=0, atol=1e-6)
+    check_summary(stdout, y.numel())
+
+
+@pytest.mark.slow
+def test_cmake_build_runs_like_python(tmp_path: Path) -> None:
+    """deploy/cpp/CMakeLists.txt builds the same controller (skipped without cmake)."""
+    cmake = shutil.which("cmake")
+    if cmake is None or compiler() is None:
+        reason = "cmake or a C++ compiler not found: CMake build not tested"
+        print(reason)
+        pytest.skip(reason)
+    build = tmp_path / "build"
+    prefix = torch.utils.cmake_prefix_path
+    for cmd in ([cmake, "-S", str(ROOT / "deploy" / "cpp"), "-B", str(build),
+                 f"-DCMAKE_PREFIX_PATH={prefix}"], [cmake, "--build", str(build)]):
+        res = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+        assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    model = tmp_path / "comp.pt"
+    to_torchscript(trained_like_net(deployed=True), model, limits=(-4.0, 4.0))
+    ref, y = reference(tmp_path)
+    stdout, u = run_controller(build / "controller", model, ref, tmp_path / "out.csv")
+    torch.testing.assert_close(u, load_torchscript(model)(y).double(), rtol=0, atol=1e-6)
     check_summary(stdout, y.numel())

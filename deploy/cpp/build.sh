@@ -9,7 +9,7 @@
 #       -I$TP/include/torch/csrc/api/include -L$TP/lib -ltorch -ltorch_cpu -lc10 \
 #       -Wl,-rpath,$TP/lib
 # with TP the torch package directory (the parent of torch.utils.cmake_prefix_path's
-# "share/cmake").
+# "share/cmake"). CMakeLists.txt in this folder builds the same program with CMake.
 set -euo pipefail
 HERE=$(cd "$(dirname "$0")" && pwd)
 PY=${PYTHON:-python3}
