@@ -39,8 +39,9 @@ class _NetHead(nn.Module):
     output layer (in float64, then cast), which changes the result by float rounding only.
     The output bias rides on one extra hidden unit whose activation is exactly 1 (zero input
     weights, a bias where the activation saturates to 1 in the dtype: sigmoid, tanh, relu),
-    so the output layer is one ``mm``; ``addmm``/``mm`` instead of ``linear``, which costs a
-    bias copy and, in TorchScript, a split into two operations. For GELU (no such unit) the
+    so the output layer is one ``mm``. The hidden layer is an ``addmm`` of ``Yn`` (which
+    TorchScript's executor runs as ``mm`` + ``add``, still cheaper than ``linear`` and its
+    bias copy) plus one ``addcmul`` for a single other feature. For GELU (no such unit) the
     output layer is a ``linear``.
     """
 
@@ -70,8 +71,8 @@ class _NetHead(nn.Module):
                 b2f = b2f.new_zeros(1)
             else:  # a zero-weight copy of the sample as the last input column
                 w1s = torch.cat([w1s, w1s.new_zeros(w1s.shape[0], 1)], 1)
-            self.register_buffer("w1", w1s.to(dtype))  # (hidden, features)
-            self.register_buffer("w1t", w1s.t().contiguous().to(dtype))
+            # (hidden, network features); after ``columns``: (hidden, compensator inputs)
+            self.register_buffer("w1", w1s.to(dtype))
             self.register_buffer("b1", b1f.to(dtype))
             self.register_buffer("w2", w2f.to(dtype))
             self.register_buffer("w2t", w2f.t().contiguous().to(dtype))
