@@ -277,7 +277,7 @@ class StreamingCompensator(nn.Module):
         ``F = [last x, Y, op blocks..., held command]`` with ``Y = [x, all plays of x]``
         (the plays of every step, the EIHO's turning-point detectors included) and ``I =
         [nonfinite count, op blocks...]``. ``keep`` marks the ``F`` columns that a fresh row
-        does not anchor at its first finite sample; ``r_keep``/``r_anchor`` give each column
+        does not anchor at its first finite sample; ``w_started``/``w_fresh`` give each column
         its half-width in the compensator's one ``clamp`` (plays: their own; every other
         column: the dtype's largest finite value, which leaves it as it is; anchored
         columns: 0 until the row has started, which sets them to the sample).
@@ -335,8 +335,8 @@ class StreamingCompensator(nn.Module):
         big = torch.finfo(dtype).max
         width = torch.full((f + 1,), big, dtype=dtype)
         width[1:1 + n_y] = r_y
-        self.register_buffer("r_keep", torch.where(keep, width, torch.zeros_like(width)))
-        self.register_buffer("r_anchor", torch.where(keep, torch.zeros_like(width), width))
+        self.register_buffer("w_started", width)
+        self.register_buffer("w_fresh", torch.where(keep, width, torch.zeros_like(width)))
         self.templates = [torch.zeros(1, f + 1, dtype=dtype), torch.zeros(1, i, dtype=torch.long),
                           torch.zeros(1, 1, dtype=torch.bool)]
         if g > 0:
@@ -360,8 +360,9 @@ class StreamingCompensator(nn.Module):
         F0, started = state[0], state[2]
         xc = x.unsqueeze(1)
         # a NaN or inf sample runs through (its state and command are discarded later)
-        w = torch.addcmul(self.r_keep, started, self.r_anchor) if self.anchoring \
-            else self.r_keep
+        # a where on the bool flag (an arithmetic blend would first convert it to float)
+        w = torch.where(started, self.w_started, self.w_fresh) if self.anchoring \
+            else self.w_started
         Fc = torch.clamp(F0, xc - w, xc + w)
         parts = Fc.split_with_sizes(self.sizes, 1)
         Yn = parts[1]
