@@ -249,7 +249,7 @@ class BranchStep(_Step):
         ``g(0) = 0``: ``f = d * a_d g(|x - x_a|)`` (equal values; only the sign of a zero
         may differ).
         """
-        if self.r_zero and self.signed_v:
+        if self.signed_v:  # threshold 0, one positive coefficient
             # columns (B, 1) throughout, pieces of the compensator's split of F: the
             # detector's old value (the previous sample, anchored), x_a and v = x_prev - x_a.
             # The branch direction is the sign of v (v is 0 only before the first move): a

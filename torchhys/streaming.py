@@ -71,7 +71,7 @@ class _NetHead(nn.Module):
                 b2f = b2f.new_zeros(1)
             else:  # a zero-weight copy of the sample as the last input column
                 w1s = torch.cat([w1s, w1s.new_zeros(w1s.shape[0], 1)], 1)
-            # (hidden, network features); after ``columns``: (hidden, compensator inputs)
+            # (hidden, network features): the source of ``columns``
             self.register_buffer("w1", w1s.to(dtype))
             self.register_buffer("b1", b1f.to(dtype))
             self.register_buffer("w2", w2f.to(dtype))
@@ -96,7 +96,6 @@ class _NetHead(nn.Module):
                     out[:, j] = (w[:, c].double() * scales[c]).to(w.dtype)
             return out
 
-        self.w1 = torch.cat([block(y_cols), block(e_cols)], 1)
         self.w_yt = block(y_cols).t().contiguous()
         self.w_et = block(e_cols).t().contiguous()
         self.w_e0 = self.w_et[0].clone() if len(e_cols) > 0 else w.new_zeros(w.shape[0])
@@ -123,10 +122,8 @@ class _PIHead(nn.Module):
 
     def __init__(self, inverse: PrandtlIshlinskiiInverse) -> None:
         super().__init__()
-        self.register_buffer("linear_weight", inverse.linear_weight.detach().clone())
-        self.register_buffer("weights", inverse.weights.detach().clone())
-        self.register_buffer("w_y", torch.cat([self.linear_weight.reshape(1),
-                                               self.weights]).unsqueeze(1))
+        self.register_buffer("w_y", torch.cat([inverse.linear_weight.detach().reshape(1),
+                                               inverse.weights.detach()]).unsqueeze(1))
 
     def forward(self, Yn: Tensor, feats: list[Tensor]) -> Tensor:
         """``Yn`` (batch, 1 + n plays) -> (batch, 1)."""
