@@ -41,19 +41,20 @@ def test_gradcheck_per_segment_coefficients() -> None:
     assert torch.autograd.gradcheck(lambda a: eiho(x, a, per_segment=True)[0], (a,))
 
 
+@pytest.mark.parametrize("output", ["level", "branch"])
 @pytest.mark.parametrize("rule", ["recent", "dominant"])
 @pytest.mark.parametrize("threshold", [0.0, 0.5])
-def test_gradients_finite_at_kinks(rule: str, threshold: float) -> None:
+def test_gradients_finite_at_kinks(rule: str, threshold: float, output: str) -> None:
     # starts at x_e, flat stretches, a turning point exactly on a sample, repeated samples
     x = torch.tensor(
         [0.0, 0.0, 1.0, 2.0, 2.0, 2.0, 1.0, 1.0, 0.0, 0.0, 3.0, 2.5, 2.5, 3.0, 4.0, 4.0],
         dtype=torch.float64, requires_grad=True,
     )
     a = torch.tensor([1.0, 2.0], dtype=torch.float64, requires_grad=True)
-    f, _ = eiho(x, a, rule=rule, threshold=threshold)
+    f, _ = eiho(x, a, rule=rule, threshold=threshold, output=output)
     gx, ga = torch.autograd.grad(f.sum(), (x, a))
     assert torch.isfinite(gx).all() and torch.isfinite(ga).all()
-    fz, _ = zhao_tan(x, rule=rule, threshold=threshold)
+    fz, _ = zhao_tan(x, rule=rule, threshold=threshold, output=output)
     assert torch.isfinite(torch.autograd.grad(fz.sum(), x)[0]).all()
 
 

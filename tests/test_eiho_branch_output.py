@@ -117,19 +117,6 @@ def test_gradcheck(rule: str) -> None:
     )
 
 
-@pytest.mark.parametrize("rule", ["recent", "dominant"])
-@pytest.mark.parametrize("threshold", [0.0, 0.5])
-def test_gradients_finite_at_kinks(rule: str, threshold: float) -> None:
-    x = torch.tensor(
-        [0.0, 0.0, 1.0, 2.0, 2.0, 2.0, 1.0, 1.0, 0.0, 0.0, 3.0, 2.5, 2.5, 3.0, 4.0, 4.0],
-        dtype=torch.float64, requires_grad=True,
-    )
-    a = torch.tensor([1.0, 2.0], dtype=torch.float64, requires_grad=True)
-    f, _ = eiho(x, a, rule=rule, threshold=threshold, output="branch")
-    gx, ga = torch.autograd.grad(f.sum(), (x, a))
-    assert torch.isfinite(gx).all() and torch.isfinite(ga).all()
-
-
 def test_default_is_level() -> None:
     x = random_walk(2)
     torch.testing.assert_close(eiho(x, 1.1)[0], eiho(x, 1.1, output="level")[0])
