@@ -12,8 +12,7 @@ import math
 import numpy as np
 import pytest
 import torch
-
-from torchhys.optim import PowellBealeCG
+from _optim_helpers import make
 
 
 def rosenbrock_np(x):
@@ -146,15 +145,7 @@ def reference_cg(fg, x0, iterations, alpha=1e-3, beta=0.1, gamma=0.1, delta=0.01
 def test_iterates_agree_with_the_reference(n, start, iterations):
     x0 = np.array((start * n)[:n], dtype=np.float64)
     ref_xs, ref_reasons = reference_cg(rosenbrock_np, x0, iterations)
-    x = torch.tensor(x0, requires_grad=True)
-    opt = PowellBealeCG([x], tolerance_grad=0.0)
-
-    def closure():
-        opt.zero_grad()
-        loss = rosenbrock_torch(x)
-        loss.backward()
-        return loss
-
+    x, opt, closure = make(rosenbrock_torch, torch.tensor(x0), tolerance_grad=0.0)
     for k in range(iterations):
         opt.step(closure)
         assert opt.state[x]["last_restart"] == ref_reasons[k], f"iteration {k}"
