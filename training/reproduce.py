@@ -177,6 +177,13 @@ def plot(results: list[dict], out: Path) -> list[Path]:
     best = {m: min((r for r in results if r["model"] == NAMES[m]), key=lambda r: r["mse"])
             for m in MODELS}
     paths = []
+
+    def save(fig, name: str) -> None:
+        fig.tight_layout()
+        paths.append(out / name)
+        fig.savefig(paths[-1], dpi=110)
+        plt.close(fig)
+
     fig, axes = plt.subplots(1, len(MODELS), figsize=(16, 4), sharey=True)
     for ax, m in zip(axes, MODELS, strict=True):
         r = best[m]
@@ -187,10 +194,7 @@ def plot(results: list[dict], out: Path) -> list[Path]:
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("x (target)")
     axes[0].legend(loc="lower right", fontsize=8)
-    fig.tight_layout()
-    paths.append(out / "loops.png")
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
+    save(fig, "loops.png")
 
     fig, ax = plt.subplots(figsize=(11, 3.6))
     ax.plot(t, x, lw=1.8, color="0.7", label="target x")
@@ -201,10 +205,7 @@ def plot(results: list[dict], out: Path) -> list[Path]:
     ax.set(xlabel="t (s)", ylabel="x", title="prediction against target")
     ax.legend(loc="lower left", fontsize=8)
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    paths.append(out / "prediction.png")
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
+    save(fig, "prediction.png")
 
     fig, ax = plt.subplots(figsize=(11, 3.6))
     for i, m in enumerate(MODELS):
@@ -215,10 +216,7 @@ def plot(results: list[dict], out: Path) -> list[Path]:
            ylim=(-1.0, 1.0))
     ax.legend(loc="lower left", fontsize=8)
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    paths.append(out / "error.png")
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
+    save(fig, "error.png")
 
     fig, axes = plt.subplots(1, 2, figsize=(13, 4.2), sharey=True)
     for r in results:
@@ -239,10 +237,7 @@ def plot(results: list[dict], out: Path) -> list[Path]:
                 title="convergence: CG (solid) against Adam (dashed)")
     axes[1].set(xlabel="seconds", xscale="log")
     axes[1].legend(fontsize=7, loc="upper right")
-    fig.tight_layout()
-    paths.append(out / "convergence.png")
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
+    save(fig, "convergence.png")
     return paths
 
 
