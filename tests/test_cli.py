@@ -12,9 +12,9 @@ import pytest
 import torch
 
 from torchhys.export import load_torchscript
-from training import HysteresisDataModule, InverseHysteresisModule
-from training.cli import main
-from training.export_cmd import main as export_main
+from torchhys.training import HysteresisDataModule, InverseHysteresisModule
+from torchhys.training.cli import main
+from torchhys.training.export_cmd import main as export_main
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
@@ -243,7 +243,7 @@ def test_fit_under_ddp_on_two_cpu_processes(monkeypatch, tmp_path: Path) -> None
     cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={single}")
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONWARNINGS": "ignore"}
     proc = subprocess.run(
-        [sys.executable, "-m", "training.cli", "fit", "--config", str(cfg),
+        [sys.executable, "-m", "torchhys.training.cli", "fit", "--config", str(cfg),
          f"--trainer.default_root_dir={ddp}", "--trainer.strategy=ddp",
          "--trainer.devices=2", "--trainer.accelerator=cpu"],
         cwd=ROOT, env=env, capture_output=True, text=True, timeout=600, check=False,

@@ -10,7 +10,7 @@ import torch
 from torchhys import InverseHysteresisNet
 from torchhys.export import load_torchscript
 from torchhys.streaming import StreamingCompensator
-from training.export_cmd import main
+from torchhys.training.export_cmd import main
 
 OPERATOR_KWARGS = {"a": 1.3, "rule": "dominant", "threshold": 0.1}
 

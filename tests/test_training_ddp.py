@@ -9,7 +9,7 @@ from pathlib import Path
 import lightning as L
 import torch
 
-from training import HysteresisDataModule, InverseHysteresisModule
+from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 
 
 class SaveParameters(L.Callback):

@@ -13,8 +13,8 @@ from _training_helpers import trainer
 from torchhys import EIHO, Backlash, PrandtlIshlinskii, ZhaoTanOperator
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid
 from torchhys.functional import NonCausalWarning, backlash
-from training import HysteresisDataModule, InverseHysteresisModule
-from training.operators import OPERATORS, _fit_pi_after, build_operators
+from torchhys.training import HysteresisDataModule, InverseHysteresisModule
+from torchhys.training.operators import OPERATORS, _fit_pi_after, build_operators
 
 torch.set_num_threads(1)
 

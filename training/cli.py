@@ -1,7 +1,7 @@
 """The ``torchhys`` command: ``torchhys fit|validate|test|predict --config FILE``.
 
-A :class:`lightning.pytorch.cli.LightningCLI` over :class:`training.InverseHysteresisModule`
-and :class:`training.HysteresisDataModule`: every option can be set in the YAML config or
+A :class:`lightning.pytorch.cli.LightningCLI` over :class:`torchhys.training.InverseHysteresisModule`
+and :class:`torchhys.training.HysteresisDataModule`: every option can be set in the YAML config or
 overridden on the command line (``--data.path``, ``--trainer.max_epochs``,
 ``--trainer.default_root_dir``, ``--model.optimizer`` ...); ``--ckpt_path`` resumes a fit or
 picks the weights to evaluate. Logs (CSV) and checkpoints go under the run's
@@ -16,9 +16,9 @@ import warnings
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
 
-from training.callbacks import PredictionWriter
-from training.data import HysteresisDataModule
-from training.module import InverseHysteresisModule
+from torchhys.training.callbacks import PredictionWriter
+from torchhys.training.data import HysteresisDataModule
+from torchhys.training.module import InverseHysteresisModule
 
 __all__ = ["TorchhysCLI", "main"]
 
@@ -31,7 +31,7 @@ _DESCRIPTION = (
 
 class TorchhysCLI(LightningCLI):
     """LightningCLI with a CSV logger under ``default_root_dir`` (unless one is configured),
-    a :class:`~training.callbacks.PredictionWriter` (``--predictions.filename``) and a
+    a :class:`~torchhys.training.callbacks.PredictionWriter` (``--predictions.filename``) and a
     checkpoint after every training epoch (``--checkpoint.*``; ``last.ckpt`` to resume)."""
 
     def add_arguments_to_parser(self, parser) -> None:  # noqa: ANN001 (jsonargparse parser)
@@ -60,7 +60,7 @@ def main(argv: list[str] | None = None) -> None:
     """
     args = sys.argv[1:] if argv is None else list(argv)
     if args and args[0] == "export":
-        from training.export_cmd import main as export_main
+        from torchhys.training.export_cmd import main as export_main
 
         raise SystemExit(export_main(args[1:]))
     # Full-batch training: one sequence per step, so loader workers would only add start-up.

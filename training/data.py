@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
-from training.files import Column, DataFileError, read_record
+from torchhys.training.files import Column, DataFileError, read_record
 
 __all__ = ["SIMULATIONS", "HysteresisDataModule", "SequenceDataset", "simulate"]
 
@@ -81,7 +81,7 @@ class HysteresisDataModule(L.LightningDataModule):
     states continue as in deployment; metrics cover the split's own samples only).
 
     Args:
-        path: a recorded ``.csv``/``.npz`` file (see :func:`training.files.read_record`),
+        path: a recorded ``.csv``/``.npz`` file (see :func:`torchhys.training.files.read_record`),
             or None for a simulation.
         input_column: column of the model input (the plant's response), name or index.
         target_column: column of the model target (the command), name or index.
@@ -100,7 +100,7 @@ class HysteresisDataModule(L.LightningDataModule):
 
     Raises:
         ValueError: a bad split, too few samples in a split.
-        training.files.DataFileError: problems in the file (names file, column and row).
+        torchhys.training.files.DataFileError: problems in the file (names file, column and row).
     """
 
     def __init__(

@@ -2,7 +2,7 @@
 
     torchhys export --ckpt CKPT --format torchscript|aoti --out FILE [--limits LOW HIGH]
 
-CKPT is a checkpoint of :class:`training.InverseHysteresisModule` (Lightning's
+CKPT is a checkpoint of :class:`torchhys.training.InverseHysteresisModule` (Lightning's
 ``{"state_dict": {"net.*": ...}, "hyper_parameters": {...}}``; the network is rebuilt from
 ``operator``, ``hidden``, ``activation`` and ``operator_kwargs``) or a plain ``torch.save``d
 state dict of an :class:`torchhys.InverseHysteresisNet` (then give ``--operator``,
@@ -22,7 +22,7 @@ import torch
 from torchhys import InverseHysteresisNet
 from torchhys.export import to_aoti, to_torchscript
 from torchhys.streaming import StreamingCompensator
-from training.operators import build_operators
+from torchhys.training.operators import build_operators
 
 __all__ = ["build_net", "main"]
 

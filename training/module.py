@@ -14,8 +14,8 @@ from torchmetrics import MeanSquaredError
 
 from torchhys import InverseHysteresisNet
 from torchhys.optim import PowellBealeCG
-from training.init import initialize
-from training.operators import build_operators, fit_data_dependent
+from torchhys.training.init import initialize
+from torchhys.training.operators import build_operators, fit_data_dependent
 
 __all__ = ["CLOSURE_OPTIMIZERS", "OPTIMIZERS", "InverseHysteresisModule"]
 
@@ -79,7 +79,7 @@ class InverseHysteresisModule(L.LightningModule):
 
     Batches are ``(x, y)`` of shape (batch, time): the inverse model's input (the plant's
     output) and target (the plant's input), in physical units. The network's normalization
-    is fitted on the training data of the attached :class:`training.HysteresisDataModule`
+    is fitted on the training data of the attached :class:`torchhys.training.HysteresisDataModule`
     (or any datamodule with ``train_tensors() -> (x, y)``) in :meth:`setup`, and saved in
     checkpoints with the weights.
 
@@ -93,7 +93,7 @@ class InverseHysteresisModule(L.LightningModule):
     module is attached to a ``Trainer`` for fitting.
 
     Operators are given by name or as specs ``{"name": ..., **options}`` (see
-    :mod:`training.operators`): ``eiho``, ``zhao_tan``, ``plays`` (play operators of the
+    :mod:`torchhys.training.operators`): ``eiho``, ``zhao_tan``, ``plays`` (play operators of the
     input) and ``pi_ls`` (the least-squares Prandtl-Ishlinskii model of the target from the
     input). Data-dependent operators (``plays`` widths from the input's span, ``pi_ls``) are
     fitted on the training split with the normalization, once, and saved in checkpoints.

@@ -3,7 +3,7 @@
 EIHO-NN (per-segment a_i from the targets, Eq. (18) with the square-root formula), Zhao and
 Tan's network (Ref. [8]) and a plain network of the input alone, 168 sigmoid hidden units
 each, every one trained full-batch with conjugate gradient (Powell-Beale restarts, as the
-paper) and with Adam, through :class:`training.InverseHysteresisModule` and a Lightning
+paper) and with Adam, through :class:`torchhys.training.InverseHysteresisModule` and a Lightning
 ``Trainer`` (float64, seed 0). MSE on the simulated record, as in the paper.
 
 Writes to ``--out`` (default ``runs/reproduce/``): ``results.csv``
@@ -25,8 +25,8 @@ from pathlib import Path
 import lightning as L
 import torch
 
-from training.data import HysteresisDataModule
-from training.module import InverseHysteresisModule
+from torchhys.training.data import HysteresisDataModule
+from torchhys.training.module import InverseHysteresisModule
 
 PAPER = {"eiho": (168, 1504, 1.737e-3), "zhao_tan": (169, 1624, 3.867e-3)}
 """The paper's Section 5.2 table: hidden units, epochs, MSE."""
@@ -271,7 +271,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     table = write_tables(results, args.out, wall)
     print(table)
     if not args.no_plots and set(args.models) == set(MODELS):
-        from training.reproduce_plant import plot_plant
+        from torchhys.training.reproduce_plant import plot_plant
 
         paths = plot(results, args.out) + [plot_plant(args.out)]
         if args.docs is not None:

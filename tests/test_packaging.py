@@ -1,0 +1,59 @@
+"""Packaging: the wheel installs the Lightning side as ``torchhys.training`` only."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory: pytest.TempPathFactory) -> zipfile.ZipFile:
+    out = tmp_path_factory.mktemp("wheel")
+    subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--no-build-isolation",
+         "-w", str(out), str(ROOT)],
+        check=True, capture_output=True, cwd=out,
+    )
+    (path,) = out.glob("torchhys-*.whl")
+    return zipfile.ZipFile(path)
+
+
+def test_training_installs_under_the_package_namespace(wheel: zipfile.ZipFile) -> None:
+    names = wheel.namelist()
+    assert "torchhys/training/cli.py" in names
+    assert "torchhys/training/__init__.py" in names
+    assert not any(n.startswith("training/") for n in names), "a top-level training package"
+
+
+def test_every_subpackage_is_in_the_wheel(wheel: zipfile.ZipFile) -> None:
+    names = set(wheel.namelist())
+    for init in (ROOT / "torchhys").rglob("__init__.py"):
+        rel = init.relative_to(ROOT).as_posix()
+        assert rel in names, f"{rel} is missing from the wheel (pyproject's package list)"
+    for module in (ROOT / "training").glob("*.py"):
+        assert f"torchhys/training/{module.name}" in names
+
+
+def test_console_script_points_into_the_namespace(wheel: zipfile.ZipFile) -> None:
+    (entry,) = [n for n in wheel.namelist() if n.endswith("entry_points.txt")]
+    text = wheel.read(entry).decode()
+    assert "torchhys = torchhys.training.cli:main" in text
+
+
+def test_import_torchhys_imports_no_lightning_and_no_training_package() -> None:
+    code = (
+        "import sys, importlib.util, torchhys\n"
+        "assert not any(m.split('.')[0] in ('lightning', 'pytorch_lightning', 'matplotlib')"
+        " for m in sys.modules), 'lightning or matplotlib imported'\n"
+        "assert importlib.util.find_spec('training') is None, 'top-level training importable'\n"
+        "import torchhys.training\n"
+        "assert 'lightning' in sys.modules\n"
+    )
+    # outside the repository, so the checkout's folders are not on sys.path
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(sys.prefix))
