@@ -1,0 +1,226 @@
+"""The operator protocol: what every hysteresis operator of torchhys implements.
+
+Networks (:class:`~torchhys.InverseHysteresisNet`), the streaming compensator
+(:mod:`torchhys.streaming`), export (:mod:`torchhys.export`) and the training registry
+compose operators through this protocol only. An operator is one file: a subclass of
+:class:`HysteresisOperator` with its sequence path, and a subclass of :class:`OperatorStep`
+beside it with its per-sample step; both call the same maths. One line registers it by name
+(:func:`register_operator`). See ``docs/adding-an-operator.md`` for a worked example.
+
+``HysteresisOperator`` (an ``nn.Module``)::
+
+    n_outputs: int                       features per sample (>= 1)
+    causal: bool = True                  False: forward needs the target (not deployable)
+    forward(x, state=None) -> (features, state)
+        x (batch, time); features (batch, time) or (batch, time, n_outputs); the state
+        continues the sequence: chunked calls equal one call
+    calibrate(x) -> None                 data-dependent settings from the training input,
+                                         called before normalization is fitted (default: none)
+    streaming_step(dtype) -> OperatorStep
+                                         its per-sample step, with the current parameters
+                                         (detached) in ``dtype``; raises ValueError where the
+                                         operator cannot be deployed
+
+``OperatorStep`` (an ``nn.Module`` written for TorchScript and ``torch.export``)::
+
+    state_spec: list[StateBlock]         the step's state, one (batch, size) tensor a block
+    n_outputs: int                       features per sample
+    forward(x, state) -> (features, state)
+        x (batch, 1) in the compensator's dtype; state: one tensor per block, in the order
+        of state_spec; features (batch, n_outputs); the new state in the same layout
+
+A :class:`StateBlock` says how its columns start: at a row's first finite sample ``x0`` the
+compensator sets them to ``start + from_sample * x0`` (a play starts at 0, an anchor at the
+sample itself) before the step runs, so the step needs no "fresh" flag. Blocks of kind
+``"float"`` are in the compensator's dtype, ``"float64"`` keep a float64 accumulator,
+``"int64"`` hold counters and indices (``from_sample`` must be 0). The step's maths must not
+branch in Python on tensor values (use ``torch.where``); its Python ints, floats and bools are
+fixed when it is built.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+__all__ = [
+    "OPERATORS",
+    "HysteresisOperator",
+    "OperatorStep",
+    "StateBlock",
+    "check_operator",
+    "make_operator",
+    "register_operator",
+]
+
+STATE_KINDS = ("float", "float64", "int64")
+
+
+@dataclass(frozen=True)
+class StateBlock:
+    """One block of an operator step's state: a ``(batch, size)`` tensor.
+
+    Args:
+        name: what it holds (for the layout table and error messages).
+        size: number of columns (>= 1).
+        kind: ``"float"`` (the compensator's dtype), ``"float64"`` or ``"int64"``.
+        start: value of each column at a row's first finite sample (a number, or one per
+            column) ...
+        from_sample: ... plus this times that sample (a number, or one per column; float
+            kinds only).
+    """
+
+    name: str
+    size: int
+    kind: str = "float"
+    start: float | Sequence[float] = 0.0
+    from_sample: float | Sequence[float] = 0.0
+
+    def __post_init__(self) -> None:
+        if isinstance(self.size, bool) or not isinstance(self.size, int) or self.size < 1:
+            raise ValueError(f"StateBlock {self.name!r}: size must be an int >= 1, got "
+                             f"{self.size!r}")
+        if self.kind not in STATE_KINDS:
+            raise ValueError(f"StateBlock {self.name!r}: kind must be one of {STATE_KINDS}, "
+                             f"got {self.kind!r}")
+        for field in ("start", "from_sample"):
+            values = self.columns(field)
+            if len(values) != self.size:
+                raise ValueError(f"StateBlock {self.name!r}: {field} needs one value per "
+                                 f"column ({self.size}), got {len(values)}")
+        if self.kind == "int64" and any(v != 0.0 for v in self.columns("from_sample")):
+            raise ValueError(f"StateBlock {self.name!r}: an int64 block cannot start from "
+                             "the sample (from_sample must be 0)")
+
+    def columns(self, field: str) -> list[float]:
+        """``start`` or ``from_sample`` as one float per column."""
+        value = getattr(self, field)
+        if isinstance(value, (int, float)):
+            return [float(value)] * self.size
+        return [float(v) for v in value]
+
+    @property
+    def anchored(self) -> bool:
+        """Whether any column starts at something other than 0."""
+        return any(v != 0.0 for v in self.columns("start") + self.columns("from_sample"))
+
+
+class OperatorStep(nn.Module, abc.ABC):
+    """The per-sample step of an operator, for export (see the module docstring).
+
+    Subclasses set ``n_outputs`` and ``state_spec`` in ``__init__`` and implement
+    :meth:`forward`.
+    """
+
+    n_outputs: int
+    state_spec: list[StateBlock]
+
+    @abc.abstractmethod
+    def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
+        """x (batch, 1), state (one (batch, size) tensor per block) -> (features
+        (batch, n_outputs), new state)."""
+
+    def initial_state(self, x0: Tensor) -> list[Tensor]:
+        """The state at the first sample ``x0`` (batch, 1), as the compensator builds it."""
+        out = []
+        for block in self.state_spec:
+            dtype = {"float": x0.dtype, "float64": torch.float64, "int64": torch.long}[block.kind]
+            start = torch.tensor(block.columns("start"), dtype=torch.float64)
+            slope = torch.tensor(block.columns("from_sample"), dtype=torch.float64)
+            value = start + slope * x0.to(torch.float64)
+            out.append(value.to(dtype))
+        return out
+
+    def run(self, x: Tensor) -> Tensor:
+        """Step through a whole sequence from a fresh state: x (batch, time) ->
+        (batch, time, n_outputs). For tests and inspection (a Python loop)."""
+        if x.dim() != 2 or x.shape[1] == 0:
+            raise ValueError(f"x must have shape (batch, time) with time >= 1, got shape "
+                             f"{tuple(x.shape)}")
+        state = self.initial_state(x[:, :1])
+        outs = []
+        for xt in x.unbind(1):
+            f, state = self(xt.unsqueeze(1), state)
+            outs.append(f)
+        return torch.stack(outs, dim=1)
+
+
+class HysteresisOperator(nn.Module, abc.ABC):
+    """Base class of the operators that networks, streaming and export compose.
+
+    Subclasses implement :meth:`forward` and :meth:`streaming_step`, and set ``n_outputs``.
+    """
+
+    n_outputs: int = 1
+    causal: bool = True
+
+    @abc.abstractmethod
+    def forward(self, x: Tensor, state: Any = None) -> tuple[Tensor, Any]:
+        """x (time,) or (batch, time) -> features ``x.shape`` or ``x.shape + (n_outputs,)``,
+        and the state at the last sample."""
+
+    @abc.abstractmethod
+    def streaming_step(self, dtype: torch.dtype) -> OperatorStep:
+        """The per-sample step with the current parameters (detached), in ``dtype``."""
+
+    def calibrate(self, x: Tensor) -> None:  # noqa: B027 (optional hook, empty by default)
+        """Set data-dependent settings from the training input x (batch, time); default:
+        nothing."""
+
+
+_REQUIRED = ("forward", "streaming_step", "calibrate", "n_outputs", "causal")
+
+
+def check_operator(op: object, name: str = "operator") -> HysteresisOperator:
+    """Raise ``TypeError`` unless ``op`` implements the operator protocol."""
+    if not isinstance(op, HysteresisOperator):
+        kind = type(op).__name__
+        missing = [m for m in _REQUIRED if not hasattr(op, m)]
+        hint = f" (it has no {', '.join(missing)})" if missing else ""
+        raise TypeError(
+            f"{name} must be a torchhys.HysteresisOperator (an nn.Module that implements "
+            f"forward(x, state) -> (features, state), n_outputs and streaming_step(dtype); "
+            f"see docs/adding-an-operator.md), got {kind}{hint}"
+        )
+    n = op.n_outputs
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise TypeError(f"{name} {type(op).__name__}: n_outputs must be an int >= 1, got {n!r}")
+    return op
+
+
+OPERATORS: dict[str, Callable[..., HysteresisOperator]] = {}
+"""Operators by name: ``OPERATORS[name](**options)`` builds one (see :func:`make_operator`)."""
+
+
+def register_operator(name: str, factory: Callable[..., HysteresisOperator]) -> None:
+    """Register an operator class (or factory) under ``name``, for specs by name.
+
+    Raises:
+        ValueError: ``name`` is taken by another factory.
+    """
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"name must be a non-empty str, got {name!r}")
+    if OPERATORS.get(name, factory) is not factory:
+        raise ValueError(f"operator name {name!r} is registered already ({OPERATORS[name]})")
+    OPERATORS[name] = factory
+
+
+def make_operator(name: str, **options: Any) -> HysteresisOperator:
+    """Build the operator registered as ``name`` with keyword ``options``.
+
+    Raises:
+        ValueError: an unknown name (the message lists the registered ones), or options the
+            operator does not take.
+    """
+    if name not in OPERATORS:
+        raise ValueError(f"operator name must be one of {sorted(OPERATORS)}, got {name!r}")
+    try:
+        op = OPERATORS[name](**options)
+    except TypeError as e:
+        raise ValueError(f"operator {name!r}: {e}") from e
+    return check_operator(op, f"operator {name!r}")
