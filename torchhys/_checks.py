@@ -6,16 +6,24 @@ Every public function validates its arguments once, here, and raises a
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+from typing import TypeVar
+
 import torch
 from torch import Tensor
 
 __all__ = [
+    "check_choice",
     "check_finite",
     "check_floating",
+    "check_int",
+    "check_same_shape",
     "check_tensor",
     "check_widths",
     "as_batched_sequence",
 ]
+
+_T = TypeVar("_T")
 
 
 def check_tensor(value: object, name: str) -> Tensor:
@@ -43,6 +51,39 @@ def check_finite(value: Tensor, name: str) -> Tensor:
             f"{name} must be finite, but it holds NaN or inf (first at index {tuple(bad)})"
         )
     return value
+
+
+def check_int(value: object, name: str, *, minimum: int | None = None) -> int:
+    """Raise ``ValueError`` unless ``value`` is an int (a bool is not), ``>= minimum`` if given.
+
+    The message names the argument and the bound: ``"max_depth must be an int >= 3, got 2"``.
+    """
+    if (isinstance(value, bool) or not isinstance(value, int)
+            or (minimum is not None and value < minimum)):
+        bound = "" if minimum is None else f" >= {minimum}"
+        raise ValueError(f"{name} must be an int{bound}, got {value!r}")
+    return value
+
+
+def check_choice(value: _T, name: str, choices: Iterable[object]) -> _T:
+    """Raise ``ValueError`` unless ``value`` is one of ``choices``; the message lists them."""
+    valid = list(choices)
+    try:
+        found = value in valid
+    except (TypeError, ValueError, RuntimeError):  # an array compares element by element
+        found = False
+    if not found:
+        raise ValueError(f"{name} must be one of {valid}, got {value!r}")
+    return value
+
+
+def check_same_shape(a: Tensor, b: Tensor, name_a: str, name_b: str) -> None:
+    """Raise ``ValueError`` unless ``a`` has the shape of ``b``; the message gives both."""
+    if a.shape != b.shape:
+        raise ValueError(
+            f"{name_a} must have the shape of {name_b} {tuple(b.shape)}, "
+            f"got shape {tuple(a.shape)}"
+        )
 
 
 def check_widths(widths: Tensor, name: str = "widths") -> Tensor:
