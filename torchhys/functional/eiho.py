@@ -11,7 +11,14 @@ import warnings
 import torch
 from torch import Tensor
 
-from torchhys._checks import as_batched_sequence, check_finite, check_floating
+from torchhys._checks import (
+    as_batched_sequence,
+    check_choice,
+    check_finite,
+    check_floating,
+    check_int,
+    check_same_shape,
+)
 from torchhys.functional._branch import BranchState, branch_operator, check_a
 from torchhys.functional.turning_points import turning_points
 
@@ -26,14 +33,11 @@ class NonCausalWarning(UserWarning):
 
 
 def _check_depth(max_depth: int) -> None:
-    if isinstance(max_depth, bool) or not isinstance(max_depth, int) or max_depth < 3:
-        raise ValueError(f"max_depth must be an int >= 3, got {max_depth!r}")
+    check_int(max_depth, "max_depth", minimum=3)
 
 
 def _check_output(output: str) -> bool:
-    if output not in _OUTPUTS:
-        raise ValueError(f"output must be one of {_OUTPUTS}, got {output!r}")
-    return output == "branch"
+    return check_choice(output, "output", _OUTPUTS) == "branch"
 
 
 def eiho(
@@ -197,16 +201,15 @@ def segment_coefficients(
     )
     xb, _ = as_batched_sequence(x, "x")
     yb, _ = as_batched_sequence(y, "y")
-    if yb.shape != xb.shape:
-        raise ValueError(f"y must have the shape of x {tuple(x.shape)}, got {tuple(y.shape)}")
-    if formula not in _FORMULAS:
-        raise ValueError(f"formula must be one of {_FORMULAS}, got {formula!r}")
+    check_same_shape(yb, xb, "y", "x")
+    check_choice(formula, "formula", _FORMULAS)
     mask = turning_points(xb, threshold=threshold)
     mask[:, 0] = True
     mask[:, -1] = True
     B, T = xb.shape
     n = mask.sum(dim=1)
-    order = torch.where(mask, torch.arange(T), T).sort(dim=1).values[:, : int(n.max())]
+    index = torch.arange(T, device=xb.device)
+    order = torch.where(mask, index, T).sort(dim=1).values[:, : int(n.max())]
     order = torch.minimum(order, (order.gather(1, (n - 1)[:, None])))  # pad with last index
     xe, ye = xb.detach().gather(1, order), yb.detach().gather(1, order)
     dx = (xe[:, 1:] - xe[:, :-1]).abs().clamp(min=min_step)
@@ -216,6 +219,6 @@ def segment_coefficients(
     if T < 2 or a.shape[1] == 0:
         return xb.new_ones(B, 1)
     # Rows with fewer segments repeat their last real coefficient.
-    k = torch.arange(a.shape[1]).expand(B, -1)
+    k = torch.arange(a.shape[1], device=a.device).expand(B, -1)
     last = a.gather(1, (n - 2).clamp(min=0)[:, None])
     return torch.where(k <= (n - 2)[:, None], a, last)
