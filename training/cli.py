@@ -1,7 +1,8 @@
 """The ``torchhys`` command: ``torchhys fit|validate|test|predict --config FILE``.
 
-A :class:`lightning.pytorch.cli.LightningCLI` over :class:`torchhys.training.InverseHysteresisModule`
-and :class:`torchhys.training.HysteresisDataModule`: every option can be set in the YAML config or
+A :class:`lightning.pytorch.cli.LightningCLI` over
+:class:`torchhys.training.InverseHysteresisModule` and
+:class:`torchhys.training.HysteresisDataModule`: every option can be set in the YAML config or
 overridden on the command line (``--data.path``, ``--trainer.max_epochs``,
 ``--trainer.default_root_dir``, ``--model.optimizer`` ...); ``--ckpt_path`` resumes a fit or
 picks the weights to evaluate. Logs (CSV) and checkpoints go under the run's
