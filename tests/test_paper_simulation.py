@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from conftest import play_reference
+from _helpers import play_reference
 
 from torchhys.plants import fig6_simulation, paper_simulation
 

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from test_eiho_streaming import run_chunked
-from test_turning_points import random_walk
+from _helpers import random_walk, run_chunked
 
 from torchhys import InverseHysteresisNet, PrandtlIshlinskii
 from torchhys.fitting import fit_full_batch, fit_prandtl_ishlinskii, play_width_grid

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from conftest import play_reference
+from _helpers import play_reference
 
 from torchhys import PrandtlIshlinskii
 from torchhys.functional import prandtl_ishlinskii, prandtl_ishlinskii_inverse_parameters

@@ -7,16 +7,9 @@ import math
 import pytest
 import torch
 from _branch_reference import ref_turning_points
+from _helpers import random_walk  # test_eiho_*.py, test_streaming.py still import it from here
 
 from torchhys.functional import estimate_threshold, turning_points
-
-
-def random_walk(seed: int, T: int = 300, quantize: bool = True) -> torch.Tensor:
-    g = torch.Generator().manual_seed(seed)
-    steps = torch.randn(T, generator=g, dtype=torch.float64)
-    steps[torch.rand(T, generator=g) < 0.2] = 0.0  # flat stretches / repeated samples
-    x = steps.cumsum(0)
-    return (x * 4).round() / 4 if quantize else x  # quantized: exact ties with the threshold
 
 
 @pytest.mark.parametrize("seed", range(8))

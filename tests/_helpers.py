@@ -1,0 +1,102 @@
+"""Shared test inputs and references (test modules import these, never each other)."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from torchhys import InverseHysteresisNet, signals
+
+if TYPE_CHECKING:  # the streaming module is not imported by tests that do not stream
+    from torchhys.streaming import StreamingCompensator
+
+# --- inputs -----------------------------------------------------------------------------------
+
+
+def random_walk(seed: int, T: int = 300, quantize: bool = True) -> torch.Tensor:
+    """A float64 random walk (time,) with flat stretches; quantized: exact threshold ties."""
+    g = torch.Generator().manual_seed(seed)
+    steps = torch.randn(T, generator=g, dtype=torch.float64)
+    steps[torch.rand(T, generator=g) < 0.2] = 0.0  # flat stretches / repeated samples
+    x = steps.cumsum(0)
+    return (x * 4).round() / 4 if quantize else x  # quantized: exact ties with the threshold
+
+
+def batch() -> torch.Tensor:
+    """Three random walks of 120 samples, (3, 120), quantized and not."""
+    return torch.stack([random_walk(s, T=120, quantize=s % 2 == 0) for s in range(3)])
+
+
+def smooth_input(T: int = 40) -> torch.Tensor:
+    """A smooth float64 input (time,) whose turning points fall between samples."""
+    t = torch.linspace(0.05, 3.0, T, dtype=torch.float64)
+    return torch.sin(2 * t) + 0.3 * t  # turning points between samples, away from x_e
+
+
+def inputs(T: int = 400) -> torch.Tensor:
+    """Random walks with flat stretches and exact ties, noise, nested minor loops: (5, T)."""
+    rows = [random_walk(s, T=T, quantize=s % 2 == 0) for s in range(3)]
+    t = torch.linspace(0.0, 10.0, T, dtype=torch.float64)
+    g = torch.Generator().manual_seed(7)
+    rows.append(3 * torch.sin(t) + 0.05 * torch.randn(T, generator=g, dtype=torch.float64))
+    rows.append(signals.nested_reversals(t, amplitude=4.0, n_reversals=24, ratio=0.85))
+    return torch.stack(rows)
+
+
+# --- running modules --------------------------------------------------------------------------
+
+
+def chunks(x: torch.Tensor, sizes: list[int]) -> list[torch.Tensor]:
+    """``x`` cut along time into chunks of the given sizes (repeated cyclically)."""
+    out, start = [], 0
+    while start < x.shape[-1]:
+        size = sizes[len(out) % len(sizes)]
+        out.append(x[..., start : start + size])
+        start += size
+    return out
+
+
+def run_chunked(module: torch.nn.Module, x: torch.Tensor, sizes: list[int], **kw) -> torch.Tensor:
+    """``module`` called chunk by chunk with the carried state; outputs joined along time."""
+    state, outs = None, []
+    for c in chunks(x, sizes):
+        y, state = module(c, state, **kw)
+        outs.append(y)
+    return torch.cat(outs, dim=-1)
+
+
+def net_of(ops: list, dtype: torch.dtype, x: torch.Tensor) -> InverseHysteresisNet:
+    """A seeded network over ``ops`` with its normalization fitted to (x, tanh x)."""
+    torch.manual_seed(0)
+    net = InverseHysteresisNet(ops, hidden=6).to(dtype)
+    net.fit_normalization(x.to(dtype), torch.tanh(x.to(dtype)))
+    return net
+
+
+def steps_of(comp: StreamingCompensator, x: torch.Tensor) -> torch.Tensor:
+    """The compensator stepped sample by sample from a reset: (batch, time)."""
+    comp.reset()
+    return torch.stack([comp.step(xt) for xt in x.unbind(-1)], dim=-1)
+
+
+# --- references -------------------------------------------------------------------------------
+
+
+def play_reference(x: np.ndarray, widths: np.ndarray, y0: np.ndarray | None = None) -> np.ndarray:
+    """Plain float64 loop of the play operator: x (B, T), widths (N,) -> (B, T, N)."""
+    x = np.asarray(x, dtype=np.float64)
+    widths = np.asarray(widths, dtype=np.float64)
+    B, T = x.shape
+    N = widths.shape[0]
+    state = np.zeros((B, N)) if y0 is None else np.broadcast_to(y0, (B, N)).astype(np.float64)
+    y = np.empty((B, T, N))
+    for b in range(B):
+        s = state[b].copy()
+        for t in range(T):
+            for n in range(N):
+                r = widths[n] / 2.0
+                s[n] = min(x[b, t] + r, max(x[b, t] - r, s[n]))
+            y[b, t] = s
+    return y
