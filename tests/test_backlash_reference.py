@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from conftest import play_reference
+from _helpers import play_reference
 
 from torchhys.functional import backlash
+from torchhys.functional._kernel import kernel_enabled, kernel_unavailable_reason
 
 
 def _awkward_input(rng: np.random.Generator, B: int, T: int) -> np.ndarray:
@@ -75,12 +76,11 @@ def test_batch_consistency(backend):
 
 
 def test_kernel_and_scan_agree():
-    from torchhys.functional._kernel import kernel_available, kernel_enabled
-
+    reason = kernel_unavailable_reason()
+    if reason is not None:
+        pytest.skip(f"compiled play kernel unavailable: {reason}")
     x = torch.randn(2, 3001).cumsum(1)
     widths = torch.rand(6) * 3
-    if not kernel_available(x):
-        pytest.skip("no C compiler: the compiled kernel is unavailable")
     with kernel_enabled(True):
         a = backlash(x, widths)
     with kernel_enabled(False):

@@ -27,7 +27,13 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-__all__ = ["kernel_available", "kernel_enabled", "play_backward_kernel", "play_forward_kernel"]
+__all__ = [
+    "kernel_available",
+    "kernel_enabled",
+    "kernel_unavailable_reason",
+    "play_backward_kernel",
+    "play_forward_kernel",
+]
 
 _enabled = True
 
@@ -104,12 +110,14 @@ def _cache_dir() -> Path:
 
 
 @functools.lru_cache(maxsize=1)
-def _library() -> ctypes.CDLL | None:
+def _load() -> tuple[ctypes.CDLL | None, str | None]:
+    """The compiled library, or None and the reason it cannot be used."""
     if os.environ.get("TORCHHYS_DISABLE_KERNEL", "") not in ("", "0"):
-        return None
-    compiler = shutil.which(os.environ.get("CC", "cc")) or shutil.which("gcc")
+        return None, "disabled by the environment variable TORCHHYS_DISABLE_KERNEL"
+    cc = os.environ.get("CC", "cc")
+    compiler = shutil.which(cc) or shutil.which("gcc")
     if compiler is None:
-        return None
+        return None, f"no C compiler found (neither {cc!r} nor 'gcc' is on the PATH)"
     digest = hashlib.sha256((_SOURCE + " ".join(_FLAGS)).encode()).hexdigest()[:16]
     lib_path = _cache_dir() / f"play_{digest}.so"
     try:
@@ -132,14 +140,28 @@ def _library() -> ctypes.CDLL | None:
             f"torchhys: could not build the compiled play-operator kernel ({err}); "
             "using the pure-torch scan instead",
             RuntimeWarning,
-            stacklevel=3,
+            stacklevel=4,
         )
-        return None
+        return None, f"the kernel could not be built with {compiler} ({err})"
     p, lng = ctypes.c_void_p, ctypes.c_long
     for suffix in _SUFFIX.values():
         getattr(lib, f"play_forward_{suffix}").argtypes = [p, p, p, p, lng, lng, lng]
         getattr(lib, f"play_backward_{suffix}").argtypes = [p] * 10 + [lng, lng, lng]
-    return lib
+    return lib, None
+
+
+def _library() -> ctypes.CDLL | None:
+    return _load()[0]
+
+
+def kernel_unavailable_reason() -> str | None:
+    """Why the compiled kernel cannot run on this machine, or None when it can.
+
+    Reasons: ``TORCHHYS_DISABLE_KERNEL`` is set, no C compiler is found, or the build
+    failed. (Per call, the kernel also needs CPU float32/float64 tensors and
+    :func:`kernel_enabled` not switched off: see :func:`kernel_available`.)
+    """
+    return _load()[1]
 
 
 def kernel_available(*tensors: Tensor) -> bool:
