@@ -11,7 +11,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchhys._checks import as_batched_sequence, check_widths
+from torchhys._checks import as_batched_sequence, check_int, check_same_shape, check_widths
 from torchhys.functional.backlash import backlash
 from torchhys.networks import InverseHysteresisNet
 from torchhys.prandtl_ishlinskii import PrandtlIshlinskii
@@ -90,7 +90,7 @@ def fit_full_batch(
     done = 0
     while done < lbfgs_epochs:
         lbfgs.step(closure)
-        n_iter = lbfgs.state[lbfgs._params[0]].get("n_iter", 0)
+        n_iter = lbfgs.state[params[0]].get("n_iter", 0)
         if n_iter <= done:
             break
         done = n_iter
@@ -126,8 +126,7 @@ def play_width_grid(u: Tensor, n: int = 30, *, power: float = 3.0) -> Tensor:
         TypeError, ValueError: bad ``u``, ``n`` or ``power``; a constant ``u``.
     """
     ub, _ = as_batched_sequence(u, "u")
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise ValueError(f"n must be an int >= 1, got {n!r}")
+    check_int(n, "n", minimum=1)
     if not (isinstance(power, (int, float)) and math.isfinite(power) and power > 0):
         raise ValueError(f"power must be a positive number, got {power!r}")
     span = (ub.max() - ub.min()).detach()
@@ -172,8 +171,7 @@ def fit_prandtl_ishlinskii(
     """
     ub, _ = as_batched_sequence(u, "u")
     yb, _ = as_batched_sequence(y, "y")
-    if yb.shape != ub.shape:
-        raise ValueError(f"y must have the shape of u {tuple(u.shape)}, got {tuple(y.shape)}")
+    check_same_shape(yb, ub, "y", "u")
     check_widths(widths, "widths")
     if not (isinstance(ridge, (int, float)) and math.isfinite(ridge) and ridge >= 0):
         raise ValueError(f"ridge must be a finite number >= 0, got {ridge!r}")
