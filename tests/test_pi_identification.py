@@ -75,6 +75,12 @@ def test_bad_input() -> None:
         fit_prandtl_ishlinskii(u, u, -widths)
     with pytest.raises(TypeError, match="floating"):
         fit_prandtl_ishlinskii(u.long(), u, widths)
+    for bad in (-1, 1.5, True, None):
+        with pytest.raises(ValueError, match=f"warmup must be an int >= 0, got {bad!r}"):
+            fit_prandtl_ishlinskii(u, u, widths, warmup=bad)
+    with pytest.raises(ValueError, match="warmup=400 of 400 samples"):
+        fit_prandtl_ishlinskii(u, u, widths, warmup=400)
+    fit_prandtl_ishlinskii(u, u, widths, warmup=399)  # one sample per row left: still a fit
 
 
 def _decaying_test_signal(t: torch.Tensor, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -5,20 +5,20 @@ from __future__ import annotations
 import math
 import warnings
 
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from _helpers import play_reference
 from _training_helpers import trainer
 
 from torchhys import EIHO, Backlash, PrandtlIshlinskii, ZhaoTanOperator
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid
 from torchhys.functional import NonCausalWarning, backlash
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
-from torchhys.training.operators import OPERATORS, _fit_pi_after, build_operators
+from torchhys.training.operators import OPERATORS, build_operators
 
 torch.set_num_threads(1)
-
-
 
 
 def small_data(**kwargs) -> HysteresisDataModule:
@@ -95,22 +95,36 @@ def test_fitted_operators_live_in_the_checkpoint(tmp_path) -> None:
     torch.testing.assert_close(loaded(x), module(x), rtol=0, atol=0)
 
 
+def numpy_ridge_fit(x: np.ndarray, y: np.ndarray, widths: np.ndarray, warmup: int,
+                    ridge: float) -> np.ndarray:
+    """``[w0, w_1..w_N]`` minimizing ``mean(r^2) + ridge |w_1..N|^2`` over the samples after
+    ``warmup``; the plays (a plain float64 loop) start at zero at the first sample."""
+    plays = play_reference(x, widths)
+    design = np.concatenate([x[..., None], plays], axis=-1)[:, warmup:].reshape(-1, 1 + len(widths))
+    target = y[:, warmup:].reshape(-1)
+    if ridge > 0:  # ridge as extra rows: |D w - y|^2 / m + ridge |E w|^2
+        m = design.shape[0]
+        penalty = np.sqrt(ridge) * np.eye(1 + len(widths))[1:]
+        design = np.vstack([design / np.sqrt(m), penalty])
+        target = np.concatenate([target / np.sqrt(m), np.zeros(len(widths))])
+    return np.linalg.lstsq(design, target, rcond=None)[0]
+
+
+@pytest.mark.parametrize("warmup", [0, 1, 50])
 @pytest.mark.parametrize("ridge", [0.0, 1e-3])
-def test_least_squares_after_warmup_matches_the_library_fit(ridge: float) -> None:
+def test_least_squares_with_warmup_matches_numpy(warmup: int, ridge: float) -> None:
     gen = torch.Generator().manual_seed(0)
     x = torch.randn(2, 300, generator=gen, dtype=torch.float64).cumsum(-1)
-    y = 0.3 * x + backlash(x, torch.tensor([0.5, 2.0], dtype=torch.float64)).sum(-1)
-    widths = play_width_grid(x, 8)
-    ours = _fit_pi_after(x, y, widths, 0, ridge=ridge, learnable=False)
-    ref = fit_prandtl_ishlinskii(x, y, widths, ridge=ridge)
-    torch.testing.assert_close(ours.weights, ref.weights, rtol=1e-8, atol=1e-8)
-    torch.testing.assert_close(ours.linear_weight, ref.linear_weight, rtol=1e-8, atol=1e-8)
-    # after a warm-up: the residual on the kept samples is orthogonal to the design there
-    warm = _fit_pi_after(x, y, widths, 50, ridge=0.0, learnable=False)
-    with torch.no_grad():
-        r = (warm(x)[0] - y)[:, 50:].reshape(-1)
-        design = torch.cat([x.unsqueeze(-1), backlash(x, widths)], -1)[:, 50:].reshape(-1, 9)
-    assert float((design.T @ r).abs().max()) < 1e-7 * float(design.abs().sum())
+    noise = 0.05 * torch.randn(2, 300, generator=gen, dtype=torch.float64)
+    y = 0.3 * x + backlash(x, torch.tensor([0.5, 2.0], dtype=torch.float64)).sum(-1) + noise
+    widths = play_width_grid(x, 8, power=1.0)
+    model = fit_prandtl_ishlinskii(x, y, widths, ridge=ridge, warmup=warmup)
+    ref = numpy_ridge_fit(x.numpy(), y.numpy(), widths.numpy(), warmup, ridge)
+    np.testing.assert_allclose(float(model.linear_weight), ref[0], rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(model.weights.numpy(), ref[1:], rtol=1e-7, atol=1e-9)
+    if warmup > 0:  # leaving samples out changes the fit: the warm-up is not ignored
+        assert not np.allclose(numpy_ridge_fit(x.numpy(), y.numpy(), widths.numpy(), 0, ridge),
+                               ref, rtol=1e-5, atol=0)
 
 
 def test_the_training_loss_leaves_out_the_warmup() -> None:
@@ -126,7 +140,7 @@ def test_the_training_loss_leaves_out_the_warmup() -> None:
     logged = float(t.callback_metrics["train_loss"])
     assert logged == pytest.approx(float(F.mse_loss(pred[:, 100:], y[:, 100:])), rel=1e-12)
     assert logged != pytest.approx(float(F.mse_loss(pred, y)), rel=1e-6)
-    expected = _fit_pi_after(x, y, play_width_grid(x, 8), 100, ridge=0.0, learnable=False)
+    expected = fit_prandtl_ishlinskii(x, y, play_width_grid(x, 8), warmup=100)
     torch.testing.assert_close(module.net.operators[0].weights, expected.weights)
 
 

@@ -138,6 +138,7 @@ def play_width_grid(u: Tensor, n: int = 30, *, power: float = 3.0) -> Tensor:
 
 def fit_prandtl_ishlinskii(
     u: Tensor, y: Tensor, widths: Tensor, *, ridge: float = 0.0, learnable: bool = False,
+    warmup: int = 0,
 ) -> PrandtlIshlinskii:
     """Least-squares Prandtl-Ishlinskii model ``y ~ w0 u + sum_i w_i play_{d_i}[u]``.
 
@@ -148,7 +149,9 @@ def fit_prandtl_ishlinskii(
     thresholds (:func:`~torchhys.functional.prandtl_ishlinskii_inverse_parameters`), and a
     strong one from a dense :func:`play_width_grid` otherwise. Use it as a compensator, or as
     an operator of :class:`~torchhys.InverseHysteresisNet` (the network then models the
-    residual). Play states start at zero, as in the returned model.
+    residual). Play states start at zero at the first sample, as in the returned model;
+    ``warmup`` leaves the first samples out of the fit only (the states still run through
+    them), e.g. while the states forget their zero start.
 
     Args:
         u: model input, (time,) or (batch, time) (rows are independent records).
@@ -157,12 +160,15 @@ def fit_prandtl_ishlinskii(
         ridge: Tikhonov weight: minimizes ``mean(residual^2) + ridge * |w|^2`` (w without
             ``w0``), >= 0.
         learnable: return a model with trainable widths and weights.
+        warmup: leading samples of each row left out of the least-squares fit,
+            ``0 <= warmup < time``.
 
     Returns:
         :class:`~torchhys.PrandtlIshlinskii` in the dtype of ``u`` (detached parameters).
 
     Raises:
-        TypeError, ValueError: bad or mismatched ``u``, ``y``, ``widths``, ``ridge``.
+        TypeError, ValueError: bad or mismatched ``u``, ``y``, ``widths``, ``ridge``,
+            ``warmup``.
 
     References:
         K. Kuhnen, "Modeling, identification and compensation of complex hysteretic
@@ -175,12 +181,18 @@ def fit_prandtl_ishlinskii(
     check_widths(widths, "widths")
     if not (isinstance(ridge, (int, float)) and math.isfinite(ridge) and ridge >= 0):
         raise ValueError(f"ridge must be a finite number >= 0, got {ridge!r}")
+    check_int(warmup, "warmup", minimum=0)
+    if warmup >= ub.shape[1]:
+        raise ValueError(
+            f"warmup must leave samples to fit: warmup={warmup} of {ub.shape[1]} samples"
+        )
     with torch.no_grad():
         ub64, yb64 = ub.detach().double().cpu(), yb.detach().double().cpu()
-        plays = backlash(ub64, widths.detach().double().cpu())
-        design = torch.cat([ub64.unsqueeze(-1), plays], dim=-1).reshape(-1, widths.shape[0] + 1)
+        plays = backlash(ub64, widths.detach().double().cpu())  # run through the warm-up
+        design = torch.cat([ub64.unsqueeze(-1), plays], dim=-1)[:, warmup:]
+        design = design.reshape(-1, widths.shape[0] + 1)
         n = design.shape[0]
-        target = yb64.reshape(-1, 1)
+        target = yb64[:, warmup:].reshape(-1, 1)
         if ridge > 0:
             penalty = torch.eye(widths.shape[0] + 1, dtype=torch.float64)[1:] * math.sqrt(ridge)
             design = torch.cat([design / math.sqrt(n), penalty])

@@ -20,7 +20,6 @@ exports carry them.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -29,7 +28,6 @@ from torch import Tensor, nn
 
 from torchhys import EIHO, Backlash, PrandtlIshlinskii, ZhaoTanOperator
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid
-from torchhys.functional import backlash
 
 __all__ = ["OPERATORS", "OperatorSpec", "build_operators", "fit_data_dependent"]
 
@@ -87,29 +85,12 @@ def _pi_ls(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
 
     def fit(x: Tensor, y: Tensor, warmup: int) -> nn.Module:
         widths = play_width_grid(x, n, power=power)
-        if warmup == 0:
-            return fit_prandtl_ishlinskii(x, y, widths, ridge=ridge, learnable=learnable)
-        return _fit_pi_after(x, y, widths, warmup, ridge=ridge, learnable=learnable)
+        return fit_prandtl_ishlinskii(x, y, widths, ridge=ridge, learnable=learnable,
+                                      warmup=warmup)
 
     placeholder = PrandtlIshlinskii(torch.arange(1, n + 1) / n, torch.zeros(n),
                                     learnable=learnable)
     return placeholder, fit
-
-
-def _fit_pi_after(x: Tensor, y: Tensor, widths: Tensor, warmup: int, *, ridge: float,
-                  learnable: bool) -> PrandtlIshlinskii:
-    """:func:`~torchhys.fitting.fit_prandtl_ishlinskii` on the samples after ``warmup``
-    (the play states start at zero at the first sample and run through the warm-up)."""
-    n = widths.shape[0]
-    design = torch.cat([x.unsqueeze(-1), backlash(x, widths)], dim=-1)[:, warmup:]
-    design, target = design.reshape(-1, n + 1), y[:, warmup:].reshape(-1, 1)
-    if ridge > 0:
-        rows = design.shape[0]
-        penalty = torch.eye(n + 1, dtype=design.dtype)[1:] * math.sqrt(ridge)
-        design = torch.cat([design / math.sqrt(rows), penalty])
-        target = torch.cat([target / math.sqrt(rows), target.new_zeros(n, 1)])
-    w = torch.linalg.lstsq(design, target, driver="gelsd").solution[:, 0]
-    return PrandtlIshlinskii(widths, w[1:], linear_weight=float(w[0]), learnable=learnable)
 
 
 def _kwargs_operator(cls: type[nn.Module]) -> Callable[[Mapping[str, Any]], tuple]:
