@@ -124,7 +124,7 @@ def build_operators(
         operator_kwargs: keyword arguments of specs given by name only (``"eiho"``).
 
     Returns:
-        ``(modules, fitters)``: ``fitters[i]`` builds the fitted ``modules[i]`` from torchhys.training
+        ``(modules, fitters)``: ``fitters[i]`` builds the fitted ``modules[i]`` from training
         data (see :func:`fit_data_dependent`).
 
     Raises:
