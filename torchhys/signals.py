@@ -19,6 +19,8 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from torchhys._checks import check_choice, check_int
+
 __all__ = [
     "chirp",
     "decaying_sine",
@@ -188,8 +190,7 @@ def multisine(
         if len(edges) != 2 or not edges[0] < edges[1]:
             raise ValueError(f"band must be (w_low, w_high) with w_low < w_high, got {band!r}")
         lo, hi = edges
-        if isinstance(n_tones, bool) or not isinstance(n_tones, int) or n_tones < 1:
-            raise ValueError(f"n_tones must be an int >= 1, got {n_tones!r}")
+        check_int(n_tones, "n_tones", minimum=1)
         w = torch.linspace(lo, hi, n_tones, dtype=torch.float64)
     else:
         w = torch.tensor(_reals("frequencies", frequencies, nonnegative=True),
@@ -203,14 +204,13 @@ def multisine(
         raise ValueError(f"rms must be > 0, got {rms}")
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise TypeError(f"seed must be an int, got {type(seed).__name__}: {seed!r}")
+    check_choice(phases, "phases", _PHASES)
     k = torch.arange(1, w.numel() + 1, dtype=torch.float64)
     if phases == "random":
         gen = torch.Generator().manual_seed(seed)
         phi = 2 * math.pi * torch.rand(w.numel(), generator=gen, dtype=torch.float64)
-    elif phases == "schroeder":
+    else:  # "schroeder"
         phi = -math.pi * k * (k - 1) / w.numel()
-    else:
-        raise ValueError(f"phases must be one of {_PHASES}, got {phases!r}")
     x = torch.sin(t64[:, None] * w.to(t64.device) + phi.to(t64.device)).sum(-1)
     if rms is not None:
         current = x.square().mean().sqrt()
@@ -262,11 +262,12 @@ def chirp(
         raise ValueError(f"t1 must be > 0, got {t1}")
     if a < 0:
         raise ValueError(f"amplitude must be >= 0, got {a}")
+    check_choice(sweep, "sweep", _SWEEPS)
     if sweep == "linear":
         if w0 < 0 or w1 < 0:
             raise ValueError(f"omega0 and omega1 must be >= 0, got {w0} and {w1}")
         theta = w0 * t64 + 0.5 * (w1 - w0) / t1 * t64.square()
-    elif sweep == "logarithmic":
+    else:  # "logarithmic"
         if w0 <= 0 or w1 <= 0:
             raise ValueError(f"omega0 and omega1 must be > 0 for a logarithmic sweep, "
                              f"got {w0} and {w1}")
@@ -275,8 +276,6 @@ def chirp(
         else:
             rate = math.log(w1 / w0) / t1
             theta = w0 * torch.expm1(rate * t64) / rate
-    else:
-        raise ValueError(f"sweep must be one of {_SWEEPS}, got {sweep!r}")
     return (a * torch.sin(theta + phase)).to(t.dtype)
 
 
@@ -381,8 +380,7 @@ def nested_reversals(
         raise ValueError(f"amplitude must be > 0, got {a}")
     if not 0 < r < 1:
         raise ValueError(f"ratio must satisfy 0 < ratio < 1, got {r}")
-    if isinstance(n_reversals, bool) or not isinstance(n_reversals, int) or n_reversals < 1:
-        raise ValueError(f"n_reversals must be an int >= 1, got {n_reversals!r}")
+    check_int(n_reversals, "n_reversals", minimum=1)
     duration = float(t64[-1] - t64[0])
     if duration <= 0:
         raise ValueError("t must span a positive duration for nested_reversals")

@@ -37,6 +37,8 @@ import torch
 from torch import Tensor, nn
 from torchdiffeq import odeint
 
+from torchhys._checks import check_choice, check_int
+
 __all__ = ["BoucWen", "bouc_wen", "bouc_wen_state", "DEFAULTS"]
 
 DEFAULTS: dict[str, float] = {
@@ -72,10 +74,8 @@ def _scalar(name: str, value: float | Tensor, like: Tensor) -> Tensor:
 
 
 def _check_options(method: str, substeps: int, rtol: float, atol: float) -> None:
-    if method not in _METHODS:
-        raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
-    if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
-        raise ValueError(f"substeps must be an int >= 1, got {substeps!r}")
+    check_choice(method, "method", _METHODS)
+    check_int(substeps, "substeps", minimum=1)
     if not (rtol > 0 and atol > 0):
         raise ValueError(f"rtol and atol must be > 0, got rtol={rtol}, atol={atol}")
 
