@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
+from torchhys._checks import check_choice, check_int
 from torchhys.training.files import Column, DataFileError, read_record
 
 __all__ = ["SIMULATIONS", "HysteresisDataModule", "SequenceDataset", "simulate"]
@@ -29,16 +30,15 @@ def simulate(name: str, *, dt: float = 0.01, t_end: float = 8 * math.pi,
     from torchhys.plants import bouc_wen, fig6_simulation, paper_simulation
     from torchhys.signals import multisine, time_grid, to_range
 
+    check_choice(name, "simulation", SIMULATIONS)
     if name == "paper":
         t, u, h = paper_simulation(dt, t_end, dtype=torch.float64)
     elif name == "fig6":
         t, u, h = fig6_simulation(dt, t_end, dtype=torch.float64)
-    elif name == "bouc_wen":
+    else:  # "bouc_wen"
         t = time_grid(dt=dt, t_end=t_end, dtype=torch.float64)
         u = to_range(multisine(t, band=(0.2, 3.0), n_tones=8, seed=seed), -6.0, 6.0)
         h = bouc_wen(u, t)
-    else:
-        raise ValueError(f"simulation must be one of {SIMULATIONS}, got {name!r}")
     return t, h, u
 
 
@@ -113,10 +113,9 @@ class HysteresisDataModule(L.LightningDataModule):
         super().__init__()
         self.save_hyperparameters()
         self.fractions = _check_split(split)
-        if isinstance(warmup, bool) or not isinstance(warmup, int) or warmup < 0:
-            raise ValueError(f"warmup must be an int >= 0, got {warmup!r}")
-        if path is None and simulation not in SIMULATIONS:
-            raise ValueError(f"simulation must be one of {SIMULATIONS}, got {simulation!r}")
+        check_int(warmup, "warmup", minimum=0)
+        if path is None:
+            check_choice(simulation, "simulation", SIMULATIONS)
         self.t: Tensor | None = None
         self.x: Tensor | None = None
         self.y: Tensor | None = None

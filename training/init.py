@@ -7,6 +7,8 @@ import math
 import torch
 from torch import nn
 
+from torchhys._checks import check_choice
+
 __all__ = ["INITS", "initialize"]
 
 INITS = ("default", "nguyen_widrow")
@@ -44,8 +46,7 @@ def initialize(net: nn.Module, init: str) -> None:
     ``net`` must have ``hidden`` and ``output`` ``nn.Linear`` layers (as
     :class:`torchhys.InverseHysteresisNet`) for ``"nguyen_widrow"``.
     """
-    if init not in INITS:
-        raise ValueError(f"init must be one of {INITS}, got {init!r}")
+    check_choice(init, "init", INITS)
     if init == "default":
         return
     hidden, output = getattr(net, "hidden", None), getattr(net, "output", None)

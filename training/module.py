@@ -13,6 +13,7 @@ from torch import Tensor, nn
 from torchmetrics import MeanSquaredError
 
 from torchhys import InverseHysteresisNet
+from torchhys._checks import check_choice
 from torchhys.optim import PowellBealeCG
 from torchhys.training.init import initialize
 from torchhys.training.operators import build_operators, fit_data_dependent
@@ -129,8 +130,7 @@ class InverseHysteresisModule(L.LightningModule):
         optimizer_kwargs: dict | None = None, schedule: str | None = None,
     ) -> None:
         super().__init__()
-        if optimizer not in OPTIMIZERS:
-            raise ValueError(f"optimizer must be one of {sorted(OPTIMIZERS)}, got {optimizer!r}")
+        check_choice(optimizer, "optimizer", sorted(OPTIMIZERS))
         if schedule not in (None, "cosine") or (schedule and optimizer in CLOSURE_OPTIMIZERS):
             raise ValueError(
                 f"schedule must be None or 'cosine' (with optimizer='adam'), got {schedule!r} "

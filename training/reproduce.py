@@ -25,6 +25,7 @@ from pathlib import Path
 import lightning as L
 import torch
 
+from torchhys._checks import check_choice
 from torchhys.training.data import HysteresisDataModule
 from torchhys.training.module import InverseHysteresisModule
 
@@ -44,7 +45,8 @@ FLOOR = 3.5e-4
 
 
 def model_kwargs(model: str, h: torch.Tensor) -> dict:
-    """Module options of a model name (``eiho``, ``zhao_tan``, ``mlp``)."""
+    """Module options of a model name (``eiho``, ``eiho_pi``, ``zhao_tan``, ``mlp``)."""
+    check_choice(model, "model", MODELS)
     if model == "eiho":
         return {"operator": "eiho", "operator_kwargs": {"a": "segment", "a_formula": "sqrt"}}
     if model == "eiho_pi":  # expanded input space: the EIHO and the least-squares PI of h
@@ -52,9 +54,7 @@ def model_kwargs(model: str, h: torch.Tensor) -> dict:
                              {"name": "pi_ls", "n_widths": 30}]}
     if model == "zhao_tan":  # input scale near the input's spread (s = 1 leaves f ~ x + c)
         return {"operator": "zhao_tan", "operator_kwargs": {"scale": float(h.std()) / 5}}
-    if model == "mlp":
-        return {"operator": None}
-    raise ValueError(f"model must be one of {MODELS}, got {model!r}")
+    return {"operator": None}  # "mlp"
 
 
 class Convergence(L.Callback):
