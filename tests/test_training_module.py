@@ -24,8 +24,6 @@ def small_data(**kwargs) -> HysteresisDataModule:
     return HysteresisDataModule(t_end=2 * math.pi, **kwargs)
 
 
-
-
 def full_batch_loss(module: InverseHysteresisModule, dm: HysteresisDataModule) -> float:
     x, y = dm.train_tensors()
     with torch.no_grad():
@@ -124,10 +122,31 @@ def test_closure_optimizer_rejects_trainer_options(option, value, match, optimiz
     assert optimizer in str(err.value)
 
 
+class GradNorm(L.Callback):
+    """Norm of the gradient the optimizer stepped with (after clipping), per batch."""
+
+    def __init__(self) -> None:
+        self.norms: list[float] = []
+
+    def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx) -> None:
+        grads = [p.grad.norm() for p in module.parameters() if p.grad is not None]
+        self.norms.append(float(torch.stack(grads).norm()))
+
+
 def test_adam_accepts_clipping_and_accumulation() -> None:
+    torch.manual_seed(0)
     module = InverseHysteresisModule(operator=None, hidden=4, optimizer="adam")
-    trainer(max_epochs=1, gradient_clip_val=1.0, accumulate_grad_batches=2).fit(
-        module, small_data())
+    before = [p.detach().clone() for p in module.parameters()]
+    rec = GradNorm()
+    t = trainer(max_epochs=2, gradient_clip_val=1e-3, accumulate_grad_batches=2,
+                callbacks=[rec])
+    t.fit(module, small_data())
+    # one batch per epoch: the epoch's end closes the accumulation, so Adam steps each epoch
+    assert t.global_step == 2
+    assert all(not torch.equal(a, b.detach()) for a, b in zip(before, module.parameters(),
+                                                                strict=True))
+    # the raw gradient norm is ~2.7 here: clipping scaled it to the clip value
+    assert rec.norms == pytest.approx([1e-3, 1e-3], rel=1e-5)
 
 
 def test_closure_optimizer_may_evaluate_with_any_trainer() -> None:
