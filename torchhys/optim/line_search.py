@@ -103,7 +103,8 @@ def charalambous(
     The search keeps a bracket: ``lo`` is the best trial with sufficient decrease (initially
     ``0``) and ``hi`` the other end, so that a point satisfying both conditions lies between
     them. While no upper end is known the step grows by cubic extrapolation through the last
-    two trials, kept in ``[1.1 a, 4 a]``. Inside a bracket of width ``w`` the next trial is
+    two trials, kept in ``[1.1 a, 10 a]`` (``10 a`` where the cubic has no finite
+    minimizer). Inside a bracket of width ``w`` the next trial is
     the minimizer of the cubic through both ends (their losses and slopes), kept at least
     ``gamma * w`` away from either end; a non-finite end shrinks the step to
     ``lo + 0.1 (hi - lo)``. The search stops when
