@@ -16,7 +16,6 @@ from torchhys import (
     ZhaoTanOperator,
     signals,
 )
-from torchhys._streaming_ops import PlayStep
 from torchhys.streaming import StreamingCompensator
 
 
@@ -52,7 +51,8 @@ A_MODES = [1.5, (1.5, 0.5), "learnable"]
 @pytest.mark.parametrize("a", A_MODES)
 def test_eiho_network_step_equals_sequence(rule: str, threshold: float, a: object) -> None:
     x = inputs()
-    op = EIHO(a=a, rule=rule, threshold=threshold, max_depth=6, a_init=0.7)
+    init = {"a_init": 0.7} if a == "learnable" else {}
+    op = EIHO(a=a, rule=rule, threshold=threshold, max_depth=6, **init)
     net = net_of([op], torch.float64, x)
     with torch.no_grad():
         ref, _ = net(x)
@@ -79,23 +79,8 @@ def test_operator_features_step_equal_sequence_float32(rule: str, threshold: flo
 
 
 def per_op_features(comp: StreamingCompensator, x: torch.Tensor) -> torch.Tensor:
-    """Each operator's step output (batch, time, features), through the packed state."""
-    state = comp.initial_state(x.shape[0])
-    per_op = [[] for _ in comp.ops]
-    for xt in x.unbind(-1):
-        # the compensator's own preamble: anchoring of fresh rows, one clamp for all plays
-        xc, F, parts, Y, Yn = comp._advance(xt, state)
-        F64 = state[3] if comp.n_f64 > 0 else F
-        for i, op in enumerate(comp.ops):
-            out: list = []
-            if isinstance(op, PlayStep):  # its features are its columns of Yn
-                out.append(Yn[:, op.y0:op.y0 + op.n_play])
-            else:
-                op.step(xt, xc, Y, Yn, F, state[1], F64, state[2], parts, out, [], [], [])
-            # a factor the step leaves to the network (folded into its weights)
-            per_op[i].append(out[0] * getattr(op, "feature_scale", 1.0))
-        _, state = comp.step_explicit(xt, state)
-    return torch.cat([torch.stack(p, dim=1) for p in per_op], dim=-1)
+    """Each operator step's output (batch, time, features), as the compensator runs it."""
+    return torch.cat([slot.step.run(x) for slot in comp.slots], dim=-1)
 
 
 @pytest.mark.parametrize("rule", RULES)

@@ -7,6 +7,7 @@ import torch
 from test_streaming import inputs, net_of, per_op_features, steps_of
 
 from torchhys import EIHO, Backlash, ZhaoTanOperator
+from torchhys.branch_steps import RebasedStep
 from torchhys.export import load_torchscript, to_torchscript
 from torchhys.streaming import StreamingCompensator
 
@@ -16,13 +17,13 @@ from torchhys.streaming import StreamingCompensator
 @pytest.mark.parametrize("a", [1.5, (1.5, 0.5), "anchored"])
 def test_branch_eiho_network_step_equals_sequence(rule: str, threshold: float, a: object):
     x = inputs()
-    op = EIHO(a=a, rule=rule, threshold=threshold, max_depth=6, a_init=0.7,
-              anchor_scale=2.0, output="branch")
+    opts = {"a_init": 0.7, "anchor_scale": 2.0} if a == "anchored" else {}
+    op = EIHO(a=a, rule=rule, threshold=threshold, max_depth=6, output="branch", **opts)
     net = net_of([op, Backlash([0.0, 0.5, 2.0])], torch.float64, x)
     with torch.no_grad():
         ref, _ = net(x)
-        level = net_of([EIHO(a=a, rule=rule, threshold=threshold, max_depth=6, a_init=0.7,
-                             anchor_scale=2.0), Backlash([0.0, 0.5, 2.0])], torch.float64, x)
+        level = net_of([EIHO(a=a, rule=rule, threshold=threshold, max_depth=6, **opts),
+                        Backlash([0.0, 0.5, 2.0])], torch.float64, x)
     comp = StreamingCompensator(net, limits=(-1e6, 1e6))
     torch.testing.assert_close(comp(x), ref, rtol=0, atol=1e-12)
     torch.testing.assert_close(steps_of(comp, x), ref, rtol=0, atol=1e-12)
@@ -44,19 +45,19 @@ def test_branch_operator_features_bit_for_bit_float32(rule: str, threshold: floa
     torch.testing.assert_close(per_op_features(comp, x), feats[..., 1:], rtol=0, atol=0)
 
 
-def test_deployed_branch_eiho_step_float32() -> None:
-    """The deployed configuration (threshold 0, one positive coefficient: the step keeps
-    x_a and v = x - x_a and computes v / sqrt(max(|v|, eps)), a_0 left to the network) with
-    plays after it: float32 features to rounding (u rsqrt(u) against sqrt(u)), steps ==
-    forward bit for bit."""
+@pytest.mark.parametrize("a", [0.5, (0.5, 1.25)])
+def test_deployed_branch_eiho_step_float32(a: object) -> None:
+    """The deployed configuration (threshold 0, fixed coefficients: the step keeps the last
+    sample, x_a and v = x - x_a, f = a_d signed_sqrt(v)) with plays after it: float32
+    features bit for bit, steps == forward bit for bit."""
     x = inputs().float()
-    ops = [EIHO(a=0.5, rule="recent", output="branch"), Backlash(torch.tensor([0.0, 0.3, 1.0]))]
+    ops = [EIHO(a=a, rule="recent", output="branch"), Backlash(torch.tensor([0.0, 0.3, 1.0]))]
     net = net_of(ops, torch.float32, x)
     with torch.no_grad():
         feats, _ = net.features(x)
     comp = StreamingCompensator(net, limits=(-1e6, 1e6))
-    assert comp.ops[0].signed_v and comp.ops[0].feature_scale == 0.5
-    torch.testing.assert_close(per_op_features(comp, x), feats[..., 1:], rtol=1e-6, atol=1e-6)
+    assert isinstance(comp.slots[0].step, RebasedStep)
+    torch.testing.assert_close(per_op_features(comp, x), feats[..., 1:], rtol=0, atol=0)
     torch.testing.assert_close(steps_of(comp, x), comp(x), rtol=0, atol=0)
 
 

@@ -4,10 +4,11 @@ The functional core lives in :mod:`torchhys.functional`; the ``nn.Module`` wrapp
 that hold parameters and state are re-exported here.
 """
 
-from torchhys import export, fitting, optim, plants, signals, streaming
+from torchhys import export, fitting, operator, optim, plants, signals, streaming
 from torchhys.backlash import Backlash, BacklashCell
 from torchhys.eiho import EIHO, ZhaoTanOperator
 from torchhys.networks import InverseHysteresisNet
+from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
 from torchhys.prandtl_ishlinskii import PrandtlIshlinskii, PrandtlIshlinskiiInverse
 
 __version__ = "0.1.0"
@@ -20,6 +21,11 @@ __all__ = [
     "export",
     "fitting",
     "streaming",
+    "operator",
+    "HysteresisOperator",
+    "OperatorStep",
+    "StateBlock",
+    "register_operator",
     "Backlash",
     "EIHO",
     "InverseHysteresisNet",

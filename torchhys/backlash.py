@@ -1,15 +1,14 @@
 """``nn.Module`` wrappers of the play (backlash) operator: a cell and a sequence module."""
 
-from __future__ import annotations
-
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from torchhys._checks import check_finite, check_floating, check_tensor, check_widths
 from torchhys.functional.backlash import backlash, play_step
+from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
 
-__all__ = ["Backlash", "BacklashCell"]
+__all__ = ["Backlash", "BacklashCell", "PlayStep"]
 
 # softplus(_ZERO_WIDTH_RAW) ~ 2e-9: how a learnable zero width is stored
 _ZERO_WIDTH_RAW = -20.0
@@ -87,7 +86,28 @@ class BacklashCell(_Widths):
         return y, y
 
 
-class Backlash(_Widths):
+class PlayStep(OperatorStep):
+    """N play operators, one sample at a time: :func:`~torchhys.functional.play_step`.
+
+    State: ``plays`` (N columns, 0 at the first sample, as the sequence path starts).
+    Features: the N play outputs.
+
+    Args:
+        widths: full dead-band widths, shape (N,), in the step's dtype.
+    """
+
+    def __init__(self, widths: Tensor) -> None:
+        super().__init__()
+        self.register_buffer("r", 0.5 * widths.detach().clone())
+        self.n_outputs = int(widths.shape[0])
+        self.state_spec = [StateBlock("plays", self.n_outputs)]
+
+    def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
+        y = play_step(x, self.r, state[0])
+        return y, [y]
+
+
+class Backlash(_Widths, HysteresisOperator):
     """N play (backlash) operators over whole sequences, with a carried state.
 
     Equal to looping :class:`BacklashCell` over time; calling it on consecutive
@@ -104,6 +124,18 @@ class Backlash(_Widths):
           outputs at the last sample, (N,) for x of shape (time,), else (batch, N).
     """
 
+    @property
+    def n_outputs(self) -> int:
+        """One feature per play operator (N)."""
+        return self.n_operators
+
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
         y = backlash(x, self.get_widths(), y0=state)
         return y, y[..., -1, :]
+
+    def streaming_step(self, dtype: torch.dtype) -> PlayStep:
+        """The per-sample step with the current widths, in ``dtype``."""
+        return PlayStep(self.get_widths().detach().to(dtype))
+
+
+register_operator("backlash", Backlash)

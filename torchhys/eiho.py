@@ -8,9 +8,11 @@ import warnings
 import torch
 from torch import Tensor, nn
 
+from torchhys.branch_steps import branch_step
 from torchhys.functional._branch import BranchState
 from torchhys.functional.eiho import NonCausalWarning, eiho, segment_coefficients, zhao_tan
 from torchhys.functional.turning_points import estimate_threshold
+from torchhys.operator import HysteresisOperator, OperatorStep, register_operator
 
 __all__ = ["EIHO", "ZhaoTanOperator"]
 
@@ -28,7 +30,7 @@ def _threshold_buffer(threshold: float | str) -> Tensor:
     return torch.tensor(float(threshold))
 
 
-class _TurningPointOperator(nn.Module):
+class _TurningPointOperator(HysteresisOperator):
     """Holds the detector threshold (a buffer; NaN until an ``"auto"`` one is calibrated)."""
 
     n_outputs: int = 1
@@ -44,6 +46,11 @@ class _TurningPointOperator(nn.Module):
         self.rule, self.output = rule, output
         self.max_depth = max_depth
         self.register_buffer("threshold", _threshold_buffer(threshold))
+
+    def calibrate(self, x: Tensor) -> None:
+        """Calibrate an ``"auto"`` threshold that is not calibrated yet on x (batch, time)."""
+        if bool(torch.isnan(self.threshold)):
+            self.calibrate_threshold(x)
 
     def calibrate_threshold(self, x: Tensor) -> Tensor:
         """Set the threshold from data: the median of :func:`estimate_threshold` over rows."""
@@ -108,8 +115,24 @@ class EIHO(_TurningPointOperator):
         super().__init__(threshold, rule, max_depth, output)
         if a_formula not in _A_FORMULAS:
             raise ValueError(f"a_formula must be one of {_A_FORMULAS}, got {a_formula!r}")
-        self.a_formula, self.eps = a_formula, eps
+        mode = a if isinstance(a, str) else "fixed"
+        for name, value, default, modes in (
+            ("per_direction", per_direction, False, ("learnable",)),
+            ("a_init", a_init, 1.0, ("learnable", "anchored")),
+            ("anchor_center", anchor_center, 0.0, ("anchored",)),
+            ("anchor_scale", anchor_scale, 1.0, ("anchored",)),
+            ("a_formula", a_formula, "sqrt", ("segment",)),
+        ):
+            if value != default and mode not in modes:
+                raise ValueError(
+                    f"{name}={value!r} applies only with a in {modes}, got a={a!r}"
+                )
+        if isinstance(eps, bool) or not isinstance(eps, (int, float)) or not (
+                math.isfinite(eps) and eps >= 0):
+            raise ValueError(f"eps must be a finite number >= 0, got {eps!r}")
+        self.a_formula, self.eps = a_formula, float(eps)
         self.per_segment = a == "segment"
+        self.causal = not self.per_segment
         if a in ("learnable", "anchored"):
             if not (math.isfinite(a_init) and a_init > 0):
                 raise ValueError(f"a_init must be a positive number, got {a_init!r}")
@@ -183,15 +206,40 @@ class EIHO(_TurningPointOperator):
             a = self.coefficient()
         slope = None
         if hasattr(self, "anchor_slope"):
-            # a_d exp(k_d (x_e - c) / s) = [a_d exp(-k_d c / s)] exp((k_d / s) x_e)
-            slope = self.anchor_slope / self.anchor_norm[1]
-            a = a * torch.exp(-slope * self.anchor_norm[0])
+            a, slope = self._anchored()
             slope = slope.to(x.dtype) if x.is_floating_point() else slope
         return eiho(
             x, a.to(x.dtype) if x.is_floating_point() else a, rule=self.rule,
             threshold=self._threshold(), state=state, per_segment=self.per_segment,
             eps=self.eps, max_depth=self.max_depth, anchor_slope=slope, output=self.output,
         )
+
+    def _anchored(self) -> tuple[Tensor, Tensor]:
+        """``a="anchored"`` as coefficients of ``exp(slope x_e)``: ``(a (2,), slope (2,))``.
+
+        ``a_d exp(k_d (x_e - c) / s) = [a_d exp(-k_d c / s)] exp((k_d / s) x_e)``.
+        """
+        slope = self.anchor_slope / self.anchor_norm[1]
+        return self.coefficient() * torch.exp(-slope * self.anchor_norm[0]), slope
+
+    def streaming_step(self, dtype: torch.dtype) -> OperatorStep:
+        """The per-sample step (see :mod:`torchhys.branch_steps`).
+
+        Raises:
+            ValueError: ``a="segment"`` (not causal) or an uncalibrated ``"auto"`` threshold.
+        """
+        if self.per_segment:
+            raise ValueError(
+                "EIHO(a='segment') cannot be deployed: its per-segment coefficients come from "
+                "the target's next extremum (not causal). Train with a fixed or learnable a."
+            )
+        with torch.no_grad():
+            a, slope = self._anchored() if hasattr(self, "anchor_slope") else (
+                self.coefficient(), None)
+            return branch_step(
+                "eiho", self.rule, a, slope, self._threshold(), eps=self.eps, scale=1.0,
+                output=self.output, max_depth=self.max_depth, dtype=dtype,
+            )
 
     def extra_repr(self) -> str:
         mode = "segment" if self.per_segment else ("learnable" if hasattr(self, "log_a") else "")
@@ -209,8 +257,8 @@ class ZhaoTanOperator(_TurningPointOperator):
         rule: ``"recent"`` or ``"dominant"``.
         threshold: reversal threshold or ``"auto"`` (then call :meth:`calibrate_threshold`).
         max_depth: stack size of the ``"dominant"`` rule.
-        scale: input scale ``s`` (> 0): ``f = s * zt(x / s)``, i.e.
-            ``(1 - exp(-|x - x_p| / s)) (x - x_p) + f(x_p)``. With ``s = 1`` (the published
+        scale: input scale ``s`` (> 0):
+            ``f = (1 - exp(-|x - x_p| / s)) (x - x_p) + f(x_p)``. With ``s = 1`` (the published
             form) an input of large range makes ``f`` almost ``x`` plus a constant; set ``s``
             near the input's spread.
         output: ``"level"`` (default) or ``"branch"`` (``f - f(x_p)``, as for :class:`EIHO`).
@@ -229,9 +277,22 @@ class ZhaoTanOperator(_TurningPointOperator):
         self, x: Tensor, state: BranchState | None = None
     ) -> tuple[Tensor, BranchState]:
         """Apply the operator to ``x`` (time,) or (batch, time), continuing from ``state``."""
-        s = self.scale
-        f, state = zhao_tan(
-            x / s, rule=self.rule, threshold=self._threshold() / s, state=state,
-            max_depth=self.max_depth, output=self.output,
+        return zhao_tan(
+            x, rule=self.rule, threshold=self._threshold(), state=state,
+            max_depth=self.max_depth, output=self.output, scale=self.scale,
         )
-        return f * s, state
+
+    def streaming_step(self, dtype: torch.dtype) -> OperatorStep:
+        """The per-sample step (see :mod:`torchhys.branch_steps`).
+
+        Raises:
+            ValueError: an uncalibrated ``"auto"`` threshold.
+        """
+        return branch_step(
+            "zhao_tan", self.rule, torch.ones(2), None, self._threshold(), eps=0.0,
+            scale=self.scale, output=self.output, max_depth=self.max_depth, dtype=dtype,
+        )
+
+
+register_operator("eiho", EIHO)
+register_operator("zhao_tan", ZhaoTanOperator)

@@ -8,9 +8,20 @@ inputs held and counted. Neither needs torchhys to load.
   fresh state), ``step(x_t)`` (state kept inside), ``reset()`` and ``nonfinite_count()``;
   loads with ``torch.jit.load`` (Python) or ``torch::jit::load`` (C++).
 * :func:`to_aoti`: an AOTInductor package (``.pt2``) of the explicit-state step
-  ``(x_t, *state) -> (u_t, *state)``; the fresh state is all zeros, its shapes and dtypes
-  are in the package metadata (``state_spec``, see :func:`state_spec_string`); load it with
-  :func:`load_aoti` or ``torch::inductor::AOTIModelPackageLoader`` (C++).
+  ``(x_t, *state) -> (u_t, *state)``; load it with :func:`load_aoti` or
+  ``torch::inductor::AOTIModelPackageLoader`` (C++).
+
+Both carry the same metadata (:func:`metadata`; the package's metadata, or the TorchScript
+file's extra files of the same names), all strings:
+
+    state_spec  the fresh state, ``"dtype:d0,d1;dtype:d0,d1;..."``, all zeros
+                (:func:`state_spec_string`); its layout: :mod:`torchhys.streaming`
+    n_state     number of state tensors
+    counter     ``"tensor:column"`` of the counter of held non-finite samples
+    held        ``"tensor:column"`` of the last valid command
+    low, high   the command's saturation limits
+    dtype       the sample's and the command's dtype
+    batch       the batch the state_spec is written for (static in an AOTI package)
 """
 
 from __future__ import annotations
@@ -22,10 +33,10 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from torchhys.streaming import StreamingCompensator
+from torchhys.streaming import COUNTER, HELD, StreamingCompensator
 
 __all__ = [
-    "AOTIStepper", "load_aoti", "load_torchscript", "state_spec_string", "to_aoti",
+    "AOTIStepper", "load_aoti", "load_torchscript", "metadata", "state_spec_string", "to_aoti",
     "to_torchscript",
 ]
 
@@ -90,7 +101,7 @@ def to_torchscript(
             "ignore", message=r"`torch\.jit\.script` is deprecated", category=DeprecationWarning
         )
         scripted = torch.jit.script(comp)
-    scripted.save(path)
+    scripted.save(path, _extra_files=metadata(comp))
     return scripted
 
 
@@ -99,13 +110,18 @@ def load_torchscript(path: str | os.PathLike) -> torch.jit.ScriptModule:
 
     ``torch.jit.load`` is deprecated in torch 2.13 like ``torch.jit.script``; exactly that
     ``DeprecationWarning`` is caught here, for the same reason. Plain ``torch.jit.load``
-    works as well (no torchhys needed).
+    works as well (no torchhys needed). The module's :func:`metadata` is attached as the
+    dict ``module.torchhys_metadata`` (Python attribute, not scripted).
     """
+    files = dict.fromkeys(_METADATA_KEYS, "")
     with warnings.catch_warnings():
         warnings.filterwarnings(
             "ignore", message=r"`torch\.jit\.load` is deprecated", category=DeprecationWarning
         )
-        return torch.jit.load(os.fspath(path), map_location="cpu")
+        module = torch.jit.load(os.fspath(path), map_location="cpu", _extra_files=files)
+    module.torchhys_metadata = {k: v.decode() if isinstance(v, bytes) else v
+                                for k, v in files.items()}
+    return module
 
 
 def state_spec_string(comp: StreamingCompensator, batch: int = 1) -> str:
@@ -114,6 +130,25 @@ def state_spec_string(comp: StreamingCompensator, batch: int = 1) -> str:
     for t in comp.initial_state(batch):
         parts.append(_DTYPE_NAMES[t.dtype] + ":" + ",".join(str(d) for d in t.shape))
     return ";".join(parts)
+
+
+_METADATA_KEYS = ("state_spec", "n_state", "counter", "held", "low", "high", "dtype", "batch")
+
+
+def metadata(comp: StreamingCompensator, batch: int = 1) -> dict[str, str]:
+    """The exported metadata of a compensator (see the module docstring), all strings."""
+    state = comp.initial_state(batch)
+    return {
+        "state_spec": state_spec_string(comp, batch), "n_state": str(len(state)),
+        "counter": f"{COUNTER[0]}:{COUNTER[1]}", "held": f"{HELD[0]}:{HELD[1]}",
+        "low": repr(float(comp.low)), "high": repr(float(comp.high)),
+        "dtype": _DTYPE_NAMES[comp.low.dtype], "batch": str(batch),
+    }
+
+
+def _position(text: str) -> tuple[int, int]:
+    tensor, column = text.split(":")
+    return int(tensor), int(column)
 
 
 def _parse_state_spec(spec: str) -> list[Tensor]:
@@ -152,10 +187,8 @@ def to_aoti(
     """Compile the explicit-state step with ``torch.export`` + AOTInductor into a package.
 
     The package runs ``(x_t (batch,), *state) -> (u_t (batch,), *state)``. The fresh state
-    is all zeros; its shapes and dtypes are stored in the package metadata under
-    ``"state_spec"`` (format of :func:`state_spec_string`) and ``"n_state"``, together with
-    ``"low"``/``"high"`` (the saturation limits). Compiling takes a minute or more on a
-    small CPU.
+    is all zeros; its shapes and dtypes, the counter's position and the limits are in the
+    package metadata (:func:`metadata`). Compiling takes a minute or more on a small CPU.
 
     Args:
         model, limits, initial_command: as :func:`to_torchscript`.
@@ -176,12 +209,7 @@ def to_aoti(
     x = torch.zeros(batch, dtype=comp.low.dtype)
     with torch.no_grad():
         ep = torch.export.export(_ExplicitStep(comp), (x, *state), strict=False)
-    metadata = {
-        "state_spec": state_spec_string(comp, batch), "n_state": str(len(state)),
-        "low": repr(float(comp.low)), "high": repr(float(comp.high)), "batch": str(batch),
-        "dtype": _DTYPE_NAMES[comp.low.dtype],
-    }
-    configs = {**_aoti_defaults(comp.low.dtype), "aot_inductor.metadata": metadata,
+    configs = {**_aoti_defaults(comp.low.dtype), "aot_inductor.metadata": metadata(comp, batch),
                **(inductor_configs or {})}
     return torch._inductor.aoti_compile_and_package(
         ep, package_path=path, inductor_configs=configs
@@ -198,7 +226,9 @@ class AOTIStepper:
     def __init__(self, path: str | os.PathLike) -> None:
         self.runner = torch._inductor.aoti_load_package(os.fspath(path))
         meta = self.runner.get_metadata()
+        self.metadata = {k: meta[k] for k in _METADATA_KEYS if k in meta}
         self.spec = meta["state_spec"]
+        self.counter = _position(meta["counter"])
         self.low, self.high = float(meta["low"]), float(meta["high"])
         self.reset()
         self.batch = int(self.state[0].shape[0])
@@ -227,8 +257,9 @@ class AOTIStepper:
         return out[0]
 
     def nonfinite_count(self) -> Tensor:
-        """Samples held because the input was NaN or inf, per row."""
-        return self.state[1][:, 0]
+        """Samples held because the input was NaN or inf, per row (the metadata's
+        ``counter`` position)."""
+        return self.state[self.counter[0]][:, self.counter[1]]
 
 
 def load_aoti(path: str | os.PathLike) -> AOTIStepper:

@@ -1,32 +1,25 @@
 """The paper's inverse-hysteresis network (Eq. (17)) on an expanded input space."""
 
-from __future__ import annotations
-
+import copy
 from collections.abc import Sequence
 
 import torch
 from torch import Tensor, nn
 
 from torchhys._checks import as_batched_sequence
-from torchhys.eiho import EIHO, ZhaoTanOperator
+from torchhys.operator import HysteresisOperator, OperatorStep, check_operator, make_operator
 
 __all__ = ["InverseHysteresisNet"]
 
 _ACTIVATIONS = {"sigmoid": nn.Sigmoid, "tanh": nn.Tanh, "relu": nn.ReLU, "gelu": nn.GELU}
-_OPERATORS = {"eiho": EIHO, "zhao_tan": ZhaoTanOperator}
 
-Operator = str | nn.Module
+Operator = str | HysteresisOperator
 
 
-def _make_operator(spec: Operator, kwargs: dict) -> nn.Module:
-    if isinstance(spec, nn.Module):
-        return spec
-    if spec not in _OPERATORS:
-        raise ValueError(
-            f"operator must be one of {sorted(_OPERATORS)}, None, a module or a list of them, "
-            f"got {spec!r}"
-        )
-    return _OPERATORS[spec](**kwargs)
+def _make_operator(spec: Operator, kwargs: dict) -> HysteresisOperator:
+    if isinstance(spec, str):
+        return make_operator(spec, **kwargs)
+    return check_operator(spec)
 
 
 class InverseHysteresisNet(nn.Module):
@@ -39,12 +32,17 @@ class InverseHysteresisNet(nn.Module):
     plain network of ``x`` alone (multi-valued: the baseline the paper improves on).
 
     Args:
-        operator: ``"eiho"``, ``"zhao_tan"``, a module with ``forward(x, state) -> (f, state)``
-            (``f`` (batch, time) or (batch, time, n)), a list of those (expanded input space,
-            e.g. EIHOs with several ``a`` and play operators), or None.
+        operator: a registered operator name (``"eiho"``, ``"zhao_tan"``, ...: see
+            :data:`torchhys.operator.OPERATORS`), a :class:`~torchhys.HysteresisOperator`,
+            a list of those (expanded input space, e.g. EIHOs with several ``a`` and play
+            operators), or None.
         hidden: number of hidden units.
         activation: ``"sigmoid"`` (the paper), ``"tanh"``, ``"relu"`` or ``"gelu"``.
-        operator_kwargs: keyword arguments of string-specified operators (e.g. ``a=...``).
+        operator_kwargs: keyword arguments of operators given by name (e.g. ``a=...``).
+
+    Raises:
+        ValueError: an unknown operator name, bad ``hidden`` or ``activation``.
+        TypeError: an operator that does not implement the operator protocol.
 
     Shapes:
         ``forward(x)``: x (time,) or (batch, time) -> y of the same shape, and the list of
@@ -69,9 +67,7 @@ class InverseHysteresisNet(nn.Module):
             list(operator) if isinstance(operator, (list, tuple)) else [operator]
         )
         self.operators = nn.ModuleList([_make_operator(s, operator_kwargs or {}) for s in specs])
-        n_features = 1 + sum(
-            int(getattr(op, "n_outputs", getattr(op, "n_operators", 1))) for op in self.operators
-        )
+        n_features = 1 + sum(op.n_outputs for op in self.operators)
         self.register_buffer("in_mean", torch.zeros(n_features))
         self.register_buffer("in_std", torch.ones(n_features))
         self.register_buffer("out_mean", torch.zeros(()))
@@ -96,10 +92,10 @@ class InverseHysteresisNet(nn.Module):
         feats, states = [xb.unsqueeze(-1)], []
         for i, op in enumerate(self.operators):
             prev = None if state is None else state[i]
-            if getattr(op, "per_segment", False):
-                f, s = op(xb, prev, target=yb, segment_a=segment_a)
-            else:
+            if op.causal:
                 f, s = op(xb, prev)
+            else:  # a non-causal operator takes the target (the paper's per-segment EIHO)
+                f, s = op(xb, prev, target=yb, segment_a=segment_a)
             feats.append(f.unsqueeze(-1) if f.dim() == 2 else f)
             states.append(s)
         return torch.cat(feats, dim=-1), states
@@ -138,7 +134,8 @@ class InverseHysteresisNet(nn.Module):
             x: model input, (time,) or (batch, time).
             y: targets, same shape.
 
-        Operators with an uncalibrated ``threshold="auto"`` are calibrated on ``x`` first.
+        Each operator's data-dependent settings are calibrated on ``x`` first
+        (:meth:`~torchhys.HysteresisOperator.calibrate`, e.g. a ``threshold="auto"``).
 
         Raises:
             ValueError: mismatched shapes, fewer than 2 samples, a constant ``x`` or ``y``.
@@ -155,9 +152,7 @@ class InverseHysteresisNet(nn.Module):
             if float(v.std()) == 0.0:
                 raise ValueError(f"{name} is constant (std 0): cannot fit a normalization")
         for op in self.operators:
-            th = getattr(op, "threshold", None)
-            if isinstance(th, Tensor) and bool(torch.isnan(th).any()):
-                op.calibrate_threshold(xb)
+            op.calibrate(xb)
         feats, _ = self.features(xb, target=yb)
         flat = feats.reshape(-1, feats.shape[-1])
         std = flat.std(dim=0)
@@ -167,3 +162,42 @@ class InverseHysteresisNet(nn.Module):
         self.out_std.copy_(yb.std())
         self.out_min.copy_(yb.min())
         self.out_max.copy_(yb.max())
+
+    def streaming_steps(self, dtype: torch.dtype) -> list[OperatorStep]:
+        """The operators' per-sample steps in ``dtype`` (for
+        :class:`~torchhys.streaming.StreamingCompensator`)."""
+        return [op.streaming_step(dtype) for op in self.operators]
+
+    def streaming_head(self, dtype: torch.dtype) -> nn.Module:
+        """The network on a step's features (batch, features) -> (batch, 1), physical units,
+        with the normalization folded into its two layers (:class:`FoldedHead`)."""
+        return FoldedHead(self, dtype)
+
+
+class FoldedHead(nn.Module):
+    """:meth:`InverseHysteresisNet.head` with the normalization folded into the layers.
+
+    ``(f - mean) / std`` is folded into the hidden layer and ``out * std + mean`` into the
+    output layer (in float64, then cast to ``dtype``): ``addmm``, activation, ``addmm``.
+    Equal to the network up to float rounding.
+
+    Shapes: ``forward(features)``: (batch, features) -> (batch, 1).
+    """
+
+    def __init__(self, net: InverseHysteresisNet, dtype: torch.dtype) -> None:
+        super().__init__()
+        self.activation = copy.deepcopy(net.activation)
+        with torch.no_grad():
+            w1, b1 = net.hidden.weight.double(), net.hidden.bias.double()
+            mean, std = net.in_mean.double(), net.in_std.double()
+            w2, b2 = net.output.weight.double(), net.output.bias.double()
+            o_mean, o_std = net.out_mean.double(), net.out_std.double()
+            w1s = w1 / std
+            self.register_buffer("w1t", w1s.t().contiguous().to(dtype))
+            self.register_buffer("b1", (b1 - w1 @ (mean / std)).to(dtype))
+            self.register_buffer("w2t", (w2 * o_std).t().contiguous().to(dtype))
+            self.register_buffer("b2", (b2 * o_std + o_mean).to(dtype))
+
+    def forward(self, features: Tensor) -> Tensor:
+        h = self.activation(torch.addmm(self.b1, features, self.w1t))
+        return torch.addmm(self.b2, h, self.w2t)

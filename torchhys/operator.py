@@ -38,8 +38,6 @@ branch in Python on tensor values (use ``torch.where``); its Python ints, floats
 fixed when it is built.
 """
 
-from __future__ import annotations
-
 import abc
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -117,8 +115,11 @@ class OperatorStep(nn.Module, abc.ABC):
     :meth:`forward`.
     """
 
+    # class annotations are read by TorchScript (this module keeps them unquoted); the spec is
+    # Python-level layout, not part of the scripted step
     n_outputs: int
     state_spec: list[StateBlock]
+    __jit_ignored_attributes__ = ["state_spec"]
 
     @abc.abstractmethod
     def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:

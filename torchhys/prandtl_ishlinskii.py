@@ -1,21 +1,43 @@
 """Prandtl-Ishlinskii hysteresis model and its analytic inverse (the classical compensator)."""
 
-from __future__ import annotations
-
 import torch
 from torch import Tensor, nn
 
 from torchhys.backlash import _Widths
-from torchhys.functional.backlash import backlash
+from torchhys.functional.backlash import backlash, play_step
 from torchhys.functional.prandtl_ishlinskii import (
     _check_weights,
+    pi_output,
     prandtl_ishlinskii_inverse_parameters,
 )
+from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
 
-__all__ = ["PrandtlIshlinskii", "PrandtlIshlinskiiInverse"]
+__all__ = ["PIStep", "PrandtlIshlinskii", "PrandtlIshlinskiiInverse"]
 
 
-class PrandtlIshlinskii(_Widths):
+class PIStep(OperatorStep):
+    """A Prandtl-Ishlinskii model, one sample at a time: N plays and :func:`pi_output`.
+
+    State: ``plays`` (N columns, 0 at the first sample). Feature: ``w0 x + sum_i w_i y_i``.
+
+    Args:
+        widths, weights: (N,) each; linear_weight: 0-dim; all in the step's dtype.
+    """
+
+    def __init__(self, widths: Tensor, weights: Tensor, linear_weight: Tensor) -> None:
+        super().__init__()
+        self.register_buffer("r", 0.5 * widths.detach().clone())
+        self.register_buffer("weights", weights.detach().clone())
+        self.register_buffer("linear_weight", linear_weight.detach().clone().reshape(()))
+        self.n_outputs = 1
+        self.state_spec = [StateBlock("plays", int(widths.shape[0]))]
+
+    def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
+        y = play_step(x, self.r, state[0])
+        return pi_output(x, y.unsqueeze(1), self.weights, self.linear_weight), [y]
+
+
+class PrandtlIshlinskii(_Widths, HysteresisOperator):
     """Prandtl-Ishlinskii model ``H[x] = w0 * x + sum_i w_i * y_i`` of N play operators.
 
     The paper's simulated plant (Section 5.2) is
@@ -55,8 +77,7 @@ class PrandtlIshlinskii(_Widths):
         super().__init__(widths, learnable=learnable)
         n = self.n_operators
         dtype = self.get_widths().dtype
-        w = torch.ones(n, dtype=dtype) if weights is None else torch.as_tensor(weights)
-        w = w.to(dtype) if w.is_floating_point() else w.to(dtype)
+        w = torch.ones(n, dtype=dtype) if weights is None else torch.as_tensor(weights).to(dtype)
         _check_weights(w, n)
         w0 = torch.tensor(float(linear_weight), dtype=dtype)
         if not torch.isfinite(w0):
@@ -70,10 +91,15 @@ class PrandtlIshlinskii(_Widths):
 
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
         y = backlash(x, self.get_widths(), y0=state)
-        h = self.linear_weight.to(y.dtype) * x + y @ self.weights.to(y.dtype)
+        h = pi_output(x, y, self.weights.to(y.dtype), self.linear_weight.to(y.dtype))
         return h, y[..., -1, :]
 
-    def inverse(self) -> PrandtlIshlinskiiInverse:
+    def streaming_step(self, dtype: torch.dtype) -> PIStep:
+        """The per-sample step with the current parameters, in ``dtype``."""
+        return PIStep(*(t.detach().to(dtype) for t in (
+            self.get_widths(), self.weights, self.linear_weight)))
+
+    def inverse(self) -> "PrandtlIshlinskiiInverse":
         """The exact inverse model, built from the current parameters (detached).
 
         Raises:
@@ -138,5 +164,34 @@ class PrandtlIshlinskiiInverse(nn.Module):
         if self.widths.numel() == 0:  # purely linear model
             return self.linear_weight.to(y.dtype) * y, y.new_zeros(y.shape[:-1] + (0,))
         z = backlash(y, self.widths, y0=state)
-        u = self.linear_weight.to(y.dtype) * y + z @ self.weights.to(z.dtype)
+        u = pi_output(y, z, self.weights.to(z.dtype), self.linear_weight.to(z.dtype))
         return u, z[..., -1, :]
+
+    def streaming_steps(self, dtype: torch.dtype) -> list[OperatorStep]:
+        """The compensator's steps: the inverse is one Prandtl-Ishlinskii step of y.
+
+        Raises:
+            ValueError: a purely linear inverse (no play operator) needs no compensator.
+        """
+        if self.widths.numel() == 0:
+            raise ValueError("a purely linear PrandtlIshlinskiiInverse needs no compensator")
+        return [PIStep(self.widths.to(dtype), self.weights.to(dtype),
+                       self.linear_weight.to(dtype))]
+
+    def streaming_head(self, dtype: torch.dtype) -> nn.Module:
+        """The command is the step's feature (column 1 after the input's column 0)."""
+        return FeatureColumn(1)
+
+
+class FeatureColumn(nn.Module):
+    """A compensator head that returns one feature column: (batch, n) -> (batch, 1)."""
+
+    def __init__(self, index: int) -> None:
+        super().__init__()
+        self.index = index
+
+    def forward(self, features: Tensor) -> Tensor:
+        return features.narrow(1, self.index, 1)
+
+
+register_operator("prandtl_ishlinskii", PrandtlIshlinskii)

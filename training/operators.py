@@ -3,7 +3,9 @@
 A spec is a name (``"eiho"``, ``"zhao_tan"``: the module's ``operator_kwargs`` apply) or a
 dict ``{"name": NAME, **kwargs}``:
 
-- ``{"name": "eiho", **EIHO kwargs}``, ``{"name": "zhao_tan", **ZhaoTanOperator kwargs}``;
+- any operator registered in :data:`torchhys.operator.OPERATORS` (``"eiho"``,
+  ``"zhao_tan"``, ``"backlash"``, ``"prandtl_ishlinskii"``, and whatever a user registers
+  with :func:`torchhys.operator.register_operator`): ``{"name": NAME, **its kwargs}``;
 - ``{"name": "plays", "n": 16, "power": 1.0, "span_fraction": 1.0, "learnable": False}``:
   :class:`torchhys.Backlash` of the input, full widths
   ``span_fraction * span(x_train) (k / n)^power``, ``k = 1..n`` (or explicit ``widths``);
@@ -26,10 +28,14 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from torchhys import EIHO, Backlash, PrandtlIshlinskii, ZhaoTanOperator
+from torchhys import Backlash, PrandtlIshlinskii
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid
+from torchhys.operator import OPERATORS, make_operator
 
-__all__ = ["OPERATORS", "OperatorSpec", "build_operators", "fit_data_dependent"]
+__all__ = [
+    "FITTED_OPERATORS", "OperatorSpec", "build_operators", "fit_data_dependent",
+    "operator_names",
+]
 
 OperatorSpec = str | Mapping[str, Any]
 """``"eiho"``, ``"zhao_tan"`` or ``{"name": NAME, **kwargs}``."""
@@ -93,24 +99,18 @@ def _pi_ls(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     return placeholder, fit
 
 
-def _kwargs_operator(cls: type[nn.Module]) -> Callable[[Mapping[str, Any]], tuple]:
-    def make(spec: Mapping[str, Any]) -> tuple[nn.Module, None]:
-        kwargs = {k: v for k, v in spec.items() if k != "name"}
-        try:
-            return cls(**kwargs), None
-        except TypeError as e:
-            raise ValueError(f"operator {spec['name']!r}: {e}") from e
-
-    return make
-
-
-OPERATORS: dict[str, Callable[[Mapping[str, Any]], tuple[nn.Module, Fitter | None]]] = {
-    "eiho": _kwargs_operator(EIHO),
-    "zhao_tan": _kwargs_operator(ZhaoTanOperator),
+FITTED_OPERATORS: dict[str, Callable[[Mapping[str, Any]], tuple[nn.Module, Fitter | None]]] = {
     "plays": _plays,
     "pi_ls": _pi_ls,
 }
-"""Operator builders by name: each returns ``(module, fitter or None)``."""
+"""Config operators fitted on the training data, by name: each builder returns
+``(module, fitter or None)``. Every other name is built by
+:func:`torchhys.operator.make_operator`."""
+
+
+def operator_names() -> list[str]:
+    """Every operator name a spec may use."""
+    return sorted(set(FITTED_OPERATORS) | set(OPERATORS))
 
 
 def build_operators(
@@ -142,18 +142,21 @@ def build_operators(
         elif isinstance(spec, Mapping):
             if "name" not in spec:
                 raise ValueError(
-                    f"operator spec {dict(spec)!r} has no 'name'; valid names: {sorted(OPERATORS)}"
+                    f"operator spec {dict(spec)!r} has no 'name'; valid names: {operator_names()}"
                 )
         else:
             raise TypeError(
                 f"operator must be a name, a dict with 'name', a list of them or None, got "
                 f"{type(spec).__name__} {spec!r}"
             )
-        if spec["name"] not in OPERATORS:
-            raise ValueError(
-                f"operator name must be one of {sorted(OPERATORS)}, got {spec['name']!r}"
-            )
-        module, fitter = OPERATORS[spec["name"]](spec)
+        name = spec["name"]
+        if name in FITTED_OPERATORS:
+            module, fitter = FITTED_OPERATORS[name](spec)
+        elif name in OPERATORS:
+            module, fitter = make_operator(name, **{k: v for k, v in spec.items()
+                                                     if k != "name"}), None
+        else:
+            raise ValueError(f"operator name must be one of {operator_names()}, got {name!r}")
         modules.append(module)
         if fitter is not None:
             fitters[i] = fitter

@@ -3,9 +3,11 @@
 //   controller MODEL REF.csv OUT.csv [--rate HZ] [--format torchscript|aoti]
 //
 // MODEL is a TorchScript file from torchhys.export.to_torchscript (frozen here and run by
-// its method step_explicit, the state kept in this program) or an AOTInductor package (.pt2) from torchhys.export.to_aoti (explicit
-// state; the fresh state is all zeros, its shapes and dtypes in the package metadata
-// "state_spec"). REF.csv holds the reference trajectory (desired displacement), one value
+// its method step_explicit, the state kept in this program) or an AOTInductor package
+// (.pt2) from torchhys.export.to_aoti (explicit state). Both carry the same metadata (the
+// package's metadata, the TorchScript file's extra files): "state_spec" (the fresh state's
+// dtypes and shapes, all zeros) and "counter" ("tensor:column" of the counter of held
+// non-finite samples), read here. REF.csv holds the reference trajectory (desired displacement), one value
 // per line in its first column; lines that do not start with a number (a header) are
 // skipped. OUT.csv receives "y_ref,u" per sample. --rate HZ paces the loop with a steady
 // clock (default 1000; 0 runs as fast as possible). Prints the per-sample step latency
@@ -29,6 +31,7 @@
 #include <sstream>
 #include <string>
 #include <thread>
+#include <utility>
 #include <vector>
 
 namespace {
@@ -50,10 +53,18 @@ std::vector<double> read_reference(const std::string& path) {
   return ref;
 }
 
+// "tensor:column" of the metadata's "counter" entry.
+std::pair<size_t, int64_t> parse_position(const std::string& text) {
+  auto colon = text.find(':');
+  if (colon == std::string::npos) throw std::runtime_error("bad position in metadata: " + text);
+  return {std::stoul(text.substr(0, colon)), std::stoll(text.substr(colon + 1))};
+}
+
 // One compensator behind a common interface: step(x) -> u for a batch of one.
 struct Stepper {
   virtual ~Stepper() = default;
   virtual double step(double x) = 0;
+  // the held non-finite samples: the state tensor and column named by "counter"
   virtual int64_t nonfinite() = 0;
 };
 
@@ -76,10 +87,13 @@ void set_value(at::Tensor& t, double x) {
 struct ScriptStepper : Stepper {
   torch::jit::Module module;
   std::optional<torch::jit::Method> step_method;  // looked up once, not per sample
-  c10::IValue state;                              // [F, I, started(, F64)]
+  c10::IValue state;                              // the state list (see "state_spec")
   at::ScalarType dtype;
+  std::pair<size_t, int64_t> counter;
   explicit ScriptStepper(const std::string& path) {
-    torch::jit::Module loaded = torch::jit::load(path);
+    torch::jit::ExtraFilesMap extra{{"counter", ""}};
+    torch::jit::Module loaded = torch::jit::load(path, c10::nullopt, extra);
+    counter = parse_position(extra.at("counter"));
     loaded.eval();
     dtype = loaded.attr("low").toTensor().scalar_type();
     state = loaded.get_method("initial_state")({int64_t(1)});
@@ -97,9 +111,8 @@ struct ScriptStepper : Stepper {
     state = elems[1];
     return first_value(elems[0].toTensor());
   }
-  // state [F, I, started, ...]: column 0 of I counts the held non-finite samples
   int64_t nonfinite() override {
-    return state.toTensorList().get(1).select(1, 0).sum().item<int64_t>();
+    return state.toTensorList().get(counter.first).select(1, counter.second).sum().item<int64_t>();
   }
 };
 
@@ -116,12 +129,14 @@ struct AotiStepper : Stepper {
   std::unique_ptr<torch::inductor::AOTIModelPackageLoader> loader;
   std::vector<at::Tensor> inputs;  // [x, state...]
   at::ScalarType dtype;
+  std::pair<size_t, int64_t> counter;
   // single-threaded runner: this loop is the only caller, so the container's locking and
   // runner pool are skipped
   explicit AotiStepper(const std::string& path)
       : loader(std::make_unique<torch::inductor::AOTIModelPackageLoader>(path, "model", true)) {
     auto meta = loader->get_metadata();
     dtype = parse_dtype(meta.at("dtype"));
+    counter = parse_position(meta.at("counter"));
     inputs.push_back(torch::zeros({1}, torch::TensorOptions().dtype(dtype)));
     std::stringstream spec(meta.at("state_spec"));
     std::string part;
@@ -147,8 +162,9 @@ struct AotiStepper : Stepper {
     for (size_t i = 1; i < out.size(); ++i) inputs[i] = std::move(out[i]);
     return first_value(out[0]);
   }
-  // state [F, I, started, ...]: column 0 of I counts the held non-finite samples
-  int64_t nonfinite() override { return inputs[2].select(1, 0).sum().item<int64_t>(); }
+  int64_t nonfinite() override {  // inputs = [x, state...]
+    return inputs[1 + counter.first].select(1, counter.second).sum().item<int64_t>();
+  }
 };
 #endif
 

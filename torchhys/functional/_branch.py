@@ -45,7 +45,10 @@ from torch import Tensor
 from torchhys._checks import as_batched_sequence, check_finite, check_floating, check_tensor
 from torchhys.functional.turning_points import resolve_threshold, zigzag
 
-__all__ = ["BranchState", "branch_operator", "check_a", "initial_branch_state", "safe_sqrt"]
+__all__ = [
+    "BranchState", "branch_g", "branch_operator", "check_a", "direction_coefficient",
+    "initial_branch_state", "safe_sqrt", "signed_sqrt",
+]
 
 _RULES = ("recent", "dominant")
 
@@ -87,17 +90,43 @@ def initial_branch_state(x0: Tensor, depth: int, f0: Tensor | None = None) -> Br
 def safe_sqrt(u: Tensor, eps: float) -> Tensor:
     """``sqrt(u)`` for ``u >= eps``, ``u / sqrt(eps)`` below: zero at 0, slope <= 1/sqrt(eps).
 
-    Keeps gradients finite at ``x = x_e``; the value differs from ``sqrt(u)`` by less than
-    ``sqrt(eps) / 4`` and only for ``0 < u < eps``.
+    Computed as ``u * rsqrt(max(u, eps))`` (with ``eps = 0``: plain ``sqrt``). Keeps
+    gradients finite at ``x = x_e``; the value differs from ``sqrt(u)`` by less than
+    ``sqrt(eps) / 4`` for ``0 < u < eps`` and by float rounding above. Scriptable: the
+    sequence path and the streaming step call the same function.
     """
-    big = u >= eps
-    return torch.where(big, torch.sqrt(torch.where(big, u, torch.ones_like(u))), u / eps**0.5)
+    if eps > 0.0:
+        return u * torch.rsqrt(torch.clamp_min(u, eps))
+    return torch.sqrt(u)
 
 
-def _g(u: Tensor, a: Tensor, kind: str, eps: float) -> Tensor:
+def signed_sqrt(v: Tensor, eps: float) -> Tensor:
+    """``sign(v) * safe_sqrt(|v|, eps)`` for ``eps > 0``, exactly: the sign comes with the
+    product by ``v`` (multiplying by -1 is exact)."""
+    return v * torch.rsqrt(torch.clamp_min(v.abs(), eps))
+
+
+def branch_g(u: Tensor, coef: Tensor, kind: str, eps: float, scale: float) -> Tensor:
+    """The branch shape ``g(u)``, ``u = |x - x_e| >= 0``: ``coef * safe_sqrt(u, eps)`` for
+    the EIHO, ``(1 - exp(-u / scale)) u`` for the Zhao-Tan operator (no coefficient)."""
     if kind == "eiho":
-        return a * safe_sqrt(u, eps)
-    return (1.0 - torch.exp(-u)) * u
+        return coef * safe_sqrt(u, eps)
+    if kind == "zhao_tan":
+        return (1.0 - torch.exp(-u / scale)) * u
+    raise ValueError("kind must be 'eiho' or 'zhao_tan', got " + kind)
+
+
+def direction_coefficient(
+    a0: Tensor, a1: Tensor, direction: Tensor, anchor: Tensor | None = None,
+    s0: Tensor | None = None, s1: Tensor | None = None,
+) -> Tensor:
+    """Coefficient of a branch of ``direction`` (ascending where >= 0): ``a0`` or ``a1``;
+    with anchor slopes ``s0, s1``: ``a_d exp(s_d * anchor)``, ``anchor`` its start point."""
+    up = direction >= 0
+    base = torch.where(up, a0, a1)
+    if anchor is None or s0 is None or s1 is None:
+        return base
+    return base * torch.exp(torch.where(up, s0, s1) * anchor)
 
 
 def _coef(
@@ -113,10 +142,9 @@ def _coef(
         return a.gather(1, seg.clamp(min=0, max=a.shape[1] - 1).reshape(a.shape[0], -1)).reshape(
             seg.shape
         )
-    base = torch.where(direction >= 0, a[0], a[1])
-    if slope is None or anchor is None:
-        return base
-    return base * torch.exp(torch.where(direction >= 0, slope[0], slope[1]) * anchor)
+    if slope is None:
+        return direction_coefficient(a[0], a[1], direction)
+    return direction_coefficient(a[0], a[1], direction, anchor, slope[0], slope[1])
 
 
 def _pops(stack_x: Tensor, depth: Tensor, m: Tensor, d: Tensor) -> Tensor:
@@ -131,7 +159,7 @@ def _pops(stack_x: Tensor, depth: Tensor, m: Tensor, d: Tensor) -> Tensor:
 
 def _dominant_stacks(
     state: BranchState, v: Tensor, d_prev: Tensor, confirm: Tensor, a: Tensor,
-    kind: str, per_segment: bool, eps: float, slope: Tensor | None = None,
+    kind: str, per_segment: bool, eps: float, slope: Tensor | None = None, scale: float = 1.0,
 ) -> tuple[BranchState, list[Tensor]]:
     """Update the stack at every confirmed turning point; return per-segment snapshots."""
     B, T = v.shape
@@ -149,7 +177,7 @@ def _dominant_stacks(
         top = depth - 1 - 2 * _pops(sx, depth, vj.detach(), dj)
         ax, af, aseg = sx[rows, top], sf[rows, top], ss[rows, top]
         coef = _coef(a, dj, aseg, per_segment, ax, slope)
-        fv = af + dj * _g((vj - ax).abs(), coef, kind, eps)
+        fv = af + dj * branch_g((vj - ax).abs(), coef, kind, eps, scale)
         pos = top + 1
         full = pos >= D
         pos = torch.where(full, pos - 2, pos)
@@ -168,7 +196,7 @@ def _dominant_stacks(
 def branch_operator(
     x: Tensor, a: Tensor, kind: str, rule: str, threshold: float | str | Tensor,
     state: BranchState | None, per_segment: bool, eps: float, max_depth: int,
-    anchor_slope: Tensor | None = None, branch: bool = False,
+    anchor_slope: Tensor | None = None, branch: bool = False, scale: float = 1.0,
 ) -> tuple[Tensor, BranchState]:
     xb, squeezed = as_batched_sequence(x, "x")
     if rule not in _RULES:
@@ -198,7 +226,8 @@ def branch_operator(
         x_a = torch.where(lc >= 0, v.gather(1, lc.clamp(min=0)), state.stack_x[:, :1])
         x_a_prev = torch.cat([state.stack_x[:, :1], x_a[:, :-1]], dim=1)
         coef = _coef(a, d_prev, segment - 1, per_segment, x_a_prev, anchor_slope)
-        inc = torch.where(z.confirm, d_prev * _g((v - x_a_prev).abs(), coef, kind, eps), 0.0)
+        g = branch_g((v - x_a_prev).abs(), coef, kind, eps, scale)
+        inc = torch.where(z.confirm, d_prev * g, 0.0)
         f_a = state.stack_f[:, :1] + inc.cumsum(dim=1)
         seg_a = segment
         new_state = state._replace(
@@ -206,7 +235,7 @@ def branch_operator(
         )
     else:
         new_state, (sx, sf, ss, sdepth) = _dominant_stacks(
-            state, v, d_prev, z.confirm, a, kind, per_segment, eps, anchor_slope
+            state, v, d_prev, z.confirm, a, kind, per_segment, eps, anchor_slope, scale
         )
         D = sx.shape[-1]
         g_idx = seg_local[..., None].expand(B, T, D)
@@ -216,11 +245,12 @@ def branch_operator(
         x_a, f_a, seg_a = (s.gather(2, top)[..., 0] for s in (sx_t, sf_t, ss_t))
     coef_a = _coef(a, d, seg_a, per_segment, x_a, anchor_slope)
     base = torch.zeros_like(f_a) if branch else f_a  # "branch" output: f - f(x_e)
-    f_m = base + d * _g((M - x_a).abs(), coef_a, kind, eps)
+    f_m = base + d * branch_g((M - x_a).abs(), coef_a, kind, eps, scale)
     s = torch.where(d != 0, -d, torch.sign(xb.detach() - M.detach()).long())
     u = torch.relu(s * (xb - M))
     seg_rev = torch.where(d != 0, segment + 1, segment)
-    f = f_m + s * _g(u, _coef(a, s, seg_rev, per_segment, M, anchor_slope), kind, eps)
+    coef_s = _coef(a, s, seg_rev, per_segment, M, anchor_slope)
+    f = f_m + s * branch_g(u, coef_s, kind, eps, scale)
     new_state = new_state._replace(
         play=z.play, direction=d[:, -1], extremum=M[:, -1], segment=segment[:, -1]
     )

@@ -6,6 +6,7 @@ See :mod:`torchhys.functional._branch` for the shared turning-point machinery (r
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import torch
@@ -133,10 +134,12 @@ def zhao_tan(
     state: BranchState | None = None,
     max_depth: int = 32,
     output: str = "level",
+    scale: float = 1.0,
 ) -> tuple[Tensor, BranchState]:
     """Zhao and Tan's expanded-input-space operator (the paper's Ref. [8]).
 
-    ``f(x) = (1 - exp(-|x - x_p|)) (x - x_p) + f(x_p)``, ``x_p`` the anchor turning point.
+    ``f(x) = (1 - exp(-|x - x_p| / s)) (x - x_p) + f(x_p)``, ``x_p`` the anchor turning
+    point, ``s`` the input scale (``s = 1``: the published form).
     This form is the project's definition (as usually quoted; not checked against the
     primary text). Same machinery, arguments and guarantees as :func:`eiho`; smooth at
     ``x = x_p``.
@@ -148,6 +151,7 @@ def zhao_tan(
         state: state from a previous call, or None.
         max_depth: stack size of the ``"dominant"`` rule.
         output: ``"level"`` (default) or ``"branch"`` (``f - f(x_p)``), as for :func:`eiho`.
+        scale: input scale ``s > 0`` of the branch shape.
 
     Returns:
         ``(f, state)`` as for :func:`eiho`.
@@ -158,9 +162,13 @@ def zhao_tan(
     xb, _ = as_batched_sequence(x, "x")
     _check_depth(max_depth)
     branch = _check_output(output)
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (
+            math.isfinite(scale) and scale > 0):
+        raise ValueError(f"scale must be a positive number, got {scale!r}")
     a = xb.new_ones(2)
     return branch_operator(
-        x, a, "zhao_tan", rule, threshold, state, False, 0.0, max_depth, branch=branch
+        x, a, "zhao_tan", rule, threshold, state, False, 0.0, max_depth, branch=branch,
+        scale=float(scale),
     )
 
 

@@ -15,7 +15,10 @@ from torchhys._checks import (
 )
 from torchhys.functional.backlash import backlash
 
-__all__ = ["PIInverseParameters", "prandtl_ishlinskii", "prandtl_ishlinskii_inverse_parameters"]
+__all__ = [
+    "PIInverseParameters", "pi_output", "prandtl_ishlinskii",
+    "prandtl_ishlinskii_inverse_parameters",
+]
 
 
 def _check_weights(weights: Tensor, n: int, name: str = "weights") -> Tensor:
@@ -26,6 +29,17 @@ def _check_weights(weights: Tensor, n: int, name: str = "weights") -> Tensor:
             f"{name} must have shape ({n},), one weight per width, got shape {tuple(weights.shape)}"
         )
     return check_finite(weights, name)
+
+
+def pi_output(x: Tensor, y: Tensor, weights: Tensor, linear_weight: Tensor) -> Tensor:
+    """``w0 * x + sum_i w_i * y_i``: x (...), play outputs y (..., N) -> (...).
+
+    A product and a sum over the last dimension (not a matrix product, whose blocking, and
+    so its rounding, changes with the number of rows): each output depends on its own row
+    only, so chunked and per-sample evaluations equal the whole. Scriptable: the sequence
+    path and the streaming step call it.
+    """
+    return linear_weight * x + (y * weights).sum(-1)
 
 
 def prandtl_ishlinskii(
@@ -55,7 +69,7 @@ def prandtl_ishlinskii(
     check_widths(widths, "widths")
     _check_weights(weights, widths.shape[0])
     y = backlash(x, widths, y0=y0)
-    return linear_weight * x + y @ weights.to(y.dtype)
+    return pi_output(x, y, weights.to(y.dtype), torch.as_tensor(linear_weight, dtype=y.dtype))
 
 
 class PIInverseParameters(NamedTuple):

@@ -1,0 +1,199 @@
+"""The operator protocol: a new operator defined here alone trains, streams and exports.
+
+``DeadZone`` is the worked example of docs/adding-an-operator.md: a dead zone with a
+learnable width, ``f(x) = x - clamp(x, -w, w)``, written in this module only (no library
+file knows it) and registered by one line.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from torchhys import InverseHysteresisNet
+from torchhys.streaming import StreamingCompensator
+from torchhys.export import load_aoti, load_torchscript, to_aoti, to_torchscript
+from torchhys.operator import (
+    OPERATORS,
+    HysteresisOperator,
+    OperatorStep,
+    StateBlock,
+    check_operator,
+    make_operator,
+    register_operator,
+)
+
+
+def dead_zone(x: Tensor, width: Tensor) -> Tensor:
+    """``x - clamp(x, -w, w)``: the maths, defined once (scriptable)."""
+    return x - torch.minimum(torch.maximum(x, -width), width)
+
+
+class DeadZoneStep(OperatorStep):
+    def __init__(self, width: Tensor) -> None:
+        super().__init__()
+        self.register_buffer("width", width)
+        self.n_outputs = 1
+        self.state_spec = []  # memoryless
+
+    def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
+        return dead_zone(x, self.width), state
+
+
+class DeadZone(HysteresisOperator):
+    n_outputs = 1
+
+    def __init__(self, width: float = 0.5) -> None:
+        super().__init__()
+        self.raw = nn.Parameter(torch.tensor(math.log(math.expm1(width))))
+
+    def forward(self, x: Tensor, state: object = None) -> tuple[Tensor, None]:
+        return dead_zone(x, F.softplus(self.raw).to(x.dtype)), None
+
+    def streaming_step(self, dtype: torch.dtype) -> OperatorStep:
+        return DeadZoneStep(F.softplus(self.raw).detach().to(dtype))
+
+
+register_operator("dead_zone", DeadZone)
+
+
+class Sticky(HysteresisOperator):
+    """A stateful toy: the last input outside a band of +/- w around the held value."""
+
+    n_outputs = 2
+
+    def __init__(self, w: float = 0.3) -> None:
+        super().__init__()
+        self.w = w
+
+    def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        xb = x if x.dim() == 2 else x[None]
+        held = xb[:, :1] if state is None else state
+        out = []
+        for xt in xb.unbind(1):
+            held = torch.where((xt[:, None] - held).abs() > self.w, xt[:, None], held)
+            out.append(torch.cat([held, xt[:, None] - held], 1))
+        f = torch.stack(out, 1)
+        return (f if x.dim() == 2 else f[0]), held
+
+    def streaming_step(self, dtype: torch.dtype) -> OperatorStep:
+        return StickyStep(self.w)
+
+
+class StickyStep(OperatorStep):
+    def __init__(self, w: float) -> None:
+        super().__init__()
+        self.w = w
+        self.n_outputs = 2
+        self.state_spec = [StateBlock("held", 1, from_sample=1.0)]
+
+    def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
+        held = torch.where((x - state[0]).abs() > self.w, x, state[0])
+        return torch.cat([held, x - held], 1), [held]
+
+
+def data(T: int = 300, dtype: torch.dtype = torch.float64) -> tuple[Tensor, Tensor]:
+    t = torch.linspace(0, 12, T, dtype=dtype)
+    x = 2 * torch.sin(t) + 0.5 * torch.sin(3.3 * t)
+    return x[None], torch.tanh(x)[None] + 0.3 * x[None]
+
+
+def trained_net(dtype: torch.dtype = torch.float64) -> InverseHysteresisNet:
+    torch.manual_seed(0)
+    x, y = data(dtype=dtype)
+    net = InverseHysteresisNet([DeadZone(0.4), Sticky(0.3)], hidden=8).to(dtype)
+    net.fit_normalization(x, y)
+    return net
+
+
+def test_registered_by_one_line_and_built_by_name() -> None:
+    assert OPERATORS["dead_zone"] is DeadZone
+    op = make_operator("dead_zone", width=0.2)
+    assert isinstance(op, DeadZone)
+    assert float(F.softplus(op.raw.detach())) == pytest.approx(0.2)
+    net = InverseHysteresisNet("dead_zone", operator_kwargs={"width": 0.7}, hidden=3)
+    assert float(F.softplus(net.operators[0].raw.detach())) == pytest.approx(0.7)
+    with pytest.raises(ValueError, match="operator 'dead_zone'.*unexpected keyword"):
+        make_operator("dead_zone", widht=0.2)
+    with pytest.raises(ValueError, match="registered already"):
+        register_operator("dead_zone", Sticky)
+
+
+def test_a_module_outside_the_protocol_is_a_type_error_naming_what_is_missing() -> None:
+    with pytest.raises(TypeError, match="HysteresisOperator.*got Linear.*streaming_step"):
+        InverseHysteresisNet([nn.Linear(1, 1)])
+    with pytest.raises(TypeError, match="Can't instantiate abstract class"):
+        type("Half", (HysteresisOperator,), {"forward": lambda self, x, s=None: (x, s)})()
+
+    class BadCount(DeadZone):
+        n_outputs = 0
+
+    with pytest.raises(TypeError, match="n_outputs must be an int >= 1, got 0"):
+        check_operator(BadCount())
+
+
+@pytest.mark.parametrize("op", [DeadZone(0.4), Sticky(0.3)])
+def test_step_equals_sequence(op: HysteresisOperator) -> None:
+    x, _ = data()
+    x = torch.cat([x, -0.5 * x.flip(1)])
+    with torch.no_grad():
+        f, _ = op(x)
+    got = op.streaming_step(torch.float64).run(x)
+    torch.testing.assert_close(got, f.reshape(got.shape), rtol=0, atol=0)
+
+
+def test_trains_in_a_network_through_the_lightning_module(tmp_path) -> None:
+    from _training_helpers import trainer
+
+    from torchhys.training import HysteresisDataModule, InverseHysteresisModule
+    from torchhys.training.operators import build_operators
+
+    modules, fitters = build_operators([{"name": "dead_zone", "width": 0.4}])
+    assert isinstance(modules[0], DeadZone) and fitters == {}
+    x, y = data()
+    path = tmp_path / "record.csv"
+    rows = "\n".join(f"{a!r},{b!r}" for a, b in zip(x[0].tolist(), y[0].tolist()))
+    path.write_text("response,command\n" + rows + "\n")
+    dm = HysteresisDataModule(path=str(path), split=[1.0, 0.0, 0.0])
+    torch.manual_seed(0)
+    module = InverseHysteresisModule(operator=[{"name": "dead_zone", "width": 0.4}],
+                                     hidden=8, optimizer="adam", lr=0.05)
+    raw0 = module.net.operators[0].raw.detach().clone()
+    fit = trainer(max_epochs=40)
+    fit.fit(module, datamodule=dm)
+    with torch.no_grad():
+        out, _ = module.net(x.to(module.net.output.weight.dtype))
+    mse = float(((out - y) ** 2).mean())
+    assert mse < 0.1 * float(y.var())  # it learned the map through the operator
+    assert not torch.equal(module.net.operators[0].raw.detach(), raw0)  # and the width
+
+
+def test_streams_and_exports_to_torchscript(tmp_path) -> None:
+    net = trained_net()
+    x, _ = data()
+    with torch.no_grad():
+        ref, _ = net(x)
+    comp = StreamingCompensator(net, limits=(-1e3, 1e3))
+    torch.testing.assert_close(comp(x), ref, rtol=0, atol=1e-12)
+    to_torchscript(net, tmp_path / "toy.pt", limits=(-1e3, 1e3))
+    ts = load_torchscript(tmp_path / "toy.pt")
+    torch.testing.assert_close(ts(x), ref, rtol=0, atol=1e-12)
+    assert ts.torchhys_metadata["counter"] == "1:0"
+
+
+def test_exports_to_aoti_and_runs(tmp_path) -> None:
+    """The default suite's one AOTInductor compile (a small float64 step, ~1 min)."""
+    net = trained_net()
+    x, _ = data(T=120)
+    with torch.no_grad():
+        ref, _ = net(x)
+    path = to_aoti(net, tmp_path / "toy.pt2", limits=(-1e3, 1e3))
+    stepper = load_aoti(path)
+    got = torch.stack([stepper.step(xt) for xt in x.unbind(1)], 1)
+    torch.testing.assert_close(got, ref, rtol=0, atol=1e-12)
+    stepper.step(torch.tensor([float("nan")], dtype=torch.float64))
+    assert int(stepper.nonfinite_count()) == 1
