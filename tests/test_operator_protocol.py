@@ -15,7 +15,6 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from torchhys import InverseHysteresisNet
-from torchhys.streaming import StreamingCompensator
 from torchhys.export import load_aoti, load_torchscript, to_aoti, to_torchscript
 from torchhys.operator import (
     OPERATORS,
@@ -26,6 +25,7 @@ from torchhys.operator import (
     make_operator,
     register_operator,
 )
+from torchhys.streaming import StreamingCompensator
 
 
 def dead_zone(x: Tensor, width: Tensor) -> Tensor:
@@ -156,7 +156,7 @@ def test_trains_in_a_network_through_the_lightning_module(tmp_path) -> None:
     assert isinstance(modules[0], DeadZone) and fitters == {}
     x, y = data()
     path = tmp_path / "record.csv"
-    rows = "\n".join(f"{a!r},{b!r}" for a, b in zip(x[0].tolist(), y[0].tolist()))
+    rows = "\n".join(f"{a!r},{b!r}" for a, b in zip(x[0].tolist(), y[0].tolist(), strict=True))
     path.write_text("response,command\n" + rows + "\n")
     dm = HysteresisDataModule(path=str(path), split=[1.0, 0.0, 0.0])
     torch.manual_seed(0)
