@@ -84,6 +84,11 @@ def steps_of(comp: StreamingCompensator, x: torch.Tensor) -> torch.Tensor:
 # --- references -------------------------------------------------------------------------------
 
 
+def per_op_features(comp: StreamingCompensator, x: torch.Tensor) -> torch.Tensor:
+    """Each operator step's output (batch, time, features), as the compensator runs it."""
+    return torch.cat([slot.step.run(x) for slot in comp.slots], dim=-1)
+
+
 def play_reference(x: np.ndarray, widths: np.ndarray, y0: np.ndarray | None = None) -> np.ndarray:
     """Plain float64 loop of the play operator: x (B, T), widths (N,) -> (B, T, N)."""
     x = np.asarray(x, dtype=np.float64)

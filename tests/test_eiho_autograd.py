@@ -6,14 +6,10 @@ import math
 
 import pytest
 import torch
+from _helpers import smooth_input
 
 from torchhys import EIHO
 from torchhys.functional import eiho, zhao_tan
-
-
-def smooth_input(T: int = 40) -> torch.Tensor:
-    t = torch.linspace(0.05, 3.0, T, dtype=torch.float64)
-    return torch.sin(2 * t) + 0.3 * t  # turning points between samples, away from x_e
 
 
 @pytest.mark.parametrize("rule", ["recent", "dominant"])

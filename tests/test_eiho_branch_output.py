@@ -9,9 +9,7 @@ from __future__ import annotations
 import pytest
 import torch
 from _branch_reference import ref_branch
-from test_eiho_autograd import smooth_input
-from test_eiho_streaming import batch, run_chunked
-from test_turning_points import random_walk
+from _helpers import batch, random_walk, run_chunked, smooth_input
 
 from torchhys import EIHO, InverseHysteresisNet, ZhaoTanOperator
 from torchhys.functional import eiho, turning_points, zhao_tan

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 from _branch_reference import ref_branch
-from test_turning_points import random_walk
+from _helpers import random_walk
 
 from torchhys.functional import eiho, zhao_tan
 

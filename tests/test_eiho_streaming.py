@@ -6,32 +6,10 @@ import warnings
 
 import pytest
 import torch
-from test_turning_points import random_walk
+from _helpers import batch, random_walk, run_chunked
 
 from torchhys import EIHO, InverseHysteresisNet, ZhaoTanOperator
 from torchhys.functional import NonCausalWarning
-
-
-def chunks(x: torch.Tensor, sizes: list[int]) -> list[torch.Tensor]:
-    out, start = [], 0
-    while start < x.shape[-1]:
-        size = sizes[len(out) % len(sizes)]
-        out.append(x[..., start : start + size])
-        start += size
-    return out
-
-
-def run_chunked(module: torch.nn.Module, x: torch.Tensor, sizes: list[int], **kw) -> torch.Tensor:
-    state, outs = None, []
-    for c in chunks(x, sizes):
-        y, state = module(c, state, **kw)
-        outs.append(y)
-    return torch.cat(outs, dim=-1)
-
-
-def batch() -> torch.Tensor:
-    return torch.stack([random_walk(s, T=120, quantize=s % 2 == 0) for s in range(3)])
-
 
 A_MODES = [1.5, (1.5, 0.5), "learnable"]
 

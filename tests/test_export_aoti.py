@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_streaming import inputs, net_of
+from _helpers import inputs, net_of
 
 from torchhys import EIHO, Backlash
 from torchhys.export import load_aoti, state_spec_string, to_aoti

@@ -10,7 +10,7 @@ import warnings
 
 import pytest
 import torch
-from test_streaming import inputs, net_of
+from _helpers import inputs, net_of
 
 from torchhys import EIHO, Backlash, PrandtlIshlinskii, ZhaoTanOperator
 from torchhys.export import load_torchscript, to_torchscript

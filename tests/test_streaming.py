@@ -6,40 +6,16 @@ import math
 
 import pytest
 import torch
-from test_turning_points import random_walk
+from _helpers import inputs, net_of, per_op_features, steps_of
 
 from torchhys import (
     EIHO,
     Backlash,
-    InverseHysteresisNet,
     PrandtlIshlinskii,
     ZhaoTanOperator,
     signals,
 )
 from torchhys.streaming import StreamingCompensator
-
-
-def inputs(T: int = 400) -> torch.Tensor:
-    """Random walks with flat stretches and exact ties, noise, nested minor loops."""
-    rows = [random_walk(s, T=T, quantize=s % 2 == 0) for s in range(3)]
-    t = torch.linspace(0.0, 10.0, T, dtype=torch.float64)
-    g = torch.Generator().manual_seed(7)
-    rows.append(3 * torch.sin(t) + 0.05 * torch.randn(T, generator=g, dtype=torch.float64))
-    rows.append(signals.nested_reversals(t, amplitude=4.0, n_reversals=24, ratio=0.85))
-    return torch.stack(rows)
-
-
-def net_of(ops: list, dtype: torch.dtype, x: torch.Tensor) -> InverseHysteresisNet:
-    torch.manual_seed(0)
-    net = InverseHysteresisNet(ops, hidden=6).to(dtype)
-    net.fit_normalization(x.to(dtype), torch.tanh(x.to(dtype)))
-    return net
-
-
-def steps_of(comp: StreamingCompensator, x: torch.Tensor) -> torch.Tensor:
-    comp.reset()
-    return torch.stack([comp.step(xt) for xt in x.unbind(-1)], dim=-1)
-
 
 RULES = ["recent", "dominant"]
 THRESHOLDS = [0.0, 0.5, 1.0]
@@ -78,9 +54,6 @@ def test_operator_features_step_equal_sequence_float32(rule: str, threshold: flo
     torch.testing.assert_close(got, feats[..., 1:], rtol=0, atol=0)
 
 
-def per_op_features(comp: StreamingCompensator, x: torch.Tensor) -> torch.Tensor:
-    """Each operator step's output (batch, time, features), as the compensator runs it."""
-    return torch.cat([slot.step.run(x) for slot in comp.slots], dim=-1)
 
 
 @pytest.mark.parametrize("rule", RULES)

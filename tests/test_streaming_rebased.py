@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from test_streaming import inputs, net_of, per_op_features, steps_of
+from _helpers import inputs, net_of, per_op_features, steps_of
 
 from torchhys import EIHO, Backlash, ZhaoTanOperator
 from torchhys.branch_steps import RebasedStep
