@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 from _branch_reference import ref_turning_points
-from _helpers import random_walk  # test_eiho_*.py, test_streaming.py still import it from here
+from _helpers import random_walk
 
 from torchhys.functional import estimate_threshold, turning_points
 
