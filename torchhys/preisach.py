@@ -1,0 +1,384 @@
+"""The Preisach operator, its per-sample step, and its identification by non-negative least
+squares.
+
+The maths (relays, tie rule, smooth relays, the chunked sequence path) is in
+:mod:`torchhys.functional.preisach`; the module holds the grid, the density and the state,
+and the step calls the same :func:`~torchhys.functional.preisach.relay_update` and
+:func:`~torchhys.functional.preisach.relay_output` as the sequence path.
+
+References:
+    I. D. Mayergoyz, Mathematical Models of Hysteresis, Springer, 1991.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import torch
+from torch import Tensor, nn
+
+from torchhys._checks import as_batched_sequence
+from torchhys.functional.preisach import (
+    _check_smooth,
+    _real,
+    _relay_chunks,
+    demagnetized_state,
+    preisach_grid,
+    preisach_with_state,
+    relay_output,
+    relay_update,
+)
+from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
+
+__all__ = ["Preisach", "PreisachStep", "fit_preisach", "select_penalty"]
+
+
+class Preisach(HysteresisOperator):
+    """Discretised Preisach model ``offset + linear * x + sum_k w_k r_k[x]`` of the
+    K = n (n + 1) / 2 relays of :func:`~torchhys.functional.preisach_grid` on [lo, hi].
+
+    The density ``weights`` (K,) is stored as is, non-negative: the constructor,
+    :func:`fit_preisach` and ``load_state_dict`` keep it so (loading negative weights raises
+    ``ValueError``). A gradient step may take it below zero: forward uses ``max(w, 0)``, whose
+    gradient passes at 0, and :meth:`project_` clamps the stored values (call it after each
+    optimizer step: projected gradient). Stored rather than behind a softplus so that the
+    exact zeros of a non-negative least-squares fit are representable. Initial density:
+    uniform, ``1 / K`` (a major loop from -1 to 1).
+
+    Args:
+        lo, hi: input range of the grid; beyond it the relays saturate.
+        n: levels per axis (>= 1).
+        linear: learn a linear term ``linear * x`` (else fixed at 0).
+        offset: learn an offset (else fixed at 0).
+        smooth: temperature of smooth relays (gradients in x), or None for hard relays.
+        initial: relays before the first sample: ``"demagnetized"`` (+1 below the line
+            ``alpha + beta = lo + hi``, -1 on and above it), ``"negative"`` or ``"positive"``
+            (after saturation: all -1 or all +1), or a (K,) tensor of +-1.
+
+    Shape:
+        - x: (time,) or (batch, time)
+        - state: the relays at the last sample, (K,) or (batch, K), +-1; None: ``initial``
+        - returns ``(y, state)``: y the shape of x; chunked calls equal one call.
+
+    References:
+        I. D. Mayergoyz, Mathematical Models of Hysteresis, Springer, 1991.
+    """
+
+    n_outputs: int = 1
+
+    def __init__(
+        self,
+        lo: float,
+        hi: float,
+        n: int = 20,
+        *,
+        linear: bool = True,
+        offset: bool = True,
+        smooth: float | None = None,
+        initial: str | Tensor = "demagnetized",
+    ) -> None:
+        super().__init__()
+        alpha, beta = preisach_grid(lo, hi, n, dtype=torch.float64)
+        self.lo, self.hi, self.n, self.n_relays = float(lo), float(hi), n, alpha.numel()
+        self.smooth = _check_smooth(smooth)
+        dtype = torch.get_default_dtype()
+        self.register_buffer("initial_relays", self._initial(initial, alpha, beta).to(dtype))
+        self.register_buffer("alpha", alpha.to(dtype))
+        self.register_buffer("beta", beta.to(dtype))
+        self.weights = nn.Parameter(torch.full_like(self.alpha, 1.0 / self.n_relays))
+        for name, learn in (("linear", linear), ("offset", offset)):
+            if learn:
+                setattr(self, name, nn.Parameter(torch.zeros(())))
+            else:
+                self.register_buffer(name, torch.zeros(()))
+
+    def _initial(self, initial: str | Tensor, alpha: Tensor, beta: Tensor) -> Tensor:
+        choices = ("demagnetized", "negative", "positive")
+        if isinstance(initial, Tensor):
+            if initial.shape != alpha.shape or not bool(((initial == 1) | (initial == -1)).all()):
+                raise ValueError(f"initial must be one of {choices} or a tensor of shape "
+                                 f"({alpha.numel()},) of +-1, got shape {tuple(initial.shape)}")
+            return initial.to(alpha.dtype).clone()
+        if initial == "demagnetized":
+            return demagnetized_state(alpha, beta, 0.5 * (self.lo + self.hi))
+        if initial in ("negative", "positive"):
+            return torch.full_like(alpha, -1.0 if initial == "negative" else 1.0)
+        raise ValueError(f"initial must be one of {choices} or a tensor, got {initial!r}")
+
+    def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        r0 = self.initial_relays if state is None else state
+        return preisach_with_state(
+            x, self.weights.clamp_min(0.0), self.alpha, self.beta, offset=self.offset,
+            linear=self.linear, r0=r0, smooth=self.smooth,
+        )
+
+    @torch.no_grad()
+    def project_(self) -> Preisach:
+        """Clamp the stored density at 0 (after an optimizer step); returns self."""
+        self.weights.clamp_(min=0.0)
+        return self
+
+    def streaming_step(self, dtype: torch.dtype) -> PreisachStep:
+        """The per-sample step with the current parameters (detached), in ``dtype``."""
+        return PreisachStep(self.alpha, self.beta, self.weights.clamp_min(0.0), self.linear,
+                            self.offset, self.initial_relays, self.smooth, dtype)
+
+    def extra_repr(self) -> str:
+        return f"lo={self.lo}, hi={self.hi}, n={self.n}, smooth={self.smooth}"
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[override]
+        w = state_dict.get(prefix + "weights")
+        if isinstance(w, Tensor) and w.numel() and not bool((w >= 0).all() & w.isfinite().all()):
+            raise ValueError(f"{prefix}weights must be finite and non-negative (a Preisach "
+                             f"density), got minimum {w.min().item():.6g}; call project_() "
+                             "before saving")
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+
+class PreisachStep(OperatorStep):
+    """Per-sample step of :class:`Preisach`: ``r = relay_update(x, alpha, beta, r_prev)``,
+    features ``offset + linear * x + relay_output(x, ..., r) @ w``.
+
+    State: one block ``"relays"`` (batch, K), starting at the initial relays. Shapes: x
+    (batch, 1) -> features (batch, 1). Written for TorchScript and ``torch.export``.
+    """
+
+    def __init__(self, alpha: Tensor, beta: Tensor, weights: Tensor, linear: Tensor,
+                 offset: Tensor, initial: Tensor, smooth: float | None,
+                 dtype: torch.dtype) -> None:
+        super().__init__()
+        self.n_outputs = 1
+        self.state_spec = [StateBlock("relays", alpha.numel(), start=initial.tolist())]
+        self.smooth = smooth
+        for name, v in (("alpha", alpha), ("beta", beta), ("weights", weights[:, None]),
+                        ("linear", linear), ("offset", offset)):
+            self.register_buffer(name, v.detach().to(dtype).clone())
+
+    def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
+        r = relay_update(x, self.alpha, self.beta, state[0])
+        out = relay_output(x, self.alpha, self.beta, r, self.smooth)
+        return self.offset + self.linear * x + out @ self.weights, [r]
+
+
+def fit_preisach(
+    x: Tensor,
+    y: Tensor,
+    *,
+    lo: float | None = None,
+    hi: float | None = None,
+    n: int = 20,
+    ridge: float = 0.0,
+    smoothness: float = 0.0,
+    linear: bool = True,
+    warmup: int = 0,
+) -> Preisach:
+    """Identify a :class:`Preisach` model (demagnetised start, hard relays) by penalised
+    non-negative least squares of the density, with a free offset and linear term:
+
+        min  mean_t (y[t] - offset - linear x[t] - r[t] @ w)**2
+             + ridge * |w|**2 + smoothness * |D w|**2        subject to w >= 0,
+
+    D the differences between neighbouring relays of the grid (alpha or beta one level
+    apart). Solved in float64 from the normal equations (accumulated chunk by chunk) with the
+    Lawson-Hanson active-set method, the free variables always in the passive set.
+
+    Args:
+        x, y: input and output, (time,) or (batch, time) (each row starts demagnetised).
+        lo, hi: grid range; default the range of x. Samples outside saturate the relays
+            (one warning gives their share).
+        n: levels per axis; ridge, smoothness: penalties (>= 0); linear: fit the linear term.
+        warmup: samples at the start of each row left out of the fit (their relays still
+            run), to forget the assumed initial state.
+
+    Returns:
+        The fitted model, in x's dtype.
+
+    Raises:
+        ValueError: NaN/inf in x or y, shapes differ, a bad grid, warmup >= time, a negative
+            penalty.
+    """
+    xb, yb, model, cuts = _prepare(x, y, lo, hi, n, linear, warmup, None)
+    (G, h, _, count), = _normal_equations(xb, yb, model, cuts)
+    theta = _solve(G / count, h / count, model, _penalty(ridge, "ridge"),
+                   _penalty(smoothness, "smoothness"))
+    return _set(model, theta)
+
+
+def select_penalty(
+    x: Tensor,
+    y: Tensor,
+    penalties: list[float],
+    *,
+    kind: str = "smoothness",
+    validation: float = 0.25,
+    lo: float | None = None,
+    hi: float | None = None,
+    n: int = 20,
+    linear: bool = True,
+    warmup: int = 0,
+) -> tuple[float, dict[float, float]]:
+    """Choose the ``kind`` penalty (``"ridge"`` or ``"smoothness"``, the other 0) of
+    :func:`fit_preisach` on a time-ordered hold-out: fit on the first ``1 - validation`` of
+    each row, score the RMS error on the rest (the relays run through the whole sequence).
+
+    Returns:
+        The penalty with the least validation RMS error (the first on ties), and the RMS
+        error of each. Refit on all samples with ``fit_preisach(..., smoothness=best)``
+        (or ``ridge=best``).
+    """
+    if kind not in ("ridge", "smoothness"):
+        raise ValueError(f"kind must be one of ('ridge', 'smoothness'), got {kind!r}")
+    if len(penalties) == 0:
+        raise ValueError("penalties must hold at least one value, got none")
+    values = [_penalty(p, "penalties") for p in penalties]
+    xb, yb, model, cuts = _prepare(x, y, lo, hi, n, linear, warmup, validation)
+    (G, h, _, count), (Gv, hv, yyv, count_v) = _normal_equations(xb, yb, model, cuts)
+    scores = {}
+    for p in values:
+        theta = _solve(G / count, h / count, model, *((p, 0.0) if kind == "ridge" else (0.0, p)))
+        mse = (yyv - 2.0 * theta @ hv + theta @ Gv @ theta) / count_v
+        scores[p] = math.sqrt(max(float(mse), 0.0))
+    return min(scores, key=scores.__getitem__), scores
+
+
+def _prepare(x: Tensor, y: Tensor, lo: float | None, hi: float | None, n: int, linear: bool,
+             warmup: int, validation: float | None) -> tuple[Tensor, Tensor, Preisach, list[int]]:
+    """Check the data, warn about samples outside [lo, hi]; the model and the segment cuts."""
+    xb, _ = as_batched_sequence(x, "x")
+    yb, _ = as_batched_sequence(y, "y")
+    if xb.shape != yb.shape:
+        raise ValueError(f"x and y must have the same shape, got {tuple(x.shape)} and "
+                         f"{tuple(y.shape)}")
+    T = xb.shape[1]
+    if isinstance(warmup, bool) or not isinstance(warmup, int) or not 0 <= warmup < T:
+        raise ValueError(f"warmup must be an int in [0, {T}) (fewer than the {T} samples), "
+                         f"got {warmup!r}")
+    lo = float(xb.min()) if lo is None else _real(lo, "lo")
+    hi = float(xb.max()) if hi is None else _real(hi, "hi")
+    model = Preisach(lo, hi, n, linear=linear).to(xb.dtype)
+    outside = float(((xb < lo) | (xb > hi)).double().mean())
+    if outside > 0:
+        warnings.warn(f"{outside:.2%} of the samples of x lie outside [lo, hi] = [{lo:.6g}, "
+                      f"{hi:.6g}]: the relays saturate there", RuntimeWarning, stacklevel=3)
+    cuts = [warmup, T]
+    if validation is not None:
+        if not 0.0 < validation < 1.0:
+            raise ValueError(f"validation must be in (0, 1), got {validation!r}")
+        cuts = [warmup, T - max(1, round(validation * T)), T]
+        if cuts[1] <= warmup:
+            raise ValueError(f"warmup ({warmup}) leaves no training samples before the "
+                             f"validation split at {cuts[1]}")
+    return xb, yb, model, cuts
+
+
+def _normal_equations(x: Tensor, y: Tensor, model: Preisach,
+                      cuts: list[int]) -> list[tuple[Tensor, Tensor, Tensor, int]]:
+    """``(A'A, A'y, y'y, rows)`` in float64 of the design ``A = [relays, x, 1]`` over the
+    samples ``cuts[s]:cuts[s+1]`` of every row, for each segment s."""
+    K, m = model.n_relays, model.n_relays + 1 + isinstance(model.linear, nn.Parameter)
+    out = [[x.new_zeros(m, m, dtype=torch.float64), x.new_zeros(m, dtype=torch.float64),
+            x.new_zeros((), dtype=torch.float64), 0] for _ in cuts[1:]]
+    r0 = model.initial_relays.to(torch.float64).expand(x.shape[0], K)
+    for start, stop, r in _relay_chunks(x, model.alpha, model.beta, r0):
+        for seg, a, b in zip(out, cuts[:-1], cuts[1:], strict=True):
+            lo, hi = max(a, start), min(b, stop)
+            if lo >= hi:
+                continue
+            xs = x[:, lo:hi].reshape(1, -1).to(torch.float64)
+            cols = [r[:, :, lo - start:hi - start].reshape(K, -1)]
+            cols += [xs] if m > K + 1 else []
+            A = torch.cat(cols + [torch.ones_like(xs)])
+            ys = y[:, lo:hi].reshape(-1).to(torch.float64)
+            seg[0] += A @ A.T
+            seg[1] += A @ ys
+            seg[2] += ys @ ys
+            seg[3] += ys.numel()
+    return [tuple(seg) for seg in out]  # type: ignore[misc]
+
+
+def _solve(G: Tensor, h: Tensor, model: Preisach, ridge: float, smoothness: float) -> Tensor:
+    """The penalised NNLS solution: density (K,), then the free linear term and offset."""
+    K, m = model.n_relays, G.shape[0]
+    n = model.n
+    i, j = torch.tril_indices(n, n)
+    k = torch.arange(K)
+    pairs = [(k[i < n - 1], (i * (i + 1) // 2 + i + 1 + j)[i < n - 1]), (k[j < i], k[j < i] + 1)]
+    first = torch.cat([p[0] for p in pairs])
+    second = torch.cat([p[1] for p in pairs])
+    D = torch.zeros(first.numel(), K, dtype=torch.float64)
+    D[torch.arange(first.numel()), first] = -1.0
+    D[torch.arange(first.numel()), second] = 1.0
+    P = G.clone()
+    P[:K, :K] += ridge * torch.eye(K, dtype=torch.float64) + smoothness * (D.T @ D)
+    free = torch.arange(m) >= K
+    return _nnls(P, h, free)
+
+
+def _nnls(G: Tensor, h: Tensor, free: Tensor) -> Tensor:
+    """Lawson-Hanson active set for ``min w'Gw/2 - h'w``, ``w[~free] >= 0``, G (m, m)
+    symmetric positive (semi)definite, float64; columns scaled to a unit diagonal first."""
+    diag = G.diagonal()
+    s = torch.where(diag > 0, diag.clamp_min(1e-300).rsqrt(), torch.ones_like(diag))
+    G, h = s[:, None] * G * s, s * h
+    m = h.numel()
+    passive, blocked = free.clone(), torch.zeros_like(free)
+    w = _passive_solve(G, h, passive)
+    tol = 1e-12 * max(1.0, float(h.abs().max()))
+    for _ in range(3 * m + 10):
+        dual = h - G @ w
+        cand = ~passive & ~blocked & (dual > tol)
+        if not bool(cand.any()):
+            break
+        j = int(torch.where(cand, dual, -math.inf).argmax())
+        passive[j] = True
+        while True:
+            z = _passive_solve(G, h, passive)
+            neg = passive & ~free & (z <= 0)
+            if not bool(neg.any()):
+                w, blocked = z, torch.zeros_like(free)
+                break
+            if bool(neg[j]) and float(w[j]) == 0.0:  # rounding: the new index does not enter
+                passive[j], blocked[j] = False, True
+                break
+            ratio = torch.where(neg, w / (w - z).clamp_min(1e-300), math.inf)
+            k = int(ratio.argmin())
+            w = w + ratio[k] * (z - w)
+            w[k] = 0.0
+            drop = passive & ~free & (w <= 0)
+            passive &= ~drop
+            w[drop] = 0.0
+    return s * w
+
+
+def _passive_solve(G: Tensor, h: Tensor, passive: Tensor) -> Tensor:
+    """Solve the equations of the passive set (Cholesky; least squares if singular)."""
+    z = torch.zeros_like(h)
+    idx = passive.nonzero().squeeze(1)
+    if idx.numel():
+        A, b = G[idx][:, idx], h[idx]
+        L, info = torch.linalg.cholesky_ex(A)
+        sol = (torch.cholesky_solve(b[:, None], L)[:, 0] if int(info) == 0
+               else torch.linalg.lstsq(A, b[:, None]).solution[:, 0])
+        z[idx] = sol
+    return z
+
+
+def _penalty(value: float, name: str) -> float:
+    v = _real(value, name)
+    if v < 0:
+        raise ValueError(f"{name} must be >= 0, got {v}")
+    return v
+
+
+def _set(model: Preisach, theta: Tensor) -> Preisach:
+    K = model.n_relays
+    with torch.no_grad():
+        model.weights.copy_(theta[:K].clamp_min(0.0))
+        if isinstance(model.linear, nn.Parameter):
+            model.linear.copy_(theta[K])
+        model.offset.copy_(theta[-1])
+    return model
+
+
+register_operator("preisach", Preisach)
