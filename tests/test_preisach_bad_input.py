@@ -1,0 +1,143 @@
+"""Preisach: clear errors naming the argument, and the one warning about the input range."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import pytest
+import torch
+
+from torchhys.functional.preisach import preisach, preisach_grid, relay_states
+from torchhys.preisach import Preisach, fit_preisach, select_penalty
+
+A, B = preisach_grid(-1.0, 1.0, 3)
+X = torch.linspace(-1.0, 1.0, 20)
+
+
+@pytest.mark.parametrize(
+    "lo, hi, n, err, match",
+    [
+        (-1.0, 1.0, 0, ValueError, "n must be an int >= 1"),
+        (-1.0, 1.0, 2.5, ValueError, "n must be an int >= 1"),
+        (-1.0, 1.0, True, ValueError, "n must be an int >= 1"),
+        (1.0, 1.0, 3, ValueError, "lo must be less than hi"),
+        (2.0, 1.0, 3, ValueError, "lo must be less than hi"),
+        (math.nan, 1.0, 3, ValueError, "lo must be finite"),
+        (-1.0, math.inf, 3, ValueError, "hi must be finite"),
+        ("0", 1.0, 3, TypeError, "lo must be a real number"),
+    ],
+)
+def test_bad_grid(lo, hi, n, err, match):
+    with pytest.raises(err, match=match):
+        preisach_grid(lo, hi, n)
+    with pytest.raises(err, match=match):
+        Preisach(lo, hi, n)
+
+
+@pytest.mark.parametrize(
+    "kwargs, err, match",
+    [
+        ({"x": torch.tensor([0.0, math.nan])}, ValueError, "x must be finite"),
+        ({"x": torch.zeros(2, 3, 4)}, ValueError, r"x must have shape \(time,\)"),
+        ({"x": torch.zeros(2, 0)}, ValueError, "at least one sample"),
+        ({"x": torch.arange(4)}, TypeError, "x must have a floating-point dtype"),
+        ({"alpha": A[:2]}, ValueError, "alpha and beta must have the same shape"),
+        ({"alpha": B, "beta": A}, ValueError, r"alpha must be >= beta .* alpha\[1\]"),
+        ({"alpha": torch.zeros(0), "beta": torch.zeros(0)}, ValueError, "K >= 1"),
+        ({"beta": torch.full((6,), math.nan)}, ValueError, "beta must be finite"),
+        ({"r0": torch.zeros(6)}, ValueError, "r0 must hold relay values"),
+        ({"r0": torch.ones(2, 6)}, ValueError, r"r0 must have shape \(6,\) or \(1, 6\)"),
+        ({"smooth": 0.0}, ValueError, "smooth must be None or a finite number > 0"),
+        ({"smooth": math.inf}, ValueError, "smooth must be None"),
+    ],
+)
+def test_bad_relay_input(kwargs, err, match):
+    args = {"x": X, "alpha": A, "beta": B, **kwargs}
+    with pytest.raises(err, match=match):
+        relay_states(args.pop("x"), args.pop("alpha"), args.pop("beta"), **args)
+
+
+def test_bad_weights_and_module_options():
+    with pytest.raises(ValueError, match=r"weights must have shape \(6,\)"):
+        preisach(X, torch.ones(5), A, B)
+    with pytest.raises(ValueError, match="weights must be finite"):
+        preisach(X, torch.full((6,), math.nan), A, B)
+    with pytest.raises(ValueError, match="initial must be one of"):
+        Preisach(-1.0, 1.0, 3, initial="saturated")
+    with pytest.raises(ValueError, match="initial must be one of"):
+        Preisach(-1.0, 1.0, 3, initial=torch.zeros(6))
+    with pytest.raises(ValueError, match="smooth must be None"):
+        Preisach(-1.0, 1.0, 3, smooth=-0.1)
+    m = Preisach(-1.0, 1.0, 3)
+    with pytest.raises(ValueError, match="r0 must hold relay values"):
+        m(X, torch.zeros(6))
+
+
+def test_negative_weights_in_a_state_dict():
+    m = Preisach(-1.0, 1.0, 3)
+    sd = m.state_dict()
+    sd["weights"] = torch.tensor([0.1, -0.2, 0.0, 0.3, 0.1, 0.1])
+    with pytest.raises(ValueError, match=r"weights must be finite and non-negative .* -0\.2"):
+        m.load_state_dict(sd)
+    sd["weights"] = torch.full((6,), math.nan)
+    with pytest.raises(ValueError, match="weights must be finite and non-negative"):
+        m.load_state_dict(sd)
+    outer = torch.nn.Sequential(Preisach(-1.0, 1.0, 3))
+    with pytest.raises(ValueError, match=r"0\.weights must be"):
+        outer.load_state_dict({f"0.{k}": v for k, v in sd.items()})
+    sd["weights"] = torch.full((6,), 0.5)
+    m.load_state_dict(sd)
+    assert bool((m.weights == 0.5).all())
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"x": torch.tensor([0.0, math.nan, 1.0])}, "x must be finite"),
+        ({"y": torch.tensor([0.0, 1.0, math.nan])}, "y must be finite"),
+        ({"y": torch.zeros(4)}, "x and y must have the same shape"),
+        ({"warmup": 3}, r"warmup must be an int in \[0, 3\)"),
+        ({"warmup": 30}, "warmup must be"),
+        ({"warmup": -1}, "warmup must be"),
+        ({"ridge": -1.0}, "ridge must be >= 0"),
+        ({"smoothness": math.nan}, "smoothness must be finite"),
+        ({"x": torch.ones(3)}, "lo must be less than hi"),
+        ({"n": 0}, "n must be an int >= 1"),
+    ],
+)
+def test_bad_fit_input(kwargs, match):
+    args = {"x": torch.tensor([0.0, 1.0, -1.0]), "y": torch.zeros(3), **kwargs}
+    with pytest.raises(ValueError, match=match):
+        fit_preisach(args.pop("x"), args.pop("y"), **args)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"penalties": []}, "penalties must hold at least one value"),
+        ({"penalties": [0.1, -1.0]}, "penalties must be >= 0"),
+        ({"kind": "lasso"}, r"kind must be one of \('ridge', 'smoothness'\)"),
+        ({"validation": 1.0}, r"validation must be in \(0, 1\)"),
+        ({"warmup": 16}, "leaves no training samples"),
+    ],
+)
+def test_bad_selection_input(kwargs, match):
+    args = {"penalties": [0.0, 1.0], **kwargs}
+    x = torch.sin(torch.linspace(0, 12, 20, dtype=torch.float64))
+    with pytest.raises(ValueError, match=match):
+        select_penalty(x, x, args.pop("penalties"), n=3, **args)
+
+
+def test_samples_outside_the_range_warn_once():
+    x = torch.sin(torch.linspace(0, 30, 400, dtype=torch.float64)).repeat(2, 1)
+    x[0, :50] = 2.0  # 50 of 800 samples beyond hi
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        fit = fit_preisach(x, x, lo=-1.0, hi=1.0, n=4)
+    messages = [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
+    assert len(messages) == 1 and "6.25% of the samples of x lie outside" in messages[0]
+    assert caught[0].filename == __file__
+    with torch.no_grad():  # saturated: every relay up
+        torch.testing.assert_close(relay_states(x[:1, :50], fit.alpha, fit.beta),
+                                   torch.ones(1, 50, fit.n_relays, dtype=torch.float64))
