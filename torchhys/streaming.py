@@ -211,6 +211,7 @@ class StreamingCompensator(nn.Module):
         self.slots = nn.ModuleList(slots)
         self.sizes = sizes
         self.has_f64: bool = len(sizes[1]) > 0
+        self.has_int: bool = len(sizes[2]) > 1  # int64 blocks besides the counter
         dtypes = (dtype, torch.float64, torch.long)
         # anchoring at the first finite sample: start + from_sample * x, where not all zero
         self.anchor = [any(v != 0.0 for v in start[k] + sample[k]) for k in range(3)]
@@ -250,28 +251,29 @@ class StreamingCompensator(nn.Module):
             self._anchored(G, started, xc, 1, self.start_g, self.sample_g).split_with_sizes(
                 self.sizes[1], 1) if self.has_f64 else [F],
             self._anchored(I, started, xc, 2, self.start_i, self.sample_i).split_with_sizes(
-                self.sizes[2], 1),
+                self.sizes[2], 1) if self.has_int else [I],
         ]
         new: list[list[Tensor]] = [[], [], []]
         features = [xc]
         for slot in self.slots:
             features.append(slot(xc, parts, new))
         u = self.head(torch.cat(features, 1))
-        # a non-finite sample (it may still give a finite command) or command holds it all
-        bad = torch.logical_not(torch.isfinite(xc) & torch.isfinite(u))
+        # a finite sample with a finite command; anything else holds the whole state (a
+        # non-finite sample may still give a finite command through a saturating activation)
+        ok = torch.isfinite(xc) & torch.isfinite(u)
         u = torch.clamp(u, self.low, self.high)
         held = F.narrow(1, self.HELD_COLUMN, 1)
-        u_out = torch.where(bad, torch.where(started, held, self.u0), u)
-        out = [torch.where(bad, F, torch.cat([u] + new[0], 1))]
-        count = I.narrow(1, self.COUNTER_COLUMN, 1) + bad
+        u_out = torch.where(ok, u, torch.where(started, held, self.u0))
+        out = [torch.where(ok, torch.cat([u] + new[0], 1), F)]
+        count = I.narrow(1, self.COUNTER_COLUMN, 1) + torch.logical_not(ok)
         if len(new[2]) > 0:
-            out.append(torch.cat([count, torch.where(bad, I.narrow(1, 1, I.shape[1] - 1),
-                                                     torch.cat(new[2], 1))], 1))
+            out.append(torch.cat([count, torch.where(ok, torch.cat(new[2], 1),
+                                                     I.narrow(1, 1, I.shape[1] - 1))], 1))
         else:
             out.append(count)
-        out.append(started | torch.logical_not(bad))
+        out.append(started | ok)
         if self.has_f64:
-            out.append(torch.where(bad, G, torch.cat(new[1], 1)))
+            out.append(torch.where(ok, torch.cat(new[1], 1), G))
         return u_out.squeeze(1), out
 
     @torch.jit.export
