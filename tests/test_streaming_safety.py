@@ -102,11 +102,25 @@ def test_batch_rows_are_independent_under_nan() -> None:
 
 def test_overflowing_input_never_reaches_the_plant() -> None:
     net, x = make_net(torch.float32)
+    huge = torch.tensor([3e38])
+    clean = StreamingCompensator(net, limits=(-1e3, 1e3))
     comp = StreamingCompensator(net, limits=(-1e3, 1e3))
     for xt in x[:20].unbind(-1):
+        clean.step(xt[None])
         comp.step(xt[None])
-    u = comp.step(torch.tensor([3e38]))
-    assert torch.isfinite(u).all()
+    # a huge finite sample with a finite command is a sample: the command stays in limits
+    u = comp.step(huge)
+    assert torch.isfinite(u).all() and -1e3 <= float(u) <= 1e3
+    clean.step(huge)
+    # one whose command overflows (inf - inf in the network) is held and counted ...
+    u_held = comp.step(-huge)
+    assert torch.equal(u_held, u) and int(comp.nonfinite_count()) == 1
+    # ... and leaves the state as it was: later clean samples go on as if it never came
+    a = torch.cat([comp.step(xt[None]) for xt in x[20:].unbind(-1)])
+    b = torch.cat([clean.step(xt[None]) for xt in x[20:].unbind(-1)])
+    torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert torch.isfinite(a).all() and int(comp.nonfinite_count()) == 1
+    assert int(clean.nonfinite_count()) == 0
 
 
 def test_non_causal_eiho_is_rejected() -> None:
@@ -193,3 +207,43 @@ def test_deployed_network_every_activation_equals_eager_and_holds(
         out.append(comp.step(xt[None]))
     assert int(comp.nonfinite_count()) == 3
     torch.testing.assert_close(torch.cat(out), ref, rtol=0, atol=1e-12)
+
+
+def test_layout_with_two_float64_operators_and_two_rebased_eihos() -> None:
+    """Several steps of each kind share the packed tensors: each finds its own blocks."""
+    t = torch.linspace(0, 12, 400, dtype=torch.float64)
+    x = torch.stack([3 * torch.sin(t) + torch.sin(3.1 * t), 2 * torch.cos(1.3 * t)])
+    ops = [EIHO(a=0.8, rule="recent", threshold=0.2), EIHO(a=0.6, rule="recent", output="branch"),
+           ZhaoTanOperator(rule="recent", threshold=0.1, scale=2.0), Backlash([0.5, 1.5]),
+           EIHO(a=(1.1, 0.4), rule="recent", output="branch"),
+           EIHO(a=1.0, rule="dominant", threshold=0.1, max_depth=5)]
+    torch.manual_seed(0)
+    net = InverseHysteresisNet(ops, hidden=8).double()
+    net.fit_normalization(x, torch.tanh(x))
+    comp = StreamingCompensator(net, limits=(-1e3, 1e3))
+    kinds = [t.dtype for t in comp.initial_state(2)]
+    assert kinds == [torch.float64, torch.long, torch.bool, torch.float64]
+    f64 = [row for row in comp.layout() if row[1] == "float64"]
+    assert [(r[3], r[4]) for r in f64] == [(0, 1), (1, 1)]  # the two level recent-rule steps
+    with torch.no_grad():
+        ref, _ = net(x)
+    torch.testing.assert_close(comp(x), ref, rtol=0, atol=1e-12)
+
+
+def test_rows_whose_first_finite_sample_comes_at_different_steps() -> None:
+    """Each row starts (anchors its operators) at its own first finite sample."""
+    net, x = make_net()
+    comp = StreamingCompensator(net, limits=(-1e3, 1e3), initial_command=0.25)
+    lead = [0, 3, 17]
+    rows = torch.stack([torch.cat([torch.full((k,), float("nan"), dtype=x.dtype), x[: 200 - k]])
+                        for k in lead])
+    got = comp(rows)
+    comp.reset()
+    steps = torch.stack([comp.step(xt) for xt in rows.unbind(-1)], -1)
+    torch.testing.assert_close(steps, got, rtol=0, atol=0)
+    assert comp.nonfinite_count().tolist() == lead
+    for b, k in enumerate(lead):
+        assert torch.all(got[b, :k] == 0.25)  # the initial command until the row starts
+        with torch.no_grad():
+            ref, _ = net(x[: 200 - k])
+        torch.testing.assert_close(got[b, k:], ref.clamp(-1e3, 1e3), rtol=0, atol=1e-12)
