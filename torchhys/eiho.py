@@ -8,6 +8,7 @@ import warnings
 import torch
 from torch import Tensor, nn
 
+from torchhys._checks import check_choice
 from torchhys.branch_steps import branch_step
 from torchhys.functional._branch import BranchState
 from torchhys.functional.eiho import NonCausalWarning, eiho, segment_coefficients, zhao_tan
@@ -39,10 +40,8 @@ class _TurningPointOperator(HysteresisOperator):
         self, threshold: float | str, rule: str, max_depth: int, output: str = "level"
     ) -> None:
         super().__init__()
-        if rule not in ("recent", "dominant"):
-            raise ValueError(f"rule must be 'recent' or 'dominant', got {rule!r}")
-        if output not in _OUTPUTS:
-            raise ValueError(f"output must be one of {_OUTPUTS}, got {output!r}")
+        check_choice(rule, "rule", ("recent", "dominant"))
+        check_choice(output, "output", _OUTPUTS)
         self.rule, self.output = rule, output
         self.max_depth = max_depth
         self.register_buffer("threshold", _threshold_buffer(threshold))
@@ -113,8 +112,7 @@ class EIHO(_TurningPointOperator):
         anchor_center: float = 0.0, anchor_scale: float = 1.0, output: str = "level",
     ) -> None:
         super().__init__(threshold, rule, max_depth, output)
-        if a_formula not in _A_FORMULAS:
-            raise ValueError(f"a_formula must be one of {_A_FORMULAS}, got {a_formula!r}")
+        check_choice(a_formula, "a_formula", _A_FORMULAS)
         mode = a if isinstance(a, str) else "fixed"
         for name, value, default, modes in (
             ("per_direction", per_direction, False, ("learnable",)),

@@ -33,6 +33,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from torchhys._checks import check_int
 from torchhys.streaming import COUNTER, HELD, StreamingCompensator
 
 __all__ = [
@@ -202,8 +203,7 @@ def to_aoti(
         The package path.
     """
     path = _check_path(path)
-    if isinstance(batch, bool) or not isinstance(batch, int) or batch < 1:
-        raise ValueError(f"batch must be a positive int, got {batch!r}")
+    check_int(batch, "batch", minimum=1)
     comp = _compensator(model, limits, initial_command).eval()
     state = comp.initial_state(batch)
     x = torch.zeros(batch, dtype=comp.low.dtype)

@@ -6,7 +6,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-from torchhys._checks import as_batched_sequence
+from torchhys._checks import as_batched_sequence, check_choice, check_int
 from torchhys.operator import HysteresisOperator, OperatorStep, check_operator, make_operator
 
 __all__ = ["InverseHysteresisNet"]
@@ -57,12 +57,8 @@ class InverseHysteresisNet(nn.Module):
         activation: str = "sigmoid", operator_kwargs: dict | None = None,
     ) -> None:
         super().__init__()
-        if isinstance(hidden, bool) or not isinstance(hidden, int) or hidden < 1:
-            raise ValueError(f"hidden must be a positive int, got {hidden!r}")
-        if activation not in _ACTIVATIONS:
-            raise ValueError(
-                f"activation must be one of {sorted(_ACTIVATIONS)}, got {activation!r}"
-            )
+        check_int(hidden, "hidden", minimum=1)
+        check_choice(activation, "activation", sorted(_ACTIVATIONS))
         specs = [] if operator is None else (
             list(operator) if isinstance(operator, (list, tuple)) else [operator]
         )

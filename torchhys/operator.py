@@ -46,6 +46,8 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from torchhys._checks import check_choice, check_int
+
 __all__ = [
     "OPERATORS",
     "HysteresisOperator",
@@ -80,12 +82,8 @@ class StateBlock:
     from_sample: float | Sequence[float] = 0.0
 
     def __post_init__(self) -> None:
-        if isinstance(self.size, bool) or not isinstance(self.size, int) or self.size < 1:
-            raise ValueError(f"StateBlock {self.name!r}: size must be an int >= 1, got "
-                             f"{self.size!r}")
-        if self.kind not in STATE_KINDS:
-            raise ValueError(f"StateBlock {self.name!r}: kind must be one of {STATE_KINDS}, "
-                             f"got {self.kind!r}")
+        check_int(self.size, f"StateBlock {self.name!r}: size", minimum=1)
+        check_choice(self.kind, f"StateBlock {self.name!r}: kind", STATE_KINDS)
         for field in ("start", "from_sample"):
             values = self.columns(field)
             if len(values) != self.size:
@@ -218,8 +216,7 @@ def make_operator(name: str, **options: Any) -> HysteresisOperator:
         ValueError: an unknown name (the message lists the registered ones), or options the
             operator does not take.
     """
-    if name not in OPERATORS:
-        raise ValueError(f"operator name must be one of {sorted(OPERATORS)}, got {name!r}")
+    check_choice(name, "operator name", sorted(OPERATORS))
     try:
         op = OPERATORS[name](**options)
     except TypeError as e:

@@ -29,6 +29,7 @@ import torch
 from torch import Tensor, nn
 
 from torchhys import Backlash, PrandtlIshlinskii
+from torchhys._checks import check_choice, check_int
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid
 from torchhys.operator import OPERATORS, make_operator
 
@@ -46,10 +47,7 @@ the number of leading warm-up samples to leave out of the fit."""
 
 
 def _positive_int(spec: Mapping[str, Any], key: str, default: int) -> int:
-    n = spec.get(key, default)
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise ValueError(f"operator {spec.get('name')!r}: {key} must be an int >= 1, got {n!r}")
-    return n
+    return check_int(spec.get(key, default), f"operator {spec.get('name')!r}: {key}", minimum=1)
 
 
 def _check_keys(spec: Mapping[str, Any], allowed: set[str]) -> None:
@@ -156,7 +154,7 @@ def build_operators(
             module, fitter = make_operator(name, **{k: v for k, v in spec.items()
                                                      if k != "name"}), None
         else:
-            raise ValueError(f"operator name must be one of {operator_names()}, got {name!r}")
+            check_choice(name, "operator name", operator_names())
         modules.append(module)
         if fitter is not None:
             fitters[i] = fitter

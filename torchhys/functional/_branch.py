@@ -42,7 +42,13 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchhys._checks import as_batched_sequence, check_finite, check_floating, check_tensor
+from torchhys._checks import (
+    as_batched_sequence,
+    check_choice,
+    check_finite,
+    check_floating,
+    check_tensor,
+)
 from torchhys.functional.turning_points import resolve_threshold, zigzag
 
 __all__ = [
@@ -199,8 +205,7 @@ def branch_operator(
     anchor_slope: Tensor | None = None, branch: bool = False, scale: float = 1.0,
 ) -> tuple[Tensor, BranchState]:
     xb, squeezed = as_batched_sequence(x, "x")
-    if rule not in _RULES:
-        raise ValueError(f"rule must be one of {_RULES}, got {rule!r}")
+    check_choice(rule, "rule", _RULES)
     B, T = xb.shape
     depth = max_depth if rule == "dominant" else 1
     if state is None:
