@@ -197,6 +197,9 @@ def fit_preisach(
     Raises:
         ValueError: NaN/inf in x or y, shapes differ, a bad grid, warmup >= time, a negative
             penalty.
+
+    Warns:
+        RuntimeWarning: once, with the share of samples of x outside [lo, hi].
     """
     xb, yb, model, cuts = _prepare(x, y, lo, hi, n, linear, warmup, None)
     (G, h, _, count), = _normal_equations(xb, yb, model, cuts)
@@ -348,6 +351,9 @@ def _nnls(G: Tensor, h: Tensor, free: Tensor) -> Tensor:
             drop = passive & ~free & (w <= 0)
             passive &= ~drop
             w[drop] = 0.0
+    else:
+        warnings.warn(f"NNLS stopped after {3 * m + 10} iterations before convergence",
+                      RuntimeWarning, stacklevel=3)
     return s * w
 
 

@@ -19,7 +19,7 @@ Sequence path, with no loop over samples: a relay's output at t is decided by th
 the input crossed last. For each distinct alpha the last index u <= t with ``x >= alpha``
 is a running maximum (``cummax``) of ``where(x >= alpha, t, -1)``; likewise d for beta. The
 relay is +1 where ``u >= max(d, 0)``, -1 where ``d > u``, and keeps its initial value r0
-where neither happened (``u = d = -1``). Time is cut into chunks of about 2**20
+where neither happened (``u = d = -1``). Time is cut into chunks of about 2**18
 relay-samples that carry the last-crossing indices (int32), so the work memory does not grow
 with the length; relays are laid out (K, batch, chunk), so that picking each relay's
 thresholds copies whole rows. The per-sample step (:func:`relay_update`) and the sequence
@@ -61,6 +61,7 @@ __all__ = [
     "demagnetized_state",
     "preisach",
     "preisach_grid",
+    "preisach_with_state",
     "relay_events",
     "relay_output",
     "relay_states",
@@ -68,7 +69,7 @@ __all__ = [
     "relay_update",
 ]
 
-_CHUNK = 1 << 20  # relay-samples per chunk of the sequence path
+_CHUNK = 1 << 18  # relay-samples per chunk of the sequence path
 
 
 def preisach_grid(
