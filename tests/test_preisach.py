@@ -3,8 +3,6 @@
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 import pytest
 import torch
@@ -16,7 +14,6 @@ from torchhys.functional.preisach import (
     preisach_grid,
     relay_states,
 )
-from torchhys.operator import OPERATORS, make_operator
 from torchhys.preisach import Preisach
 
 F64 = torch.float64
@@ -163,145 +160,3 @@ def test_return_point_memory():
     torch.testing.assert_close(s1, s0, rtol=0, atol=0)
     tail = ramps([0.5, -0.3, 0.2])[:, 1:]
     torch.testing.assert_close(m(tail, s1)[0], m(tail, s0)[0], rtol=0, atol=0)
-
-
-@pytest.mark.parametrize("smooth", [None, 0.05])
-@pytest.mark.parametrize("splits", [[1] * 30, [5, 100, 152], [256, 1], [100, 157]])
-def test_chunked_calls_equal_one_call(smooth, splits):
-    m = model(smooth=smooth)
-    x = signal(3, sum(splits), 9, seed=5)
-    whole, final = m(x)
-    parts, state = [], None
-    for chunk in x.split(splits, dim=1):
-        y, state = m(chunk, state)
-        parts.append(y)
-    torch.testing.assert_close(torch.cat(parts, 1), whole, rtol=0, atol=1e-14)
-    torch.testing.assert_close(state, final, rtol=0, atol=0)
-
-
-def _run(step, x: torch.Tensor, init) -> tuple[torch.Tensor, list[torch.Tensor]]:
-    state = init.initial_state(x[:, :1])
-    outs = []
-    for xt in x.unbind(1):
-        f, state = step(xt.unsqueeze(1), state)
-        outs.append(f)
-    return torch.stack(outs, 1), state
-
-
-@pytest.mark.parametrize("smooth", [None, 0.05])
-@pytest.mark.parametrize("initial", ["demagnetized", "positive", "negative"])
-@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_step_eager_and_scripted_equal_sequence(smooth, initial, dtype):
-    m = model(smooth=smooth, initial=initial)
-    x = signal(2, 150, 9, seed=6).to(dtype)
-    y, final = m.to(dtype)(x)
-    step = m.streaming_step(dtype)
-    assert step.n_outputs == 1 and step.state_spec[0].size == m.n_relays
-    with warnings.catch_warnings():  # torch.jit.script is deprecated in torch 2.13
-        warnings.filterwarnings("ignore", message=r"`torch\.jit\.script` is deprecated",
-                                category=DeprecationWarning)
-        scripted = torch.jit.script(step)
-    for s in (step, scripted):
-        f, state = _run(s, x, step)
-        assert f.shape == (2, 150, 1) and f.dtype == dtype
-        tol = 1e-13 if dtype == torch.float64 else 1e-5
-        torch.testing.assert_close(f[..., 0], y.detach(), rtol=0, atol=tol)
-        torch.testing.assert_close(state[0], final, rtol=0, atol=0)
-    torch.testing.assert_close(step.run(x)[..., 0], y.detach(), rtol=0, atol=tol)
-
-
-def test_registered_and_one_dimensional():
-    assert OPERATORS["preisach"] is Preisach
-    m = make_operator("preisach", lo=-1.0, hi=1.0, n=5)
-    x = signal(1, 40, 5, seed=7).float()
-    y, s = m(x[0])
-    assert y.shape == (40,) and s.shape == (15,)
-    torch.testing.assert_close(y, m(x)[0][0])
-
-
-def _off_threshold(B: int, T: int, n: int, seed: int) -> torch.Tensor:
-    """Samples a tenth of a cell or more away from every level (the levels are the cell
-    centres), so that finite differences stay on a branch."""
-    g = torch.Generator().manual_seed(seed)
-    edge = torch.randint(0, n + 1, (B, T), generator=g).to(F64)
-    shift = 0.4 * (2 * torch.rand(B, T, generator=g, dtype=F64) - 1)
-    return -1.0 + 2.0 * (edge + shift) / n
-
-
-@pytest.mark.parametrize("smooth", [None, 0.3])
-def test_gradcheck(smooth):
-    alpha, beta = preisach_grid(-1.0, 1.0, 5, dtype=F64)
-    x = _off_threshold(2, 40, 5, seed=8).requires_grad_()
-    w = torch.rand(alpha.numel(), dtype=F64, requires_grad=True)
-    off = torch.tensor(0.2, dtype=F64, requires_grad=True)
-    lin = torch.tensor(0.7, dtype=F64, requires_grad=True)
-
-    def f(x, w, off, lin):
-        return preisach(x, w, alpha, beta, offset=off, linear=lin, smooth=smooth)
-
-    assert torch.autograd.gradcheck(f, (x, w, off, lin))
-    if smooth is not None:
-        assert torch.autograd.gradcheck(
-            lambda x: relay_states(x, alpha, beta, smooth=smooth), (x,))
-
-
-@pytest.mark.parametrize("smooth", [None, 0.2])
-def test_custom_backward_equals_autograd_of_the_materialised_relays(smooth):
-    alpha, beta = preisach_grid(-1.0, 1.0, 7, dtype=F64)
-    x = signal(2, 120, 7, seed=9).requires_grad_()
-    w = torch.rand(alpha.numel(), dtype=F64, requires_grad=True)
-    probe = torch.randn(2, 120, dtype=F64)
-    g1 = torch.autograd.grad((preisach(x, w, alpha, beta, smooth=smooth) * probe).sum(),
-                             (x, w), allow_unused=True, materialize_grads=True)
-    g2 = torch.autograd.grad((relay_states(x, alpha, beta, smooth=smooth) @ w * probe).sum(),
-                             (x, w), allow_unused=True, materialize_grads=True)
-    for a, b in zip(g1, g2, strict=True):
-        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
-
-
-def test_smooth_tends_to_hard_relays():
-    alpha, beta = preisach_grid(-1.0, 1.0, 6, dtype=F64)
-    x = _off_threshold(2, 200, 6, seed=10)
-    hard = relay_states(x, alpha, beta)
-    for tau, tol in ((1e-2, 1e-2), (1e-4, 1e-12)):
-        torch.testing.assert_close(relay_states(x, alpha, beta, smooth=tau), hard,
-                                   rtol=0, atol=tol)
-
-
-def test_module_gradients_and_projection():
-    m = model()
-    x = signal(2, 80, 9, seed=11)
-    with torch.no_grad():
-        m.weights[:3] = -0.5  # as after a gradient step below zero
-    y, _ = m(x)
-    ref = Preisach(-1.0, 1.0, 9).double()
-    ref.load_state_dict({**m.state_dict(), "weights": m.weights.detach().clamp_min(0)})
-    torch.testing.assert_close(y, ref(x)[0])
-    y.sum().backward()
-    assert m.weights.grad is not None and bool((m.weights.grad[:3] == 0).all())
-    assert m.linear.grad is not None and m.offset.grad is not None
-    m.project_()
-    assert float(m.weights.detach().min()) == 0.0
-
-
-@pytest.mark.parametrize(
-    "alpha, beta, r0, x, hard, theta",
-    [
-        (0.0, 0.0, -1.0, 0.0, 1.0, 0.0),  # diagonal relay at its threshold: up wins
-        (0.0, 0.0, 1.0, 0.0, 1.0, 0.0),
-        (0.5, -0.5, -1.0, 0.5, 1.0, -0.5),  # reaches alpha: up, next threshold beta
-        (0.5, -0.5, 1.0, -0.5, -1.0, 0.5),  # reaches beta: down, next threshold alpha
-        (0.5, -0.5, 1.0, 0.2, 1.0, -0.5),  # in between: keeps r0
-    ],
-)
-def test_ties_and_gradient_at_a_threshold(alpha, beta, r0, x, hard, theta):
-    a, b = torch.tensor([alpha], dtype=F64), torch.tensor([beta], dtype=F64)
-    r = torch.tensor([r0], dtype=F64)
-    xs = torch.tensor([x], dtype=F64, requires_grad=True)
-    assert relay_states(xs, a, b, r0=r).item() == hard
-    tau = 0.25
-    y = preisach(xs, torch.ones(1, dtype=F64), a, b, r0=r, smooth=tau)
-    expected = np.tanh((x - theta) / tau)
-    assert y.item() == pytest.approx(expected, abs=1e-15)
-    (gx,) = torch.autograd.grad(y.sum(), xs)
-    assert gx.item() == pytest.approx((1 - expected**2) / tau, abs=1e-12)

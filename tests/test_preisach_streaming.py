@@ -1,0 +1,83 @@
+"""Preisach streaming: chunked calls equal one call; the per-sample step (eager, TorchScript,
+torch.export) equals the sequence path."""
+
+from __future__ import annotations
+
+import warnings
+
+import pytest
+import torch
+from test_preisach import model, signal
+
+from torchhys.operator import OPERATORS, make_operator
+from torchhys.preisach import Preisach
+
+
+@pytest.mark.parametrize("smooth", [None, 0.05])
+@pytest.mark.parametrize("splits", [[1] * 30, [5, 100, 152], [256, 1], [100, 157]])
+def test_chunked_calls_equal_one_call(smooth, splits):
+    m = model(smooth=smooth)
+    x = signal(3, sum(splits), 9, seed=5)
+    whole, final = m(x)
+    parts, state = [], None
+    for chunk in x.split(splits, dim=1):
+        y, state = m(chunk, state)
+        parts.append(y)
+    torch.testing.assert_close(torch.cat(parts, 1), whole, rtol=0, atol=1e-14)
+    torch.testing.assert_close(state, final, rtol=0, atol=0)
+
+
+def _run(step, x: torch.Tensor, init) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    state = init.initial_state(x[:, :1])
+    outs = []
+    for xt in x.unbind(1):
+        f, state = step(xt.unsqueeze(1), state)
+        outs.append(f)
+    return torch.stack(outs, 1), state
+
+
+@pytest.mark.parametrize("smooth", [None, 0.05])
+@pytest.mark.parametrize("initial", ["demagnetized", "positive", "negative"])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_step_eager_and_scripted_equal_sequence(smooth, initial, dtype):
+    m = model(smooth=smooth, initial=initial)
+    x = signal(2, 150, 9, seed=6).to(dtype)
+    y, final = m.to(dtype)(x)
+    step = m.streaming_step(dtype)
+    assert step.n_outputs == 1 and step.state_spec[0].size == m.n_relays
+    with warnings.catch_warnings():  # torch.jit.script is deprecated in torch 2.13
+        warnings.filterwarnings("ignore", message=r"`torch\.jit\.script` is deprecated",
+                                category=DeprecationWarning)
+        scripted = torch.jit.script(step)
+    for s in (step, scripted):
+        f, state = _run(s, x, step)
+        assert f.shape == (2, 150, 1) and f.dtype == dtype
+        tol = 1e-13 if dtype == torch.float64 else 1e-5
+        torch.testing.assert_close(f[..., 0], y.detach(), rtol=0, atol=tol)
+        torch.testing.assert_close(state[0], final, rtol=0, atol=0)
+    torch.testing.assert_close(step.run(x)[..., 0], y.detach(), rtol=0, atol=tol)
+
+
+def test_registered_and_one_dimensional():
+    assert OPERATORS["preisach"] is Preisach
+    m = make_operator("preisach", lo=-1.0, hi=1.0, n=5)
+    x = signal(1, 40, 5, seed=7).float()
+    y, s = m(x[0])
+    assert y.shape == (40,) and s.shape == (15,)
+    torch.testing.assert_close(y, m(x)[0][0])
+
+
+
+
+@pytest.mark.parametrize("smooth", [None, 0.05])
+def test_exported_step_equals_sequence(smooth):
+    m = model(smooth=smooth).float()
+    x = signal(2, 60, 9, seed=12).float()
+    step = m.streaming_step(torch.float32)
+    state = step.initial_state(x[:, :1])
+    exported = torch.export.export(step, (x[:, :1], state)).module()
+    with torch.no_grad():
+        y, final = m(x)
+        f, state = _run(exported, x, step)
+    torch.testing.assert_close(f[..., 0], y, rtol=0, atol=1e-5)
+    torch.testing.assert_close(state[0], final, rtol=0, atol=0)
