@@ -1,0 +1,141 @@
+"""Benchmark: the Preisach model, forward + backward, and its identification.
+
+T = 1e5 samples, n = 31 levels (K = 496 relays), batch 1, float32. For each method the time
+(median of several repeats) and the peak memory, measured as the growth of the process's
+peak resident set size over the resident size before the first call, each method in a fresh
+subprocess.
+
+Methods:
+    chunked       torchhys.functional.preisach: forward + backward of ``(y * probe).sum()``
+                  with respect to the weights (the custom backward recomputes the relays)
+    smooth        the same with smooth relays (tau = 0.05), gradients to weights and x
+    materialised  relay_states (batch, time, K) @ weights with autograd: the naive layout
+    fit           fit_preisach (float64 normal equations, chunked, + Lawson-Hanson NNLS)
+    step          the scripted per-sample PreisachStep, time per sample (1e4 samples)
+
+Usage: python benchmarks/preisach.py [--repeats N] [--threads N] [--length T]
+
+References:
+    I. D. Mayergoyz, Mathematical Models of Hysteresis, Springer, 1991.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import statistics
+import subprocess
+import sys
+import time
+import warnings
+
+import torch
+
+N_LEVELS = 31
+METHODS = ("chunked", "smooth", "materialised", "fit", "step")
+
+
+def _rss_bytes() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * resource.getpagesize()
+
+
+def _signal(T: int) -> torch.Tensor:
+    torch.manual_seed(0)
+    t = torch.arange(T, dtype=torch.float64)
+    walk = (0.05 * torch.randn(T, dtype=torch.float64)).cumsum(0)
+    x = (0.6 + 0.4 * torch.sin(t / T * 12.0)) * torch.sin(0.01 * t + walk)
+    return x.float().unsqueeze(0)
+
+
+def run_one(method: str, T: int, repeats: int) -> dict:
+    from torchhys.functional.preisach import preisach, preisach_grid, relay_states
+    from torchhys.preisach import Preisach, fit_preisach
+
+    x = _signal(T)
+    alpha, beta = preisach_grid(-1.0, 1.0, N_LEVELS)
+    K = alpha.numel()
+    w = torch.rand(K, requires_grad=True)
+    probe = torch.randn_like(x)
+    xg = x.clone().requires_grad_()
+    y_fit = None
+    step = None
+
+    def call() -> None:
+        nonlocal y_fit, step
+        if method == "chunked":
+            (preisach(x, w, alpha, beta) * probe).sum().backward()
+        elif method == "smooth":
+            (preisach(xg, w, alpha, beta, smooth=0.05) * probe).sum().backward()
+        elif method == "materialised":
+            ((relay_states(x, alpha, beta) @ w) * probe).sum().backward()
+        elif method == "fit":
+            if y_fit is None:
+                with torch.no_grad():
+                    y_fit = preisach(x, w, alpha, beta).double()
+            fit_preisach(x.double(), y_fit, lo=-1.0, hi=1.0, n=N_LEVELS)
+        elif method == "step":
+            if step is None:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", DeprecationWarning)
+                    eager = Preisach(-1.0, 1.0, N_LEVELS).streaming_step(torch.float32)
+                    step = (eager, torch.jit.script(eager))
+            xs = x[:, :10_000]
+            state = step[0].initial_state(xs[:, :1])
+            with torch.no_grad():
+                for xt in xs.unbind(1):
+                    _, state = step[1](xt.unsqueeze(1), state)
+        w.grad = None
+        xg.grad = None
+
+    base = _rss_bytes()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        call()
+        times.append(time.perf_counter() - t0)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 - base
+    median = statistics.median(times)
+    per = median / 10_000 * 1e6 if method == "step" else None
+    return {"method": method, "T": T, "K": K, "median_s": median, "min_s": min(times),
+            "repeats": len(times), "peak_bytes": peak, "us_per_sample": per,
+            "relay_bytes": T * K * 4}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
+    parser.add_argument("--length", type=int, default=100_000)
+    parser.add_argument("--one", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    if args.one:
+        print(json.dumps(run_one(args.one, args.length, args.repeats)))
+        return
+    rows = []
+    for method in METHODS:
+        repeats = min(args.repeats, 3) if method in ("fit", "materialised") else args.repeats
+        out = subprocess.run(
+            [sys.executable, __file__, "--one", method, "--length", str(args.length),
+             "--repeats", str(repeats), "--threads", str(args.threads)],
+            check=True, capture_output=True, text=True,
+        )
+        rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+    threads = args.threads or torch.get_num_threads()
+    print(f"Preisach, T={args.length}, K={rows[0]['K']} relays (n={N_LEVELS}), batch 1, "
+          f"float32 (fit: float64), torch {torch.__version__}, {threads} threads\n")
+    print("| method | median time (s) | min time (s) | peak memory (MB) | peak / (T K float32) |")
+    print("|---|---|---|---|---|")
+    for r in rows:
+        label = r["method"]
+        if r["us_per_sample"] is not None:
+            label += f" ({r['us_per_sample']:.1f} us/sample)"
+        print(f"| {label} | {r['median_s']:.3f} | {r['min_s']:.3f} "
+              f"| {r['peak_bytes'] / 2**20:.0f} | {r['peak_bytes'] / r['relay_bytes']:.2f} |")
+
+
+if __name__ == "__main__":
+    main()
