@@ -81,3 +81,17 @@ def test_exported_step_equals_sequence(smooth):
         f, state = _run(exported, x, step)
     torch.testing.assert_close(f[..., 0], y, rtol=0, atol=1e-5)
     torch.testing.assert_close(state[0], final, rtol=0, atol=0)
+
+
+def test_streaming_compensator_of_a_network_with_a_preisach_operator():
+    from torchhys.networks import InverseHysteresisNet
+    from torchhys.streaming import StreamingCompensator
+
+    torch.manual_seed(0)
+    net = InverseHysteresisNet([Preisach(-1.5, 1.5, 8, smooth=0.1)], hidden=16).double()
+    x = 1.2 * torch.sin(torch.linspace(0, 20, 300, dtype=torch.float64))[None]
+    net.fit_normalization(x, 0.5 * x)
+    with torch.no_grad():
+        y, _ = net(x)
+        u = StreamingCompensator(net, limits=(-100.0, 100.0))(x)
+    torch.testing.assert_close(u, y, rtol=0, atol=1e-12)
