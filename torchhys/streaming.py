@@ -232,12 +232,13 @@ class StreamingCompensator(nn.Module):
     def _anchored(self, t: Tensor, started: Tensor, x: Tensor, k: int, start: Tensor,
                   sample: Tensor) -> Tensor:
         """State tensor ``t`` with the rows that have not started set to their first-sample
-        values (a row's first finite sample; a non-finite one is discarded later)."""
+        values (a row's first finite sample; a non-finite one is discarded later). ``x`` is
+        in ``t``'s dtype."""
         if not self.anchor[k]:
             return t
         if k == 2:  # int64 blocks start at constants
             return torch.where(started, t, start)
-        return torch.where(started, t, torch.addcmul(start, sample, x.to(t.dtype)))
+        return torch.where(started, t, torch.addcmul(start, sample, x))
 
     @torch.jit.export
     def step_explicit(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
@@ -248,8 +249,8 @@ class StreamingCompensator(nn.Module):
         parts = [
             self._anchored(F, started, xc, 0, self.start_f, self.sample_f).split_with_sizes(
                 self.sizes[0], 1),
-            self._anchored(G, started, xc, 1, self.start_g, self.sample_g).split_with_sizes(
-                self.sizes[1], 1) if self.has_f64 else [F],
+            self._anchored(G, started, xc.double(), 1, self.start_g, self.sample_g
+                           ).split_with_sizes(self.sizes[1], 1) if self.has_f64 else [F],
             self._anchored(I, started, xc, 2, self.start_i, self.sample_i).split_with_sizes(
                 self.sizes[2], 1) if self.has_int else [I],
         ]
@@ -265,12 +266,12 @@ class StreamingCompensator(nn.Module):
         held = F.narrow(1, self.HELD_COLUMN, 1)
         u_out = torch.where(ok, u, torch.where(started, held, self.u0))
         out = [torch.where(ok, torch.cat([u] + new[0], 1), F)]
-        count = I.narrow(1, self.COUNTER_COLUMN, 1) + torch.logical_not(ok)
-        if len(new[2]) > 0:
+        if self.has_int:
+            count = I.narrow(1, self.COUNTER_COLUMN, 1) + torch.logical_not(ok)
             out.append(torch.cat([count, torch.where(ok, torch.cat(new[2], 1),
                                                      I.narrow(1, 1, I.shape[1] - 1))], 1))
-        else:
-            out.append(count)
+        else:  # the counter is all of I
+            out.append(I + torch.logical_not(ok))
         out.append(started | ok)
         if self.has_f64:
             out.append(torch.where(ok, torch.cat(new[1], 1), G))
