@@ -40,9 +40,9 @@ def test_names_and_dicts_build_the_same_operators() -> None:
 
 
 @pytest.mark.parametrize("spec, error, match", [
-    ("no_such_op", ValueError, r"one of \['backlash', 'eiho', .*'pi_ls'.*got 'no_such_op'"),
-    ({"name": "pi"}, ValueError, r"operator name must be one of \['backlash', 'eiho'.*got 'pi'"),
-    ({"n": 3}, ValueError, r"has no 'name'; valid names: \['backlash', 'eiho'"),
+    ("no_such_op", ValueError, r"one of \[.*'eiho', .*'pi_ls'.*got 'no_such_op'"),
+    ({"name": "pi"}, ValueError, r"operator name must be one of \[.*'eiho'.*got 'pi'"),
+    ({"n": 3}, ValueError, r"has no 'name'; valid names: \[.*'eiho'"),
     ({"name": "plays", "m": 3}, ValueError, r"unknown option\(s\) \['m'\]"),
     ({"name": "pi_ls", "n_widths": 0}, ValueError, "n_widths must be an int >= 1, got 0"),
     ({"name": "plays", "power": -1.0}, ValueError, "power and span_fraction must be > 0"),
