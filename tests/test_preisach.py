@@ -3,11 +3,13 @@
 
 from __future__ import annotations
 
+import importlib
+
 import numpy as np
 import pytest
 import torch
+from _preisach_helpers import model, signal
 
-import torchhys.functional.preisach as fp
 from torchhys.functional.preisach import (
     demagnetized_state,
     preisach,
@@ -17,6 +19,9 @@ from torchhys.functional.preisach import (
 from torchhys.preisach import Preisach
 
 F64 = torch.float64
+
+# the module (the package re-exports a function of the same name)
+fp = importlib.import_module("torchhys.functional.preisach")
 
 
 def relay_reference(x: np.ndarray, alpha: np.ndarray, beta: np.ndarray,
@@ -43,19 +48,6 @@ def demag_reference(n: int) -> np.ndarray:
     return np.where(i + j < n - 1, 1.0, -1.0)
 
 
-def signal(B: int, T: int, n: int, seed: int = 0) -> torch.Tensor:
-    """A random walk over [-1.3, 1.3] with samples exactly on the grid levels, repeats and
-    a flat stretch (ties and saturation)."""
-    g = torch.Generator().manual_seed(seed)
-    x = (torch.randn(B, T, generator=g, dtype=F64) * 0.35).cumsum(1)
-    x = 1.3 * torch.sin(x)
-    levels = -1.0 + 2.0 * (torch.arange(n, dtype=F64) + 0.5) / n
-    on = torch.rand(B, T, generator=g) < 0.3
-    x = torch.where(on, levels[torch.randint(n, (B, T), generator=g)], x)
-    x[:, T // 3: T // 3 + 5] = x[:, T // 3: T // 3 + 1]
-    return x
-
-
 def ramps(points: list[float], step: float = 0.01) -> torch.Tensor:
     """Piecewise-linear input through the given extrema, (1, T)."""
     parts = [torch.tensor([points[0]], dtype=F64)]
@@ -63,16 +55,6 @@ def ramps(points: list[float], step: float = 0.01) -> torch.Tensor:
         m = max(1, int(round(abs(b - a) / step)))
         parts.append(torch.linspace(a, b, m + 1, dtype=F64)[1:])
     return torch.cat(parts)[None]
-
-
-def model(n: int = 9, seed: int = 0, **options) -> Preisach:
-    m = Preisach(-1.0, 1.0, n, **options).double()
-    with torch.no_grad():
-        m.weights.copy_(torch.rand(m.n_relays, generator=torch.Generator().manual_seed(seed),
-                                   dtype=F64))
-        m.linear.fill_(0.3)
-        m.offset.fill_(-0.2)
-    return m
 
 
 @pytest.mark.parametrize("n", [1, 2, 5, 8])

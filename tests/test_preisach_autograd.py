@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from test_preisach import model, signal
+from _preisach_helpers import model, signal
 
 from torchhys.functional.preisach import preisach, preisach_grid, relay_states
 from torchhys.preisach import Preisach

@@ -7,7 +7,7 @@ import warnings
 
 import pytest
 import torch
-from test_preisach import model, signal
+from _preisach_helpers import model, signal
 
 from torchhys.operator import OPERATORS, make_operator
 from torchhys.preisach import Preisach

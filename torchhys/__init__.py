@@ -10,6 +10,7 @@ from torchhys.eiho import EIHO, ZhaoTanOperator
 from torchhys.networks import InverseHysteresisNet
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
 from torchhys.prandtl_ishlinskii import PrandtlIshlinskii, PrandtlIshlinskiiInverse
+from torchhys.preisach import Preisach, fit_preisach, select_penalty
 
 __version__ = "0.1.0"
 
@@ -33,4 +34,7 @@ __all__ = [
     "BacklashCell",
     "PrandtlIshlinskii",
     "PrandtlIshlinskiiInverse",
+    "Preisach",
+    "fit_preisach",
+    "select_penalty",
 ]

@@ -7,6 +7,13 @@ from torchhys.functional.prandtl_ishlinskii import (
     prandtl_ishlinskii,
     prandtl_ishlinskii_inverse_parameters,
 )
+from torchhys.functional.preisach import (
+    demagnetized_state,
+    preisach,
+    preisach_grid,
+    relay_states,
+    relay_update,
+)
 from torchhys.functional.turning_points import estimate_threshold, turning_points
 
 __all__: list[str] = [
@@ -21,4 +28,9 @@ __all__: list[str] = [
     "play_step",
     "prandtl_ishlinskii",
     "prandtl_ishlinskii_inverse_parameters",
+    "demagnetized_state",
+    "preisach",
+    "preisach_grid",
+    "relay_states",
+    "relay_update",
 ]
