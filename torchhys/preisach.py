@@ -12,13 +12,13 @@ References:
 
 from __future__ import annotations
 
-import math
 import warnings
 
 import torch
 from torch import Tensor, nn
 
 from torchhys._checks import as_batched_sequence
+from torchhys._nnls import Moments, check_penalty, holdout_cuts, nnls_gram, select_on_holdout
 from torchhys.functional.preisach import (
     _check_smooth,
     _real,
@@ -203,8 +203,8 @@ def fit_preisach(
     """
     xb, yb, model, cuts = _prepare(x, y, lo, hi, n, linear, warmup, None)
     (G, h, _, count), = _normal_equations(xb, yb, model, cuts)
-    theta = _solve(G / count, h / count, model, _penalty(ridge, "ridge"),
-                   _penalty(smoothness, "smoothness"))
+    theta = _solve(G / count, h / count, model, check_penalty(ridge, "ridge"),
+                   check_penalty(smoothness, "smoothness"))
     return _set(model, theta)
 
 
@@ -232,17 +232,13 @@ def select_penalty(
     """
     if kind not in ("ridge", "smoothness"):
         raise ValueError(f"kind must be one of ('ridge', 'smoothness'), got {kind!r}")
-    if len(penalties) == 0:
-        raise ValueError("penalties must hold at least one value, got none")
-    values = [_penalty(p, "penalties") for p in penalties]
     xb, yb, model, cuts = _prepare(x, y, lo, hi, n, linear, warmup, validation)
-    (G, h, _, count), (Gv, hv, yyv, count_v) = _normal_equations(xb, yb, model, cuts)
-    scores = {}
-    for p in values:
-        theta = _solve(G / count, h / count, model, *((p, 0.0) if kind == "ridge" else (0.0, p)))
-        mse = (yyv - 2.0 * theta @ hv + theta @ Gv @ theta) / count_v
-        scores[p] = math.sqrt(max(float(mse), 0.0))
-    return min(scores, key=scores.__getitem__), scores
+    train, valid = _normal_equations(xb, yb, model, cuts)
+
+    def solve(G: Tensor, h: Tensor, p: float) -> Tensor:
+        return _solve(G, h, model, *((p, 0.0) if kind == "ridge" else (0.0, p)))
+
+    return select_on_holdout(train, valid, penalties, solve)
 
 
 def _prepare(x: Tensor, y: Tensor, lo: float | None, hi: float | None, n: int, linear: bool,
@@ -264,21 +260,14 @@ def _prepare(x: Tensor, y: Tensor, lo: float | None, hi: float | None, n: int, l
     if outside > 0:
         warnings.warn(f"{outside:.2%} of the samples of x lie outside [lo, hi] = [{lo:.6g}, "
                       f"{hi:.6g}]: the relays saturate there", RuntimeWarning, stacklevel=3)
-    cuts = [warmup, T]
-    if validation is not None:
-        if not 0.0 < validation < 1.0:
-            raise ValueError(f"validation must be in (0, 1), got {validation!r}")
-        cuts = [warmup, T - max(1, round(validation * T)), T]
-        if cuts[1] <= warmup:
-            raise ValueError(f"warmup ({warmup}) leaves no training samples before the "
-                             f"validation split at {cuts[1]}")
-    return xb, yb, model, cuts
+    return xb, yb, model, holdout_cuts(T, warmup, validation)
 
 
 def _normal_equations(x: Tensor, y: Tensor, model: Preisach,
-                      cuts: list[int]) -> list[tuple[Tensor, Tensor, Tensor, int]]:
-    """``(A'A, A'y, y'y, rows)`` in float64 of the design ``A = [relays, x, 1]`` over the
-    samples ``cuts[s]:cuts[s+1]`` of every row, for each segment s."""
+                      cuts: list[int]) -> list[Moments]:
+    """The :class:`~torchhys._nnls.Moments` ``(A'A, A'y, y'y, rows)`` in float64 of the
+    design ``A = [relays, x, 1]`` over the samples ``cuts[s]:cuts[s+1]`` of every row, for
+    each segment s."""
     K, m = model.n_relays, model.n_relays + 1 + isinstance(model.linear, nn.Parameter)
     out = [[x.new_zeros(m, m, dtype=torch.float64), x.new_zeros(m, dtype=torch.float64),
             x.new_zeros((), dtype=torch.float64), 0] for _ in cuts[1:]]
@@ -297,7 +286,7 @@ def _normal_equations(x: Tensor, y: Tensor, model: Preisach,
             seg[1] += A @ ys
             seg[2] += ys @ ys
             seg[3] += ys.numel()
-    return [tuple(seg) for seg in out]  # type: ignore[misc]
+    return [Moments(*seg) for seg in out]
 
 
 def _solve(G: Tensor, h: Tensor, model: Preisach, ridge: float, smoothness: float) -> Tensor:
@@ -315,66 +304,7 @@ def _solve(G: Tensor, h: Tensor, model: Preisach, ridge: float, smoothness: floa
     P = G.clone()
     P[:K, :K] += ridge * torch.eye(K, dtype=torch.float64) + smoothness * (D.T @ D)
     free = torch.arange(m) >= K
-    return _nnls(P, h, free)
-
-
-def _nnls(G: Tensor, h: Tensor, free: Tensor) -> Tensor:
-    """Lawson-Hanson active set for ``min w'Gw/2 - h'w``, ``w[~free] >= 0``, G (m, m)
-    symmetric positive (semi)definite, float64; columns scaled to a unit diagonal first."""
-    diag = G.diagonal()
-    s = torch.where(diag > 0, diag.clamp_min(1e-300).rsqrt(), torch.ones_like(diag))
-    G, h = s[:, None] * G * s, s * h
-    m = h.numel()
-    passive, blocked = free.clone(), torch.zeros_like(free)
-    w = _passive_solve(G, h, passive)
-    tol = 1e-12 * max(1.0, float(h.abs().max()))
-    for _ in range(3 * m + 10):
-        dual = h - G @ w
-        cand = ~passive & ~blocked & (dual > tol)
-        if not bool(cand.any()):
-            break
-        j = int(torch.where(cand, dual, -math.inf).argmax())
-        passive[j] = True
-        while True:
-            z = _passive_solve(G, h, passive)
-            neg = passive & ~free & (z <= 0)
-            if not bool(neg.any()):
-                w, blocked = z, torch.zeros_like(free)
-                break
-            if bool(neg[j]) and float(w[j]) == 0.0:  # rounding: the new index does not enter
-                passive[j], blocked[j] = False, True
-                break
-            ratio = torch.where(neg, w / (w - z).clamp_min(1e-300), math.inf)
-            k = int(ratio.argmin())
-            w = w + ratio[k] * (z - w)
-            w[k] = 0.0
-            drop = passive & ~free & (w <= 0)
-            passive &= ~drop
-            w[drop] = 0.0
-    else:
-        warnings.warn(f"NNLS stopped after {3 * m + 10} iterations before convergence",
-                      RuntimeWarning, stacklevel=3)
-    return s * w
-
-
-def _passive_solve(G: Tensor, h: Tensor, passive: Tensor) -> Tensor:
-    """Solve the equations of the passive set (Cholesky; least squares if singular)."""
-    z = torch.zeros_like(h)
-    idx = passive.nonzero().squeeze(1)
-    if idx.numel():
-        A, b = G[idx][:, idx], h[idx]
-        L, info = torch.linalg.cholesky_ex(A)
-        sol = (torch.cholesky_solve(b[:, None], L)[:, 0] if int(info) == 0
-               else torch.linalg.lstsq(A, b[:, None]).solution[:, 0])
-        z[idx] = sol
-    return z
-
-
-def _penalty(value: float, name: str) -> float:
-    v = _real(value, name)
-    if v < 0:
-        raise ValueError(f"{name} must be >= 0, got {v}")
-    return v
+    return nnls_gram(P, h, free)
 
 
 def _set(model: Preisach, theta: Tensor) -> Preisach:

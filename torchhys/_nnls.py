@@ -1,0 +1,175 @@
+"""Penalised non-negative least squares from the normal equations, and the choice of a penalty
+on a time-ordered hold-out: shared by the Preisach and Prandtl-Ishlinskii identifications
+(:func:`torchhys.fit_preisach`, :func:`torchhys.fitting.fit_prandtl_ishlinskii`).
+
+Both fits reduce to a design ``A`` (rows: samples, columns: features) and a target ``y``; a
+:class:`Moments` holds what a solve or a score needs of one segment of the samples
+(``A'A``, ``A'y``, ``y'y`` and the number of rows), so a penalty is scored on the hold-out
+without touching the samples again.
+
+References:
+    C. L. Lawson and R. J. Hanson, Solving Least Squares Problems, SIAM, 1995, Ch. 23.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+import warnings
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+__all__ = ["Moments", "check_penalty", "holdout_cuts", "moments", "nnls_gram",
+           "select_on_holdout"]
+
+
+class Moments(NamedTuple):
+    """Second moments of one segment of a least-squares problem, float64."""
+
+    gram: Tensor
+    """``A'A``, (m, m)."""
+    moment: Tensor
+    """``A'y``, (m,)."""
+    yy: Tensor
+    """``y'y``, 0-dim."""
+    count: int
+    """Rows (samples) of the segment."""
+
+
+def moments(A: Tensor, y: Tensor) -> Moments:
+    """The :class:`Moments` of a design ``A`` (rows, m) and target ``y`` (rows,), float64."""
+    A, y = A.to(torch.float64), y.to(torch.float64)
+    return Moments(A.T @ A, A.T @ y, y @ y, int(y.numel()))
+
+
+def check_penalty(value: object, name: str) -> float:
+    """A finite real number >= 0 (a Python or NumPy number, or a one-element tensor)."""
+    if isinstance(value, Tensor) and value.numel() == 1:
+        value = value.item()
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a real number, got {type(value).__name__}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise ValueError(f"{name} must be finite, got {value}")
+    if v < 0:
+        raise ValueError(f"{name} must be >= 0, got {v}")
+    return v
+
+
+def holdout_cuts(T: int, warmup: int, validation: float | None) -> list[int]:
+    """Segment boundaries of each row of T samples: ``[warmup, T]`` (fit on all), or
+    ``[warmup, split, T]`` with the last ``validation`` share (at least one sample) held out.
+
+    Raises:
+        ValueError: ``validation`` not in (0, 1), or no training sample before the split.
+    """
+    if validation is None:
+        return [warmup, T]
+    if (isinstance(validation, bool) or not isinstance(validation, numbers.Real)
+            or not 0.0 < validation < 1.0):
+        raise ValueError(f"validation must be in (0, 1), got {validation!r}")
+    split = T - max(1, round(validation * T))
+    if split <= warmup:
+        raise ValueError(f"warmup ({warmup}) leaves no training samples before the "
+                         f"validation split at {split}")
+    return [warmup, split, T]
+
+
+def select_on_holdout(
+    train: Moments, valid: Moments, penalties: Sequence[float],
+    solve: Callable[[Tensor, Tensor, float], Tensor], *, name: str = "penalties",
+) -> tuple[float, dict[float, float]]:
+    """Score each penalty by the RMS error on the hold-out of the fit on the training part.
+
+    Args:
+        train, valid: moments of the training and the held-out samples.
+        penalties: the candidates (each finite and >= 0), at least one.
+        solve: ``solve(G, h, penalty) -> theta`` with the training moments per sample
+            (``A'A / n``, ``A'y / n``).
+        name: the argument's name in error messages.
+
+    Returns:
+        The penalty with the least hold-out RMS error (the first on ties), and the RMS
+        error of each (from the moments: ``(y'y - 2 theta'A'y + theta'A'A theta) / n``).
+
+    Raises:
+        ValueError, TypeError: no penalty, or a bad one.
+    """
+    if len(penalties) == 0:
+        raise ValueError(f"{name} must hold at least one value, got none")
+    values = [check_penalty(p, name) for p in penalties]
+    scores: dict[float, float] = {}
+    for p in values:
+        theta = solve(train.gram / train.count, train.moment / train.count, p)
+        sse = valid.yy - 2.0 * theta @ valid.moment + theta @ valid.gram @ theta
+        scores[p] = math.sqrt(max(float(sse) / valid.count, 0.0))
+    return min(scores, key=scores.__getitem__), scores
+
+
+def nnls_gram(G: Tensor, h: Tensor, free: Tensor) -> Tensor:
+    """Lawson-Hanson active set for ``min w'Gw/2 - h'w`` subject to ``w[~free] >= 0``.
+
+    The free variables are always in the passive set; the columns are scaled to a unit
+    diagonal first.
+
+    Args:
+        G: (m, m) symmetric positive (semi)definite, float64 (``A'A`` plus penalties).
+        h: (m,), float64 (``A'y``).
+        free: (m,) bool, the unconstrained variables.
+
+    Returns:
+        The solution w, (m,).
+
+    Warns:
+        RuntimeWarning: it stopped after ``3 m + 10`` iterations before convergence.
+    """
+    diag = G.diagonal()
+    s = torch.where(diag > 0, diag.clamp_min(1e-300).rsqrt(), torch.ones_like(diag))
+    G, h = s[:, None] * G * s, s * h
+    m = h.numel()
+    passive, blocked = free.clone(), torch.zeros_like(free)
+    w = _passive_solve(G, h, passive)
+    tol = 1e-12 * max(1.0, float(h.abs().max())) if m else 0.0
+    for _ in range(3 * m + 10):
+        dual = h - G @ w
+        cand = ~passive & ~blocked & (dual > tol)
+        if not bool(cand.any()):
+            break
+        j = int(torch.where(cand, dual, -math.inf).argmax())
+        passive[j] = True
+        while True:
+            z = _passive_solve(G, h, passive)
+            neg = passive & ~free & (z <= 0)
+            if not bool(neg.any()):
+                w, blocked = z, torch.zeros_like(free)
+                break
+            if bool(neg[j]) and float(w[j]) == 0.0:  # rounding: the new index does not enter
+                passive[j], blocked[j] = False, True
+                break
+            ratio = torch.where(neg, w / (w - z).clamp_min(1e-300), math.inf)
+            k = int(ratio.argmin())
+            w = w + ratio[k] * (z - w)
+            w[k] = 0.0
+            drop = passive & ~free & (w <= 0)
+            passive &= ~drop
+            w[drop] = 0.0
+    else:
+        warnings.warn(f"NNLS stopped after {3 * m + 10} iterations before convergence",
+                      RuntimeWarning, stacklevel=3)
+    return s * w
+
+
+def _passive_solve(G: Tensor, h: Tensor, passive: Tensor) -> Tensor:
+    """Solve the equations of the passive set (Cholesky; least squares if singular)."""
+    z = torch.zeros_like(h)
+    idx = passive.nonzero().squeeze(1)
+    if idx.numel():
+        A, b = G[idx][:, idx], h[idx]
+        L, info = torch.linalg.cholesky_ex(A)
+        sol = (torch.cholesky_solve(b[:, None], L)[:, 0] if int(info) == 0
+               else torch.linalg.lstsq(A, b[:, None]).solution[:, 0])
+        z[idx] = sol
+    return z
