@@ -187,6 +187,8 @@ class StreamingCompensator(nn.Module):
         self.register_buffer("high", torch.tensor(high, dtype=dtype))
         u0 = min(max(float(initial_command), low), high)
         self.register_buffer("u0", torch.tensor(u0, dtype=dtype))
+        # with u0 = +0.0 the fresh state's held column (zeros) already holds the initial command
+        self.u0_zero: bool = u0 == 0.0 and math.copysign(1.0, u0) > 0
         self._layout(steps, dtype)
         self.state = self.initial_state(1)
         self.n_steps = 0
@@ -263,9 +265,12 @@ class StreamingCompensator(nn.Module):
         # non-finite sample may still give a finite command through a saturating activation)
         ok = torch.isfinite(xc) & torch.isfinite(u)
         u = torch.clamp(u, self.low, self.high)
-        held = F.narrow(1, self.HELD_COLUMN, 1)
-        u_out = torch.where(ok, u, torch.where(started, held, self.u0))
         out = [torch.where(ok, torch.cat([u] + new[0], 1), F)]
+        if self.u0_zero:  # the held column, zero when fresh, is the command to send
+            u_out = out[0].select(1, self.HELD_COLUMN)
+        else:
+            held = F.narrow(1, self.HELD_COLUMN, 1)
+            u_out = torch.where(ok, u, torch.where(started, held, self.u0)).squeeze(1)
         if self.has_int:
             count = I.narrow(1, self.COUNTER_COLUMN, 1) + torch.logical_not(ok)
             out.append(torch.cat([count, torch.where(ok, torch.cat(new[2], 1),
@@ -275,7 +280,7 @@ class StreamingCompensator(nn.Module):
         out.append(started | ok)
         if self.has_f64:
             out.append(torch.where(ok, torch.cat(new[1], 1), G))
-        return u_out.squeeze(1), out
+        return u_out, out
 
     @torch.jit.export
     def step(self, x_t: Tensor) -> Tensor:
