@@ -6,17 +6,23 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from torchhys._checks import as_batched_sequence, check_int, check_same_shape, check_widths
+from torchhys._nnls import holdout_cuts, moments, nnls_gram, select_on_holdout
 from torchhys.functional.backlash import backlash
 from torchhys.networks import InverseHysteresisNet
+from torchhys.operator import HysteresisOperator, check_operator
 from torchhys.prandtl_ishlinskii import PrandtlIshlinskii
 
-__all__ = ["FitResult", "fit_full_batch", "fit_prandtl_ishlinskii", "play_width_grid"]
+__all__ = [
+    "FitResult", "LINEAR_FLOOR", "fit_full_batch", "fit_prandtl_ishlinskii", "play_width_grid",
+    "select_pi_ridge",
+]
 
 
 class FitResult(NamedTuple):
@@ -31,17 +37,19 @@ class FitResult(NamedTuple):
 
 
 def fit_full_batch(
-    model: InverseHysteresisNet, x: Tensor, y: Tensor, *, adam_epochs: int = 2000,
-    lbfgs_epochs: int = 500, lr: float = 1e-2, tolerance: float = 0.0,
+    model: InverseHysteresisNet | HysteresisOperator, x: Tensor, y: Tensor, *,
+    adam_epochs: int = 2000, lbfgs_epochs: int = 500, lr: float = 1e-2, tolerance: float = 0.0,
 ) -> FitResult:
     """Fit ``model`` to (x, y) with full-batch Adam then L-BFGS (strong Wolfe line search).
 
-    Normalization is fitted first. When the elementary operators have no trainable
-    parameters their outputs are computed once and only the network is trained. ``y`` is
-    passed as ``target`` (used only by per-segment, non-causal EIHOs).
+    A network's normalization is fitted first. When its elementary operators have no
+    trainable parameters their outputs are computed once and only the network is trained.
+    ``y`` is passed as ``target`` (used only by per-segment, non-causal EIHOs). An operator
+    with one output (e.g. :class:`~torchhys.generalized_pi.GeneralizedPrandtlIshlinskii`)
+    is fitted as a model of ``y`` itself: the loss is ``mean((op(x) - y)^2)``.
 
     Args:
-        model: the network.
+        model: the network, or a causal operator with ``n_outputs == 1``.
         x: input, (time,) or (batch, time).
         y: target, same shape.
         adam_epochs: Adam steps.
@@ -51,23 +59,17 @@ def fit_full_batch(
 
     Returns:
         :class:`FitResult`.
+
+    Raises:
+        TypeError, ValueError: a model that is neither, or an operator with several
+            outputs or one that needs the target.
     """
     start = time.perf_counter()
-    model.fit_normalization(x, y)
-    trainable_ops = any(p.requires_grad for p in model.operators.parameters())
-    yb = y.reshape(-1, y.shape[-1])
-    if not trainable_ops:
-        with torch.no_grad():
-            feats, _ = model.features(x, target=y)
-
-        def loss_fn() -> Tensor:
-            return torch.mean((model.head(feats) - yb) ** 2)
-    else:
-
-        def loss_fn() -> Tensor:
-            return torch.mean((model(x.reshape(yb.shape), target=yb)[0] - yb) ** 2)
-
+    loss_fn = (_network_loss(model, x, y) if isinstance(model, InverseHysteresisNet)
+               else _operator_loss(model, x, y))
     params = [p for p in model.parameters() if p.requires_grad]
+    if not params:
+        raise ValueError(f"model {type(model).__name__} has no trainable parameters")
     adam = torch.optim.Adam(params, lr=lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(adam, max(adam_epochs, 1))
     for _ in range(adam_epochs):
@@ -104,6 +106,29 @@ def fit_full_batch(
     return FitResult(mse, adam_epochs + done, time.perf_counter() - start)
 
 
+def _network_loss(model: InverseHysteresisNet, x: Tensor, y: Tensor) -> Callable[[], Tensor]:
+    model.fit_normalization(x, y)
+    trainable_ops = any(p.requires_grad for p in model.operators.parameters())
+    yb = y.reshape(-1, y.shape[-1])
+    if not trainable_ops:
+        with torch.no_grad():
+            feats, _ = model.features(x, target=y)
+        return lambda: torch.mean((model.head(feats) - yb) ** 2)
+    return lambda: torch.mean((model(x.reshape(yb.shape), target=yb)[0] - yb) ** 2)
+
+
+def _operator_loss(op: object, x: Tensor, y: Tensor) -> Callable[[], Tensor]:
+    op = check_operator(op, "model")
+    if op.n_outputs != 1 or not op.causal:
+        raise ValueError(f"model must be an InverseHysteresisNet or a causal operator with one "
+                         f"output, got {type(op).__name__} with n_outputs={op.n_outputs}, "
+                         f"causal={op.causal}")
+    xb, _ = as_batched_sequence(x, "x")
+    yb, _ = as_batched_sequence(y, "y")
+    check_same_shape(yb, xb, "y", "x")
+    return lambda: torch.mean((op(xb)[0] - yb) ** 2)
+
+
 def play_width_grid(u: Tensor, n: int = 30, *, power: float = 3.0) -> Tensor:
     """Dead-band widths ``span(u) (k / n)^power``, ``k = 1..n``, for a model of input ``u``.
 
@@ -138,7 +163,7 @@ def play_width_grid(u: Tensor, n: int = 30, *, power: float = 3.0) -> Tensor:
 
 def fit_prandtl_ishlinskii(
     u: Tensor, y: Tensor, widths: Tensor, *, ridge: float = 0.0, learnable: bool = False,
-    warmup: int = 0,
+    warmup: int = 0, nonnegative: bool = False,
 ) -> PrandtlIshlinskii:
     """Least-squares Prandtl-Ishlinskii model ``y ~ w0 u + sum_i w_i play_{d_i}[u]``.
 
@@ -153,15 +178,25 @@ def fit_prandtl_ishlinskii(
     ``warmup`` leaves the first samples out of the fit only (the states still run through
     them), e.g. while the states forget their zero start.
 
+    ``nonnegative=True`` constrains the play weights to ``w_i >= 0`` and the linear weight to
+    ``w0 >= LINEAR_FLOOR * max(g, 0)``, ``g = cov(u, y) / var(u)`` the least-squares static
+    gain over the fitted samples (``LINEAR_FLOOR = 1e-3``). Every branch of the model then
+    rises with slope ``>= w0 > 0``: it is monotone and has an exact inverse
+    (:meth:`~torchhys.PrandtlIshlinskii.inverse`), which an unconstrained fit need not have.
+    (With ``g <= 0`` the floor is 0 and the model may not be invertible.) It is solved by
+    the Lawson-Hanson method on the normal equations of the ridge-augmented design
+    ``[A / sqrt(n); sqrt(ridge) [0 I]]`` (float64), with ``w0 - floor`` as the variable.
+
     Args:
         u: model input, (time,) or (batch, time) (rows are independent records).
         y: target, same shape.
         widths: full dead-band widths d_i >= 0, shape (N,).
         ridge: Tikhonov weight: minimizes ``mean(residual^2) + ridge * |w|^2`` (w without
-            ``w0``), >= 0.
+            ``w0``), >= 0; choose it with :func:`select_pi_ridge`.
         learnable: return a model with trainable widths and weights.
         warmup: leading samples of each row left out of the least-squares fit,
             ``0 <= warmup < time``.
+        nonnegative: constrain the weights as above (a monotone, invertible model).
 
     Returns:
         :class:`~torchhys.PrandtlIshlinskii` in the dtype of ``u`` (detached parameters).
@@ -173,33 +208,119 @@ def fit_prandtl_ishlinskii(
     References:
         K. Kuhnen, "Modeling, identification and compensation of complex hysteretic
         nonlinearities: a modified Prandtl-Ishlinskii approach", European Journal of
-        Control 9(4), 2003.
+        Control 9(4), 2003; C. L. Lawson and R. J. Hanson, Solving Least Squares Problems,
+        1995, Ch. 23.
     """
-    ub, _ = as_batched_sequence(u, "u")
-    yb, _ = as_batched_sequence(y, "y")
-    check_same_shape(yb, ub, "y", "u")
-    check_widths(widths, "widths")
-    if not (isinstance(ridge, (int, float)) and math.isfinite(ridge) and ridge >= 0):
-        raise ValueError(f"ridge must be a finite number >= 0, got {ridge!r}")
-    check_int(warmup, "warmup", minimum=0)
-    if warmup >= ub.shape[1]:
-        raise ValueError(
-            f"warmup must leave samples to fit: warmup={warmup} of {ub.shape[1]} samples"
-        )
-    with torch.no_grad():
-        ub64, yb64 = ub.detach().double().cpu(), yb.detach().double().cpu()
-        plays = backlash(ub64, widths.detach().double().cpu())  # run through the warm-up
-        design = torch.cat([ub64.unsqueeze(-1), plays], dim=-1)[:, warmup:]
-        design = design.reshape(-1, widths.shape[0] + 1)
-        n = design.shape[0]
-        target = yb64[:, warmup:].reshape(-1, 1)
-        if ridge > 0:
-            penalty = torch.eye(widths.shape[0] + 1, dtype=torch.float64)[1:] * math.sqrt(ridge)
-            design = torch.cat([design / math.sqrt(n), penalty])
-            target = torch.cat([target / math.sqrt(n), target.new_zeros(widths.shape[0], 1)])
-        w = torch.linalg.lstsq(design, target, driver="gelsd").solution[:, 0]  # rank-revealing
+    ub, yb = _check_pi_data(u, y, widths, warmup)
+    ridge = _check_ridge(ridge)
+    (A, target), = _pi_segments(ub, yb, widths, [warmup, ub.shape[1]])
+    if nonnegative:
+        m = moments(A, target)
+        floor = _linear_floor(A[:, 0], target)
+        w = _pi_solve(m.gram / m.count, m.moment / m.count, ridge, True, floor)
+    else:
+        w = _pi_lstsq(A, target, ridge)
     model = PrandtlIshlinskii(
         widths.detach().to(ub.dtype), w[1:].to(ub.dtype), linear_weight=float(w[0]),
         learnable=learnable,
     )
     return model.to(ub.device)
+
+
+def select_pi_ridge(
+    u: Tensor, y: Tensor, widths: Tensor, ridges: Sequence[float], *,
+    nonnegative: bool = False, validation: float = 0.25, warmup: int = 0,
+) -> tuple[float, dict[float, float]]:
+    """Choose the ``ridge`` of :func:`fit_prandtl_ishlinskii` on a time-ordered hold-out.
+
+    Each candidate is fitted on the first ``1 - validation`` of every row (after
+    ``warmup``) and scored by the RMS error on the rest; the play states run through the
+    whole sequence. The same scoring as :func:`torchhys.select_penalty` (Preisach), from the
+    normal equations of the two parts. The held-out samples never enter a fit (nor the
+    ``nonnegative`` floor of the linear weight).
+
+    Args:
+        u, y, widths, warmup, nonnegative: as in :func:`fit_prandtl_ishlinskii`.
+        ridges: candidate ridge weights (each >= 0), at least one.
+        validation: share of the samples of each row held out at its end, in (0, 1).
+
+    Returns:
+        The ridge with the least hold-out RMS error (the first on ties), and the RMS error
+        of each. Refit on all samples with ``fit_prandtl_ishlinskii(..., ridge=best)``.
+
+    Raises:
+        TypeError, ValueError: bad arguments, or no training sample before the split.
+    """
+    ub, yb = _check_pi_data(u, y, widths, warmup)
+    cuts = holdout_cuts(ub.shape[1], warmup, validation)
+    (A, t), (Av, tv) = _pi_segments(ub, yb, widths, cuts)
+    floor = _linear_floor(A[:, 0], t) if nonnegative else 0.0
+
+    def solve(G: Tensor, h: Tensor, ridge: float) -> Tensor:
+        return _pi_solve(G, h, ridge, bool(nonnegative), floor)
+
+    return select_on_holdout(moments(A, t), moments(Av, tv), ridges, solve, name="ridges")
+
+
+LINEAR_FLOOR = 1e-3
+"""Least linear weight of a ``nonnegative`` PI fit, as a share of the static gain."""
+
+
+def _check_pi_data(u: Tensor, y: Tensor, widths: Tensor, warmup: int) -> tuple[Tensor, Tensor]:
+    ub, _ = as_batched_sequence(u, "u")
+    yb, _ = as_batched_sequence(y, "y")
+    check_same_shape(yb, ub, "y", "u")
+    check_widths(widths, "widths")
+    check_int(warmup, "warmup", minimum=0)
+    if warmup >= ub.shape[1]:
+        raise ValueError(
+            f"warmup must leave samples to fit: warmup={warmup} of {ub.shape[1]} samples"
+        )
+    return ub, yb
+
+
+def _check_ridge(ridge: object) -> float:
+    if not (isinstance(ridge, (int, float)) and not isinstance(ridge, bool)
+            and math.isfinite(ridge) and ridge >= 0):
+        raise ValueError(f"ridge must be a finite number >= 0, got {ridge!r}")
+    return float(ridge)
+
+
+def _pi_segments(u: Tensor, y: Tensor, widths: Tensor,
+                 cuts: list[int]) -> list[tuple[Tensor, Tensor]]:
+    """Design ``[u, plays]`` (rows, N + 1) and target (rows,), float64 on the CPU, of the
+    samples ``cuts[s]:cuts[s+1]`` of every row, for each segment s (the plays run from 0)."""
+    with torch.no_grad():
+        u64, y64 = u.detach().double().cpu(), y.detach().double().cpu()
+        plays = backlash(u64, widths.detach().double().cpu())
+        design = torch.cat([u64.unsqueeze(-1), plays], dim=-1)
+        return [(design[:, a:b].reshape(-1, design.shape[-1]), y64[:, a:b].reshape(-1))
+                for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
+
+
+def _pi_lstsq(A: Tensor, target: Tensor, ridge: float) -> Tensor:
+    """Unconstrained ridge least squares on the augmented design (rank-revealing gelsd)."""
+    n, m = A.shape
+    t = target[:, None]
+    if ridge > 0:
+        penalty = torch.eye(m, dtype=torch.float64)[1:] * math.sqrt(ridge)
+        A = torch.cat([A / math.sqrt(n), penalty])
+        t = torch.cat([t / math.sqrt(n), t.new_zeros(m - 1, 1)])
+    return torch.linalg.lstsq(A, t, driver="gelsd").solution[:, 0]
+
+
+def _linear_floor(u: Tensor, y: Tensor) -> float:
+    """``LINEAR_FLOOR * max(cov(u, y) / var(u), 0)`` over the fitted samples u, y (rows,)."""
+    du, dy = u - u.mean(), y - y.mean()
+    var = float(du @ du)
+    return LINEAR_FLOOR * max(float(du @ dy) / var, 0.0) if var > 0 else 0.0
+
+
+def _pi_solve(G: Tensor, h: Tensor, ridge: float, nonnegative: bool, floor: float) -> Tensor:
+    """Weights ``[w0, w_1..w_N]`` from the per-sample normal equations plus the ridge."""
+    P = G + ridge * torch.diag(torch.cat([G.new_zeros(1), G.new_ones(G.shape[0] - 1)]))
+    if not nonnegative:
+        return torch.linalg.lstsq(P, h[:, None], driver="gelsd").solution[:, 0]
+    w = nnls_gram(P, h - floor * G[:, 0], torch.zeros(h.shape, dtype=torch.bool))
+    w[0] += floor
+    return w
