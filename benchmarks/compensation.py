@@ -14,40 +14,48 @@ inverse of a Prandtl-Ishlinskii model identified from the training data (non-neg
 squares over a play grid, linear weight held at least 2 % of the static gain so the inverse
 exists), the Zhao-Tan network and the EIHO network (both causal, deployable).
 
-Networks (64 sigmoid units; the play grid is 16 widths evenly spaced in [0, 0.4 range(y)]):
-    * EIHO network: ``EIHO(a=median a_i, rule="recent", output="branch")`` plus the plays.
-      The re-based EIHO ``f - f(x_e) = +/- a |x - x_e|^(1/2)`` (distance from the last
-      turning point, with its direction) tells the branches apart without the level that
-      the plain EIHO accumulates along the history.
+Networks (64 sigmoid units; the play grid is 16 widths 0.4 range(y) k / 16, k = 1..16):
+    * EIHO network: the network of ``configs/compensator.yaml`` (its ``model:`` operators,
+      hidden units, activation and initialization), ``EIHO(a=1, rule="recent",
+      output="branch")`` plus the plays. The re-based EIHO ``f - f(x_e) = +/- a |x - x_e|^(1/2)``
+      (distance from the last turning point, with its direction) tells the branches apart
+      without the level that the plain EIHO accumulates along the history. A fixed ``a`` only
+      scales that input, which the network's normalization divides out.
     * Zhao-Tan network: ``ZhaoTanOperator(rule="recent", scale=std(y)/5, output="branch")``
-      plus the plays (the same treatment of the baseline's operator).
+      plus the same plays (the same treatment of the baseline's operator).
     * Ablations: the re-based EIHO alone; the level EIHO (``rule="dominant"``, the paper's
-      ``f``) plus the plays; the plays alone.
+      ``f``, same ``a``) plus the plays; the plays alone.
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import math
 import tempfile
 import time
-import warnings
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
+import yaml
 from scipy.optimize import nnls
+from torch import nn
 
 from torchhys import EIHO, Backlash, InverseHysteresisNet, PrandtlIshlinskii, ZhaoTanOperator
 from torchhys.export import load_torchscript, to_torchscript
 from torchhys.fitting import fit_full_batch
-from torchhys.functional import NonCausalWarning, backlash, segment_coefficients
+from torchhys.functional import backlash
 from torchhys.plants import bouc_wen, paper_plant_widths
 from torchhys.signals import chirp, decaying_sine, multisine, to_range
+from torchhys.training.init import initialize
+from torchhys.training.operators import build_operators, fit_data_dependent
 
 DTYPE = torch.float32
-N_PLAYS = 16  # play operators of the model input in the expanded input space
+#: The recommended compensator: the EIHO network's operators, hidden units, activation and
+#: initialization come from its ``model:`` section.
+CONFIG = Path(__file__).resolve().parents[1] / "configs" / "compensator.yaml"
 
 
 def paper_plant(u: torch.Tensor) -> torch.Tensor:
@@ -118,30 +126,54 @@ OUTPUT_ROW = ("no compensation", "EIHO network (re-based EIHO + 16 plays)")
 ABLATIONS = ("ablation: re-based EIHO alone", "ablation: level EIHO (dominant) + 16 plays")
 
 
+def load_model_config(path: Path = CONFIG) -> dict:
+    """The ``model:`` section of a ``torchhys fit`` config (``configs/compensator.yaml``)."""
+    with open(path) as f:
+        return yaml.safe_load(f)["model"]
+
+
+def config_operators(model: dict, y: torch.Tensor, u: torch.Tensor) -> list[nn.Module]:
+    """The config's operators, data-dependent ones (the plays' widths) fitted on (y, u),
+    as ``torchhys fit`` fits them on its training split (``warmup`` 0)."""
+    ops, fitters = build_operators(model["operator"], model.get("operator_kwargs"))
+    ops = nn.ModuleList(ops)
+    fit_data_dependent(ops, fitters, y.reshape(1, -1), u.reshape(1, -1))
+    return list(ops)
+
+
 def make_networks(
-    y: torch.Tensor, u: torch.Tensor
+    y: torch.Tensor, u: torch.Tensor, model: dict | None = None
 ) -> dict[str, Callable[[], InverseHysteresisNet]]:
-    """Constructors of the networks (each seeded on its own by the caller)."""
-    span = float(y.max() - y.min())
-    with warnings.catch_warnings():  # a fixed a from the training record: causal when deployed
-        warnings.simplefilter("ignore", NonCausalWarning)
-        a = float(segment_coefficients(y, u).median())
-    plays = torch.linspace(0.0, 0.4 * span, N_PLAYS)
+    """Constructors of the networks (each seeded on its own by the caller).
+
+    ``model``: the config's ``model:`` section (default: :data:`CONFIG`'s), an EIHO and play
+    operators: the EIHO network as configured; the other networks swap or drop its EIHO.
+    """
+    model = load_model_config() if model is None else model
+    ops = config_operators(model, y, u)
+    eiho = [op for op in ops if isinstance(op, EIHO)]
+    plays = [op for op in ops if isinstance(op, Backlash)]
+    if len(eiho) != 1 or len(plays) != 1 or len(ops) != 2:
+        raise ValueError(f"the compensator config: expected an EIHO and plays, got {ops}")
+    a = float(eiho[0].coefficient()[0])
+    th = float(eiho[0].threshold)
+    threshold = "auto" if math.isnan(th) else th  # the same reversal threshold everywhere
     scale = float(y.std()) / 5
 
-    def net(*ops: torch.nn.Module) -> InverseHysteresisNet:
-        return InverseHysteresisNet(list(ops), hidden=64)
+    def net(*ops: nn.Module) -> InverseHysteresisNet:
+        out = InverseHysteresisNet([copy.deepcopy(op) for op in ops], hidden=model["hidden"],
+                                   activation=model["activation"])
+        initialize(out, model.get("init", "nguyen_widrow"))
+        return out
 
-    def rebased_eiho() -> EIHO:
-        return EIHO(a=a, rule="recent", output="branch")
-
+    level = EIHO(a=a, rule="dominant", threshold=threshold)
+    zhao_tan = ZhaoTanOperator(rule="recent", scale=scale, output="branch", threshold=threshold)
     return {
-        "Zhao-Tan network (re-based Zhao-Tan + 16 plays)": lambda: net(
-            ZhaoTanOperator(rule="recent", scale=scale, output="branch"), Backlash(plays)),
-        OUTPUT_ROW[1]: lambda: net(rebased_eiho(), Backlash(plays)),
-        ABLATIONS[0]: lambda: net(rebased_eiho()),
-        ABLATIONS[1]: lambda: net(EIHO(a=a, rule="dominant"), Backlash(plays)),
-        "ablation: 16 plays, no EIHO": lambda: net(Backlash(plays)),
+        "Zhao-Tan network (re-based Zhao-Tan + 16 plays)": lambda: net(zhao_tan, plays[0]),
+        OUTPUT_ROW[1]: lambda: net(*ops),
+        ABLATIONS[0]: lambda: net(eiho[0]),
+        ABLATIONS[1]: lambda: net(level, plays[0]),
+        "ablation: 16 plays, no EIHO": lambda: net(plays[0]),
     }
 
 
