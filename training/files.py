@@ -2,22 +2,29 @@
 
 Every problem is reported as a :class:`DataFileError` (a ``ValueError``) that names the
 file, the column and, where it applies, the row (0-based data row; for CSV files also the
-1-based line of the file).
+1-based line of the file) or the recording.
 """
 
 from __future__ import annotations
 
 import csv
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["Column", "DataFileError", "Record", "read_record"]
+__all__ = [
+    "Column", "DataFileError", "Record", "Recording", "RecordingId", "read_record",
+    "read_recordings", "recording_id",
+]
 
 Column = str | int
 """A column by header name (CSV) / array key (NPZ), or by 0-based index."""
+RecordingId = int | str
+"""A recording's id: its run-column value (an int when the value is integral, else the text
+as written), or the file's index in the list of files when each file is one recording."""
 
 
 class DataFileError(ValueError):
@@ -33,6 +40,39 @@ class Record(NamedTuple):
     """The inverse model's target (the command that produced the response)."""
     t: np.ndarray | None
     """Sample times, strictly increasing, or None."""
+
+
+class Recording(NamedTuple):
+    """One recording: a run of a file (its rows of one run-column value) or a whole file.
+
+    Each recording starts from its own initial state: models run it from a fresh state.
+    """
+
+    id: RecordingId
+    """Run-column value, or the file's index in the list of files."""
+    label: str
+    """Where it comes from, for messages: ``"log.csv: recording 3"``, or the file name."""
+    x: np.ndarray
+    """The inverse model's input, float64, (time,)."""
+    y: np.ndarray
+    """The inverse model's target, float64, (time,)."""
+    t: np.ndarray | None
+    """Sample times (strictly increasing within the recording), or None."""
+
+
+def recording_id(value: object) -> RecordingId:
+    """The id of a run-column value: an int when it is an integral number, else its text
+    (``3``, ``3.0`` and ``"3"`` are all ``3``; ``"A"`` stays ``"A"``)."""
+    if isinstance(value, (bool, np.bool_)):
+        return str(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    text = str(value).strip()
+    try:
+        number = float(text)
+    except ValueError:
+        return text
+    return int(number) if number.is_integer() else text
 
 
 def _read_csv(path: Path) -> tuple[list[str], list[list[str]], int]:
@@ -55,25 +95,6 @@ def _read_csv(path: Path) -> tuple[list[str], list[list[str]], int]:
     return names, rows[data_start:], data_start + 1
 
 
-def _csv_column(path: Path, names: list[str], rows: list[list[str]], line0: int,
-                column: Column, role: str) -> np.ndarray:
-    idx = _index(path, names, column, role)
-    out = np.empty(len(rows))
-    for i, row in enumerate(rows):
-        raw = row[idx].strip() if idx < len(row) else ""
-        try:
-            value = float(raw)
-        except ValueError:
-            value = math.nan
-        if not math.isfinite(value):
-            raise DataFileError(
-                f"{path}: column {names[idx]!r} ({role}), row {i} (line {line0 + i}): "
-                f"{raw or 'empty value'!r} is not a finite number; remove or fill the row"
-            )
-        out[i] = value
-    return out
-
-
 def _index(path: Path, names: list[str], column: Column, role: str) -> int:
     if isinstance(column, int) and not isinstance(column, bool):
         if not 0 <= column < len(names):
@@ -89,34 +110,226 @@ def _index(path: Path, names: list[str], column: Column, role: str) -> int:
     return names.index(column)
 
 
-def _npz_column(path: Path, data: np.lib.npyio.NpzFile, column: Column, role: str) -> np.ndarray:
-    keys = list(data.keys())
-    if isinstance(column, str) and column in keys:
-        arr, name = np.asarray(data[column], dtype=np.float64), column
-        if arr.ndim != 1:
-            raise DataFileError(
-                f"{path}: array {column!r} ({role}) must be one-dimensional, got shape "
-                f"{arr.shape}"
-            )
-    elif isinstance(column, int) and not isinstance(column, bool) and len(keys) == 1:
-        table = np.asarray(data[keys[0]], dtype=np.float64)
-        if table.ndim != 2 or not 0 <= column < table.shape[1]:
-            raise DataFileError(
-                f"{path}: column index {column} ({role}) needs a 2-D array with more than "
-                f"{column} columns; array {keys[0]!r} has shape {table.shape}"
-            )
-        arr, name = table[:, column], f"{keys[0]}[:, {column}]"
-    else:
+class _Table:
+    """The columns of one CSV or NPZ file, by name or index."""
+
+    def __init__(self, path: Path) -> None:
+        if not path.is_file():
+            raise DataFileError(f"{path}: no such file")
+        self.path = path
+        suffix = path.suffix.lower()
+        if suffix == ".csv":
+            self.names, self._rows, self._line0 = _read_csv(path)
+            self._arrays: dict[str, np.ndarray] | None = None
+        elif suffix == ".npz":
+            with np.load(path, allow_pickle=False) as data:
+                self._arrays = {k: np.asarray(data[k]) for k in data.keys()}
+            self.names = list(self._arrays)
+        else:
+            raise DataFileError(f"{path}: unknown file type {suffix!r}; use .csv or .npz")
+
+    def line(self, row: int) -> str:
+        """`` (line N)`` of a data row in a CSV file, ``""`` in an NPZ file."""
+        return "" if self._arrays is not None else f" (line {self._line0 + row})"
+
+    def _raw(self, column: Column, role: str) -> tuple[str, list[str] | np.ndarray]:
+        """The column's name and its values (CSV: the stripped texts)."""
+        path = self.path
+        if self._arrays is None:
+            idx = _index(path, self.names, column, role)
+            return self.names[idx], [r[idx].strip() if idx < len(r) else "" for r in self._rows]
+        keys = self.names
+        if isinstance(column, str) and column in keys:
+            arr = self._arrays[column]
+            if arr.ndim != 1:
+                raise DataFileError(
+                    f"{path}: array {column!r} ({role}) must be one-dimensional, got shape "
+                    f"{arr.shape}"
+                )
+            return column, arr
+        if isinstance(column, int) and not isinstance(column, bool) and len(keys) == 1:
+            table = self._arrays[keys[0]]
+            if table.ndim != 2 or not 0 <= column < table.shape[1]:
+                raise DataFileError(
+                    f"{path}: column index {column} ({role}) needs a 2-D array with more "
+                    f"than {column} columns; array {keys[0]!r} has shape {table.shape}"
+                )
+            return f"{keys[0]}[:, {column}]", table[:, column]
         raise DataFileError(
             f"{path}: column {column!r} ({role}) not found; the file's arrays are {keys}"
         )
-    bad = np.flatnonzero(~np.isfinite(arr))
+
+    def column(self, column: Column, role: str) -> np.ndarray:
+        """A column of finite numbers, float64, (rows,)."""
+        name, raw = self._raw(column, role)
+        if self._arrays is None:
+            out = np.array([_number(v) for v in raw], dtype=np.float64)
+        else:
+            try:
+                out = np.asarray(raw, dtype=np.float64)
+            except ValueError as exc:
+                raise DataFileError(
+                    f"{self.path}: column {name!r} ({role}) is not numeric: {exc}"
+                ) from None
+        bad = np.flatnonzero(~np.isfinite(out))
+        if bad.size:
+            i = int(bad[0])
+            value = repr(raw[i] or "empty value") if self._arrays is None else raw[i]
+            more = f" ({bad.size} such rows)" if self._arrays is not None else ""
+            fix = "remove or fill the row" if self._arrays is None else "remove or fill them"
+            raise DataFileError(
+                f"{self.path}: column {name!r} ({role}), row {i}{self.line(i)}: {value} is "
+                f"not a finite number{more}; {fix}"
+            )
+        return out
+
+    def ids(self, column: Column, role: str) -> list[RecordingId]:
+        """A column of recording ids (see :func:`recording_id`), (rows,)."""
+        name, raw = self._raw(column, role)
+        for i, v in enumerate(raw):
+            if isinstance(v, str) and not v:
+                raise DataFileError(
+                    f"{self.path}: column {name!r} ({role}), row {i}{self.line(i)}: empty "
+                    "value; every row needs its recording id"
+                )
+        return [recording_id(v) for v in raw]
+
+
+def _number(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        return math.nan
+
+
+def _runs(table: _Table, ids: list[RecordingId], column: Column) -> list[tuple[int, int]]:
+    """``[start, end)`` rows of each run of equal ids; the rows of one id must be contiguous."""
+    bounds, seen = [], set()
+    for i, rid in enumerate(ids):
+        if i and rid == ids[i - 1]:
+            continue
+        if rid in seen:
+            raise DataFileError(
+                f"{table.path}: column {column!r} (run_column), row {i}{table.line(i)}: "
+                f"recording {rid!r} starts again after other recordings; the rows of a "
+                f"recording must be contiguous (sort the file by {column!r})"
+            )
+        seen.add(rid)
+        if bounds:
+            bounds[-1] = (bounds[-1][0], i)
+        bounds.append((i, len(ids)))
+    return bounds
+
+
+def _check_time(table: _Table, t: np.ndarray, start: int, column: Column) -> None:
+    bad = np.flatnonzero(np.diff(t) <= 0)
     if bad.size:
+        i = start + int(bad[0]) + 1
         raise DataFileError(
-            f"{path}: column {name!r} ({role}), row {int(bad[0])}: {arr[bad[0]]} is not a "
-            f"finite number ({bad.size} such rows); remove or fill them"
+            f"{table.path}: column {column!r} (time_column), row {i}{table.line(i)}: time "
+            f"{t[i - start]!r} does not increase (previous row {t[i - start - 1]!r}); sort the "
+            "file or remove repeated samples"
         )
-    return arr
+
+
+def _file_recordings(
+    table: _Table, roles: dict[str, Column], run_column: Column | None, index: int | None,
+    min_samples: int,
+) -> list[Recording]:
+    """The recordings of one file; ``index``: its place in a list of files (None: alone)."""
+    path = table.path
+    cols = {r: table.column(c, r) for r, c in roles.items()}
+    lengths = {r: len(v) for r, v in cols.items()}
+    if len(set(lengths.values())) != 1:
+        raise DataFileError(f"{path}: columns differ in length: {lengths}")
+    n = lengths["input_column"]
+    if run_column is None:
+        ids, runs = None, [(0, n)]
+    else:
+        ids = table.ids(run_column, "run_column")
+        if len(ids) != n:
+            lengths["run_column"] = len(ids)
+            raise DataFileError(f"{path}: columns differ in length: {lengths}")
+        runs = _runs(table, ids, run_column)
+    out = []
+    for a, b in runs:
+        if ids is not None:
+            rid, label = ids[a], f"{path}: recording {ids[a]!r}"
+        else:
+            rid, label = (index or 0), str(path) if index is None else f"{path} (recording {index})"
+        if b - a < min_samples:
+            where = (f"{label} (rows {a}..{b - 1}) holds {b - a} samples" if ids is not None
+                     else f"{path}: column {roles['input_column']!r} (input_column) holds "
+                          f"{b - a} rows")
+            missing = "" if ids is not None else f" (row {b} is missing)"
+            raise DataFileError(f"{where}, at least {min_samples} are needed{missing}")
+        t = cols.get("time_column")
+        if t is not None:
+            _check_time(table, t[a:b], a, roles["time_column"])
+        out.append(Recording(rid, label, cols["input_column"][a:b], cols["target_column"][a:b],
+                             None if t is None else t[a:b]))
+    return out
+
+
+def read_recordings(
+    path: str | Path | Sequence[str | Path], *, input_column: Column, target_column: Column,
+    time_column: Column | None = None, run_column: Column | None = None, min_samples: int = 2,
+) -> list[Recording]:
+    """Read and check recorded experiments: one file or several, each whole or split into
+    recordings by a run column.
+
+    Args:
+        path: a ``.csv`` or ``.npz`` file (as in :func:`read_record`), or a list of them with
+            the same columns.
+        input_column: column of the inverse model's input (the plant's response).
+        target_column: column of the inverse model's target (the command).
+        time_column: optional column of sample times, which must strictly increase within
+            each recording.
+        run_column: optional column of recording ids (run or sequence numbers, or names):
+            consecutive rows with the same id form one recording. Ids must be unique across
+            the files. Without it each file is one recording, with id its index in ``path``.
+        min_samples: fewest rows of a recording.
+
+    Returns:
+        The recordings in the order of the files and of their rows, each with float64 arrays
+        of shape (time,).
+
+    Raises:
+        ValueError: an empty list of files.
+        DataFileError: a missing file or column, files with different columns, a
+            non-finite or empty value, non-increasing time, a recording whose rows are not
+            contiguous or whose id another file also uses, too few rows; the message names
+            the file, the column and the row or the recording.
+    """
+    paths = [path] if isinstance(path, (str, Path)) else list(path)
+    if not paths:
+        raise ValueError("path must name a file or a non-empty list of files, got []")
+    roles = {"input_column": input_column, "target_column": target_column}
+    if time_column is not None:
+        roles["time_column"] = time_column
+    recordings: list[Recording] = []
+    first: _Table | None = None
+    owner: dict[RecordingId, Path] = {}
+    for k, p in enumerate(paths):
+        table = _Table(Path(p))
+        if first is None:
+            first = table
+        elif table.names != first.names:
+            raise DataFileError(
+                f"{table.path}: columns {table.names} differ from the columns {first.names} "
+                f"of {first.path}; every file in path must have the same columns"
+            )
+        index = None if len(paths) == 1 else k
+        for rec in _file_recordings(table, roles, run_column, index, min_samples):
+            if rec.id in owner:
+                raise DataFileError(
+                    f"{table.path}: recording {rec.id!r} (run_column {run_column!r}) is also "
+                    f"in {owner[rec.id]}; recording ids must be unique across the files in "
+                    "path: renumber the runs"
+                )
+            owner[rec.id] = table.path
+            recordings.append(rec)
+    return recordings
 
 
 def read_record(
@@ -141,40 +354,7 @@ def read_record(
         DataFileError: missing file or column, a non-finite or empty value, non-increasing
             time, too few rows; the message names the file, the column and the row.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise DataFileError(f"{path}: no such file")
-    suffix = path.suffix.lower()
-    roles = {"input_column": input_column, "target_column": target_column}
-    if time_column is not None:
-        roles["time_column"] = time_column
-    if suffix == ".csv":
-        names, rows, line0 = _read_csv(path)
-        cols = {r: _csv_column(path, names, rows, line0, c, r) for r, c in roles.items()}
-        lines = [f" (line {line0 + i})" for i in range(len(rows))]
-    elif suffix == ".npz":
-        with np.load(path, allow_pickle=False) as data:
-            cols = {r: _npz_column(path, data, c, r) for r, c in roles.items()}
-        lines = [""] * len(cols["input_column"])
-    else:
-        raise DataFileError(f"{path}: unknown file type {suffix!r}; use .csv or .npz")
-    lengths = {r: len(v) for r, v in cols.items()}
-    if len(set(lengths.values())) != 1:
-        raise DataFileError(f"{path}: columns differ in length: {lengths}")
-    n = lengths["input_column"]
-    if n < min_samples:
-        raise DataFileError(
-            f"{path}: column {input_column!r} (input_column) holds {n} rows, at least "
-            f"{min_samples} are needed (row {n} is missing)"
-        )
-    t = cols.get("time_column")
-    if t is not None:
-        bad = np.flatnonzero(np.diff(t) <= 0)
-        if bad.size:
-            i = int(bad[0]) + 1
-            raise DataFileError(
-                f"{path}: column {time_column!r} (time_column), row {i}{lines[i]}: time "
-                f"{t[i]!r} does not increase (previous row {t[i - 1]!r}); sort the file or "
-                "remove repeated samples"
-            )
-    return Record(cols["input_column"], cols["target_column"], t)
+    (rec,) = read_recordings(Path(path), input_column=input_column,
+                             target_column=target_column, time_column=time_column,
+                             min_samples=min_samples)
+    return Record(rec.x, rec.y, rec.t)
