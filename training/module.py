@@ -31,16 +31,27 @@ CLOSURE_OPTIMIZERS = frozenset({"cg", "lbfgs"})
 _FULL_PRECISION = ("32-true", "64-true", "32", "64")
 
 Batch = tuple[Tensor, ...]
-"""``(x, y)`` or ``(x, y, warmup)``: x, y (batch, time); ``warmup`` leading samples of the
-sequence (the preceding record, or the training warm-up) are excluded from the loss and the
-metrics."""
+"""``(x, y)``, ``(x, y, warmup)`` or ``(x, y, warmup, mask)``: x, y (batch, time);
+``warmup`` leading samples of the sequence (the preceding record, or the training warm-up)
+are excluded from the loss and the metrics; a boolean ``mask`` (batch, time), when given,
+marks the scored samples instead (rows of several recordings: each row's own warm-up, no
+padding), and the loss is the mean over them."""
+
+Scorer = Callable[[Tensor], Tensor]
+"""Selects the scored samples of a (batch, time) tensor."""
 
 
-def _unpack(batch: Batch) -> tuple[Tensor, Tensor, int]:
+def _unpack(batch: Batch) -> tuple[Tensor, Tensor, Scorer]:
+    """``(x, y, scored)``: ``scored`` picks the samples of the loss and the metrics."""
     if len(batch) == 2:
-        return batch[0], batch[1], 0
+        return batch[0], batch[1], lambda v: v
+    if len(batch) == 4:
+        x, y, _, mask = batch
+        mask = mask.to(torch.bool)
+        return x, y, lambda v: v[mask]
     x, y, warmup = batch
-    return x, y, int(warmup.reshape(-1)[0]) if isinstance(warmup, Tensor) else int(warmup)
+    first = int(warmup.reshape(-1)[0]) if isinstance(warmup, Tensor) else int(warmup)
+    return x, y, lambda v: v[..., first:]
 
 
 def check_closure_trainer(trainer: Any, optimizer: str) -> None:
@@ -79,8 +90,12 @@ class InverseHysteresisModule(L.LightningModule):
     """Train an inverse-hysteresis network (and any learnable ``a``) on full sequences.
 
     Batches are ``(x, y)`` of shape (batch, time): the inverse model's input (the plant's
-    output) and target (the plant's input), in physical units. The network's normalization
-    is fitted on the training data of the attached :class:`torchhys.training.HysteresisDataModule`
+    output) and target (the plant's input), in physical units, optionally with a warm-up
+    and a mask of the scored samples (see :data:`Batch`: rows of several recordings, padded,
+    each from a fresh state; the loss is the mean over the scored samples of all rows, so
+    closure optimizers see every training recording in one full batch). The network's
+    normalization is fitted on the training data of the attached
+    :class:`torchhys.training.HysteresisDataModule`
     (or any datamodule with ``train_tensors() -> (x, y)``) in :meth:`setup`, and saved in
     checkpoints with the weights.
 
@@ -236,14 +251,14 @@ class InverseHysteresisModule(L.LightningModule):
 
     # --- training -----------------------------------------------------------------------
     def training_step(self, batch: Batch, batch_idx: int) -> Tensor | None:
-        x, y, warmup = _unpack(batch)
+        x, y, scored = _unpack(batch)
         y = y.to(self.dtype)
         full = self._predict(x, y, "train")
 
         def predict() -> Tensor:  # the warm-up samples only run the operator states
-            return full()[..., warmup:]
+            return scored(full())
 
-        y = y[..., warmup:]
+        y = scored(y)
         if self.automatic_optimization:
             loss = F.mse_loss(predict(), y)
             self.log("train_loss", loss.detach(), on_step=False, on_epoch=True,
@@ -264,12 +279,12 @@ class InverseHysteresisModule(L.LightningModule):
         return None
 
     def _evaluate(self, batch: Batch, stage: str) -> None:
-        x, y, warmup = _unpack(batch)
+        x, y, scored = _unpack(batch)
         y = y.to(self.dtype)
         with torch.no_grad():
             pred = self._predict(x, y, stage)()
         metric = self.val_mse if stage == "val" else self.test_mse
-        metric(pred[..., warmup:].reshape(-1), y[..., warmup:].reshape(-1))
+        metric(scored(pred).reshape(-1), scored(y).reshape(-1))
         self.log(f"{stage}_mse", metric, on_step=False, on_epoch=True, prog_bar=True)
 
     def validation_step(self, batch: Batch, batch_idx: int) -> None:
