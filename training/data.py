@@ -1,22 +1,55 @@
-"""``HysteresisDataModule``: a simulated plant or a recorded (command, response) file."""
+"""``HysteresisDataModule``: a simulated plant, or recorded (command, response) files.
+
+Each stage (train, val, test) is one full batch of the stage's sequences, one row per
+recording (``predict``: one batch per recording, unpadded)::
+
+    x, y     (recordings, time)   each row: ``repeat - 1`` whole periods of the recording,
+                                  then its rows up to the stage's end; right-padded with
+                                  the row's last sample to the longest row
+    warmup   (recordings,)        index of each row's first scored sample
+    mask     (recordings, time)   True on the scored samples: from ``warmup`` to the row's
+                                  end (never on padding)
+
+Every row starts from a fresh operator state (the operators are causal, so the padding
+after a row cannot change it); the loss and the metrics cover the masked samples only.
+"""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
+from typing import NamedTuple
 
 import lightning as L
+import numpy as np
 import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
 from torchhys._checks import check_choice, check_int
-from torchhys.training.files import Column, DataFileError, read_record
+from torchhys.training.files import (
+    Column,
+    DataFileError,
+    Recording,
+    RecordingId,
+    read_recordings,
+    recording_id,
+)
 
-__all__ = ["SIMULATIONS", "HysteresisDataModule", "SequenceDataset", "simulate"]
+__all__ = [
+    "SIMULATIONS", "SPLIT_BY", "STAGES", "HysteresisDataModule", "SequenceDataset", "Window",
+    "assign_recordings", "simulate",
+]
 
 SIMULATIONS = ("paper", "fig6", "bouc_wen")
 """Simulated sources: the paper's Section 5.2 plant, its Fig. 6 plant, a Bouc-Wen plant."""
+SPLIT_BY = ("time", "recording")
+"""``time``: each recording split in time order; ``recording``: whole recordings per stage."""
+STAGES = ("train", "val", "test")
+
+StageBatch = tuple[Tensor, Tensor, Tensor, Tensor]
+"""``(x, y, warmup, mask)`` of a stage, see the module docstring."""
 
 
 def simulate(name: str, *, dt: float = 0.01, t_end: float = 8 * math.pi,
@@ -56,6 +89,34 @@ class SequenceDataset(Dataset):
         return self.x, self.y, self.warmup
 
 
+class _Batches(Dataset):
+    """Ready batches, one per item (loaded with ``batch_size=1`` and :func:`_only`)."""
+
+    def __init__(self, batches: list[StageBatch]) -> None:
+        self.batches = batches
+
+    def __len__(self) -> int:
+        return len(self.batches)
+
+    def __getitem__(self, index: int) -> StageBatch:
+        return self.batches[index]
+
+
+def _only(items: list[StageBatch]) -> StageBatch:
+    """Collate a batch of one ready batch: the batch itself."""
+    return items[0]
+
+
+class Window(NamedTuple):
+    """A stage's part of a recording: rows ``[start, end)`` are scored; the rows before
+    ``start`` (and the warm-up periods of ``repeat``) only run the operator states."""
+
+    index: int
+    """Position of the recording in :attr:`HysteresisDataModule.recordings`."""
+    start: int
+    end: int
+
+
 def _check_split(split: str | list[float] | tuple[float, ...]) -> tuple[float, float, float]:
     if split == "paper":
         return (1.0, 1.0, 1.0)
@@ -71,128 +132,344 @@ def _check_split(split: str | list[float] | tuple[float, ...]) -> tuple[float, f
     return fr  # type: ignore[return-value]
 
 
+def _pad(rows: list[Tensor], length: int) -> Tensor:
+    """Rows of different lengths, each right-padded with its last value, (rows, length)."""
+    return torch.stack([torch.cat([r, r[-1:].expand(length - r.numel())]) for r in rows])
+
+
+def _pick(ids: list[RecordingId], given: Sequence[RecordingId], arg: str,
+          where: str) -> list[int]:
+    """Positions of the listed recordings."""
+    if isinstance(given, (str, int)) or not isinstance(given, Sequence):
+        raise TypeError(f"{arg} must be a list of recording ids, got {given!r}")
+    picked: list[int] = []
+    for g in given:
+        rid = recording_id(g)
+        if rid not in ids:
+            raise ValueError(f"{arg}: unknown recording {g!r}; the recordings of {where} are {ids}")
+        if ids.index(rid) in picked:
+            raise ValueError(f"{arg}: recording {g!r} is listed twice in {list(given)}")
+        picked.append(ids.index(rid))
+    return picked
+
+
+def assign_recordings(
+    ids: list[RecordingId], split: str | Sequence[float],
+    lists: dict[str, Sequence[RecordingId] | None], *, where: str = "the data",
+) -> dict[str, list[int]]:
+    """Positions of the recordings of each stage when whole recordings are split.
+
+    A stage with a list (``lists["val"]``) gets those recordings. With ``split="paper"``,
+    train gets every recording not listed for val or test (all of them when nothing is
+    listed), and val and test get the training ones unless listed. With fractions, the
+    recordings in no list are divided in order among the stages without a list, each
+    getting its fraction of what the listed stages leave (``round`` of cumulative shares,
+    as in the time split).
+
+    Args:
+        ids: the recordings' ids, in order.
+        split: ``"paper"`` or fractions ``[train, val, test]`` (sum <= 1).
+        lists: ``{"train": ids or None, "val": ..., "test": ...}`` (None: not listed).
+        where: the data's name in messages (its files).
+
+    Returns:
+        ``{"train": positions in ids, "val": ..., "test": ...}``.
+
+    Raises:
+        ValueError: an unknown or repeated id, a bad split, no training recording, or a
+            stage with a positive fraction that gets no recording (an empty split).
+        TypeError: a ``lists`` entry that is neither None nor a list.
+    """
+    fractions = _check_split(split)
+    chosen = {s: _pick(ids, lists[s], f"{s}_recordings", where)
+              for s in STAGES if lists.get(s) is not None}
+    if split == "paper":
+        held_out = {i for s in ("val", "test") for i in chosen.get(s, [])}
+        chosen.setdefault("train", [i for i in range(len(ids)) if i not in held_out])
+        for stage in ("val", "test"):
+            chosen.setdefault(stage, list(chosen["train"]))
+    else:
+        used = {i for picked in chosen.values() for i in picked}
+        rest = [i for i in range(len(ids)) if i not in used]
+        share = 1.0 - sum(f for s, f in zip(STAGES, fractions, strict=True) if s in chosen)
+        cum = 0.0
+        for stage, f in zip(STAGES, fractions, strict=True):
+            if stage in chosen:
+                continue
+            a = round(len(rest) * cum / share) if share > 1e-12 else 0
+            cum += f
+            b = min(round(len(rest) * cum / share), len(rest)) if share > 1e-12 else 0
+            chosen[stage] = rest[a:b]
+            if f > 0 and a >= b:
+                left = " left by the listed stages" if len(rest) < len(ids) else ""
+                raise ValueError(
+                    f"{where}: split={list(fractions)} gives the {stage} split none of the "
+                    f"{len(rest)} recordings{left} ({ids}); list them with "
+                    f"{stage}_recordings, or set its fraction to 0"
+                )
+    if not chosen["train"]:
+        raise ValueError(
+            f"{where}: the train split holds no recording; list some with train_recordings "
+            f"(the recordings are {ids})"
+        )
+    return {s: chosen[s] for s in STAGES}
+
+
 class HysteresisDataModule(L.LightningDataModule):
     """Full-sequence data for inverse-hysteresis training.
 
     The source is a simulated plant (``simulation``, by default the paper's Section 5.2:
-    input ``h = H[x]``, target ``x``) unless ``path`` names a recorded CSV or NPZ file.
-    Each stage sees one sequence per step (full batch): the split is time-ordered, and the
-    validation and test sequences carry the preceding record as warm-up (so operator
-    states continue as in deployment; metrics cover the split's own samples only).
+    input ``h = H[x]``, target ``x``) unless ``path`` names recorded CSV or NPZ files. A
+    file is one recording, or ``run_column`` splits it into several (consecutive rows with
+    one id). Each recording runs from a fresh operator state with its own warm-up, and
+    each stage is one full batch (layout in the module docstring).
+
+    Splits (``split_by``): ``"time"`` cuts each recording in time order, and the validation
+    and test sequences carry the preceding record as warm-up (so operator states continue
+    as in deployment; metrics cover the split's own samples only); ``"recording"`` gives
+    whole recordings to the stages (see :func:`assign_recordings`).
 
     Args:
-        path: a recorded ``.csv``/``.npz`` file (see :func:`torchhys.training.files.read_record`),
-            or None for a simulation.
+        path: a recorded ``.csv``/``.npz`` file, a list of them with the same columns (see
+            :func:`torchhys.training.files.read_recordings`), or None for a simulation.
         input_column: column of the model input (the plant's response), name or index.
         target_column: column of the model target (the command), name or index.
-        time_column: optional column of sample times (checked to increase).
+        time_column: optional column of sample times (checked to increase per recording).
+        run_column: optional column of recording ids (name or index) splitting a file into
+            recordings; the ids name them in ``*_recordings`` (without it, a file's index
+            in ``path`` is its id).
         simulation: ``"paper"``, ``"fig6"`` or ``"bouc_wen"`` when ``path`` is None.
         dt: sampling step of the simulation.
         t_end: end time of the simulation.
         seed: seed of the simulation's random signal (``"bouc_wen"``).
-        split: ``"paper"`` (the whole record for train, validation and test, as the
-            paper reports training MSE) or fractions ``[train, val, test]`` (sum <= 1).
-        min_samples: fewest samples per non-empty split.
-        warmup: leading samples of the record left out of the training loss and of the
-            fits of data-dependent operators (with ``split="paper"`` also of the metrics):
-            the model's operators start from a zero state, a recorded plant from its own,
-            so the first samples after the start disagree (states still run through them).
+        split: ``"paper"`` (all data for train, validation and test, as the paper reports
+            training MSE) or fractions ``[train, val, test]`` (sum <= 1) of each recording's
+            samples (``split_by="time"``) or of the recordings in order (``"recording"``).
+        split_by: ``"time"`` or ``"recording"``.
+        train_recordings: ids of the training recordings (``split_by="recording"``).
+        val_recordings: ids of the validation recordings (``[]``: no validation).
+        test_recordings: ids of the test recordings (``[]``: no test).
+        repeat: periods each recording runs back to back, int >= 1: a closed steady-state
+            loop runs ``repeat`` times from a fresh state and only the last period is
+            scored (the first ``repeat - 1`` are warm-up).
+        min_samples: fewest rows of a recording, and of each non-empty part of a recording
+            split in time.
+        warmup: leading samples of each recording's sequence left out of the training loss
+            and of the fits of data-dependent operators (with ``split="paper"`` or
+            ``split_by="recording"`` also of the metrics): the model's operators start from
+            a zero state, a recorded plant from its own, so the first samples after the
+            start disagree (states still run through them).
 
     Raises:
-        ValueError: a bad split, too few samples in a split.
-        torchhys.training.files.DataFileError: problems in the file (names file, column and row).
+        ValueError: a bad split, ``split_by``, ``repeat`` or ``warmup``; recording lists
+            with ``split_by="time"``; ``run_column`` without ``path``; at :meth:`setup`,
+            an empty split, an unknown recording id, too few samples in a split.
+        torchhys.training.files.DataFileError: problems in a file (names file, column and
+            row or recording), a recording not longer than its warm-up.
     """
 
     def __init__(
-        self, *, path: str | None = None, input_column: Column = "response",
+        self, *, path: str | list[str] | None = None, input_column: Column = "response",
         target_column: Column = "command", time_column: Column | None = None,
-        simulation: str = "paper", dt: float = 0.01, t_end: float = 8 * math.pi,
-        seed: int = 0, split: str | list[float] = "paper", min_samples: int = 16,
-        warmup: int = 0,
+        run_column: Column | None = None, simulation: str = "paper", dt: float = 0.01,
+        t_end: float = 8 * math.pi, seed: int = 0, split: str | list[float] = "paper",
+        split_by: str = "time", train_recordings: list[RecordingId] | None = None,
+        val_recordings: list[RecordingId] | None = None,
+        test_recordings: list[RecordingId] | None = None, repeat: int = 1,
+        min_samples: int = 16, warmup: int = 0,
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
+        self._check_inputs()
         self.fractions = _check_split(split)
-        check_int(warmup, "warmup", minimum=0)
-        if path is None:
-            check_choice(simulation, "simulation", SIMULATIONS)
+        self.recordings: list[Recording] = []
+        self.windows: dict[str, list[Window]] = {}
         self.t: Tensor | None = None
         self.x: Tensor | None = None
         self.y: Tensor | None = None
         self.bounds: dict[str, tuple[int, int]] = {}
+        """Rows ``[a, b)`` of each stage of a single recording split in time."""
+
+    def _check_inputs(self) -> None:
+        hp = self.hparams
+        check_int(hp.warmup, "warmup", minimum=0)
+        check_int(hp.repeat, "repeat", minimum=1)
+        check_choice(hp.split_by, "split_by", SPLIT_BY)
+        if hp.path is None:
+            check_choice(hp.simulation, "simulation", SIMULATIONS)
+            if hp.run_column is not None:
+                raise ValueError(
+                    f"run_column={hp.run_column!r} needs recorded data: set path to the file(s)"
+                )
+        elif not isinstance(hp.path, (str, Path)) and not (
+            isinstance(hp.path, Sequence) and hp.path
+            and all(isinstance(p, (str, Path)) for p in hp.path)
+        ):
+            raise ValueError(f"path must be a file or a non-empty list of files, got {hp.path!r}")
+        listed = [f"{s}_recordings" for s in STAGES if hp[f"{s}_recordings"] is not None]
+        if listed and hp.split_by != "recording":
+            raise ValueError(
+                f"{', '.join(listed)} need split_by='recording', got split_by={hp.split_by!r}"
+            )
 
     # -----------------------------------------------------------------------------------
     def _load(self) -> None:
         hp = self.hparams
         if hp.path is None:
-            self.t, self.x, self.y = simulate(hp.simulation, dt=hp.dt, t_end=hp.t_end,
-                                              seed=hp.seed)
+            t, x, y = simulate(hp.simulation, dt=hp.dt, t_end=hp.t_end, seed=hp.seed)
+            self.recordings = [Recording(0, f"simulation {hp.simulation!r}", x.numpy(),
+                                         y.numpy(), t.numpy())]
         else:
-            rec = read_record(hp.path, input_column=hp.input_column,
-                              target_column=hp.target_column, time_column=hp.time_column,
-                              min_samples=hp.min_samples)
-            self.x, self.y = torch.from_numpy(rec.x), torch.from_numpy(rec.y)
-            self.t = None if rec.t is None else torch.from_numpy(rec.t)
-        n = self.x.numel()
-        if self.hparams.split == "paper":
-            self.bounds = {"train": (0, n), "val": (0, n), "test": (0, n)}
+            self.recordings = read_recordings(
+                hp.path, input_column=hp.input_column, target_column=hp.target_column,
+                time_column=hp.time_column, run_column=hp.run_column,
+                min_samples=hp.min_samples)
+        recs = self.recordings
+        self.x = torch.from_numpy(np.concatenate([r.x for r in recs]))
+        self.y = torch.from_numpy(np.concatenate([r.y for r in recs]))
+        self.t = (None if any(r.t is None for r in recs)
+                  else torch.from_numpy(np.concatenate([r.t for r in recs])))
+        if hp.split_by == "time":
+            self.windows = self._time_windows()
         else:
-            ends = [round(n * sum(self.fractions[: i + 1])) for i in range(3)]
-            starts = [0, ends[0], ends[1]]
-            stages = ("train", "val", "test")
-            self.bounds = {s: (a, b) for s, a, b in zip(stages, starts, ends, strict=True)}
-        for stage, (a, b) in self.bounds.items():
-            if 0 < b - a < hp.min_samples or (stage == "train" and b - a < hp.min_samples):
-                where = hp.path if hp.path is not None else f"simulation {hp.simulation!r}"
-                err = DataFileError if hp.path is not None else ValueError
-                raise err(
-                    f"{where}: the {stage} split holds {b - a} samples (rows {a}..{b - 1} of "
-                    f"{n}), at least {hp.min_samples} are needed; record more data or change "
-                    f"split={list(self.fractions) if hp.split != 'paper' else 'paper'}"
-                )
-        a, b = self.bounds["train"]
-        if b - a - hp.warmup < hp.min_samples:
-            where = hp.path if hp.path is not None else f"simulation {hp.simulation!r}"
-            raise ValueError(
-                f"{where}: warmup={hp.warmup} leaves {b - a - hp.warmup} of the {b - a} "
-                f"training samples, at least {hp.min_samples} are needed; lower warmup"
-            )
+            lists = {s: hp[f"{s}_recordings"] for s in STAGES}
+            chosen = assign_recordings([r.id for r in recs], hp.split, lists, where=self.source)
+            self.windows = {s: [Window(i, 0, len(recs[i].x)) for i in chosen[s]]
+                            for s in STAGES}
+        self._check_warmup()
+
+    def _time_windows(self) -> dict[str, list[Window]]:
+        hp = self.hparams
+        windows: dict[str, list[Window]] = {s: [] for s in STAGES}
+        for i, rec in enumerate(self.recordings):
+            n = len(rec.x)
+            if hp.split == "paper":
+                bounds = {s: (0, n) for s in STAGES}
+            else:
+                ends = [round(n * sum(self.fractions[: k + 1])) for k in range(3)]
+                bounds = dict(zip(STAGES, zip([0, ends[0], ends[1]], ends, strict=True),
+                                  strict=True))
+            for stage, (a, b) in bounds.items():
+                if 0 < b - a < hp.min_samples or (stage == "train" and b - a < hp.min_samples):
+                    err = DataFileError if hp.path is not None else ValueError
+                    raise err(
+                        f"{rec.label}: the {stage} split holds {b - a} samples (rows "
+                        f"{a}..{b - 1} of {n}), at least {hp.min_samples} are needed; record "
+                        "more data or change "
+                        f"split={list(self.fractions) if hp.split != 'paper' else 'paper'}"
+                    )
+                if b > a:
+                    windows[stage].append(Window(i, a, b))
+            if len(self.recordings) == 1:
+                self.bounds = bounds
+        return windows
+
+    def _check_warmup(self) -> None:
+        hp = self.hparams
+        for stage, windows in self.windows.items():
+            for w in windows:
+                rec = self.recordings[w.index]
+                x, _, first = self._sequence(w)
+                scored = x.numel() - first
+                if hp.split_by == "time" and stage == "train" and scored < hp.min_samples:
+                    raise ValueError(
+                        f"{rec.label}: warmup={hp.warmup} leaves {scored} of the "
+                        f"{w.end - w.start} training samples, at least {hp.min_samples} are "
+                        "needed; lower warmup"
+                    )
+                if scored <= 0:
+                    n = len(rec.x)
+                    k = f" (repeat={hp.repeat}: {hp.repeat * n})" if hp.repeat > 1 else ""
+                    raise DataFileError(
+                        f"{rec.label} holds {n} samples{k}, not more than warmup="
+                        f"{hp.warmup}; lower warmup, or leave the recording out of {stage}"
+                    )
 
     def prepare_data(self) -> None:
         """Nothing to download: data are simulated or read in :meth:`setup`."""
 
     def setup(self, stage: str | None = None) -> None:
+        """Read (or simulate) the data and split it, once."""
         if self.x is None:
             self._load()
 
-    def train_tensors(self) -> tuple[Tensor, Tensor]:
-        """The training part ``(x, y)``, each (1, time), float64: fit normalizations on it
-        (its first :attr:`train_warmup` samples are the warm-up)."""
+    # -----------------------------------------------------------------------------------
+    def _sequence(self, w: Window) -> tuple[Tensor, Tensor, int]:
+        """``(x, y, first)`` of a window: (time,) tensors, ``repeat - 1`` whole periods then
+        rows ``[0, end)``, and the index of the first scored sample."""
+        rec, k = self.recordings[w.index], int(self.hparams.repeat)
+        x, y = torch.from_numpy(rec.x), torch.from_numpy(rec.y)
+        first = max(int(self.hparams.warmup), (k - 1) * x.numel() + w.start)
+        if k == 1:
+            return x[: w.end], y[: w.end], first
+        x, y = (torch.cat([v.repeat(k - 1), v[: w.end]]) for v in (x, y))
+        return x, y, first
+
+    def _batch(self, windows: list[Window]) -> StageBatch:
+        seqs = [self._sequence(w) for w in windows]
+        length = max(s[0].numel() for s in seqs)
+        steps = torch.arange(length)
+        mask = torch.stack([(steps >= first) & (steps < x.numel()) for x, _, first in seqs])
+        return (_pad([s[0] for s in seqs], length), _pad([s[1] for s in seqs], length),
+                torch.tensor([s[2] for s in seqs]), mask)
+
+    def _stage_windows(self, stage: str) -> list[Window]:
         self.setup()
-        a, b = self.bounds["train"]
-        return self.x[a:b].unsqueeze(0), self.y[a:b].unsqueeze(0)
+        if stage == "predict":
+            return [Window(i, 0, len(r.x)) for i, r in enumerate(self.recordings)]
+        check_choice(stage, "stage", (*STAGES, "predict"))
+        return self.windows[stage]
+
+    def batches(self, stage: str) -> list[StageBatch]:
+        """The batches ``(x, y, warmup, mask)`` of ``stage`` (module docstring): one full
+        batch for train, val and test (none when the stage is empty); for predict one
+        unpadded batch per recording, its whole sequence (all ``repeat`` periods)."""
+        windows = self._stage_windows(stage)
+        if stage == "predict":
+            return [self._batch([w]) for w in windows]
+        return [self._batch(windows)] if windows else []
+
+    def _train_fit(self) -> tuple[Tensor, Tensor, int]:
+        seqs = [self._sequence(w) for w in self._stage_windows("train")]
+        if len({s[0].numel() for s in seqs}) == 1 and len({s[2] for s in seqs}) == 1:
+            return torch.stack([s[0] for s in seqs]), torch.stack([s[1] for s in seqs]), seqs[0][2]
+        x, y = torch.cat([s[0] for s in seqs]), torch.cat([s[1] for s in seqs])
+        return x.unsqueeze(0), y.unsqueeze(0), seqs[0][2]
+
+    def train_tensors(self) -> tuple[Tensor, Tensor]:
+        """The training sequences ``(x, y)``, float64, to fit normalizations and
+        data-dependent operators on: (recordings, time) when they share their length and
+        warm-up (their first :attr:`train_warmup` samples), else (1, time), all end to end
+        (then the fits see states carried from one recording to the next, and the warm-up
+        of the first only)."""
+        x, y, _ = self._train_fit()
+        return x, y
 
     @property
     def train_warmup(self) -> int:
         """Leading samples of :meth:`train_tensors` outside the loss and data-dependent fits."""
-        return int(self.hparams.warmup)
+        return self._train_fit()[2]
 
     def tensors(self, stage: str) -> tuple[Tensor, Tensor, int]:
-        """``(x, y, warmup)`` of ``stage``: (time,) tensors including the warm-up part."""
-        self.setup()
-        if stage == "predict":
-            return self.x, self.y, 0
-        a, b = self.bounds[stage]
-        if stage == "train" or self.hparams.split == "paper":
-            return self.x[a:b], self.y[a:b], self.train_warmup
-        return self.x[:b], self.y[:b], a  # the preceding record is the warm-up
+        """``(x, y, warmup)`` of a stage of one sequence: (time,) tensors including the
+        warm-up part (use :meth:`batches` for several recordings).
+
+        Raises:
+            ValueError: the stage holds no sequence or several.
+        """
+        windows = self._stage_windows(stage)
+        if len(windows) != 1:
+            raise ValueError(
+                f"tensors({stage!r}) needs a stage of one sequence, {stage} holds "
+                f"{len(windows)}: use batches({stage!r})"
+            )
+        return self._sequence(windows[0])
 
     def _loader(self, stage: str) -> DataLoader | list:
-        a, b = self.bounds.get(stage, (0, 1)) if stage != "predict" else (0, 1)
-        if b <= a:
+        batches = self.batches(stage)
+        if not batches:
             return []
-        x, y, warm = self.tensors(stage)
-        return DataLoader(SequenceDataset(x, y, warm), batch_size=1, shuffle=False)
+        return DataLoader(_Batches(batches), batch_size=1, shuffle=False, collate_fn=_only)
 
     def train_dataloader(self) -> DataLoader:
         return self._loader("train")
@@ -208,4 +485,10 @@ class HysteresisDataModule(L.LightningDataModule):
 
     @property
     def source(self) -> str:
-        return str(Path(self.hparams.path)) if self.hparams.path else self.hparams.simulation
+        """The data's file(s), or the simulation's name."""
+        path = self.hparams.path
+        if path is None:
+            return self.hparams.simulation
+        if isinstance(path, (str, Path)):
+            return str(Path(path))
+        return ", ".join(str(Path(p)) for p in path)
