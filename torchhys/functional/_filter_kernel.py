@@ -1,0 +1,272 @@
+"""Compiled CPU kernels for linear recursions (DF2T filter, state-space recurrence).
+
+Two loops of plain C, compiled once with the system C compiler into the user cache directory
+(``$TORCHHYS_CACHE``, default ``~/.cache/torchhys``) and loaded with :mod:`ctypes`, in the
+manner of :mod:`torchhys.functional._kernel`: no torch headers, compiled in well under a
+second, ``-ffp-contract=off`` so that each multiply and add rounds as in the eager torch step.
+
+- ``df2t``: the direct form II transposed recursion of ``scipy.signal.lfilter``, written with
+  the operations of :func:`~torchhys.functional.linear_filter.df2t_step` in the same order,
+  so that the two agree bit for bit.
+- ``linrec``: ``s[t] = A s[t-1] + w[t]`` for a small dense ``A``.
+
+Where no compiler is found, on devices other than the CPU, for dtypes other than
+float32/float64, inside :func:`filter_kernel_enabled(False) <filter_kernel_enabled>` or with
+the environment variable ``TORCHHYS_DISABLE_KERNEL=1``, the callers use the pure-torch
+chunked scan of :mod:`torchhys.functional.linear_filter` instead.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import functools
+import hashlib
+import os
+import shutil
+import subprocess
+import tempfile
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "MAX_FUSED_ORDER",
+    "df2t_adjoint_kernel",
+    "df2t_kernel",
+    "filter_kernel_available",
+    "filter_kernel_enabled",
+    "filter_kernel_unavailable_reason",
+    "linrec_adjoint_kernel",
+    "linrec_kernel",
+]
+
+_enabled = True
+
+MAX_FUSED_ORDER = 64
+"""Largest filter order of the fused DF2T adjoint (larger orders use the torch backward)."""
+
+
+@contextlib.contextmanager
+def filter_kernel_enabled(enabled: bool) -> Iterator[None]:
+    """Context manager that switches the compiled filter kernels on or off (tests, benchmarks)."""
+    global _enabled
+    previous, _enabled = _enabled, bool(enabled)
+    try:
+        yield
+    finally:
+        _enabled = previous
+
+
+_SOURCE = r"""
+#define MAXN 64 /* MAX_FUSED_ORDER */
+#define FILTER_DEFINE(T, SUF)                                                            \
+void df2t_##SUF(const T* x, const T* b, const T* a, const T* zi, T* y, T* zf,          \
+                long R, long Tn, long n) {                                              \
+    for (long r = 0; r < R; ++r) {                                                      \
+        const T* xr = x + r * Tn;                                                       \
+        T* yr = y + r * Tn;                                                             \
+        T* z = zf + r * n;                                                              \
+        for (long i = 0; i < n; ++i) z[i] = zi[r * n + i];                              \
+        for (long t = 0; t < Tn; ++t) {                                                 \
+            const T xt = xr[t];                                                         \
+            const T yt = b[0] * xt + z[0];                                              \
+            for (long i = 0; i + 1 < n; ++i) z[i] = b[i + 1] * xt + z[i + 1] - a[i] * yt; \
+            z[n - 1] = b[n] * xt + (T)0 - a[n - 1] * yt;                                \
+            yr[t] = yt;                                                                 \
+        }                                                                               \
+    }                                                                                   \
+}                                                                                       \
+void linrec_##SUF(const T* A, const T* w, const T* s0, T* s, long R, long Tn, long n) { \
+    for (long r = 0; r < R; ++r) {                                                      \
+        const T* prev = s0 + r * n;                                                     \
+        for (long t = 0; t < Tn; ++t) {                                                 \
+            const T* wt = w + (r * Tn + t) * n;                                         \
+            T* st = s + (r * Tn + t) * n;                                               \
+            for (long i = 0; i < n; ++i) {                                              \
+                T acc = 0;                                                              \
+                for (long j = 0; j < n; ++j) acc += A[i * n + j] * prev[j];             \
+                st[i] = acc + wt[i];                                                    \
+            }                                                                           \
+            prev = st;                                                                  \
+        }                                                                               \
+    }                                                                                   \
+}                                                                                       \
+void df2t_adjoint_##SUF(const T* x, const T* y, const T* gy, const T* gzf, const T* b,  \
+                        const T* a, T* gx, double* gb, double* ga, T* gzi, T* lam,       \
+                        long R, long Tn, long n) {                                      \
+    double sb[MAXN + 1], sa[MAXN + 1];                                                  \
+    for (long k = 0; k <= n; ++k) { sb[k] = 0; sa[k] = 0; }                             \
+    for (long r = 0; r < R; ++r) {                                                      \
+        const T* xr = x + r * Tn; const T* yr = y + r * Tn; const T* gr = gy + r * Tn;  \
+        T* gxr = gx + r * Tn;                                                           \
+        for (long i = 0; i < n; ++i) lam[Tn + i] = gzf[r * n + i];                      \
+        for (long t = Tn - 1; t >= 0; --t) {                                            \
+            T l = gr[t];                                                                \
+            for (long k = 1; k <= n; ++k) l -= a[k - 1] * lam[t + k];                   \
+            lam[t] = l;                                                                 \
+        }                                                                               \
+        for (long t = 0; t < Tn; ++t) {                                                 \
+            const double xt = xr[t], yt = yr[t];                                        \
+            T acc = 0;                                                                  \
+            for (long k = 0; k <= n; ++k) {                                             \
+                const T lk = lam[t + k];                                                \
+                acc += b[k] * lk;                                                       \
+                sb[k] += (double)lk * xt;                                               \
+                sa[k] -= (double)lk * yt;                                               \
+            }                                                                           \
+            gxr[t] = acc;                                                               \
+        }                                                                               \
+        for (long i = 0; i < n; ++i) gzi[r * n + i] = lam[i];                           \
+    }                                                                                   \
+    for (long k = 0; k <= n; ++k) { gb[k] = sb[k]; ga[k] = sa[k]; }                     \
+}                                                                                       \
+void linrec_adjoint_##SUF(const T* A, const T* s0, const T* s, const T* gs, T* lam,     \
+                          double* gA, T* gs0, long R, long Tn, long n) {                \
+    for (long i = 0; i < n * n; ++i) gA[i] = 0;                                         \
+    for (long r = 0; r < R; ++r) {                                                      \
+        const T* next = 0;                                                              \
+        for (long t = Tn - 1; t >= 0; --t) {                                            \
+            T* lt = lam + (r * Tn + t) * n;                                             \
+            const T* gt = gs + (r * Tn + t) * n;                                        \
+            const T* prev = t > 0 ? s + (r * Tn + t - 1) * n : s0 + r * n;              \
+            for (long i = 0; i < n; ++i) {                                              \
+                T acc = 0;                                                              \
+                if (next) for (long j = 0; j < n; ++j) acc += A[j * n + i] * next[j];   \
+                lt[i] = acc + gt[i];                                                    \
+            }                                                                           \
+            for (long i = 0; i < n; ++i)                                                \
+                for (long j = 0; j < n; ++j) gA[i * n + j] += (double)lt[i] * (double)prev[j]; \
+            next = lt;                                                                  \
+        }                                                                               \
+        for (long i = 0; i < n; ++i) {                                                  \
+            T acc = 0;                                                                  \
+            for (long j = 0; j < n; ++j) acc += A[j * n + i] * next[j];                 \
+            gs0[r * n + i] = acc;                                                       \
+        }                                                                               \
+    }                                                                                   \
+}
+FILTER_DEFINE(float, f32)
+FILTER_DEFINE(double, f64)
+"""
+
+_FLAGS = ["-O2", "-shared", "-fPIC", "-fno-fast-math", "-ffp-contract=off"]
+_SUFFIX = {torch.float32: "f32", torch.float64: "f64"}
+
+
+def _cache_dir() -> Path:
+    root = os.environ.get("TORCHHYS_CACHE") or Path.home() / ".cache" / "torchhys"
+    return Path(root) / "kernels"
+
+
+def _compile(compiler: str, lib_path: Path) -> None:
+    lib_path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        src, out = Path(tmp) / "filter.c", Path(tmp) / "filter.so"
+        src.write_text(_SOURCE)
+        subprocess.run([compiler, *_FLAGS, str(src), "-o", str(out)],
+                       check=True, capture_output=True, timeout=120)
+        staged = lib_path.with_suffix(f".{os.getpid()}.tmp")
+        shutil.copyfile(out, staged)
+        os.replace(staged, lib_path)
+
+
+@functools.lru_cache(maxsize=1)
+def _load() -> tuple[ctypes.CDLL | None, str | None]:
+    """The compiled library, or None and the reason it cannot be used."""
+    if os.environ.get("TORCHHYS_DISABLE_KERNEL", "") not in ("", "0"):
+        return None, "disabled by the environment variable TORCHHYS_DISABLE_KERNEL"
+    cc = os.environ.get("CC", "cc")
+    compiler = shutil.which(cc) or shutil.which("gcc")
+    if compiler is None:
+        return None, f"no C compiler found (neither {cc!r} nor 'gcc' is on the PATH)"
+    digest = hashlib.sha256((_SOURCE + " ".join(_FLAGS)).encode()).hexdigest()[:16]
+    lib_path = _cache_dir() / f"filter_{digest}.so"
+    try:
+        if not lib_path.exists():
+            _compile(compiler, lib_path)
+        lib = ctypes.CDLL(str(lib_path))
+    except (OSError, subprocess.SubprocessError) as err:
+        warnings.warn(f"torchhys: could not build the compiled filter kernel ({err}); using "
+                      "the pure-torch chunked scan instead", RuntimeWarning, stacklevel=4)
+        return None, f"the kernel could not be built with {compiler} ({err})"
+    p, lng = ctypes.c_void_p, ctypes.c_long
+    for suffix in _SUFFIX.values():
+        getattr(lib, f"df2t_{suffix}").argtypes = [p] * 6 + [lng] * 3
+        getattr(lib, f"linrec_{suffix}").argtypes = [p] * 4 + [lng] * 3
+        getattr(lib, f"df2t_adjoint_{suffix}").argtypes = [p] * 11 + [lng] * 3
+        getattr(lib, f"linrec_adjoint_{suffix}").argtypes = [p] * 7 + [lng] * 3
+    return lib, None
+
+
+def filter_kernel_unavailable_reason() -> str | None:
+    """Why the compiled kernels cannot run on this machine, or None when they can."""
+    return _load()[1]
+
+
+def filter_kernel_available(*tensors: Tensor) -> bool:
+    """Whether the compiled kernels can serve these tensors (CPU, float32 or float64)."""
+    if not _enabled:
+        return False
+    if not all(t.device.type == "cpu" and t.dtype in _SUFFIX for t in tensors):
+        return False
+    return _load()[0] is not None
+
+
+def df2t_kernel(x: Tensor, b: Tensor, a: Tensor, zi: Tensor) -> tuple[Tensor, Tensor]:
+    """x (R, T), b (n+1,), a (n,) = a[1:], zi (R, n) with n >= 1 -> y (R, T), zf (R, n)."""
+    x, b, a, zi = (t.detach().contiguous() for t in (x, b, a, zi))
+    R, T = x.shape
+    n = a.shape[0]
+    y = torch.empty(R, T, dtype=x.dtype)
+    zf = torch.empty(R, n, dtype=x.dtype)
+    fn = getattr(_load()[0], f"df2t_{_SUFFIX[x.dtype]}")
+    fn(x.data_ptr(), b.data_ptr(), a.data_ptr(), zi.data_ptr(), y.data_ptr(), zf.data_ptr(),
+       R, T, n)
+    return y, zf
+
+
+def linrec_kernel(A: Tensor, w: Tensor, s0: Tensor) -> Tensor:
+    """A (n, n), w (R, T, n), s0 (R, n) -> s (R, T, n) with s[t] = A s[t-1] + w[t]."""
+    A, w, s0 = (t.detach().contiguous() for t in (A, w, s0))
+    R, T, n = w.shape
+    s = torch.empty(R, T, n, dtype=w.dtype)
+    fn = getattr(_load()[0], f"linrec_{_SUFFIX[w.dtype]}")
+    fn(A.data_ptr(), w.data_ptr(), s0.data_ptr(), s.data_ptr(), R, T, n)
+    return s
+
+
+def df2t_adjoint_kernel(gy: Tensor, gzf: Tensor, x: Tensor, b: Tensor, a: Tensor, y: Tensor
+                        ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Gradients of ``<gy, y> + <gzf, zf>`` for :func:`df2t_kernel`: (gx, gb, ga, gzi), with
+    ``ga`` the gradient of ``a[1:]``; the sums over time accumulate in float64."""
+    gy, gzf, x, b, a, y = (t.detach().contiguous() for t in (gy, gzf, x, b, a, y))
+    R, T = x.shape
+    n = a.shape[0]
+    gx = torch.empty(R, T, dtype=x.dtype)
+    gb = torch.empty(n + 1, dtype=torch.float64)
+    ga = torch.empty(n + 1, dtype=torch.float64)
+    gzi = torch.empty(R, n, dtype=x.dtype)
+    lam = torch.empty(T + n, dtype=x.dtype)
+    fn = getattr(_load()[0], f"df2t_adjoint_{_SUFFIX[x.dtype]}")
+    fn(x.data_ptr(), y.data_ptr(), gy.data_ptr(), gzf.data_ptr(), b.data_ptr(), a.data_ptr(),
+       gx.data_ptr(), gb.data_ptr(), ga.data_ptr(), gzi.data_ptr(), lam.data_ptr(), R, T, n)
+    return gx, gb.to(x.dtype), ga[1:].to(x.dtype), gzi
+
+
+def linrec_adjoint_kernel(gs: Tensor, A: Tensor, s0: Tensor, s: Tensor
+                          ) -> tuple[Tensor, Tensor, Tensor]:
+    """Gradients of ``<gs, s>`` for :func:`linrec_kernel`: (gA, gw, gs0); ``gA`` accumulates
+    in float64."""
+    gs, A, s0, s = (t.detach().contiguous() for t in (gs, A, s0, s))
+    R, T, n = s.shape
+    lam = torch.empty(R, T, n, dtype=s.dtype)
+    gA = torch.empty(n, n, dtype=torch.float64)
+    gs0 = torch.empty(R, n, dtype=s.dtype)
+    fn = getattr(_load()[0], f"linrec_adjoint_{_SUFFIX[s.dtype]}")
+    fn(A.data_ptr(), s0.data_ptr(), s.data_ptr(), gs.data_ptr(), lam.data_ptr(), gA.data_ptr(),
+       gs0.data_ptr(), R, T, n)
+    return gA.to(s.dtype), lam, gs0

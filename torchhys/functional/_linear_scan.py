@@ -1,0 +1,57 @@
+"""The pure-torch fallback of :mod:`torchhys.functional.linear_filter`: a chunked scan.
+
+``s[t] = A s[t-1] + w[t]`` over T samples: the time axis is cut into C chunks of
+``K ~ sqrt(T / 2)`` samples; one pass over the K positions (vectorised over all chunks) runs
+each chunk from a zero entering state, one pass over the C chunks carries the state entering
+each chunk with ``A^K``, and one batched product adds ``A^(k+1) s_in`` to position k. About
+``2 sqrt(2 T)`` tensor operations, no autograd graph (the callers' backward is their own),
+equal to the sample-by-sample recursion to float rounding. Used where the compiled kernel
+cannot run (no C compiler, a non-CPU device, a dtype other than float32/float64).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+__all__ = ["df2t_scan", "recurrence_scan"]
+
+
+def recurrence_scan(A: Tensor, w: Tensor, s0: Tensor) -> Tensor:
+    """s[t] = A s[t-1] + w[t], s[-1] = s0: A (n, n), w (R, T, n), s0 (R, n) -> (R, T, n)."""
+    R, T, n = w.shape
+    K = T if T <= 16 else max(4, round(math.sqrt(T / 2.0)))
+    C = -(-T // K)
+    if C * K > T:
+        w = torch.cat([w, w.new_zeros(R, C * K - T, n)], dim=1)
+    wc = w.reshape(R, C, K, n)
+    AT = A.mT
+    local = torch.empty_like(wc)  # each chunk from a zero entering state
+    s = w.new_zeros(R, C, n)
+    for k in range(K):
+        s = s @ AT + wc[:, :, k]
+        local[:, :, k] = s
+    powers = torch.empty(K, n, n, dtype=w.dtype, device=w.device)  # A^(k+1)
+    p = A
+    for k in range(K):
+        powers[k] = p
+        p = p @ A
+    carry = torch.empty(R, C, n, dtype=w.dtype, device=w.device)
+    s = s0
+    for c in range(C):
+        carry[:, c] = s
+        s = s @ powers[K - 1].mT + local[:, c, K - 1]
+    out = local + torch.einsum("rcj,kij->rcki", carry, powers)
+    return out.reshape(R, C * K, n)[:, :T]
+
+
+def df2t_scan(x: Tensor, b: Tensor, a: Tensor, zi: Tensor) -> tuple[Tensor, Tensor]:
+    """DF2T through the scan: the delays follow z <- Ac z + (b[1:] - a b[0]) x."""
+    n = a.shape[0]
+    Ac = torch.diag(x.new_ones(n - 1), 1)
+    Ac[:, 0] -= a
+    z = recurrence_scan(Ac, x.unsqueeze(-1) * (b[1:] - a * b[0]), zi)
+    z0 = torch.cat([zi[:, :1], z[:, :-1, 0]], dim=1)
+    return b[0] * x + z0, z[:, -1]

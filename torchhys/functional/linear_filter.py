@@ -1,0 +1,298 @@
+"""Differentiable linear recursions: ``lfilter`` (DF2T), a state-space recurrence and their steps.
+
+Conventions (those of ``scipy.signal.lfilter``): ``b`` and ``a`` are the coefficients of
+``B(z) = b[0] + b[1] z^-1 + ...`` and ``A(z) = a[0] + a[1] z^-1 + ...``; both are divided by
+``a[0]``; with ``n = max(len(a), len(b)) - 1`` the direct form II transposed (DF2T) keeps
+``n`` delays ``z`` and advances, per sample (:func:`df2t_step`)::
+
+    y[t]   = b[0] x[t] + z[0]
+    z[i]  <- b[i+1] x[t] + z[i+1] - a[i+1] y[t]          (z[n] = 0)
+
+Sequence path. The recursion runs in a compiled C loop (:mod:`._filter_kernel`) with the
+operations of :func:`df2t_step` in the same order, so the sequence path and the per-sample
+step agree bit for bit. Without the kernel (no compiler, a non-CPU device, another dtype) it
+runs as a chunked scan of the state-space form ``s[t] = A s[t-1] + w[t]``: chunks of
+``K ~ sqrt(T / 2)`` samples are filtered from a zero state (one vectorised pass over the K
+positions), the state entering each chunk is carried with ``A^K`` (one pass over the chunks),
+and ``A^(k+1) s_in`` is added in one batched product: about ``2 sqrt(2 T)`` tensor operations,
+equal to the recursion to float rounding.
+
+Backward. The adjoint ``lam[t] = g_y[t] - sum_k a[k] lam[t+k]``, with ``lam[T+i] = g_zf[i]``,
+is the same all-pole recursion run backwards in time, and then, with ``lam`` read at
+``t + k``::
+
+    dx[t] = sum_k b[k] lam[t+k]    db[k] = sum_t lam[t+k] x[t]    da[k] = -sum_t lam[t+k] y[t]
+    dzi[i] = lam[i]
+
+On the CPU one fused C pass computes all of it (sums over time in float64). When a graph is
+being built (``create_graph=True``, double backward) or without the kernel, the backward is
+written with differentiable tensor operations instead (the recursion through this same
+function, the lag sums as batched products); both give the same gradients to rounding.
+
+Why this path: the recursion is latency-bound (each output needs the previous one) and does
+about ``3n`` flops a sample, so a scalar C loop runs it at a few nanoseconds a sample. The
+chunked scan does ``n^2`` more work a sample (the ``A^(k+1) s_in`` products) and ~``2
+sqrt(2 T)`` tensor operations with their dispatch overhead, and the per-sample Python loop
+pays the dispatch (and an autograd node) for every sample; splitting off the FIR part as a
+``conv1d`` saves nothing, since the all-pole recursion remains. Measured with
+``benchmarks/linear_filter.py`` (see the table there).
+
+References:
+    A. V. Oppenheim and R. W. Schafer, Discrete-Time Signal Processing, 3rd ed., Pearson
+    2010, Sec. 6.5 (transposed forms); ``scipy.signal.lfilter`` (the DF2T convention and
+    ``zi``).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchhys._checks import check_finite, check_floating, check_tensor
+from torchhys.functional._filter_kernel import (
+    MAX_FUSED_ORDER,
+    df2t_adjoint_kernel,
+    df2t_kernel,
+    filter_kernel_available,
+    linrec_adjoint_kernel,
+    linrec_kernel,
+)
+from torchhys.functional._linear_scan import df2t_scan, recurrence_scan
+
+__all__ = ["df2t_step", "lfilter", "linear_recurrence", "state_space", "state_space_step"]
+
+
+def df2t_step(x: Tensor, z: Tensor, b: Tensor, a: Tensor) -> tuple[Tensor, Tensor]:
+    """One DF2T step (the maths of :func:`lfilter`; scriptable).
+
+    Args:
+        x: input sample, (batch, 1).
+        z: delays, (batch, n) with n >= 1.
+        b: numerator, (n + 1,); a: denominator without its leading 1, ``a[1:]``, (n,).
+
+    Returns:
+        ``(y, z)``: the output (batch, 1) and the new delays (batch, n).
+    """
+    y = b[0] * x + z[:, :1]
+    shifted = torch.cat([z[:, 1:], torch.zeros_like(z[:, :1])], dim=1)
+    return y, b[1:] * x + shifted - a * y
+
+
+def state_space_step(u: Tensor, s: Tensor, A: Tensor, B: Tensor, C: Tensor, D: Tensor
+                     ) -> tuple[Tensor, Tensor]:
+    """One state-space step ``y = C s + D u``, ``s <- A s + B u`` (scriptable).
+
+    Args:
+        u: input sample, (batch, 1). s: state, (batch, n).
+        A: (n, n). B: (n,). C: (p, n). D: (p,).
+
+    Returns:
+        ``(y, s)``: the output (batch, p) and the new state (batch, n).
+    """
+    return s @ C.mT + u * D, s @ A.mT + u * B
+
+
+# --- autograd functions ------------------------------------------------------------------------
+
+
+class _DF2T(torch.autograd.Function):
+    """x (R, T), b (n+1,), a (n,) = a[1:], zi (R, n) -> y (R, T), zf (R, n)."""
+
+    @staticmethod
+    def forward(ctx, x: Tensor, b: Tensor, a: Tensor, zi: Tensor  # type: ignore[override]
+                ) -> tuple[Tensor, Tensor]:
+        if filter_kernel_available(x, b, a, zi):
+            y, zf = df2t_kernel(x, b, a, zi)
+        else:
+            y, zf = df2t_scan(x, b, a, zi)
+        ctx.save_for_backward(x, b, a, y)
+        return y, zf
+
+    @staticmethod
+    def backward(ctx, gy: Tensor, gzf: Tensor  # type: ignore[override]
+                 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        x, b, a, y = ctx.saved_tensors
+        if (not torch.is_grad_enabled() and a.shape[0] <= MAX_FUSED_ORDER
+                and filter_kernel_available(x, b, a, y, gy, gzf)):
+            return df2t_adjoint_kernel(gy, gzf, x, b, a, y)  # one fused pass, no graph
+        R, T = x.shape
+        n = a.shape[0]
+        # lam[T + i] = gzf[i]: the tail input that makes the backward recursion produce it
+        tail = gzf
+        for k in range(1, n):
+            tail = tail + a[k - 1] * torch.cat([gzf[:, k:], gzf.new_zeros(R, k)], dim=1)
+        u = torch.cat([gy, tail], dim=1).flip(1)
+        e0 = torch.cat([b.new_ones(1), b.new_zeros(n)])
+        lam = _DF2T.apply(u, e0, a, u.new_zeros(R, n))[0].flip(1)  # (R, T + n)
+        win = torch.stack([lam[:, k: k + T] for k in range(n + 1)], 1)  # lam[t + k]: (R, n+1, T)
+        gx = torch.einsum("k,rkt->rt", b, win)
+        gb = torch.einsum("rkt,rt->k", win, x)
+        ga = -torch.einsum("rkt,rt->k", win[:, 1:], y)
+        return gx, gb, ga, lam[:, :n]
+
+
+class _LinearRecurrence(torch.autograd.Function):
+    """A (n, n), w (R, T, n), s0 (R, n) -> s (R, T, n), s[t] = A s[t-1] + w[t]."""
+
+    @staticmethod
+    def forward(ctx, A: Tensor, w: Tensor, s0: Tensor) -> Tensor:  # type: ignore[override]
+        if filter_kernel_available(A, w, s0):
+            s = linrec_kernel(A, w, s0)
+        else:
+            s = recurrence_scan(A, w, s0)
+        ctx.save_for_backward(A, s0, s)
+        return s
+
+    @staticmethod
+    def backward(ctx, gs: Tensor) -> tuple[Tensor, Tensor, Tensor]:  # type: ignore[override]
+        A, s0, s = ctx.saved_tensors
+        if not torch.is_grad_enabled() and filter_kernel_available(A, s0, s, gs):
+            return linrec_adjoint_kernel(gs, A, s0, s)
+        # lam[t] = gs[t] + A^T lam[t+1]: the same recurrence, backwards in time, with A^T
+        lam = _LinearRecurrence.apply(A.mT, gs.flip(1), torch.zeros_like(s0)).flip(1)
+        prev = torch.cat([s0.unsqueeze(1), s[:, :-1]], dim=1)
+        gA = torch.einsum("rti,rtj->ij", lam, prev)
+        return gA, lam, lam[:, 0] @ A
+
+
+# --- public entry points -----------------------------------------------------------------------
+
+
+def _check_sequence(x: Tensor, name: str, min_dim: int = 1) -> None:
+    check_tensor(x, name)
+    check_floating(x, name)
+    if x.dim() < min_dim or x.shape[-min_dim] == 0:
+        layout = "(..., time)" if min_dim == 1 else "(..., time, n)"
+        raise ValueError(f"{name} must have shape {layout} with time >= 1, got shape "
+                         f"{tuple(x.shape)}")
+    if not bool(torch.isfinite(x.detach().sum())):  # a NaN or inf makes the sum non-finite;
+        check_finite(x, name)  # the full check names it (or passes if the sum overflowed)
+
+
+def _coefficients(v: Tensor, name: str, x: Tensor, shape: tuple[int, ...] | None = None
+                  ) -> Tensor:
+    """Check a coefficient tensor (1-D, or ``shape`` where given) and cast it to x's dtype."""
+    check_tensor(v, name)
+    check_floating(v, name)
+    if (shape is None and (v.dim() != 1 or v.numel() == 0)) or (
+            shape is not None and v.shape != shape):
+        want = "(length,) with length >= 1" if shape is None else str(shape)
+        raise ValueError(f"{name} must have shape {want}, got shape {tuple(v.shape)}")
+    check_finite(v, name)
+    return v.to(dtype=x.dtype, device=x.device)
+
+
+def _initial(s0: Tensor | None, batch: torch.Size, n: int, x: Tensor, name: str) -> Tensor:
+    """The initial state as (R, n): None (zeros), (n,) or ``batch + (n,)``."""
+    if s0 is None:
+        return x.new_zeros(batch.numel(), n)
+    check_tensor(s0, name)
+    check_floating(s0, name)
+    if s0.shape not in (torch.Size([n]), batch + (n,)):
+        raise ValueError(f"{name} must have shape ({n},) or {tuple(batch + (n,))}, got shape "
+                         f"{tuple(s0.shape)}")
+    check_finite(s0, name)
+    return s0.to(dtype=x.dtype, device=x.device).expand(batch + (n,)).reshape(batch.numel(), n)
+
+
+def lfilter(x: Tensor, b: Tensor, a: Tensor, *, zi: Tensor | None = None
+            ) -> tuple[Tensor, Tensor]:
+    """Filter ``x`` along time with ``B(z) / A(z)`` in direct form II transposed.
+
+    Same results as ``scipy.signal.lfilter(b, a, x, zi=zi)`` (``b`` and ``a`` divided by
+    ``a[0]``; ``zi`` is the DF2T state of the normalised filter). Supports autograd with
+    respect to ``x``, ``b``, ``a`` and ``zi`` (double backward too), batches, float32 and
+    float64, CPU (compiled kernel) and other devices (chunked scan). Stability is not checked.
+
+    Args:
+        x: input, (..., time), finite, floating point.
+        b: numerator, (nb,). a: denominator, (na,), ``a[0] != 0``.
+        zi: delays before the first sample, (n,) or (..., n) with ``n = max(na, nb) - 1``;
+            zeros if None.
+
+    Returns:
+        ``(y, zf)``: y (..., time) and the delays after the last sample (..., n), which
+        continue the filter: calls on consecutive chunks equal one call.
+
+    Raises:
+        TypeError: a non-tensor or a non-floating tensor.
+        ValueError: wrong shapes, NaN or inf, ``a[0] == 0``.
+
+    References:
+        Oppenheim & Schafer, Discrete-Time Signal Processing, Sec. 6.5;
+        ``scipy.signal.lfilter``.
+    """
+    _check_sequence(x, "x")
+    b = _coefficients(b, "b", x)
+    a = _coefficients(a, "a", x)
+    if bool(a[0] == 0):
+        raise ValueError(f"a[0] must be non-zero (it weights the current output y[t]), got "
+                         f"a = {a.tolist()}")
+    n = max(a.shape[0], b.shape[0]) - 1
+    b = torch.cat([b, b.new_zeros(n + 1 - b.shape[0])]) / a[0]
+    a = torch.cat([a, a.new_zeros(n + 1 - a.shape[0])]) / a[0]
+    batch = x.shape[:-1]
+    z0 = _initial(zi, batch, n, x, "zi")
+    if n == 0:
+        return b[0] * x, x.new_zeros(batch + (0,))
+    y, zf = _DF2T.apply(x.reshape(-1, x.shape[-1]), b, a[1:], z0)
+    return y.reshape(x.shape), zf.reshape(batch + (n,))
+
+
+def linear_recurrence(A: Tensor, w: Tensor, *, s0: Tensor | None = None) -> Tensor:
+    """States of ``s[t] = A s[t-1] + w[t]`` with ``s[-1] = s0``.
+
+    Supports autograd with respect to ``A``, ``w`` and ``s0`` (double backward too). Stability
+    is not checked.
+
+    Args:
+        A: (n, n). w: inputs, (..., time, n). s0: (n,) or (..., n); zeros if None.
+
+    Returns:
+        The states s[0], ..., s[T-1], (..., time, n).
+
+    Raises:
+        TypeError, ValueError: as :func:`lfilter`.
+    """
+    _check_sequence(w, "w", min_dim=2)
+    n = w.shape[-1]
+    A = _coefficients(A, "A", w, (n, n))
+    batch = w.shape[:-2]
+    start = _initial(s0, batch, n, w, "s0")
+    s = _LinearRecurrence.apply(A, w.reshape(-1, w.shape[-2], n), start)
+    return s.reshape(w.shape)
+
+
+def state_space(u: Tensor, A: Tensor, B: Tensor, C: Tensor, D: Tensor, *,
+                s0: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Outputs of ``s[t+1] = A s[t] + B u[t]``, ``y[t] = C s[t] + D u[t]`` (one input).
+
+    Args:
+        u: input, (..., time). A: (n, n). B: (n,). C: (p, n). D: (p,).
+        s0: state at the first sample, (n,) or (..., n); zeros if None.
+
+    Returns:
+        ``(y, s)``: y (..., time, p) and the state after the last sample (..., n).
+
+    Raises:
+        TypeError, ValueError: as :func:`lfilter`.
+
+    References:
+        ``scipy.signal.dlsim`` (the same convention).
+    """
+    _check_sequence(u, "u")
+    for name, m in (("A", A), ("C", C)):
+        if check_tensor(m, name).dim() != 2:
+            raise ValueError(f"{name} must be a matrix, got shape {tuple(m.shape)}")
+    n, p = A.shape[0], C.shape[0]
+    A = _coefficients(A, "A", u, (n, n))
+    B = _coefficients(B, "B", u, (n,))
+    C = _coefficients(C, "C", u, (p, n))
+    D = _coefficients(D, "D", u, (p,))
+    batch = u.shape[:-1]
+    start = _initial(s0, batch, n, u, "s0")
+    ur = u.reshape(-1, u.shape[-1], 1)
+    s = _LinearRecurrence.apply(A, ur * B, start)
+    entering = torch.cat([start.unsqueeze(1), s[:, :-1]], dim=1)
+    y = entering @ C.mT + ur * D
+    return y.reshape(batch + (u.shape[-1], p)), s[:, -1].reshape(batch + (n,))
