@@ -1,0 +1,244 @@
+"""Generalized Prandtl-Ishlinskii model: reference loop, reduction to the PI model, chunking,
+the per-sample step (eager, TorchScript), autograd, fitting an asymmetric saturating loop,
+streaming inside a network, bad input."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+import torch
+from _helpers import play_reference, random_walk, run_chunked, smooth_input
+
+from torchhys import Backlash, InverseHysteresisNet, PrandtlIshlinskii
+from torchhys.fitting import fit_full_batch, fit_prandtl_ishlinskii, play_width_grid
+from torchhys.functional import prandtl_ishlinskii
+from torchhys.generalized_pi import GeneralizedPrandtlIshlinskii, fit_generalized_pi
+from torchhys.operator import OPERATORS, make_operator
+from torchhys.streaming import StreamingCompensator
+
+F64 = torch.float64
+WIDTHS = [0.0, 0.4, 1.0, 1.7, 2.5]
+
+
+def model(dtype: torch.dtype = F64, **kw) -> GeneralizedPrandtlIshlinskii:
+    """Positive play weights and a g with three units of different slopes."""
+    args = dict(weights=[0.3, 0.8, 0.05, 0.5, 0.2], linear_weight=0.4,
+                centers=[-1.0, 0.2, 1.5], slopes=[0.7, 2.0, 1.2], unit_weights=[0.5, 0.3, 0.9],
+                gain=0.3, offset=-0.2)
+    args.update(kw)
+    return GeneralizedPrandtlIshlinskii(torch.tensor(WIDTHS, dtype=dtype), **args)
+
+
+def walks() -> torch.Tensor:
+    return torch.stack([random_walk(s, T=200, quantize=s % 2 == 0) for s in range(3)])
+
+
+def test_matches_a_plain_loop():
+    m = model()
+    x = walks()
+    y, state = m(x)
+    plays = play_reference(x.numpy(), np.array(WIDTHS))
+    p = 0.4 * x.numpy() + plays @ np.array([0.3, 0.8, 0.05, 0.5, 0.2])
+    units = np.tanh(np.array([0.7, 2.0, 1.2]) * (p[..., None] - np.array([-1.0, 0.2, 1.5])))
+    ref = 0.3 * p + units @ np.array([0.5, 0.3, 0.9]) - 0.2
+    np.testing.assert_allclose(y.detach().numpy(), ref, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(state.detach().numpy(), plays[:, -1], rtol=0, atol=0)
+
+
+def test_identity_g_is_the_pi_model():
+    weights = torch.tensor([0.3, 0.8, 0.1, 0.5, 0.2], dtype=F64)
+    gpi = GeneralizedPrandtlIshlinskii(torch.tensor(WIDTHS, dtype=F64), weights,
+                                       linear_weight=0.4, centers=[])  # g(v) = 1 v + 0
+    x = walks()
+    y, state = gpi(x)
+    pi_part = gpi.prandtl_ishlinskii()
+    h, pi_state = pi_part(x)
+    assert torch.equal(y, h) and torch.equal(state, pi_state)  # bit for bit
+    torch.testing.assert_close(pi_part.weights, weights, rtol=1e-15, atol=0)
+    assert float(pi_part.linear_weight) == pytest.approx(0.4, rel=1e-15)
+    ref = prandtl_ishlinskii(x, torch.tensor(WIDTHS, dtype=F64), weights, linear_weight=0.4)
+    torch.testing.assert_close(y, ref, rtol=1e-15, atol=1e-14)
+
+
+@pytest.mark.parametrize("sizes", [[1], [7, 1, 30], [64]])
+def test_chunked_calls_equal_one_call(sizes):
+    m = model()
+    x = walks()
+    whole, final = m(x)
+    torch.testing.assert_close(run_chunked(m, x, sizes), whole, rtol=0, atol=0)
+    y1, s1 = m(x[0])
+    assert y1.shape == (200,) and s1.shape == (5,)
+    torch.testing.assert_close(y1, whole[0], rtol=0, atol=0)
+    torch.testing.assert_close(s1, final[0], rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_step_eager_and_scripted_equal_sequence(dtype):
+    m = model(dtype)
+    x = walks().to(dtype)
+    with torch.no_grad():
+        y, final = m(x)
+    step = m.streaming_step(dtype)
+    assert step.n_outputs == 1 and [b.size for b in step.state_spec] == [5]
+    with warnings.catch_warnings():  # torch.jit.script is deprecated in torch 2.13
+        warnings.filterwarnings("ignore", message=r"`torch\.jit\.script` is deprecated",
+                                category=DeprecationWarning)
+        scripted = torch.jit.script(step)
+    tol = 1e-13 if dtype == torch.float64 else 1e-5
+    for s in (step, scripted):
+        state = step.initial_state(x[:, :1])
+        outs = []
+        for xt in x.unbind(1):
+            f, state = s(xt.unsqueeze(1), state)
+            outs.append(f)
+        f = torch.stack(outs, 1)
+        assert f.shape == (3, 200, 1) and f.dtype == dtype
+        torch.testing.assert_close(f[..., 0], y, rtol=0, atol=tol)
+        torch.testing.assert_close(state[0], final, rtol=0, atol=0)
+
+
+def rough_input(T: int = 25) -> torch.Tensor:
+    """A random walk without repeated samples (a repeat sits on a bound: not differentiable)."""
+    return torch.randn(2, T, dtype=F64, generator=torch.Generator().manual_seed(3)).cumsum(1)
+
+
+@pytest.mark.parametrize("x", [smooth_input(30), rough_input()])
+def test_gradcheck_forward(x):
+    m = model(learnable_widths=True, weights=[0.3, 0.8, 0.1, 0.5, 0.2])
+    names = [n for n, _ in m.named_parameters()]
+    assert set(names) == {"raw_widths", "raw_weights", "log_linear_weight", "log_gain",
+                          "raw_unit_weights", "centers", "log_slopes", "offset"}
+    params = tuple(p.detach().clone().requires_grad_(True) for p in m.parameters())
+
+    def f(x, *ps):
+        return torch.func.functional_call(m, dict(zip(names, ps, strict=True)), (x,))[0]
+
+    torch.autograd.gradcheck(f, (x.clone().requires_grad_(True), *params))
+
+
+def asymmetric_plant(x: torch.Tensor) -> torch.Tensor:
+    """A saturating, asymmetric loop: tanh of a PI output with an offset."""
+    widths = torch.linspace(0.2, 2.0, 6, dtype=F64)
+    weights = torch.tensor([0.5, 0.3, 0.4, 0.2, 0.3, 0.2], dtype=F64)
+    return torch.tanh(0.8 * prandtl_ishlinskii(x, widths, weights, linear_weight=0.3) + 0.4)
+
+
+def multisine(T: int, seed: int) -> torch.Tensor:
+    t = torch.linspace(0, 1, T, dtype=F64)
+    g = torch.Generator().manual_seed(seed)
+    f, phase = torch.rand(4, generator=g, dtype=F64) * 6 + 1, torch.rand(4, generator=g) * 6
+    amp = torch.rand(4, generator=g, dtype=F64) + 0.3
+    x = (amp[:, None] * torch.sin(2 * math.pi * f[:, None] * t + phase[:, None])).sum(0)
+    return (2.0 * x / x.abs().max())[None]
+
+
+def test_fits_a_saturating_asymmetric_loop_better_than_pi():
+    n_threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        x, x_test = multisine(1500, 0), multisine(1500, 1)
+        y, y_test = asymmetric_plant(x), asymmetric_plant(x_test)
+        widths = play_width_grid(x, 12, power=1.0)
+        gpi = fit_generalized_pi(x, y, widths, units=4)
+    finally:
+        torch.set_num_threads(n_threads)
+    with torch.no_grad():
+        rms = {name: float((m(x_test)[0] - y_test).square().mean().sqrt()) for name, m in
+               (("gpi", gpi), ("pi", fit_prandtl_ishlinskii(x, y, widths)),
+                ("pi>=0", fit_prandtl_ishlinskii(x, y, widths, nonnegative=True)))}
+        h, _ = gpi(x_test)
+    assert rms["gpi"] < 0.02 and rms["gpi"] < rms["pi"] / 20 and rms["gpi"] < rms["pi>=0"] / 20
+    moving = x_test.diff() != 0  # strictly increasing along every branch
+    assert bool((torch.sign(h.diff()) == torch.sign(x_test.diff()))[moving].all())
+
+
+def test_fit_full_batch_trains_an_operator_with_adam():
+    x = multisine(400, 2)
+    y = asymmetric_plant(x)
+    m = GeneralizedPrandtlIshlinskii(play_width_grid(x, 6, power=1.0), linear_weight=0.2)
+    with torch.no_grad():
+        before = float((m(x)[0] - y).square().mean())
+    result = fit_full_batch(m, x, y, adam_epochs=100, lbfgs_epochs=0, lr=0.05)
+    assert result.epochs == 100 and result.mse < before / 50
+    assert all(bool((t > 0).all()) for t in m.parameters_effective()[1:5])  # still positive
+    with pytest.raises(ValueError, match="causal operator with one output.*n_outputs=2"):
+        fit_full_batch(Backlash([0.5, 1.0]).double(), x, y, adam_epochs=1)
+    with pytest.raises(ValueError, match="no trainable parameters"):
+        fit_full_batch(PrandtlIshlinskii([0.5]).double(), x, y, adam_epochs=1)
+
+
+def test_network_streams_equal_to_eager():
+    x = 1.5 * torch.sin(torch.linspace(0, 12, 200, dtype=F64)) + 0.1 * walks()
+    torch.manual_seed(0)
+    net = InverseHysteresisNet([model(), model(centers=[0.0], slopes=[1.5], unit_weights=[1.0])],
+                               hidden=8).double()
+    net.fit_normalization(x, torch.tanh(x))
+    with torch.no_grad():
+        y, _ = net(x)
+        comp = StreamingCompensator(net, limits=(-100.0, 100.0))
+        u = comp(x)
+    torch.testing.assert_close(u, y, rtol=0, atol=1e-10)
+
+
+def test_registered_by_name():
+    assert OPERATORS["generalized_pi"] is GeneralizedPrandtlIshlinskii
+    op = make_operator("generalized_pi", widths=[0.5, 1.0], centers=[0.0])
+    assert op.n_outputs == 1 and op.centers.shape == (1,)
+    net = InverseHysteresisNet("generalized_pi", hidden=3,
+                               operator_kwargs={"widths": [0.5, 1.0]})
+    assert net.hidden.in_features == 2
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"weights": [0.3, -0.1, 0.0, 0.5, 0.2]}, "weights must be >= 0"),
+        ({"weights": [0.3, 0.1]}, r"weights must have shape \(5,\)"),
+        ({"weights": [0.3, math.nan, 0.0, 0.5, 0.2]}, "weights must be finite"),
+        ({"linear_weight": 0.0}, "linear_weight must be > 0"),
+        ({"linear_weight": math.inf}, "linear_weight must be a finite number"),
+        ({"gain": -1.0}, "gain must be > 0"),
+        ({"offset": "1"}, "offset must be a finite number"),
+        ({"slopes": [1.0, 0.0, 1.0]}, "slopes must be > 0"),
+        ({"unit_weights": [0.5, -0.3, 0.9]}, "unit_weights must be >= 0"),
+        ({"unit_weights": [0.5]}, r"unit_weights must have shape \(3,\)"),
+        ({"centers": [[0.0]]}, r"centers must have shape \(K,\)"),
+    ],
+)
+def test_bad_parameters(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        model(**kwargs)
+
+
+def test_bad_fit_input():
+    x = multisine(100, 3)
+    widths = play_width_grid(x, 4)
+    with pytest.raises(ValueError, match="units must be an int >= 0"):
+        fit_generalized_pi(x, x, widths, units=-1)
+    with pytest.raises(ValueError, match="y does not increase with x"):
+        fit_generalized_pi(x, -x, widths)
+    with pytest.raises(ValueError, match="y must have the shape of x"):
+        fit_generalized_pi(x, x[:, :-1], widths)
+    with pytest.raises(TypeError, match="x must have a floating-point dtype"):
+        fit_generalized_pi(x.long(), x, widths)
+    with pytest.raises(ValueError, match="widths must be non-negative"):
+        fit_generalized_pi(x, x, -widths)
+
+
+def test_exported_step_equals_sequence():
+    m = model(torch.float32)
+    x = walks()[:2, :60].float()
+    step = m.streaming_step(torch.float32)
+    state = step.initial_state(x[:, :1])
+    exported = torch.export.export(step, (x[:, :1], state)).module()
+    with torch.no_grad():
+        y, final = m(x)
+        outs = []
+        for xt in x.unbind(1):
+            f, state = exported(xt.unsqueeze(1), state)
+            outs.append(f)
+    torch.testing.assert_close(torch.stack(outs, 1)[..., 0], y, rtol=0, atol=1e-5)
+    torch.testing.assert_close(state[0], final, rtol=0, atol=0)
