@@ -7,6 +7,7 @@ that hold parameters and state are re-exported here.
 from torchhys import export, fitting, operator, optim, plants, signals, streaming
 from torchhys.backlash import Backlash, BacklashCell
 from torchhys.eiho import EIHO, ZhaoTanOperator
+from torchhys.generalized_pi import GeneralizedPrandtlIshlinskii, fit_generalized_pi
 from torchhys.networks import InverseHysteresisNet
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
 from torchhys.prandtl_ishlinskii import PrandtlIshlinskii, PrandtlIshlinskiiInverse
@@ -37,4 +38,6 @@ __all__ = [
     "Preisach",
     "fit_preisach",
     "select_penalty",
+    "GeneralizedPrandtlIshlinskii",
+    "fit_generalized_pi",
 ]
