@@ -30,12 +30,15 @@ written with differentiable tensor operations instead (the recursion through thi
 function, the lag sums as batched products); both give the same gradients to rounding.
 
 Why this path: the recursion is latency-bound (each output needs the previous one) and does
-about ``3n`` flops a sample, so a scalar C loop runs it at a few nanoseconds a sample. The
-chunked scan does ``n^2`` more work a sample (the ``A^(k+1) s_in`` products) and ~``2
-sqrt(2 T)`` tensor operations with their dispatch overhead, and the per-sample Python loop
-pays the dispatch (and an autograd node) for every sample; splitting off the FIR part as a
-``conv1d`` saves nothing, since the all-pole recursion remains. Measured with
-``benchmarks/linear_filter.py`` (see the table there).
+about ``3n`` flops a sample, so a scalar C loop runs it at a few nanoseconds a sample; the
+chunked scan adds ``n^2`` work a sample (the ``A^(k+1) s_in`` products) and ~``2 sqrt(2 T)``
+tensor operations, the per-sample Python loop a dispatch and an autograd node per sample.
+Measured with ``benchmarks/linear_filter.py`` (float64, batch 8, T = 1e5, one torch thread
+on a shared 2-core Xeon), forward + backward: kernel 14 ms (order 2) and 21 ms (order 4),
+chunked scan 53 and 119 ms, per-sample loop 21 s. Of the kernel's time the DF2T loop takes
+4.3 ms and the fused adjoint 7.5-9.7 ms; the all-pole loop alone takes 4.1 ms and a
+``conv1d`` of the FIR part 5.6-11 ms, so splitting off the FIR part costs more than the
+whole DF2T loop.
 
 References:
     A. V. Oppenheim and R. W. Schafer, Discrete-Time Signal Processing, 3rd ed., Pearson
