@@ -4,7 +4,7 @@ The functional core lives in :mod:`torchhys.functional`; the ``nn.Module`` wrapp
 that hold parameters and state are re-exported here.
 """
 
-from torchhys import export, fitting, operator, optim, plants, signals, streaming
+from torchhys import dynamics, export, fitting, operator, optim, plants, signals, streaming
 from torchhys.backlash import Backlash, BacklashCell
 from torchhys.eiho import EIHO, ZhaoTanOperator
 from torchhys.generalized_pi import GeneralizedPrandtlIshlinskii, fit_generalized_pi
@@ -24,6 +24,7 @@ __all__ = [
     "fitting",
     "streaming",
     "operator",
+    "dynamics",
     "HysteresisOperator",
     "OperatorStep",
     "StateBlock",
