@@ -1,6 +1,6 @@
 """Compiled CPU kernels for linear recursions (DF2T filter, state-space recurrence).
 
-Two loops of plain C, compiled once with the system C compiler into the user cache directory
+Loops of plain C, compiled once with the system C compiler into the user cache directory
 (``$TORCHHYS_CACHE``, default ``~/.cache/torchhys``) and loaded with :mod:`ctypes`, in the
 manner of :mod:`torchhys.functional._kernel`: no torch headers, compiled in well under a
 second, ``-ffp-contract=off`` so that each multiply and add rounds as in the eager torch step.
@@ -9,11 +9,14 @@ second, ``-ffp-contract=off`` so that each multiply and add rounds as in the eag
   the operations of :func:`~torchhys.functional.linear_filter.df2t_step` in the same order,
   so that the two agree bit for bit.
 - ``linrec``: ``s[t] = A s[t-1] + w[t]`` for a small dense ``A``.
+- ``df2t_adjoint`` and ``linrec_adjoint``: their backward passes, each one reverse pass that
+  also reduces the gradients of the coefficients (sums over time in float64).
 
 Where no compiler is found, on devices other than the CPU, for dtypes other than
 float32/float64, inside :func:`filter_kernel_enabled(False) <filter_kernel_enabled>` or with
 the environment variable ``TORCHHYS_DISABLE_KERNEL=1``, the callers use the pure-torch
-chunked scan of :mod:`torchhys.functional.linear_filter` instead.
+chunked scan of :mod:`torchhys.functional._linear_scan` and a backward written with tensor
+operations instead.
 """
 
 from __future__ import annotations
