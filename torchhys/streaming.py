@@ -261,25 +261,26 @@ class StreamingCompensator(nn.Module):
         for slot in self.slots:
             features.append(slot(xc, parts, new))
         u = self.head(torch.cat(features, 1))
-        # a finite sample with a finite command; anything else holds the whole state (a
-        # non-finite sample may still give a finite command through a saturating activation)
-        ok = torch.isfinite(xc) & torch.isfinite(u)
+        # anything but a finite sample with a finite command holds the whole state (a
+        # non-finite sample may still give a finite command through a saturating activation);
+        # t - t is 0 exactly where t is finite (NaN for NaN and +/-inf): cheaper than isfinite
+        bad = (xc - xc) + (u - u) != 0
         u = torch.clamp(u, self.low, self.high)
-        out = [torch.where(ok, torch.cat([u] + new[0], 1), F)]
+        out = [torch.where(bad, F, torch.cat([u] + new[0], 1))]
         if self.u0_zero:  # the held column, zero when fresh, is the command to send
             u_out = out[0].select(1, self.HELD_COLUMN)
         else:
             held = F.narrow(1, self.HELD_COLUMN, 1)
-            u_out = torch.where(ok, u, torch.where(started, held, self.u0)).squeeze(1)
+            u_out = torch.where(bad, torch.where(started, held, self.u0), u).squeeze(1)
         if self.has_int:
-            count = I.narrow(1, self.COUNTER_COLUMN, 1) + torch.logical_not(ok)
-            out.append(torch.cat([count, torch.where(ok, torch.cat(new[2], 1),
-                                                     I.narrow(1, 1, I.shape[1] - 1))], 1))
+            count = I.narrow(1, self.COUNTER_COLUMN, 1) + bad
+            out.append(torch.cat([count, torch.where(bad, I.narrow(1, 1, I.shape[1] - 1),
+                                                     torch.cat(new[2], 1))], 1))
         else:  # the counter is all of I
-            out.append(I + torch.logical_not(ok))
-        out.append(started | ok)
+            out.append(I + bad)
+        out.append(started | torch.logical_not(bad))
         if self.has_f64:
-            out.append(torch.where(ok, torch.cat(new[1], 1), G))
+            out.append(torch.where(bad, G, torch.cat(new[1], 1)))
         return u_out, out
 
     @torch.jit.export
