@@ -7,6 +7,7 @@ from torchhys.functional.prandtl_ishlinskii import (
     prandtl_ishlinskii,
     prandtl_ishlinskii_inverse_parameters,
 )
+from torchhys.functional.linear_filter import lfilter
 from torchhys.functional.preisach import (
     demagnetized_state,
     preisach,
@@ -29,6 +30,7 @@ __all__: list[str] = [
     "prandtl_ishlinskii",
     "prandtl_ishlinskii_inverse_parameters",
     "demagnetized_state",
+    "lfilter",
     "preisach",
     "preisach_grid",
     "relay_states",
