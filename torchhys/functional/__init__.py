@@ -3,11 +3,11 @@
 from torchhys.functional._branch import BranchState
 from torchhys.functional.backlash import backlash, play_step
 from torchhys.functional.eiho import NonCausalWarning, eiho, segment_coefficients, zhao_tan
+from torchhys.functional.linear_filter import lfilter
 from torchhys.functional.prandtl_ishlinskii import (
     prandtl_ishlinskii,
     prandtl_ishlinskii_inverse_parameters,
 )
-from torchhys.functional.linear_filter import lfilter
 from torchhys.functional.preisach import (
     demagnetized_state,
     preisach,
