@@ -1,0 +1,309 @@
+"""Model selection on validation data: the candidates of ``torchhys fit``'s ``model.select``.
+
+Each candidate is a dict of model arguments that replace those of the ``model`` section
+(``{"operator": None}``: the plain network; ``{}``: the section as it is). Every candidate
+is trained from the same seed with the same trainer settings and scored by its validation
+MSE at the end of training, either
+
+- on the datamodule's validation split (hold-out: the time-ordered validation part, or the
+  validation recordings with ``split_by="recording"``), which must not overlap the
+  training split; or
+- by blocked cross-validation inside the training part (``select_cv=k``,
+  :class:`BlockFold`): the scored samples of each training row are cut into ``k``
+  contiguous blocks, each held out once, and the score is the MSE over all held-out
+  samples.
+
+The test split is never read. :func:`run_selection` returns one :class:`CandidateScore`
+per candidate, :func:`best` picks the lowest validation MSE (the first on ties), and
+:func:`write_table` writes them as CSV.
+"""
+
+from __future__ import annotations
+
+import csv
+import inspect
+import json
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+from torch import Tensor
+from torch.utils.data import DataLoader
+
+from torchhys._checks import check_int
+
+__all__ = [
+    "BlockFold", "Build", "CandidateScore", "best", "check_candidates", "check_holdout",
+    "config_json", "format_table", "model_arguments", "run_selection", "write_table",
+]
+
+Build = Callable[[int, int | None], tuple[L.LightningModule, L.LightningDataModule, L.Trainer]]
+"""``build(candidate, fold)``: a fresh, seeded ``(module, datamodule, trainer)`` for one run
+of a candidate (``fold`` is None for the hold-out, else the cross-validation fold)."""
+
+
+@dataclass(frozen=True)
+class CandidateScore:
+    """The validation error of one candidate."""
+
+    index: int
+    """Position of the candidate in ``model.select``."""
+    overrides: dict[str, Any]
+    """The candidate's model arguments."""
+    val_mse: float
+    """Validation MSE (cross-validation: over all held-out samples of all folds)."""
+    folds: tuple[float, ...] = ()
+    """Validation MSE of each cross-validation fold (empty for the hold-out)."""
+
+
+def model_arguments(model_class: type) -> list[str]:
+    """The arguments a candidate may set: ``model_class.__init__``'s, except ``net`` (a
+    ready network would ignore the others)."""
+    params = inspect.signature(model_class.__init__).parameters.values()
+    return [p.name for p in params if p.name not in ("self", "net")
+            and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
+
+
+def check_candidates(select: object, valid: Sequence[str], *,
+                     cv: object = None) -> list[dict[str, Any]]:
+    """The candidates as dicts, checked.
+
+    Raises:
+        ValueError: an empty list, a key that is not a model argument (the message names
+            it and lists ``valid``), ``cv`` not an int >= 2.
+        TypeError: ``select`` not a list, a candidate not a dict.
+    """
+    if isinstance(select, (str, bytes, Mapping)) or not isinstance(select, Sequence):
+        raise TypeError(
+            f"model.select must be a list of candidates (dicts of model arguments), got "
+            f"{type(select).__name__} {select!r}"
+        )
+    if not select:
+        raise ValueError(
+            "model.select is empty: list the candidates, each a dict of model arguments "
+            "that replace the model section's (e.g. [{hidden: 4}, {operator: null}]), or "
+            "leave select out"
+        )
+    candidates = []
+    for k, cand in enumerate(select):
+        if not isinstance(cand, Mapping):
+            raise TypeError(
+                f"model.select[{k}] must be a dict of model arguments, got "
+                f"{type(cand).__name__} {cand!r}"
+            )
+        unknown = sorted(set(cand) - set(valid))
+        if unknown:
+            verb = "is not a model argument" if len(unknown) == 1 else "are not model arguments"
+            raise ValueError(
+                f"model.select[{k}]: {', '.join(map(repr, unknown))} {verb}; valid: "
+                f"{list(valid)}"
+            )
+        candidates.append(dict(cand))
+    if cv is not None:
+        check_int(cv, "model.select_cv", minimum=2)
+    return candidates
+
+
+def check_holdout(datamodule: L.LightningDataModule) -> None:
+    """Raise ``ValueError`` unless ``datamodule`` holds validation data apart from its
+    training data (a :class:`~torchhys.training.HysteresisDataModule`'s stage windows; for
+    other datamodules, a non-empty ``val_dataloader()``)."""
+    datamodule.setup("fit")
+    windows = getattr(datamodule, "windows", None)
+    if windows is None:
+        problem = "" if datamodule.val_dataloader() else "is empty"
+    else:
+        val, train = windows.get("val", []), windows.get("train", [])
+        overlap = any(v.index == t.index and max(v.start, t.start) < min(v.end, t.end)
+                      for v in val for t in train)
+        problem = ("is empty" if not val else
+                   "is the training data (split='paper')"
+                   if getattr(datamodule.hparams, "split", None) == "paper" and overlap
+                   else "overlaps the training split" if overlap else "")
+    if problem:
+        source = getattr(datamodule, "source", "the data")
+        raise ValueError(
+            f"model.select scores candidates on held-out validation data, but the "
+            f"validation split {problem} (data: {source}): hold some data out (data.split: "
+            "[train, val, test] fractions, or data.split_by: recording with "
+            "data.val_recordings), or cross-validate inside the training part "
+            "(model.select_cv: k)"
+        )
+
+
+def _one(items: list[Any]) -> Any:
+    """Collate a batch of one ready batch: the batch itself."""
+    return items[0]
+
+
+class BlockFold(L.LightningDataModule):
+    """Fold ``fold`` of ``k`` of blocked cross-validation inside a datamodule's training part.
+
+    The training batch ``(x, y, warmup, mask)`` of a
+    :class:`~torchhys.training.HysteresisDataModule` (one row per recording) keeps its
+    sequences; only the masks change. The scored samples of each row are cut into ``k``
+    contiguous blocks (sizes differ by at most one), and block ``fold`` of every row is held
+    out::
+
+        row      |-- warm-up --|-- block 0 --|-- block 1 --| ... |-- block k-1 --|
+        train    not scored      scored        held out          scored           (fold 1)
+        val      not scored      -             scored            -                (fold 1)
+
+    The held-out block still runs the operator states (a warm-up inside the record), but
+    enters neither the training loss nor the fits of the data-dependent operators and the
+    normalization: :meth:`train_tensors` is each row without its held-out block, the rows
+    end to end (the fits see states carried across the cuts, and the warm-up of the first
+    row only).
+
+    Args:
+        data: the datamodule (set up here).
+        k: number of blocks, >= 2.
+        fold: the held-out block, ``0 <= fold < k``.
+
+    Raises:
+        ValueError: ``k`` or ``fold`` out of range, a training row with fewer than ``2 k``
+            scored samples, or no training data.
+    """
+
+    def __init__(self, data: L.LightningDataModule, k: int, fold: int) -> None:
+        super().__init__()
+        check_int(k, "model.select_cv", minimum=2)
+        if not 0 <= fold < k:
+            raise ValueError(f"fold must be in [0, {k}), got {fold}")
+        data.setup("fit")
+        batches = data.batches("train")
+        if not batches:
+            raise ValueError(f"{getattr(data, 'source', 'the data')}: no training data")
+        x, y, warmup, mask = batches[0]
+        mask = mask.to(torch.bool)
+        held = torch.zeros_like(mask)
+        xs, ys = [], []
+        for r in range(mask.shape[0]):
+            idx = mask[r].nonzero().flatten()
+            if idx.numel() < 2 * k:
+                raise ValueError(
+                    f"model.select_cv={k}: training row {r} of "
+                    f"{getattr(data, 'source', 'the data')} holds {idx.numel()} scored "
+                    f"samples, at least {2 * k} are needed; lower select_cv"
+                )
+            block = torch.tensor_split(idx, k)[fold]
+            a, b, end = int(block[0]), int(block[-1]) + 1, int(idx[-1]) + 1
+            held[r, a:b] = True
+            xs += [x[r, :a], x[r, b:end]]
+            ys += [y[r, :a], y[r, b:end]]
+        self.n_val = int(held.sum())
+        """Number of held-out (validation) samples."""
+        self._train = (x, y, warmup, mask & ~held)
+        self._val = (x, y, warmup, held)
+        self._fit = (torch.cat(xs).unsqueeze(0), torch.cat(ys).unsqueeze(0),
+                     int(warmup.reshape(-1)[0]))
+
+    def train_tensors(self) -> tuple[Tensor, Tensor]:
+        """The fold's training samples ``(x, y)``, (1, time), to fit the normalization and
+        the data-dependent operators on (their first :attr:`train_warmup` left out)."""
+        return self._fit[0], self._fit[1]
+
+    @property
+    def train_warmup(self) -> int:
+        """Leading samples of :meth:`train_tensors` outside the data-dependent fits."""
+        return self._fit[2]
+
+    def train_dataloader(self) -> DataLoader:
+        return DataLoader([self._train], batch_size=1, collate_fn=_one)
+
+    def val_dataloader(self) -> DataLoader:
+        return DataLoader([self._val], batch_size=1, collate_fn=_one)
+
+
+def _validation_mse(module: L.LightningModule, datamodule: L.LightningDataModule,
+                    trainer: L.Trainer) -> float:
+    """Train, then the validation MSE of the trained module."""
+    trainer.fit(module, datamodule=datamodule)
+    results = trainer.validate(module, datamodule=datamodule, verbose=False)
+    if not results or "val_mse" not in results[0]:
+        raise ValueError(
+            "model.select: validation logged no val_mse (is trainer.limit_val_batches 0?)"
+        )
+    return float(results[0]["val_mse"])
+
+
+def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
+                  cv: int | None = None) -> list[CandidateScore]:
+    """Train and score every candidate.
+
+    Args:
+        candidates: the checked candidates (:func:`check_candidates`).
+        build: fresh, seeded ``(module, datamodule, trainer)`` of a candidate's run.
+        cv: ``k`` for blocked cross-validation inside the training part, None for the
+            datamodule's validation split (checked by :func:`check_holdout`).
+
+    Returns:
+        One :class:`CandidateScore` per candidate, in order.
+    """
+    scores = []
+    for i, overrides in enumerate(candidates):
+        if cv is None:
+            module, data, trainer = build(i, None)
+            check_holdout(data)
+            scores.append(CandidateScore(i, overrides, _validation_mse(module, data, trainer)))
+            continue
+        folds, counts = [], []
+        for j in range(cv):
+            module, data, trainer = build(i, j)
+            fold = BlockFold(data, cv, j)
+            folds.append(_validation_mse(module, fold, trainer))
+            counts.append(fold.n_val)
+        pooled = sum(m * n for m, n in zip(folds, counts, strict=True)) / sum(counts)
+        scores.append(CandidateScore(i, overrides, pooled, tuple(folds)))
+    return scores
+
+
+def best(scores: Sequence[CandidateScore]) -> CandidateScore:
+    """The candidate of lowest validation MSE (the first on ties; NaN counts as worst).
+
+    Raises:
+        ValueError: every score is NaN.
+    """
+    finite = [s for s in scores if not math.isnan(s.val_mse)]
+    if not finite:
+        raise ValueError(
+            f"model.select: every candidate's validation MSE is NaN ({len(scores)} "
+            "candidates): training diverged"
+        )
+    return min(finite, key=lambda s: s.val_mse)
+
+
+def config_json(overrides: Mapping[str, Any]) -> str:
+    """A candidate's model arguments as one line of JSON."""
+    return json.dumps(overrides, default=str)
+
+
+def format_table(scores: Sequence[CandidateScore], chosen: CandidateScore) -> str:
+    """The candidates and their validation MSE as a text table (``*`` marks the choice)."""
+    width = max(len(f"{s.val_mse:.6g}") for s in scores)
+    lines = [f"  {'candidate':>9}  {'val_mse':>{width}}  config"]
+    for s in scores:
+        mark = "*" if s.index == chosen.index else " "
+        lines.append(f"{mark} {s.index:>9}  {s.val_mse:>{width}.6g}  {config_json(s.overrides)}")
+    return "\n".join(lines)
+
+
+def write_table(scores: Sequence[CandidateScore], chosen: CandidateScore,
+                path: str | Path) -> Path:
+    """Write ``candidate, val_mse, selected, config`` (and ``fold_1 .. fold_k`` after
+    cross-validation) as CSV, one row per candidate; ``config`` is the candidate's JSON."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    n_folds = max(len(s.folds) for s in scores)
+    with path.open("w", newline="") as fh:
+        out = csv.writer(fh)
+        out.writerow(["candidate", "val_mse", "selected", "config",
+                      *(f"fold_{j + 1}" for j in range(n_folds))])
+        for s in scores:
+            out.writerow([s.index, repr(s.val_mse), int(s.index == chosen.index),
+                          config_json(s.overrides), *(repr(f) for f in s.folds)])
+    return path
