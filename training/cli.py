@@ -7,16 +7,50 @@ overridden on the command line (``--data.path``, ``--trainer.max_epochs``,
 ``--trainer.default_root_dir``, ``--model.optimizer`` ...); ``--ckpt_path`` resumes a fit or
 picks the weights to evaluate. Logs (CSV) and checkpoints go under the run's
 ``trainer.default_root_dir``; ``predict`` also writes ``predictions.csv`` there.
+
+Model selection (``fit`` only): ``model.select`` lists candidates, each a dict of model
+arguments that replace the ``model`` section's (an argument of the command, not of
+:class:`~torchhys.training.InverseHysteresisModule`: it is taken out of the model section
+before the module is built)::
+
+    model:
+      operator: [{name: pi_ls, n_widths: 20}]
+      hidden: 8
+      select:                                   # or --model.select '[{...}, ...]'
+        - {}                                    # the section as it is
+        - {operator: [{name: plays, n: 8}], hidden: 16}
+        - {operator: null}                      # the plain network
+      select_cv: null                           # k: blocked cross-validation instead
+
+Every candidate is trained from the same seed with the same trainer settings (CSV logs
+under ``<default_root_dir>/selection/candidate_<i>``, no checkpoints) and scored by its
+validation MSE at the end of training: on the validation split (which must not overlap the
+training split), or with ``model.select_cv: k`` by blocked cross-validation inside the
+training part (``k`` trainings per candidate; the validation split is then not used for
+the choice; :mod:`torchhys.training.selection`). The test split is not read. The table is
+printed and written to ``<default_root_dir>/selection.csv``; the chosen candidate's
+configuration then replaces the model section and is fitted once more as a plain ``fit``
+would be (same seed: on a deterministic device the same weights as scored; ``config.yaml``
+without ``select``, ``last.ckpt`` as usual), ready for ``torchhys test --ckpt_path`` and
+``torchhys export --ckpt``. ``validate``, ``test`` and ``predict`` ignore ``model.select``
+(with ``--ckpt_path`` the checkpoint's hyperparameters give the model), and so does a
+``fit --ckpt_path`` that resumes.
 """
 
 from __future__ import annotations
 
 import sys
 import warnings
+from pathlib import Path
+from typing import Any
 
+from jsonargparse import ArgumentError, Namespace
+from lightning.pytorch import Trainer, seed_everything
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
+from lightning.pytorch.utilities import rank_zero_only, rank_zero_warn
 
+from torchhys.training import selection
 from torchhys.training.callbacks import PredictionWriter
 from torchhys.training.data import HysteresisDataModule
 from torchhys.training.module import InverseHysteresisModule
@@ -32,8 +66,10 @@ _DESCRIPTION = (
 
 class TorchhysCLI(LightningCLI):
     """LightningCLI with a CSV logger under ``default_root_dir`` (unless one is configured),
-    a :class:`~torchhys.training.callbacks.PredictionWriter` (``--predictions.filename``) and a
-    checkpoint after every training epoch (``--checkpoint.*``; ``last.ckpt`` to resume)."""
+    a :class:`~torchhys.training.callbacks.PredictionWriter` (``--predictions.filename``), a
+    checkpoint after every training epoch (``--checkpoint.*``; ``last.ckpt`` to resume), and
+    model selection by validation in ``fit`` (``--model.select``, ``--model.select_cv``: see
+    the module docstring)."""
 
     def add_arguments_to_parser(self, parser) -> None:  # noqa: ANN001 (jsonargparse parser)
         parser.add_lightning_class_args(PredictionWriter, "predictions")
@@ -41,8 +77,21 @@ class TorchhysCLI(LightningCLI):
         parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
         parser.set_defaults({"checkpoint.save_on_train_epoch_end": True,
                              "checkpoint.save_last": True})
+        # Arguments of the command kept in the model section, removed before the module is
+        # built (see _select).
+        parser.add_argument(
+            "--model.select", type=list[dict[str, Any]] | None, default=None,
+            help="fit: candidate model configurations, each a dict of model arguments that "
+                 "replace the model section's; the one of lowest validation MSE is fitted "
+                 "(table in <default_root_dir>/selection.csv)")
+        parser.add_argument(
+            "--model.select_cv", type=int | None, default=None,
+            help="fit with model.select: score the candidates by blocked cross-validation "
+                 "with this many contiguous blocks of the training part (default: on the "
+                 "validation split)")
 
     def before_instantiate_classes(self) -> None:
+        self._select()
         cfg = self.config[self.subcommand] if self.subcommand else self.config
         trainer = cfg["trainer"]
         if trainer.get("logger") in (None, True):
@@ -51,6 +100,104 @@ class TorchhysCLI(LightningCLI):
                 "class_path": "lightning.pytorch.loggers.CSVLogger",
                 "init_args": {"save_dir": root, "name": "logs"},
             }
+
+    # --- model selection ------------------------------------------------------------------
+    def _select(self) -> None:
+        """Take ``model.select``/``select_cv`` out of the config; in ``fit``, score the
+        candidates and put the chosen one's model section in their place."""
+        sub = self.subcommand
+        cfg = self.config[sub] if sub else self.config
+        select, cv = _pop_select(cfg)
+        if select is None:
+            if cv is not None:
+                raise ValueError(f"model.select_cv={cv!r} needs model.select (the candidates)")
+            return
+        if sub != "fit" or cfg.get("ckpt_path"):
+            if not cfg.get("ckpt_path"):
+                rank_zero_warn(f"model.select is used by fit only; {sub} ignores it and builds "
+                               "the model section as it is (give --ckpt_path)")
+            elif sub == "fit":
+                rank_zero_warn("fit --ckpt_path resumes the checkpoint's model: model.select "
+                               "is ignored")
+            return
+        if cfg["model"].get("net") is not None:
+            raise ValueError("model.select builds each candidate's network from the model "
+                             "arguments, but model.net gives a ready network: remove it")
+        candidates = selection.check_candidates(
+            select, selection.model_arguments(self._model_class), cv=cv)
+        configs = [self._candidate_config(i, c) for i, c in enumerate(candidates)]
+        seed = cfg.get("seed_everything")
+        if isinstance(seed, bool) or seed is None:  # unseeded: still one seed for all
+            seed = seed_everything(workers=True)
+        root = Path(cfg["trainer"].get("default_root_dir") or ".")
+
+        def build(i: int, fold: int | None) -> tuple[Any, Any, Trainer]:
+            return self._instantiate_run(configs[i], seed, root / "selection", i, fold)
+
+        scores = selection.run_selection(candidates, build, cv=cv)
+        chosen = selection.best(scores)
+        _report(scores, chosen, root / "selection.csv", cv)
+        self.config = configs[chosen.index]
+        self.__dict__.pop("config_dump", None)  # the module's hyperparameters: the choice
+        seed_everything(seed, workers=True)  # the fit starts as the candidate's run did
+
+    def _candidate_config(self, index: int, overrides: dict[str, Any]) -> Namespace:
+        """The whole config with the candidate's model arguments, parsed (type-checked)."""
+        parser = self._parser(self.subcommand)
+        exit_on_error, parser.exit_on_error = parser.exit_on_error, False
+        try:
+            cfg = parser.parse_object({"model": overrides}, self.config[self.subcommand])
+        except ArgumentError as err:
+            raise ValueError(f"model.select[{index}] {overrides}: {err}") from None
+        finally:
+            parser.exit_on_error = exit_on_error
+        _pop_select(cfg)
+        full = self.config.clone()
+        full[self.subcommand] = cfg
+        return full
+
+    def _instantiate_run(self, config: Namespace, seed: int, root: Path, index: int,
+                         fold: int | None) -> tuple[Any, Any, Trainer]:
+        """Fresh, seeded model, datamodule and trainer of a candidate's run: the config's
+        trainer settings, without checkpoints, logging (CSV) under ``root``."""
+        run = config.clone()
+        trainer = run[self.subcommand]["trainer"]
+        if trainer.get("logger") is not False:
+            name = f"candidate_{index}" + ("" if fold is None else f"/fold_{fold}")
+            trainer["logger"] = {"class_path": "lightning.pytorch.loggers.CSVLogger",
+                                 "init_args": {"save_dir": str(root), "name": name}}
+        trainer["enable_checkpointing"] = False
+        seed_everything(seed, workers=True)
+        self.config = run  # the instantiator takes the module's hyperparameters from it
+        self.__dict__.pop("config_dump", None)
+        instantiate = getattr(self.parser, "instantiate", None) or self.parser.instantiate_classes
+        self.config_init = instantiate(run)
+        self.model = self._get(self.config_init, "model")
+        self._add_configure_optimizers_method_to_model(self.subcommand)
+        kwargs = dict(self._get(self.config_init, "trainer"))
+        kwargs["callbacks"] = [c for c in kwargs.get("callbacks") or []
+                               if not isinstance(c, ModelCheckpoint)]
+        return self.model, self._get(self.config_init, "data"), self.trainer_class(**kwargs)
+
+
+def _pop_select(cfg: Namespace) -> tuple[Any, Any]:
+    """Remove ``model.select`` and ``model.select_cv`` from a (subcommand's) config."""
+    values = []
+    for key in ("model.select", "model.select_cv"):
+        values.append(cfg.get(key))
+        if key in cfg:
+            del cfg[key]
+    return values[0], values[1]
+
+
+@rank_zero_only
+def _report(scores: list[selection.CandidateScore], chosen: selection.CandidateScore,
+            path: Path, cv: int | None) -> None:
+    selection.write_table(scores, chosen, path)
+    how = "the validation split" if cv is None else f"{cv}-fold blocked cross-validation"
+    print(f"model selection on {how}:\n{selection.format_table(scores, chosen)}\n"
+          f"selected candidate {chosen.index}: {selection.config_json(chosen.overrides)} "
+          f"(val_mse {chosen.val_mse:.6g}); table written to {path}", flush=True)
 
 
 def main(argv: list[str] | None = None) -> None:
