@@ -1,0 +1,273 @@
+"""``torchhys fit`` with ``model.select``: the choice, its table, the fitted checkpoint, the
+test split left alone, blocked cross-validation, errors."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+from _training_helpers import trainer
+
+from torchhys.export import load_torchscript
+from torchhys.training import HysteresisDataModule, InverseHysteresisModule
+from torchhys.training.cli import main
+from torchhys.training.export_cmd import main as export_main
+from torchhys.training.selection import BlockFold, check_candidates, model_arguments
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# The paper's plant (a Prandtl-Ishlinskii model of plays) over two slow periods, 503
+# samples: the least-squares PI operator makes a far better inverse than a plain network
+# (a static map) or a few plays, after 20 CG epochs.
+SELECT = """\
+seed_everything: 0
+trainer:
+  accelerator: cpu
+  devices: 1
+  precision: 64-true
+  max_epochs: 20
+  check_val_every_n_epoch: 1000
+  enable_progress_bar: false
+  enable_model_summary: false
+model:
+  operator: null
+  hidden: 4
+  optimizer: cg
+  optimizer_kwargs:
+    minstep: 0.0
+  select:
+    - {operator: null}
+    - {operator: [{name: pi_ls, n_widths: 8}]}
+    - {operator: [{name: plays, n: 4}]}
+data:
+  simulation: paper
+  dt: 0.05
+  t_end: 25.2
+  split: [0.5, 0.25, 0.25]
+"""
+DATA = {"dt": 0.05, "t_end": 25.2, "split": [0.5, 0.25, 0.25]}
+PI = [{"name": "pi_ls", "n_widths": 8}]
+
+
+def cli(monkeypatch: pytest.MonkeyPatch, *args: str) -> None:
+    monkeypatch.setattr(sys, "argv", ["torchhys"])  # no stray pytest arguments
+    torch.set_num_threads(1)
+    main(list(args))
+
+
+def config(tmp_path: Path, text: str = SELECT, **replace: str) -> Path:
+    for old, new in replace.items():
+        assert old in text
+        text = text.replace(old, new)
+    path = tmp_path / "select.yaml"
+    path.write_text(text)
+    return path
+
+
+def table(root: Path) -> list[dict]:
+    with (root / "selection.csv").open() as fh:
+        return list(csv.DictReader(fh))
+
+
+@pytest.fixture
+def stages(monkeypatch: pytest.MonkeyPatch) -> list[str]:
+    """Every stage whose batches a HysteresisDataModule hands out."""
+    requested: list[str] = []
+    batches = HysteresisDataModule.batches
+
+    def record(self: HysteresisDataModule, stage: str) -> list:
+        requested.append(stage)
+        return batches(self, stage)
+
+    monkeypatch.setattr(HysteresisDataModule, "batches", record)
+    return requested
+
+
+def validation_mse(ckpt: Path, **data) -> float:
+    module = InverseHysteresisModule.load_from_checkpoint(ckpt)
+    (res,) = trainer(limit_val_batches=None).validate(
+        module, HysteresisDataModule(**data), verbose=False)
+    return res["val_mse"]
+
+
+def test_fit_selects_the_best_candidate_and_fits_it(monkeypatch, capsys, tmp_path,
+                                                    stages) -> None:
+    root = tmp_path / "run"
+    cfg = config(tmp_path)
+    cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={root}")
+    rows = table(root)
+    assert [int(r["candidate"]) for r in rows] == [0, 1, 2]
+    assert [json.loads(r["config"]) for r in rows] == [
+        {"operator": None}, {"operator": PI}, {"operator": [{"name": "plays", "n": 4}]}]
+    mse = [float(r["val_mse"]) for r in rows]
+    assert mse[1] < 0.2 * min(mse[0], mse[2])  # clearly better
+    assert [r["selected"] for r in rows] == ["0", "1", "0"]
+    out = capsys.readouterr().out
+    assert f'selected candidate 1: {{"operator": {json.dumps(PI)}}} (val_mse {mse[1]:.6g})' in out
+
+    # the test split was never handed out, and no test metric was logged
+    assert "test" not in stages and {"train", "val"} <= set(stages)
+    for log in root.rglob("metrics.csv"):
+        assert "test_mse" not in log.read_text()
+    assert len(list((root / "selection").rglob("metrics.csv"))) == 3
+
+    # the chosen configuration is the one fitted and saved, from the same seed
+    ckpt = root / "logs/version_0/checkpoints/last.ckpt"
+    saved = torch.load(ckpt, weights_only=True)
+    assert saved["hyper_parameters"]["operator"] == PI
+    assert "select" not in saved["hyper_parameters"]
+    assert "net.operators.0.weights" in saved["state_dict"]
+    saved_cfg = yaml.safe_load((root / "logs/version_0/config.yaml").read_text())
+    assert saved_cfg["model"]["operator"] == PI and "select" not in saved_cfg["model"]
+    assert validation_mse(ckpt, **DATA) == pytest.approx(mse[1], rel=1e-6)
+
+    # held-out data scored afterwards: test (the config's select is ignored: the
+    # checkpoint gives the model), export
+    cli(monkeypatch, "test", "--config", str(cfg), f"--trainer.default_root_dir={root}",
+        f"--ckpt_path={ckpt}")
+    assert "test" in stages
+    out_file = tmp_path / "comp.pt"
+    assert export_main(["--ckpt", str(ckpt), "--format", "torchscript", "--out",
+                        str(out_file), "--limits", "-100", "100"]) == 0
+    x = torch.linspace(-3.0, 3.0, 40, dtype=torch.float64)
+    assert load_torchscript(out_file)(x).isfinite().all()
+
+
+def test_select_on_the_command_line(monkeypatch, tmp_path) -> None:
+    root = tmp_path / "run"
+    base = SELECT[: SELECT.index("  select:")] + SELECT[SELECT.index("data:"):]
+    cfg = config(tmp_path, base)
+    cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={root}",
+        "--model.select", json.dumps([{"hidden": 2}, {"operator": PI, "hidden": 2}]))
+    rows = table(root)
+    assert [json.loads(r["config"]) for r in rows] == [{"hidden": 2},
+                                                      {"operator": PI, "hidden": 2}]
+    assert [r["selected"] for r in rows] == ["0", "1"]
+    hp = torch.load(root / "logs/version_0/checkpoints/last.ckpt",
+                    weights_only=True)["hyper_parameters"]
+    assert hp["operator"] == PI and hp["hidden"] == 2 and hp["optimizer"] == "cg"
+    # resuming fits the checkpoint's model: no second selection
+    before = (root / "selection.csv").stat().st_mtime_ns
+    with pytest.warns(UserWarning, match="resumes the checkpoint's model: model.select is"):
+        cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={root}",
+            "--trainer.max_epochs=21", "--model.select", json.dumps([{"hidden": 3}]),
+            f"--ckpt_path={root / 'logs/version_0/checkpoints/last.ckpt'}")
+    assert (root / "selection.csv").stat().st_mtime_ns == before
+    assert torch.load(root / "logs/version_1/checkpoints/last.ckpt",
+                      weights_only=True)["hyper_parameters"]["hidden"] == 2
+
+
+def test_blocked_cross_validation_inside_the_training_part(monkeypatch, tmp_path,
+                                                           stages) -> None:
+    """``select_cv: 3`` on a record without a validation split: each candidate is trained
+    three times, the table holds each fold and the MSE over all held-out samples."""
+    root = tmp_path / "run"
+    cfg = config(tmp_path, **{"split: [0.5, 0.25, 0.25]": "split: [0.6, 0.0, 0.4]",
+                              "  select:\n": "  select_cv: 3\n  select:\n"})
+    cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={root}")
+    rows = table(root)
+    assert [r["selected"] for r in rows] == ["0", "1", "0"]
+    dm = HysteresisDataModule(**{**DATA, "split": [0.6, 0.0, 0.4]})
+    counts = [BlockFold(dm, 3, j).n_val for j in range(3)]
+    for r in rows:
+        folds = [float(r[f"fold_{j}"]) for j in (1, 2, 3)]
+        pooled = sum(f * n for f, n in zip(folds, counts, strict=True)) / sum(counts)
+        assert float(r["val_mse"]) == pytest.approx(pooled, rel=1e-12)
+    assert len(list((root / "selection").rglob("metrics.csv"))) == 9
+    assert "test" not in stages
+
+
+@pytest.mark.parametrize("warmup", [0, 7])
+def test_block_folds_partition_the_scored_samples(warmup: int) -> None:
+    dm = HysteresisDataModule(t_end=6.3, split=[0.8, 0.2, 0.0], warmup=warmup)
+    x, y, first, mask = dm.batches("train")[0]
+    held = []
+    for j in range(4):
+        fold = BlockFold(dm, 4, j)
+        (tx, ty, tw, tmask), = list(fold.train_dataloader())
+        (vx, _, _, vmask), = list(fold.val_dataloader())
+        assert torch.equal(tx, x) and torch.equal(vx, x) and torch.equal(tw, first)
+        assert not (tmask & vmask).any() and torch.equal(tmask | vmask, mask)
+        idx = vmask[0].nonzero().flatten()
+        assert torch.equal(idx, torch.arange(int(idx[0]), int(idx[-1]) + 1))  # contiguous
+        assert fold.n_val == idx.numel()
+        # the fits see neither the held-out targets nor anything after the training part
+        fx, fy = fold.train_tensors()
+        assert fx.shape == (1, x.shape[-1] - idx.numel()) and fold.train_warmup == warmup
+        keep = torch.ones(x.shape[-1], dtype=torch.bool)
+        keep[idx] = False
+        assert torch.equal(fy[0], y[0, keep])
+        held.append(vmask)
+    assert torch.equal(torch.stack(held).sum(0), mask.long())
+    with pytest.raises(ValueError, match=r"holds \d+ scored samples, at least 600"):
+        BlockFold(dm, 300, 0)
+
+
+def test_block_folds_of_several_recordings() -> None:
+    """The ferrite loops, one row each: every row loses its own block."""
+    dm = HysteresisDataModule(path=str(ROOT / "examples/data/mnzn_ferrite_bh_loops.csv"),
+                              input_column="B_T", target_column="H_Apm", run_column="loop",
+                              split_by="recording")
+    _, _, _, mask = dm.batches("train")[0]
+    fold = BlockFold(dm, 3, 2)
+    (_, _, _, vmask), = list(fold.val_dataloader())
+    assert mask.shape[0] == 4 and (vmask.sum(1) == 43).all()
+    assert fold.train_tensors()[0].shape == (1, 4 * (129 - 43))
+
+
+# --- errors ---------------------------------------------------------------------------
+@pytest.mark.parametrize(("change", "error", "match"), [
+    ({"  select:\n    - {operator: null}\n    - {operator: [{name: pi_ls, n_widths: 8}]}\n"
+      "    - {operator: [{name: plays, n: 4}]}\n": "  select: []\n"},
+     ValueError, r"model.select is empty"),
+    ({"- {operator: null}": "- {hiden: 3}"},
+     ValueError, r"model.select\[0\]: 'hiden' is not a model argument; valid: \['operator', "
+                 r"'hidden'"),
+    ({"- {operator: null}": "- {hidden: many}"},
+     ValueError, r"model.select\[0\] .*model.hidden"),
+    ({"split: [0.5, 0.25, 0.25]": "split: [0.8, 0.0, 0.2]"},
+     ValueError, r"validation split is empty \(data: paper\): .*model.select_cv"),
+    ({"split: [0.5, 0.25, 0.25]": "split: paper"},
+     ValueError, r"validation split is the training data \(split='paper'\)"),
+    ({"  select:\n": "  select_cv: 1\n  select:\n"},
+     ValueError, r"model.select_cv must be an int >= 2, got 1"),
+    ({"  select:\n    - {operator: null}\n    - {operator: [{name: pi_ls, n_widths: 8}]}\n"
+      "    - {operator: [{name: plays, n: 4}]}\n": "  select_cv: 3\n"},
+     ValueError, r"model.select_cv=3 needs model.select"),
+])
+def test_errors(monkeypatch, tmp_path, stages, change, error, match) -> None:
+    cfg = config(tmp_path, **change)
+    with pytest.raises(error, match=match):
+        cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={tmp_path}")
+    assert "train" not in stages  # raised before any training
+    assert not (tmp_path / "selection.csv").exists()
+
+
+def test_check_candidates() -> None:
+    valid = model_arguments(InverseHysteresisModule)
+    assert "net" not in valid and {"operator", "hidden", "optimizer_kwargs"} <= set(valid)
+    assert check_candidates([{}, {"hidden": 2}], valid) == [{}, {"hidden": 2}]
+    with pytest.raises(TypeError, match=r"model.select\[1\] must be a dict"):
+        check_candidates([{}, 3], valid)
+    with pytest.raises(TypeError, match="model.select must be a list"):
+        check_candidates({"hidden": 2}, valid)
+    with pytest.raises(ValueError, match=r"'a', 'b' are not model arguments"):
+        check_candidates([{"b": 1, "a": 2}], valid)
+
+
+def test_example_config_runs(monkeypatch, capsys, tmp_path) -> None:
+    monkeypatch.chdir(ROOT)  # the config names the example file relative to the repository
+    root = tmp_path / "example"
+    cli(monkeypatch, "fit", "--config", "configs/select_example.yaml",
+        f"--trainer.default_root_dir={root}", "--trainer.max_epochs=2",
+        "--trainer.enable_progress_bar=false")
+    rows = table(root)
+    assert len(rows) == 3 and all(math.isfinite(float(r["val_mse"])) for r in rows)
+    assert "selected candidate" in capsys.readouterr().out
+    assert (root / "logs/version_0/checkpoints/last.ckpt").is_file()
