@@ -6,6 +6,7 @@ that hold parameters and state are re-exported here.
 
 from torchhys import dynamics, export, fitting, operator, optim, plants, signals, streaming
 from torchhys.backlash import Backlash, BacklashCell
+from torchhys.cascade import Cascade
 from torchhys.eiho import EIHO, ZhaoTanOperator
 from torchhys.generalized_pi import GeneralizedPrandtlIshlinskii, fit_generalized_pi
 from torchhys.networks import InverseHysteresisNet
@@ -30,6 +31,7 @@ __all__ = [
     "StateBlock",
     "register_operator",
     "Backlash",
+    "Cascade",
     "EIHO",
     "InverseHysteresisNet",
     "ZhaoTanOperator",
