@@ -1,0 +1,646 @@
+"""Held-out accuracy of hysteresis models on measured recordings (see docs/real-data.md).
+
+For every measured data set (``examples/data/real/``, and the MnZn ferrite loops of
+``../shared/data/``), with the protocol its README suggests, each model is fitted on the
+training part, its settings (size, penalty, iterations, direction) are chosen on a
+time-ordered hold-out inside the training part (the last quarter of the scored samples of
+every training row), it is refitted on the whole training part with those settings, and it
+is scored once on the held-out recordings. Reported: RMSE in the target's units and
+``ratio`` = RMSE / min(line RMSE, poly RMSE) (below 1: better than both memoryless
+baselines); ``choice`` says what the hold-out selected and the hold-out RMSE.
+
+    python benchmarks/real_data.py [--data NAME ...] [--out table.csv] [--quick]
+        [--ferrite PATH] [--config configs/measured.yaml]
+
+Models (all causal; a row starts from a zero state, its first ``warmup`` samples only run
+the states and are neither fitted nor scored):
+
+- ``line``: least-squares line of the target in the input; ``poly``: polynomial, degree
+  1..9 chosen on the hold-out (both memoryless);
+- ``pi_constrained``: ``fit_prandtl_ishlinskii(nonnegative=True)`` on ``play_width_grid``,
+  either of the target from the input ("direct") or of the input from the target, then its
+  exact inverse ("inverse of forward"): a non-negative PI model only draws loops that run
+  anticlockwise in its (input, output) plane, its inverse clockwise ones. Direction, number
+  of widths, grid power and ridge chosen on the hold-out;
+- ``pi_ls``: the same direct fit, unconstrained (the operator of ``configs/measured.yaml``);
+- ``generalized_pi``: ``fit_generalized_pi`` in either direction (the inverse: the exact
+  PI inverse after the output function's inverse, found by bisection), on the widths and
+  ridge chosen for the non-negative PI fit of that direction, of the target (or the input)
+  times the sign that makes it rise; direction and number of tanh units chosen on the
+  hold-out;
+- ``preisach``: ``fit_preisach`` on a grid over the training input range; levels,
+  smoothness penalty and the sign of the target (a non-negative density draws loops of one
+  orientation; its free linear term lets the negated fit draw the other) chosen on the
+  hold-out;
+- ``eiho_net``: ``InverseHysteresisNet([EIHO(a=1, rule="recent", output="branch"),
+  Backlash(16 widths 0.4 span k/16)], hidden=16)``, trained full-batch with L-BFGS; the number
+  of L-BFGS steps and the EIHO's reversal threshold (0 or "auto") chosen on the hold-out;
+- ``default``: the model section of ``configs/measured.yaml`` (or ``--config``) built through
+  ``build_operators`` + ``fit_data_dependent`` and trained as the config says (its optimizer,
+  one full-batch step per epoch, ``trainer.max_epochs``, the last epoch kept), capped in
+  time; it selects nothing (its hold-out RMSE, from a second fit on the part before the
+  hold-out, is reported only);
+- ``selected``: the row above with the least hold-out RMSE (a model-family choice made on
+  the training part only).
+
+Every model but ``line``, ``poly`` and ``default`` sees the input divided by its training
+standard deviation and the standardized target (training statistics), so that grids and
+penalties mean the same on every data set; ``default`` sees physical units, as
+``torchhys fit`` does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import inspect
+import math
+import time
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+import yaml
+from torch import Tensor
+
+from torchhys import EIHO, Backlash, InverseHysteresisNet, fit_preisach, select_penalty
+from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
+from torchhys.training.init import initialize
+from torchhys.training.module import OPTIMIZERS, InverseHysteresisModule
+from torchhys.training.operators import build_operators, fit_data_dependent
+
+try:  # the generalized PI model is optional (a newer module)
+    from torchhys.generalized_pi import fit_generalized_pi, monotone_output
+except ImportError:  # pragma: no cover
+    fit_generalized_pi = None
+
+ROOT = Path(__file__).resolve().parents[1]
+REAL = ROOT / "examples" / "data" / "real"
+FERRITE = ROOT.parent / "shared" / "data" / "mnzn_ferrite_bh_loops.csv"
+CONFIG = ROOT / "configs" / "measured.yaml"
+COLUMNS = ("dataset", "model", "rmse", "ratio", "n_train", "n_test", "choice")
+F64 = torch.float64
+VALIDATION = 0.25
+RIDGES = (0.0, 1e-8, 1e-6, 1e-4, 1e-2, 1e-1)
+SMOOTHNESS = (0.0, 1e-8, 1e-6, 1e-4, 1e-2)
+
+
+class Split(NamedTuple):
+    """A protocol: training rows and held-out recordings, float64, physical units."""
+
+    x: Tensor
+    """Training input, (rows, time)."""
+    y: Tensor
+    """Training target, (rows, time)."""
+    warmup: int
+    """Leading samples of each training row that only run the states."""
+    test: list[tuple[Tensor, Tensor, int]]
+    """Held-out recordings ``(x, y, warmup)``, x and y (time,), each from a zero state."""
+
+
+class Budget(NamedTuple):
+    """Candidate grids and training budgets."""
+
+    pi_n: tuple[int, ...]
+    powers: tuple[float, ...]
+    preisach_n: tuple[int, ...]
+    gpi_units: tuple[int, ...]
+    gpi_epochs: int
+    net_steps: int
+    """L-BFGS steps (of up to 20 iterations) of the EIHO network."""
+    default_epochs: int | None
+    """Cap on the config's ``max_epochs`` (None: as configured)."""
+    seconds: float
+    """Time cap of one training of the config's model."""
+
+
+FULL = Budget((5, 10, 20, 40), (1.0, 2.0, 3.0), (10, 20, 30), (2, 4, 8), 200, 40, None, 60.0)
+QUICK = Budget((5, 10), (2.0,), (8,), (2,), 20, 4, 20, 5.0)
+
+
+# --- data ---------------------------------------------------------------------------------
+def read_csv(path: Path) -> dict[str, np.ndarray]:
+    """Columns of a CSV file (lines starting with '#' skipped), numeric where possible."""
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(line for line in f if not line.startswith("#")))
+    out = {}
+    for k in rows[0]:
+        col = [r[k] for r in rows]
+        try:
+            out[k] = np.array(col, dtype=float)
+        except ValueError:
+            out[k] = np.array(col)
+    return out
+
+
+def _t(a: np.ndarray) -> Tensor:
+    return torch.as_tensor(np.asarray(a, dtype=float), dtype=F64)
+
+
+def _recordings(d: dict, key: str, x: str, y: np.ndarray | str) -> dict[int, tuple]:
+    yv = d[y] if isinstance(y, str) else y
+    return {int(r): (d[x][d[key] == r], yv[d[key] == r]) for r in np.unique(d[key])}
+
+
+def loops(recs: dict, train: list[int], test: list[int], periods: int = 3) -> Split:
+    """Periodic closed loops run ``periods`` times; only the last period is fitted/scored."""
+    P = len(recs[train[0]][0])
+    tile = [(_t(np.tile(recs[i][0], periods)), _t(np.tile(recs[i][1], periods))) for i in train]
+    x, y = torch.stack([a for a, _ in tile]), torch.stack([b for _, b in tile])
+    held = [(_t(np.tile(recs[i][0], periods)), _t(np.tile(recs[i][1], periods)),
+             (periods - 1) * len(recs[i][0])) for i in test]
+    return Split(x, y, (periods - 1) * P, held)
+
+
+def ferrite(path: Path, train: list[int], test: list[int]) -> Split:
+    d = read_csv(path)
+    return loops(_recordings(d, "loop", "B_T", "H_Apm"), train, test)
+
+
+def jamodel(train: list[int], test: list[int]) -> Split:
+    d = read_csv(REAL / "jamodel_bh_loops.csv")
+    return loops(_recordings(d, "recording", "B_T", "H_Apm"), train, test)
+
+
+def mr_damper(voltage: float) -> Split:
+    """Position -> force at one coil voltage: even recordings of the group train, odd test;
+    scored from t = 5 s."""
+    d = read_csv(REAL / "mr_damper_labcontrol.csv")
+    recs = _recordings(d, "recording", "position_mm", "force_N")
+    ids = sorted(r for r in recs if abs(d["voltage_V"][d["recording"] == r][0] - voltage) < 1e-3)
+    w = int(np.searchsorted(d["t_s"][d["recording"] == ids[0]], 5.0 - 1e-9))
+    x = torch.stack([_t(recs[i][0]) for i in ids[0::2]])
+    y = torch.stack([_t(recs[i][1]) for i in ids[0::2]])
+    return Split(x, y, w, [(_t(recs[i][0]), _t(recs[i][1]), w) for i in ids[1::2]])
+
+
+def friction_damper() -> Split:
+    """Displacement -> force: the sine tests 0-9 one after the other (one training row, as the
+    device ran them), the earthquake histories 10-13 held out, all from rest."""
+    d = read_csv(REAL / "friction_damper_backlash_brfd.csv")
+    recs = _recordings(d, "recording", "displacement_in", "force_kip")
+    x = _t(np.concatenate([recs[i][0] for i in range(10)]))[None]
+    y = _t(np.concatenate([recs[i][1] for i in range(10)]))[None]
+    return Split(x, y, 0, [(_t(recs[i][0]), _t(recs[i][1]), 0) for i in range(10, 14)])
+
+
+def pneumatic() -> Split:
+    """Position -> seal friction (pressure x piston area - rod force): 1 and 7 bar train (7 bar
+    cut to the length of the 1 bar record, one row each), 3 and 5 bar held out, from rest."""
+    d = read_csv(REAL / "pneumatic_cylinder_oring_friction.csv")
+    friction = d["pressure_bar"] * 1e5 * math.pi * 0.0125**2 - d["force_N"]
+    recs = _recordings(d, "recording", "position_mm", friction)
+    T = min(len(recs[0][0]), len(recs[3][0]))
+    x = torch.stack([_t(recs[i][0][:T]) for i in (0, 3)])
+    y = torch.stack([_t(recs[i][1][:T]) for i in (0, 3)])
+    return Split(x, y, 0, [(_t(recs[i][0]), _t(recs[i][1]), 0) for i in (1, 2)])
+
+
+DATASETS: dict[str, tuple[str, Callable[[Path], Split]]] = {
+    "mnzn_ferrite": ("B -> H, loops 0+3 / 1+2", lambda p: ferrite(p, [0, 3], [1, 2])),
+    "mnzn_ferrite_largest": ("B -> H, loop 3 / 0+1+2", lambda p: ferrite(p, [3], [0, 1, 2])),
+    "m130_steel": ("B -> H, loops 0+2 / 1", lambda p: jamodel([0, 2], [1])),
+    "m130_steel_largest": ("B -> H, loop 2 / 0+1", lambda p: jamodel([2], [0, 1])),
+    "mnzn_hp_ferrite": ("B -> H, loops 4+7 / 5+6", lambda p: jamodel([4, 7], [5, 6])),
+    "mnzn_hp_ferrite_largest": ("B -> H, loop 7 / 4+5+6", lambda p: jamodel([7], [4, 5, 6])),
+    "mr_damper_0V": ("position -> force, even / odd", lambda p: mr_damper(0.0)),
+    "mr_damper_0.87V": ("position -> force, even / odd", lambda p: mr_damper(0.8712)),
+    "mr_damper_1.98V": ("position -> force, even / odd", lambda p: mr_damper(1.98)),
+    "mr_damper_3.21V": ("position -> force, even / odd", lambda p: mr_damper(3.212)),
+    "friction_damper": ("displacement -> force, sines / earthquakes",
+                        lambda p: friction_damper()),
+    "pneumatic_oring": ("position -> friction, 1+7 / 3+5 bar", lambda p: pneumatic()),
+}
+"""Data sets by name: (protocol, builder of the split from the ferrite file's path)."""
+
+
+# --- scoring ------------------------------------------------------------------------------
+Predict = Callable[[Tensor], Tensor]
+"""Model output for an input (rows, time), physical units."""
+
+
+class Fitted(NamedTuple):
+    predict: Predict
+    choice: str
+    holdout: float
+    """RMSE (target units) on the hold-out of the chosen settings, fitted before it."""
+
+
+def holdout(T: int, warmup: int) -> int:
+    """First hold-out sample of a training row: the last quarter of its scored samples
+    (cut as :func:`torchhys.fitting.select_pi_ridge` cuts it)."""
+    return T - max(1, round(VALIDATION * (T - warmup)))
+
+
+def test_rmse(predict: Predict, split: Split) -> tuple[float, int]:
+    """RMSE over the scored samples of all held-out recordings, and their number."""
+    errors = []
+    with torch.no_grad():
+        for x, y, w in split.test:
+            errors.append((predict(x[None])[0] - y)[w:])
+    e = torch.cat(errors)
+    return float(e.square().mean().sqrt()), e.numel()
+
+
+def _rmse(a: Tensor, b: Tensor) -> float:
+    return float((a - b).square().mean().sqrt())
+
+
+def _flat(v: Tensor, a: int, b: int | None = None) -> np.ndarray:
+    return v[:, a:b].reshape(-1).numpy()
+
+
+def line(split: Split, budget: Budget) -> Fitted:
+    w, c = split.warmup, holdout(split.x.shape[1], split.warmup)
+    k, b = np.polyfit(_flat(split.x, w, c), _flat(split.y, w, c), 1)
+    score = float(np.sqrt(np.mean((k * _flat(split.x, c) + b - _flat(split.y, c)) ** 2)))
+    k, b = np.polyfit(_flat(split.x, w), _flat(split.y, w), 1)
+    return Fitted(lambda v: k * v + b, f"slope={k:.4g}, offset={b:.4g}", score)
+
+
+def poly(split: Split, budget: Budget) -> Fitted:
+    w, c = split.warmup, holdout(split.x.shape[1], split.warmup)
+    fx, fy, vx, vy = _flat(split.x, w, c), _flat(split.y, w, c), _flat(split.x, c), _flat(
+        split.y, c)
+    scores = {deg: float(np.sqrt(np.mean((np.polynomial.Polynomial.fit(fx, fy, deg)(vx) - vy)
+                                         ** 2))) for deg in range(1, 10)}
+    deg = min(scores, key=scores.get)
+    p = np.polynomial.Polynomial.fit(_flat(split.x, w), _flat(split.y, w), deg)
+    return Fitted(lambda v: torch.as_tensor(p(v.numpy()), dtype=F64), f"degree={deg}",
+                  scores[deg])
+
+
+class Scaled(NamedTuple):
+    """Training rows, the input divided by its std, the target standardized."""
+
+    x: Tensor
+    y: Tensor
+    warmup: int
+    sx: float
+    my: float
+    sy: float
+
+    @property
+    def cut(self) -> int:
+        return holdout(self.x.shape[1], self.warmup)
+
+    @property
+    def validation(self) -> float:
+        """The hold-out share as ``select_pi_ridge`` / ``select_penalty`` take it."""
+        return (self.x.shape[1] - self.cut) / self.x.shape[1]
+
+    def fitted(self, f: Callable[[Tensor], Tensor], choice: str, score: float) -> Fitted:
+        """Physical-unit model and hold-out RMSE from a model of the scaled data."""
+        return Fitted(lambda v: f(v / self.sx) * self.sy + self.my, choice, score * self.sy)
+
+    def score(self, f: Callable[[Tensor], Tensor]) -> float:
+        with torch.no_grad():
+            return _rmse(f(self.x)[:, self.cut:], self.y[:, self.cut:])
+
+
+def scaled(split: Split) -> Scaled:
+    x, y = split.x[:, split.warmup:], split.y[:, split.warmup:]
+    sx, my, sy = float(x.std()), float(y.mean()), float(y.std())
+    return Scaled(split.x / sx, (split.y - my) / sy, split.warmup, sx, my, sy)
+
+
+# --- Prandtl-Ishlinskii and Preisach ------------------------------------------------------
+Choice = tuple[float, int, float, float]
+"""(hold-out RMSE, number of widths, grid power, ridge); n = 0: no candidate."""
+
+
+def _pi_choice(d: Scaled, budget: Budget, nonnegative: bool) -> Choice:
+    """The best PI model of the target from the input (ridge by ``select_pi_ridge``)."""
+    best = (math.inf, 0, 0.0, 0.0)
+    for n in budget.pi_n:
+        for power in budget.powers:
+            widths = play_width_grid(d.x, n, power=power)
+            ridge, scores = select_pi_ridge(d.x, d.y, widths, RIDGES, nonnegative=nonnegative,
+                                            validation=d.validation, warmup=d.warmup)
+            best = min(best, (scores[ridge], n, power, ridge))
+    return best
+
+
+def _inverse_pi(d: Scaled, n: int, power: float, ridge: float, end: int) -> Callable:
+    """The exact inverse of the non-negative PI model of the input from the target, fitted
+    on samples [warmup, end) of every row (widths from the target's span there)."""
+    widths = play_width_grid(d.y[:, :end], n, power=power)
+    forward = fit_prandtl_ishlinskii(d.y[:, :end], d.x[:, :end], widths, ridge=ridge,
+                                     warmup=d.warmup, nonnegative=True)
+    inverse = forward.inverse()
+    return lambda v: inverse(v)[0]
+
+
+def _inverse_pi_choice(d: Scaled, budget: Budget) -> Choice:
+    best = (math.inf, 0, 0.0, 0.0)
+    for n in budget.pi_n:
+        for power in budget.powers:
+            for ridge in RIDGES:
+                try:
+                    f = _inverse_pi(d, n, power, ridge, d.cut)
+                except ValueError:  # no strictly increasing loading curve: no inverse
+                    continue
+                best = min(best, (d.score(f), n, power, ridge))
+    return best
+
+
+def pi_constrained(split: Split, budget: Budget) -> Fitted:
+    d = scaled(split)
+    direct, inverse = _pi_choice(d, budget, nonnegative=True), _inverse_pi_choice(d, budget)
+    score, n, power, ridge = min(direct, inverse)
+    text = f"n={n}, power={power:g}, ridge={ridge:g}"
+    if inverse < direct:
+        f = _inverse_pi(d, n, power, ridge, d.x.shape[1])
+        return d.fitted(f, f"inverse of forward, {text}", score)
+    model = fit_prandtl_ishlinskii(d.x, d.y, play_width_grid(d.x, n, power=power), ridge=ridge,
+                                   warmup=d.warmup, nonnegative=True)
+    return d.fitted(lambda v: model(v)[0], f"direct, {text}", score)
+
+
+def pi_ls(split: Split, budget: Budget) -> Fitted:
+    d = scaled(split)
+    score, n, power, ridge = _pi_choice(d, budget, nonnegative=False)
+    model = fit_prandtl_ishlinskii(d.x, d.y, play_width_grid(d.x, n, power=power), ridge=ridge,
+                                   warmup=d.warmup)
+    return d.fitted(lambda v: model(v)[0], f"n={n}, power={power:g}, ridge={ridge:g}", score)
+
+
+def _g_inverse(model, v: Tensor, steps: int = 60) -> Tensor:
+    """Inverse of the increasing output function g of a generalized PI model, by bisection
+    (the library has no inverse of the generalized model)."""
+    _, _, _, a, c, b, s, off = (t.detach() for t in model.parameters_effective())
+
+    def g(u: Tensor) -> Tensor:
+        return monotone_output(u, a, c, b, s, off)
+
+    lo, hi = torch.full_like(v, -1.0), torch.full_like(v, 1.0)
+    while bool((g(lo) > v).any()):
+        lo = torch.where(g(lo) > v, 2 * lo, lo)
+    while bool((g(hi) < v).any()):
+        hi = torch.where(g(hi) < v, 2 * hi, hi)
+    for _ in range(steps):
+        mid = 0.5 * (lo + hi)
+        up = g(mid) < v
+        lo, hi = torch.where(up, mid, lo), torch.where(up, hi, mid)
+    return 0.5 * (lo + hi)
+
+
+def _gpi(d: Scaled, inverse: bool, n: int, power: float, ridge: float, units: int, end: int,
+         epochs: int) -> Callable[[Tensor], Tensor]:
+    """Generalized PI model of the target from the input, fitted on samples [0, end) of every
+    row, or the inverse of one of the input from the target; the fitted output is multiplied
+    by the sign that makes it rise with the model's input on the training part."""
+    xs, ys = d.x[:, d.warmup:end], d.y[:, d.warmup:end]
+    sign = 1.0 if float(((xs - xs.mean()) * ys).sum()) >= 0 else -1.0
+    u, t = (d.y, sign * d.x) if inverse else (d.x, sign * d.y)
+    widths = play_width_grid(u[:, :end], n, power=power)
+    model = fit_generalized_pi(u[:, :end], t[:, :end], widths, units=units, ridge=ridge,
+                               lbfgs_epochs=epochs)
+    if not inverse:
+        return lambda v: sign * model(v)[0]
+    pi_inverse = model.prandtl_ishlinskii().inverse()
+    return lambda v: pi_inverse(_g_inverse(model, sign * v))[0]
+
+
+def generalized_pi(split: Split, budget: Budget) -> Fitted:
+    d = scaled(split)
+    best = (math.inf, False, 0, 0.0, 0.0, 0)
+    for inverse, (_, n, power, ridge) in ((False, _pi_choice(d, budget, nonnegative=True)),
+                                          (True, _inverse_pi_choice(d, budget))):
+        for units in budget.gpi_units if n else ():
+            try:
+                score = d.score(_gpi(d, inverse, n, power, ridge, units, d.cut,
+                                     budget.gpi_epochs))
+            except (FloatingPointError, ValueError):  # diverged, or no inverse
+                continue
+            best = min(best, (score, inverse, n, power, ridge, units))
+    score, inverse, n, power, ridge, units = best
+    f = _gpi(d, inverse, n, power, ridge, units, d.x.shape[1], budget.gpi_epochs)
+    how = "inverse of forward" if inverse else "direct"
+    return d.fitted(f, f"{how}, n={n}, power={power:g}, ridge={ridge:g}, units={units}, "
+                       f"lbfgs={budget.gpi_epochs}", score)
+
+
+def preisach(split: Split, budget: Budget) -> Fitted:
+    d = scaled(split)
+    best = (math.inf, 0, 0.0, 0.0)
+    for n in budget.preisach_n:
+        for sign in (1.0, -1.0):
+            p, scores = select_penalty(d.x, sign * d.y, list(SMOOTHNESS), kind="smoothness",
+                                       validation=d.validation, n=n, warmup=d.warmup)
+            best = min(best, (scores[p], n, sign, p))
+    score, n, sign, p = best
+    model = fit_preisach(d.x, sign * d.y, n=n, smoothness=p, warmup=d.warmup)
+    return d.fitted(lambda v: sign * model(v)[0], f"n={n}, smoothness={p:g}, sign={sign:+.0f}",
+                    score)
+
+
+# --- networks -----------------------------------------------------------------------------
+def _eiho_net(x: Tensor, threshold: float | str) -> InverseHysteresisNet:
+    torch.manual_seed(0)
+    widths = 0.4 * play_width_grid(x, 16, power=1.0)
+    ops = [EIHO(a=1.0, rule="recent", output="branch", threshold=threshold), Backlash(widths)]
+    return InverseHysteresisNet(ops, 16).double()
+
+
+def _train_head(net: InverseHysteresisNet, x: Tensor, y: Tensor, warmup: int, end: int,
+                steps: int) -> list[float]:
+    """Fit the normalization, then L-BFGS-train the head on samples [warmup, end) of every
+    row (steps of up to 20 iterations); the RMSE on [end, T) after each step."""
+    net.fit_normalization(x[:, :end], y[:, :end])
+    with torch.no_grad():
+        feats, _ = net.features(x)
+    params = [p for p in net.parameters() if p.requires_grad]
+    opt = torch.optim.LBFGS(params, lr=1.0, max_iter=20, history_size=50,
+                            line_search_fn="strong_wolfe", tolerance_grad=1e-12,
+                            tolerance_change=1e-15)
+    ft, yt = feats[:, warmup:end], y[:, warmup:end]
+
+    def closure() -> Tensor:
+        opt.zero_grad()
+        loss = (net.head(ft) - yt).square().mean()
+        loss.backward()
+        return loss
+
+    curve = []
+    for _ in range(steps):
+        opt.step(closure)
+        if end < x.shape[1]:
+            with torch.no_grad():
+                curve.append(_rmse(net.head(feats[:, end:]), y[:, end:]))
+    return curve
+
+
+def eiho_net(split: Split, budget: Budget) -> Fitted:
+    d = scaled(split)
+    best = (math.inf, 0, 0.0)
+    for threshold in (0.0, "auto"):
+        curve = _train_head(_eiho_net(d.x, threshold), d.x, d.y, d.warmup, d.cut,
+                            budget.net_steps)
+        k = int(np.argmin(curve))
+        best = min(best, (curve[k], k + 1, threshold), key=lambda b: b[0])
+    score, steps, threshold = best
+    net = _eiho_net(d.x, threshold)
+    _train_head(net, d.x, d.y, d.warmup, d.x.shape[1], steps)
+    return d.fitted(lambda v: net(v)[0], f"threshold={threshold}, lbfgs_steps={steps}x20",
+                    score)
+
+
+def _config_model(path: Path) -> tuple[dict, dict, torch.dtype, int]:
+    """The model section (with the module's defaults), trainer section, dtype and seed."""
+    with open(path) as f:
+        cfg = yaml.safe_load(f)
+    defaults = {k: p.default for k, p in
+                inspect.signature(InverseHysteresisModule.__init__).parameters.items()
+                if p.default is not inspect.Parameter.empty}
+    trainer = cfg.get("trainer") or {}
+    dtype = F64 if str(trainer.get("precision", "32")).startswith("64") else torch.float32
+    return {**defaults, **cfg["model"]}, trainer, dtype, int(cfg.get("seed_everything", 0))
+
+
+def _train_config(path: Path, x: Tensor, y: Tensor, w: int,
+                  budget: Budget) -> tuple[InverseHysteresisNet, int, int]:
+    """Build the config's network, fit its data-dependent operators and normalization on
+    (x, y) (rows, time) and train it on samples [w, T): the net, epochs done, epochs asked."""
+    m, trainer, dtype, seed = _config_model(path)
+    torch.manual_seed(seed)
+    ops, fitters = build_operators(m["operator"], m["operator_kwargs"])
+    net = InverseHysteresisNet(ops, m["hidden"], activation=m["activation"])
+    initialize(net, m["init"])
+    net.to(dtype)
+    x, y = x.to(dtype), y.to(dtype)
+    fit_data_dependent(net.operators, fitters, x, y, warmup=w)
+    net.fit_normalization(x, y)
+    fixed = not any(p.requires_grad for p in net.operators.parameters())
+    with torch.no_grad():
+        feats = net.features(x)[0] if fixed else None
+    kwargs = dict(m["optimizer_kwargs"] or {})
+    if m["optimizer"] != "cg":
+        kwargs.setdefault("lr", m["lr"])
+    if m["optimizer"] == "lbfgs":
+        kwargs.setdefault("line_search_fn", "strong_wolfe")
+    opt = OPTIMIZERS[m["optimizer"]]([p for p in net.parameters() if p.requires_grad], **kwargs)
+
+    def closure() -> Tensor:
+        opt.zero_grad()
+        out = net.head(feats) if fixed else net(x)[0]
+        loss = (out[:, w:] - y[:, w:]).square().mean()
+        loss.backward()
+        return loss
+
+    epochs = int(trainer.get("max_epochs") or 1000)
+    if budget.default_epochs is not None:
+        epochs = min(epochs, budget.default_epochs)
+    start, done = time.perf_counter(), 0
+    while done < epochs and time.perf_counter() - start < budget.seconds:
+        opt.step(closure)
+        done += 1
+    return net, done, epochs
+
+
+def default(split: Split, budget: Budget, config: Path = CONFIG) -> Fitted:
+    """The model section of a ``torchhys fit`` config, trained as its trainer section says
+    on the whole training part (the hold-out RMSE from a second fit on the part before it)."""
+    x, y, w, c = split.x, split.y, split.warmup, holdout(split.x.shape[1], split.warmup)
+    first, _, _ = _train_config(config, x[:, :c], y[:, :c], w, budget)
+    dtype = next(first.parameters()).dtype
+    with torch.no_grad():
+        score = _rmse(first(x.to(dtype))[0][:, c:].to(F64), y[:, c:])
+    net, done, epochs = _train_config(config, x, y, w, budget)
+    m = _config_model(config)[0]
+    specs = m["operator"] if isinstance(m["operator"], list) else [m["operator"]]
+    ops = "+".join(s["name"] if isinstance(s, dict) else str(s) for s in specs)
+    capped = f" (capped at {budget.seconds:g} s)" if done < epochs else ""
+    choice = (f"{config.name}: {ops} + {m['hidden']} {m['activation']}, {m['optimizer']} "
+              f"{done} epochs{capped}")
+    return Fitted(lambda v: net(v.to(dtype))[0].to(F64), choice, score)
+
+
+MODELS: dict[str, Callable[..., Fitted]] = {
+    "line": line,
+    "poly": poly,
+    "pi_constrained": pi_constrained,
+    "pi_ls": pi_ls,
+    **({"generalized_pi": generalized_pi} if fit_generalized_pi is not None else {}),
+    "preisach": preisach,
+    "eiho_net": eiho_net,
+    "default": default,
+}
+"""The models by name, in table order; ``selected`` follows them."""
+
+
+def evaluate(name: str, split: Split, budget: Budget, log: list[str], *,
+             config: Path = CONFIG) -> list[dict]:
+    """One row per model (held-out RMSE, ratio to the best memoryless baseline, choice),
+    then ``selected``: the model with the least hold-out RMSE."""
+    rows = []
+    n_train = split.y[:, split.warmup:].numel()
+    for model, run in MODELS.items():
+        start = time.perf_counter()
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                fitted = run(split, budget, config) if model == "default" else run(split, budget)
+            rmse, n_test = test_rmse(fitted.predict, split)
+            choice, score = f"{fitted.choice}; hold-out {fitted.holdout:.4g}", fitted.holdout
+        except (ValueError, RuntimeError, FloatingPointError) as err:
+            rmse, n_test, choice, score = math.nan, 0, f"failed: {err}", math.inf
+        rows.append({"dataset": name, "model": model, "rmse": rmse, "n_train": n_train,
+                     "n_test": n_test, "choice": choice, "holdout": score})
+        log.append(f"{name:24s} {model:15s} {time.perf_counter() - start:6.1f} s")
+    best = min(rows, key=lambda r: r["holdout"] if math.isfinite(r["holdout"]) else math.inf)
+    rows.append({**best, "model": "selected", "choice": f"{best['model']}: {best['choice']}"})
+    base = min(r["rmse"] for r in rows if r["model"] in ("line", "poly"))
+    for r in rows:
+        r["ratio"] = r["rmse"] / base
+    return [{k: r[k] for k in COLUMNS} for r in rows]
+
+
+def markdown(rows: list[dict]) -> str:
+    lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+    for r in rows:
+        lines.append(f"| {r['dataset']} | {r['model']} | {r['rmse']:.4g} | {r['ratio']:.3f} | "
+                     f"{r['n_train']} | {r['n_test']} | {r['choice']} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", nargs="+", choices=list(DATASETS), default=list(DATASETS),
+                        metavar="NAME", help=f"data sets (default: all): {', '.join(DATASETS)}")
+    parser.add_argument("--out", type=Path, default=None, help="write the table to this CSV")
+    parser.add_argument("--quick", action="store_true", help="small grids (smoke test)")
+    parser.add_argument("--ferrite", type=Path, default=FERRITE,
+                        help="the MnZn ferrite loops (default: ../shared/data/...)")
+    parser.add_argument("--config", type=Path, default=CONFIG,
+                        help="torchhys fit config of the 'default' row")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    budget = QUICK if args.quick else FULL
+    rows: list[dict] = []
+    log: list[str] = []
+    start = time.perf_counter()
+    for name in args.data:
+        protocol, build = DATASETS[name]
+        if name.startswith("mnzn_ferrite") and not args.ferrite.is_file():
+            print(f"skipping {name}: {args.ferrite} not found")
+            continue
+        log.append(f"{name}: {protocol}")
+        rows += evaluate(name, build(args.ferrite), budget, log, config=args.config)
+    print("\n".join(log))
+    print(f"\ntotal {time.perf_counter() - start:.0f} s\n")
+    print(markdown(rows))
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        with open(args.out, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=COLUMNS)
+            writer.writeheader()
+            writer.writerows(rows)
+    return rows
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,101 @@
+"""Smoke test of benchmarks/real_data.py: its quick mode on the MnZn ferrite loops (the copy
+in examples/data), the table's columns, and memoryless baselines fitted on the training part
+only."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+FERRITE = ROOT / "examples" / "data" / "mnzn_ferrite_bh_loops.csv"
+COLUMNS = ("dataset", "model", "rmse", "ratio", "n_train", "n_test", "choice")
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("real_data_benchmark",
+                                                  ROOT / "benchmarks" / "real_data.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def table(bench, tmp_path_factory):
+    out = tmp_path_factory.mktemp("real_data") / "table.csv"
+    rows = bench.main(["--quick", "--data", "mnzn_ferrite", "--ferrite", str(FERRITE),
+                       "--out", str(out)])
+    return rows, out
+
+
+def _test_part(split):
+    xs = np.concatenate([x[w:].numpy() for x, _, w in split.test])
+    ys = np.concatenate([y[w:].numpy() for _, y, w in split.test])
+    return xs, ys
+
+
+def _rmse(e: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(e**2)))
+
+
+def test_table_columns_and_rows(bench, table):
+    rows, out = table
+    with open(out, newline="") as f:
+        reader = csv.DictReader(f)
+        written = list(reader)
+    assert tuple(reader.fieldnames) == COLUMNS
+    assert [r["model"] for r in written] == [*bench.MODELS, "selected"]
+    assert {"line", "poly", "pi_constrained", "preisach", "eiho_net", "default"} <= set(
+        bench.MODELS)
+    base = min(r["rmse"] for r in rows if r["model"] in ("line", "poly"))
+    for r, w in zip(rows, written, strict=True):
+        assert tuple(r) == COLUMNS
+        assert r["dataset"] == w["dataset"] == "mnzn_ferrite"
+        # loops 0 and 3 train, 1 and 2 test: the last of three periods (129 samples) scored
+        assert (r["n_train"], r["n_test"]) == (258, 258)
+        assert math.isfinite(r["rmse"]) and r["rmse"] > 0
+        assert r["ratio"] == pytest.approx(r["rmse"] / base)
+        assert float(w["rmse"]) == pytest.approx(r["rmse"], rel=1e-12)
+        assert r["choice"] and not r["choice"].startswith("failed")
+
+
+def test_baselines_use_the_training_part_only(bench, table):
+    rows = {r["model"]: r for r in table[0]}
+    split = bench.DATASETS["mnzn_ferrite"][1](FERRITE)
+    w = split.warmup
+    xt, yt = split.x[:, w:].reshape(-1).numpy(), split.y[:, w:].reshape(-1).numpy()
+    xs, ys = _test_part(split)
+    k, c = np.polyfit(xt, yt, 1)
+    assert rows["line"]["rmse"] == pytest.approx(_rmse(k * xs + c - ys), rel=1e-9)
+    # the hold-out: the last quarter of the scored samples of each training row
+    cut = bench.holdout(split.x.shape[1], w)
+    assert cut == split.x.shape[1] - round(0.25 * 129)
+    fx, fy = split.x[:, w:cut].reshape(-1).numpy(), split.y[:, w:cut].reshape(-1).numpy()
+    vx, vy = split.x[:, cut:].reshape(-1).numpy(), split.y[:, cut:].reshape(-1).numpy()
+    k, c = np.polyfit(fx, fy, 1)
+    assert rows["line"]["choice"].endswith(f"; hold-out {_rmse(k * vx + c - vy):.4g}")
+    scores = [_rmse(np.polynomial.Polynomial.fit(fx, fy, d)(vx) - vy) for d in range(1, 10)]
+    degree = 1 + int(np.argmin(scores))
+    assert rows["poly"]["choice"] == f"degree={degree}; hold-out {min(scores):.4g}"
+    p = np.polynomial.Polynomial.fit(xt, yt, degree)
+    assert rows["poly"]["rmse"] == pytest.approx(_rmse(p(xs) - ys), rel=1e-9)
+    # changing the held-out targets changes nothing in the fitted baselines
+    spoiled = split._replace(test=[(x, 1e6 + 0 * y, w) for x, y, w in split.test])
+    for fit in (bench.line, bench.poly):
+        a, b = fit(split, bench.QUICK), fit(spoiled, bench.QUICK)
+        assert (a.choice, a.holdout) == (b.choice, b.holdout)
+        x = split.test[0][0][None]
+        np.testing.assert_array_equal(a.predict(x).numpy(), b.predict(x).numpy())
+
+
+def test_missing_ferrite_file_is_skipped(bench, tmp_path, capsys):
+    rows = bench.main(["--quick", "--data", "mnzn_ferrite", "--ferrite",
+                       str(tmp_path / "absent.csv")])
+    assert rows == []
+    assert "skipping mnzn_ferrite" in capsys.readouterr().out
