@@ -19,15 +19,17 @@ the states and are neither fitted nor scored):
   1..9 chosen on the hold-out (both memoryless);
 - ``pi_constrained``: ``fit_prandtl_ishlinskii(nonnegative=True)`` on ``play_width_grid``,
   either of the target from the input ("direct") or of the input from the target, then its
-  exact inverse ("inverse of forward"): a non-negative PI model only draws loops that run
-  anticlockwise in its (input, output) plane, its inverse clockwise ones. Direction, number
-  of widths, grid power and ridge chosen on the hold-out;
+  exact inverse ("inverse of forward"), and of the target or of its negative: a
+  non-negative PI model only draws loops that run anticlockwise in its (input, output)
+  plane, with branches that steepen after a reversal; its inverse draws clockwise ones that
+  flatten, and the negation flips either. Direction, sign, number of widths, grid power and
+  ridge chosen on the hold-out;
 - ``pi_ls``: the same direct fit, unconstrained (the operator of ``configs/measured.yaml``);
 - ``generalized_pi``: ``fit_generalized_pi`` in either direction (the inverse: the exact
-  PI inverse after the output function's inverse, found by bisection), on the widths and
-  ridge chosen for the non-negative PI fit of that direction, of the target (or the input)
-  times the sign that makes it rise; direction and number of tanh units chosen on the
-  hold-out;
+  PI inverse after the output function's inverse, found by bisection), of the target times
+  the sign that makes it rise with the input, on the widths and ridge chosen for the
+  non-negative PI fit of that direction and sign; direction and number of tanh units chosen
+  on the hold-out (a refit that diverges passes to the next candidate);
 - ``preisach``: ``fit_preisach`` on a grid over the training input range; levels,
   smoothness penalty and the sign of the target (a non-negative density draws loops of one
   orientation; its free linear term lets the negated fit draw the other) chosen on the
@@ -312,35 +314,43 @@ Choice = tuple[float, int, float, float]
 """(hold-out RMSE, number of widths, grid power, ridge); n = 0: no candidate."""
 
 
-def _pi_choice(d: Scaled, budget: Budget, nonnegative: bool) -> Choice:
-    """The best PI model of the target from the input (ridge by ``select_pi_ridge``)."""
+def _rising(d: Scaled, end: int) -> float:
+    """+1 if the target rises with the input on the scored samples before ``end``, else -1."""
+    xs, ys = d.x[:, d.warmup:end], d.y[:, d.warmup:end]
+    return 1.0 if float(((xs - xs.mean()) * ys).sum()) >= 0 else -1.0
+
+
+def _pi_choice(d: Scaled, budget: Budget, nonnegative: bool, sign: float = 1.0) -> Choice:
+    """The best PI model of ``sign`` x target from the input (ridge by ``select_pi_ridge``)."""
     best = (math.inf, 0, 0.0, 0.0)
     for n in budget.pi_n:
         for power in budget.powers:
             widths = play_width_grid(d.x, n, power=power)
-            ridge, scores = select_pi_ridge(d.x, d.y, widths, RIDGES, nonnegative=nonnegative,
-                                            validation=d.validation, warmup=d.warmup)
+            ridge, scores = select_pi_ridge(d.x, sign * d.y, widths, RIDGES,
+                                            nonnegative=nonnegative, validation=d.validation,
+                                            warmup=d.warmup)
             best = min(best, (scores[ridge], n, power, ridge))
     return best
 
 
-def _inverse_pi(d: Scaled, n: int, power: float, ridge: float, end: int) -> Callable:
-    """The exact inverse of the non-negative PI model of the input from the target, fitted
-    on samples [warmup, end) of every row (widths from the target's span there)."""
-    widths = play_width_grid(d.y[:, :end], n, power=power)
-    forward = fit_prandtl_ishlinskii(d.y[:, :end], d.x[:, :end], widths, ridge=ridge,
-                                     warmup=d.warmup, nonnegative=True)
+def _inverse_pi(d: Scaled, sign: float, n: int, power: float, ridge: float,
+                end: int) -> Callable:
+    """``sign`` x the exact inverse of the non-negative PI model of the input from ``sign`` x
+    target, fitted on samples [warmup, end) of every row (widths from the span there)."""
+    t = sign * d.y[:, :end]
+    forward = fit_prandtl_ishlinskii(t, d.x[:, :end], play_width_grid(t, n, power=power),
+                                     ridge=ridge, warmup=d.warmup, nonnegative=True)
     inverse = forward.inverse()
-    return lambda v: inverse(v)[0]
+    return lambda v: sign * inverse(v)[0]
 
 
-def _inverse_pi_choice(d: Scaled, budget: Budget) -> Choice:
+def _inverse_pi_choice(d: Scaled, budget: Budget, sign: float) -> Choice:
     best = (math.inf, 0, 0.0, 0.0)
     for n in budget.pi_n:
         for power in budget.powers:
             for ridge in RIDGES:
                 try:
-                    f = _inverse_pi(d, n, power, ridge, d.cut)
+                    f = _inverse_pi(d, sign, n, power, ridge, d.cut)
                 except ValueError:  # no strictly increasing loading curve: no inverse
                     continue
                 best = min(best, (d.score(f), n, power, ridge))
@@ -349,15 +359,17 @@ def _inverse_pi_choice(d: Scaled, budget: Budget) -> Choice:
 
 def pi_constrained(split: Split, budget: Budget) -> Fitted:
     d = scaled(split)
-    direct, inverse = _pi_choice(d, budget, nonnegative=True), _inverse_pi_choice(d, budget)
-    score, n, power, ridge = min(direct, inverse)
-    text = f"n={n}, power={power:g}, ridge={ridge:g}"
-    if inverse < direct:
-        f = _inverse_pi(d, n, power, ridge, d.x.shape[1])
+    best = min((_pi_choice(d, budget, True, sign), False, sign) for sign in (1.0, -1.0))
+    best = min(best, *((_inverse_pi_choice(d, budget, sign), True, sign)
+                       for sign in (1.0, -1.0)))
+    (score, n, power, ridge), inverse, sign = best
+    text = f"n={n}, power={power:g}, ridge={ridge:g}, sign={sign:+.0f}"
+    if inverse:
+        f = _inverse_pi(d, sign, n, power, ridge, d.x.shape[1])
         return d.fitted(f, f"inverse of forward, {text}", score)
-    model = fit_prandtl_ishlinskii(d.x, d.y, play_width_grid(d.x, n, power=power), ridge=ridge,
-                                   warmup=d.warmup, nonnegative=True)
-    return d.fitted(lambda v: model(v)[0], f"direct, {text}", score)
+    model = fit_prandtl_ishlinskii(d.x, sign * d.y, play_width_grid(d.x, n, power=power),
+                                   ridge=ridge, warmup=d.warmup, nonnegative=True)
+    return d.fitted(lambda v: sign * model(v)[0], f"direct, {text}", score)
 
 
 def pi_ls(split: Split, budget: Budget) -> Fitted:
@@ -390,38 +402,44 @@ def _g_inverse(model, v: Tensor, steps: int = 60) -> Tensor:
 
 def _gpi(d: Scaled, inverse: bool, n: int, power: float, ridge: float, units: int, end: int,
          epochs: int) -> Callable[[Tensor], Tensor]:
-    """Generalized PI model of the target from the input, fitted on samples [0, end) of every
-    row, or the inverse of one of the input from the target; the fitted output is multiplied
-    by the sign that makes it rise with the model's input on the training part."""
-    xs, ys = d.x[:, d.warmup:end], d.y[:, d.warmup:end]
-    sign = 1.0 if float(((xs - xs.mean()) * ys).sum()) >= 0 else -1.0
-    u, t = (d.y, sign * d.x) if inverse else (d.x, sign * d.y)
-    widths = play_width_grid(u[:, :end], n, power=power)
-    model = fit_generalized_pi(u[:, :end], t[:, :end], widths, units=units, ridge=ridge,
-                               lbfgs_epochs=epochs)
+    """Generalized PI model of t = sign x target from the input, fitted on samples [0, end)
+    of every row, or the inverse of one of the input from t; ``sign`` makes t rise with the
+    input."""
+    sign = _rising(d, end)
+    t = sign * d.y[:, :end]
+    u, out = (t, d.x[:, :end]) if inverse else (d.x[:, :end], t)
+    model = fit_generalized_pi(u, out, play_width_grid(u, n, power=power), units=units,
+                               ridge=ridge, lbfgs_epochs=epochs)
     if not inverse:
         return lambda v: sign * model(v)[0]
     pi_inverse = model.prandtl_ishlinskii().inverse()
-    return lambda v: pi_inverse(_g_inverse(model, sign * v))[0]
+    return lambda v: sign * pi_inverse(_g_inverse(model, v))[0]
 
 
 def generalized_pi(split: Split, budget: Budget) -> Fitted:
     d = scaled(split)
-    best = (math.inf, False, 0, 0.0, 0.0, 0)
-    for inverse, (_, n, power, ridge) in ((False, _pi_choice(d, budget, nonnegative=True)),
-                                          (True, _inverse_pi_choice(d, budget))):
+    sign = _rising(d, d.cut)
+    candidates = []
+    for inverse, (_, n, power, ridge) in ((False, _pi_choice(d, budget, True, sign)),
+                                          (True, _inverse_pi_choice(d, budget, sign))):
         for units in budget.gpi_units if n else ():
             try:
                 score = d.score(_gpi(d, inverse, n, power, ridge, units, d.cut,
                                      budget.gpi_epochs))
             except (FloatingPointError, ValueError):  # diverged, or no inverse
                 continue
-            best = min(best, (score, inverse, n, power, ridge, units))
-    score, inverse, n, power, ridge, units = best
-    f = _gpi(d, inverse, n, power, ridge, units, d.x.shape[1], budget.gpi_epochs)
-    how = "inverse of forward" if inverse else "direct"
-    return d.fitted(f, f"{how}, n={n}, power={power:g}, ridge={ridge:g}, units={units}, "
-                       f"lbfgs={budget.gpi_epochs}", score)
+            candidates.append((score, inverse, n, power, ridge, units))
+    for k, (score, inverse, n, power, ridge, units) in enumerate(sorted(candidates)):
+        try:  # the best candidate whose refit on the whole training part converges
+            f = _gpi(d, inverse, n, power, ridge, units, d.x.shape[1], budget.gpi_epochs)
+        except FloatingPointError:
+            continue
+        how = "inverse of forward" if inverse else "direct"
+        note = f" ({k} better refit(s) diverged)" if k else ""
+        return d.fitted(f, f"{how}, n={n}, power={power:g}, ridge={ridge:g}, units={units}, "
+                           f"sign={_rising(d, d.x.shape[1]):+.0f}, "
+                           f"lbfgs={budget.gpi_epochs}{note}", score)
+    raise FloatingPointError("every generalized PI candidate diverged")
 
 
 def preisach(split: Split, budget: Budget) -> Fitted:
