@@ -1,0 +1,113 @@
+"""A block-oriented model with hysteresis: a linear block with a hysteretic feedback.
+
+:class:`HysteresisFeedback` is a Lur'e-type structure: the output is the sum of a linear
+block of the input and a strictly proper linear block of a hysteretic force ``z`` of the
+output itself::
+
+    y[t] = G_u(q) u[t] + G_z(q) z[t]          (G_z strictly proper: no algebraic loop)
+    z[t] = H[y](t)                            (a hysteretic element, rate-independent)
+
+``G_u`` and ``G_z`` are :class:`torchhys.dynamics.TransferFunction` blocks (stable, poles in
+second-order sections); ``H`` is a :class:`~torchhys.models.hysteretic_elements.
+DuhemHysteresis` or a :class:`~torchhys.models.hysteretic_elements.PlayHysteresis`. Signals
+are scaled inside (``u / u_scale``, ``y / y_scale``, so ``H`` sees numbers of order one).
+
+It contains the Bouc-Wen oscillator, ``y = G (u - z)``, ``z = BW[y]``, up to sampling, but
+assumes only a linear system with a hysteretic feedback of its output.
+
+Sequence path: ``G_u u`` is one :func:`~torchhys.functional.lfilter` call over the whole
+sequence; the loop runs ``H`` and the DF2T step of ``G_z``
+(:func:`~torchhys.functional.linear_filter.df2t_step`, the maths of the block's sequence
+path), one sample at a time. State ``(batch, n_u + n_z + h)``: the delays of ``G_u``, of
+``G_z`` and the element's state. ``None``: at rest.
+
+Identification (:mod:`torchhys.models.identification`): the element and both blocks from an
+equation-error fit on the measured output, then the simulation error by windows
+(:func:`torchhys.models.training.fit_windows`).
+
+References:
+    M. Schoukens, K. Tiels, "Identification of block-oriented nonlinear systems starting from
+    linear approximations: a survey", Automatica 85 (2017).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from torchhys._checks import as_batched_sequence, check_int
+from torchhys.dynamics import TransferFunction
+from torchhys.functional.linear_filter import df2t_step
+from torchhys.models._common import check_fs, check_scale, check_state
+from torchhys.models.hysteretic_elements import make_element
+
+__all__ = ["HysteresisFeedback"]
+
+
+class HysteresisFeedback(nn.Module):
+    """``y = G_u u + G_z H[y]`` (module docstring).
+
+    Args:
+        order: order of ``G_u`` and ``G_z``.
+        element: the element's config, e.g. ``{"kind": "duhem", "hidden": 0}`` or
+            ``{"kind": "plays", "widths": [...], "hidden": 16}``.
+        fs: sampling frequency the model is identified at (Hz).
+        u_scale, y_scale: the input and output units (e.g. their standard deviations).
+
+    Shape:
+        - u: (time,) or (batch, time)
+        - state: (state_size,) or (batch, state_size); zeros (rest) if None
+        - returns ``(y, state)``: y of u's shape, the state after the last sample.
+    """
+
+    def __init__(self, order: int = 2, element: dict[str, object] | None = None, *,
+                 fs: float, u_scale: float = 1.0, y_scale: float = 1.0) -> None:
+        super().__init__()
+        self.order = check_int(order, "order", minimum=1)
+        self.fs = check_fs(fs, "fs")
+        self.element_config = dict(element or {"kind": "duhem", "hidden": 0})
+        self.G_u = TransferFunction(self.order)
+        self.G_z = TransferFunction(self.order, feedthrough=False)
+        self.H = make_element(self.element_config)
+        self.state_size = 2 * self.order + self.H.state_size
+        self.register_buffer("u_scale", torch.tensor(check_scale(u_scale, "u_scale")))
+        self.register_buffer("y_scale", torch.tensor(check_scale(y_scale, "y_scale")))
+        with torch.no_grad():
+            self.G_z.numerator.zero_()  # no feedback at first
+        self.double()
+
+    def config(self) -> dict[str, object]:
+        """Constructor arguments that rebuild the module (load the state dict after)."""
+        return {"order": self.order, "element": self.H.config(), "fs": self.fs}
+
+    @torch.no_grad()
+    def set_blocks(self, b_u: Tensor, b_z: Tensor, a: Tensor) -> None:
+        """Set ``G_u = b_u / a`` and ``G_z = b_z / a`` (lfilter's convention, ``b_z[0] = 0``).
+
+        Raises:
+            ValueError: an unstable ``a`` (its pole moduli), or a wrong order.
+        """
+        for name, b, ft in (("G_u", b_u, True), ("G_z", b_z, False)):
+            block = TransferFunction.from_coefficients(b, a, feedthrough=ft)
+            if block.order != self.order:
+                raise ValueError(f"{name} must have order {self.order}, got {block.order}")
+            setattr(self, name, block)
+
+    def forward(self, u: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        ub, squeezed = as_batched_sequence(u, "u")
+        B, n = ub.shape[0], self.order
+        start = (ub.new_zeros(B, self.state_size) if state is None
+                 else check_state(state, B, self.state_size, ub))
+        y_u, zf_u = self.G_u(ub / self.u_scale.to(ub.dtype), start[:, :n])
+        b, a = (c.to(ub.dtype) for c in self.G_z.coefficients())
+        a = a[1:]
+        s_z, s_h = start[:, n: 2 * n], start[:, 2 * n:]
+        outs = []
+        for yu_t in y_u.unbind(1):
+            y_t = yu_t.unsqueeze(1) + s_z[:, :1]      # G_z is strictly proper
+            outs.append(y_t)
+            z_t, s_h = self.H.step(y_t, s_h)
+            s_z = df2t_step(z_t, s_z, b, a)[1]
+        y = torch.cat(outs, dim=1) * self.y_scale.to(ub.dtype)
+        new_state = torch.cat([zf_u, s_z, s_h], dim=1)
+        return (y[0], new_state[0]) if squeezed else (y, new_state)
