@@ -9,7 +9,7 @@ from torch import Tensor
 
 from torchhys._checks import check_finite, check_floating, check_tensor
 
-__all__ = ["check_fs", "check_scale", "check_state"]
+__all__ = ["check_fs", "check_scale", "check_state", "scale_buffer"]
 
 
 def check_fs(fs: object, name: str = "fs") -> float:
@@ -39,3 +39,8 @@ def check_scale(value: object, name: str) -> float:
             or not math.isfinite(value) or value <= 0:
         raise ValueError(f"{name} must be a positive finite float, got {value!r}")
     return float(value)
+
+
+def scale_buffer(value: object, name: str) -> Tensor:
+    """A checked unit as a float64 0-dim tensor (a float32 one would round 1e-3 by 5e-8)."""
+    return torch.tensor(check_scale(value, name), dtype=torch.float64)

@@ -32,13 +32,15 @@ References:
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 from torch import Tensor, nn
 
 from torchhys._checks import as_batched_sequence, check_int
 from torchhys.dynamics import TransferFunction
 from torchhys.functional.linear_filter import df2t_step
-from torchhys.models._common import check_fs, check_scale, check_state
+from torchhys.models._common import check_fs, check_state, scale_buffer
 from torchhys.models.hysteretic_elements import make_element
 
 __all__ = ["HysteresisFeedback"]
@@ -53,6 +55,8 @@ class HysteresisFeedback(nn.Module):
             ``{"kind": "plays", "widths": [...], "hidden": 16}``.
         fs: sampling frequency the model is identified at (Hz).
         u_scale, y_scale: the input and output units (e.g. their standard deviations).
+        max_pole_radius: the pole bounds of ``G_u`` and ``G_z`` (:meth:`set_blocks` may
+            raise them; :meth:`config` gives them).
 
     Shape:
         - u: (time,) or (batch, time)
@@ -61,24 +65,27 @@ class HysteresisFeedback(nn.Module):
     """
 
     def __init__(self, order: int = 2, element: dict[str, object] | None = None, *,
-                 fs: float, u_scale: float = 1.0, y_scale: float = 1.0) -> None:
+                 fs: float, u_scale: float = 1.0, y_scale: float = 1.0,
+                 max_pole_radius: Sequence[float] = (0.999, 0.999)) -> None:
         super().__init__()
         self.order = check_int(order, "order", minimum=1)
         self.fs = check_fs(fs, "fs")
         self.element_config = dict(element or {"kind": "duhem", "hidden": 0})
-        self.G_u = TransferFunction(self.order)
-        self.G_z = TransferFunction(self.order, feedthrough=False)
+        r_u, r_z = max_pole_radius
+        self.G_u = TransferFunction(self.order, max_pole_radius=r_u)
+        self.G_z = TransferFunction(self.order, feedthrough=False, max_pole_radius=r_z)
         self.H = make_element(self.element_config)
         self.state_size = 2 * self.order + self.H.state_size
-        self.register_buffer("u_scale", torch.tensor(check_scale(u_scale, "u_scale")))
-        self.register_buffer("y_scale", torch.tensor(check_scale(y_scale, "y_scale")))
+        self.register_buffer("u_scale", scale_buffer(u_scale, "u_scale"))
+        self.register_buffer("y_scale", scale_buffer(y_scale, "y_scale"))
         with torch.no_grad():
             self.G_z.numerator.zero_()  # no feedback at first
         self.double()
 
     def config(self) -> dict[str, object]:
         """Constructor arguments that rebuild the module (load the state dict after)."""
-        return {"order": self.order, "element": self.H.config(), "fs": self.fs}
+        return {"order": self.order, "element": self.H.config(), "fs": self.fs,
+                "max_pole_radius": [self.G_u.max_pole_radius, self.G_z.max_pole_radius]}
 
     @torch.no_grad()
     def set_blocks(self, b_u: Tensor, b_z: Tensor, a: Tensor) -> None:

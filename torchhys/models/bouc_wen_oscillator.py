@@ -116,7 +116,6 @@ class BoucWenOscillator(nn.Module):
             self.log_nu = nn.Parameter(torch.tensor(math.log(nu), dtype=f64))
         else:
             self.register_buffer("log_nu", torch.tensor(math.log(nu), dtype=f64))
-        self.fixed_linear_exponent = nu == 1.0 and not self.learn_exponent
         nodes = _NODES[self.interpolation]
         fr = [j / (2 * self.substeps) for j in range(2 * self.substeps + 1)]
         weights = torch.tensor([_lagrange(nodes, x) for x in fr], dtype=f64)
@@ -170,7 +169,7 @@ class BoucWenOscillator(nn.Module):
         e = torch.stack([zero, inv_m, zero])
         last = torch.tensor([0.0, 0.0, 1.0], dtype=dtype, device=inv_m.device)
         bg, bd, nu = c["beta_gamma"], c["beta_delta"], c["nu"]
-        linear_exponent = self.fixed_linear_exponent
+        linear_exponent = not self.learn_exponent and float(self.log_nu) == 0.0  # nu = 1
         tiny = torch.finfo(dtype).tiny
 
         def rhs(s: Tensor, u: Tensor) -> Tensor:

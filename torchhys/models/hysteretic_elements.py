@@ -82,7 +82,8 @@ class DuhemHysteresis(_Element):
     def step(self, v: Tensor, state: Tensor) -> tuple[Tensor, Tensor]:
         z, v_prev = state[:, :1], state[:, 1:]
         dv = v - v_prev
-        move = torch.cat([dv.clamp_min(0.0), dv.clamp_max(0.0)], dim=1)   # (B, 2)
+        up = dv.clamp_min(0.0)
+        move = torch.cat([up, dv - up], dim=1)  # (B, 2); at dv = 0 the gradient goes one way
         c = move @ self.coef.to(v.dtype)                                    # (B, 3)
         c0, c1, c2 = c[:, :1], c[:, 1:2], c[:, 2:]
         net = self.net if self.hidden else None

@@ -18,7 +18,7 @@ from torch import Tensor, nn
 
 from torchhys._checks import as_batched_sequence, check_int
 from torchhys.dynamics import TransferFunction
-from torchhys.models._common import check_fs, check_scale, check_state
+from torchhys.models._common import check_fs, check_state, scale_buffer
 
 __all__ = ["LinearModel", "fit_linear"]
 
@@ -34,18 +34,18 @@ class LinearModel(nn.Module):
     """
 
     def __init__(self, order: int = 2, *, fs: float, u_scale: float = 1.0,
-                 y_scale: float = 1.0) -> None:
+                 y_scale: float = 1.0, max_pole_radius: float = 0.999) -> None:
         super().__init__()
         self.order = check_int(order, "order", minimum=1)
         self.fs = check_fs(fs, "fs")
         self.state_size = self.order
-        self.G = TransferFunction(self.order).double()
-        self.register_buffer("u_scale", torch.tensor(check_scale(u_scale, "u_scale")))
-        self.register_buffer("y_scale", torch.tensor(check_scale(y_scale, "y_scale")))
+        self.G = TransferFunction(self.order, max_pole_radius=max_pole_radius).double()
+        self.register_buffer("u_scale", scale_buffer(u_scale, "u_scale"))
+        self.register_buffer("y_scale", scale_buffer(y_scale, "y_scale"))
 
     def config(self) -> dict[str, object]:
         """Constructor arguments that rebuild the module (load the state dict after)."""
-        return {"order": self.order, "fs": self.fs}
+        return {"order": self.order, "fs": self.fs, "max_pole_radius": self.G.max_pole_radius}
 
     def forward(self, u: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
         ub, squeezed = as_batched_sequence(u, "u")
@@ -83,7 +83,7 @@ def fit_linear(u: Tensor, y: Tensor, *, order: int, fs: float, iterations: int =
     try:
         G = TransferFunction.from_coefficients(theta[n:], torch.cat([theta.new_ones(1),
                                                                      theta[:n]]))
-        model.G.load_state_dict(G.state_dict())
+        model.G = G  # its pole bound too (not part of the state dict)
     except ValueError:  # an unstable ARX fit: start from the default block
         pass
     opt = torch.optim.LBFGS(model.G.parameters(), max_iter=iterations, history_size=50,

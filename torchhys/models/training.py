@@ -92,17 +92,22 @@ def simulate(model: nn.Module, u: Tensor, *, fs: float, periods: int = 1) -> Ten
 
 
 def _window_starts(model: nn.Module, u: Tensor, K: int, W: int) -> tuple[Tensor, Tensor]:
-    """A free run from rest over ``u``: the states entering the K windows and the output."""
+    """A free run from rest over ``u``: the states entering the K windows and the output
+    (NaN from where the run stopped being finite)."""
     with torch.no_grad():
         y0, s = model(u[:1].unsqueeze(0), None)
         starts, ys = [], [y0[0]]
-        for j in range(K):
-            starts.append(s[0])
-            yj, s = model(u[1 + j * W: 1 + (j + 1) * W].unsqueeze(0), s)
+        bounds = [1 + j * W for j in range(K + 1)]
+        if bounds[-1] < u.shape[0]:
+            bounds.append(u.shape[0])
+        for j, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
+            if j < K:
+                starts.append(s[0])
+            if not bool(torch.isfinite(s).all()):  # an unstable model: no further run
+                ys.append(u.new_full((b - a,), math.nan))
+                continue
+            yj, s = model(u[a:b].unsqueeze(0), s)
             ys.append(yj[0])
-        rest, _ = model(u[1 + K * W:].unsqueeze(0), s) if 1 + K * W < u.shape[0] else (None, s)
-        if rest is not None:
-            ys.append(rest[0])
     return torch.stack(starts), torch.cat(ys)
 
 
@@ -163,11 +168,15 @@ def fit_windows(model: nn.Module, u: Tensor, y: Tensor, *, fs: float, window: in
 
     def validate(it: int) -> bool:
         nonlocal starts, best
-        starts, y_free = _window_starts(model, u, K, W)
+        new_starts, y_free = _window_starts(model, u, K, W)
         part = slice(n_train, None) if validation else slice(0, n_train)
         val = float((y_free[part] - y[part]).square().mean().sqrt())
+        if bool(torch.isfinite(new_starts).all()) or starts is None:
+            starts = new_starts
+        if not math.isfinite(val):
+            val = math.inf
         history.append((it, last, val))
-        if val < best[0] or not math.isfinite(best[0]):
+        if val < best[0] or best[1] is None:
             best = (val, copy.deepcopy(model.state_dict()))
         if log is not None:
             log(f"  it {it:5d}  window rmse {last:.4g}  validation rmse {val:.4g}  "
@@ -179,8 +188,8 @@ def fit_windows(model: nn.Module, u: Tensor, y: Tensor, *, fs: float, window: in
         opt.zero_grad()
         y_hat, out = model(U, starts)
         loss = ((y_hat - Y) / scale).square().mean()
-        if not bool(torch.isfinite(loss)):  # an unstable trial point: a large finite loss
-            return loss.detach().new_tensor(_REJECTED)  # (inf would make the line search NaN)
+        if not bool(torch.isfinite(loss) and torch.isfinite(out).all()):  # unstable:
+            return loss.detach().new_tensor(_REJECTED)  # a large loss (inf makes L-BFGS NaN)
         loss.backward()
         finals = out
         return loss
