@@ -15,17 +15,13 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import functools
-import hashlib
-import os
-import shutil
-import subprocess
-import tempfile
-import warnings
 from collections.abc import Iterator
-from pathlib import Path
 
 import torch
 from torch import Tensor
+
+from torchhys.functional._compile import SUFFIX as _SUFFIX
+from torchhys.functional._compile import build
 
 __all__ = [
     "kernel_available",
@@ -100,49 +96,13 @@ PLAY_DEFINE(float, f32)
 PLAY_DEFINE(double, f64)
 """
 
-_FLAGS = ["-O2", "-shared", "-fPIC", "-fno-fast-math", "-ffp-contract=off"]
-_SUFFIX = {torch.float32: "f32", torch.float64: "f64"}
-
-
-def _cache_dir() -> Path:
-    root = os.environ.get("TORCHHYS_CACHE") or Path.home() / ".cache" / "torchhys"
-    return Path(root) / "kernels"
-
-
 @functools.lru_cache(maxsize=1)
 def _load() -> tuple[ctypes.CDLL | None, str | None]:
     """The compiled library, or None and the reason it cannot be used."""
-    if os.environ.get("TORCHHYS_DISABLE_KERNEL", "") not in ("", "0"):
-        return None, "disabled by the environment variable TORCHHYS_DISABLE_KERNEL"
-    cc = os.environ.get("CC", "cc")
-    compiler = shutil.which(cc) or shutil.which("gcc")
-    if compiler is None:
-        return None, f"no C compiler found (neither {cc!r} nor 'gcc' is on the PATH)"
-    digest = hashlib.sha256((_SOURCE + " ".join(_FLAGS)).encode()).hexdigest()[:16]
-    lib_path = _cache_dir() / f"play_{digest}.so"
-    try:
-        if not lib_path.exists():
-            lib_path.parent.mkdir(parents=True, exist_ok=True)
-            with tempfile.TemporaryDirectory() as tmp:
-                src = Path(tmp) / "play.c"
-                src.write_text(_SOURCE)
-                out = Path(tmp) / "play.so"
-                subprocess.run(
-                    [compiler, *_FLAGS, str(src), "-o", str(out)],
-                    check=True, capture_output=True, timeout=120,
-                )
-                staged = lib_path.with_suffix(f".{os.getpid()}.tmp")
-                shutil.copyfile(out, staged)
-                os.replace(staged, lib_path)
-        lib = ctypes.CDLL(str(lib_path))
-    except (OSError, subprocess.SubprocessError) as err:
-        warnings.warn(
-            f"torchhys: could not build the compiled play-operator kernel ({err}); "
-            "using the pure-torch scan instead",
-            RuntimeWarning,
-            stacklevel=4,
-        )
-        return None, f"the kernel could not be built with {compiler} ({err})"
+    lib, reason = build("play", _SOURCE, what="play-operator kernel",
+                        fallback="the pure-torch scan")
+    if lib is None:
+        return None, reason
     p, lng = ctypes.c_void_p, ctypes.c_long
     for suffix in _SUFFIX.values():
         getattr(lib, f"play_forward_{suffix}").argtypes = [p, p, p, p, lng, lng, lng]

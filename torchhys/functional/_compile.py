@@ -1,0 +1,75 @@
+"""Compile a small C library once, cache it by the hash of its source, and load it.
+
+Shared by the compiled kernels (:mod:`torchhys.functional._kernel` for the play operator,
+:mod:`torchhys.functional._filter_kernel` for linear filters): the system C compiler builds
+the source with IEEE-exact flags into ``$TORCHHYS_CACHE/kernels`` (default
+``~/.cache/torchhys``), and every caller falls back to its pure-torch path, with the reason,
+when the kernel is disabled (``TORCHHYS_DISABLE_KERNEL=1``), no compiler is found or the build
+fails.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import shutil
+import subprocess
+import tempfile
+import warnings
+from pathlib import Path
+
+import torch
+
+__all__ = ["FLAGS", "SUFFIX", "build"]
+
+FLAGS = ["-O2", "-shared", "-fPIC", "-fno-fast-math", "-ffp-contract=off"]
+"""Compiler flags: no fast math, no fused multiply-add contraction (results bit-equal to the
+step-by-step tensor arithmetic)."""
+SUFFIX = {torch.float32: "f32", torch.float64: "f64"}
+"""The function-name suffix of each dtype the kernels are built for."""
+
+
+def _cache_dir() -> Path:
+    root = os.environ.get("TORCHHYS_CACHE") or Path.home() / ".cache" / "torchhys"
+    return Path(root) / "kernels"
+
+
+def _compile(compiler: str, name: str, source: str, lib_path: Path) -> None:
+    lib_path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        src, out = Path(tmp) / f"{name}.c", Path(tmp) / f"{name}.so"
+        src.write_text(source)
+        subprocess.run([compiler, *FLAGS, str(src), "-o", str(out)],
+                       check=True, capture_output=True, timeout=120)
+        staged = lib_path.with_suffix(f".{os.getpid()}.tmp")
+        shutil.copyfile(out, staged)
+        os.replace(staged, lib_path)  # atomic: concurrent builders never see a partial file
+
+
+def build(name: str, source: str, *, what: str, fallback: str
+          ) -> tuple[ctypes.CDLL | None, str | None]:
+    """The library built from ``source`` (cached as ``{name}_{hash}.so``), or None and why.
+
+    Args:
+        name: file name stem.
+        source: C source.
+        what: what the kernel is, for the warning (``"play-operator kernel"``).
+        fallback: what is used instead, for the warning (``"the pure-torch scan"``).
+    """
+    if os.environ.get("TORCHHYS_DISABLE_KERNEL", "") not in ("", "0"):
+        return None, "disabled by the environment variable TORCHHYS_DISABLE_KERNEL"
+    cc = os.environ.get("CC", "cc")
+    compiler = shutil.which(cc) or shutil.which("gcc")
+    if compiler is None:
+        return None, f"no C compiler found (neither {cc!r} nor 'gcc' is on the PATH)"
+    digest = hashlib.sha256((source + " ".join(FLAGS)).encode()).hexdigest()[:16]
+    lib_path = _cache_dir() / f"{name}_{digest}.so"
+    try:
+        if not lib_path.exists():
+            _compile(compiler, name, source, lib_path)
+        return ctypes.CDLL(str(lib_path)), None
+    except (OSError, subprocess.SubprocessError) as err:
+        warnings.warn(f"torchhys: could not build the compiled {what} ({err}); using {fallback} "
+                      "instead", RuntimeWarning, stacklevel=5)
+        return None, f"the kernel could not be built with {compiler} ({err})"
