@@ -21,9 +21,9 @@ sequence; the loop runs ``H`` and the DF2T step of ``G_z``
 path), one sample at a time. State ``(batch, n_u + n_z + h)``: the delays of ``G_u``, of
 ``G_z`` and the element's state. ``None``: at rest.
 
-Identification (:mod:`torchhys.models.identification`): the element and both blocks from an
-equation-error fit on the measured output, then the simulation error by windows
-(:func:`torchhys.models.training.fit_windows`).
+Identification: start from a linear model with part of its stiffness in the loop
+(:func:`torchhys.models.identification.init_from_linear`), then minimise the simulation
+error by windows (:func:`torchhys.models.training.fit_windows`).
 
 References:
     M. Schoukens, K. Tiels, "Identification of block-oriented nonlinear systems starting from

@@ -31,6 +31,7 @@ References:
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 from torch import Tensor, nn
@@ -157,7 +158,7 @@ class BoucWenOscillator(nn.Module):
         new_state = torch.cat([mech, seq[:, -3:]], dim=1)
         return (y[0], new_state[0]) if squeezed else (y, new_state)
 
-    def _step_function(self, dtype: torch.dtype):
+    def _step_function(self, dtype: torch.dtype) -> Callable[[Tensor, Tensor], Tensor]:
         """One sample interval: RK4 ``substeps`` times, (B, 3), (B, 2 substeps + 1) -> (B, 3)."""
         c = {n: v.to(dtype) for n, v in self.coefficients().items()}
         inv_m = 1.0 / c["m"]

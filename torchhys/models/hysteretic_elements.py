@@ -8,13 +8,15 @@ they see the path of ``v``, not its timing.
 - :class:`DuhemHysteresis`: a Duhem operator, ``dz = g_up(z) dv`` while ``v`` rises and
   ``g_down(z) dv`` while it falls, with slopes ``g = a + b z + c |z|`` (plus a small network
   of z where ``hidden > 0``), integrated along a straight path from ``v[t-1]`` to ``v[t]``
-  by one RK4 step in ``v``. The Bouc-Wen operator with exponent 1 is the case
-  ``g = alpha - (beta gamma sign(dv) + beta delta) |z| ...`` written per direction:
+  by one RK4 step in ``v`` (the scheme of :func:`torchhys.plants.bouc_wen_state`). The
+  Bouc-Wen operator with exponent 1, ``dz = alpha dv - bg |dv| z - bd dv |z|``, is the case
   ``g_up = alpha - bg z - bd |z|``, ``g_down = alpha + bg z - bd |z|``.
   State ``(batch, 2)``: z and the previous v.
 - :class:`PlayHysteresis`: a generalised Prandtl-Ishlinskii operator, a linear combination
-  of v and N plays of v (:class:`torchhys.Backlash` widths, :func:`~torchhys.functional.
-  play_step`) plus a small tanh network of them. State ``(batch, N)``: the play outputs.
+  of v and N plays of v (the widths of a :class:`torchhys.Backlash`, the step
+  :func:`~torchhys.functional.play_step`) plus a small tanh network of them. State
+  ``(batch, N)``: the play outputs. Its minor loops are congruent (a Prandtl-Ishlinskii
+  property), which the Bouc-Wen operator's are not.
 
 References:
     P. Duhem (1897); J. W. Macki, P. Nistri, P. Zecca, "Mathematical models for hysteresis",
