@@ -93,23 +93,26 @@ def initial_branch_state(x0: Tensor, depth: int, f0: Tensor | None = None) -> Br
     )
 
 
-def safe_sqrt(u: Tensor, eps: float) -> Tensor:
+def safe_sqrt(u: Tensor, eps: float, differentiable: bool = True) -> Tensor:
     """``sqrt(u)`` for ``u >= eps``, ``u / sqrt(eps)`` below: zero at 0, slope <= 1/sqrt(eps).
 
-    Keeps gradients finite at ``x = x_e`` (the inner ``where`` keeps ``sqrt``'s infinite
-    slope at 0 out of the backward); the value differs from ``sqrt(u)`` by less than
-    ``sqrt(eps) / 4`` and only for ``0 < u < eps``. Scriptable: the sequence path and the
-    streaming steps call the same function. (``u * rsqrt(max(u, eps))`` is the same function
-    in fewer operations, but its rounding, in value and gradient, moves long full-batch fits:
-    the paper's 2000 Adam + 10000 L-BFGS protocol ends at 2.0e-3 with it, 1.3e-3 with this.)
+    Keeps gradients finite at ``x = x_e``: the inner ``where`` keeps ``sqrt``'s infinite slope
+    at 0 out of the backward; with ``differentiable=False`` (the streaming steps, which need no
+    gradient) it is left out, the values are the same. The value differs from ``sqrt(u)`` by
+    less than ``sqrt(eps) / 4`` and only for ``0 < u < eps``. Scriptable. (``u * rsqrt(max(u,
+    eps))`` is the same function in fewer operations, but its rounding, in value and gradient,
+    moves long full-batch fits: the paper's 2000 Adam + 10000 L-BFGS protocol ends at 2.0e-3
+    with it, 1.3e-3 with this.)
     """
     big = u >= eps
-    return torch.where(big, torch.sqrt(torch.where(big, u, torch.ones_like(u))), u / eps**0.5)
+    root = torch.sqrt(torch.where(big, u, torch.ones_like(u))) if differentiable else torch.sqrt(u)
+    return torch.where(big, root, u / eps**0.5)
 
 
 def signed_sqrt(v: Tensor, eps: float) -> Tensor:
-    """``sign(v) * safe_sqrt(|v|, eps)``, exactly (``copysign`` moves the sign bit)."""
-    return torch.copysign(safe_sqrt(v.abs(), eps), v)
+    """``sign(v) * safe_sqrt(|v|, eps)``, exactly (``copysign`` moves the sign bit); for the
+    streaming steps (no gradient)."""
+    return torch.copysign(safe_sqrt(v.abs(), eps, False), v)
 
 
 def branch_g(u: Tensor, coef: Tensor, kind: str, eps: float, scale: float) -> Tensor:
