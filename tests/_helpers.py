@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import importlib.util
+import types
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -105,3 +108,13 @@ def play_reference(x: np.ndarray, widths: np.ndarray, y0: np.ndarray | None = No
                 s[n] = min(x[b, t] + r, max(x[b, t] - r, s[n]))
             y[b, t] = s
     return y
+
+
+def load_benchmark(file_name: str) -> types.ModuleType:
+    """A script of benchmarks/ imported as a module (the folder is not a package)."""
+    root = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location(Path(file_name).stem,
+                                                  root / "benchmarks" / file_name)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

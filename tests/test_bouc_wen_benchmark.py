@@ -3,12 +3,12 @@
 
 from __future__ import annotations
 
-import importlib.util
 import math
 from pathlib import Path
 
 import pytest
 import torch
+from _helpers import load_benchmark
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "bouc_wen_benchmark.npz"
@@ -20,11 +20,7 @@ pytestmark = pytest.mark.skipif(not DATA.exists(),
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("bouc_wen_benchmark",
-                                                  ROOT / "benchmarks" / "bouc_wen_benchmark.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("bouc_wen_benchmark.py")
 
 
 def _saved(path: Path) -> dict:

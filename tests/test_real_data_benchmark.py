@@ -5,12 +5,12 @@ only."""
 from __future__ import annotations
 
 import csv
-import importlib.util
 import math
 from pathlib import Path
 
 import numpy as np
 import pytest
+from _helpers import load_benchmark
 
 ROOT = Path(__file__).resolve().parents[1]
 FERRITE = ROOT / "examples" / "data" / "mnzn_ferrite_bh_loops.csv"
@@ -19,11 +19,7 @@ COLUMNS = ("dataset", "model", "rmse", "ratio", "n_train", "n_test", "choice")
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("real_data_benchmark",
-                                                  ROOT / "benchmarks" / "real_data.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("real_data.py")
 
 
 @pytest.fixture(scope="module")

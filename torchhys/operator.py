@@ -100,11 +100,6 @@ class StateBlock:
             return [float(value)] * self.size
         return [float(v) for v in value]
 
-    @property
-    def anchored(self) -> bool:
-        """Whether any column starts at something other than 0."""
-        return any(v != 0.0 for v in self.columns("start") + self.columns("from_sample"))
-
 
 class OperatorStep(nn.Module, abc.ABC):
     """The per-sample step of an operator, for export (see the module docstring).

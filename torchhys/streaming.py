@@ -35,7 +35,7 @@ from typing import Final
 import torch
 from torch import Tensor, nn
 
-from torchhys.operator import OperatorStep, StateBlock
+from torchhys.operator import STATE_KINDS, OperatorStep, StateBlock
 
 __all__ = [
     "COUNTER", "HELD", "STARTED", "STATE_F", "STATE_F64", "STATE_I", "StreamingCompensator",
@@ -49,7 +49,8 @@ HELD = (STATE_F, 0)
 COUNTER = (STATE_I, 0)
 STARTED = (STATE_STARTED, 0)
 
-_KIND_INDEX = {"float": 0, "float64": 1, "int64": 2}
+#: position of each block kind in the per-kind lists (the order of STATE_KINDS)
+_KIND_INDEX = {kind: i for i, kind in enumerate(STATE_KINDS)}
 
 
 class _Slot(nn.Module):
