@@ -11,7 +11,10 @@ from torchhys.operator import HysteresisOperator, OperatorStep, check_operator, 
 
 __all__ = ["InverseHysteresisNet"]
 
-_ACTIVATIONS = {"sigmoid": nn.Sigmoid, "tanh": nn.Tanh, "relu": nn.ReLU, "gelu": nn.GELU}
+_ACTIVATIONS = {
+    "sigmoid": nn.Sigmoid, "tanh": nn.Tanh, "relu": nn.ReLU, "gelu": nn.GELU,
+    "identity": nn.Identity,
+}
 
 Operator = str | HysteresisOperator
 
@@ -37,7 +40,9 @@ class InverseHysteresisNet(nn.Module):
             a list of those (expanded input space, e.g. EIHOs with several ``a`` and play
             operators), or None.
         hidden: number of hidden units.
-        activation: ``"sigmoid"`` (the paper), ``"tanh"``, ``"relu"`` or ``"gelu"``.
+        activation: ``"sigmoid"`` (the paper), ``"tanh"``, ``"relu"``, ``"gelu"``, or
+            ``"identity"`` (a linear readout of the features: with ``hidden=1``, an affine
+            combination of the input and the operators' outputs).
         operator_kwargs: keyword arguments of operators given by name (e.g. ``a=...``).
 
     Raises:
