@@ -7,7 +7,8 @@ second, ``-ffp-contract=off`` so that each multiply and add rounds as in the eag
 
 - ``df2t``: the direct form II transposed recursion of ``scipy.signal.lfilter``, written with
   the operations of :func:`~torchhys.functional.linear_filter.df2t_step` in the same order,
-  so that the two agree bit for bit.
+  so that the two agree bit for bit; one filter for all rows, or F filters (row r uses
+  filter ``r % F``).
 - ``linrec``: ``s[t] = A s[t-1] + w[t]`` for a small dense ``A``.
 - ``df2t_adjoint`` and ``linrec_adjoint``: their backward passes, each one reverse pass that
   also reduces the gradients of the coefficients (sums over time in float64).
@@ -64,17 +65,19 @@ _SOURCE = r"""
 #define MAXN 64 /* MAX_FUSED_ORDER */
 #define FILTER_DEFINE(T, SUF)                                                            \
 void df2t_##SUF(const T* x, const T* b, const T* a, const T* zi, T* y, T* zf,          \
-                long R, long Tn, long n) {                                              \
+                long R, long Tn, long n, long F) {                                      \
     for (long r = 0; r < R; ++r) {                                                      \
         const T* xr = x + r * Tn;                                                       \
+        const T* bf = b + (r % F) * (n + 1);                                            \
+        const T* af = a + (r % F) * n;                                                  \
         T* yr = y + r * Tn;                                                             \
         T* z = zf + r * n;                                                              \
         for (long i = 0; i < n; ++i) z[i] = zi[r * n + i];                              \
         for (long t = 0; t < Tn; ++t) {                                                 \
             const T xt = xr[t];                                                         \
-            const T yt = b[0] * xt + z[0];                                              \
-            for (long i = 0; i + 1 < n; ++i) z[i] = b[i + 1] * xt + z[i + 1] - a[i] * yt; \
-            z[n - 1] = b[n] * xt + (T)0 - a[n - 1] * yt;                                \
+            const T yt = bf[0] * xt + z[0];                                             \
+            for (long i = 0; i + 1 < n; ++i) z[i] = bf[i + 1] * xt + z[i + 1] - af[i] * yt; \
+            z[n - 1] = bf[n] * xt + (T)0 - af[n - 1] * yt;                              \
             yr[t] = yt;                                                                 \
         }                                                                               \
     }                                                                                   \
@@ -96,16 +99,21 @@ void linrec_##SUF(const T* A, const T* w, const T* s0, T* s, long R, long Tn, lo
 }                                                                                       \
 void df2t_adjoint_##SUF(const T* x, const T* y, const T* gy, const T* gzf, const T* b,  \
                         const T* a, T* gx, double* gb, double* ga, T* gzi, T* lam,       \
-                        long R, long Tn, long n) {                                      \
+                        long R, long Tn, long n, long F) {                              \
     double sb[MAXN + 1], sa[MAXN + 1];                                                  \
-    for (long k = 0; k <= n; ++k) { sb[k] = 0; sa[k] = 0; }                             \
     for (long r = 0; r < R; ++r) {                                                      \
+        const long f = r % F;                                                           \
+        const T* bf = b + f * (n + 1);                                                  \
+        const T* af = a + f * n;                                                        \
+        double* gbf = gb + f * (n + 1);                                                 \
+        double* gaf = ga + f * (n + 1);                                                 \
+        for (long k = 0; k <= n; ++k) { sb[k] = gbf[k]; sa[k] = gaf[k]; }               \
         const T* xr = x + r * Tn; const T* yr = y + r * Tn; const T* gr = gy + r * Tn;  \
         T* gxr = gx + r * Tn;                                                           \
         for (long i = 0; i < n; ++i) lam[Tn + i] = gzf[r * n + i];                      \
         for (long t = Tn - 1; t >= 0; --t) {                                            \
             T l = gr[t];                                                                \
-            for (long k = 1; k <= n; ++k) l -= a[k - 1] * lam[t + k];                   \
+            for (long k = 1; k <= n; ++k) l -= af[k - 1] * lam[t + k];                  \
             lam[t] = l;                                                                 \
         }                                                                               \
         for (long t = 0; t < Tn; ++t) {                                                 \
@@ -113,15 +121,15 @@ void df2t_adjoint_##SUF(const T* x, const T* y, const T* gy, const T* gzf, const
             T acc = 0;                                                                  \
             for (long k = 0; k <= n; ++k) {                                             \
                 const T lk = lam[t + k];                                                \
-                acc += b[k] * lk;                                                       \
+                acc += bf[k] * lk;                                                      \
                 sb[k] += (double)lk * xt;                                               \
                 sa[k] -= (double)lk * yt;                                               \
             }                                                                           \
             gxr[t] = acc;                                                               \
         }                                                                               \
         for (long i = 0; i < n; ++i) gzi[r * n + i] = lam[i];                           \
+        for (long k = 0; k <= n; ++k) { gbf[k] = sb[k]; gaf[k] = sa[k]; }               \
     }                                                                                   \
-    for (long k = 0; k <= n; ++k) { gb[k] = sb[k]; ga[k] = sa[k]; }                     \
 }                                                                                       \
 void linrec_adjoint_##SUF(const T* A, const T* s0, const T* s, const T* gs, T* lam,     \
                           double* gA, T* gs0, long R, long Tn, long n) {                \
@@ -161,9 +169,9 @@ def _load() -> tuple[ctypes.CDLL | None, str | None]:
         return None, reason
     p, lng = ctypes.c_void_p, ctypes.c_long
     for suffix in _SUFFIX.values():
-        getattr(lib, f"df2t_{suffix}").argtypes = [p] * 6 + [lng] * 3
+        getattr(lib, f"df2t_{suffix}").argtypes = [p] * 6 + [lng] * 4
         getattr(lib, f"linrec_{suffix}").argtypes = [p] * 4 + [lng] * 3
-        getattr(lib, f"df2t_adjoint_{suffix}").argtypes = [p] * 11 + [lng] * 3
+        getattr(lib, f"df2t_adjoint_{suffix}").argtypes = [p] * 11 + [lng] * 4
         getattr(lib, f"linrec_adjoint_{suffix}").argtypes = [p] * 7 + [lng] * 3
     return lib, None
 
@@ -183,15 +191,19 @@ def filter_kernel_available(*tensors: Tensor) -> bool:
 
 
 def df2t_kernel(x: Tensor, b: Tensor, a: Tensor, zi: Tensor) -> tuple[Tensor, Tensor]:
-    """x (R, T), b (n+1,), a (n,) = a[1:], zi (R, n) with n >= 1 -> y (R, T), zf (R, n)."""
+    """x (R, T), b (n+1,), a (n,) = a[1:], zi (R, n) with n >= 1 -> y (R, T), zf (R, n).
+
+    With F filters, b (F, n+1) and a (F, n): row r uses filter ``r % F`` (R a multiple of F).
+    """
     x, b, a, zi = (t.detach().contiguous() for t in (x, b, a, zi))
     R, T = x.shape
-    n = a.shape[0]
+    n = a.shape[-1]
+    F = 1 if b.dim() == 1 else b.shape[0]
     y = torch.empty(R, T, dtype=x.dtype)
     zf = torch.empty(R, n, dtype=x.dtype)
     fn = getattr(_load()[0], f"df2t_{_SUFFIX[x.dtype]}")
     fn(x.data_ptr(), b.data_ptr(), a.data_ptr(), zi.data_ptr(), y.data_ptr(), zf.data_ptr(),
-       R, T, n)
+       R, T, n, F)
     return y, zf
 
 
@@ -208,19 +220,21 @@ def linrec_kernel(A: Tensor, w: Tensor, s0: Tensor) -> Tensor:
 def df2t_adjoint_kernel(gy: Tensor, gzf: Tensor, x: Tensor, b: Tensor, a: Tensor, y: Tensor
                         ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Gradients of ``<gy, y> + <gzf, zf>`` for :func:`df2t_kernel`: (gx, gb, ga, gzi), with
-    ``ga`` the gradient of ``a[1:]``; the sums over time accumulate in float64."""
+    ``ga`` the gradient of ``a[1:]``; the sums over time accumulate in float64. With F filters
+    (b (F, n+1), a (F, n)) the gradients are per filter, (F, n+1) and (F, n)."""
     gy, gzf, x, b, a, y = (t.detach().contiguous() for t in (gy, gzf, x, b, a, y))
     R, T = x.shape
-    n = a.shape[0]
+    n = a.shape[-1]
+    F = 1 if b.dim() == 1 else b.shape[0]
     gx = torch.empty(R, T, dtype=x.dtype)
-    gb = torch.empty(n + 1, dtype=torch.float64)
-    ga = torch.empty(n + 1, dtype=torch.float64)
+    gb = torch.zeros(F, n + 1, dtype=torch.float64)
+    ga = torch.zeros(F, n + 1, dtype=torch.float64)
     gzi = torch.empty(R, n, dtype=x.dtype)
     lam = torch.empty(T + n, dtype=x.dtype)
     fn = getattr(_load()[0], f"df2t_adjoint_{_SUFFIX[x.dtype]}")
     fn(x.data_ptr(), y.data_ptr(), gy.data_ptr(), gzf.data_ptr(), b.data_ptr(), a.data_ptr(),
-       gx.data_ptr(), gb.data_ptr(), ga.data_ptr(), gzi.data_ptr(), lam.data_ptr(), R, T, n)
-    return gx, gb.to(x.dtype), ga[1:].to(x.dtype), gzi
+       gx.data_ptr(), gb.data_ptr(), ga.data_ptr(), gzi.data_ptr(), lam.data_ptr(), R, T, n, F)
+    return gx, gb.reshape(b.shape).to(x.dtype), ga[:, 1:].reshape(a.shape).to(x.dtype), gzi
 
 
 def linrec_adjoint_kernel(gs: Tensor, A: Tensor, s0: Tensor, s: Tensor

@@ -73,12 +73,15 @@ def df2t_step(x: Tensor, z: Tensor, b: Tensor, a: Tensor) -> tuple[Tensor, Tenso
         z: delays, (batch, n) with n >= 1.
         b: numerator, (n + 1,); a: denominator without its leading 1, ``a[1:]``, (n,).
 
+    Several filters step at once with leading dimensions that broadcast: x (..., 1),
+    z (..., n), b (..., n + 1), a (..., n).
+
     Returns:
         ``(y, z)``: the output (batch, 1) and the new delays (batch, n).
     """
-    y = b[0] * x + z[:, :1]
-    shifted = torch.cat([z[:, 1:], torch.zeros_like(z[:, :1])], dim=1)
-    return y, b[1:] * x + shifted - a * y
+    y = b[..., :1] * x + z[..., :1]
+    shifted = torch.cat([z[..., 1:], torch.zeros_like(z[..., :1])], dim=-1)
+    return y, b[..., 1:] * x + shifted - a * y
 
 
 def state_space_step(u: Tensor, s: Tensor, A: Tensor, B: Tensor, C: Tensor, D: Tensor
@@ -86,20 +89,38 @@ def state_space_step(u: Tensor, s: Tensor, A: Tensor, B: Tensor, C: Tensor, D: T
     """One state-space step ``y = C s + D u``, ``s <- A s + B u`` (scriptable).
 
     Args:
-        u: input sample, (batch, 1). s: state, (batch, n).
-        A: (n, n). B: (n,). C: (p, n). D: (p,).
+        u: input sample, (batch, 1) with one input, (batch, m) with m inputs.
+        s: state, (batch, n).
+        A: (n, n). B: (n,) with one input, (n, m) with m. C: (p, n). D: (p,) or (p, m).
 
     Returns:
         ``(y, s)``: the output (batch, p) and the new state (batch, n).
     """
-    return s @ C.mT + u * D, s @ A.mT + u * B
+    if B.dim() == 1:
+        return s @ C.mT + u * D, s @ A.mT + u * B
+    return s @ C.mT + u @ D.mT, s @ A.mT + u @ B.mT
 
 
 # --- autograd functions ------------------------------------------------------------------------
 
 
+def _df2t_scan_filters(x: Tensor, b: Tensor, a: Tensor, zi: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`df2t_scan` for F filters (b (F, n+1), a (F, n), row r uses filter r % F): one
+    scan per filter over all its rows."""
+    F = b.shape[0]
+    if F == 1:
+        return df2t_scan(x, b[0], a[0], zi)
+    R, T = x.shape
+    xs, zs = x.reshape(R // F, F, T), zi.reshape(R // F, F, -1)
+    parts = [df2t_scan(xs[:, f], b[f], a[f], zs[:, f]) for f in range(F)]
+    y = torch.stack([p[0] for p in parts], dim=1).reshape(R, T)
+    return y, torch.stack([p[1] for p in parts], dim=1).reshape(R, -1)
+
+
 class _DF2T(torch.autograd.Function):
-    """x (R, T), b (n+1,), a (n,) = a[1:], zi (R, n) -> y (R, T), zf (R, n)."""
+    """x (R, T), b (F, n+1), a (F, n) = a[:, 1:], zi (R, n) -> y (R, T), zf (R, n).
+
+    Row r uses filter ``r % F`` (R a multiple of F)."""
 
     @staticmethod
     def forward(ctx, x: Tensor, b: Tensor, a: Tensor, zi: Tensor  # type: ignore[override]
@@ -107,7 +128,7 @@ class _DF2T(torch.autograd.Function):
         if filter_kernel_available(x, b, a, zi):
             y, zf = df2t_kernel(x, b, a, zi)
         else:
-            y, zf = df2t_scan(x, b, a, zi)
+            y, zf = _df2t_scan_filters(x, b, a, zi)
         ctx.save_for_backward(x, b, a, y)
         return y, zf
 
@@ -119,18 +140,21 @@ class _DF2T(torch.autograd.Function):
                 and filter_kernel_available(x, b, a, y, gy, gzf)):
             return df2t_adjoint_kernel(gy, gzf, x, b, a, y)  # one fused pass, no graph
         R, T = x.shape
-        n = a.shape[0]
+        F, n = a.shape
+        rows = a.repeat(R // F, 1)  # each row's a: (R, n)
         # lam[T + i] = gzf[i]: the tail input that makes the backward recursion produce it
         tail = gzf
         for k in range(1, n):
-            tail = tail + a[k - 1] * torch.cat([gzf[:, k:], gzf.new_zeros(R, k)], dim=1)
+            tail = tail + rows[:, k - 1:k] * torch.cat([gzf[:, k:], gzf.new_zeros(R, k)], 1)
         u = torch.cat([gy, tail], dim=1).flip(1)
-        e0 = torch.cat([b.new_ones(1), b.new_zeros(n)])
+        e0 = torch.cat([b.new_ones(F, 1), b.new_zeros(F, n)], dim=1)
         lam = _DF2T.apply(u, e0, a, u.new_zeros(R, n))[0].flip(1)  # (R, T + n)
         win = torch.stack([lam[:, k: k + T] for k in range(n + 1)], 1)  # lam[t + k]: (R, n+1, T)
-        gx = torch.einsum("k,rkt->rt", b, win)
-        gb = torch.einsum("rkt,rt->k", win, x)
-        ga = -torch.einsum("rkt,rt->k", win[:, 1:], y)
+        win = win.reshape(R // F, F, n + 1, T)  # rows as (batch, filter)
+        xs, ys = x.reshape(R // F, F, T), y.reshape(R // F, F, T)
+        gx = torch.einsum("fk,bfkt->bft", b, win).reshape(R, T)
+        gb = torch.einsum("bfkt,bft->fk", win, xs)
+        ga = -torch.einsum("bfkt,bft->fk", win[:, :, 1:], ys)
         return gx, gb, ga, lam[:, :n]
 
 
@@ -198,6 +222,19 @@ def _initial(s0: Tensor | None, batch: torch.Size, n: int, x: Tensor, name: str)
     return s0.to(dtype=x.dtype, device=x.device).expand(batch + (n,)).reshape(batch.numel(), n)
 
 
+def _filters(v: Tensor, name: str, x: Tensor) -> Tensor:
+    """Check one filter's coefficients (length,) or F filters' (F, length), F = x.shape[-2];
+    return them as (1 or F, length) in x's dtype."""
+    check_tensor(v, name)
+    if v.dim() == 2 and x.dim() >= 2 and v.shape[0] == x.shape[-2] and v.shape[1] > 0:
+        return _coefficients(v.reshape(-1), name, x).reshape(v.shape)
+    if v.dim() == 2:
+        filters = x.shape[-2] if x.dim() >= 2 else "x.shape[-2]"
+        raise ValueError(f"{name} must have shape (length,) or (filters, length) with one "
+                         f"filter a row of x (filters = {filters}), got shape {tuple(v.shape)}")
+    return _coefficients(v, name, x).unsqueeze(0)
+
+
 def lfilter(x: Tensor, b: Tensor, a: Tensor, *, zi: Tensor | None = None
             ) -> tuple[Tensor, Tensor]:
     """Filter ``x`` along time with ``B(z) / A(z)`` in direct form II transposed.
@@ -207,9 +244,13 @@ def lfilter(x: Tensor, b: Tensor, a: Tensor, *, zi: Tensor | None = None
     respect to ``x``, ``b``, ``a`` and ``zi`` (double backward too), batches, float32 and
     float64, CPU (compiled kernel) and other devices (chunked scan). Stability is not checked.
 
+    Several filters in one call: with ``b`` (F, nb) and/or ``a`` (F, na) (a 1-D one is shared)
+    and ``x`` (..., F, time), row f of x is filtered with ``b[f]`` and ``a[f]`` (the rows of
+    one filter run together on the kernel; the scan runs one filter at a time).
+
     Args:
         x: input, (..., time), finite, floating point.
-        b: numerator, (nb,). a: denominator, (na,), ``a[0] != 0``.
+        b: numerator, (nb,) or (F, nb). a: denominator, (na,) or (F, na), ``a[..., 0] != 0``.
         zi: delays before the first sample, (n,) or (..., n) with ``n = max(na, nb) - 1``;
             zeros if None.
 
@@ -226,19 +267,23 @@ def lfilter(x: Tensor, b: Tensor, a: Tensor, *, zi: Tensor | None = None
         ``scipy.signal.lfilter``.
     """
     _check_sequence(x, "x")
-    b = _coefficients(b, "b", x)
-    a = _coefficients(a, "a", x)
-    if bool(a[0] == 0):
+    b = _filters(b, "b", x)
+    a = _filters(a, "a", x)
+    if bool((a[:, 0] == 0).any()):
+        bad = a[(a[:, 0] == 0).nonzero()[0, 0]]
         raise ValueError(f"a[0] must be non-zero (it weights the current output y[t]), got "
-                         f"a = {a.tolist()}")
-    n = max(a.shape[0], b.shape[0]) - 1
-    b = torch.cat([b, b.new_zeros(n + 1 - b.shape[0])]) / a[0]
-    a = torch.cat([a, a.new_zeros(n + 1 - a.shape[0])]) / a[0]
+                         f"a = {bad.tolist()}")
+    F = max(a.shape[0], b.shape[0])
+    n = max(a.shape[1], b.shape[1]) - 1
+    b = torch.cat([b, b.new_zeros(b.shape[0], n + 1 - b.shape[1])], 1) / a[:, :1]
+    a = torch.cat([a, a.new_zeros(a.shape[0], n + 1 - a.shape[1])], 1) / a[:, :1]
+    b, a = b.expand(F, n + 1), a.expand(F, n + 1)
     batch = x.shape[:-1]
     z0 = _initial(zi, batch, n, x, "zi")
     if n == 0:
-        return b[0] * x, x.new_zeros(batch + (0,))
-    y, zf = _DF2T.apply(x.reshape(-1, x.shape[-1]), b, a[1:], z0)
+        gain = b[:, 0] if F == 1 else b[:, :1]
+        return gain * x, x.new_zeros(batch + (0,))
+    y, zf = _DF2T.apply(x.reshape(-1, x.shape[-1]), b, a[:, 1:], z0)
     return y.reshape(x.shape), zf.reshape(batch + (n,))
 
 
@@ -268,10 +313,15 @@ def linear_recurrence(A: Tensor, w: Tensor, *, s0: Tensor | None = None) -> Tens
 
 def state_space(u: Tensor, A: Tensor, B: Tensor, C: Tensor, D: Tensor, *,
                 s0: Tensor | None = None) -> tuple[Tensor, Tensor]:
-    """Outputs of ``s[t+1] = A s[t] + B u[t]``, ``y[t] = C s[t] + D u[t]`` (one input).
+    """Outputs of ``s[t+1] = A s[t] + B u[t]``, ``y[t] = C s[t] + D u[t]``.
+
+    One input: u (..., time), B (n,), D (p,). m inputs: u (..., time, m), B (n, m), D (p, m).
+    The recursion is :func:`linear_recurrence` on ``w[t] = B u[t]`` (no loop over samples in
+    Python); the outputs are one batched product.
 
     Args:
-        u: input, (..., time). A: (n, n). B: (n,). C: (p, n). D: (p,).
+        u: input, (..., time) or (..., time, m). A: (n, n). B: (n,) or (n, m). C: (p, n).
+        D: (p,) or (p, m).
         s0: state at the first sample, (n,) or (..., n); zeros if None.
 
     Returns:
@@ -283,19 +333,25 @@ def state_space(u: Tensor, A: Tensor, B: Tensor, C: Tensor, D: Tensor, *,
     References:
         ``scipy.signal.dlsim`` (the same convention).
     """
-    _check_sequence(u, "u")
     for name, m in (("A", A), ("C", C)):
         if check_tensor(m, name).dim() != 2:
             raise ValueError(f"{name} must be a matrix, got shape {tuple(m.shape)}")
+    multi = check_tensor(B, "B").dim() == 2
+    _check_sequence(u, "u", min_dim=2 if multi else 1)
     n, p = A.shape[0], C.shape[0]
+    m = B.shape[1] if multi else 1
+    if multi and u.shape[-1] != m:
+        raise ValueError(f"u must have shape (..., time, {m}) for B of shape {tuple(B.shape)} "
+                         f"({m} inputs), got shape {tuple(u.shape)}")
     A = _coefficients(A, "A", u, (n, n))
-    B = _coefficients(B, "B", u, (n,))
+    B = _coefficients(B, "B", u, (n, m) if multi else (n,))
     C = _coefficients(C, "C", u, (p, n))
-    D = _coefficients(D, "D", u, (p,))
-    batch = u.shape[:-1]
+    D = _coefficients(D, "D", u, (p, m) if multi else (p,))
+    batch = u.shape[:-2] if multi else u.shape[:-1]
+    T = u.shape[-2] if multi else u.shape[-1]
     start = _initial(s0, batch, n, u, "s0")
-    ur = u.reshape(-1, u.shape[-1], 1)
-    s = _LinearRecurrence.apply(A, ur * B, start)
+    ur = u.reshape(-1, T, m)
+    s = _LinearRecurrence.apply(A, ur @ B.mT if multi else ur * B, start)
     entering = torch.cat([start.unsqueeze(1), s[:, :-1]], dim=1)
-    y = entering @ C.mT + ur * D
-    return y.reshape(batch + (u.shape[-1], p)), s[:, -1].reshape(batch + (n,))
+    y = entering @ C.mT + (ur @ D.mT if multi else ur * D)
+    return y.reshape(batch + (T, p)), s[:, -1].reshape(batch + (n,))
