@@ -184,6 +184,10 @@ def check_operator(op: object, name: str = "operator") -> HysteresisOperator:
     n = op.n_outputs
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise TypeError(f"{name} {type(op).__name__}: n_outputs must be an int >= 1, got {n!r}")
+    m = getattr(op, "n_inputs", 1)  # a multi-input block (torchhys.dynamics) is no operator
+    if m != 1:
+        raise TypeError(f"{name} {type(op).__name__} has n_inputs = {m}: an operator takes one "
+                        "input column (x (batch, time)); use a block with n_inputs=1 here")
     return op
 
 
