@@ -70,6 +70,7 @@ from torch import Tensor
 
 from torchhys import EIHO, Backlash, InverseHysteresisNet, fit_preisach, select_penalty
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
+from torchhys.training.families import FitError
 from torchhys.training.init import initialize
 from torchhys.training.module import OPTIMIZERS, InverseHysteresisModule
 from torchhys.training.operators import build_operators, fit_data_dependent
@@ -519,11 +520,13 @@ def _config_model(path: Path) -> tuple[dict, dict, torch.dtype, int]:
     return {**defaults, **cfg["model"]}, trainer, dtype, int(cfg.get("seed_everything", 0))
 
 
-def _train_config(path: Path, x: Tensor, y: Tensor, w: int,
-                  budget: Budget) -> tuple[InverseHysteresisNet, int, int]:
-    """Build the config's network, fit its data-dependent operators and normalization on
-    (x, y) (rows, time) and train it on samples [w, T): the net, epochs done, epochs asked."""
+def _train_config(path: Path, x: Tensor, y: Tensor, w: int, budget: Budget,
+                  overrides: dict | None = None) -> tuple[InverseHysteresisNet, int, int]:
+    """Build the config's network (its model section with a candidate's ``overrides``), fit
+    its data-dependent operators and normalization on (x, y) (rows, time) and train it on
+    samples [w, T): the net, epochs done, epochs asked."""
     m, trainer, dtype, seed = _config_model(path)
+    m = {**m, **(overrides or {})}
     torch.manual_seed(seed)
     ops, fitters = build_operators(m["operator"], m["operator_kwargs"])
     net = InverseHysteresisNet(ops, m["hidden"], activation=m["activation"])
@@ -559,20 +562,51 @@ def _train_config(path: Path, x: Tensor, y: Tensor, w: int,
     return net, done, epochs
 
 
+def _describe(m: dict) -> str:
+    specs = m["operator"] if isinstance(m["operator"], list) else [m["operator"]]
+    names = "+".join(str(s.get("name")) + (f"({s['direction']})" if "direction" in s else "")
+                     if isinstance(s, dict) else str(s) for s in specs)
+    return f"{names} + {m['hidden']} {m['activation']}"
+
+
 def default(split: Split, budget: Budget, config: Path = CONFIG) -> Fitted:
     """The model section of a ``torchhys fit`` config, trained as its trainer section says
-    on the whole training part (the hold-out RMSE from a second fit on the part before it)."""
+    on the whole training part. With ``model.select``, every candidate is fitted on the
+    part before the hold-out and scored on it (as ``torchhys fit`` scores its validation
+    split), and the best one (a candidate that cannot be fitted is skipped) is refitted on
+    the whole training part; without, the hold-out RMSE comes from a second fit before it."""
     x, y, w, c = split.x, split.y, split.warmup, holdout(split.x.shape[1], split.warmup)
-    first, _, _ = _train_config(config, x[:, :c], y[:, :c], w, budget)
-    dtype = next(first.parameters()).dtype
-    with torch.no_grad():
-        score = _rmse(first(x.to(dtype))[0][:, c:].to(F64), y[:, c:])
-    net, done, epochs = _train_config(config, x, y, w, budget)
     m = _config_model(config)[0]
-    specs = m["operator"] if isinstance(m["operator"], list) else [m["operator"]]
-    ops = "+".join(s["name"] if isinstance(s, dict) else str(s) for s in specs)
+    candidates = m.pop("select", None) or [{}]
+    m.pop("select_cv", None)
+    scores = []
+    for i, overrides in enumerate(candidates):
+        try:
+            first, _, _ = _train_config(config, x[:, :c], y[:, :c], w, budget, overrides)
+        except FitError:
+            continue
+        dtype = next(first.parameters()).dtype
+        with torch.no_grad():
+            score = _rmse(first(x.to(dtype))[0][:, c:].to(F64), y[:, c:])
+        scores.append((score if math.isfinite(score) else math.inf, i))
+    if not scores:
+        raise FitError("no candidate of the config could be fitted")
+    failed, refit = 0, None
+    for held_out, i in sorted(scores):  # the best candidate whose refit succeeds
+        try:
+            refit = _train_config(config, x, y, w, budget, candidates[i])
+            score = held_out
+            break
+        except FitError:
+            failed += 1
+    if refit is None:
+        raise FitError("no candidate of the config could be refitted")
+    net, done, epochs = refit
+    dtype = next(net.parameters()).dtype
     capped = f" (capped at {budget.seconds:g} s)" if done < epochs else ""
-    choice = (f"{config.name}: {ops} + {m['hidden']} {m['activation']}, {m['optimizer']} "
+    note = f" ({failed} failed refits)" if failed else ""
+    chosen = f"candidate {i}{note}: " if len(candidates) > 1 else ""
+    choice = (f"{config.name}: {chosen}{_describe({**m, **candidates[i]})}, {m['optimizer']} "
               f"{done} epochs{capped}")
     return Fitted(lambda v: net(v.to(dtype))[0].to(F64), choice, score)
 

@@ -9,6 +9,7 @@ from torchhys.backlash import Backlash, BacklashCell
 from torchhys.cascade import Cascade
 from torchhys.eiho import EIHO, ZhaoTanOperator
 from torchhys.generalized_pi import GeneralizedPrandtlIshlinskii, fit_generalized_pi
+from torchhys.generalized_pi_inverse import GeneralizedPIInverse
 from torchhys.networks import InverseHysteresisNet
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
 from torchhys.prandtl_ishlinskii import PrandtlIshlinskii, PrandtlIshlinskiiInverse
@@ -41,6 +42,7 @@ __all__ = [
     "Preisach",
     "fit_preisach",
     "select_penalty",
+    "GeneralizedPIInverse",
     "GeneralizedPrandtlIshlinskii",
     "fit_generalized_pi",
 ]

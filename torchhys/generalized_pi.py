@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
@@ -47,6 +48,9 @@ from torchhys.functional.backlash import backlash, play_step
 from torchhys.functional.prandtl_ishlinskii import pi_output
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
 from torchhys.prandtl_ishlinskii import PrandtlIshlinskii
+
+if TYPE_CHECKING:
+    from torchhys.generalized_pi_inverse import GeneralizedPIInverse
 
 __all__ = ["GeneralizedPIStep", "GeneralizedPrandtlIshlinskii", "fit_generalized_pi",
            "monotone_output"]
@@ -195,6 +199,19 @@ class GeneralizedPrandtlIshlinskii(_Widths, HysteresisOperator):
         (detached parameters)."""
         widths, w, w0 = (t.detach() for t in self.parameters_effective()[:3])
         return PrandtlIshlinskii(widths.clone(), w.clone(), linear_weight=float(w0))
+
+    def inverse(self, *, lower: float = -math.inf,
+                upper: float = math.inf) -> GeneralizedPIInverse:
+        """The exact inverse ``x = p^-1[g^-1(y)]`` as an operator
+        (:class:`~torchhys.GeneralizedPIInverse`, detached parameters), ``g^-1`` bounded to
+        ``[lower, upper]`` (see :mod:`torchhys.generalized_pi_inverse`).
+
+        Raises:
+            ValueError: the PI part's loading curve is not strictly increasing.
+        """
+        from torchhys.generalized_pi_inverse import GeneralizedPIInverse
+
+        return GeneralizedPIInverse.from_model(self, lower=lower, upper=upper)
 
     def extra_repr(self) -> str:
         return f"n_plays={self.n_operators}, n_units={self.centers.shape[0]}"

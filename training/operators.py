@@ -11,7 +11,9 @@ dict ``{"name": NAME, **kwargs}``:
   ``span_fraction * span(x_train) (k / n)^power``, ``k = 1..n`` (or explicit ``widths``);
 - ``{"name": "pi_ls", "n_widths": 30, "power": 3.0, "ridge": 0.0, "learnable": False}``:
   the least-squares Prandtl-Ishlinskii model of the target from the input
-  (:func:`torchhys.fitting.fit_prandtl_ishlinskii` on :func:`~torchhys.fitting.play_width_grid`).
+  (:func:`torchhys.fitting.fit_prandtl_ishlinskii` on :func:`~torchhys.fitting.play_width_grid`);
+- ``pi_nonneg``, ``gpi``, ``preisach``: constrained model families identified on the
+  training split (:mod:`torchhys.training.families`).
 
 All of them are causal except an EIHO with ``a="segment"``. ``plays`` (without ``widths``)
 and ``pi_ls`` depend on the training data: they are built as placeholders of the right
@@ -32,6 +34,7 @@ from torchhys import Backlash, PrandtlIshlinskii
 from torchhys._checks import check_choice, check_int
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid
 from torchhys.operator import OPERATORS, make_operator
+from torchhys.training.families import FAMILIES
 
 __all__ = [
     "FITTED_OPERATORS", "OperatorSpec", "build_operators", "fit_data_dependent",
@@ -100,6 +103,7 @@ def _pi_ls(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
 FITTED_OPERATORS: dict[str, Callable[[Mapping[str, Any]], tuple[nn.Module, Fitter | None]]] = {
     "plays": _plays,
     "pi_ls": _pi_ls,
+    **FAMILIES,
 }
 """Config operators fitted on the training data, by name: each builder returns
 ``(module, fitter or None)``. Every other name is built by

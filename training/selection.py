@@ -13,9 +13,10 @@ MSE at the end of training, either
   contiguous blocks, each held out once, and the score is the MSE over all held-out
   samples.
 
-The test split is never read. :func:`run_selection` returns one :class:`CandidateScore`
-per candidate, :func:`best` picks the lowest validation MSE (the first on ties), and
-:func:`write_table` writes them as CSV.
+A candidate whose family operator cannot be fitted to the data (no inverse, a diverged fit)
+scores NaN and is never chosen. The test split is never read. :func:`run_selection` returns
+one :class:`CandidateScore` per candidate, :func:`best` picks the lowest validation MSE (the
+first on ties), and :func:`write_table` writes them as CSV.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import csv
 import inspect
 import json
 import math
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,6 +37,7 @@ from torch import Tensor
 from torch.utils.data import DataLoader
 
 from torchhys._checks import check_int
+from torchhys.training.families import FitError
 
 __all__ = [
     "BlockFold", "Build", "CandidateScore", "best", "check_candidates", "check_holdout",
@@ -221,8 +224,13 @@ class BlockFold(L.LightningDataModule):
 
 def _validation_mse(module: L.LightningModule, datamodule: L.LightningDataModule,
                     trainer: L.Trainer) -> float:
-    """Train, then the validation MSE of the trained module."""
-    trainer.fit(module, datamodule=datamodule)
+    """Train, then the validation MSE of the trained module (NaN, with a warning, when a
+    family operator cannot be fitted to the data: :class:`~torchhys.training.families.FitError`)."""
+    try:
+        trainer.fit(module, datamodule=datamodule)
+    except FitError as err:
+        warnings.warn(f"model.select: candidate skipped: {err}", RuntimeWarning, stacklevel=2)
+        return math.nan
     results = trainer.validate(module, datamodule=datamodule, verbose=False)
     if not results or "val_mse" not in results[0]:
         raise ValueError(

@@ -1,0 +1,188 @@
+"""The exact inverse of a generalized Prandtl-Ishlinskii model, as an operator.
+
+The model is ``y = g(p[x])`` (:class:`~torchhys.GeneralizedPrandtlIshlinskii`): a
+Prandtl-Ishlinskii model ``p`` with non-negative weights and a strictly increasing output
+function ``g``. Its inverse is ``x = p^-1[g^-1(y)]``: the memoryless inverse of ``g``
+(:func:`monotone_inverse`), then the analytic inverse of the PI part, itself a PI model of
+``g^-1(y)`` (:func:`~torchhys.functional.prandtl_ishlinskii_inverse_parameters`). Fitted in
+the direction where a generalized PI model has the right shape (e.g. H -> B of a magnetic
+core, whose loops saturate), it models the other direction (B -> H) exactly.
+
+``g^-1`` has no closed form. Because ``|sum_k c_k tanh(.)| <= sum_k c_k``, the root of
+``g(v) = y`` lies in ``[(y - offset - C) / a, (y - offset + C) / a]`` (``C = sum_k c_k``);
+:func:`monotone_inverse` halves that bracket a fixed number of times and ends with one
+Newton step from the (detached) bisection point, so that the result is differentiable with
+the implicit-function gradient ``1 / g'(v)``. The sequence path and the per-sample step call
+the same function.
+
+A fitted ``g`` that saturates has a tiny gain ``a``: its inverse is steep beyond the
+saturation, and its bracket huge. ``lower``/``upper`` bound ``v`` (e.g. the range of the
+PI part's output in the fit, with a margin): the bracket is cut to them and ``v`` clamped,
+so that the inverse holds ``v`` at the bound for an input beyond ``g(upper)`` (or below
+``g(lower)``). Unbounded (the exact inverse) by default.
+"""
+
+import torch
+from torch import Tensor
+
+from torchhys.functional.backlash import backlash, play_step
+from torchhys.functional.prandtl_ishlinskii import (
+    pi_output,
+    prandtl_ishlinskii_inverse_parameters,
+)
+from torchhys.generalized_pi import GeneralizedPrandtlIshlinskii, monotone_output
+from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
+
+__all__ = ["GeneralizedPIInverse", "GeneralizedPIInverseStep", "monotone_inverse"]
+
+BISECTIONS = 52
+"""Halvings of the bracket of ``g^-1``: its width shrinks by 2^-52 (float64's resolution),
+then one Newton step."""
+
+
+def monotone_inverse(y: Tensor, gain: Tensor, unit_weights: Tensor, centers: Tensor,
+                     slopes: Tensor, offset: Tensor, lower: Tensor, upper: Tensor,
+                     bisections: int = BISECTIONS) -> Tensor:
+    """``v`` in ``[lower, upper]`` with ``g(v) = y`` for the increasing ``g`` of
+    :func:`monotone_output` (the bound where there is none): y (...) -> (...). Scriptable.
+
+    Bisection on ``[(y - offset - C) / gain, (y - offset + C) / gain]`` (``C`` the sum of
+    ``unit_weights``) cut to ``[lower, upper]`` (0-dim, may be infinite), then one Newton
+    step from the detached midpoint (the gradient with respect to y and the parameters is
+    the implicit-function one), clamped to the bounds.
+    """
+    spread = unit_weights.sum()
+    base = (y - offset).detach()
+    lo = torch.maximum((base - spread.detach()) / gain.detach(), lower)
+    hi = torch.minimum((base + spread.detach()) / gain.detach(), upper)
+    hi = torch.maximum(lo, hi)
+    target = y.detach()
+    params = (gain.detach(), unit_weights.detach(), centers.detach(), slopes.detach(),
+              offset.detach())
+    for _ in range(bisections):
+        mid = 0.5 * (lo + hi)
+        below = monotone_output(mid, params[0], params[1], params[2], params[3],
+                                params[4]) < target
+        lo = torch.where(below, mid, lo)
+        hi = torch.where(below, hi, mid)
+    v = 0.5 * (lo + hi)
+    tanh = torch.tanh(slopes * (v.unsqueeze(-1) - centers))
+    slope = gain + (unit_weights * slopes * (1.0 - tanh * tanh)).sum(-1)
+    residual = monotone_output(v, gain, unit_weights, centers, slopes, offset) - y
+    return torch.minimum(torch.maximum(v - residual / slope, lower), upper)
+
+
+class GeneralizedPIInverseStep(OperatorStep):
+    """Per-sample step of :class:`GeneralizedPIInverse`: :func:`monotone_inverse`, then N
+    plays (:func:`~torchhys.functional.play_step`) and
+    :func:`~torchhys.functional.pi_output`.
+
+    State: ``plays`` (N columns, 0 at the first sample). Shapes: x (batch, 1) -> features
+    (batch, 1).
+    """
+
+    def __init__(self, widths: Tensor, weights: Tensor, linear_weight: Tensor, gain: Tensor,
+                 unit_weights: Tensor, centers: Tensor, slopes: Tensor, offset: Tensor,
+                 lower: Tensor, upper: Tensor) -> None:
+        super().__init__()
+        for name, v in (("r", 0.5 * widths), ("weights", weights),
+                        ("linear_weight", linear_weight), ("gain", gain),
+                        ("unit_weights", unit_weights), ("centers", centers),
+                        ("slopes", slopes), ("offset", offset), ("lower", lower),
+                        ("upper", upper)):
+            self.register_buffer(name, v.detach().clone())
+        self.n_outputs = 1
+        self.state_spec = [StateBlock("plays", int(widths.shape[0]))]
+
+    def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
+        v = monotone_inverse(x, self.gain, self.unit_weights, self.centers, self.slopes,
+                             self.offset, self.lower, self.upper)
+        z = play_step(v, self.r, state[0])
+        return pi_output(v, z.unsqueeze(1), self.weights, self.linear_weight), [z]
+
+
+class GeneralizedPIInverse(HysteresisOperator):
+    """``x = p^-1[g^-1(y)]``, the inverse of a :class:`~torchhys.GeneralizedPrandtlIshlinskii`
+    model (module docstring). Fixed (buffers only): build it with
+    :meth:`from_model` (or ``model.inverse()``); the plain constructor gives a placeholder of
+    the right shape for ``load_state_dict``.
+
+    Args:
+        n_plays: number of play operators N of the inverse PI part (>= 1).
+        n_units: number of tanh units K of ``g`` (>= 0).
+
+    Shape:
+        - y: (time,) or (batch, time)
+        - state: the inverse PI part's play outputs before the first sample, (N,) or
+          (batch, N); zeros if None (the inverse of the model started from zero state)
+        - returns ``(x, state)``: x the shape of y; chunked calls equal one call.
+    """
+
+    n_outputs: int = 1
+
+    def __init__(self, n_plays: int = 1, n_units: int = 0) -> None:
+        super().__init__()
+        if isinstance(n_plays, bool) or not isinstance(n_plays, int) or n_plays < 1:
+            raise ValueError(f"n_plays must be an int >= 1, got {n_plays!r}")
+        if isinstance(n_units, bool) or not isinstance(n_units, int) or n_units < 0:
+            raise ValueError(f"n_units must be an int >= 0, got {n_units!r}")
+        dtype = torch.get_default_dtype()
+        self.register_buffer("widths", torch.arange(1, n_plays + 1, dtype=dtype) / n_plays)
+        self.register_buffer("weights", torch.zeros(n_plays, dtype=dtype))
+        self.register_buffer("linear_weight", torch.ones((), dtype=dtype))
+        self.register_buffer("gain", torch.ones((), dtype=dtype))
+        self.register_buffer("unit_weights", torch.zeros(n_units, dtype=dtype))
+        self.register_buffer("centers", torch.zeros(n_units, dtype=dtype))
+        self.register_buffer("slopes", torch.ones(n_units, dtype=dtype))
+        self.register_buffer("offset", torch.zeros((), dtype=dtype))
+        self.register_buffer("lower", torch.full((), -torch.inf, dtype=dtype))
+        self.register_buffer("upper", torch.full((), torch.inf, dtype=dtype))
+
+    @classmethod
+    @torch.no_grad()
+    def from_model(cls, model: GeneralizedPrandtlIshlinskii, *, lower: float = -float("inf"),
+                   upper: float = float("inf")) -> "GeneralizedPIInverse":
+        """The inverse of ``model`` (its current parameters, detached), in its dtype, with
+        ``g^-1`` bounded to ``[lower, upper]`` (module docstring).
+
+        Raises:
+            ValueError: the PI part's loading curve is not strictly increasing (no inverse).
+        """
+        widths, w, w0, a, c, b, s, off = (t.detach() for t in model.parameters_effective())
+        if not lower < upper:
+            raise ValueError(f"lower must be below upper, got {lower!r} and {upper!r}")
+        p = prandtl_ishlinskii_inverse_parameters(widths, w, w0)
+        n = int(widths.shape[0])
+        inverse = cls(n, int(c.shape[0])).to(widths.dtype)
+        m = int(p.widths.shape[0])
+        # operators of width 0 fold into the linear weight: pad with idle plays (weight 0)
+        pad = float(p.widths.max()) if m else 1.0
+        inverse.widths.fill_(pad)[:m] = p.widths
+        inverse.weights.zero_()[:m] = p.weights
+        inverse.linear_weight.copy_(p.linear_weight)
+        for name, v in (("gain", a), ("unit_weights", c), ("centers", b), ("slopes", s),
+                        ("offset", off), ("lower", torch.tensor(float(lower))),
+                        ("upper", torch.tensor(float(upper)))):
+            getattr(inverse, name).copy_(v)
+        return inverse
+
+    def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        v = monotone_inverse(x, *(t.to(x.dtype) for t in (
+            self.gain, self.unit_weights, self.centers, self.slopes, self.offset, self.lower,
+            self.upper)))
+        z = backlash(v, self.widths.to(v.dtype), y0=state)
+        out = pi_output(v, z, self.weights.to(z.dtype), self.linear_weight.to(z.dtype))
+        return out, z[..., -1, :]
+
+    def streaming_step(self, dtype: torch.dtype) -> GeneralizedPIInverseStep:
+        """The per-sample step with the current buffers, in ``dtype``."""
+        return GeneralizedPIInverseStep(*(t.to(dtype) for t in (
+            self.widths, self.weights, self.linear_weight, self.gain, self.unit_weights,
+            self.centers, self.slopes, self.offset, self.lower, self.upper)))
+
+    def extra_repr(self) -> str:
+        return (f"n_plays={self.widths.shape[0]}, n_units={self.centers.shape[0]}, "
+                f"lower={float(self.lower):.6g}, upper={float(self.upper):.6g}")
+
+
+register_operator("generalized_pi_inverse", GeneralizedPIInverse)

@@ -1,0 +1,247 @@
+"""Constrained model families as config operators, identified on the training split.
+
+Each spec builds an operator whose output is a fitted model of the target (in standardized
+units); the network that reads it (``hidden: 1, activation: identity`` for a plain affine
+readout) maps it back. They are the candidates of ``configs/measured.yaml``:
+
+- ``{"name": "pi_nonneg", "n_widths": 10, "power": 2.0, "ridge": "auto",
+  "direction": "direct"}``: a Prandtl-Ishlinskii model with non-negative weights
+  (:func:`torchhys.fitting.fit_prandtl_ishlinskii` with ``nonnegative=True``) of the target
+  from the input (``direct``), or of the input from the target, then its exact inverse
+  (``inverse``). Such a model draws loops of one orientation only, so the target's sign is
+  chosen by the training fit (both signs are fitted).
+- ``{"name": "gpi", "n_widths": 10, "power": 2.0, "ridge": "auto", "units": 4,
+  "epochs": 200, "direction": "direct"}``: :func:`torchhys.fit_generalized_pi` of the target
+  (times the sign that makes it rise with the input) from the input, or of the input from
+  it, then :class:`torchhys.GeneralizedPIInverse`.
+- ``{"name": "preisach", "n": 20, "smoothness": "auto"}``: :func:`torchhys.fit_preisach`
+  on a grid over the training input's range, both signs of the target fitted, the better
+  kept.
+
+``ridge``/``smoothness: "auto"`` picks the penalty on a time-ordered hold-out inside the
+training split (the last quarter of each row's scored samples; :func:`select_pi_ridge`,
+:func:`select_penalty`). Every choice uses the training split only. Widths come from
+:func:`~torchhys.fitting.play_width_grid` of the fitted model's input. A fit that cannot
+exist (no inverse, a target that does not rise, a diverged fit) raises :class:`FitError`:
+model selection scores that candidate as failed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from torchhys import (
+    GeneralizedPIInverse,
+    GeneralizedPrandtlIshlinskii,
+    PrandtlIshlinskii,
+    Preisach,
+    fit_generalized_pi,
+    fit_preisach,
+    select_penalty,
+)
+from torchhys._checks import check_choice, check_int
+from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
+
+__all__ = ["FAMILIES", "FitError", "PENALTIES"]
+
+PENALTIES = (0.0, 1e-8, 1e-6, 1e-4, 1e-2, 1e-1)
+"""The grid of ``ridge``/``smoothness: "auto"``."""
+VALIDATION = 0.25
+"""The hold-out share of ``"auto"`` penalties."""
+
+Fitter = Callable[[Tensor, Tensor, int], nn.Module]
+
+
+class FitError(ValueError):
+    """A model family that cannot be fitted to these data (model selection skips it)."""
+
+
+def _keys(spec: Mapping[str, Any], allowed: set[str]) -> None:
+    unknown = sorted(set(spec) - allowed - {"name"})
+    if unknown:
+        raise ValueError(
+            f"operator {spec['name']!r}: unknown option(s) {unknown}; valid: {sorted(allowed)}"
+        )
+
+
+def _penalty(spec: Mapping[str, Any], key: str) -> float | str:
+    value = spec.get(key, "auto")
+    if value == "auto":
+        return value
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
+        raise ValueError(f"operator {spec['name']!r}: {key} must be 'auto' or a number >= 0, "
+                         f"got {value!r}")
+    return float(value)
+
+
+def _grid(spec: Mapping[str, Any], n_default: int) -> tuple[int, float, str]:
+    n = check_int(spec.get("n_widths", n_default), f"operator {spec['name']!r}: n_widths",
+                  minimum=1)
+    power = spec.get("power", 2.0)
+    if isinstance(power, bool) or not isinstance(power, (int, float)) or not power > 0:
+        raise ValueError(f"operator {spec['name']!r}: power must be a number > 0, got {power!r}")
+    direction = check_choice(spec.get("direction", "direct"),
+                             f"operator {spec['name']!r}: direction", ["direct", "inverse"])
+    return n, float(power), direction
+
+
+def _standardized(x: Tensor, y: Tensor, warmup: int) -> tuple[float, Tensor]:
+    """The input's scale (std of the scored samples) and the standardized target."""
+    xs, ys = x[:, warmup:], y[:, warmup:]
+    sx, sy = float(xs.std()), float(ys.std())
+    if not (sx > 0 and sy > 0):
+        raise FitError("the input and the target must vary over the scored training samples")
+    return sx, (y - ys.mean()) / sy
+
+
+def _rmse(model: nn.Module, x: Tensor, t: Tensor, warmup: int) -> float:
+    with torch.no_grad():
+        return float((model(x)[0] - t)[:, warmup:].square().mean().sqrt())
+
+
+def _checked(model: nn.Module, x: Tensor, t: Tensor, warmup: int, name: str) -> nn.Module:
+    """``model`` if it fits the standardized target t on the scored training samples better
+    than its mean does (RMSE below 1), else :class:`FitError` (a diverged or degenerate fit;
+    an exact inverse of a poor forward fit can blow up)."""
+    rmse = _rmse(model, x, t, warmup)
+    if not rmse < 1.0:
+        raise FitError(f"{name}: the fitted model is no better than the training mean "
+                       f"(standardized training RMSE {rmse:.3g})")
+    return model
+
+
+def _pi_fit(u: Tensor, out: Tensor, widths: Tensor, ridge: float | str,
+            warmup: int) -> PrandtlIshlinskii:
+    if ridge == "auto":
+        ridge, _ = select_pi_ridge(u, out, widths, PENALTIES, nonnegative=True,
+                                   validation=VALIDATION, warmup=warmup)
+    return fit_prandtl_ishlinskii(u, out, widths, ridge=ridge, warmup=warmup, nonnegative=True)
+
+
+def _pi(n: int, widths: Tensor, weights: Tensor, linear: float) -> PrandtlIshlinskii:
+    """A PI model of n plays from (m <= n) plays, the rest idle (weight 0)."""
+    m = widths.shape[0]
+    w = torch.full((n,), float(widths.max()) if m else 1.0, dtype=widths.dtype)
+    v = torch.zeros(n, dtype=widths.dtype)
+    w[:m], v[:m] = widths, weights
+    return PrandtlIshlinskii(w, v, linear_weight=linear)
+
+
+def _pi_nonneg(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
+    _keys(spec, {"n_widths", "power", "ridge", "direction"})
+    n, power, direction = _grid(spec, 10)
+    ridge = _penalty(spec, "ridge")
+
+    def one_sign(x: Tensor, t: Tensor, sx: float, warmup: int) -> PrandtlIshlinskii:
+        """The PI model of t from x (physical input units)."""
+        if direction == "direct":
+            m = _pi_fit(x / sx, t, play_width_grid(x / sx, n, power=power), ridge, warmup)
+            return PrandtlIshlinskii(m.get_widths() * sx, m.weights / sx,
+                                     linear_weight=float(m.linear_weight) / sx)
+        forward = _pi_fit(t, x / sx, play_width_grid(t, n, power=power), ridge, warmup)
+        try:
+            inverse = forward.inverse()
+        except ValueError as err:
+            raise FitError(f"pi_nonneg inverse: {err}") from None
+        return _pi(n, inverse.widths * sx, inverse.weights / sx,
+                   float(inverse.linear_weight) / sx)
+
+    def fit(x: Tensor, y: Tensor, warmup: int) -> nn.Module:
+        sx, t = _standardized(x, y, warmup)
+        fits = []
+        for sign in (1.0, -1.0):
+            try:
+                m = one_sign(x, sign * t, sx, warmup)
+            except FitError:
+                continue
+            with torch.no_grad():
+                m.weights.mul_(sign)
+                m.linear_weight.mul_(sign)
+            fits.append((_rmse(m, x, t, warmup), sign, m))
+        if not fits:
+            raise FitError(f"pi_nonneg ({direction}): no invertible fit of either sign")
+        return _checked(min(fits, key=lambda f: f[0])[2], x, t, warmup, "pi_nonneg")
+
+    return PrandtlIshlinskii(torch.arange(1, n + 1) / n, torch.zeros(n)), fit
+
+
+def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
+    _keys(spec, {"n_widths", "power", "ridge", "units", "epochs", "direction"})
+    n, power, direction = _grid(spec, 10)
+    ridge = _penalty(spec, "ridge")
+    units = check_int(spec.get("units", 4), "operator 'gpi': units", minimum=0)
+    epochs = check_int(spec.get("epochs", 200), "operator 'gpi': epochs", minimum=1)
+
+    def fit(x: Tensor, y: Tensor, warmup: int) -> nn.Module:
+        sx, t = _standardized(x, y, warmup)
+        xs, ts = (x / sx)[:, warmup:], t[:, warmup:]
+        t = t if float(((xs - xs.mean()) * ts).sum()) >= 0 else -t  # rising with x
+        u, out = (x / sx, t) if direction == "direct" else (t, x / sx)
+        widths = play_width_grid(u, n, power=power)
+        r = ridge
+        if r == "auto":
+            r, _ = select_pi_ridge(u, out, widths, PENALTIES, nonnegative=True,
+                                   validation=VALIDATION, warmup=warmup)
+        try:
+            m = fit_generalized_pi(u, out, widths, units=units, ridge=r, lbfgs_epochs=epochs)
+        except (ValueError, FloatingPointError) as err:
+            raise FitError(f"gpi ({direction}): {err}") from None
+        pw, w, w0, a, c, b, s, off = (v.detach() for v in m.parameters_effective())
+        if direction == "direct":  # the same model of the physical input x
+            return _checked(GeneralizedPrandtlIshlinskii(
+                pw * sx, w / sx, linear_weight=float(w0) / sx, centers=b, slopes=s,
+                unit_weights=c, gain=float(a), offset=float(off)), x, t, warmup, "gpi")
+        # g scaled by sx maps to the physical input; its inverse reads x. g^-1 is bounded
+        # to the PI part's training range with a margin of half its span on each side
+        scaled = GeneralizedPrandtlIshlinskii(
+            pw, w, linear_weight=float(w0), centers=b, slopes=s, unit_weights=c * sx,
+            gain=float(a) * sx, offset=float(off) * sx)
+        with torch.no_grad():
+            p = scaled.prandtl_ishlinskii()(u)[0]
+        lo, hi = float(p.min()), float(p.max())
+        try:
+            inverse = scaled.inverse(lower=lo - 0.5 * (hi - lo), upper=hi + 0.5 * (hi - lo))
+        except ValueError as err:
+            raise FitError(f"gpi inverse: {err}") from None
+        return _checked(inverse, x, t, warmup, "gpi inverse")
+
+    if direction == "direct":
+        placeholder: nn.Module = GeneralizedPrandtlIshlinskii(
+            torch.arange(1, n + 1) / n, centers=torch.zeros(units))
+    else:
+        placeholder = GeneralizedPIInverse(n, units)
+    return placeholder.requires_grad_(False), fit
+
+
+def _preisach(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
+    _keys(spec, {"n", "smoothness"})
+    n = check_int(spec.get("n", 20), "operator 'preisach': n", minimum=2)
+    smoothness = _penalty(spec, "smoothness")
+
+    def fit(x: Tensor, y: Tensor, warmup: int) -> nn.Module:
+        _, t = _standardized(x, y, warmup)
+        lo, hi = float(x.min()), float(x.max())
+        fits = []
+        for sign in (1.0, -1.0):
+            p = smoothness
+            if p == "auto":
+                p, _ = select_penalty(x, sign * t, list(PENALTIES), kind="smoothness",
+                                      validation=VALIDATION, lo=lo, hi=hi, n=n, warmup=warmup)
+            m = fit_preisach(x, sign * t, lo=lo, hi=hi, n=n, smoothness=p, warmup=warmup)
+            fits.append((_rmse(m, x, sign * t, warmup), sign, m))
+        rmse, sign, m = min(fits, key=lambda f: f[0])
+        return _checked(m, x, sign * t, warmup, "preisach")
+
+    return Preisach(0.0, 1.0, n).requires_grad_(False), fit
+
+
+FAMILIES: dict[str, Callable[[Mapping[str, Any]], tuple[nn.Module, Fitter]]] = {
+    "pi_nonneg": _pi_nonneg,
+    "gpi": _gpi,
+    "preisach": _preisach,
+}
+"""Builders of the family operators by config name: ``spec -> (placeholder, fitter)``."""
