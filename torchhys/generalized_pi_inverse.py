@@ -161,9 +161,10 @@ class GeneralizedPIInverse(HysteresisOperator):
         inverse.weights.zero_()[:m] = p.weights
         inverse.linear_weight.copy_(p.linear_weight)
         for name, v in (("gain", a), ("unit_weights", c), ("centers", b), ("slopes", s),
-                        ("offset", off), ("lower", torch.tensor(float(lower))),
-                        ("upper", torch.tensor(float(upper)))):
+                        ("offset", off)):
             getattr(inverse, name).copy_(v)
+        inverse.lower.fill_(float(lower))  # fill_ with a Python float: no float32 rounding
+        inverse.upper.fill_(float(upper))
         return inverse
 
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
