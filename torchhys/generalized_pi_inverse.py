@@ -51,6 +51,8 @@ def monotone_inverse(y: Tensor, gain: Tensor, unit_weights: Tensor, centers: Ten
     step from the detached midpoint (the gradient with respect to y and the parameters is
     the implicit-function one), clamped to the bounds.
     """
+    if unit_weights.numel() == 0:  # g is affine: its inverse in closed form
+        return torch.minimum(torch.maximum((y - offset) / gain, lower), upper)
     spread = unit_weights.sum()
     base = (y - offset).detach()
     lo = torch.maximum((base - spread.detach()) / gain.detach(), lower)

@@ -122,33 +122,28 @@ def _pi_fit(u: Tensor, out: Tensor, widths: Tensor, ridge: float | str,
     return fit_prandtl_ishlinskii(u, out, widths, ridge=ridge, warmup=warmup, nonnegative=True)
 
 
-def _pi(n: int, widths: Tensor, weights: Tensor, linear: float) -> PrandtlIshlinskii:
-    """A PI model of n plays from (m <= n) plays, the rest idle (weight 0)."""
-    m = widths.shape[0]
-    w = torch.full((n,), float(widths.max()) if m else 1.0, dtype=widths.dtype)
-    v = torch.zeros(n, dtype=widths.dtype)
-    w[:m], v[:m] = widths, weights
-    return PrandtlIshlinskii(w, v, linear_weight=linear)
-
-
 def _pi_nonneg(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     _keys(spec, {"n_widths", "power", "ridge", "direction"})
     n, power, direction = _grid(spec, 10)
     ridge = _penalty(spec, "ridge")
 
-    def one_sign(x: Tensor, t: Tensor, sx: float, warmup: int) -> PrandtlIshlinskii:
+    def one_sign(x: Tensor, t: Tensor, sx: float, warmup: int) -> nn.Module:
         """The PI model of t from x (physical input units)."""
         if direction == "direct":
             m = _pi_fit(x / sx, t, play_width_grid(x / sx, n, power=power), ridge, warmup)
             return PrandtlIshlinskii(m.get_widths() * sx, m.weights / sx,
                                      linear_weight=float(m.linear_weight) / sx)
-        forward = _pi_fit(t, x / sx, play_width_grid(t, n, power=power), ridge, warmup)
+        # the forward model of the centred, scaled input (a PI model has no offset), and its
+        # exact inverse after the input map (x - mx) / sx: a GeneralizedPIInverse whose g is
+        # the affine map sx v + mx
+        mx = float(x[:, warmup:].mean())
+        forward = _pi_fit(t, (x - mx) / sx, play_width_grid(t, n, power=power), ridge, warmup)
         try:
-            inverse = forward.inverse()
+            return GeneralizedPrandtlIshlinskii(
+                forward.get_widths(), forward.weights, centers=[], gain=sx, offset=mx,
+                linear_weight=float(forward.linear_weight)).inverse()
         except ValueError as err:
             raise FitError(f"pi_nonneg inverse: {err}") from None
-        return _pi(n, inverse.widths * sx, inverse.weights / sx,
-                   float(inverse.linear_weight) / sx)
 
     def fit(x: Tensor, y: Tensor, warmup: int) -> nn.Module:
         sx, t = _standardized(x, y, warmup)
@@ -166,7 +161,9 @@ def _pi_nonneg(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
             raise FitError(f"pi_nonneg ({direction}): no invertible fit of either sign")
         return _checked(min(fits, key=lambda f: f[0])[2], x, t, warmup, "pi_nonneg")
 
-    return PrandtlIshlinskii(torch.arange(1, n + 1) / n, torch.zeros(n)), fit
+    placeholder: nn.Module = (PrandtlIshlinskii(torch.arange(1, n + 1) / n, torch.zeros(n))
+                              if direction == "direct" else GeneralizedPIInverse(n, 0))
+    return placeholder, fit
 
 
 def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
@@ -180,7 +177,8 @@ def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
         sx, t = _standardized(x, y, warmup)
         xs, ts = (x / sx)[:, warmup:], t[:, warmup:]
         t = t if float(((xs - xs.mean()) * ts).sum()) >= 0 else -t  # rising with x
-        u, out = (x / sx, t) if direction == "direct" else (t, x / sx)
+        mx = float(x[:, warmup:].mean())  # the inverse route fits the centred input
+        u, out = (x / sx, t) if direction == "direct" else (t, (x - mx) / sx)
         widths = play_width_grid(u, n, power=power)
         r = ridge
         if r == "auto":
@@ -195,11 +193,16 @@ def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
             return _checked(GeneralizedPrandtlIshlinskii(
                 pw * sx, w / sx, linear_weight=float(w0) / sx, centers=b, slopes=s,
                 unit_weights=c, gain=float(a), offset=float(off)), x, t, warmup, "gpi")
-        # g scaled by sx maps to the physical input; its inverse reads x. g^-1 is bounded
-        # to the PI part's training range with a margin of half its span on each side
+        # The same model, rewritten for a well-conditioned inverse: the PI part divided by k
+        # (its training std; the fit leaves the scale between p and g free, and may drift
+        # to huge p and a tiny gain), g(k v) in its place, scaled by sx and shifted by mx so
+        # that it maps to the physical input. g^-1 is bounded to the PI part's training
+        # range with a margin of half its span on each side.
+        with torch.no_grad():
+            k = float(m.prandtl_ishlinskii()(u)[0].std().clamp_min(1e-300))
         scaled = GeneralizedPrandtlIshlinskii(
-            pw, w, linear_weight=float(w0), centers=b, slopes=s, unit_weights=c * sx,
-            gain=float(a) * sx, offset=float(off) * sx)
+            pw, w / k, linear_weight=float(w0) / k, centers=b / k, slopes=s * k,
+            unit_weights=c * sx, gain=float(a) * k * sx, offset=float(off) * sx + mx)
         with torch.no_grad():
             p = scaled.prandtl_ishlinskii()(u)[0]
         lo, hi = float(p.min()), float(p.max())

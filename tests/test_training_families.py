@@ -1,0 +1,205 @@
+"""Config family operators (``pi_nonneg``, ``gpi``, ``preisach``): each identifies its model
+on the training split (recovering a plant of its own family), is saved in the checkpoint,
+streams and exports like any operator; a family that cannot be fitted is skipped by model
+selection; bad options are clear errors."""
+
+from __future__ import annotations
+
+import math
+import sys
+import warnings
+from pathlib import Path
+
+import pytest
+import torch
+from _training_helpers import trainer
+
+from torchhys import (
+    GeneralizedPIInverse,
+    GeneralizedPrandtlIshlinskii,
+    InverseHysteresisNet,
+    PrandtlIshlinskii,
+    Preisach,
+)
+from torchhys.export import load_torchscript, to_torchscript
+from torchhys.training import HysteresisDataModule, InverseHysteresisModule
+from torchhys.training.cli import main
+from torchhys.training.families import FitError
+from torchhys.training.operators import build_operators, fit_data_dependent
+
+F64 = torch.float64
+torch.set_num_threads(1)
+
+
+def signal(T: int = 600, rows: int = 1) -> torch.Tensor:
+    """Decaying and growing sine sweeps: major loops with minor loops inside, (rows, T)."""
+    t = torch.linspace(0, 1, T, dtype=F64)
+    out = [(1.0 + 0.5 * r) * torch.sin(2 * math.pi * 6 * t) * (0.3 + 0.7 * torch.abs(
+        torch.cos(2 * math.pi * (1.5 + r) * t))) for r in range(rows)]
+    return torch.stack(out)
+
+
+def pi_plant(x: torch.Tensor) -> torch.Tensor:
+    return PrandtlIshlinskii(torch.tensor([0.2, 0.6, 1.2], dtype=F64),
+                             torch.tensor([0.5, 0.3, 0.4], dtype=F64), linear_weight=0.6)(x)[0]
+
+
+def gpi_plant(x: torch.Tensor) -> torch.Tensor:
+    """A saturating, asymmetric loop: tanh of a PI output with an offset."""
+    return torch.tanh(0.8 * pi_plant(x) + 0.4)
+
+
+def fitted(spec: dict, x: torch.Tensor, y: torch.Tensor, warmup: int = 0) -> torch.nn.Module:
+    (op,), fitters = build_operators(spec)
+    op = op.double()
+    fit_data_dependent(torch.nn.ModuleList([op]), fitters, x, y, warmup=warmup)
+    return op
+
+
+def affine_rmse(feature: torch.Tensor, y: torch.Tensor) -> float:
+    """RMS error of the best affine map of the feature to y (what the readout learns)."""
+    a = torch.stack([feature.reshape(-1), torch.ones(feature.numel(), dtype=F64)], 1)
+    coef = torch.linalg.lstsq(a, y.reshape(-1, 1)).solution
+    return float((a @ coef - y.reshape(-1, 1)).square().mean().sqrt())
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_pi_nonneg_direct_recovers_a_pi_plant_of_either_sign(sign):
+    x = signal()
+    y = 3.0 * sign * pi_plant(x) + 2.0  # scaled, shifted, maybe negated
+    op = fitted({"name": "pi_nonneg", "n_widths": 12, "ridge": 0.0}, x, y)
+    assert isinstance(op, PrandtlIshlinskii) and op.n_operators == 12
+    assert affine_rmse(op(x)[0], y) < 0.01 * float(y.std())
+
+
+def test_pi_nonneg_inverse_recovers_the_inverse_of_a_pi_plant():
+    x = signal()
+    y = pi_plant(x)
+    # the target is the input of the plant: the inverse direction
+    op = fitted({"name": "pi_nonneg", "n_widths": 12, "direction": "inverse"}, y, x)
+    assert affine_rmse(op(y)[0], x) < 0.01 * float(x.std())
+    direct = fitted({"name": "pi_nonneg", "n_widths": 12, "direction": "direct"}, y, x)
+    assert affine_rmse(direct(y)[0], x) > 2 * affine_rmse(op(y)[0], x)
+
+
+def test_gpi_both_directions_recover_a_generalized_pi_plant():
+    x = 1.5 * signal()
+    y = gpi_plant(x)
+    op = fitted({"name": "gpi", "n_widths": 10, "units": 4, "epochs": 150}, x, y)
+    assert isinstance(op, GeneralizedPrandtlIshlinskii)
+    # well below the straight line (fit_generalized_pi stops at a local optimum here)
+    assert affine_rmse(op(x)[0], y) < 0.3 * affine_rmse(x, y)
+    inv = fitted({"name": "gpi", "n_widths": 10, "units": 4, "epochs": 150,
+                  "direction": "inverse"}, y, x)
+    assert isinstance(inv, GeneralizedPIInverse)
+    assert affine_rmse(inv(y)[0], x) < 0.3 * affine_rmse(y, x)
+    assert not any(p.requires_grad for p in inv.parameters())
+
+
+def test_preisach_recovers_a_preisach_plant():
+    x = signal(rows=2)
+    plant = Preisach(float(x.min()), float(x.max()), 8).double()  # the grid the fit uses
+    with torch.no_grad():
+        plant.weights.copy_(torch.rand(plant.n_relays, generator=torch.Generator().manual_seed(0),
+                                       dtype=F64))
+        plant.linear.fill_(0.2)
+    y = -plant(x)[0].detach()  # the other orientation: the negated fit wins
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        op = fitted({"name": "preisach", "n": 8, "smoothness": 0.0}, x, y)
+    assert affine_rmse(op(x)[0], y) < 0.1 * float(y.std())
+
+
+def test_a_family_that_cannot_fit_raises_fit_error():
+    x = signal()
+    with pytest.raises(FitError, match="must vary"):
+        fitted({"name": "gpi"}, x, torch.zeros_like(x))
+    with pytest.raises(FitError, match="no better than the training mean"):
+        # noise unrelated to the input: nothing to fit
+        noise = torch.randn(x.shape, generator=torch.Generator().manual_seed(1), dtype=F64)
+        fitted({"name": "pi_nonneg", "n_widths": 3, "direction": "inverse", "ridge": 1.0},
+               x, noise.cumsum(1))
+
+
+@pytest.mark.parametrize("spec, match", [
+    ({"name": "pi_nonneg", "direction": "sideways"}, "direction must be one of"),
+    ({"name": "pi_nonneg", "ridge": -1.0}, "ridge must be 'auto' or a number >= 0"),
+    ({"name": "gpi", "unit": 3}, r"unknown option\(s\) \['unit'\]"),
+    ({"name": "gpi", "power": 0}, "power must be a number > 0"),
+    ({"name": "preisach", "n": 1}, "n must be"),
+    ({"name": "preisach", "smoothness": "big"}, "smoothness must be 'auto'"),
+])
+def test_bad_options(spec, match):
+    with pytest.raises(ValueError, match=match):
+        build_operators(spec)
+
+
+@pytest.mark.parametrize("spec", [
+    {"name": "pi_nonneg", "n_widths": 6, "direction": "inverse"},
+    {"name": "gpi", "n_widths": 6, "units": 2, "epochs": 30, "direction": "inverse"},
+    {"name": "preisach", "n": 6, "smoothness": 1e-4},
+])
+def test_fitted_in_training_saved_and_exported(tmp_path, spec):
+    """Through the Lightning module: fitted on the training split, restored from the
+    checkpoint bit for bit, and the TorchScript compensator equals the module."""
+    torch.manual_seed(0)
+    dm = HysteresisDataModule(t_end=2 * math.pi, split=[0.6, 0.2, 0.2])
+    module = InverseHysteresisModule(operator=[spec], hidden=1, activation="identity",
+                                     optimizer="lbfgs", lr=1.0)
+    t = trainer(max_epochs=3, enable_checkpointing=True, default_root_dir=tmp_path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        t.fit(module, dm)
+    path = tmp_path / "m.ckpt"
+    t.save_checkpoint(path)
+    loaded = InverseHysteresisModule.load_from_checkpoint(path)
+    for a, b in zip(module.net.state_dict().values(), loaded.net.state_dict().values(),
+                    strict=True):
+        assert torch.equal(a, b)
+    x = dm.x
+    with torch.no_grad():
+        expected = module(x)
+    assert float((expected - dm.y).square().mean()) < float(dm.y.var())  # it learned something
+    out = tmp_path / "comp.pt"
+    to_torchscript(loaded.net, out, limits=(-1e6, 1e6))  # no clamp at the training range
+    torch.testing.assert_close(load_torchscript(out)(x).double(), expected, rtol=0, atol=1e-9)
+
+
+def test_selection_skips_a_candidate_that_cannot_be_fitted(monkeypatch, tmp_path, capsys):
+    """A candidate whose family raises FitError scores NaN, with a warning; the line wins."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"""\
+seed_everything: 0
+trainer: {{accelerator: cpu, devices: 1, precision: 64-true, max_epochs: 3,
+          enable_progress_bar: false, enable_model_summary: false,
+          default_root_dir: {tmp_path / 'run'}}}
+model:
+  operator: null
+  hidden: 1
+  activation: identity
+  optimizer: lbfgs
+  lr: 1.0
+  select:
+    - {{operator: null}}
+    - {{operator: [{{name: gpi, n_widths: 4, units: 2, epochs: 5}}]}}
+data: {{dt: 0.05, t_end: 12.6, split: [0.5, 0.25, 0.25]}}
+""")
+
+    def refuse(*args, **kwargs):
+        raise FitError("gpi: refused for the test")
+
+    monkeypatch.setattr("torchhys.training.families.fit_generalized_pi", refuse)
+    monkeypatch.setattr(sys, "argv", ["torchhys"])
+    with pytest.warns(RuntimeWarning, match="candidate skipped: gpi .*refused"):
+        main(["fit", "--config", str(cfg)])
+    text = capsys.readouterr().out
+    assert "nan" in text and "selected candidate 0" in text
+    assert (Path(tmp_path) / "run" / "selection.csv").exists()
+
+
+def test_identity_readout_is_affine():
+    net = InverseHysteresisNet(None, 1, activation="identity").double()
+    x = torch.linspace(-2, 2, 9, dtype=F64)
+    y, _ = net(x)
+    second = torch.diff(y, n=2)
+    torch.testing.assert_close(second, torch.zeros_like(second), rtol=0, atol=1e-12)
