@@ -188,6 +188,7 @@ class StreamingCompensator(nn.Module):
         self.register_buffer("high", torch.tensor(high, dtype=dtype))
         u0 = min(max(float(initial_command), low), high)
         self.register_buffer("u0", torch.tensor(u0, dtype=dtype))
+        self.register_buffer("zero", torch.zeros((), dtype=dtype))
         # with u0 = +0.0 the fresh state's held column (zeros) already holds the initial command
         self.u0_zero: bool = u0 == 0.0 and math.copysign(1.0, u0) > 0
         self._layout(steps, dtype)
@@ -264,25 +265,28 @@ class StreamingCompensator(nn.Module):
         u = self.head(torch.cat(features, 1))
         # anything but a finite sample with a finite command holds the whole state (a
         # non-finite sample may still give a finite command through a saturating activation);
-        # t - t is 0 exactly where t is finite (NaN for NaN and +/-inf): cheaper than isfinite
-        bad = (xc - xc) + (u - u) != 0
+        # t - t is 0 exactly where t is finite (NaN for NaN and +/-inf): cheaper than isfinite.
+        # (TorchScript: compared with a Python 0 the interpreter would wrap the 0 into a new
+        # tensor at every step; self.zero is a constant of the frozen module.)
+        bad = (xc - xc) + (u - u) != self.zero
         u = torch.clamp(u, self.low, self.high)
-        out = [torch.where(bad, F, torch.cat([u] + new[0], 1))]
+        F_new = torch.where(bad, F, torch.cat([u] + new[0], 1))
         if self.u0_zero:  # the held column, zero when fresh, is the command to send
-            u_out = out[0].select(1, self.HELD_COLUMN)
+            u_out = F_new.select(1, self.HELD_COLUMN)
         else:
             held = F.narrow(1, self.HELD_COLUMN, 1)
             u_out = torch.where(bad, torch.where(started, held, self.u0), u).squeeze(1)
         if self.has_int:
             count = I.narrow(1, self.COUNTER_COLUMN, 1) + bad
-            out.append(torch.cat([count, torch.where(bad, I.narrow(1, 1, I.shape[1] - 1),
-                                                     torch.cat(new[2], 1))], 1))
+            I_new = torch.cat([count, torch.where(bad, I.narrow(1, 1, I.shape[1] - 1),
+                                                  torch.cat(new[2], 1))], 1)
         else:  # the counter is all of I
-            out.append(I + bad)
-        out.append(started | torch.logical_not(bad))
+            I_new = I + bad
+        started_new = torch.ge(started, bad)  # started or not bad (for bools a >= b is a | ~b)
         if self.has_f64:
-            out.append(torch.where(bad, G, torch.cat(new[1], 1)))
-        return u_out, out
+            return u_out, [F_new, I_new, started_new,
+                           torch.where(bad, G, torch.cat(new[1], 1))]
+        return u_out, [F_new, I_new, started_new]
 
     @torch.jit.export
     def step(self, x_t: Tensor) -> Tensor:
