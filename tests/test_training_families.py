@@ -78,8 +78,10 @@ def test_pi_nonneg_inverse_recovers_the_inverse_of_a_pi_plant():
     # the target is the input of the plant: the inverse direction
     op = fitted({"name": "pi_nonneg", "n_widths": 12, "direction": "inverse"}, y, x)
     assert affine_rmse(op(y)[0], x) < 0.01 * float(x.std())
-    direct = fitted({"name": "pi_nonneg", "n_widths": 12, "direction": "direct"}, y, x)
-    assert affine_rmse(direct(y)[0], x) > 2 * affine_rmse(op(y)[0], x)
+    # a non-negative PI model of x from y draws loops of the wrong orientation: no better
+    # than a straight line, which the fit reports
+    with pytest.raises(FitError, match="no better than a straight line"):
+        fitted({"name": "pi_nonneg", "n_widths": 12, "direction": "direct"}, y, x)
 
 
 def test_gpi_both_directions_recover_a_generalized_pi_plant():
@@ -114,7 +116,7 @@ def test_a_family_that_cannot_fit_raises_fit_error():
     x = signal()
     with pytest.raises(FitError, match="must vary"):
         fitted({"name": "gpi"}, x, torch.zeros_like(x))
-    with pytest.raises(FitError, match="no better than the training mean"):
+    with pytest.raises(FitError, match="no better than a straight line"):
         # noise unrelated to the input: nothing to fit
         noise = torch.randn(x.shape, generator=torch.Generator().manual_seed(1), dtype=F64)
         fitted({"name": "pi_nonneg", "n_widths": 3, "direction": "inverse", "ridge": 1.0},

@@ -20,8 +20,10 @@ readout) maps it back. They are the candidates of ``configs/measured.yaml``:
 
 ``ridge``/``smoothness: "auto"`` picks the penalty on a time-ordered hold-out inside the
 training split (the last quarter of each row's scored samples; :func:`select_pi_ridge`,
-:func:`select_penalty`). Every choice uses the training split only. Widths come from
-:func:`~torchhys.fitting.play_width_grid` of the fitted model's input. A fit that cannot
+:func:`select_penalty`; for ``gpi``, whose fit can stop at a poor local optimum, the next
+best ridges on that hold-out are tried in turn when the fit fails). Every choice uses the
+training split only. Widths come from :func:`~torchhys.fitting.play_width_grid` of the
+fitted model's input. A fit that cannot
 exist (no inverse, a target that does not rise, a diverged fit) raises :class:`FitError`:
 model selection scores that candidate as failed.
 """
@@ -105,12 +107,16 @@ def _rmse(model: nn.Module, x: Tensor, t: Tensor, warmup: int) -> float:
 
 def _checked(model: nn.Module, x: Tensor, t: Tensor, warmup: int, name: str) -> nn.Module:
     """``model`` if it fits the standardized target t on the scored training samples better
-    than its mean does (RMSE below 1), else :class:`FitError` (a diverged or degenerate fit;
+    than a straight line in x does, else :class:`FitError` (a diverged or degenerate fit;
     an exact inverse of a poor forward fit can blow up)."""
     rmse = _rmse(model, x, t, warmup)
-    if not rmse < 1.0:
-        raise FitError(f"{name}: the fitted model is no better than the training mean "
-                       f"(standardized training RMSE {rmse:.3g})")
+    xs, ts = x[:, warmup:].reshape(-1), t[:, warmup:].reshape(-1)
+    design = torch.stack([xs, torch.ones_like(xs)], 1)
+    line = float((design @ torch.linalg.lstsq(design, ts[:, None]).solution - ts[:, None])
+                 .square().mean().sqrt())
+    if not rmse < line:
+        raise FitError(f"{name}: the fitted model is no better than a straight line on the "
+                       f"training samples (standardized RMSE {rmse:.3g}, line {line:.3g})")
     return model
 
 
@@ -180,19 +186,38 @@ def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
         mx = float(x[:, warmup:].mean())  # the inverse route fits the centred input
         u, out = (x / sx, t) if direction == "direct" else (t, (x - mx) / sx)
         widths = play_width_grid(u, n, power=power)
-        r = ridge
-        if r == "auto":
-            r, _ = select_pi_ridge(u, out, widths, PENALTIES, nonnegative=True,
-                                   validation=VALIDATION, warmup=warmup)
+        ridges = [ridge]
+        if ridge == "auto":
+            _, scores = select_pi_ridge(u, out, widths, PENALTIES, nonnegative=True,
+                                        validation=VALIDATION, warmup=warmup)
+            # the local optimum of the fit depends on its start (the initial PI fit): if the
+            # fit with the best ridge fails, the next best start it elsewhere
+            ridges = sorted(scores, key=lambda r: scores[r])[:3]
+        errors = []
+        for r in ridges:
+            try:
+                return one(x, t, u, out, widths, r, sx, mx, warmup)
+            except FitError as err:
+                errors.append(f"ridge {r:g}: {err}")
+        raise FitError(f"gpi ({direction}): " + "; ".join(errors))
+
+    def one(x: Tensor, t: Tensor, u: Tensor, out: Tensor, widths: Tensor, r: float, sx: float,
+            mx: float, warmup: int) -> nn.Module:
         try:
-            m = fit_generalized_pi(u, out, widths, units=units, ridge=r, lbfgs_epochs=epochs)
-        except (ValueError, FloatingPointError) as err:
-            raise FitError(f"gpi ({direction}): {err}") from None
+            return fitted(x, t, u, out, widths, r, sx, mx, warmup)
+        except FitError:
+            raise
+        except (ValueError, FloatingPointError) as err:  # diverged, or no inverse
+            raise FitError(str(err)) from None
+
+    def fitted(x: Tensor, t: Tensor, u: Tensor, out: Tensor, widths: Tensor, r: float,
+               sx: float, mx: float, warmup: int) -> nn.Module:
+        m = fit_generalized_pi(u, out, widths, units=units, ridge=r, lbfgs_epochs=epochs)
         pw, w, w0, a, c, b, s, off = (v.detach() for v in m.parameters_effective())
         if direction == "direct":  # the same model of the physical input x
             return _checked(GeneralizedPrandtlIshlinskii(
                 pw * sx, w / sx, linear_weight=float(w0) / sx, centers=b, slopes=s,
-                unit_weights=c, gain=float(a), offset=float(off)), x, t, warmup, "gpi")
+                unit_weights=c, gain=float(a), offset=float(off)), x, t, warmup, "the model")
         # The same model, rewritten for a well-conditioned inverse: the PI part divided by k
         # (its training std; the fit leaves the scale between p and g free, and may drift
         # to huge p and a tiny gain), g(k v) in its place, scaled by sx and shifted by mx so
@@ -206,11 +231,8 @@ def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
         with torch.no_grad():
             p = scaled.prandtl_ishlinskii()(u)[0]
         lo, hi = float(p.min()), float(p.max())
-        try:
-            inverse = scaled.inverse(lower=lo - 0.5 * (hi - lo), upper=hi + 0.5 * (hi - lo))
-        except ValueError as err:
-            raise FitError(f"gpi inverse: {err}") from None
-        return _checked(inverse, x, t, warmup, "gpi inverse")
+        inverse = scaled.inverse(lower=lo - 0.5 * (hi - lo), upper=hi + 0.5 * (hi - lo))
+        return _checked(inverse, x, t, warmup, "the inverse")
 
     if direction == "direct":
         placeholder: nn.Module = GeneralizedPrandtlIshlinskii(
