@@ -202,6 +202,22 @@ def pneumatic() -> Split:
     return Split(x, y, 0, [(_t(recs[i][0]), _t(recs[i][1]), 0) for i in (1, 2)])
 
 
+def shortened(split: Split, n: int = 50) -> Split:
+    """A short record: every k-th sample of the training rows (warm-up included), k chosen
+    so that about ``n`` scored training samples remain; the held-out recordings unchanged
+    (every model here is rate-independent or sees only the sample sequence)."""
+    k = max(1, split.y[:, split.warmup:].numel() // n)
+    return Split(split.x[:, ::k], split.y[:, ::k], -(-split.warmup // k), split.test)
+
+
+def tiled(split: Split, total: int = 100_000) -> Split:
+    """A long record: each training row repeated end to end until the rows hold ``total``
+    scored samples in all (a test of scale and run time: no new information)."""
+    rows, T = split.x.shape
+    reps = -(-(total // rows + split.warmup) // T)
+    return Split(split.x.repeat(1, reps), split.y.repeat(1, reps), split.warmup, split.test)
+
+
 DATASETS: dict[str, tuple[str, Callable[[Path], Split]]] = {
     "mnzn_ferrite": ("B -> H, loops 0+3 / 1+2", lambda p: ferrite(p, [0, 3], [1, 2])),
     "mnzn_ferrite_largest": ("B -> H, loop 3 / 0+1+2", lambda p: ferrite(p, [3], [0, 1, 2])),
@@ -216,6 +232,14 @@ DATASETS: dict[str, tuple[str, Callable[[Path], Split]]] = {
     "friction_damper": ("displacement -> force, sines / earthquakes",
                         lambda p: friction_damper()),
     "pneumatic_oring": ("position -> friction, 1+7 / 3+5 bar", lambda p: pneumatic()),
+    "mnzn_ferrite_short": ("mnzn_ferrite, training loops subsampled to ~50 samples",
+                           lambda p: shortened(ferrite(p, [0, 3], [1, 2]))),
+    "mr_damper_0V_short": ("mr_damper_0V, training rows subsampled to ~50 samples",
+                           lambda p: shortened(mr_damper(0.0))),
+    "pneumatic_oring_short": ("pneumatic_oring, training rows subsampled to ~50 samples",
+                              lambda p: shortened(pneumatic())),
+    "pneumatic_oring_long": ("pneumatic_oring, training rows tiled to 1e5 samples",
+                             lambda p: tiled(pneumatic())),
 }
 """Data sets by name: (protocol, builder of the split from the ferrite file's path)."""
 
