@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import csv
+import math
 import os
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -256,3 +258,29 @@ def test_fit_under_ddp_on_two_cpu_processes(monkeypatch, tmp_path: Path) -> None
     assert sa.keys() == sb.keys()
     for k, v in sa.items():
         torch.testing.assert_close(sb[k], v, rtol=0, atol=1e-10)
+
+
+def test_forward_preisach_config_predicts_the_smaller_loops(monkeypatch, tmp_path: Path) -> None:
+    """configs/preisach_forward.yaml: H -> B of a steel sample from its largest loop; the two
+    smaller loops (held out) are predicted well below a line and a degree-5 polynomial fitted
+    on the same loop (numpy references)."""
+    monkeypatch.chdir(ROOT)
+    root = tmp_path / "forward"
+    cfg = "configs/preisach_forward.yaml"
+    cli(monkeypatch, "fit", "--config", cfg, f"--trainer.default_root_dir={root}",
+        "--trainer.enable_progress_bar=false")
+    cli(monkeypatch, "test", "--config", cfg, f"--trainer.default_root_dir={root}",
+        f"--ckpt_path={root / 'logs/version_0/checkpoints/last.ckpt'}",
+        "--trainer.enable_progress_bar=false")
+    rmse = math.sqrt(float(next(r["test_mse"] for r in metrics(root, 1) if r.get("test_mse"))))
+    data = np.genfromtxt(ROOT / "examples/data/real/jamodel_bh_loops.csv", delimiter=",",
+                         names=True, dtype=None, encoding="utf-8")
+    loop = {r: (data["H_Apm"][data["recording"] == r], data["B_T"][data["recording"] == r])
+            for r in (0, 1, 2)}
+    baselines = {}
+    for degree in (1, 5):
+        p = np.polynomial.Polynomial.fit(*loop[2], degree)
+        errors = np.concatenate([p(loop[r][0]) - loop[r][1] for r in (0, 1)])
+        baselines[degree] = float(np.sqrt(np.mean(errors**2)))
+    # measured: Preisach 0.099 T, line 0.350 T, degree-5 polynomial 0.217 T
+    assert rmse < 0.35 * baselines[1] and rmse < 0.6 * baselines[5], (rmse, baselines)
