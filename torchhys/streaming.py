@@ -188,7 +188,7 @@ class StreamingCompensator(nn.Module):
         self.register_buffer("high", torch.tensor(high, dtype=dtype))
         u0 = min(max(float(initial_command), low), high)
         self.register_buffer("u0", torch.tensor(u0, dtype=dtype))
-        self.register_buffer("zero", torch.zeros((), dtype=dtype))
+        self.register_buffer("zero", torch.zeros((), dtype=dtype))  # the hold test's 0
         # with u0 = +0.0 the fresh state's held column (zeros) already holds the initial command
         self.u0_zero: bool = u0 == 0.0 and math.copysign(1.0, u0) > 0
         self._layout(steps, dtype)
