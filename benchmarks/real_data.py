@@ -74,6 +74,7 @@ from torchhys.training.families import FitError
 from torchhys.training.init import initialize
 from torchhys.training.module import OPTIMIZERS, InverseHysteresisModule
 from torchhys.training.operators import build_operators, fit_data_dependent
+from torchhys.training.selection import CandidateScore, best, standard_error
 
 try:  # the generalized PI model is optional (a newer module)
     from torchhys.generalized_pi import fit_generalized_pi, monotone_output
@@ -202,10 +203,14 @@ def pneumatic() -> Split:
     return Split(x, y, 0, [(_t(recs[i][0]), _t(recs[i][1]), 0) for i in (1, 2)])
 
 
-def shortened(split: Split, n: int = 50) -> Split:
-    """A short record: every k-th sample of the training rows (warm-up included), k chosen
-    so that about ``n`` scored training samples remain; the held-out recordings unchanged
-    (every model here is rate-independent or sees only the sample sequence)."""
+def shortened(split: Split, n: int = 50, *, stride: bool = False) -> Split:
+    """A short record of about ``n`` scored training samples: the first training row, its
+    warm-up and the ``n`` samples after it (a short log of the device), or with ``stride``
+    every k-th sample of every training row (a closed loop sampled coarsely: its shape kept).
+    The held-out recordings are unchanged."""
+    if not stride:
+        return Split(split.x[:1, :split.warmup + n], split.y[:1, :split.warmup + n],
+                     split.warmup, split.test)
     k = max(1, split.y[:, split.warmup:].numel() // n)
     return Split(split.x[:, ::k], split.y[:, ::k], -(-split.warmup // k), split.test)
 
@@ -232,11 +237,11 @@ DATASETS: dict[str, tuple[str, Callable[[Path], Split]]] = {
     "friction_damper": ("displacement -> force, sines / earthquakes",
                         lambda p: friction_damper()),
     "pneumatic_oring": ("position -> friction, 1+7 / 3+5 bar", lambda p: pneumatic()),
-    "mnzn_ferrite_short": ("mnzn_ferrite, training loops subsampled to ~50 samples",
-                           lambda p: shortened(ferrite(p, [0, 3], [1, 2]))),
-    "mr_damper_0V_short": ("mr_damper_0V, training rows subsampled to ~50 samples",
+    "mnzn_ferrite_short": ("mnzn_ferrite, training loops sampled every 5th: 52 samples",
+                           lambda p: shortened(ferrite(p, [0, 3], [1, 2]), stride=True)),
+    "mr_damper_0V_short": ("mr_damper_0V, the first 50 scored samples of one training row",
                            lambda p: shortened(mr_damper(0.0))),
-    "pneumatic_oring_short": ("pneumatic_oring, training rows subsampled to ~50 samples",
+    "pneumatic_oring_short": ("pneumatic_oring, the first 50 samples of the 1 bar record",
                               lambda p: shortened(pneumatic())),
     "pneumatic_oring_long": ("pneumatic_oring, training rows tiled to 1e5 samples",
                              lambda p: tiled(pneumatic())),
@@ -597,12 +602,14 @@ def default(split: Split, budget: Budget, config: Path = CONFIG) -> Fitted:
     """The model section of a ``torchhys fit`` config, trained as its trainer section says
     on the whole training part. With ``model.select``, every candidate is fitted on the
     part before the hold-out and scored on it (as ``torchhys fit`` scores its validation
-    split), and the best one (a candidate that cannot be fitted is skipped) is refitted on
-    the whole training part; without, the hold-out RMSE comes from a second fit before it."""
+    split), the config's ``select_rule`` chooses one (a candidate that cannot be fitted is
+    skipped), and it is refitted on the whole training part; without, the hold-out RMSE
+    comes from a second fit before it."""
     x, y, w, c = split.x, split.y, split.warmup, holdout(split.x.shape[1], split.warmup)
     m = _config_model(config)[0]
     candidates = m.pop("select", None) or [{}]
     m.pop("select_cv", None)
+    rule = m.pop("select_rule", None) or "min"
     scores = []
     for i, overrides in enumerate(candidates):
         try:
@@ -611,15 +618,19 @@ def default(split: Split, budget: Budget, config: Path = CONFIG) -> Fitted:
             continue
         dtype = next(first.parameters()).dtype
         with torch.no_grad():
-            score = _rmse(first(x.to(dtype))[0][:, c:].to(F64), y[:, c:])
-        scores.append((score if math.isfinite(score) else math.inf, i))
+            e2 = (first(x.to(dtype))[0][:, c:].to(F64) - y[:, c:]).square().reshape(-1)
+        mse = float(e2.mean())
+        if math.isfinite(mse):
+            scores.append(CandidateScore(i, overrides, mse, val_se=standard_error(e2)))
     if not scores:
         raise FitError("no candidate of the config could be fitted")
+    chosen = best(scores, rule)  # as torchhys fit chooses
+    order = [chosen] + sorted((s for s in scores if s is not chosen), key=lambda s: s.val_mse)
     failed, refit = 0, None
-    for held_out, i in sorted(scores):  # the best candidate whose refit succeeds
+    for s in order:  # the chosen candidate, or the best one whose refit succeeds
         try:
-            refit = _train_config(config, x, y, w, budget, candidates[i])
-            score = held_out
+            refit = _train_config(config, x, y, w, budget, candidates[s.index])
+            score, i = math.sqrt(s.val_mse), s.index
             break
         except FitError:
             failed += 1
@@ -629,8 +640,8 @@ def default(split: Split, budget: Budget, config: Path = CONFIG) -> Fitted:
     dtype = next(net.parameters()).dtype
     capped = f" (capped at {budget.seconds:g} s)" if done < epochs else ""
     note = f" ({failed} failed refits)" if failed else ""
-    chosen = f"candidate {i}{note}: " if len(candidates) > 1 else ""
-    choice = (f"{config.name}: {chosen}{_describe({**m, **candidates[i]})}, {m['optimizer']} "
+    label = f"candidate {i}{note}: " if len(candidates) > 1 else ""
+    choice = (f"{config.name}: {label}{_describe({**m, **candidates[i]})}, {m['optimizer']} "
               f"{done} epochs{capped}")
     return Fitted(lambda v: net(v.to(dtype))[0].to(F64), choice, score)
 

@@ -9,6 +9,7 @@ import math
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -18,7 +19,14 @@ from torchhys.export import load_torchscript
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 from torchhys.training.cli import main
 from torchhys.training.export_cmd import main as export_main
-from torchhys.training.selection import BlockFold, check_candidates, model_arguments
+from torchhys.training.selection import (
+    BlockFold,
+    CandidateScore,
+    best,
+    check_candidates,
+    model_arguments,
+    standard_error,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -271,3 +279,54 @@ def test_example_config_runs(monkeypatch, capsys, tmp_path) -> None:
     assert len(rows) == 3 and all(math.isfinite(float(r["val_mse"])) for r in rows)
     assert "selected candidate" in capsys.readouterr().out
     assert (root / "logs/version_0/checkpoints/last.ckpt").is_file()
+
+
+def test_standard_error_is_batch_means() -> None:
+    """Against a numpy batch-means reference; correlated errors get a larger standard error
+    than independent ones of the same spread."""
+    g = np.random.default_rng(0)
+    e = g.exponential(size=50)
+    k = 7  # floor(sqrt(50))
+    means = np.array([b.mean() for b in np.array_split(e, k)])
+    expected = means.std(ddof=1) / np.sqrt(k)
+    assert standard_error(torch.from_numpy(e)) == pytest.approx(expected, rel=1e-12)
+    assert math.isnan(standard_error(torch.ones(3)))
+    independent = torch.from_numpy(g.permutation(np.repeat(e[:10], 5)))
+    correlated = torch.from_numpy(np.repeat(e[:10], 5))  # runs of equal errors
+    assert standard_error(correlated) > 1.5 * standard_error(independent)
+
+
+def _score(i: int, mse: float, se: float) -> CandidateScore:
+    return CandidateScore(i, {"i": i}, mse, val_se=se)
+
+
+def test_one_standard_error_rule_keeps_the_baseline_unless_beaten_clearly() -> None:
+    close = [_score(0, 1.0, 0.1), _score(1, 0.95, 0.1), _score(2, 0.92, 0.1)]
+    assert best(close, "min").index == 2
+    assert best(close, "1se").index == 0  # 1.0 <= 0.92 + 0.1
+    clear = [_score(0, 1.0, 0.1), _score(1, 0.5, 0.1), _score(2, 0.3, 0.1)]
+    assert best(clear, "1se").index == 2  # the lowest, not the first within its bound
+    skipped = [_score(0, math.nan, math.nan), _score(1, 0.5, 0.1), _score(2, 0.55, 0.1)]
+    assert best(skipped, "1se").index == 1
+    with pytest.raises(ValueError, match="model.select_rule must be one of"):
+        best(close, "2se")
+
+
+def test_select_rule_on_the_command_line(monkeypatch, capsys, tmp_path) -> None:
+    cfg = config(tmp_path)
+    root = tmp_path / "run"
+    cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={root}",
+        "--model.select_rule=1se")
+    rows = table(root)
+    assert all(float(r["val_se"]) > 0 for r in rows)
+    mse = [float(r["val_mse"]) for r in rows]
+    se = [float(r["val_se"]) for r in rows]
+    lowest = min(range(3), key=mse.__getitem__)
+    expected = 0 if mse[0] <= mse[lowest] + se[lowest] else lowest
+    assert [int(r["selected"]) for r in rows] == [int(i == expected) for i in range(3)]
+    assert "one-standard-error rule" in capsys.readouterr().out
+    bad = config(tmp_path, **{"  select:\n    - {operator: null}\n    - {operator: [{name: "
+                              "pi_ls, n_widths: 8}]}\n    - {operator: [{name: plays, n: 4}]}"
+                              "\n": "  select_rule: 1se\n"})
+    with pytest.raises(ValueError, match=r"model.select_rule='1se' needs model.select"):
+        cli(monkeypatch, "fit", "--config", str(bad), f"--trainer.default_root_dir={tmp_path}")

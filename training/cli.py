@@ -21,13 +21,16 @@ before the module is built)::
         - {operator: [{name: plays, n: 8}], hidden: 16}
         - {operator: null}                      # the plain network
       select_cv: null                           # k: blocked cross-validation instead
+      select_rule: null                         # "1se": the first unless beaten by > 1 s.e.
 
 Every candidate is trained from the same seed with the same trainer settings (CSV logs
 under ``<default_root_dir>/selection/candidate_<i>``, no checkpoints) and scored by its
 validation MSE at the end of training: on the validation split (which must not overlap the
 training split), or with ``model.select_cv: k`` by blocked cross-validation inside the
 training part (``k`` trainings per candidate; the validation split is then not used for
-the choice; :mod:`torchhys.training.selection`). The test split is not read. The table is
+the choice; :mod:`torchhys.training.selection`). The lowest validation MSE wins, or with
+``model.select_rule: 1se`` the first candidate (a baseline such as the straight line) when
+it is within one standard error of the lowest. The test split is not read. The table is
 printed and written to ``<default_root_dir>/selection.csv``; the chosen candidate's
 configuration then replaces the model section and is fitted once more as a plain ``fit``
 would be (same seed: on a deterministic device the same weights as scored; ``config.yaml``
@@ -42,7 +45,7 @@ from __future__ import annotations
 import sys
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from jsonargparse import ArgumentError, Namespace
 from lightning.pytorch import Trainer, seed_everything
@@ -89,6 +92,10 @@ class TorchhysCLI(LightningCLI):
             help="fit with model.select: score the candidates by blocked cross-validation "
                  "with this many contiguous blocks of the training part (default: on the "
                  "validation split)")
+        parser.add_argument(
+            "--model.select_rule", type=Literal["min", "1se"] | None, default=None,
+            help="fit with model.select: 'min' (default) chooses the lowest validation MSE, "
+                 "'1se' the first candidate (the baseline) when within one standard error of it")
 
     def before_instantiate_classes(self) -> None:
         self._select()
@@ -107,10 +114,11 @@ class TorchhysCLI(LightningCLI):
         candidates and put the chosen one's model section in their place."""
         sub = self.subcommand
         cfg = self.config[sub] if sub else self.config
-        select, cv = _pop_select(cfg)
+        select, cv, rule = _pop_select(cfg)
         if select is None:
-            if cv is not None:
-                raise ValueError(f"model.select_cv={cv!r} needs model.select (the candidates)")
+            for key, value in (("select_cv", cv), ("select_rule", rule)):
+                if value is not None:
+                    raise ValueError(f"model.{key}={value!r} needs model.select (the candidates)")
             return
         if sub != "fit" or cfg.get("ckpt_path"):
             if not cfg.get("ckpt_path"):
@@ -135,8 +143,8 @@ class TorchhysCLI(LightningCLI):
             return self._instantiate_run(configs[i], seed, root / "selection", i, fold)
 
         scores = selection.run_selection(candidates, build, cv=cv)
-        chosen = selection.best(scores)
-        _report(scores, chosen, root / "selection.csv", cv)
+        chosen = selection.best(scores, rule or "min")
+        _report(scores, chosen, root / "selection.csv", cv, rule or "min")
         self.config = configs[chosen.index]
         self.__dict__.pop("config_dump", None)  # the module's hyperparameters: the choice
         seed_everything(seed, workers=True)  # the fit starts as the candidate's run did
@@ -180,21 +188,24 @@ class TorchhysCLI(LightningCLI):
         return self.model, self._get(self.config_init, "data"), self.trainer_class(**kwargs)
 
 
-def _pop_select(cfg: Namespace) -> tuple[Any, Any]:
-    """Remove ``model.select`` and ``model.select_cv`` from a (subcommand's) config."""
+def _pop_select(cfg: Namespace) -> tuple[Any, Any, Any]:
+    """Remove ``model.select``, ``model.select_cv`` and ``model.select_rule`` from a
+    (subcommand's) config; their values."""
     values = []
-    for key in ("model.select", "model.select_cv"):
+    for key in ("model.select", "model.select_cv", "model.select_rule"):
         values.append(cfg.get(key))
         if key in cfg:
             del cfg[key]
-    return values[0], values[1]
+    return values[0], values[1], values[2]
 
 
 @rank_zero_only
 def _report(scores: list[selection.CandidateScore], chosen: selection.CandidateScore,
-            path: Path, cv: int | None) -> None:
+            path: Path, cv: int | None, rule: str) -> None:
     selection.write_table(scores, chosen, path)
     how = "the validation split" if cv is None else f"{cv}-fold blocked cross-validation"
+    if rule == "1se":
+        how += " (one-standard-error rule)"
     print(f"model selection on {how}:\n{selection.format_table(scores, chosen)}\n"
           f"selected candidate {chosen.index}: {selection.config_json(chosen.overrides)} "
           f"(val_mse {chosen.val_mse:.6g}); table written to {path}", flush=True)

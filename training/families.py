@@ -53,7 +53,8 @@ __all__ = ["FAMILIES", "FitError", "PENALTIES"]
 PENALTIES = (0.0, 1e-8, 1e-6, 1e-4, 1e-2, 1e-1)
 """The grid of ``ridge``/``smoothness: "auto"``."""
 VALIDATION = 0.25
-"""The hold-out share of ``"auto"`` penalties."""
+"""The hold-out share of ``"auto"`` penalties: the last quarter of each row's scored
+samples."""
 
 Fitter = Callable[[Tensor, Tensor, int], nn.Module]
 
@@ -105,6 +106,20 @@ def _rmse(model: nn.Module, x: Tensor, t: Tensor, warmup: int) -> float:
         return float((model(x)[0] - t)[:, warmup:].square().mean().sqrt())
 
 
+def _holdout(x: Tensor, warmup: int) -> float:
+    """The share of each row (of length T) that holds the last :data:`VALIDATION` of its
+    scored samples, as ``select_pi_ridge`` / ``select_penalty`` take it.
+
+    Raises:
+        FitError: fewer than 8 scored samples (no hold-out to choose a penalty on).
+    """
+    T = x.shape[-1]
+    if T - warmup < 8:
+        raise FitError(f"{T - warmup} scored training samples are too few to choose a penalty "
+                       "on a hold-out; give the penalty as a number")
+    return max(1, round(VALIDATION * (T - warmup))) / T
+
+
 def _checked(model: nn.Module, x: Tensor, t: Tensor, warmup: int, name: str) -> nn.Module:
     """``model`` if it fits the standardized target t on the scored training samples better
     than a straight line in x does, else :class:`FitError` (a diverged or degenerate fit;
@@ -124,7 +139,7 @@ def _pi_fit(u: Tensor, out: Tensor, widths: Tensor, ridge: float | str,
             warmup: int) -> PrandtlIshlinskii:
     if ridge == "auto":
         ridge, _ = select_pi_ridge(u, out, widths, PENALTIES, nonnegative=True,
-                                   validation=VALIDATION, warmup=warmup)
+                                   validation=_holdout(u, warmup), warmup=warmup)
     return fit_prandtl_ishlinskii(u, out, widths, ridge=ridge, warmup=warmup, nonnegative=True)
 
 
@@ -189,7 +204,7 @@ def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
         ridges = [ridge]
         if ridge == "auto":
             _, scores = select_pi_ridge(u, out, widths, PENALTIES, nonnegative=True,
-                                        validation=VALIDATION, warmup=warmup)
+                                        validation=_holdout(u, warmup), warmup=warmup)
             # the local optimum of the fit depends on its start (the initial PI fit): if the
             # fit with the best ridge fails, the next best start it elsewhere
             ridges = sorted(scores, key=lambda r: scores[r])[:3]
@@ -255,7 +270,8 @@ def _preisach(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
             p = smoothness
             if p == "auto":
                 p, _ = select_penalty(x, sign * t, list(PENALTIES), kind="smoothness",
-                                      validation=VALIDATION, lo=lo, hi=hi, n=n, warmup=warmup)
+                                      validation=_holdout(x, warmup), lo=lo, hi=hi, n=n,
+                                      warmup=warmup)
             m = fit_preisach(x, sign * t, lo=lo, hi=hi, n=n, smoothness=p, warmup=warmup)
             fits.append((_rmse(m, x, sign * t, warmup), sign, m))
         rmse, sign, m = min(fits, key=lambda f: f[0])

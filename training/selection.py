@@ -15,8 +15,11 @@ MSE at the end of training, either
 
 A candidate whose family operator cannot be fitted to the data (no inverse, a diverged fit)
 scores NaN and is never chosen. The test split is never read. :func:`run_selection` returns
-one :class:`CandidateScore` per candidate, :func:`best` picks the lowest validation MSE (the
-first on ties), and :func:`write_table` writes them as CSV.
+one :class:`CandidateScore` per candidate (validation MSE and its standard error),
+:func:`best` picks the lowest validation MSE (the first on ties), or with the
+one-standard-error rule the first candidate (the baseline) when it is within one standard
+error of the lowest, and
+:func:`write_table` writes them as CSV.
 """
 
 from __future__ import annotations
@@ -36,12 +39,13 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader
 
-from torchhys._checks import check_int
+from torchhys._checks import check_choice, check_int
 from torchhys.training.families import FitError
 
 __all__ = [
-    "BlockFold", "Build", "CandidateScore", "best", "check_candidates", "check_holdout",
-    "config_json", "format_table", "model_arguments", "run_selection", "write_table",
+    "RULES", "BlockFold", "Build", "CandidateScore", "best", "check_candidates",
+    "check_holdout", "config_json", "format_table", "model_arguments", "run_selection",
+    "standard_error", "write_table",
 ]
 
 Build = Callable[[int, int | None], tuple[L.LightningModule, L.LightningDataModule, L.Trainer]]
@@ -61,6 +65,9 @@ class CandidateScore:
     """Validation MSE (cross-validation: over all held-out samples of all folds)."""
     folds: tuple[float, ...] = ()
     """Validation MSE of each cross-validation fold (empty for the hold-out)."""
+    val_se: float = math.nan
+    """Standard error of ``val_mse`` (:func:`standard_error`, batch means over the held-out
+    squared errors; NaN where it could not be computed)."""
 
 
 def model_arguments(model_class: type) -> list[str]:
@@ -222,21 +229,53 @@ class BlockFold(L.LightningDataModule):
         return DataLoader([self._val], batch_size=1, collate_fn=_one)
 
 
-def _validation_mse(module: L.LightningModule, datamodule: L.LightningDataModule,
-                    trainer: L.Trainer) -> float:
-    """Train, then the validation MSE of the trained module (NaN, with a warning, when a
-    family operator cannot be fitted to the data: :class:`~torchhys.training.families.FitError`)."""
+def _squared_errors(module: L.LightningModule, datamodule: L.LightningDataModule) -> Tensor:
+    """The trained module's squared errors on the scored validation samples, flat (empty for
+    batches that are not ``(x, y, warmup, mask)``)."""
+    errors = []
+    with torch.no_grad():
+        for batch in datamodule.val_dataloader():
+            if not (isinstance(batch, (tuple, list)) and len(batch) == 4):
+                continue
+            x, y, _, mask = batch
+            e = module(x, target=y).to(torch.float64) - y.to(torch.float64)
+            errors.append(e.square()[mask.to(torch.bool)])
+    return torch.cat(errors) if errors else torch.zeros(0, dtype=torch.float64)
+
+
+def _validation(module: L.LightningModule, datamodule: L.LightningDataModule,
+                trainer: L.Trainer) -> tuple[float, Tensor]:
+    """Train, then the validation MSE of the trained module and its squared errors (NaN and
+    none, with a warning, when a family operator cannot be fitted to the data:
+    :class:`~torchhys.training.families.FitError`)."""
     try:
         trainer.fit(module, datamodule=datamodule)
     except FitError as err:
         warnings.warn(f"model.select: candidate skipped: {err}", RuntimeWarning, stacklevel=2)
-        return math.nan
+        return math.nan, torch.zeros(0, dtype=torch.float64)
     results = trainer.validate(module, datamodule=datamodule, verbose=False)
     if not results or "val_mse" not in results[0]:
         raise ValueError(
             "model.select: validation logged no val_mse (is trainer.limit_val_batches 0?)"
         )
-    return float(results[0]["val_mse"])
+    return float(results[0]["val_mse"]), _squared_errors(module, datamodule)
+
+
+def standard_error(squared_errors: Tensor) -> float:
+    """Standard error of the mean of ``squared_errors`` (in time order), by batch means: the
+    errors of neighbouring samples are correlated, so they are cut into ``k = floor(sqrt(n))``
+    contiguous blocks and the standard error is the standard deviation of the block means
+    over ``sqrt(k)`` (NaN for fewer than four errors).
+
+    References:
+        G. S. Fishman, Discrete-Event Simulation, Springer, 2001, Sec. 6.6 (batch means).
+    """
+    n = squared_errors.numel()
+    if n < 4:
+        return math.nan
+    k = math.isqrt(n)
+    means = torch.stack([b.mean() for b in torch.tensor_split(squared_errors.reshape(-1), k)])
+    return float(means.std() / math.sqrt(k))
 
 
 def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
@@ -257,32 +296,52 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
         if cv is None:
             module, data, trainer = build(i, None)
             check_holdout(data)
-            scores.append(CandidateScore(i, overrides, _validation_mse(module, data, trainer)))
+            mse, errors = _validation(module, data, trainer)
+            scores.append(CandidateScore(i, overrides, mse, val_se=standard_error(errors)))
             continue
-        folds, counts = [], []
+        folds, counts, errors = [], [], []
         for j in range(cv):
             module, data, trainer = build(i, j)
             fold = BlockFold(data, cv, j)
-            folds.append(_validation_mse(module, fold, trainer))
+            mse, e = _validation(module, fold, trainer)
+            folds.append(mse)
             counts.append(fold.n_val)
+            errors.append(e)
         pooled = sum(m * n for m, n in zip(folds, counts, strict=True)) / sum(counts)
-        scores.append(CandidateScore(i, overrides, pooled, tuple(folds)))
+        se = standard_error(torch.cat(errors)) if math.isfinite(pooled) else math.nan
+        scores.append(CandidateScore(i, overrides, pooled, tuple(folds), se))
     return scores
 
 
-def best(scores: Sequence[CandidateScore]) -> CandidateScore:
-    """The candidate of lowest validation MSE (the first on ties; NaN counts as worst).
+RULES = ("min", "1se")
+"""Selection rules of :func:`best`."""
+
+
+def best(scores: Sequence[CandidateScore], rule: str = "min") -> CandidateScore:
+    """The chosen candidate (NaN scores are never chosen).
+
+    ``rule="min"``: the lowest validation MSE (the first on ties). ``rule="1se"`` (a
+    one-standard-error rule with two levels of complexity): the first candidate, the
+    baseline (e.g. the straight line), if its validation MSE is within one standard error
+    of the lowest, else the lowest: on few or correlated validation samples, a more complex
+    candidate must beat the baseline clearly to be chosen.
 
     Raises:
-        ValueError: every score is NaN.
+        ValueError: every score is NaN, an unknown rule.
     """
+    check_choice(rule, "model.select_rule", RULES)
     finite = [s for s in scores if not math.isnan(s.val_mse)]
     if not finite:
         raise ValueError(
             f"model.select: every candidate's validation MSE is NaN ({len(scores)} "
             "candidates): training diverged"
         )
-    return min(finite, key=lambda s: s.val_mse)
+    lowest = min(finite, key=lambda s: s.val_mse)
+    if rule == "min":
+        return lowest
+    bound = lowest.val_mse + (lowest.val_se if math.isfinite(lowest.val_se) else 0.0)
+    baseline = scores[0]
+    return baseline if baseline.val_mse <= bound else lowest
 
 
 def config_json(overrides: Mapping[str, Any]) -> str:
@@ -293,25 +352,27 @@ def config_json(overrides: Mapping[str, Any]) -> str:
 def format_table(scores: Sequence[CandidateScore], chosen: CandidateScore) -> str:
     """The candidates and their validation MSE as a text table (``*`` marks the choice)."""
     width = max(len(f"{s.val_mse:.6g}") for s in scores)
-    lines = [f"  {'candidate':>9}  {'val_mse':>{width}}  config"]
+    se = max(6, *(len(f"{s.val_se:.3g}") for s in scores))
+    lines = [f"  {'candidate':>9}  {'val_mse':>{width}}  {'val_se':>{se}}  config"]
     for s in scores:
         mark = "*" if s.index == chosen.index else " "
-        lines.append(f"{mark} {s.index:>9}  {s.val_mse:>{width}.6g}  {config_json(s.overrides)}")
+        lines.append(f"{mark} {s.index:>9}  {s.val_mse:>{width}.6g}  {s.val_se:>{se}.3g}  "
+                     f"{config_json(s.overrides)}")
     return "\n".join(lines)
 
 
 def write_table(scores: Sequence[CandidateScore], chosen: CandidateScore,
                 path: str | Path) -> Path:
-    """Write ``candidate, val_mse, selected, config`` (and ``fold_1 .. fold_k`` after
+    """Write ``candidate, val_mse, val_se, selected, config`` (and ``fold_1 .. fold_k`` after
     cross-validation) as CSV, one row per candidate; ``config`` is the candidate's JSON."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     n_folds = max(len(s.folds) for s in scores)
     with path.open("w", newline="") as fh:
         out = csv.writer(fh)
-        out.writerow(["candidate", "val_mse", "selected", "config",
+        out.writerow(["candidate", "val_mse", "val_se", "selected", "config",
                       *(f"fold_{j + 1}" for j in range(n_folds))])
         for s in scores:
-            out.writerow([s.index, repr(s.val_mse), int(s.index == chosen.index),
+            out.writerow([s.index, repr(s.val_mse), repr(s.val_se), int(s.index == chosen.index),
                           config_json(s.overrides), *(repr(f) for f in s.folds)])
     return path
