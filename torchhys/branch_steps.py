@@ -21,7 +21,12 @@ Use :func:`branch_step` to build the one that fits an operator's settings.
 import torch
 from torch import Tensor
 
-from torchhys.functional._branch import branch_g, direction_coefficient, signed_sqrt
+from torchhys.functional._branch import (
+    branch_g,
+    direction_coefficient,
+    signed_sqrt,
+    sqrt_constants,
+)
 from torchhys.functional.backlash import play_step
 from torchhys.operator import OperatorStep, StateBlock
 
@@ -182,6 +187,11 @@ class RebasedStep(_BranchStep):
     def __init__(self, a: Tensor, eps: float) -> None:
         super().__init__("eiho", a, None, a.new_zeros(()), eps, 1.0, True)
         self.symmetric: bool = bool(a[0] == a[1])
+        # the square root's eps and eps ** 0.5 as buffers (for the TorchScript interpreter,
+        # which would wrap Python numbers into new tensors at every step; same values)
+        eps_t, root_eps = sqrt_constants(eps, a)
+        self.register_buffer("eps_t", eps_t)
+        self.register_buffer("root_eps", root_eps)
         self.state_spec = [StateBlock("previous sample", 1, from_sample=1.0),
                            StateBlock("anchor", 1, from_sample=1.0), StateBlock("v", 1)]
 
@@ -191,7 +201,7 @@ class RebasedStep(_BranchStep):
         x_a = torch.where(torch.copysign(delta, v_prev) != delta, x_prev, xa_prev)
         v = x - x_a
         coef = self.a0 if self.symmetric else direction_coefficient(self.a0, self.a1, v)
-        return coef * signed_sqrt(v, self.eps), [x, x_a, v]
+        return coef * signed_sqrt(v, self.eps_t, self.root_eps), [x, x_a, v]
 
 
 def branch_step(

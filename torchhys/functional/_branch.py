@@ -53,7 +53,7 @@ from torchhys.functional.turning_points import resolve_threshold, zigzag
 
 __all__ = [
     "BranchState", "branch_g", "branch_operator", "check_a", "direction_coefficient",
-    "initial_branch_state", "safe_sqrt", "signed_sqrt",
+    "initial_branch_state", "linear_zone_sqrt", "safe_sqrt", "signed_sqrt", "sqrt_constants",
 ]
 
 _RULES = ("recent", "dominant")
@@ -97,22 +97,45 @@ def safe_sqrt(u: Tensor, eps: float, differentiable: bool = True) -> Tensor:
     """``sqrt(u)`` for ``u >= eps``, ``u / sqrt(eps)`` below: zero at 0, slope <= 1/sqrt(eps).
 
     Keeps gradients finite at ``x = x_e``: the inner ``where`` keeps ``sqrt``'s infinite slope
-    at 0 out of the backward; with ``differentiable=False`` (the streaming steps, which need no
-    gradient) it is left out, the values are the same. The value differs from ``sqrt(u)`` by
-    less than ``sqrt(eps) / 4`` and only for ``0 < u < eps``. Scriptable. (``u * rsqrt(max(u,
-    eps))`` is the same function in fewer operations, but its rounding, in value and gradient,
-    moves long full-batch fits: the paper's 2000 Adam + 10000 L-BFGS protocol ends at 2.0e-3
-    with it, 1.3e-3 with this.)
+    at 0 out of the backward; with ``differentiable=False`` it is left out, the values are the
+    same (that form is :func:`linear_zone_sqrt`, with the constants as tensors). The value
+    differs from ``sqrt(u)`` by less than ``sqrt(eps) / 4`` and only for ``0 < u < eps``.
+    Scriptable. (``u * rsqrt(max(u, eps))`` is the same function in fewer operations, but its
+    rounding, in value and gradient, moves long full-batch fits: the paper's 2000 Adam + 10000
+    L-BFGS protocol ends at 2.0e-3 with it, 1.3e-3 with this.)
     """
+    if not differentiable:
+        eps_t, root_eps = sqrt_constants(eps, u)
+        return linear_zone_sqrt(u, eps_t, root_eps)
     big = u >= eps
-    root = torch.sqrt(torch.where(big, u, torch.ones_like(u))) if differentiable else torch.sqrt(u)
+    root = torch.sqrt(torch.where(big, u, torch.ones_like(u)))
     return torch.where(big, root, u / eps**0.5)
 
 
-def signed_sqrt(v: Tensor, eps: float) -> Tensor:
-    """``sign(v) * safe_sqrt(|v|, eps)``, exactly (``copysign`` moves the sign bit); for the
-    streaming steps (no gradient)."""
-    return torch.copysign(safe_sqrt(v.abs(), eps, False), v)
+def sqrt_constants(eps: float, like: Tensor) -> tuple[Tensor, Tensor]:
+    """The constants of :func:`safe_sqrt`, ``eps`` and ``eps ** 0.5``, as 0-dim tensors in
+    ``like``'s dtype and device (each Python number rounded to the dtype, as an operation
+    with a Python number rounds it)."""
+    return (torch.tensor(eps, dtype=like.dtype, device=like.device),
+            torch.tensor(eps**0.5, dtype=like.dtype, device=like.device))
+
+
+def linear_zone_sqrt(u: Tensor, eps: Tensor, root_eps: Tensor) -> Tensor:
+    """:func:`safe_sqrt` without the gradient guard, its constants given as 0-dim tensors
+    in ``u``'s dtype (:func:`sqrt_constants`): the same values, bit for bit. For the
+    streaming steps (no gradient), which keep the constants as buffers: the TorchScript
+    interpreter would wrap a Python ``eps`` into a new tensor twice per call."""
+    # (TorchScript only: its executor turns ``u / root_eps`` with a constant 0-dim tensor back
+    # into a division by a Python number, wrapped at every call; the rounding_mode overload,
+    # the same true division, keeps the tensor)
+    return torch.where(u >= eps, torch.sqrt(u), torch.div(u, root_eps, rounding_mode=None))
+
+
+def signed_sqrt(v: Tensor, eps: Tensor, root_eps: Tensor) -> Tensor:
+    """``sign(v) * safe_sqrt(|v|, eps)``, exactly (``copysign`` moves the sign bit), with
+    ``eps`` and ``eps ** 0.5`` as 0-dim tensors (:func:`sqrt_constants`); for the streaming
+    steps (no gradient)."""
+    return torch.copysign(linear_zone_sqrt(v.abs(), eps, root_eps), v)
 
 
 def branch_g(u: Tensor, coef: Tensor, kind: str, eps: float, scale: float) -> Tensor:
