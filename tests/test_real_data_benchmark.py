@@ -95,3 +95,50 @@ def test_missing_ferrite_file_is_skipped(bench, tmp_path, capsys):
                        str(tmp_path / "absent.csv")])
     assert rows == []
     assert "skipping mnzn_ferrite" in capsys.readouterr().out
+
+
+def test_short_and_long_records_keep_the_held_out_part(bench):
+    split = bench.DATASETS["mnzn_ferrite"][1](FERRITE)
+    coarse = bench.shortened(split, stride=True)  # every 5th sample of the two loops
+    assert coarse.y[:, coarse.warmup:].numel() == 52
+    np.testing.assert_array_equal(coarse.x.numpy(), split.x[:, ::5].numpy())
+    assert coarse.test is split.test
+    log = bench.shortened(split)  # the first row, its warm-up and 50 samples
+    assert log.x.shape == (1, split.warmup + 50) and log.warmup == split.warmup
+    np.testing.assert_array_equal(log.y.numpy(), split.y[:1, :split.warmup + 50].numpy())
+    long = bench.tiled(split, total=10_000)
+    assert long.y[:, long.warmup:].numel() >= 10_000 and long.test is split.test
+    T = split.x.shape[1]
+    np.testing.assert_array_equal(long.x[:, T:2 * T].numpy(), split.x.numpy())
+
+
+def test_the_default_row_follows_the_configs_selection_rule(bench, tmp_path, monkeypatch):
+    """The default row scores each candidate on the hold-out (MSE and its standard error)
+    and chooses with the config's select_rule, as torchhys fit does."""
+    split = bench.DATASETS["mnzn_ferrite"][1](FERRITE)
+    text = (ROOT / "configs" / "measured.yaml").read_text()
+    cut, end = text.index("  select:"), text.index("\ndata:") + 1
+    two = text[:cut] + """  select:
+    - operator: null
+    - operator: [{name: gpi, n_widths: 5, units: 2, epochs: 40, direction: inverse}]
+  select_rule: RULE
+""" + text[end:]
+    calls = []
+
+    def spy(scores, rule="min"):
+        calls.append((list(scores), rule))
+        return bench.best.__wrapped__(scores, rule)
+
+    spy.__wrapped__ = bench.best
+    monkeypatch.setattr(bench, "best", spy)
+    for rule in ("min", "1se"):
+        path = tmp_path / f"{rule}.yaml"
+        path.write_text(two.replace("RULE", rule))
+        fitted = bench.default(split, bench.QUICK, path)
+        scores, used = calls[-1]
+        assert used == rule and [s.index for s in scores] == [0, 1]
+        assert all(s.val_se > 0 for s in scores)
+        chosen = spy.__wrapped__(scores, rule)
+        assert f"candidate {chosen.index}" in fitted.choice
+        assert fitted.holdout == pytest.approx(math.sqrt(chosen.val_mse), rel=1e-12)
+        assert fitted.predict(split.test[0][0][None]).isfinite().all()
