@@ -10,7 +10,8 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from _helpers import play_reference, random_walk, run_chunked, smooth_input
+from _gpi_helpers import F64, WIDTHS, model, walks
+from _helpers import play_reference, run_chunked, smooth_input
 
 from torchhys import Backlash, InverseHysteresisNet, PrandtlIshlinskii
 from torchhys.fitting import fit_full_batch, fit_prandtl_ishlinskii, play_width_grid
@@ -18,22 +19,6 @@ from torchhys.functional import prandtl_ishlinskii
 from torchhys.generalized_pi import GeneralizedPrandtlIshlinskii, fit_generalized_pi
 from torchhys.operator import OPERATORS, make_operator
 from torchhys.streaming import StreamingCompensator
-
-F64 = torch.float64
-WIDTHS = [0.0, 0.4, 1.0, 1.7, 2.5]
-
-
-def model(dtype: torch.dtype = F64, **kw) -> GeneralizedPrandtlIshlinskii:
-    """Positive play weights and a g with three units of different slopes."""
-    args = dict(weights=[0.3, 0.8, 0.05, 0.5, 0.2], linear_weight=0.4,
-                centers=[-1.0, 0.2, 1.5], slopes=[0.7, 2.0, 1.2], unit_weights=[0.5, 0.3, 0.9],
-                gain=0.3, offset=-0.2)
-    args.update(kw)
-    return GeneralizedPrandtlIshlinskii(torch.tensor(WIDTHS, dtype=dtype), **args)
-
-
-def walks() -> torch.Tensor:
-    return torch.stack([random_walk(s, T=200, quantize=s % 2 == 0) for s in range(3)])
 
 
 def test_matches_a_plain_loop():

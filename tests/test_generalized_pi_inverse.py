@@ -7,33 +7,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from _helpers import random_walk
+from _gpi_helpers import F64, WIDTHS, model, walks
 
-from torchhys import GeneralizedPIInverse, GeneralizedPrandtlIshlinskii, InverseHysteresisNet
+from torchhys import GeneralizedPIInverse, InverseHysteresisNet
 from torchhys.generalized_pi import monotone_output
 from torchhys.generalized_pi_inverse import monotone_inverse
 from torchhys.operator import OPERATORS
 from torchhys.streaming import StreamingCompensator
 
-F64 = torch.float64
-WIDTHS = [0.0, 0.4, 1.0, 1.7, 2.5]
-
-
-def model(dtype: torch.dtype = F64, **kw) -> GeneralizedPrandtlIshlinskii:
-    args = dict(weights=[0.3, 0.8, 0.05, 0.5, 0.2], linear_weight=0.4,
-                centers=[-1.0, 0.2, 1.5], slopes=[0.7, 2.0, 1.2], unit_weights=[0.5, 0.3, 0.9],
-                gain=0.3, offset=-0.2)
-    args.update(kw)
-    return GeneralizedPrandtlIshlinskii(torch.tensor(WIDTHS, dtype=dtype), **args)
-
-
-def walks() -> torch.Tensor:
-    return torch.stack([random_walk(s, T=300, quantize=s % 2 == 0) for s in range(3)])
-
 
 def test_inverts_the_forward_model_exactly():
     m = model()
-    x = walks()
+    x = walks(300)
     y, _ = m(x)
     x_back, _ = m.inverse()(y)
     torch.testing.assert_close(x_back, x, rtol=0, atol=1e-12)
@@ -71,7 +56,7 @@ def test_bounds_hold_g_inverse_at_the_bound():
     torch.testing.assert_close(inv(big[1:])[0], exact_pi(torch.tensor([-2.0], dtype=F64))[0],
                                rtol=0, atol=1e-12)
     assert out.isfinite().all()
-    m, x = model(), walks()  # within the bounds the bounded inverse is exact
+    m, x = model(), walks(300)  # within the bounds the bounded inverse is exact
     p = m.prandtl_ishlinskii()(x)[0]
     inside = m.inverse(lower=float(p.min()) - 1e-9, upper=float(p.max()) + 1e-9)
     torch.testing.assert_close(inside(m(x)[0])[0], x, rtol=0, atol=1e-12)
@@ -80,7 +65,7 @@ def test_bounds_hold_g_inverse_at_the_bound():
 @pytest.mark.parametrize("sizes", [(1, 299), (100, 200), (7, 93, 200)])
 def test_chunked_calls_equal_one_call(sizes):
     inv = model().inverse()
-    y = walks()
+    y = walks(300)
     whole, final = inv(y)
     parts, state, start = [], None, 0
     for n in sizes:
@@ -94,7 +79,7 @@ def test_chunked_calls_equal_one_call(sizes):
 @pytest.mark.parametrize("dtype", [F64, torch.float32])
 def test_step_eager_and_scripted_equal_sequence(dtype):
     inv = model(dtype).inverse()
-    y = walks()[:, :80].to(dtype)
+    y = walks(300)[:, :80].to(dtype)
     seq, final = inv(y)
     for step in (inv.streaming_step(dtype), torch.jit.script(inv.streaming_step(dtype))):
         state = [torch.zeros(3, len(WIDTHS), dtype=dtype)]
@@ -123,7 +108,7 @@ def test_gradient_is_the_implicit_function_one():
 
 
 def test_streams_inside_a_network_equal_to_eager():
-    y = 1.5 * torch.sin(torch.linspace(0, 12, 300, dtype=F64)) + 0.1 * walks()
+    y = 1.5 * torch.sin(torch.linspace(0, 12, 300, dtype=F64)) + 0.1 * walks(300)
     torch.manual_seed(0)
     net = InverseHysteresisNet([model().inverse()], hidden=4).double()
     net.fit_normalization(y, torch.tanh(y))
@@ -138,7 +123,7 @@ def test_placeholder_loads_a_fitted_state_and_is_registered():
     inv = model().inverse(lower=-4.0, upper=4.0)
     placeholder = GeneralizedPIInverse(len(WIDTHS), 3).double()
     placeholder.load_state_dict(inv.state_dict())
-    y = walks()
+    y = walks(300)
     torch.testing.assert_close(placeholder(y)[0], inv(y)[0], rtol=0, atol=0)
     assert OPERATORS["generalized_pi_inverse"] is GeneralizedPIInverse
     assert "lower=-4" in repr(placeholder)
