@@ -19,7 +19,6 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import NamedTuple
 
 import lightning as L
 import numpy as np
@@ -28,14 +27,8 @@ from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
 from torchhys._checks import check_choice, check_int
-from torchhys.training.files import (
-    Column,
-    DataFileError,
-    Recording,
-    RecordingId,
-    read_recordings,
-    recording_id,
-)
+from torchhys.training.files import Column, DataFileError, Recording, RecordingId, read_recordings
+from torchhys.training.splits import STAGES, Window, assign_recordings, check_split
 
 __all__ = [
     "SIMULATIONS", "SPLIT_BY", "STAGES", "HysteresisDataModule", "SequenceDataset", "Window",
@@ -46,7 +39,6 @@ SIMULATIONS = ("paper", "fig6", "bouc_wen")
 """Simulated sources: the paper's Section 5.2 plant, its Fig. 6 plant, a Bouc-Wen plant."""
 SPLIT_BY = ("time", "recording")
 """``time``: each recording split in time order; ``recording``: whole recordings per stage."""
-STAGES = ("train", "val", "test")
 
 StageBatch = tuple[Tensor, Tensor, Tensor, Tensor]
 """``(x, y, warmup, mask)`` of a stage, see the module docstring."""
@@ -107,112 +99,9 @@ def _only(items: list[StageBatch]) -> StageBatch:
     return items[0]
 
 
-class Window(NamedTuple):
-    """A stage's part of a recording: rows ``[start, end)`` are scored; the rows before
-    ``start`` (and the warm-up periods of ``repeat``) only run the operator states."""
-
-    index: int
-    """Position of the recording in :attr:`HysteresisDataModule.recordings`."""
-    start: int
-    end: int
-
-
-def _check_split(split: str | list[float] | tuple[float, ...]) -> tuple[float, float, float]:
-    if split == "paper":
-        return (1.0, 1.0, 1.0)
-    if isinstance(split, str) or len(split) != 3:
-        raise ValueError(
-            f"split must be 'paper' or three fractions [train, val, test], got {split!r}"
-        )
-    fr = tuple(float(f) for f in split)
-    if not (fr[0] > 0 and min(fr) >= 0 and sum(fr) <= 1.0 + 1e-9):
-        raise ValueError(
-            f"split fractions must be >= 0 with train > 0 and sum <= 1, got {list(split)}"
-        )
-    return fr  # type: ignore[return-value]
-
-
 def _pad(rows: list[Tensor], length: int) -> Tensor:
     """Rows of different lengths, each right-padded with its last value, (rows, length)."""
     return torch.stack([torch.cat([r, r[-1:].expand(length - r.numel())]) for r in rows])
-
-
-def _pick(ids: list[RecordingId], given: Sequence[RecordingId], arg: str,
-          where: str) -> list[int]:
-    """Positions of the listed recordings."""
-    if isinstance(given, (str, int)) or not isinstance(given, Sequence):
-        raise TypeError(f"{arg} must be a list of recording ids, got {given!r}")
-    picked: list[int] = []
-    for g in given:
-        rid = recording_id(g)
-        if rid not in ids:
-            raise ValueError(f"{arg}: unknown recording {g!r}; the recordings of {where} are {ids}")
-        if ids.index(rid) in picked:
-            raise ValueError(f"{arg}: recording {g!r} is listed twice in {list(given)}")
-        picked.append(ids.index(rid))
-    return picked
-
-
-def assign_recordings(
-    ids: list[RecordingId], split: str | Sequence[float],
-    lists: dict[str, Sequence[RecordingId] | None], *, where: str = "the data",
-) -> dict[str, list[int]]:
-    """Positions of the recordings of each stage when whole recordings are split.
-
-    A stage with a list (``lists["val"]``) gets those recordings. With ``split="paper"``,
-    train gets every recording not listed for val or test (all of them when nothing is
-    listed), and val and test get the training ones unless listed. With fractions, the
-    recordings in no list are divided in order among the stages without a list, each
-    getting its fraction of what the listed stages leave (``round`` of cumulative shares,
-    as in the time split).
-
-    Args:
-        ids: the recordings' ids, in order.
-        split: ``"paper"`` or fractions ``[train, val, test]`` (sum <= 1).
-        lists: ``{"train": ids or None, "val": ..., "test": ...}`` (None: not listed).
-        where: the data's name in messages (its files).
-
-    Returns:
-        ``{"train": positions in ids, "val": ..., "test": ...}``.
-
-    Raises:
-        ValueError: an unknown or repeated id, a bad split, no training recording, or a
-            stage with a positive fraction that gets no recording (an empty split).
-        TypeError: a ``lists`` entry that is neither None nor a list.
-    """
-    fractions = _check_split(split)
-    chosen = {s: _pick(ids, lists[s], f"{s}_recordings", where)
-              for s in STAGES if lists.get(s) is not None}
-    if split == "paper":
-        held_out = {i for s in ("val", "test") for i in chosen.get(s, [])}
-        chosen.setdefault("train", [i for i in range(len(ids)) if i not in held_out])
-        for stage in ("val", "test"):
-            chosen.setdefault(stage, list(chosen["train"]))
-    else:
-        used = {i for picked in chosen.values() for i in picked}
-        rest = [i for i in range(len(ids)) if i not in used]
-        share = 1.0 - sum(f for s, f in zip(STAGES, fractions, strict=True) if s in chosen)
-        cum = 0.0
-        for stage, f in zip(STAGES, fractions, strict=True):
-            if stage in chosen:
-                continue
-            a = round(len(rest) * cum / share) if share > 1e-12 else 0
-            cum += f
-            b = min(round(len(rest) * cum / share), len(rest)) if share > 1e-12 else 0
-            chosen[stage] = rest[a:b]
-            if f > 0 and a >= b:
-                left = " left by the listed stages" if len(rest) < len(ids) else ""
-                raise ValueError(
-                    f"{where}: split={list(fractions)} gives the {stage} split none of the "
-                    f"{len(rest)} recordings{left} ({ids}); list them with "
-                    f"{stage}_recordings, or set its fraction to 0"
-                )
-    if not chosen["train"]:
-        raise ValueError(
-            f"{where}: the train split holds no recording; list some with train_recordings "
-            f"(the recordings are {ids})"
-        )
-    return {s: chosen[s] for s in STAGES}
 
 
 class HysteresisDataModule(L.LightningDataModule):
@@ -281,7 +170,7 @@ class HysteresisDataModule(L.LightningDataModule):
         super().__init__()
         self.save_hyperparameters()
         self._check_inputs()
-        self.fractions = _check_split(split)
+        self.fractions = check_split(split)
         self.recordings: list[Recording] = []
         self.windows: dict[str, list[Window]] = {}
         self.t: Tensor | None = None
