@@ -10,10 +10,10 @@ core, whose loops saturate), it models the other direction (B -> H) exactly.
 
 ``g^-1`` has no closed form. Because ``|sum_k c_k tanh(.)| <= sum_k c_k``, the root of
 ``g(v) = y`` lies in ``[(y - offset - C) / a, (y - offset + C) / a]`` (``C = sum_k c_k``);
-:func:`monotone_inverse` halves that bracket a fixed number of times and ends with one
-Newton step from the (detached) bisection point, so that the result is differentiable with
-the implicit-function gradient ``1 / g'(v)``. The sequence path and the per-sample step call
-the same function.
+:func:`monotone_inverse` halves that bracket 20 times, takes two Newton steps kept inside
+the final bracket, and ends with one more Newton step from the (detached) result, so that
+the result is differentiable with the implicit-function gradient ``1 / g'(v)``. The sequence
+path and the per-sample step call the same function.
 
 A fitted ``g`` that saturates has a tiny gain ``a``: its inverse is steep beyond the
 saturation, and its bracket huge. ``lower``/``upper`` bound ``v`` (e.g. the range of the
@@ -33,23 +33,36 @@ from torchhys.functional.prandtl_ishlinskii import (
 from torchhys.generalized_pi import GeneralizedPrandtlIshlinskii, monotone_output
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
 
-__all__ = ["GeneralizedPIInverse", "GeneralizedPIInverseStep", "monotone_inverse"]
+__all__ = ["GeneralizedPIInverse", "GeneralizedPIInverseStep", "monotone_inverse",
+           "monotone_slope"]
 
-BISECTIONS = 52
-"""Halvings of the bracket of ``g^-1``: its width shrinks by 2^-52 (float64's resolution),
-then one Newton step."""
+BISECTIONS = 20
+"""Halvings of the bracket of ``g^-1`` (its width shrinks by 2^-20), before the Newton
+steps."""
+NEWTON = 2
+"""Newton steps from the bisection's midpoint, each kept inside the final bracket
+(quadratic convergence: from 2^-20 of the bracket to float64's resolution), before the last
+one that carries the gradient."""
+
+
+def monotone_slope(v: Tensor, gain: Tensor, unit_weights: Tensor, centers: Tensor,
+                   slopes: Tensor) -> Tensor:
+    """``g'(v)`` of :func:`monotone_output`'s ``g``: v (...) -> (...). Scriptable."""
+    tanh = torch.tanh(slopes * (v.unsqueeze(-1) - centers))
+    return gain + (unit_weights * slopes * (1.0 - tanh * tanh)).sum(-1)
 
 
 def monotone_inverse(y: Tensor, gain: Tensor, unit_weights: Tensor, centers: Tensor,
                      slopes: Tensor, offset: Tensor, lower: Tensor, upper: Tensor,
-                     bisections: int = BISECTIONS) -> Tensor:
+                     bisections: int = BISECTIONS, newton: int = NEWTON) -> Tensor:
     """``v`` in ``[lower, upper]`` with ``g(v) = y`` for the increasing ``g`` of
     :func:`monotone_output` (the bound where there is none): y (...) -> (...). Scriptable.
 
     Bisection on ``[(y - offset - C) / gain, (y - offset + C) / gain]`` (``C`` the sum of
-    ``unit_weights``) cut to ``[lower, upper]`` (0-dim, may be infinite), then one Newton
-    step from the detached midpoint (the gradient with respect to y and the parameters is
-    the implicit-function one), clamped to the bounds.
+    ``unit_weights``) cut to ``[lower, upper]`` (0-dim, may be infinite), then ``newton``
+    Newton steps kept inside the final bracket, all detached, then one more Newton step
+    (the gradient with respect to y and the parameters is the implicit-function one),
+    clamped to the bounds.
     """
     if unit_weights.numel() == 0:  # g is affine: its inverse in closed form
         return torch.minimum(torch.maximum((y - offset) / gain, lower), upper)
@@ -59,19 +72,20 @@ def monotone_inverse(y: Tensor, gain: Tensor, unit_weights: Tensor, centers: Ten
     hi = torch.minimum((base + spread.detach()) / gain.detach(), upper)
     hi = torch.maximum(lo, hi)
     target = y.detach()
-    params = (gain.detach(), unit_weights.detach(), centers.detach(), slopes.detach(),
-              offset.detach())
+    a, c, b, s, off = (gain.detach(), unit_weights.detach(), centers.detach(), slopes.detach(),
+                       offset.detach())
     for _ in range(bisections):
         mid = 0.5 * (lo + hi)
-        below = monotone_output(mid, params[0], params[1], params[2], params[3],
-                                params[4]) < target
+        below = monotone_output(mid, a, c, b, s, off) < target
         lo = torch.where(below, mid, lo)
         hi = torch.where(below, hi, mid)
     v = 0.5 * (lo + hi)
-    tanh = torch.tanh(slopes * (v.unsqueeze(-1) - centers))
-    slope = gain + (unit_weights * slopes * (1.0 - tanh * tanh)).sum(-1)
+    for _ in range(newton):
+        step = (monotone_output(v, a, c, b, s, off) - target) / monotone_slope(v, a, c, b, s)
+        v = torch.minimum(torch.maximum(v - step, lo), hi)
     residual = monotone_output(v, gain, unit_weights, centers, slopes, offset) - y
-    return torch.minimum(torch.maximum(v - residual / slope, lower), upper)
+    v = v - residual / monotone_slope(v, gain, unit_weights, centers, slopes)
+    return torch.minimum(torch.maximum(v, lower), upper)
 
 
 class GeneralizedPIInverseStep(OperatorStep):
