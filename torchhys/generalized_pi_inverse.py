@@ -25,6 +25,7 @@ so that the inverse holds ``v`` at the bound for an input beyond ``g(upper)`` (o
 import torch
 from torch import Tensor
 
+from torchhys._checks import check_int
 from torchhys.functional.backlash import backlash, play_step
 from torchhys.functional.prandtl_ishlinskii import (
     pi_output,
@@ -138,10 +139,8 @@ class GeneralizedPIInverse(HysteresisOperator):
 
     def __init__(self, n_plays: int = 1, n_units: int = 0) -> None:
         super().__init__()
-        if isinstance(n_plays, bool) or not isinstance(n_plays, int) or n_plays < 1:
-            raise ValueError(f"n_plays must be an int >= 1, got {n_plays!r}")
-        if isinstance(n_units, bool) or not isinstance(n_units, int) or n_units < 0:
-            raise ValueError(f"n_units must be an int >= 0, got {n_units!r}")
+        check_int(n_plays, "n_plays", minimum=1)
+        check_int(n_units, "n_units", minimum=0)
         dtype = torch.get_default_dtype()
         self.register_buffer("widths", torch.arange(1, n_plays + 1, dtype=dtype) / n_plays)
         self.register_buffer("weights", torch.zeros(n_plays, dtype=dtype))

@@ -211,19 +211,10 @@ def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
         errors = []
         for r in ridges:
             try:
-                return one(x, t, u, out, widths, r, sx, mx, warmup)
-            except FitError as err:
+                return fitted(x, t, u, out, widths, r, sx, mx, warmup)
+            except (ValueError, FloatingPointError) as err:  # FitError, diverged, no inverse
                 errors.append(f"ridge {r:g}: {err}")
         raise FitError(f"gpi ({direction}): " + "; ".join(errors))
-
-    def one(x: Tensor, t: Tensor, u: Tensor, out: Tensor, widths: Tensor, r: float, sx: float,
-            mx: float, warmup: int) -> nn.Module:
-        try:
-            return fitted(x, t, u, out, widths, r, sx, mx, warmup)
-        except FitError:
-            raise
-        except (ValueError, FloatingPointError) as err:  # diverged, or no inverse
-            raise FitError(str(err)) from None
 
     def fitted(x: Tensor, t: Tensor, u: Tensor, out: Tensor, widths: Tensor, r: float,
                sx: float, mx: float, warmup: int) -> nn.Module:
