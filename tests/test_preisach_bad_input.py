@@ -141,3 +141,12 @@ def test_samples_outside_the_range_warn_once():
     with torch.no_grad():  # saturated: every relay up
         torch.testing.assert_close(relay_states(x[:1, :50], fit.alpha, fit.beta),
                                    torch.ones(1, 50, fit.n_relays, dtype=torch.float64))
+
+
+def test_loaded_grid_sets_the_range():
+    """A model loaded from another's state dict reports the loaded grid's range (repr)."""
+    src = Preisach(-2.0, 3.0, 5)
+    dst = Preisach(0.0, 1.0, 5)
+    dst.load_state_dict(src.state_dict())
+    assert dst.lo == pytest.approx(-2.0) and dst.hi == pytest.approx(3.0)
+    torch.testing.assert_close(dst.alpha, src.alpha)

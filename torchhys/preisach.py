@@ -134,6 +134,12 @@ class Preisach(HysteresisOperator):
                              f"density), got minimum {w.min().item():.6g}; call project_() "
                              "before saving")
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+        a = state_dict.get(prefix + "alpha")
+        if isinstance(a, Tensor) and a.shape == self.alpha.shape and self.n > 1:
+            # the grid range of the loaded thresholds (cell centres, module docstring)
+            lo, hi = float(a.min()), float(a.max())
+            half = 0.5 * (hi - lo) / (self.n - 1)
+            self.lo, self.hi = lo - half, hi + half
 
 
 class PreisachStep(OperatorStep):
