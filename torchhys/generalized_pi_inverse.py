@@ -31,8 +31,8 @@ from torchhys.functional.prandtl_ishlinskii import (
     pi_output,
     prandtl_ishlinskii_inverse_parameters,
 )
-from torchhys.generalized_pi import GeneralizedPrandtlIshlinskii, monotone_output
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
+from torchhys.generalized_pi import GeneralizedPIStep, GeneralizedPrandtlIshlinskii, monotone_output
+from torchhys.operator import HysteresisOperator, register_operator
 
 __all__ = ["GeneralizedPIInverse", "GeneralizedPIInverseStep", "monotone_inverse",
            "monotone_slope"]
@@ -89,27 +89,23 @@ def monotone_inverse(y: Tensor, gain: Tensor, unit_weights: Tensor, centers: Ten
     return torch.minimum(torch.maximum(v, lower), upper)
 
 
-class GeneralizedPIInverseStep(OperatorStep):
+class GeneralizedPIInverseStep(GeneralizedPIStep):
     """Per-sample step of :class:`GeneralizedPIInverse`: :func:`monotone_inverse`, then N
     plays (:func:`~torchhys.functional.play_step`) and
     :func:`~torchhys.functional.pi_output`.
 
     State: ``plays`` (N columns, 0 at the first sample). Shapes: x (batch, 1) -> features
-    (batch, 1).
+    (batch, 1). The buffers of :class:`~torchhys.generalized_pi.GeneralizedPIStep` (the
+    model's effective parameters), and the bounds ``lower``, ``upper`` of ``g^-1``.
     """
 
     def __init__(self, widths: Tensor, weights: Tensor, linear_weight: Tensor, gain: Tensor,
                  unit_weights: Tensor, centers: Tensor, slopes: Tensor, offset: Tensor,
                  lower: Tensor, upper: Tensor) -> None:
-        super().__init__()
-        for name, v in (("r", 0.5 * widths), ("weights", weights),
-                        ("linear_weight", linear_weight), ("gain", gain),
-                        ("unit_weights", unit_weights), ("centers", centers),
-                        ("slopes", slopes), ("offset", offset), ("lower", lower),
-                        ("upper", upper)):
-            self.register_buffer(name, v.detach().clone())
-        self.n_outputs = 1
-        self.state_spec = [StateBlock("plays", int(widths.shape[0]))]
+        super().__init__(widths, weights, linear_weight, gain, unit_weights, centers, slopes,
+                         offset)
+        self.register_buffer("lower", lower.detach().clone())
+        self.register_buffer("upper", upper.detach().clone())
 
     def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
         v = monotone_inverse(x, self.gain, self.unit_weights, self.centers, self.slopes,
