@@ -1,16 +1,17 @@
 """Held-out accuracy of hysteresis models on measured recordings (see docs/real-data.md).
 
-For every measured data set (``examples/data/real/``, and the MnZn ferrite loops of
-``../shared/data/``), with the protocol its README suggests, each model is fitted on the
-training part, its settings (size, penalty, iterations, direction) are chosen on a
-time-ordered hold-out inside the training part (the last quarter of the scored samples of
-every training row), it is refitted on the whole training part with those settings, and it
-is scored once on the held-out recordings. Reported: RMSE in the target's units and
-``ratio`` = RMSE / min(line RMSE, poly RMSE) (below 1: better than both memoryless
-baselines); ``choice`` says what the hold-out selected and the hold-out RMSE.
+For every measured data set (``examples/data/real/``, the MnZn ferrite loops of
+``../shared/data/``, and a piezo actuator's record read from ``--piezo`` when given), with
+the protocol its README suggests, each model is fitted on the training part, its settings
+(size, penalty, iterations, direction) are chosen on a time-ordered hold-out inside the
+training part (the last quarter of the scored samples of every training row), it is
+refitted on the whole training part with those settings, and it is scored once on the
+held-out recordings. Reported: RMSE in the target's units and ``ratio`` = RMSE / min(line
+RMSE, poly RMSE) (below 1: better than both memoryless baselines); ``choice`` says what the
+hold-out selected and the hold-out RMSE.
 
     python benchmarks/real_data.py [--data NAME ...] [--out table.csv] [--quick]
-        [--ferrite PATH] [--config configs/measured.yaml]
+        [--ferrite PATH] [--piezo PATH] [--config configs/measured.yaml]
 
 Models (all causal; a row starts from a zero state, its first ``warmup`` samples only run
 the states and are neither fitted nor scored):
@@ -37,11 +38,12 @@ the states and are neither fitted nor scored):
 - ``eiho_net``: ``InverseHysteresisNet([EIHO(a=1, rule="recent", output="branch"),
   Backlash(16 widths 0.4 span k/16)], hidden=16)``, trained full-batch with L-BFGS; the number
   of L-BFGS steps and the EIHO's reversal threshold (0 or "auto") chosen on the hold-out;
-- ``default``: the model section of ``configs/measured.yaml`` (or ``--config``) built through
-  ``build_operators`` + ``fit_data_dependent`` and trained as the config says (its optimizer,
-  one full-batch step per epoch, ``trainer.max_epochs``, the last epoch kept), capped in
-  time; it selects nothing (its hold-out RMSE, from a second fit on the part before the
-  hold-out, is reported only);
+- ``default``: what ``configs/measured.yaml`` (or ``--config``) chooses: its candidates
+  (``model.select``) are each fitted on the part before the hold-out and scored on it, the
+  config's ``select_rule`` picks one, which is built through ``build_operators`` +
+  ``fit_data_dependent``, trained as the config says (its optimizer, one full-batch step per
+  epoch, ``trainer.max_epochs``, the last epoch kept, capped in time) on the whole training
+  part;
 - ``selected``: the row above with the least hold-out RMSE (a model-family choice made on
   the training part only).
 
@@ -84,6 +86,9 @@ except ImportError:  # pragma: no cover
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT / "examples" / "data" / "real"
 FERRITE = ROOT.parent / "shared" / "data" / "mnzn_ferrite_bh_loops.csv"
+PIEZO = ROOT / "examples" / "data" / "external" / "hysteresis_v_150_1hz.csv"
+"""The piezo actuator's record, not shipped (its licence is unclear): Data/hysteresis_v_150_1hz.csv
+of github chandratue/SmartHysteresis (examples/data/real/README.md)."""
 CONFIG = ROOT / "configs" / "measured.yaml"
 COLUMNS = ("dataset", "model", "rmse", "ratio", "n_train", "n_test", "choice")
 F64 = torch.float64
@@ -203,6 +208,38 @@ def pneumatic() -> Split:
     return Split(x, y, 0, [(_t(recs[i][0]), _t(recs[i][1]), 0) for i in (1, 2)])
 
 
+def read_piezo(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Time (s), voltage (V) and displacement (um) of the SmartHysteresis piezo record, as
+    published: no header, columns (empty index, time, displacement, voltage).
+
+    Raises:
+        ValueError: the file does not have that layout (naming the path).
+    """
+    try:
+        a = np.loadtxt(path, delimiter=",", usecols=(1, 2, 3), ndmin=2)
+    except (ValueError, IndexError) as err:
+        raise ValueError(f"--piezo {path}: expected rows ',time,displacement,voltage' "
+                         f"(the published file): {err}") from None
+    if len(a) < 2 or not np.isfinite(a).all() or not (np.diff(a[:, 0]) > 0).all():
+        raise ValueError(f"--piezo {path}: expected at least 2 rows of finite values with "
+                         "increasing time")
+    return a[:, 0], a[:, 2], a[:, 1]
+
+
+def piezo(path: Path, *, compensator: bool) -> Split:
+    """One record of a piezo actuator (1 Hz, 150 V sine from rest at about 3.26 s), split in
+    time: the samples before 7 s train (the first 3.3 s, at rest and the first 40 ms of
+    motion, only run the states), the record's remainder is held out (the whole record is run
+    from rest, scored from 7 s). ``compensator``: displacement -> voltage (the inverse
+    model); else voltage -> displacement."""
+    t, volt, disp = read_piezo(path)
+    x, y = (disp, volt) if compensator else (volt, disp)
+    cut, w = int(np.searchsorted(t, 7.0)), int(np.searchsorted(t, 3.3))
+    if not 0 < w < cut < len(t):
+        raise ValueError(f"--piezo {path}: the record must run past 7 s, got {t[-1]:.3g} s")
+    return Split(_t(x[:cut])[None], _t(y[:cut])[None], w, [(_t(x), _t(y), cut)])
+
+
 def shortened(split: Split, n: int = 50, *, stride: bool = False) -> Split:
     """A short record of about ``n`` scored training samples: the first training row, its
     warm-up and the ``n`` samples after it (a short log of the device), or with ``stride``
@@ -223,30 +260,46 @@ def tiled(split: Split, total: int = 100_000) -> Split:
     return Split(split.x.repeat(1, reps), split.y.repeat(1, reps), split.warmup, split.test)
 
 
-DATASETS: dict[str, tuple[str, Callable[[Path], Split]]] = {
-    "mnzn_ferrite": ("B -> H, loops 0+3 / 1+2", lambda p: ferrite(p, [0, 3], [1, 2])),
-    "mnzn_ferrite_largest": ("B -> H, loop 3 / 0+1+2", lambda p: ferrite(p, [3], [0, 1, 2])),
-    "m130_steel": ("B -> H, loops 0+2 / 1", lambda p: jamodel([0, 2], [1])),
-    "m130_steel_largest": ("B -> H, loop 2 / 0+1", lambda p: jamodel([2], [0, 1])),
-    "mnzn_hp_ferrite": ("B -> H, loops 4+7 / 5+6", lambda p: jamodel([4, 7], [5, 6])),
-    "mnzn_hp_ferrite_largest": ("B -> H, loop 7 / 4+5+6", lambda p: jamodel([7], [4, 5, 6])),
-    "mr_damper_0V": ("position -> force, even / odd", lambda p: mr_damper(0.0)),
-    "mr_damper_0.87V": ("position -> force, even / odd", lambda p: mr_damper(0.8712)),
-    "mr_damper_1.98V": ("position -> force, even / odd", lambda p: mr_damper(1.98)),
-    "mr_damper_3.21V": ("position -> force, even / odd", lambda p: mr_damper(3.212)),
+class Files(NamedTuple):
+    """The data files read from options (the others are in ``examples/data/real/``)."""
+
+    ferrite: Path = FERRITE
+    piezo: Path = PIEZO
+
+
+DATASETS: dict[str, tuple[str, Callable[[Files], Split]]] = {
+    "mnzn_ferrite": ("B -> H, loops 0+3 / 1+2", lambda f: ferrite(f.ferrite, [0, 3], [1, 2])),
+    "mnzn_ferrite_largest": ("B -> H, loop 3 / 0+1+2",
+                             lambda f: ferrite(f.ferrite, [3], [0, 1, 2])),
+    "m130_steel": ("B -> H, loops 0+2 / 1", lambda f: jamodel([0, 2], [1])),
+    "m130_steel_largest": ("B -> H, loop 2 / 0+1", lambda f: jamodel([2], [0, 1])),
+    "mnzn_hp_ferrite": ("B -> H, loops 4+7 / 5+6", lambda f: jamodel([4, 7], [5, 6])),
+    "mnzn_hp_ferrite_largest": ("B -> H, loop 7 / 4+5+6", lambda f: jamodel([7], [4, 5, 6])),
+    "mr_damper_0V": ("position -> force, even / odd", lambda f: mr_damper(0.0)),
+    "mr_damper_0.87V": ("position -> force, even / odd", lambda f: mr_damper(0.8712)),
+    "mr_damper_1.98V": ("position -> force, even / odd", lambda f: mr_damper(1.98)),
+    "mr_damper_3.21V": ("position -> force, even / odd", lambda f: mr_damper(3.212)),
     "friction_damper": ("displacement -> force, sines / earthquakes",
-                        lambda p: friction_damper()),
-    "pneumatic_oring": ("position -> friction, 1+7 / 3+5 bar", lambda p: pneumatic()),
+                        lambda f: friction_damper()),
+    "pneumatic_oring": ("position -> friction, 1+7 / 3+5 bar", lambda f: pneumatic()),
     "mnzn_ferrite_short": ("mnzn_ferrite, training loops sampled every 5th: 52 samples",
-                           lambda p: shortened(ferrite(p, [0, 3], [1, 2]), stride=True)),
+                           lambda f: shortened(ferrite(f.ferrite, [0, 3], [1, 2]), stride=True)),
     "mr_damper_0V_short": ("mr_damper_0V, the first 50 scored samples of one training row",
-                           lambda p: shortened(mr_damper(0.0))),
+                           lambda f: shortened(mr_damper(0.0))),
     "pneumatic_oring_short": ("pneumatic_oring, the first 50 samples of the 1 bar record",
-                              lambda p: shortened(pneumatic())),
+                              lambda f: shortened(pneumatic())),
     "pneumatic_oring_long": ("pneumatic_oring, training rows tiled to 1e5 samples",
-                             lambda p: tiled(pneumatic())),
+                             lambda f: tiled(pneumatic())),
+    "piezo_actuator": ("displacement -> voltage, t < 7 s / t >= 7 s (one record, --piezo)",
+                       lambda f: piezo(f.piezo, compensator=True)),
+    "piezo_actuator_forward": ("voltage -> displacement, as piezo_actuator",
+                               lambda f: piezo(f.piezo, compensator=False)),
 }
-"""Data sets by name: (protocol, builder of the split from the ferrite file's path)."""
+"""Data sets by name: (protocol, builder of the split from the optional files)."""
+
+NEEDS = {name: "ferrite" if name.startswith("mnzn_ferrite") else
+         "piezo" if name.startswith("piezo") else None for name in DATASETS}
+"""The option (a :class:`Files` field) whose file each data set reads, if any."""
 
 
 # --- scoring ------------------------------------------------------------------------------
@@ -702,6 +755,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--quick", action="store_true", help="small grids (smoke test)")
     parser.add_argument("--ferrite", type=Path, default=FERRITE,
                         help="the MnZn ferrite loops (default: ../shared/data/...)")
+    parser.add_argument("--piezo", type=Path, default=PIEZO,
+                        help="the SmartHysteresis piezo record as published (not shipped; "
+                        "default: examples/data/external/hysteresis_v_150_1hz.csv)")
     parser.add_argument("--config", type=Path, default=CONFIG,
                         help="torchhys fit config of the 'default' row")
     args = parser.parse_args(argv)
@@ -712,11 +768,13 @@ def main(argv: list[str] | None = None) -> list[dict]:
     start = time.perf_counter()
     for name in args.data:
         protocol, build = DATASETS[name]
-        if name.startswith("mnzn_ferrite") and not args.ferrite.is_file():
-            print(f"skipping {name}: {args.ferrite} not found")
+        files = Files(args.ferrite, args.piezo)
+        need = NEEDS[name]
+        if need is not None and not getattr(files, need).is_file():
+            print(f"skipping {name}: {getattr(files, need)} not found (--{need})")
             continue
         log.append(f"{name}: {protocol}")
-        rows += evaluate(name, build(args.ferrite), budget, log, config=args.config)
+        rows += evaluate(name, build(files), budget, log, config=args.config)
     print("\n".join(log))
     print(f"\ntotal {time.perf_counter() - start:.0f} s\n")
     print(markdown(rows))

@@ -63,7 +63,7 @@ def test_table_columns_and_rows(bench, table):
 
 def test_baselines_use_the_training_part_only(bench, table):
     rows = {r["model"]: r for r in table[0]}
-    split = bench.DATASETS["mnzn_ferrite"][1](FERRITE)
+    split = bench.DATASETS["mnzn_ferrite"][1](bench.Files(FERRITE))
     w = split.warmup
     xt, yt = split.x[:, w:].reshape(-1).numpy(), split.y[:, w:].reshape(-1).numpy()
     xs, ys = _test_part(split)
@@ -98,7 +98,7 @@ def test_missing_ferrite_file_is_skipped(bench, tmp_path, capsys):
 
 
 def test_short_and_long_records_keep_the_held_out_part(bench):
-    split = bench.DATASETS["mnzn_ferrite"][1](FERRITE)
+    split = bench.DATASETS["mnzn_ferrite"][1](bench.Files(FERRITE))
     coarse = bench.shortened(split, stride=True)  # every 5th sample of the two loops
     assert coarse.y[:, coarse.warmup:].numel() == 52
     np.testing.assert_array_equal(coarse.x.numpy(), split.x[:, ::5].numpy())
@@ -115,7 +115,7 @@ def test_short_and_long_records_keep_the_held_out_part(bench):
 def test_the_default_row_follows_the_configs_selection_rule(bench, tmp_path, monkeypatch):
     """The default row scores each candidate on the hold-out (MSE and its standard error)
     and chooses with the config's select_rule, as torchhys fit does."""
-    split = bench.DATASETS["mnzn_ferrite"][1](FERRITE)
+    split = bench.DATASETS["mnzn_ferrite"][1](bench.Files(FERRITE))
     text = (ROOT / "configs" / "measured.yaml").read_text()
     cut, end = text.index("  select:"), text.index("\ndata:") + 1
     two = text[:cut] + """  select:
@@ -142,3 +142,47 @@ def test_the_default_row_follows_the_configs_selection_rule(bench, tmp_path, mon
         assert f"candidate {chosen.index}" in fitted.choice
         assert fitted.holdout == pytest.approx(math.sqrt(chosen.val_mse), rel=1e-12)
         assert fitted.predict(split.test[0][0][None]).isfinite().all()
+
+
+def _piezo_file(path: Path, n: int = 2001, rate: float = 200.0) -> tuple[np.ndarray, ...]:
+    """A record in the published SmartHysteresis layout: ',time,displacement,voltage'."""
+    t = np.arange(n) / rate
+    volt = np.where(t >= 3.26, 150.0 * np.sin(2 * np.pi * (t - 3.26)), 0.0)
+    disp = 0.12 * volt + 0.3 * np.sin(3.0 * t)
+    path.write_text("".join(f",{a:.17g},{c:.17g},{b:.17g}\n" for a, b, c in zip(t, volt, disp)))
+    return t, volt, disp
+
+
+def test_piezo_record_is_split_in_time(bench, tmp_path):
+    t, volt, disp = _piezo_file(tmp_path / "piezo.csv")
+    cut, w = int(np.searchsorted(t, 7.0)), int(np.searchsorted(t, 3.3))
+    comp = bench.piezo(tmp_path / "piezo.csv", compensator=True)
+    # displacement -> voltage: one training row up to 7 s, states run to 3.3 s
+    np.testing.assert_array_equal(comp.x.numpy(), disp[None, :cut])
+    np.testing.assert_array_equal(comp.y.numpy(), volt[None, :cut])
+    assert comp.warmup == w and t[w] >= 3.3 > t[w - 1]
+    # the whole record is run from rest and scored from 7 s on
+    (x, y, start), = comp.test
+    np.testing.assert_array_equal(x.numpy(), disp)
+    assert start == cut and t[cut] >= 7.0 > t[cut - 1]
+    fwd = bench.piezo(tmp_path / "piezo.csv", compensator=False)
+    np.testing.assert_array_equal(fwd.x.numpy(), volt[None, :cut])
+    np.testing.assert_array_equal(fwd.test[0][1].numpy(), disp)
+
+
+def test_piezo_file_errors_name_the_option(bench, tmp_path):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("time,voltage\n0,1\n")
+    with pytest.raises(ValueError, match="--piezo .*bad.csv"):
+        bench.read_piezo(bad)
+    short = tmp_path / "short.csv"
+    _piezo_file(short, n=1000)  # 5 s: ends before the 7 s cut
+    with pytest.raises(ValueError, match="must run past 7 s"):
+        bench.piezo(short, compensator=True)
+
+
+def test_missing_piezo_file_is_skipped(bench, tmp_path, capsys):
+    rows = bench.main(["--quick", "--data", "piezo_actuator", "--piezo",
+                       str(tmp_path / "absent.csv")])
+    assert rows == []
+    assert "skipping piezo_actuator" in capsys.readouterr().out
