@@ -294,6 +294,8 @@ DATASETS: dict[str, tuple[str, Callable[[Files], Split]]] = {
                        lambda f: piezo(f.piezo, compensator=True)),
     "piezo_actuator_forward": ("voltage -> displacement, as piezo_actuator",
                                lambda f: piezo(f.piezo, compensator=False)),
+    "piezo_actuator_short": ("piezo_actuator, the training part sampled every 370th: 50 samples",
+                             lambda f: shortened(piezo(f.piezo, compensator=True), stride=True)),
 }
 """Data sets by name: (protocol, builder of the split from the optional files)."""
 
