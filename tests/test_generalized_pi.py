@@ -227,3 +227,27 @@ def test_exported_step_equals_sequence():
             outs.append(f)
     torch.testing.assert_close(torch.stack(outs, 1)[..., 0], y, rtol=0, atol=1e-5)
     torch.testing.assert_close(state[0], final, rtol=0, atol=0)
+
+
+def test_fit_leaves_the_warmup_samples_out():
+    """Targets in the warm-up only run the plays: corrupting them changes nothing, and the
+    fit scored without them is the fit of the clean data."""
+    x = multisine(600, 4)
+    y = asymmetric_plant(x)
+    bad = y.clone()
+    bad[..., :100] = 50.0 * torch.randn(bad[..., :100].shape, dtype=F64,
+                                        generator=torch.Generator().manual_seed(0))
+    widths = play_width_grid(x, 6, power=1.0)
+    clean = fit_generalized_pi(x, y, widths, units=2, lbfgs_epochs=40, warmup=100)
+    robust = fit_generalized_pi(x, bad, widths, units=2, lbfgs_epochs=40, warmup=100)
+    for a, b in zip(clean.parameters_effective(), robust.parameters_effective(), strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    naive = fit_generalized_pi(x, bad, widths, units=2, lbfgs_epochs=40)
+    with torch.no_grad():
+        def scored(m):
+            return float((m(x)[0] - y)[..., 100:].square().mean().sqrt())
+        assert scored(robust) < scored(naive) / 5
+    with pytest.raises(ValueError, match="warmup must be less than the sequence length"):
+        fit_full_batch(clean, x, y, lbfgs_epochs=1, warmup=x.shape[-1])
+    with pytest.raises(ValueError, match="warmup must be an int >= 0"):
+        fit_full_batch(clean, x, y, lbfgs_epochs=1, warmup=-1)

@@ -149,7 +149,8 @@ def _piezo_file(path: Path, n: int = 2001, rate: float = 200.0) -> tuple[np.ndar
     t = np.arange(n) / rate
     volt = np.where(t >= 3.26, 150.0 * np.sin(2 * np.pi * (t - 3.26)), 0.0)
     disp = 0.12 * volt + 0.3 * np.sin(3.0 * t)
-    path.write_text("".join(f",{a:.17g},{c:.17g},{b:.17g}\n" for a, b, c in zip(t, volt, disp)))
+    rows = zip(t, volt, disp, strict=True)
+    path.write_text("".join(f",{a:.17g},{c:.17g},{b:.17g}\n" for a, b, c in rows))
     return t, volt, disp
 
 

@@ -39,6 +39,7 @@ class FitResult(NamedTuple):
 def fit_full_batch(
     model: InverseHysteresisNet | HysteresisOperator, x: Tensor, y: Tensor, *,
     adam_epochs: int = 2000, lbfgs_epochs: int = 500, lr: float = 1e-2, tolerance: float = 0.0,
+    warmup: int = 0,
 ) -> FitResult:
     """Fit ``model`` to (x, y) with full-batch Adam then L-BFGS (strong Wolfe line search).
 
@@ -56,17 +57,23 @@ def fit_full_batch(
         lbfgs_epochs: L-BFGS iterations.
         lr: Adam learning rate.
         tolerance: stop L-BFGS once the MSE is below this value.
+        warmup: samples at the start of each row left out of the loss (they still run the
+            states), ``0 <= warmup < time``.
 
     Returns:
         :class:`FitResult`.
 
     Raises:
         TypeError, ValueError: a model that is neither, or an operator with several
-            outputs or one that needs the target.
+            outputs or one that needs the target; a warmup out of range.
     """
     start = time.perf_counter()
-    loss_fn = (_network_loss(model, x, y) if isinstance(model, InverseHysteresisNet)
-               else _operator_loss(model, x, y))
+    check_int(warmup, "warmup", minimum=0)
+    if warmup >= x.shape[-1]:
+        raise ValueError(f"warmup must be less than the sequence length {x.shape[-1]}, "
+                         f"got {warmup}")
+    loss_fn = (_network_loss(model, x, y, warmup) if isinstance(model, InverseHysteresisNet)
+               else _operator_loss(model, x, y, warmup))
     params = [p for p in model.parameters() if p.requires_grad]
     if not params:
         raise ValueError(f"model {type(model).__name__} has no trainable parameters")
@@ -106,18 +113,19 @@ def fit_full_batch(
     return FitResult(mse, adam_epochs + done, time.perf_counter() - start)
 
 
-def _network_loss(model: InverseHysteresisNet, x: Tensor, y: Tensor) -> Callable[[], Tensor]:
+def _network_loss(model: InverseHysteresisNet, x: Tensor, y: Tensor,
+                  warmup: int) -> Callable[[], Tensor]:
     model.fit_normalization(x, y)
     trainable_ops = any(p.requires_grad for p in model.operators.parameters())
     yb = y.reshape(-1, y.shape[-1])
     if not trainable_ops:
         with torch.no_grad():
             feats, _ = model.features(x, target=y)
-        return lambda: torch.mean((model.head(feats) - yb) ** 2)
-    return lambda: torch.mean((model(x.reshape(yb.shape), target=yb)[0] - yb) ** 2)
+        return lambda: torch.mean((model.head(feats) - yb)[..., warmup:] ** 2)
+    return lambda: torch.mean((model(x.reshape(yb.shape), target=yb)[0] - yb)[..., warmup:] ** 2)
 
 
-def _operator_loss(op: object, x: Tensor, y: Tensor) -> Callable[[], Tensor]:
+def _operator_loss(op: object, x: Tensor, y: Tensor, warmup: int) -> Callable[[], Tensor]:
     op = check_operator(op, "model")
     if op.n_outputs != 1 or not op.causal:
         raise ValueError(f"model must be an InverseHysteresisNet or a causal operator with one "
@@ -126,7 +134,7 @@ def _operator_loss(op: object, x: Tensor, y: Tensor) -> Callable[[], Tensor]:
     xb, _ = as_batched_sequence(x, "x")
     yb, _ = as_batched_sequence(y, "y")
     check_same_shape(yb, xb, "y", "x")
-    return lambda: torch.mean((op(xb)[0] - yb) ** 2)
+    return lambda: torch.mean((op(xb)[0] - yb)[:, warmup:] ** 2)
 
 
 def play_width_grid(u: Tensor, n: int = 30, *, power: float = 3.0) -> Tensor:

@@ -219,7 +219,7 @@ class GeneralizedPrandtlIshlinskii(_Widths, HysteresisOperator):
 
 def fit_generalized_pi(
     x: Tensor, y: Tensor, widths: Tensor, *, units: int = 6, ridge: float = 0.0,
-    adam_epochs: int = 0, lbfgs_epochs: int = 300, lr: float = 1e-2,
+    adam_epochs: int = 0, lbfgs_epochs: int = 300, lr: float = 1e-2, warmup: int = 0,
 ) -> GeneralizedPrandtlIshlinskii:
     """Fit a :class:`GeneralizedPrandtlIshlinskii` model ``y ~ g(p[x])``.
 
@@ -238,6 +238,8 @@ def fit_generalized_pi(
         ridge: ridge weight of the initial PI fit (e.g. from
             :func:`~torchhys.fitting.select_pi_ridge`).
         adam_epochs, lbfgs_epochs, lr: as in :func:`~torchhys.fitting.fit_full_batch`.
+        warmup: samples at the start of each row left out of the initial fit, the centres of
+            g and the loss (they still run the plays), to forget the zero initial state.
 
     Returns:
         The model, in x's dtype.
@@ -250,13 +252,13 @@ def fit_generalized_pi(
     xb, _ = as_batched_sequence(x, "x")
     yb, _ = as_batched_sequence(y, "y")
     check_same_shape(yb, xb, "y", "x")
-    pi = fit_prandtl_ishlinskii(xb, yb, widths, ridge=ridge, nonnegative=True)
+    pi = fit_prandtl_ishlinskii(xb, yb, widths, ridge=ridge, nonnegative=True, warmup=warmup)
     w0 = float(pi.linear_weight)
     if not w0 > 0:
         raise ValueError("y does not increase with x (the least-squares static gain is not "
                          "positive): a generalized PI model of increasing loops does not fit")
     with torch.no_grad():
-        v = pi(xb)[0].reshape(-1)
+        v = pi(xb)[0][:, warmup:].reshape(-1)
         q = (torch.arange(units, dtype=v.dtype, device=v.device) + 0.5) / max(units, 1)
         centers = torch.quantile(v, q) if units else v.new_zeros(0)
         spacing = float((v.max() - v.min()).clamp_min(1e-12)) / max(units, 1)
@@ -266,7 +268,8 @@ def fit_generalized_pi(
         slopes=torch.full_like(centers, 2.0 / spacing),
         unit_weights=torch.full_like(centers, 0.1 * spacing),
     ).to(xb.device)
-    fit_full_batch(model, xb, yb, adam_epochs=adam_epochs, lbfgs_epochs=lbfgs_epochs, lr=lr)
+    fit_full_batch(model, xb, yb, adam_epochs=adam_epochs, lbfgs_epochs=lbfgs_epochs, lr=lr,
+                   warmup=warmup)
     return model
 
 
