@@ -68,7 +68,7 @@ from torchhys import (
 )
 from torchhys.dynamics import TransferFunction
 from torchhys.export import load_torchscript, to_torchscript
-from torchhys.fitting import fit_full_batch
+from torchhys.fitting import FitResult, fit_full_batch
 from torchhys.functional import backlash
 from torchhys.plants import PiezoStage, bouc_wen, paper_plant_widths
 from torchhys.signals import chirp, decaying_sine, multisine, to_range
@@ -207,6 +207,20 @@ def rmse_pct(y: torch.Tensor, ref: torch.Tensor) -> float:
     return 100.0 * float(err.pow(2).mean().sqrt()) / float(ref.max() - ref.min())
 
 
+def trained_compensator(
+    make: Callable[[], InverseHysteresisNet], y: torch.Tensor, u: torch.Tensor,
+    epochs: tuple[int, int], path: Path, limits: tuple[float, float],
+) -> tuple[Callable[[torch.Tensor], torch.Tensor], FitResult, float]:
+    """The network ``make()`` (seed 0) fitted full-batch to (y -> u), exported to TorchScript
+    at ``path`` with ``limits`` and loaded back; with its fit and the seconds all that took."""
+    torch.manual_seed(0)
+    net = make()
+    start = time.perf_counter()
+    fit = fit_full_batch(net, y, u, adam_epochs=epochs[0], lbfgs_epochs=epochs[1])
+    to_torchscript(net, path, limits=limits)
+    return load_torchscript(path), fit, time.perf_counter() - start
+
+
 def run_plant(name: str, n_train: int, n_test: int, epochs: tuple[int, int], tmp: Path,
               log: list[str]) -> tuple[dict, dict]:
     plant, amp = PLANTS[name]
@@ -224,15 +238,10 @@ def run_plant(name: str, n_train: int, n_test: int, epochs: tuple[int, int], tmp
     pi_comp = load_torchscript(pi_path)
     commands["PI inverse (identified)"] = {s: pi_comp(r) for s, r in refs.items()}
     for label, make in make_networks(y_tr, u_tr).items():
-        torch.manual_seed(0)
-        net = make()
-        start = time.perf_counter()
-        fit = fit_full_batch(net, y_tr, u_tr, adam_epochs=epochs[0], lbfgs_epochs=epochs[1])
-        path = tmp / f"{name[:5]}-{len(commands)}.pt"
-        to_torchscript(net, path, limits=limits)
-        comp = load_torchscript(path)
+        comp, fit, seconds = trained_compensator(make, y_tr, u_tr, epochs,
+                                                 tmp / f"{name[:5]}-{len(commands)}.pt", limits)
         commands[label] = {s: comp(r) for s, r in refs.items()}
-        log.append(f"{name}: {label} trained in {time.perf_counter() - start:.1f} s, "
+        log.append(f"{name}: {label} trained in {seconds:.1f} s, "
                    f"train mse {fit.mse:.3e} (u range {float(u_tr.max() - u_tr.min()):.2f})")
     outputs = {m: {s: plant(u) for s, u in cmd.items()} for m, cmd in commands.items()}
     return refs, outputs
@@ -347,14 +356,9 @@ def run_stage(n: int, epochs: tuple[int, int], tmp: Path, log: list[str]
     comps: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {}
     for label, make in ((OUTPUT_ROW[1], make_networks(y_tr, u_tr, model)[OUTPUT_ROW[1]]),
                         (RATE_DEPENDENT, rate_dependent)):
-        torch.manual_seed(0)
-        net = make()
-        start = time.perf_counter()
-        fit = fit_full_batch(net, y_tr, u_tr, adam_epochs=epochs[0], lbfgs_epochs=epochs[1])
-        path = tmp / f"stage-{len(comps)}.pt"
-        to_torchscript(net, path, limits=limits)
-        comps[label] = load_torchscript(path)
-        log.append(f"piezo stage: {label} trained in {time.perf_counter() - start:.1f} s, "
+        comps[label], fit, seconds = trained_compensator(make, y_tr, u_tr, epochs,
+                                                         tmp / f"stage-{len(comps)}.pt", limits)
+        log.append(f"piezo stage: {label} trained in {seconds:.1f} s, "
                    f"train mse {fit.mse:.3e}")
     results = {}
     for rate in RATES:
