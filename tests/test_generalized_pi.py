@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 from _gpi_helpers import F64, WIDTHS, model, walks
-from _helpers import play_reference, run_chunked, smooth_input
+from _helpers import net_of, play_reference, run_chunked, smooth_input
 
 from torchhys import Backlash, InverseHysteresisNet, PrandtlIshlinskii
 from torchhys.fitting import fit_full_batch, fit_prandtl_ishlinskii, play_width_grid
@@ -157,10 +157,7 @@ def test_fit_full_batch_trains_an_operator_with_adam():
 
 def test_network_streams_equal_to_eager():
     x = 1.5 * torch.sin(torch.linspace(0, 12, 200, dtype=F64)) + 0.1 * walks()
-    torch.manual_seed(0)
-    net = InverseHysteresisNet([model(), model(centers=[0.0], slopes=[1.5], unit_weights=[1.0])],
-                               hidden=8).double()
-    net.fit_normalization(x, torch.tanh(x))
+    net = net_of([model(), model(centers=[0.0], slopes=[1.5], unit_weights=[1.0])], F64, x)
     with torch.no_grad():
         y, _ = net(x)
         comp = StreamingCompensator(net, limits=(-100.0, 100.0))

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 from _gpi_helpers import F64, WIDTHS, model, walks
+from _helpers import net_of
 
 from torchhys import GeneralizedPIInverse, InverseHysteresisNet
 from torchhys.generalized_pi import monotone_output
@@ -109,9 +110,7 @@ def test_gradient_is_the_implicit_function_one():
 
 def test_streams_inside_a_network_equal_to_eager():
     y = 1.5 * torch.sin(torch.linspace(0, 12, 300, dtype=F64)) + 0.1 * walks(300)
-    torch.manual_seed(0)
-    net = InverseHysteresisNet([model().inverse()], hidden=4).double()
-    net.fit_normalization(y, torch.tanh(y))
+    net = net_of([model().inverse()], F64, y)
     with torch.no_grad():
         out, _ = net(y)
         comp = StreamingCompensator(net, limits=(-100.0, 100.0))
