@@ -768,12 +768,13 @@ def main(argv: list[str] | None = None) -> list[dict]:
     rows: list[dict] = []
     log: list[str] = []
     start = time.perf_counter()
+    files = Files(args.ferrite, args.piezo)
     for name in args.data:
         protocol, build = DATASETS[name]
-        files = Files(args.ferrite, args.piezo)
         need = NEEDS[name]
-        if need is not None and not getattr(files, need).is_file():
-            print(f"skipping {name}: {getattr(files, need)} not found (--{need})")
+        path = None if need is None else getattr(files, need)
+        if path is not None and not path.is_file():
+            print(f"skipping {name}: {path} not found (--{need})")
             continue
         log.append(f"{name}: {protocol}")
         rows += evaluate(name, build(files), budget, log, config=args.config)
