@@ -244,7 +244,7 @@ def test_fit_leaves_the_warmup_samples_out():
         def scored(m):
             return float((m(x)[0] - y)[..., 100:].square().mean().sqrt())
         assert scored(robust) < scored(naive) / 5
-    with pytest.raises(ValueError, match="warmup must be less than the sequence length"):
+    with pytest.raises(ValueError, match="warmup must leave samples to fit"):
         fit_full_batch(clean, x, y, lbfgs_epochs=1, warmup=x.shape[-1])
     with pytest.raises(ValueError, match="warmup must be an int >= 0"):
         fit_full_batch(clean, x, y, lbfgs_epochs=1, warmup=-1)

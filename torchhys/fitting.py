@@ -68,10 +68,7 @@ def fit_full_batch(
             outputs or one that needs the target; a warmup out of range.
     """
     start = time.perf_counter()
-    check_int(warmup, "warmup", minimum=0)
-    if warmup >= x.shape[-1]:
-        raise ValueError(f"warmup must be less than the sequence length {x.shape[-1]}, "
-                         f"got {warmup}")
+    _check_warmup(warmup, x.shape[-1])
     loss_fn = (_network_loss(model, x, y, warmup) if isinstance(model, InverseHysteresisNet)
                else _operator_loss(model, x, y, warmup))
     params = [p for p in model.parameters() if p.requires_grad]
@@ -279,12 +276,15 @@ def _check_pi_data(u: Tensor, y: Tensor, widths: Tensor, warmup: int) -> tuple[T
     yb, _ = as_batched_sequence(y, "y")
     check_same_shape(yb, ub, "y", "u")
     check_widths(widths, "widths")
-    check_int(warmup, "warmup", minimum=0)
-    if warmup >= ub.shape[1]:
-        raise ValueError(
-            f"warmup must leave samples to fit: warmup={warmup} of {ub.shape[1]} samples"
-        )
+    _check_warmup(warmup, ub.shape[1])
     return ub, yb
+
+
+def _check_warmup(warmup: object, T: int) -> None:
+    """``warmup`` an int in ``[0, T)``: leading samples left out of a fit of T samples."""
+    check_int(warmup, "warmup", minimum=0)
+    if warmup >= T:
+        raise ValueError(f"warmup must leave samples to fit: warmup={warmup} of {T} samples")
 
 
 def _check_ridge(ridge: object) -> float:
