@@ -10,6 +10,7 @@ from torchhys.cascade import Cascade
 from torchhys.eiho import EIHO, ZhaoTanOperator
 from torchhys.generalized_pi import GeneralizedPrandtlIshlinskii, fit_generalized_pi
 from torchhys.generalized_pi_inverse import GeneralizedPIInverse
+from torchhys.jiles_atherton import JilesAtherton, fit_jiles_atherton
 from torchhys.networks import InverseHysteresisNet
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
 from torchhys.prandtl_ishlinskii import PrandtlIshlinskii, PrandtlIshlinskiiInverse
@@ -40,6 +41,8 @@ __all__ = [
     "PrandtlIshlinskii",
     "PrandtlIshlinskiiInverse",
     "Preisach",
+    "JilesAtherton",
+    "fit_jiles_atherton",
     "fit_preisach",
     "select_penalty",
     "GeneralizedPIInverse",

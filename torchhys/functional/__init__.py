@@ -3,6 +3,7 @@
 from torchhys.functional._branch import BranchState
 from torchhys.functional.backlash import backlash, play_step
 from torchhys.functional.eiho import NonCausalWarning, eiho, segment_coefficients, zhao_tan
+from torchhys.functional.jiles_atherton import jiles_atherton, jiles_atherton_step
 from torchhys.functional.linear_filter import lfilter
 from torchhys.functional.prandtl_ishlinskii import (
     prandtl_ishlinskii,
@@ -31,6 +32,8 @@ __all__: list[str] = [
     "prandtl_ishlinskii_inverse_parameters",
     "demagnetized_state",
     "lfilter",
+    "jiles_atherton",
+    "jiles_atherton_step",
     "preisach",
     "preisach_grid",
     "relay_states",
