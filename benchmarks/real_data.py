@@ -35,6 +35,9 @@ the states and are neither fitted nor scored):
   smoothness penalty and the sign of the target (a non-negative density draws loops of one
   orientation; its free linear term lets the negated fit draw the other) chosen on the
   hold-out;
+- ``jiles_atherton``: ``fit_jiles_atherton`` (the inverse Jiles-Atherton model, five physical
+  parameters, Levenberg-Marquardt from 8 starts) in physical units, on the B -> H records
+  only (n/a elsewhere); nothing to choose, the hold-out RMSE is that of the fit before it;
 - ``eiho_net``: ``InverseHysteresisNet([EIHO(a=1, rule="recent", output="branch"),
   Backlash(16 widths 0.4 span k/16)], hidden=16)``, trained full-batch with L-BFGS; the number
   of L-BFGS steps and the EIHO's reversal threshold (0 or "auto") chosen on the hold-out;
@@ -70,7 +73,15 @@ import torch
 import yaml
 from torch import Tensor
 
-from torchhys import EIHO, Backlash, InverseHysteresisNet, fit_preisach, select_penalty
+from torchhys import (
+    EIHO,
+    Backlash,
+    InverseHysteresisNet,
+    JilesAtherton,
+    fit_jiles_atherton,
+    fit_preisach,
+    select_penalty,
+)
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
 from torchhys.training.families import FitError
 from torchhys.training.init import initialize
@@ -108,6 +119,8 @@ class Split(NamedTuple):
     """Leading samples of each training row that only run the states."""
     test: list[tuple[Tensor, Tensor, int]]
     """Held-out recordings ``(x, y, warmup)``, x and y (time,), each from a zero state."""
+    magnetic: bool = False
+    """A B-H record: flux density in T -> field in A/m (the Jiles-Atherton row's units)."""
 
 
 class Budget(NamedTuple):
@@ -124,10 +137,13 @@ class Budget(NamedTuple):
     """Cap on the config's ``max_epochs`` (None: as configured)."""
     seconds: float
     """Time cap of one training of the config's model."""
+    ja_starts: int = 8
+    ja_iterations: int = 60
+    """Random starts and Levenberg-Marquardt iterations of the Jiles-Atherton fit."""
 
 
 FULL = Budget((5, 10, 20, 40), (1.0, 2.0, 3.0), (10, 20, 30), (2, 4, 8), 200, 40, None, 60.0)
-QUICK = Budget((5, 10), (2.0,), (8,), (2,), 20, 4, 20, 5.0)
+QUICK = Budget((5, 10), (2.0,), (8,), (2,), 20, 4, 20, 5.0, 2, 5)
 
 
 # --- data ---------------------------------------------------------------------------------
@@ -161,7 +177,7 @@ def loops(recs: dict, train: list[int], test: list[int], periods: int = 3) -> Sp
     x, y = torch.stack([a for a, _ in tile]), torch.stack([b for _, b in tile])
     held = [(_t(np.tile(recs[i][0], periods)), _t(np.tile(recs[i][1], periods)),
              (periods - 1) * len(recs[i][0])) for i in test]
-    return Split(x, y, (periods - 1) * P, held)
+    return Split(x, y, (periods - 1) * P, held, magnetic=True)
 
 
 def ferrite(path: Path, train: list[int], test: list[int]) -> Split:
@@ -246,10 +262,10 @@ def shortened(split: Split, n: int = 50, *, stride: bool = False) -> Split:
     every k-th sample of every training row (a closed loop sampled coarsely: its shape kept).
     The held-out recordings are unchanged."""
     if not stride:
-        return Split(split.x[:1, :split.warmup + n], split.y[:1, :split.warmup + n],
-                     split.warmup, split.test)
+        return split._replace(x=split.x[:1, :split.warmup + n],
+                              y=split.y[:1, :split.warmup + n])
     k = max(1, split.y[:, split.warmup:].numel() // n)
-    return Split(split.x[:, ::k], split.y[:, ::k], -(-split.warmup // k), split.test)
+    return split._replace(x=split.x[:, ::k], y=split.y[:, ::k], warmup=-(-split.warmup // k))
 
 
 def tiled(split: Split, total: int = 100_000) -> Split:
@@ -257,7 +273,7 @@ def tiled(split: Split, total: int = 100_000) -> Split:
     scored samples in all (a test of scale and run time: no new information)."""
     rows, T = split.x.shape
     reps = -(-(total // rows + split.warmup) // T)
-    return Split(split.x.repeat(1, reps), split.y.repeat(1, reps), split.warmup, split.test)
+    return split._replace(x=split.x.repeat(1, reps), y=split.y.repeat(1, reps))
 
 
 class Files(NamedTuple):
@@ -541,6 +557,30 @@ def preisach(split: Split, budget: Budget) -> Fitted:
                     score)
 
 
+class NotApplicable(ValueError):
+    """A model that does not apply to this data set (its row reads n/a)."""
+
+
+def jiles_atherton(split: Split, budget: Budget) -> Fitted:
+    """The inverse Jiles-Atherton model (B in T -> H in A/m), physical units: fitted on the
+    part before the hold-out for the hold-out RMSE, then on the whole training part."""
+    if not split.magnetic:
+        raise NotApplicable("B -> H records only")
+
+    def fit(x: Tensor, y: Tensor) -> JilesAtherton:
+        return fit_jiles_atherton(x, y, warmup=split.warmup, starts=budget.ja_starts,
+                                  iterations=budget.ja_iterations)
+
+    cut = holdout(split.x.shape[1], split.warmup)
+    with torch.no_grad():
+        score = _rmse(fit(split.x[:, :cut], split.y[:, :cut])(split.x)[0][:, cut:],
+                      split.y[:, cut:])
+    model = fit(split.x, split.y)
+    p = ", ".join(f"{n}={float(v.detach()):.4g}" for n, v in
+                  zip(("ms", "a", "k", "alpha", "c"), model.parameters_effective(), strict=True))
+    return Fitted(lambda v: model(v)[0], f"{p}, substeps={model.substeps}", score)
+
+
 # --- networks -----------------------------------------------------------------------------
 def _eiho_net(x: Tensor, threshold: float | str) -> InverseHysteresisNet:
     torch.manual_seed(0)
@@ -708,6 +748,7 @@ MODELS: dict[str, Callable[..., Fitted]] = {
     "pi_ls": pi_ls,
     **({"generalized_pi": generalized_pi} if fit_generalized_pi is not None else {}),
     "preisach": preisach,
+    "jiles_atherton": jiles_atherton,
     "eiho_net": eiho_net,
     "default": default,
 }
@@ -728,6 +769,8 @@ def evaluate(name: str, split: Split, budget: Budget, log: list[str], *,
                 fitted = run(split, budget, config) if model == "default" else run(split, budget)
             rmse, n_test = test_rmse(fitted.predict, split)
             choice, score = f"{fitted.choice}; hold-out {fitted.holdout:.4g}", fitted.holdout
+        except NotApplicable as err:
+            rmse, n_test, choice, score = math.nan, 0, f"n/a: {err}", math.inf
         except (ValueError, RuntimeError, FloatingPointError) as err:
             rmse, n_test, choice, score = math.nan, 0, f"failed: {err}", math.inf
         rows.append({"dataset": name, "model": model, "rmse": rmse, "n_train": n_train,
