@@ -243,3 +243,23 @@ def test_bad_input_is_named():
         fit_jiles_atherton(b, b[:, :-1])
     with pytest.raises(ValueError, match="x and y must vary"):
         fit_jiles_atherton(b, torch.zeros_like(b))
+
+
+def test_state_dict_carries_mu0_and_substeps():
+    """A module built with the defaults and loaded from a fitted one's state dict runs as
+    the fitted one did (the config families load fitted models into placeholders)."""
+    fitted = JilesAtherton(**FERRITE, mu0=4e-4 * math.pi, substeps=5)
+    state = fitted.state_dict()
+    assert int(state["saved_substeps"]) == 5 and state["saved_substeps"].dtype == torch.int64
+    assert float(state["saved_mu0"]) == 4e-4 * math.pi
+    loaded = JilesAtherton()
+    loaded.load_state_dict(state)
+    assert loaded.substeps == 5 and loaded.mu0 == 4e-4 * math.pi
+    b = 1e3 * sine_loops([0.2], periods=1, n=32)  # mT
+    with torch.no_grad():
+        assert torch.equal(loaded(b)[0], fitted(b)[0])
+    assert loaded.streaming_step(F64).substeps == 5
+    loaded.substeps = 3
+    assert int(loaded.state_dict()["saved_substeps"]) == 3
+    with pytest.raises(ValueError, match="substeps must be"):
+        loaded.substeps = 0

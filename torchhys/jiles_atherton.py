@@ -71,6 +71,9 @@ class JilesAtherton(HysteresisOperator):
         substeps: Euler steps per sample, >= 1: enough that one step moves B by a small part
             of its range (:func:`fit_jiles_atherton` picks it from the data).
 
+    ``mu0`` and ``substeps`` are saved in the state dict (buffers ``saved_mu0``,
+    ``saved_substeps``) and read back by ``load_state_dict``.
+
     The parameters are trainable, stored as logarithms (``ms, a, k, alpha``) and a logit
     (``c``): every value is a valid model. :meth:`parameters_effective` returns them.
 
@@ -93,9 +96,31 @@ class JilesAtherton(HysteresisOperator):
         if not values[4] < 1:
             raise ValueError(f"c must be in (0, 1), got {c!r}")
         self.mu0 = _positive(mu0, "mu0")
-        self.substeps = check_int(substeps, "substeps", minimum=1)
         raw = [math.log(v) for v in values[:4]] + [math.log(values[4] / (1 - values[4]))]
         self.raw = nn.Parameter(torch.tensor(raw, dtype=torch.float64))
+        # the fixed settings travel in the state dict (read back on load): a module built
+        # with the defaults and loaded from a saved one runs as the saved one did
+        self.register_buffer("saved_mu0", torch.tensor(self.mu0, dtype=torch.float64))
+        self.register_buffer("saved_substeps", torch.tensor(0))
+        self.substeps = substeps
+
+    @property
+    def substeps(self) -> int:
+        """Euler steps per sample (an int; kept in the ``saved_substeps`` buffer)."""
+        return int(self.saved_substeps)
+
+    @substeps.setter
+    def substeps(self, value: int) -> None:
+        self.saved_substeps.fill_(check_int(value, "substeps", minimum=1))
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[override]
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+        mu0 = state_dict.get(prefix + "saved_mu0")
+        if isinstance(mu0, Tensor) and mu0.numel() == 1:
+            self.mu0 = _positive(float(mu0), "mu0")
+        steps = state_dict.get(prefix + "saved_substeps")
+        if isinstance(steps, Tensor) and steps.numel() == 1:
+            self.substeps = round(float(steps))
 
     def parameters_effective(self) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """``(ms, a, k, alpha, c)``, each 0-dim (differentiable)."""
