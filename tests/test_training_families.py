@@ -1,7 +1,7 @@
-"""Config family operators (``pi_nonneg``, ``gpi``, ``preisach``): each identifies its model
-on the training split (recovering a plant of its own family), is saved in the checkpoint,
-streams and exports like any operator; a family that cannot be fitted is skipped by model
-selection; bad options are clear errors."""
+"""Config family operators (``pi_nonneg``, ``gpi``, ``preisach``, ``jiles_atherton``): each
+identifies its model on the training split (recovering a plant of its own family), is saved
+in the checkpoint, streams and exports like any operator; a family that cannot be fitted is
+skipped by model selection; bad options are clear errors."""
 
 from __future__ import annotations
 
@@ -18,13 +18,14 @@ from torchhys import (
     GeneralizedPIInverse,
     GeneralizedPrandtlIshlinskii,
     InverseHysteresisNet,
+    JilesAtherton,
     PrandtlIshlinskii,
     Preisach,
 )
 from torchhys.export import load_torchscript, to_torchscript
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 from torchhys.training.cli import main
-from torchhys.training.families import FitError
+from torchhys.training.families import FitError, _substeps
 from torchhys.training.operators import build_operators, fit_data_dependent
 
 F64 = torch.float64
@@ -205,3 +206,110 @@ def test_identity_readout_is_affine():
     y, _ = net(x)
     second = torch.diff(y, n=2)
     torch.testing.assert_close(second, torch.zeros_like(second), rtol=0, atol=1e-12)
+
+
+# --- jiles_atherton -----------------------------------------------------------------------
+CORE = dict(ms=3e5, a=18.0, k=13.0, alpha=1.2e-4, c=0.8)
+"""A MnZn ferrite core (B in T, H in A/m)."""
+JA_FAST = {"name": "jiles_atherton", "starts": 2, "iterations": 20}
+
+
+def bh_loops(n: int = 64, scale: float = 1.0, mu0: float = 4e-7 * math.pi
+             ) -> tuple[torch.Tensor, torch.Tensor]:
+    """B-H loops of CORE: cosines of flux density of 0.12 and 0.36 T (times ``scale``, the
+    input unit) from the positive tip, 3 periods of n samples, and the fields; (2, 3 n)."""
+    t = torch.arange(3 * n, dtype=F64) / n
+    b = torch.stack([amp * scale * torch.cos(2 * math.pi * t) for amp in (0.12, 0.36)])
+    with torch.no_grad():
+        h, _ = JilesAtherton(**CORE, mu0=mu0, substeps=8)(b)
+    return b, h
+
+
+def test_jiles_atherton_recovers_a_jiles_atherton_core():
+    """Fitted to the field itself (physical units): far better than a line, near the core."""
+    b, h = bh_loops()
+    op = fitted(JA_FAST, b, h, warmup=64)
+    assert isinstance(op, JilesAtherton) and not any(p.requires_grad for p in op.parameters())
+    assert op.substeps == _substeps(b) and op.mu0 == 4e-7 * math.pi
+    with torch.no_grad():
+        out = op(b)[0]
+    rmse = float((out - h)[:, 64:].square().mean().sqrt())
+    assert rmse < 0.05 * affine_rmse(b[:, 64:], h[:, 64:]), rmse
+    # (k, the most sensitive, absorbs part of the Euler error: 2 steps a sample, the core 8)
+    ms, a, _, alpha, _ = (float(v) for v in op.parameters_effective())
+    assert ms == pytest.approx(3e5, rel=0.02) and a == pytest.approx(18.0, rel=0.1)
+    assert alpha == pytest.approx(1.2e-4, rel=0.1)
+
+
+def test_jiles_atherton_in_other_units_keeps_mu0_and_substeps():
+    """B in mT (mu0 4 pi 1e-4), 32 samples a period, substeps given: the placeholder takes
+    the fitted model's mu0 and substeps (saved in its state dict), not its defaults."""
+    b, h = bh_loops(n=32, scale=1e3, mu0=4e-4 * math.pi)
+    op = fitted({**JA_FAST, "mu0": 4e-4 * math.pi, "substeps": 5}, b, h, warmup=32)
+    assert op.substeps == 5 and op.mu0 == 4e-4 * math.pi
+    with torch.no_grad():
+        out = op(b)[0]
+    assert float((out - h)[:, 32:].square().mean().sqrt()) < 0.1 * affine_rmse(b, h)
+
+
+def test_jiles_atherton_that_cannot_fit_raises_fit_error():
+    b, h = bh_loops(n=16)
+    with pytest.raises(FitError, match="must vary"):
+        fitted(JA_FAST, b, torch.full_like(b, 3.0))
+    # a field offset no core shows in steady state from a demagnetised start: the fit stays
+    # about the loop, the line takes the offset
+    with pytest.raises(FitError, match="jiles_atherton: the fitted model is no better than a "
+                                       "straight line"):
+        fitted(JA_FAST, b, h + 100.0, warmup=16)
+    # the field falling as the flux density rises: no core draws that loop
+    with pytest.raises(FitError, match="jiles_atherton: "):
+        fitted(JA_FAST, b, -h, warmup=16)
+    # fields of 1e160 A/m: every start's squared error overflows (fit_jiles_atherton's
+    # ValueError, as a FitError)
+    with pytest.raises(FitError, match="jiles_atherton: no Jiles-Atherton fit with a finite"):
+        fitted(JA_FAST, b, 1e160 * h, warmup=16)
+
+
+@pytest.mark.parametrize("spec, match", [
+    ({"name": "jiles_atherton", "mu": 1.0}, r"unknown option\(s\) \['mu'\]"),
+    ({"name": "jiles_atherton", "mu0": 0.0}, "'jiles_atherton': mu0 must be a finite number > 0"),
+    ({"name": "jiles_atherton", "mu0": "4e-7"}, "'jiles_atherton': mu0 must be a finite"),
+    ({"name": "jiles_atherton", "mu0": float("inf")}, "mu0 must be a finite number > 0"),
+    ({"name": "jiles_atherton", "starts": 0}, "'jiles_atherton': starts must be"),
+    ({"name": "jiles_atherton", "iterations": 1.5}, "'jiles_atherton': iterations must be"),
+    ({"name": "jiles_atherton", "substeps": 0}, "'jiles_atherton': substeps must be"),
+])
+def test_jiles_atherton_bad_options(spec, match):
+    with pytest.raises(ValueError, match=match):
+        build_operators(spec)
+
+
+def test_jiles_atherton_fitted_in_training_saved_and_exported(tmp_path):
+    """Through the data module and the Lightning module: fitted on the training split,
+    restored from the checkpoint into a default placeholder bit for bit (mu0 and substeps
+    included), and the TorchScript compensator equals the module."""
+    b, h = bh_loops(n=32)
+    x, y = b.flatten(), h.flatten()  # one recording: the small loops, then the large ones
+    path = tmp_path / "bh.csv"
+    path.write_text("B_T,H_Apm\n" + "".join(f"{u!r},{v!r}\n" for u, v in
+                                             zip(x.tolist(), y.tolist(), strict=True)))
+    dm = HysteresisDataModule(path=str(path), input_column="B_T", target_column="H_Apm",
+                              split=[0.7, 0.15, 0.15], warmup=16)
+    module = InverseHysteresisModule(operator=[{**JA_FAST, "substeps": 3}], hidden=1,
+                                     activation="identity", optimizer="lbfgs", lr=1.0)
+    t = trainer(max_epochs=3, enable_checkpointing=True, default_root_dir=tmp_path)
+    t.fit(module, dm)
+    ckpt = tmp_path / "m.ckpt"
+    t.save_checkpoint(ckpt)
+    loaded = InverseHysteresisModule.load_from_checkpoint(ckpt)
+    assert loaded.net.operators[0].substeps == 3
+    for a, b_ in zip(module.net.state_dict().values(), loaded.net.state_dict().values(),
+                     strict=True):
+        assert torch.equal(a, b_)
+    with torch.no_grad():
+        expected = module(x)
+        assert torch.equal(loaded(x), expected)
+    assert float((expected - y).square().mean()) < 0.01 * float(y.var())
+    out = tmp_path / "comp.pt"
+    to_torchscript(loaded.net, out, limits=(-1e6, 1e6))
+    torch.testing.assert_close(load_torchscript(out)(x).double(), expected, rtol=0, atol=1e-9)

@@ -1,8 +1,10 @@
 """Constrained model families as config operators, identified on the training split.
 
 Each spec builds an operator whose output is a fitted model of the target (in standardized
-units); the network that reads it (``hidden: 1, activation: identity`` for a plain affine
-readout) maps it back. They are the candidates of ``configs/measured.yaml``:
+units; ``jiles_atherton`` in the target's physical units); the network that reads it
+(``hidden: 1, activation: identity`` for a plain affine readout, whose normalization
+standardizes the operator's output) maps it back. They are the candidates of
+``configs/measured.yaml`` and ``configs/magnetic.yaml``:
 
 - ``{"name": "pi_nonneg", "n_widths": 10, "power": 2.0, "ridge": "auto",
   "direction": "direct"}``: a Prandtl-Ishlinskii model with non-negative weights
@@ -17,6 +19,14 @@ readout) maps it back. They are the candidates of ``configs/measured.yaml``:
 - ``{"name": "preisach", "n": 20, "smoothness": "auto"}``: :func:`torchhys.fit_preisach`
   on a grid over the training input's range, both signs of the target fitted, the better
   kept.
+- ``{"name": "jiles_atherton", "mu0": 4e-7 pi, "starts": 8, "iterations": 60,
+  "substeps": None}``: :func:`torchhys.fit_jiles_atherton`, the inverse Jiles-Atherton model
+  of a magnetic core (the input the flux density B, the target the field H), fitted to the
+  target in its physical units (``mu0``: input units per target unit of free space, the
+  default for B in T and H in A/m). ``substeps`` (Euler steps per sample; None: enough that
+  a sample step of the 0.99 quantile moves the input by at most 1/32 of its range, so that
+  the few large jumps where a cross-validation fold joins its pieces do not multiply the
+  cost).
 
 ``ridge``/``smoothness: "auto"`` picks the penalty on a time-ordered hold-out inside the
 training split (the last quarter of each row's scored samples; :func:`select_pi_ridge`,
@@ -30,6 +40,7 @@ model selection scores that candidate as failed.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -39,14 +50,17 @@ from torch import Tensor, nn
 from torchhys import (
     GeneralizedPIInverse,
     GeneralizedPrandtlIshlinskii,
+    JilesAtherton,
     PrandtlIshlinskii,
     Preisach,
     fit_generalized_pi,
+    fit_jiles_atherton,
     fit_preisach,
     select_penalty,
 )
 from torchhys._checks import check_choice, check_int
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
+from torchhys.functional.jiles_atherton import MU0
 
 __all__ = ["FAMILIES", "FitError", "PENALTIES"]
 
@@ -101,9 +115,11 @@ def _standardized(x: Tensor, y: Tensor, warmup: int) -> tuple[float, Tensor]:
     return sx, (y - ys.mean()) / sy
 
 
-def _rmse(model: nn.Module, x: Tensor, t: Tensor, warmup: int) -> float:
+def _rmse(model: nn.Module, x: Tensor, t: Tensor, warmup: int, mean: float = 0.0,
+          std: float = 1.0) -> float:
+    """RMSE of ``(model(x) - mean) / std`` against t on the scored samples."""
     with torch.no_grad():
-        return float((model(x)[0] - t)[:, warmup:].square().mean().sqrt())
+        return float(((model(x)[0] - mean) / std - t)[:, warmup:].square().mean().sqrt())
 
 
 def _holdout(x: Tensor, warmup: int) -> float:
@@ -120,11 +136,13 @@ def _holdout(x: Tensor, warmup: int) -> float:
     return max(1, round(VALIDATION * (T - warmup))) / T
 
 
-def _checked(model: nn.Module, x: Tensor, t: Tensor, warmup: int, name: str) -> nn.Module:
+def _checked(model: nn.Module, x: Tensor, t: Tensor, warmup: int, name: str,
+             mean: float = 0.0, std: float = 1.0) -> nn.Module:
     """``model`` if it fits the standardized target t on the scored training samples better
     than a straight line in x does, else :class:`FitError` (a diverged or degenerate fit;
-    an exact inverse of a poor forward fit can blow up)."""
-    rmse = _rmse(model, x, t, warmup)
+    an exact inverse of a poor forward fit can blow up). A model of the physical target
+    gives the target's ``mean`` and ``std``: its output is standardized as t was."""
+    rmse = _rmse(model, x, t, warmup, mean, std)
     xs, ts = x[:, warmup:].reshape(-1), t[:, warmup:].reshape(-1)
     design = torch.stack([xs, torch.ones_like(xs)], 1)
     line = float((design @ torch.linalg.lstsq(design, ts[:, None]).solution - ts[:, None])
@@ -271,9 +289,51 @@ def _preisach(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     return Preisach(0.0, 1.0, n).requires_grad_(False), fit
 
 
+def _substeps(x: Tensor) -> int:
+    """Euler steps per sample such that a sample step of the 0.99 quantile moves x by at
+    most 1/32 of its range (at most 64). The largest steps are left out: a
+    cross-validation fold joins its pieces end to end, and its few jumps would set the
+    count (and the cost of every fit) for all samples."""
+    span = float(x.max() - x.min())
+    if x.shape[-1] < 2 or not span > 0:
+        return 1
+    step = float(torch.quantile(x.diff(dim=-1).abs().flatten(), 0.99))
+    return max(1, min(64, math.ceil(step * 32 / span)))
+
+
+def _jiles_atherton(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
+    _keys(spec, {"mu0", "starts", "iterations", "substeps"})
+    mu0 = spec.get("mu0", MU0)
+    if isinstance(mu0, bool) or not isinstance(mu0, (int, float)) or not (
+            math.isfinite(mu0) and mu0 > 0):
+        raise ValueError(f"operator 'jiles_atherton': mu0 must be a finite number > 0 (input "
+                         f"units per target unit of free space), got {mu0!r}")
+    mu0 = float(mu0)
+    starts = check_int(spec.get("starts", 8), "operator 'jiles_atherton': starts", minimum=1)
+    iterations = check_int(spec.get("iterations", 60), "operator 'jiles_atherton': iterations",
+                           minimum=1)
+    substeps = spec.get("substeps")
+    if substeps is not None:
+        substeps = check_int(substeps, "operator 'jiles_atherton': substeps", minimum=1)
+
+    def fit(x: Tensor, y: Tensor, warmup: int) -> nn.Module:
+        _, t = _standardized(x, y, warmup)
+        try:
+            m = fit_jiles_atherton(x, y, warmup=warmup, mu0=mu0, starts=starts,
+                                   iterations=iterations,
+                                   substeps=_substeps(x) if substeps is None else substeps)
+        except (ValueError, torch.linalg.LinAlgError) as err:
+            raise FitError(f"jiles_atherton: {err}") from None
+        ys = y[:, warmup:]
+        return _checked(m, x, t, warmup, "jiles_atherton", float(ys.mean()), float(ys.std()))
+
+    return JilesAtherton(mu0=mu0).requires_grad_(False), fit
+
+
 FAMILIES: dict[str, Callable[[Mapping[str, Any]], tuple[nn.Module, Fitter]]] = {
     "pi_nonneg": _pi_nonneg,
     "gpi": _gpi,
     "preisach": _preisach,
+    "jiles_atherton": _jiles_atherton,
 }
 """Builders of the family operators by config name: ``spec -> (placeholder, fitter)``."""
