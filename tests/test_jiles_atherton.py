@@ -237,7 +237,7 @@ def test_bad_input_is_named():
         m(torch.tensor([0.0, float("nan")], dtype=F64))
     with pytest.raises(ValueError, match=r"state must have shape \(2, 2\)"):
         m(b, torch.zeros(3, 2, dtype=F64))
-    with pytest.raises(ValueError, match="warmup must be an int in"):
+    with pytest.raises(ValueError, match="warmup must leave samples to fit: warmup=16 of 16"):
         fit_jiles_atherton(b, b, warmup=16)
     with pytest.raises(ValueError, match="y must have the shape of x"):
         fit_jiles_atherton(b, b[:, :-1])

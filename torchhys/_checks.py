@@ -6,6 +6,7 @@ Every public function validates its arguments once, here, and raises a
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from typing import TypeVar
 
@@ -63,6 +64,15 @@ def check_int(value: object, name: str, *, minimum: int | None = None) -> int:
         bound = "" if minimum is None else f" >= {minimum}"
         raise ValueError(f"{name} must be an int{bound}, got {value!r}")
     return value
+
+
+def check_positive(value: object, name: str) -> float:
+    """Raise ``ValueError`` unless ``value`` is a finite int or float ``> 0`` (a bool is not);
+    return it as a float."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
+            math.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+    return float(value)
 
 
 def check_choice(value: _T, name: str, choices: Iterable[object]) -> _T:

@@ -16,20 +16,14 @@ import math
 import torch
 from torch import Tensor, nn
 
-from torchhys._checks import as_batched_sequence, check_int, check_same_shape
+from torchhys._checks import as_batched_sequence, check_int, check_positive, check_same_shape
+from torchhys.fitting import _check_warmup
 from torchhys.functional.jiles_atherton import MU0, jiles_atherton, jiles_atherton_step
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
 
-__all__ = ["JilesAtherton", "JilesAthertonStep", "fit_jiles_atherton"]
+__all__ = ["JilesAtherton", "JilesAthertonStep", "fit_jiles_atherton", "substeps_for"]
 
 _NAMES = ("ms", "a", "k", "alpha", "c")
-
-
-def _positive(value: float, name: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
-            math.isfinite(value) and value > 0):
-        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-    return float(value)
 
 
 class JilesAthertonStep(OperatorStep):
@@ -92,10 +86,10 @@ class JilesAtherton(HysteresisOperator):
     def __init__(self, ms: float = 1e6, a: float = 50.0, k: float = 50.0, alpha: float = 1e-4,
                  c: float = 0.2, *, mu0: float = MU0, substeps: int = 2) -> None:
         super().__init__()
-        values = [_positive(v, n) for v, n in zip((ms, a, k, alpha, c), _NAMES, strict=True)]
+        values = [check_positive(v, n) for v, n in zip((ms, a, k, alpha, c), _NAMES, strict=True)]
         if not values[4] < 1:
             raise ValueError(f"c must be in (0, 1), got {c!r}")
-        self.mu0 = _positive(mu0, "mu0")
+        self.mu0 = check_positive(mu0, "mu0")
         raw = [math.log(v) for v in values[:4]] + [math.log(values[4] / (1 - values[4]))]
         self.raw = nn.Parameter(torch.tensor(raw, dtype=torch.float64))
         # the fixed settings travel in the state dict (read back on load): a module built
@@ -117,7 +111,7 @@ class JilesAtherton(HysteresisOperator):
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
         mu0 = state_dict.get(prefix + "saved_mu0")
         if isinstance(mu0, Tensor) and mu0.numel() == 1:
-            self.mu0 = _positive(float(mu0), "mu0")
+            self.mu0 = check_positive(float(mu0), "mu0")
         steps = state_dict.get(prefix + "saved_substeps")
         if isinstance(steps, Tensor) and steps.numel() == 1:
             self.substeps = round(float(steps))
@@ -156,13 +150,15 @@ class JilesAtherton(HysteresisOperator):
 register_operator("jiles_atherton", JilesAtherton)
 
 
-def _substeps(x: Tensor, resolution: int) -> int:
-    """Euler steps per sample so that one step moves x by at most 1/resolution of its range."""
+def substeps_for(x: Tensor, resolution: int = 32, quantile: float = 1.0) -> int:
+    """Euler steps per sample so that a sample step of x (rows, time) (its largest, or the
+    given quantile of the absolute steps) moves x by at most 1/resolution of its range; at
+    most 64."""
     span = float(x.max() - x.min())
-    if x.shape[1] < 2 or not span > 0:
+    if x.shape[-1] < 2 or not span > 0:
         return 1
-    jump = float((x[:, 1:] - x[:, :-1]).abs().max())
-    return max(1, min(64, math.ceil(jump * resolution / span)))
+    step = float(torch.quantile(x.diff(dim=-1).abs().flatten(), quantile))
+    return max(1, min(64, math.ceil(step * resolution / span)))
 
 
 def fit_jiles_atherton(x: Tensor, y: Tensor, *, warmup: int = 0, mu0: float = MU0,
@@ -197,17 +193,15 @@ def fit_jiles_atherton(x: Tensor, y: Tensor, *, warmup: int = 0, mu0: float = MU
     yb, _ = as_batched_sequence(y, "y")
     check_same_shape(yb, xb, "y", "x")
     T = xb.shape[1]
-    if isinstance(warmup, bool) or not isinstance(warmup, int) or not 0 <= warmup < T:
-        raise ValueError(f"warmup must be an int in [0, {T}) (the samples per row), got "
-                         f"{warmup!r}")
-    mu0 = _positive(mu0, "mu0")
+    _check_warmup(warmup, T)
+    mu0 = check_positive(mu0, "mu0")
     starts = check_int(starts, "starts", minimum=1)
     iterations = check_int(iterations, "iterations", minimum=1)
     xb, yb = xb.to(torch.float64), yb.to(torch.float64)
     bmax, hmax = float(xb.abs().max()), float(yb.abs().max())
     if not (float(xb.std()) > 0 and float(yb[:, warmup:].std()) > 0):
         raise ValueError("x and y must vary (a constant record has no loop to fit)")
-    K = _substeps(xb, 32) if substeps is None else check_int(substeps, "substeps", minimum=1)
+    K = substeps_for(xb) if substeps is None else check_int(substeps, "substeps", minimum=1)
     R = xb.shape[0]
     target = yb[:, warmup:].reshape(-1)
 
@@ -233,7 +227,7 @@ def fit_jiles_atherton(x: Tensor, y: Tensor, *, warmup: int = 0, mu0: float = MU
                          uniform(-4.0, 1.0)], 1)
     eye, step = torch.eye(5, dtype=torch.float64), 1e-6
     with torch.no_grad():
-        r, loss = losses(theta)
+        _, loss = losses(theta)
         damping = torch.full((starts,), 1e-3, dtype=torch.float64)
         for _ in range(iterations):
             probes = torch.cat([theta.unsqueeze(1) + step * eye, theta.unsqueeze(1)], 1)

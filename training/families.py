@@ -40,7 +40,6 @@ model selection scores that candidate as failed.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -58,9 +57,10 @@ from torchhys import (
     fit_preisach,
     select_penalty,
 )
-from torchhys._checks import check_choice, check_int
+from torchhys._checks import check_choice, check_int, check_positive
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
 from torchhys.functional.jiles_atherton import MU0
+from torchhys.jiles_atherton import substeps_for
 
 __all__ = ["FAMILIES", "FitError", "PENALTIES"]
 
@@ -290,25 +290,16 @@ def _preisach(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
 
 
 def _substeps(x: Tensor) -> int:
-    """Euler steps per sample such that a sample step of the 0.99 quantile moves x by at
-    most 1/32 of its range (at most 64). The largest steps are left out: a
+    """Euler steps per sample from the 0.99 quantile of the sample steps
+    (:func:`~torchhys.jiles_atherton.substeps_for`). The largest steps are left out: a
     cross-validation fold joins its pieces end to end, and its few jumps would set the
     count (and the cost of every fit) for all samples."""
-    span = float(x.max() - x.min())
-    if x.shape[-1] < 2 or not span > 0:
-        return 1
-    step = float(torch.quantile(x.diff(dim=-1).abs().flatten(), 0.99))
-    return max(1, min(64, math.ceil(step * 32 / span)))
+    return substeps_for(x, quantile=0.99)
 
 
 def _jiles_atherton(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     _keys(spec, {"mu0", "starts", "iterations", "substeps"})
-    mu0 = spec.get("mu0", MU0)
-    if isinstance(mu0, bool) or not isinstance(mu0, (int, float)) or not (
-            math.isfinite(mu0) and mu0 > 0):
-        raise ValueError(f"operator 'jiles_atherton': mu0 must be a finite number > 0 (input "
-                         f"units per target unit of free space), got {mu0!r}")
-    mu0 = float(mu0)
+    mu0 = check_positive(spec.get("mu0", MU0), "operator 'jiles_atherton': mu0")
     starts = check_int(spec.get("starts", 8), "operator 'jiles_atherton': starts", minimum=1)
     iterations = check_int(spec.get("iterations", 60), "operator 'jiles_atherton': iterations",
                            minimum=1)
