@@ -576,9 +576,7 @@ def jiles_atherton(split: Split, budget: Budget) -> Fitted:
         score = _rmse(fit(split.x[:, :cut], split.y[:, :cut])(split.x)[0][:, cut:],
                       split.y[:, cut:])
     model = fit(split.x, split.y)
-    p = ", ".join(f"{n}={float(v.detach()):.4g}" for n, v in
-                  zip(("ms", "a", "k", "alpha", "c"), model.parameters_effective(), strict=True))
-    return Fitted(lambda v: model(v)[0], f"{p}, substeps={model.substeps}", score)
+    return Fitted(lambda v: model(v)[0], model.extra_repr(), score)
 
 
 # --- networks -----------------------------------------------------------------------------
