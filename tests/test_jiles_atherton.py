@@ -5,6 +5,7 @@ input."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -243,6 +244,28 @@ def test_bad_input_is_named():
         fit_jiles_atherton(b, b[:, :-1])
     with pytest.raises(ValueError, match="x and y must vary"):
         fit_jiles_atherton(b, torch.zeros_like(b))
+    with torch.no_grad():
+        h, _ = m(b)
+    with pytest.raises(ValueError, match="y must rise with x .* but it falls: check the sign"):
+        fit_jiles_atherton(b, -h)
+
+
+def test_fit_to_a_degenerate_optimum_returns_a_valid_model():
+    """The smallest measured ferrite loop (0.09 T, Rayleigh region) drives the coupling
+    alpha toward 0: the fit keeps it a small positive number and returns a model that fits
+    the loop (it once underflowed to alpha = 0 and raised)."""
+    path = Path(__file__).resolve().parents[1] / "examples/data/mnzn_ferrite_bh_loops.csv"
+    table = np.genfromtxt(path, delimiter=",", names=True, skip_header=4)
+    rows = table["loop"] == 0
+    b, h = (torch.tensor(np.tile(table[k][rows], 3))[None] for k in ("B_T", "H_Apm"))
+    w = 2 * int(rows.sum())
+    fit = fit_jiles_atherton(b, h, warmup=w, iterations=20)
+    assert all(float(v) > 0 for v in fit.parameters_effective())
+    with torch.no_grad():
+        rmse = float((fit(b)[0] - h)[:, w:].square().mean().sqrt())
+    slope, offset = np.polyfit(b[0, w:].numpy(), h[0, w:].numpy(), 1)
+    line = float(np.sqrt(np.mean((slope * b[0, w:].numpy() + offset - h[0, w:].numpy()) ** 2)))
+    assert rmse < 0.5 * line, (rmse, line)
 
 
 def test_state_dict_carries_mu0_and_substeps():

@@ -186,8 +186,8 @@ def fit_jiles_atherton(x: Tensor, y: Tensor, *, warmup: int = 0, mu0: float = MU
         The fitted :class:`JilesAtherton` (float64 parameters).
 
     Raises:
-        ValueError: shapes, non-finite values, a bad warmup, constant x or y, or no start
-            with a finite error.
+        ValueError: shapes, non-finite values, a bad warmup, constant x or y, y falling
+            with x, or no start with a finite error.
     """
     xb, _ = as_batched_sequence(x, "x")
     yb, _ = as_batched_sequence(y, "y")
@@ -201,6 +201,10 @@ def fit_jiles_atherton(x: Tensor, y: Tensor, *, warmup: int = 0, mu0: float = MU
     bmax, hmax = float(xb.abs().max()), float(yb.abs().max())
     if not (float(xb.std()) > 0 and float(yb[:, warmup:].std()) > 0):
         raise ValueError("x and y must vary (a constant record has no loop to fit)")
+    xs, ys = xb[:, warmup:], yb[:, warmup:]
+    if float(((xs - xs.mean()) * (ys - ys.mean())).sum()) <= 0:
+        raise ValueError("y must rise with x (the field H rises with the flux density B along "
+                         "a loop), but it falls: check the sign of y, and that x is B and y H")
     K = substeps_for(xb) if substeps is None else check_int(substeps, "substeps", minimum=1)
     R = xb.shape[0]
     target = yb[:, warmup:].reshape(-1)
@@ -225,6 +229,10 @@ def fit_jiles_atherton(x: Tensor, y: Tensor, *, warmup: int = 0, mu0: float = MU
     a0, k0 = hmax * uniform(0.02, 0.5), hmax * uniform(0.02, 0.5)
     theta = torch.stack([ms0.log(), a0.log(), k0.log(), (a0 / ms0 * uniform(0.1, 3.0)).log(),
                          uniform(-4.0, 1.0)], 1)
+    # log-parameters stay where exp() is a positive float64 and the logit where c is in
+    # (0, 1): a degenerate optimum (no coupling, no pinning) is a small positive value
+    lo = torch.tensor([-600.0] * 4 + [-30.0], dtype=torch.float64)
+    hi = torch.tensor([600.0] * 4 + [30.0], dtype=torch.float64)
     eye, step = torch.eye(5, dtype=torch.float64), 1e-6
     with torch.no_grad():
         _, loss = losses(theta)
@@ -241,9 +249,10 @@ def fit_jiles_atherton(x: Tensor, y: Tensor, *, warmup: int = 0, mu0: float = MU
             system = A + damping[:, None, None] * torch.diag_embed(scale)
             delta = -torch.linalg.solve(system, grad.unsqueeze(2)).squeeze(2)
             delta = torch.where(torch.isfinite(delta), delta, torch.zeros_like(delta))
-            _, trial = losses(theta + delta)
+            moved = torch.minimum(torch.maximum(theta + delta, lo), hi)
+            _, trial = losses(moved)
             better = trial < loss
-            theta = torch.where(better[:, None], theta + delta, theta)
+            theta = torch.where(better[:, None], moved, theta)
             loss = torch.where(better, trial, loss)
             damping = torch.where(better, damping / 3, damping * 4).clamp(1e-12, 1e12)
             if bool((damping >= 1e12).all()):
@@ -254,4 +263,4 @@ def fit_jiles_atherton(x: Tensor, y: Tensor, *, warmup: int = 0, mu0: float = MU
                          "and that x is the flux density and y the field")
     ms, a, k, alpha = (float(v) for v in theta[best, :4].exp())
     c = float(torch.sigmoid(theta[best, 4]))
-    return JilesAtherton(ms, a, k, alpha, min(max(c, 1e-12), 1 - 1e-12), mu0=mu0, substeps=K)
+    return JilesAtherton(ms, a, k, alpha, min(max(c, 1e-13), 1 - 1e-13), mu0=mu0, substeps=K)
