@@ -22,6 +22,7 @@ from torchhys.training.export_cmd import main as export_main
 from torchhys.training.selection import (
     BlockFold,
     CandidateScore,
+    RecordingFold,
     best,
     check_candidates,
     model_arguments,
@@ -229,6 +230,114 @@ def test_block_folds_of_several_recordings() -> None:
     assert fold.train_tensors()[0].shape == (1, 4 * (129 - 43))
 
 
+FERRITE = {"path": str(ROOT / "examples/data/mnzn_ferrite_bh_loops.csv"), "input_column": "B_T",
+           "target_column": "H_Apm", "run_column": "loop", "split_by": "recording"}
+
+
+@pytest.mark.parametrize("repeat", [1, 2])
+def test_recording_folds_hold_each_recording_out_whole(repeat: int) -> None:
+    """Leave one recording out: fold j validates on training row j (its own scored
+    samples, as the datamodule scores it) and trains and fits on the other rows only."""
+    dm = HysteresisDataModule(**FERRITE, train_recordings=[0, 1, 3], val_recordings=[],
+                              test_recordings=[2], repeat=repeat)
+    x, y, first, mask = dm.batches("train")[0]
+    assert x.shape[0] == 3
+    held = []
+    for j in range(3):
+        fold = RecordingFold(dm, j)
+        keep = [r for r in range(3) if r != j]
+        (tx, ty, tw, tmask), = list(fold.train_dataloader())
+        (vx, vy, vw, vmask), = list(fold.val_dataloader())
+        assert fold.k == 3 and fold.n_val == int(mask[j].sum())
+        assert torch.equal(vx[0], x[j]) and torch.equal(vy[0], y[j]) and torch.equal(vmask[0],
+                                                                                    mask[j])
+        assert torch.equal(tx, x[keep]) and torch.equal(ty, y[keep]) and torch.equal(tw,
+                                                                                   first[keep])
+        assert torch.equal(tmask, mask[keep])
+        # the fits see the other recordings only: (2, time), the loops have equal lengths
+        fx, fy = fold.train_tensors()
+        assert torch.equal(fx, x[keep]) and torch.equal(fy, y[keep])
+        assert fold.train_warmup == int(first[0]) == (repeat - 1) * 129
+        held.append(vmask[0])
+    assert torch.equal(torch.stack(held), mask)
+
+
+def test_recording_folds_of_recordings_of_different_lengths(tmp_path: Path) -> None:
+    """Recordings of different lengths: the fits see the other recordings end to end, each
+    up to its last sample (not the padding)."""
+    path = tmp_path / "runs.csv"
+    t = np.arange(300) * 0.05
+    rows = [(r, np.sin(k), np.sin(k) ** 3) for r, n in ((0, 100), (1, 160), (2, 120))
+            for k in t[:n]]
+    np.savetxt(path, rows, delimiter=",", header="run,u,y", comments="")
+    dm = HysteresisDataModule(path=str(path), input_column="u", target_column="y",
+                              time_column=None, run_column="run", split_by="recording",
+                              train_recordings=[0, 1, 2], val_recordings=[],
+                              test_recordings=[], warmup=10)
+    fold = RecordingFold(dm, 0)
+    fx, fy = fold.train_tensors()
+    assert fx.shape == (1, 160 + 120) and fold.train_warmup == 10
+    assert torch.allclose(fy[0, :160], torch.sin(torch.tensor(t[:160])) ** 3)
+    assert fold.n_val == 100 - 10
+
+
+def test_leave_one_recording_out_of_one_recording(monkeypatch, tmp_path) -> None:
+    cfg = config(tmp_path, **{"  select:\n": "  select_cv: recording\n  select:\n"})
+    with pytest.raises(ValueError, match=r"select_cv='recording' holds each training recording "
+                                         r"out once, but the training split of paper holds 1"):
+        cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={tmp_path}")
+    assert not list(tmp_path.rglob("metrics.csv")) and not (tmp_path / "selection.csv").exists()
+
+
+def test_recording_folds_need_two_training_recordings() -> None:
+    dm = HysteresisDataModule(**FERRITE, train_recordings=[3], val_recordings=[],
+                              test_recordings=[0])
+    with pytest.raises(ValueError, match=r"select_cv='recording' .* holds 1: give several"):
+        RecordingFold(dm, 0)
+    dm = HysteresisDataModule(**FERRITE, train_recordings=[0, 3], val_recordings=[],
+                              test_recordings=[1])
+    with pytest.raises(ValueError, match=r"fold must be in \[0, 2\), got 2"):
+        RecordingFold(dm, 2)
+
+
+def test_leave_one_recording_out_on_the_command_line(monkeypatch, capsys, tmp_path,
+                                                     stages) -> None:
+    """``select_cv: recording``: each candidate trained once per training recording, the
+    table holds each fold and the MSE pooled over all held-out samples, which is that of an
+    independent least-squares line (numpy) for the straight-line candidate."""
+    root = tmp_path / "run"
+    text = SELECT.replace("hidden: 4\n", "hidden: 1\n  activation: identity\n").replace(
+        "optimizer: cg\n  optimizer_kwargs:\n    minstep: 0.0\n",
+        "optimizer: lbfgs\n  optimizer_kwargs: {max_iter: 50, tolerance_grad: 1.0e-12, "
+        "tolerance_change: 1.0e-15}\n").replace(
+        "    - {operator: [{name: plays, n: 4}]}\n", "  select_cv: recording\n")
+    data = "\n".join(["data:", *(f"  {k}: {v}" for k, v in FERRITE.items()),
+                      "  time_column: null", "  train_recordings: [0, 1, 3]",
+                      "  val_recordings: []", "  test_recordings: [2]", "  repeat: 2",
+                      "  warmup: 0", ""])
+    cfg = tmp_path / "loo.yaml"
+    cfg.write_text(text[:text.index("data:")] + data)
+    cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={root}")
+    assert "leave-one-recording-out cross-validation" in capsys.readouterr().out
+    rows = table(root)
+    assert len(rows) == 2 and all(r["fold_3"] != "" for r in rows) and "fold_4" not in rows[0]
+    dm = HysteresisDataModule(**FERRITE, train_recordings=[0, 1, 3], val_recordings=[],
+                              test_recordings=[2], repeat=2)
+    x, y, _, mask = (v.numpy() for v in dm.batches("train")[0])
+    folds, counts = [], []
+    for j in range(3):
+        keep = [r for r in range(3) if r != j]
+        k, c = np.polyfit(x[keep][mask[keep]], y[keep][mask[keep]], 1)
+        folds.append(np.mean((k * x[j][mask[j]] + c - y[j][mask[j]]) ** 2))
+        counts.append(mask[j].sum())
+    line = rows[0]
+    assert [float(line[f"fold_{j + 1}"]) for j in range(3)] == pytest.approx(folds, rel=1e-6)
+    assert float(line["val_mse"]) == pytest.approx(np.dot(folds, counts) / sum(counts),
+                                                   rel=1e-6)
+    assert len(list((root / "selection").rglob("metrics.csv"))) == 6
+    assert "test" not in stages
+
+
 # --- errors ---------------------------------------------------------------------------
 @pytest.mark.parametrize(("change", "error", "match"), [
     ({"  select:\n    - {operator: null}\n    - {operator: [{name: pi_ls, n_widths: 8}]}\n"
@@ -245,6 +354,7 @@ def test_block_folds_of_several_recordings() -> None:
      ValueError, r"validation split is the training data \(split='paper'\)"),
     ({"  select:\n": "  select_cv: 1\n  select:\n"},
      ValueError, r"model.select_cv must be an int >= 2, got 1"),
+
     ({"  select:\n    - {operator: null}\n    - {operator: [{name: pi_ls, n_widths: 8}]}\n"
       "    - {operator: [{name: plays, n: 4}]}\n": "  select_cv: 3\n"},
      ValueError, r"model.select_cv=3 needs model.select"),

@@ -20,18 +20,21 @@ before the module is built)::
         - {}                                    # the section as it is
         - {operator: [{name: plays, n: 8}], hidden: 16}
         - {operator: null}                      # the plain network
-      select_cv: null                           # k: blocked cross-validation instead
+      select_cv: null                           # k: blocked cross-validation instead,
+                                                # recording: leave one recording out
       select_rule: null                         # "1se": the first unless beaten by > 1 s.e.
 
 Every candidate is trained from the same seed with the same trainer settings (CSV logs
 under ``<default_root_dir>/selection/candidate_<i>``, no checkpoints) and scored by its
 validation MSE at the end of training: on the validation split (which must not overlap the
 training split), or with ``model.select_cv: k`` by blocked cross-validation inside the
-training part (``k`` trainings per candidate; the validation split is then not used for
-the choice; :mod:`torchhys.training.selection`). The lowest validation MSE wins, or with
-``model.select_rule: 1se`` the first candidate (a baseline such as the straight line) when
-it is within one standard error of the lowest. The test split is not read. The table is
-printed and written to ``<default_root_dir>/selection.csv``; the chosen candidate's
+training part (``k`` trainings per candidate), or with ``model.select_cv: recording`` by
+holding each training recording out once (one training per training recording); the
+validation split is then not used for the choice (:mod:`torchhys.training.selection`).
+The lowest validation MSE wins, or with ``model.select_rule: 1se`` the first candidate (a
+baseline such as the straight line) when it is within one standard error of the lowest.
+The test split is not read. The table is printed and written to
+``<default_root_dir>/selection.csv``; the chosen candidate's
 configuration then replaces the model section and is fitted once more as a plain ``fit``
 would be (same seed: on a deterministic device the same weights as scored; ``config.yaml``
 without ``select``, ``last.ckpt`` as usual), ready for ``torchhys test --ckpt_path`` and
@@ -88,10 +91,10 @@ class TorchhysCLI(LightningCLI):
                  "replace the model section's; the one of lowest validation MSE is fitted "
                  "(table in <default_root_dir>/selection.csv)")
         parser.add_argument(
-            "--model.select_cv", type=int | None, default=None,
+            "--model.select_cv", type=int | Literal["recording"] | None, default=None,
             help="fit with model.select: score the candidates by blocked cross-validation "
-                 "with this many contiguous blocks of the training part (default: on the "
-                 "validation split)")
+                 "with this many contiguous blocks of the training part, or 'recording': "
+                 "hold each training recording out once (default: on the validation split)")
         parser.add_argument(
             "--model.select_rule", type=Literal["min", "1se"] | None, default=None,
             help="fit with model.select: 'min' (default) chooses the lowest validation MSE, "
@@ -201,9 +204,11 @@ def _pop_select(cfg: Namespace) -> tuple[Any, Any, Any]:
 
 @rank_zero_only
 def _report(scores: list[selection.CandidateScore], chosen: selection.CandidateScore,
-            path: Path, cv: int | None, rule: str) -> None:
+            path: Path, cv: int | str | None, rule: str) -> None:
     selection.write_table(scores, chosen, path)
-    how = "the validation split" if cv is None else f"{cv}-fold blocked cross-validation"
+    how = ("the validation split" if cv is None else
+           "leave-one-recording-out cross-validation" if cv == selection.RECORDING else
+           f"{cv}-fold blocked cross-validation")
     if rule == "1se":
         how += " (one-standard-error rule)"
     print(f"model selection on {how}:\n{selection.format_table(scores, chosen)}\n"

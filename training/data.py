@@ -32,7 +32,7 @@ from torchhys.training.splits import STAGES, Window, assign_recordings, check_sp
 
 __all__ = [
     "SIMULATIONS", "SPLIT_BY", "STAGES", "HysteresisDataModule", "SequenceDataset", "Window",
-    "assign_recordings", "simulate",
+    "assign_recordings", "join_sequences", "simulate",
 ]
 
 SIMULATIONS = ("paper", "fig6", "bouc_wen")
@@ -102,6 +102,18 @@ def _only(items: list[StageBatch]) -> StageBatch:
 def _pad(rows: list[Tensor], length: int) -> Tensor:
     """Rows of different lengths, each right-padded with its last value, (rows, length)."""
     return torch.stack([torch.cat([r, r[-1:].expand(length - r.numel())]) for r in rows])
+
+
+def join_sequences(seqs: list[tuple[Tensor, Tensor, int]]) -> tuple[Tensor, Tensor, int]:
+    """Training sequences ``(x, y, first scored)``, each (time,), as the tensors that
+    normalizations and data-dependent operators are fitted on: stacked to (recordings, time)
+    when they share their length and warm-up, else end to end as (1, time) (the fits then
+    see states carried from one recording to the next, and the warm-up of the first only);
+    and the warm-up."""
+    if len({s[0].numel() for s in seqs}) == 1 and len({s[2] for s in seqs}) == 1:
+        return torch.stack([s[0] for s in seqs]), torch.stack([s[1] for s in seqs]), seqs[0][2]
+    x, y = torch.cat([s[0] for s in seqs]), torch.cat([s[1] for s in seqs])
+    return x.unsqueeze(0), y.unsqueeze(0), seqs[0][2]
 
 
 class HysteresisDataModule(L.LightningDataModule):
@@ -319,11 +331,7 @@ class HysteresisDataModule(L.LightningDataModule):
         return [self._batch(windows)] if windows else []
 
     def _train_fit(self) -> tuple[Tensor, Tensor, int]:
-        seqs = [self._sequence(w) for w in self._stage_windows("train")]
-        if len({s[0].numel() for s in seqs}) == 1 and len({s[2] for s in seqs}) == 1:
-            return torch.stack([s[0] for s in seqs]), torch.stack([s[1] for s in seqs]), seqs[0][2]
-        x, y = torch.cat([s[0] for s in seqs]), torch.cat([s[1] for s in seqs])
-        return x.unsqueeze(0), y.unsqueeze(0), seqs[0][2]
+        return join_sequences([self._sequence(w) for w in self._stage_windows("train")])
 
     def train_tensors(self) -> tuple[Tensor, Tensor]:
         """The training sequences ``(x, y)``, float64, to fit normalizations and

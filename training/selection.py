@@ -11,7 +11,12 @@ MSE at the end of training, either
 - by blocked cross-validation inside the training part (``select_cv=k``,
   :class:`BlockFold`): the scored samples of each training row are cut into ``k``
   contiguous blocks, each held out once, and the score is the MSE over all held-out
-  samples.
+  samples; or
+- by leave-one-recording-out cross-validation (``select_cv="recording"``,
+  :class:`RecordingFold`): each training recording is held out once, whole, and the
+  candidate is fitted on the others. Where the recordings differ (loops of other
+  amplitudes, another operating point), this scores what a hold-out inside one recording
+  cannot: how a candidate carries over to a recording it never saw.
 
 A candidate whose family operator cannot be fitted to the data (no inverse, a diverged fit)
 scores NaN and is never chosen. The test split is never read. :func:`run_selection` returns
@@ -40,10 +45,15 @@ from torch import Tensor
 from torch.utils.data import DataLoader
 
 from torchhys._checks import check_choice, check_int
+from torchhys.training.data import join_sequences
 from torchhys.training.families import FitError
 
+RECORDING = "recording"
+"""``select_cv`` of leave-one-recording-out cross-validation (:class:`RecordingFold`)."""
+
 __all__ = [
-    "RULES", "BlockFold", "Build", "CandidateScore", "best", "check_candidates",
+    "RECORDING", "RULES", "BlockFold", "Build", "CandidateScore", "RecordingFold", "best",
+    "check_candidates",
     "check_holdout", "config_json", "format_table", "model_arguments", "run_selection",
     "standard_error", "write_table",
 ]
@@ -84,7 +94,7 @@ def check_candidates(select: object, valid: Sequence[str], *,
 
     Raises:
         ValueError: an empty list, a key that is not a model argument (the message names
-            it and lists ``valid``), ``cv`` not an int >= 2.
+            it and lists ``valid``), ``cv`` neither an int >= 2 nor ``"recording"``.
         TypeError: ``select`` not a list, a candidate not a dict.
     """
     if isinstance(select, (str, bytes, Mapping)) or not isinstance(select, Sequence):
@@ -113,7 +123,10 @@ def check_candidates(select: object, valid: Sequence[str], *,
                 f"{list(valid)}"
             )
         candidates.append(dict(cand))
-    if cv is not None:
+    if cv is not None and cv != RECORDING:
+        if isinstance(cv, str):
+            raise ValueError(f"model.select_cv must be an int >= 2 (blocked cross-validation) "
+                             f"or {RECORDING!r} (leave one recording out), got {cv!r}")
         check_int(cv, "model.select_cv", minimum=2)
     return candidates
 
@@ -184,6 +197,8 @@ class BlockFold(L.LightningDataModule):
         check_int(k, "model.select_cv", minimum=2)
         if not 0 <= fold < k:
             raise ValueError(f"fold must be in [0, {k}), got {fold}")
+        self.k = k
+        """Number of folds."""
         data.setup("fit")
         batches = data.batches("train")
         if not batches:
@@ -215,6 +230,78 @@ class BlockFold(L.LightningDataModule):
     def train_tensors(self) -> tuple[Tensor, Tensor]:
         """The fold's training samples ``(x, y)``, (1, time), to fit the normalization and
         the data-dependent operators on (their first :attr:`train_warmup` left out)."""
+        return self._fit[0], self._fit[1]
+
+    @property
+    def train_warmup(self) -> int:
+        """Leading samples of :meth:`train_tensors` outside the data-dependent fits."""
+        return self._fit[2]
+
+    def train_dataloader(self) -> DataLoader:
+        return DataLoader([self._train], batch_size=1, collate_fn=_one)
+
+    def val_dataloader(self) -> DataLoader:
+        return DataLoader([self._val], batch_size=1, collate_fn=_one)
+
+
+class RecordingFold(L.LightningDataModule):
+    """Fold ``fold`` of leave-one-recording-out cross-validation: training recording
+    ``fold`` held out whole, the candidate fitted on the others.
+
+    The training batch ``(x, y, warmup, mask)`` of a
+    :class:`~torchhys.training.HysteresisDataModule` holds one row per training recording
+    (``data.split_by: recording``, or several files); fold ``j`` trains on every row but
+    ``j`` and validates on row ``j`` (its scored samples, from its own initial state and
+    warm-up)::
+
+        rows     0        1        2
+        train    scored   -        scored      (fold 1)
+        val      -        scored   -
+
+    :meth:`train_tensors` are the training rows as the datamodule gives its own
+    (:func:`~torchhys.training.data.join_sequences`).
+
+    Args:
+        data: the datamodule (set up here).
+        fold: the held-out recording, ``0 <= fold < k``, ``k`` the number of training
+            recordings.
+
+    Raises:
+        ValueError: fewer than two training recordings, ``fold`` out of range.
+    """
+
+    def __init__(self, data: L.LightningDataModule, fold: int) -> None:
+        super().__init__()
+        data.setup("fit")
+        batches = data.batches("train")
+        source = getattr(data, "source", "the data")
+        x, y, warmup, mask = batches[0] if batches else (None,) * 4
+        self.k = 0 if x is None else x.shape[0]
+        """Number of folds: the training recordings."""
+        if self.k < 2:
+            raise ValueError(
+                f"model.select_cv={RECORDING!r} holds each training recording out once, but "
+                f"the training split of {source} holds {self.k}: give several (data.split_by: "
+                "recording with data.train_recordings, or several data.path files), or use "
+                "blocked cross-validation inside the record (model.select_cv: k)"
+            )
+        if not 0 <= fold < self.k:
+            raise ValueError(f"fold must be in [0, {self.k}), got {fold}")
+        mask = mask.to(torch.bool)
+        keep = [r for r in range(self.k) if r != fold]
+        self.n_val = int(mask[fold].sum())
+        """Number of held-out (validation) samples."""
+        self._train = (x[keep], y[keep], warmup[keep], mask[keep])
+        self._val = (x[fold:fold + 1], y[fold:fold + 1], warmup[fold:fold + 1],
+                     mask[fold:fold + 1])
+        ends = [int(mask[r].nonzero().max()) + 1 for r in keep]
+        self._fit = join_sequences([(x[r, :e], y[r, :e], int(warmup[r]))
+                                    for r, e in zip(keep, ends, strict=True)])
+
+    def train_tensors(self) -> tuple[Tensor, Tensor]:
+        """The fold's training recordings ``(x, y)``: (recordings, time), or (1, time) end
+        to end, to fit the normalization and the data-dependent operators on (their first
+        :attr:`train_warmup` samples left out)."""
         return self._fit[0], self._fit[1]
 
     @property
@@ -279,13 +366,14 @@ def standard_error(squared_errors: Tensor) -> float:
 
 
 def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
-                  cv: int | None = None) -> list[CandidateScore]:
+                  cv: int | str | None = None) -> list[CandidateScore]:
     """Train and score every candidate.
 
     Args:
         candidates: the checked candidates (:func:`check_candidates`).
         build: fresh, seeded ``(module, datamodule, trainer)`` of a candidate's run.
-        cv: ``k`` for blocked cross-validation inside the training part, None for the
+        cv: ``k`` for blocked cross-validation inside the training part,
+            ``"recording"`` to hold out each training recording once, None for the
             datamodule's validation split (checked by :func:`check_holdout`).
 
     Returns:
@@ -300,13 +388,16 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
             scores.append(CandidateScore(i, overrides, mse, val_se=standard_error(errors)))
             continue
         folds, counts, errors = [], [], []
-        for j in range(cv):
+        j, k = 0, None
+        while k is None or j < k:
             module, data, trainer = build(i, j)
-            fold = BlockFold(data, cv, j)
+            fold = RecordingFold(data, j) if cv == RECORDING else BlockFold(data, cv, j)
+            k = fold.k
             mse, e = _validation(module, fold, trainer)
             folds.append(mse)
             counts.append(fold.n_val)
             errors.append(e)
+            j += 1
         pooled = sum(m * n for m, n in zip(folds, counts, strict=True)) / sum(counts)
         se = standard_error(torch.cat(errors)) if math.isfinite(pooled) else math.nan
         scores.append(CandidateScore(i, overrides, pooled, tuple(folds), se))
