@@ -163,7 +163,35 @@ def _one(items: list[Any]) -> Any:
     return items[0]
 
 
-class BlockFold(L.LightningDataModule):
+class _Fold(L.LightningDataModule):
+    """A cross-validation fold of a datamodule's training batch: ``_train`` and ``_val``
+    batches ``(x, y, warmup, mask)``, ``_fit`` the ``(x, y, warmup)`` that the normalization
+    and the data-dependent operators are fitted on, ``k`` folds, ``n_val`` held-out samples."""
+
+    k: int
+    n_val: int
+    _train: tuple[Tensor, Tensor, Tensor, Tensor]
+    _val: tuple[Tensor, Tensor, Tensor, Tensor]
+    _fit: tuple[Tensor, Tensor, int]
+
+    def train_tensors(self) -> tuple[Tensor, Tensor]:
+        """The fold's training samples ``(x, y)``, (rows, time), to fit the normalization
+        and the data-dependent operators on (their first :attr:`train_warmup` left out)."""
+        return self._fit[0], self._fit[1]
+
+    @property
+    def train_warmup(self) -> int:
+        """Leading samples of :meth:`train_tensors` outside the data-dependent fits."""
+        return self._fit[2]
+
+    def train_dataloader(self) -> DataLoader:
+        return DataLoader([self._train], batch_size=1, collate_fn=_one)
+
+    def val_dataloader(self) -> DataLoader:
+        return DataLoader([self._val], batch_size=1, collate_fn=_one)
+
+
+class BlockFold(_Fold):
     """Fold ``fold`` of ``k`` of blocked cross-validation inside a datamodule's training part.
 
     The training batch ``(x, y, warmup, mask)`` of a
@@ -227,24 +255,9 @@ class BlockFold(L.LightningDataModule):
         self._fit = (torch.cat(xs).unsqueeze(0), torch.cat(ys).unsqueeze(0),
                      int(warmup.reshape(-1)[0]))
 
-    def train_tensors(self) -> tuple[Tensor, Tensor]:
-        """The fold's training samples ``(x, y)``, (1, time), to fit the normalization and
-        the data-dependent operators on (their first :attr:`train_warmup` left out)."""
-        return self._fit[0], self._fit[1]
-
-    @property
-    def train_warmup(self) -> int:
-        """Leading samples of :meth:`train_tensors` outside the data-dependent fits."""
-        return self._fit[2]
-
-    def train_dataloader(self) -> DataLoader:
-        return DataLoader([self._train], batch_size=1, collate_fn=_one)
-
-    def val_dataloader(self) -> DataLoader:
-        return DataLoader([self._val], batch_size=1, collate_fn=_one)
 
 
-class RecordingFold(L.LightningDataModule):
+class RecordingFold(_Fold):
     """Fold ``fold`` of leave-one-recording-out cross-validation: training recording
     ``fold`` held out whole, the candidate fitted on the others.
 
@@ -298,22 +311,6 @@ class RecordingFold(L.LightningDataModule):
         self._fit = join_sequences([(x[r, :e], y[r, :e], int(warmup[r]))
                                     for r, e in zip(keep, ends, strict=True)])
 
-    def train_tensors(self) -> tuple[Tensor, Tensor]:
-        """The fold's training recordings ``(x, y)``: (recordings, time), or (1, time) end
-        to end, to fit the normalization and the data-dependent operators on (their first
-        :attr:`train_warmup` samples left out)."""
-        return self._fit[0], self._fit[1]
-
-    @property
-    def train_warmup(self) -> int:
-        """Leading samples of :meth:`train_tensors` outside the data-dependent fits."""
-        return self._fit[2]
-
-    def train_dataloader(self) -> DataLoader:
-        return DataLoader([self._train], batch_size=1, collate_fn=_one)
-
-    def val_dataloader(self) -> DataLoader:
-        return DataLoader([self._val], batch_size=1, collate_fn=_one)
 
 
 def _squared_errors(module: L.LightningModule, datamodule: L.LightningDataModule) -> Tensor:
