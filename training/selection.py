@@ -256,7 +256,6 @@ class BlockFold(_Fold):
                      int(warmup.reshape(-1)[0]))
 
 
-
 class RecordingFold(_Fold):
     """Fold ``fold`` of leave-one-recording-out cross-validation: training recording
     ``fold`` held out whole, the candidate fitted on the others.
