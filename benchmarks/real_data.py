@@ -212,6 +212,17 @@ def friction_damper() -> Split:
     return Split(x, y, 0, [(_t(recs[i][0]), _t(recs[i][1]), 0) for i in range(10, 14)])
 
 
+def friction_damper_sines() -> Split:
+    """Displacement -> force, the alternative protocol of the data set's README: the 1 in sine
+    tests (1, 4, 7: 0.25, 0.5 and 1 Hz, one row in order) train, the 0.5 in and 1.5 in tests
+    (0, 2, 3, 5, 6, 8, 9) are held out, all from rest."""
+    d = read_csv(REAL / "friction_damper_backlash_brfd.csv")
+    recs = _recordings(d, "recording", "displacement_in", "force_kip")
+    x = _t(np.concatenate([recs[i][0] for i in (1, 4, 7)]))[None]
+    y = _t(np.concatenate([recs[i][1] for i in (1, 4, 7)]))[None]
+    return Split(x, y, 0, [(_t(recs[i][0]), _t(recs[i][1]), 0) for i in (0, 2, 3, 5, 6, 8, 9)])
+
+
 def pneumatic() -> Split:
     """Position -> seal friction (pressure x piston area - rod force): 1 and 7 bar train (7 bar
     cut to the length of the 1 bar record, one row each), 3 and 5 bar held out, from rest."""
@@ -297,6 +308,8 @@ DATASETS: dict[str, tuple[str, Callable[[Files], Split]]] = {
     "mr_damper_3.21V": ("position -> force, even / odd", lambda f: mr_damper(3.212)),
     "friction_damper": ("displacement -> force, sines / earthquakes",
                         lambda f: friction_damper()),
+    "friction_damper_sines": ("displacement -> force, 1 in sines / 0.5 and 1.5 in sines",
+                              lambda f: friction_damper_sines()),
     "pneumatic_oring": ("position -> friction, 1+7 / 3+5 bar", lambda f: pneumatic()),
     "mnzn_ferrite_short": ("mnzn_ferrite, training loops sampled every 5th: 52 samples",
                            lambda f: shortened(ferrite(f.ferrite, [0, 3], [1, 2]), stride=True)),

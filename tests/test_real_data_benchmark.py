@@ -214,3 +214,19 @@ def test_jiles_atherton_row_on_b_h_records_only(bench):
     with pytest.raises(bench.NotApplicable, match="B -> H records only"):
         bench.jiles_atherton(bench.DATASETS["mr_damper_0V"][1](bench.Files(FERRITE)),
                              bench.QUICK)
+
+
+def test_friction_damper_sines_protocol(bench):
+    """The 1 in sine tests train (one row, in order), the 0.5 in and 1.5 in ones are held
+    out from rest: the file's rows, and the 1.5 in tests reach beyond the training range."""
+    split = bench.DATASETS["friction_damper_sines"][1](bench.Files(FERRITE))
+    d = bench.read_csv(ROOT / "examples/data/real/friction_damper_backlash_brfd.csv")
+    rec = d["recording"].astype(int)
+    train = np.isin(rec, [1, 4, 7])
+    assert split.x.shape == (1, int(train.sum())) and split.warmup == 0
+    np.testing.assert_array_equal(split.x[0].numpy(), d["displacement_in"][train])
+    np.testing.assert_array_equal(split.y[0].numpy(), d["force_kip"][train])
+    assert [len(x) for x, _, _ in split.test] == [int((rec == i).sum())
+                                                  for i in (0, 2, 3, 5, 6, 8, 9)]
+    reach = [float(x.abs().max()) / float(split.x.abs().max()) for x, _, _ in split.test]
+    assert [round(r * 2) / 2 for r in reach] == [0.5, 1.5, 0.5, 1.5, 0.5, 1.5, 0.5]
