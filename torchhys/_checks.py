@@ -19,6 +19,7 @@ __all__ = [
     "check_floating",
     "check_int",
     "check_same_shape",
+    "check_warmup",
     "check_tensor",
     "check_widths",
     "as_batched_sequence",
@@ -64,6 +65,15 @@ def check_int(value: object, name: str, *, minimum: int | None = None) -> int:
         bound = "" if minimum is None else f" >= {minimum}"
         raise ValueError(f"{name} must be an int{bound}, got {value!r}")
     return value
+
+
+def check_warmup(warmup: object, T: int) -> int:
+    """Raise ``ValueError`` unless ``warmup`` (leading samples left out of a fit of ``T``
+    samples; their states still run) is an int in ``[0, T)``; return it."""
+    check_int(warmup, "warmup", minimum=0)
+    if warmup >= T:
+        raise ValueError(f"warmup must leave samples to fit: warmup={warmup} of {T} samples")
+    return warmup
 
 
 def check_positive(value: object, name: str) -> float:

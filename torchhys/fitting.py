@@ -12,7 +12,13 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchhys._checks import as_batched_sequence, check_int, check_same_shape, check_widths
+from torchhys._checks import (
+    as_batched_sequence,
+    check_int,
+    check_same_shape,
+    check_warmup,
+    check_widths,
+)
 from torchhys._nnls import holdout_cuts, moments, nnls_gram, select_on_holdout
 from torchhys.functional.backlash import backlash
 from torchhys.networks import InverseHysteresisNet
@@ -68,7 +74,7 @@ def fit_full_batch(
             outputs or one that needs the target; a warmup out of range.
     """
     start = time.perf_counter()
-    _check_warmup(warmup, x.shape[-1])
+    check_warmup(warmup, x.shape[-1])
     loss_fn = (_network_loss(model, x, y, warmup) if isinstance(model, InverseHysteresisNet)
                else _operator_loss(model, x, y, warmup))
     params = [p for p in model.parameters() if p.requires_grad]
@@ -276,15 +282,8 @@ def _check_pi_data(u: Tensor, y: Tensor, widths: Tensor, warmup: int) -> tuple[T
     yb, _ = as_batched_sequence(y, "y")
     check_same_shape(yb, ub, "y", "u")
     check_widths(widths, "widths")
-    _check_warmup(warmup, ub.shape[1])
+    check_warmup(warmup, ub.shape[1])
     return ub, yb
-
-
-def _check_warmup(warmup: object, T: int) -> None:
-    """``warmup`` an int in ``[0, T)``: leading samples left out of a fit of T samples."""
-    check_int(warmup, "warmup", minimum=0)
-    if warmup >= T:
-        raise ValueError(f"warmup must leave samples to fit: warmup={warmup} of {T} samples")
 
 
 def _check_ridge(ridge: object) -> float:

@@ -16,8 +16,13 @@ import math
 import torch
 from torch import Tensor, nn
 
-from torchhys._checks import as_batched_sequence, check_int, check_positive, check_same_shape
-from torchhys.fitting import _check_warmup
+from torchhys._checks import (
+    as_batched_sequence,
+    check_int,
+    check_positive,
+    check_same_shape,
+    check_warmup,
+)
 from torchhys.functional.jiles_atherton import MU0, jiles_atherton, jiles_atherton_step
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
 
@@ -193,7 +198,7 @@ def fit_jiles_atherton(x: Tensor, y: Tensor, *, warmup: int = 0, mu0: float = MU
     yb, _ = as_batched_sequence(y, "y")
     check_same_shape(yb, xb, "y", "x")
     T = xb.shape[1]
-    _check_warmup(warmup, T)
+    check_warmup(warmup, T)
     mu0 = check_positive(mu0, "mu0")
     starts = check_int(starts, "starts", minimum=1)
     iterations = check_int(iterations, "iterations", minimum=1)

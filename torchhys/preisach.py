@@ -17,7 +17,7 @@ import warnings
 import torch
 from torch import Tensor, nn
 
-from torchhys._checks import as_batched_sequence
+from torchhys._checks import as_batched_sequence, check_warmup
 from torchhys._nnls import Moments, check_penalty, holdout_cuts, nnls_gram, select_on_holdout
 from torchhys.functional.preisach import (
     _check_smooth,
@@ -256,9 +256,7 @@ def _prepare(x: Tensor, y: Tensor, lo: float | None, hi: float | None, n: int, l
         raise ValueError(f"x and y must have the same shape, got {tuple(x.shape)} and "
                          f"{tuple(y.shape)}")
     T = xb.shape[1]
-    if isinstance(warmup, bool) or not isinstance(warmup, int) or not 0 <= warmup < T:
-        raise ValueError(f"warmup must be an int in [0, {T}) (fewer than the {T} samples), "
-                         f"got {warmup!r}")
+    check_warmup(warmup, T)
     lo = float(xb.min()) if lo is None else _real(lo, "lo")
     hi = float(xb.max()) if hi is None else _real(hi, "hi")
     model = Preisach(lo, hi, n, linear=linear).to(xb.dtype)

@@ -31,7 +31,7 @@ import torch
 from torch import Tensor, nn
 
 from torchhys import Backlash, PrandtlIshlinskii
-from torchhys._checks import check_choice, check_int
+from torchhys._checks import check_choice, check_int, check_warmup
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid
 from torchhys.operator import OPERATORS, make_operator
 from torchhys.training.families import FAMILIES
@@ -183,8 +183,7 @@ def fit_data_dependent(operators: nn.ModuleList, fitters: Mapping[int, Fitter], 
     Raises:
         ValueError: ``warmup`` not smaller than the number of samples.
     """
-    if not 0 <= warmup < x.shape[-1]:
-        raise ValueError(f"warmup must be in [0, {x.shape[-1]}) samples, got {warmup}")
+    check_warmup(warmup, x.shape[-1])
     for i, fit in fitters.items():
         target = operators[i]
         ref = next(iter(target.state_dict().values()))
