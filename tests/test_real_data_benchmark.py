@@ -91,11 +91,12 @@ def test_baselines_use_the_training_part_only(bench, table):
         np.testing.assert_array_equal(a.predict(x).numpy(), b.predict(x).numpy())
 
 
-def test_missing_ferrite_file_is_skipped(bench, tmp_path, capsys):
-    rows = bench.main(["--quick", "--data", "mnzn_ferrite", "--ferrite",
-                       str(tmp_path / "absent.csv")])
+@pytest.mark.parametrize("option, dataset", [("--ferrite", "mnzn_ferrite"),
+                                             ("--piezo", "piezo_actuator")])
+def test_missing_optional_file_is_skipped(bench, tmp_path, capsys, option, dataset):
+    rows = bench.main(["--quick", "--data", dataset, option, str(tmp_path / "absent.csv")])
     assert rows == []
-    assert "skipping mnzn_ferrite" in capsys.readouterr().out
+    assert f"skipping {dataset}" in capsys.readouterr().out
 
 
 def test_short_and_long_records_keep_the_held_out_part(bench):
@@ -181,13 +182,6 @@ def test_piezo_file_errors_name_the_option(bench, tmp_path):
     _piezo_file(short, n=1000)  # 5 s: ends before the 7 s cut
     with pytest.raises(ValueError, match="must run past 7 s"):
         bench.piezo(short, compensator=True)
-
-
-def test_missing_piezo_file_is_skipped(bench, tmp_path, capsys):
-    rows = bench.main(["--quick", "--data", "piezo_actuator", "--piezo",
-                       str(tmp_path / "absent.csv")])
-    assert rows == []
-    assert "skipping piezo_actuator" in capsys.readouterr().out
 
 
 def test_jiles_atherton_row_on_b_h_records_only(bench):
