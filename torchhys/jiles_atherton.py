@@ -204,15 +204,15 @@ def fit_jiles_atherton(x: Tensor, y: Tensor, *, warmup: int = 0, mu0: float = MU
     iterations = check_int(iterations, "iterations", minimum=1)
     xb, yb = xb.to(torch.float64), yb.to(torch.float64)
     bmax, hmax = float(xb.abs().max()), float(yb.abs().max())
-    if not (float(xb.std()) > 0 and float(yb[:, warmup:].std()) > 0):
+    xs, ys = xb[:, warmup:], yb[:, warmup:]  # the fitted samples
+    if not (float(xb.std()) > 0 and float(ys.std()) > 0):
         raise ValueError("x and y must vary (a constant record has no loop to fit)")
-    xs, ys = xb[:, warmup:], yb[:, warmup:]
     if float(((xs - xs.mean()) * (ys - ys.mean())).sum()) <= 0:
         raise ValueError("y must rise with x (the field H rises with the flux density B along "
                          "a loop), but it falls: check the sign of y, and that x is B and y H")
     K = substeps_for(xb) if substeps is None else check_int(substeps, "substeps", minimum=1)
     R = xb.shape[0]
-    target = yb[:, warmup:].reshape(-1)
+    target = ys.reshape(-1)
 
     def losses(theta: Tensor) -> tuple[Tensor, Tensor]:
         """Residuals (P, n) and mean squared errors (P,) of P parameter rows (P, 5)."""

@@ -53,9 +53,8 @@ RECORDING = "recording"
 
 __all__ = [
     "RECORDING", "RULES", "BlockFold", "Build", "CandidateScore", "RecordingFold", "best",
-    "check_candidates",
-    "check_holdout", "config_json", "format_table", "model_arguments", "run_selection",
-    "standard_error", "write_table",
+    "check_candidates", "check_holdout", "config_json", "format_table", "model_arguments",
+    "run_selection", "standard_error", "write_table",
 ]
 
 Build = Callable[[int, int | None], tuple[L.LightningModule, L.LightningDataModule, L.Trainer]]
@@ -309,7 +308,6 @@ class RecordingFold(_Fold):
         ends = [int(mask[r].nonzero().max()) + 1 for r in keep]
         self._fit = join_sequences([(x[r, :e], y[r, :e], int(warmup[r]))
                                     for r, e in zip(keep, ends, strict=True)])
-
 
 
 def _squared_errors(module: L.LightningModule, datamodule: L.LightningDataModule) -> Tensor:
