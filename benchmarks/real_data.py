@@ -64,7 +64,7 @@ import inspect
 import math
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import NamedTuple
 
@@ -202,25 +202,18 @@ def mr_damper(voltage: float) -> Split:
     return Split(x, y, w, [(_t(recs[i][0]), _t(recs[i][1]), w) for i in ids[1::2]])
 
 
-def friction_damper() -> Split:
-    """Displacement -> force: the sine tests 0-9 one after the other (one training row, as the
-    device ran them), the earthquake histories 10-13 held out, all from rest."""
+def friction_damper(train: Sequence[int] = range(10),
+                    test: Sequence[int] = range(10, 14)) -> Split:
+    """Displacement -> force: the ``train`` recordings one after the other (one training row,
+    as the device ran them), the ``test`` ones held out, all from rest. By default the sine
+    tests 0-9 train and the earthquake histories 10-13 are held out; the README's
+    alternative trains on the 1 in sines (1, 4, 7: 0.25, 0.5 and 1 Hz) and holds out the
+    0.5 in and 1.5 in ones (0, 2, 3, 5, 6, 8, 9)."""
     d = read_csv(REAL / "friction_damper_backlash_brfd.csv")
     recs = _recordings(d, "recording", "displacement_in", "force_kip")
-    x = _t(np.concatenate([recs[i][0] for i in range(10)]))[None]
-    y = _t(np.concatenate([recs[i][1] for i in range(10)]))[None]
-    return Split(x, y, 0, [(_t(recs[i][0]), _t(recs[i][1]), 0) for i in range(10, 14)])
-
-
-def friction_damper_sines() -> Split:
-    """Displacement -> force, the alternative protocol of the data set's README: the 1 in sine
-    tests (1, 4, 7: 0.25, 0.5 and 1 Hz, one row in order) train, the 0.5 in and 1.5 in tests
-    (0, 2, 3, 5, 6, 8, 9) are held out, all from rest."""
-    d = read_csv(REAL / "friction_damper_backlash_brfd.csv")
-    recs = _recordings(d, "recording", "displacement_in", "force_kip")
-    x = _t(np.concatenate([recs[i][0] for i in (1, 4, 7)]))[None]
-    y = _t(np.concatenate([recs[i][1] for i in (1, 4, 7)]))[None]
-    return Split(x, y, 0, [(_t(recs[i][0]), _t(recs[i][1]), 0) for i in (0, 2, 3, 5, 6, 8, 9)])
+    x = _t(np.concatenate([recs[i][0] for i in train]))[None]
+    y = _t(np.concatenate([recs[i][1] for i in train]))[None]
+    return Split(x, y, 0, [(_t(recs[i][0]), _t(recs[i][1]), 0) for i in test])
 
 
 def pneumatic() -> Split:
@@ -309,7 +302,7 @@ DATASETS: dict[str, tuple[str, Callable[[Files], Split]]] = {
     "friction_damper": ("displacement -> force, sines / earthquakes",
                         lambda f: friction_damper()),
     "friction_damper_sines": ("displacement -> force, 1 in sines / 0.5 and 1.5 in sines",
-                              lambda f: friction_damper_sines()),
+                              lambda f: friction_damper((1, 4, 7), (0, 2, 3, 5, 6, 8, 9))),
     "pneumatic_oring": ("position -> friction, 1+7 / 3+5 bar", lambda f: pneumatic()),
     "mnzn_ferrite_short": ("mnzn_ferrite, training loops sampled every 5th: 52 samples",
                            lambda f: shortened(ferrite(f.ferrite, [0, 3], [1, 2]), stride=True)),
