@@ -78,6 +78,18 @@ def net_of(ops: list, dtype: torch.dtype, x: torch.Tensor) -> InverseHysteresisN
     return net
 
 
+def assert_streams_as_eager(net: InverseHysteresisNet, x: torch.Tensor, atol: float,
+                            limits: tuple[float, float] = (-100.0, 100.0)) -> None:
+    """A :class:`StreamingCompensator` of ``net`` (command limits wide enough not to act)
+    equals the network's sequence path on ``x`` within ``atol``."""
+    from torchhys.streaming import StreamingCompensator
+
+    with torch.no_grad():
+        y, _ = net(x)
+        u = StreamingCompensator(net, limits=limits)(x)
+    torch.testing.assert_close(u, y, rtol=0, atol=atol)
+
+
 def steps_of(comp: StreamingCompensator, x: torch.Tensor) -> torch.Tensor:
     """The compensator stepped sample by sample from a reset: (batch, time)."""
     comp.reset()
