@@ -1,7 +1,8 @@
 """Held-out accuracy of hysteresis models on measured recordings (see docs/real-data.md).
 
 For every measured data set (``examples/data/real/``, the MnZn ferrite loops of
-``../shared/data/``, and a piezo actuator's record read from ``--piezo`` when given), with
+``../shared/data/``, a piezo actuator's record read from ``--piezo`` and an accelerator
+quadrupole's magnetic measurements read from ``--quad`` when given), with
 the protocol its README suggests, each model is fitted on the training part, its settings
 (size, penalty, iterations, direction) are chosen on a time-ordered hold-out inside the
 training part (the last quarter of the scored samples of every training row), it is
@@ -11,7 +12,7 @@ RMSE, poly RMSE) (below 1: better than both memoryless baselines); ``choice`` sa
 hold-out selected and the hold-out RMSE.
 
     python benchmarks/real_data.py [--data NAME ...] [--out table.csv] [--quick]
-        [--ferrite PATH] [--piezo PATH] [--config configs/measured.yaml]
+        [--ferrite PATH] [--piezo PATH] [--quad DIR] [--config configs/measured.yaml]
 
 Models (all causal; a row starts from a zero state, its first ``warmup`` samples only run
 the states and are neither fitted nor scored):
@@ -46,7 +47,8 @@ the states and are neither fitted nor scored):
   config's ``select_rule`` picks one, which is built through ``build_operators`` +
   ``fit_data_dependent``, trained as the config says (its optimizer, one full-batch step per
   epoch, ``trainer.max_epochs``, the last epoch kept, capped in time) on the whole training
-  part;
+  part, and scored as ``torchhys export`` deploys it: its output saturated to the training
+  target range (:func:`~torchhys.streaming.default_limits`, the exported command limits);
 - ``selected``: the row above with the least hold-out RMSE (a model-family choice made on
   the training part only).
 
@@ -83,6 +85,7 @@ from torchhys import (
     select_penalty,
 )
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
+from torchhys.streaming import default_limits
 from torchhys.training.families import FitError
 from torchhys.training.init import initialize
 from torchhys.training.module import OPTIMIZERS, InverseHysteresisModule
@@ -100,6 +103,12 @@ FERRITE = ROOT.parent / "shared" / "data" / "mnzn_ferrite_bh_loops.csv"
 PIEZO = ROOT / "examples" / "data" / "external" / "hysteresis_v_150_1hz.csv"
 """The piezo actuator's record, not shipped (its licence is unclear): Data/hysteresis_v_150_1hz.csv
 of github chandratue/SmartHysteresis (examples/data/real/README.md)."""
+QUAD = ROOT / "examples" / "data" / "external" / "slac_quad_4194"
+"""The SLAC magnetic measurements of LCLS-II quadrupole 4194, not shipped (no licence):
+examples/fitting/data/strdat.ru3 .. strdat.ru8 of github roussel-ryan/diff_hysteresis
+(examples/data/external/README.md)."""
+QUAD_RUNS = (3, 4, 5, 6, 7, 8)
+"""Run 3: the major loop (training); 4-6: minor loops; 7, 8: alternating set points."""
 CONFIG = ROOT / "configs" / "measured.yaml"
 COLUMNS = ("dataset", "model", "rmse", "ratio", "n_train", "n_test", "choice")
 F64 = torch.float64
@@ -260,6 +269,56 @@ def piezo(path: Path, *, compensator: bool) -> Split:
     return Split(_t(x[:cut])[None], _t(y[:cut])[None], w, [(_t(x), _t(y), cut)])
 
 
+def read_slac_run(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Current (A) and integrated gradient (T) of one SLAC magnetic-measurement run
+    (``strdat.ruN`` as published: a header, then a table under a dashed rule whose columns
+    are current, its sigma, integrated gradient, its sigma, ...).
+
+    Raises:
+        ValueError: the file does not have that layout (naming the path).
+    """
+    lines = Path(path).read_text().splitlines()
+    rule = next((i for i, line in enumerate(lines) if line.lstrip().startswith("---")), None)
+    if rule is None:
+        raise ValueError(f"--quad {path}: no table (expected a dashed rule under the column "
+                         "headers 'MAIN +/- sigma BL sigBL ...')")
+    rows = []
+    for line in lines[rule + 1:]:
+        fields = line.split()
+        if not fields:
+            continue
+        try:
+            rows.append((float(fields[0]), float(fields[2])))
+        except (ValueError, IndexError):
+            raise ValueError(f"--quad {path}: expected rows 'current sigma BL sigBL ...', got "
+                             f"{line.strip()!r}") from None
+    a = np.array(rows).reshape(-1, 2)
+    if len(a) < 2 or not np.isfinite(a).all():
+        raise ValueError(f"--quad {path}: expected at least 2 rows of finite values")
+    return a[:, 0], a[:, 1]
+
+
+def quad(folder: Path, *, compensator: bool) -> Split:
+    """An accelerator quadrupole's integrated gradient against its current: trained on the
+    major loop (run 3, 0 -> 165 A -> 0 twice; its first rise only runs the states), held out:
+    the minor loops (runs 4-6) and the alternating set points (7, 8), each run after the
+    major loop's currents (the magnet's history before a run: cycled, then at 0 A) and scored
+    on its own samples. ``compensator``: gradient -> current (the inverse model); else
+    current -> gradient."""
+    runs = {r: read_slac_run(Path(folder) / f"strdat.ru{r}") for r in QUAD_RUNS}
+
+    def xy(r: int) -> tuple[np.ndarray, np.ndarray]:
+        current, gradient = runs[r]
+        return (gradient, current) if compensator else (current, gradient)
+
+    x, y = xy(3)
+    falls = np.flatnonzero(np.diff(runs[3][0]) < 0)
+    w = int(falls[0]) + 1 if len(falls) else 1  # the first rise of the current
+    test = [(_t(np.concatenate([x, a])), _t(np.concatenate([y, b])), len(x))
+            for a, b in map(xy, QUAD_RUNS[1:])]
+    return Split(_t(x)[None], _t(y)[None], w, test)
+
+
 def shortened(split: Split, n: int = 50, *, stride: bool = False) -> Split:
     """A short record of about ``n`` scored training samples: the first training row, its
     warm-up and the ``n`` samples after it (a short log of the device), or with ``stride``
@@ -285,6 +344,12 @@ class Files(NamedTuple):
 
     ferrite: Path = FERRITE
     piezo: Path = PIEZO
+    quad: Path = QUAD
+
+    def present(self, need: str) -> bool:
+        """Whether the file (folder for ``quad``) of option ``need`` is there."""
+        path = getattr(self, need)
+        return path.is_dir() if need == "quad" else path.is_file()
 
 
 DATASETS: dict[str, tuple[str, Callable[[Files], Split]]] = {
@@ -318,11 +383,16 @@ DATASETS: dict[str, tuple[str, Callable[[Files], Split]]] = {
                                lambda f: piezo(f.piezo, compensator=False)),
     "piezo_actuator_short": ("piezo_actuator, the training part sampled every 370th: 50 samples",
                              lambda f: shortened(piezo(f.piezo, compensator=True), stride=True)),
+    "quad_magnet": ("integrated gradient -> current, major loop / minor loops (--quad)",
+                    lambda f: quad(f.quad, compensator=True)),
+    "quad_magnet_forward": ("current -> integrated gradient, as quad_magnet",
+                            lambda f: quad(f.quad, compensator=False)),
 }
 """Data sets by name: (protocol, builder of the split from the optional files)."""
 
 NEEDS = {name: "ferrite" if name.startswith("mnzn_ferrite") else
-         "piezo" if name.startswith("piezo") else None for name in DATASETS}
+         "piezo" if name.startswith("piezo") else
+         "quad" if name.startswith("quad") else None for name in DATASETS}
 """The option (a :class:`Files` field) whose file each data set reads, if any."""
 
 
@@ -703,7 +773,9 @@ def default(split: Split, budget: Budget, config: Path = CONFIG) -> Fitted:
     part before the hold-out and scored on it (as ``torchhys fit`` scores its validation
     split), the config's ``select_rule`` chooses one (a candidate that cannot be fitted is
     skipped), and it is refitted on the whole training part; without, the hold-out RMSE
-    comes from a second fit before it."""
+    comes from a second fit before it. Its prediction is what ``torchhys export`` deploys:
+    the network's output saturated to the training target range (the default command
+    limits); the candidates are scored without it, as ``torchhys fit`` scores them."""
     x, y, w, c = split.x, split.y, split.warmup, holdout(split.x.shape[1], split.warmup)
     m = _config_model(config)[0]
     candidates = m.pop("select", None) or [{}]
@@ -737,12 +809,13 @@ def default(split: Split, budget: Budget, config: Path = CONFIG) -> Fitted:
         raise FitError("no candidate of the config could be refitted")
     net, done, epochs = refit
     dtype = next(net.parameters()).dtype
+    low, high = default_limits(net)  # as torchhys export deploys it
     capped = f" (capped at {budget.seconds:g} s)" if done < epochs else ""
     note = f" ({failed} failed refits)" if failed else ""
     label = f"candidate {i}{note}: " if len(candidates) > 1 else ""
     choice = (f"{config.name}: {label}{_describe({**m, **candidates[i]})}, {m['optimizer']} "
               f"{done} epochs{capped}")
-    return Fitted(lambda v: net(v.to(dtype))[0].to(F64), choice, score)
+    return Fitted(lambda v: net(v.to(dtype))[0].to(F64).clamp(low, high), choice, score)
 
 
 MODELS: dict[str, Callable[..., Fitted]] = {
@@ -807,6 +880,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--piezo", type=Path, default=PIEZO,
                         help="the SmartHysteresis piezo record as published (not shipped; "
                         "default: examples/data/external/hysteresis_v_150_1hz.csv)")
+    parser.add_argument("--quad", type=Path, default=QUAD,
+                        help="folder of the SLAC quadrupole runs strdat.ru3..ru8 as published "
+                        "(not shipped; default: examples/data/external/slac_quad_4194)")
     parser.add_argument("--config", type=Path, default=CONFIG,
                         help="torchhys fit config of the 'default' row")
     args = parser.parse_args(argv)
@@ -815,13 +891,12 @@ def main(argv: list[str] | None = None) -> list[dict]:
     rows: list[dict] = []
     log: list[str] = []
     start = time.perf_counter()
-    files = Files(args.ferrite, args.piezo)
+    files = Files(args.ferrite, args.piezo, args.quad)
     for name in args.data:
         protocol, build = DATASETS[name]
         need = NEEDS[name]
-        path = None if need is None else getattr(files, need)
-        if path is not None and not path.is_file():
-            print(f"skipping {name}: {path} not found (--{need})")
+        if need is not None and not files.present(need):
+            print(f"skipping {name}: {getattr(files, need)} not found (--{need})")
             continue
         log.append(f"{name}: {protocol}")
         rows += evaluate(name, build(files), budget, log, config=args.config)

@@ -92,7 +92,8 @@ def test_baselines_use_the_training_part_only(bench, table):
 
 
 @pytest.mark.parametrize("option, dataset", [("--ferrite", "mnzn_ferrite"),
-                                             ("--piezo", "piezo_actuator")])
+                                             ("--piezo", "piezo_actuator"),
+                                             ("--quad", "quad_magnet")])
 def test_missing_optional_file_is_skipped(bench, tmp_path, capsys, option, dataset):
     rows = bench.main(["--quick", "--data", dataset, option, str(tmp_path / "absent.csv")])
     assert rows == []
@@ -224,3 +225,82 @@ def test_friction_damper_sines_protocol(bench):
                                                   for i in (0, 2, 3, 5, 6, 8, 9)]
     reach = [float(x.abs().max()) / float(split.x.abs().max()) for x, _, _ in split.test]
     assert [round(r * 2) / 2 for r in reach] == [0.5, 1.5, 0.5, 1.5, 0.5, 1.5, 0.5]
+
+
+def test_the_default_row_is_scored_within_the_exported_command_limits(bench, tmp_path):
+    """Beyond the training input range the default row's prediction is the exported
+    compensator's: saturated to the training target range (here a least-squares line, so the
+    reference is numpy's line, clipped)."""
+    t = np.linspace(0.0, 4.0 * np.pi, 400)
+    x = np.sin(t)
+    y = 2.0 * x + 0.5 + 0.05 * np.cos(3.0 * t)
+    wide = 3.0 * np.sin(np.linspace(0.0, 2.0 * np.pi, 200))
+    split = bench.Split(torch.tensor(x)[None], torch.tensor(y)[None], 0,
+                        [(torch.tensor(wide), torch.tensor(2.0 * wide + 0.5), 0)])
+    text = (ROOT / "configs" / "measured.yaml").read_text()
+    cut, end = text.index("  select:"), text.index("\ndata:") + 1
+    path = tmp_path / "line.yaml"
+    path.write_text(text[:cut] + "  select:\n    - operator: null\n" + text[end:])
+    fitted = bench.default(split, bench.QUICK, path)
+    with torch.no_grad():
+        got = fitted.predict(torch.tensor(wide)[None])[0].numpy()
+    slope, offset = np.polyfit(x, y, 1)
+    want = np.clip(slope * wide + offset, y.min(), y.max())
+    assert (np.abs(wide) > 1.5).any()  # the clip is exercised
+    np.testing.assert_allclose(got, want, atol=1e-6)
+
+
+def _slac_run(path: Path, run: int, current: np.ndarray, gradient: np.ndarray) -> None:
+    """A run in the published layout of the SLAC magnetic measurements (strdat.ruN)."""
+    head = (f"SLAC Magnetic Measurements\nDate: 11-11-2021\n\nProject: LCLS-II\n"
+            f"Run Number: {run}\nTest Currents for MAIN (A): \n"
+            + "".join(f"{c:10.2f}" for c in current) + "\n\n\n"
+            "                                 Integrated Gradient (Quadrupole) \n\n"
+            "     MAIN   +/- sigma         BL         sigBL           TF        sigTF\n"
+            "            (A)                     (T)                       (T/A)\n"
+            " ------------+----------  -----------+-----------   ------------+------------\n")
+    rows = "".join(f"{c:12.4f}{0.001:11.4f}{g:13.6f}{1e-5:12.6f}{g / max(c, 1):13.6f}"
+                   f"{1e-6:12.6f}  \n" for c, g in zip(current, gradient, strict=True))
+    path.write_text(head + rows)
+
+
+def test_quad_runs_are_read_and_split_by_run(bench, tmp_path):
+    rng = np.random.default_rng(0)
+    runs = {}
+    for r in bench.QUAD_RUNS:
+        n = 61 if r == 3 else 10 + r
+        # run 3 rises to 165 A in 11 samples, then falls (a later peak reads a little higher)
+        current = np.concatenate([[0.0], np.linspace(16.5, 165.0, 10), [150.0, 165.04],
+                                  rng.uniform(0, 165, n - 13)]) if r == 3 else \
+            rng.uniform(0, 165, n)
+        gradient = 0.0316 * current + 0.03 + 1e-4 * rng.standard_normal(n)
+        _slac_run(tmp_path / f"strdat.ru{r}", r, current, gradient)
+        runs[r] = np.round(current, 4), np.round(gradient, 6)
+    np.testing.assert_array_equal(
+        np.stack(bench.read_slac_run(tmp_path / "strdat.ru5")), np.stack(runs[5]))
+    comp = bench.quad(tmp_path, compensator=True)
+    # gradient -> current; the major loop trains, its first rise (11 samples) runs the states
+    np.testing.assert_array_equal(comp.x.numpy(), runs[3][1][None])
+    np.testing.assert_array_equal(comp.y.numpy(), runs[3][0][None])
+    assert comp.warmup == 11
+    assert len(comp.test) == len(bench.QUAD_RUNS) - 1
+    for (x, y, w), r in zip(comp.test, bench.QUAD_RUNS[1:], strict=True):
+        # each held-out run after the major loop's currents, scored on its own samples
+        assert w == 61
+        np.testing.assert_array_equal(x.numpy(), np.concatenate([runs[3][1], runs[r][1]]))
+        np.testing.assert_array_equal(y[w:].numpy(), runs[r][0])
+    fwd = bench.quad(tmp_path, compensator=False)
+    np.testing.assert_array_equal(fwd.x.numpy(), runs[3][0][None])
+    rows = bench.main(["--quick", "--data", "quad_magnet_forward", "--quad", str(tmp_path)])
+    assert {r["n_train"] for r in rows} == {50}
+    assert {r["n_test"] for r in rows if r["model"] != "jiles_atherton"} == {
+        sum(len(runs[r][0]) for r in bench.QUAD_RUNS[1:])}
+
+
+def test_a_quad_run_in_another_layout_is_refused(bench, tmp_path):
+    (tmp_path / "strdat.ru3").write_text("current,gradient\n0,0.03\n16.5,0.55\n")
+    with pytest.raises(ValueError, match=r"--quad .*strdat.ru3: no table"):
+        bench.read_slac_run(tmp_path / "strdat.ru3")
+    (tmp_path / "strdat.ru4").write_text(" ----+----\n 1.0 0.1 x\n")
+    with pytest.raises(ValueError, match=r"--quad .*strdat.ru4: expected rows"):
+        bench.read_slac_run(tmp_path / "strdat.ru4")
