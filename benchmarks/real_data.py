@@ -347,9 +347,11 @@ class Files(NamedTuple):
     quad: Path = QUAD
 
     def present(self, need: str) -> bool:
-        """Whether the file (folder for ``quad``) of option ``need`` is there."""
+        """Whether the file of option ``need`` is there (for ``quad``: every run file)."""
         path = getattr(self, need)
-        return path.is_dir() if need == "quad" else path.is_file()
+        if need == "quad":
+            return all((path / f"strdat.ru{r}").is_file() for r in QUAD_RUNS)
+        return path.is_file()
 
 
 DATASETS: dict[str, tuple[str, Callable[[Files], Split]]] = {
@@ -896,7 +898,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
         protocol, build = DATASETS[name]
         need = NEEDS[name]
         if need is not None and not files.present(need):
-            print(f"skipping {name}: {getattr(files, need)} not found (--{need})")
+            what = " (strdat.ru3..ru8)" if need == "quad" else ""
+            print(f"skipping {name}: {getattr(files, need)}{what} not found (--{need})")
             continue
         log.append(f"{name}: {protocol}")
         rows += evaluate(name, build(files), budget, log, config=args.config)

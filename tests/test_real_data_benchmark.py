@@ -291,6 +291,10 @@ def test_quad_runs_are_read_and_split_by_run(bench, tmp_path):
         np.testing.assert_array_equal(y[w:].numpy(), runs[r][0])
     fwd = bench.quad(tmp_path, compensator=False)
     np.testing.assert_array_equal(fwd.x.numpy(), runs[3][0][None])
+    assert bench.Files(quad=tmp_path).present("quad")
+    (tmp_path / "strdat.ru8").unlink()  # a folder without every run is skipped
+    assert not bench.Files(quad=tmp_path).present("quad")
+    _slac_run(tmp_path / "strdat.ru8", 8, *runs[8])
     rows = bench.main(["--quick", "--data", "quad_magnet_forward", "--quad", str(tmp_path)])
     assert {r["n_train"] for r in rows} == {50}
     assert {r["n_test"] for r in rows if r["model"] != "jiles_atherton"} == {
