@@ -298,6 +298,11 @@ def read_slac_run(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return a[:, 0], a[:, 1]
 
 
+def quad_files(folder: Path) -> dict[int, Path]:
+    """The run files of the quadrupole in ``folder``, by run number (:data:`QUAD_RUNS`)."""
+    return {r: Path(folder) / f"strdat.ru{r}" for r in QUAD_RUNS}
+
+
 def quad(folder: Path, *, compensator: bool) -> Split:
     """An accelerator quadrupole's integrated gradient against its current: trained on the
     major loop (run 3, 0 -> 165 A -> 0 twice; its first rise only runs the states), held out:
@@ -305,7 +310,7 @@ def quad(folder: Path, *, compensator: bool) -> Split:
     major loop's currents (the magnet's history before a run: cycled, then at 0 A) and scored
     on its own samples. ``compensator``: gradient -> current (the inverse model); else
     current -> gradient."""
-    runs = {r: read_slac_run(Path(folder) / f"strdat.ru{r}") for r in QUAD_RUNS}
+    runs = {r: read_slac_run(path) for r, path in quad_files(folder).items()}
 
     def xy(r: int) -> tuple[np.ndarray, np.ndarray]:
         current, gradient = runs[r]
@@ -346,12 +351,12 @@ class Files(NamedTuple):
     piezo: Path = PIEZO
     quad: Path = QUAD
 
-    def present(self, need: str) -> bool:
-        """Whether the file of option ``need`` is there (for ``quad``: every run file)."""
+    def missing(self, need: str) -> list[Path]:
+        """The files that option ``need`` names (for ``quad``: the run files in its folder)
+        and that are not there."""
         path = getattr(self, need)
-        if need == "quad":
-            return all((path / f"strdat.ru{r}").is_file() for r in QUAD_RUNS)
-        return path.is_file()
+        paths = list(quad_files(path).values()) if need == "quad" else [path]
+        return [p for p in paths if not p.is_file()]
 
 
 DATASETS: dict[str, tuple[str, Callable[[Files], Split]]] = {
@@ -897,9 +902,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
     for name in args.data:
         protocol, build = DATASETS[name]
         need = NEEDS[name]
-        if need is not None and not files.present(need):
-            what = " (strdat.ru3..ru8)" if need == "quad" else ""
-            print(f"skipping {name}: {getattr(files, need)}{what} not found (--{need})")
+        missing = [] if need is None else files.missing(need)
+        if missing:
+            print(f"skipping {name}: {missing[0]} not found (--{need})")
             continue
         log.append(f"{name}: {protocol}")
         rows += evaluate(name, build(files), budget, log, config=args.config)

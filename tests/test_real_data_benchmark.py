@@ -31,6 +31,14 @@ def table(bench, tmp_path_factory):
     return rows, out
 
 
+def _measured_with(select: str) -> str:
+    """configs/measured.yaml with its ``select`` and ``select_rule`` replaced by ``select``
+    (YAML lines of the model section)."""
+    text = (ROOT / "configs" / "measured.yaml").read_text()
+    cut, end = text.index("  select:"), text.index("\ndata:") + 1
+    return text[:cut] + select + text[end:]
+
+
 def _test_part(split):
     xs = np.concatenate([x[w:].numpy() for x, _, w in split.test])
     ys = np.concatenate([y[w:].numpy() for _, y, w in split.test])
@@ -119,13 +127,11 @@ def test_the_default_row_follows_the_configs_selection_rule(bench, tmp_path, mon
     """The default row scores each candidate on the hold-out (MSE and its standard error)
     and chooses with the config's select_rule, as torchhys fit does."""
     split = bench.DATASETS["mnzn_ferrite"][1](bench.Files(FERRITE))
-    text = (ROOT / "configs" / "measured.yaml").read_text()
-    cut, end = text.index("  select:"), text.index("\ndata:") + 1
-    two = text[:cut] + """  select:
+    two = _measured_with("""  select:
     - operator: null
     - operator: [{name: gpi, n_widths: 5, units: 2, epochs: 40, direction: inverse}]
   select_rule: RULE
-""" + text[end:]
+""")
     calls = []
 
     def spy(scores, rule="min"):
@@ -237,10 +243,8 @@ def test_the_default_row_is_scored_within_the_exported_command_limits(bench, tmp
     wide = 3.0 * np.sin(np.linspace(0.0, 2.0 * np.pi, 200))
     split = bench.Split(torch.tensor(x)[None], torch.tensor(y)[None], 0,
                         [(torch.tensor(wide), torch.tensor(2.0 * wide + 0.5), 0)])
-    text = (ROOT / "configs" / "measured.yaml").read_text()
-    cut, end = text.index("  select:"), text.index("\ndata:") + 1
     path = tmp_path / "line.yaml"
-    path.write_text(text[:cut] + "  select:\n    - operator: null\n" + text[end:])
+    path.write_text(_measured_with("  select:\n    - operator: null\n"))
     fitted = bench.default(split, bench.QUICK, path)
     with torch.no_grad():
         got = fitted.predict(torch.tensor(wide)[None])[0].numpy()
@@ -291,9 +295,9 @@ def test_quad_runs_are_read_and_split_by_run(bench, tmp_path):
         np.testing.assert_array_equal(y[w:].numpy(), runs[r][0])
     fwd = bench.quad(tmp_path, compensator=False)
     np.testing.assert_array_equal(fwd.x.numpy(), runs[3][0][None])
-    assert bench.Files(quad=tmp_path).present("quad")
+    assert bench.Files(quad=tmp_path).missing("quad") == []
     (tmp_path / "strdat.ru8").unlink()  # a folder without every run is skipped
-    assert not bench.Files(quad=tmp_path).present("quad")
+    assert bench.Files(quad=tmp_path).missing("quad") == [tmp_path / "strdat.ru8"]
     _slac_run(tmp_path / "strdat.ru8", 8, *runs[8])
     rows = bench.main(["--quick", "--data", "quad_magnet_forward", "--quad", str(tmp_path)])
     assert {r["n_train"] for r in rows} == {50}
