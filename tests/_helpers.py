@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import math
 import types
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -68,6 +69,13 @@ def run_chunked(module: torch.nn.Module, x: torch.Tensor, sizes: list[int], **kw
         y, state = module(c, state, **kw)
         outs.append(y)
     return torch.cat(outs, dim=-1)
+
+
+def sine_loops(amplitudes: list[float], periods: int = 3, n: int = 128) -> torch.Tensor:
+    """Rows of float64 cosines of the given amplitudes (e.g. flux density, T), from the
+    positive tip, ``periods`` periods of n samples: (rows, periods n)."""
+    t = torch.arange(periods * n, dtype=torch.float64) / n
+    return torch.stack([b * torch.cos(2 * math.pi * t) for b in amplitudes])
 
 
 def net_of(ops: list, dtype: torch.dtype, x: torch.Tensor) -> InverseHysteresisNet:

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from _helpers import assert_streams_as_eager
+from _helpers import assert_streams_as_eager, sine_loops
 
 from torchhys import JilesAtherton, fit_jiles_atherton
 from torchhys.functional.jiles_atherton import (
@@ -24,12 +24,6 @@ from torchhys.operator import OPERATORS, make_operator
 F64 = torch.float64
 # a MnZn ferrite core, about what fit_jiles_atherton finds on the measured loops
 FERRITE = dict(ms=3.0e5, a=18.0, k=13.0, alpha=1.2e-4, c=0.8)
-
-
-def sine_loops(amplitudes: list[float], periods: int = 3, n: int = 128) -> torch.Tensor:
-    """Rows of a cosine of flux density (T), starting at the positive tip: (rows, periods n)."""
-    t = torch.arange(periods * n, dtype=F64) / n
-    return torch.stack([b * torch.cos(2 * math.pi * t) for b in amplitudes])
 
 
 def reference(b: np.ndarray, ms: float, a: float, k: float, alpha: float, c: float,

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from _helpers import sine_loops
 from _training_helpers import trainer
 
 from torchhys import (
@@ -218,8 +219,7 @@ def bh_loops(n: int = 64, scale: float = 1.0, mu0: float = 4e-7 * math.pi
              ) -> tuple[torch.Tensor, torch.Tensor]:
     """B-H loops of CORE: cosines of flux density of 0.12 and 0.36 T (times ``scale``, the
     input unit) from the positive tip, 3 periods of n samples, and the fields; (2, 3 n)."""
-    t = torch.arange(3 * n, dtype=F64) / n
-    b = torch.stack([amp * scale * torch.cos(2 * math.pi * t) for amp in (0.12, 0.36)])
+    b = sine_loops([0.12 * scale, 0.36 * scale], n=n)
     with torch.no_grad():
         h, _ = JilesAtherton(**CORE, mu0=mu0, substeps=8)(b)
     return b, h
