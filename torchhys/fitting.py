@@ -45,7 +45,7 @@ class FitResult(NamedTuple):
 def fit_full_batch(
     model: InverseHysteresisNet | HysteresisOperator, x: Tensor, y: Tensor, *,
     adam_epochs: int = 2000, lbfgs_epochs: int = 500, lr: float = 1e-2, tolerance: float = 0.0,
-    warmup: int = 0,
+    warmup: int = 0, penalty: Callable[[], Tensor] | None = None,
 ) -> FitResult:
     """Fit ``model`` to (x, y) with full-batch Adam then L-BFGS (strong Wolfe line search).
 
@@ -65,6 +65,8 @@ def fit_full_batch(
         tolerance: stop L-BFGS once the MSE is below this value.
         warmup: samples at the start of each row left out of the loss (they still run the
             states), ``0 <= warmup < time``.
+        penalty: a term added to the loss (a 0-dim tensor of the model's parameters), or
+            None. :class:`FitResult` reports the mean squared error without it.
 
     Returns:
         :class:`FitResult`.
@@ -77,6 +79,7 @@ def fit_full_batch(
     check_warmup(warmup, x.shape[-1])
     loss_fn = (_network_loss(model, x, y, warmup) if isinstance(model, InverseHysteresisNet)
                else _operator_loss(model, x, y, warmup))
+    objective = loss_fn if penalty is None else (lambda: loss_fn() + penalty())
     params = [p for p in model.parameters() if p.requires_grad]
     if not params:
         raise ValueError(f"model {type(model).__name__} has no trainable parameters")
@@ -84,7 +87,7 @@ def fit_full_batch(
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(adam, max(adam_epochs, 1))
     for _ in range(adam_epochs):
         adam.zero_grad()
-        loss = loss_fn()
+        loss = objective()
         loss.backward()
         adam.step()
         sched.step()
@@ -95,7 +98,7 @@ def fit_full_batch(
 
     def closure() -> Tensor:
         lbfgs.zero_grad()
-        loss = loss_fn()
+        loss = objective()
         loss.backward()
         return loss
 

@@ -42,6 +42,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from torchhys._checks import as_batched_sequence, check_int, check_same_shape
+from torchhys._nnls import check_penalty
 from torchhys.backlash import _inverse_softplus, _Widths
 from torchhys.fitting import fit_full_batch, fit_prandtl_ishlinskii
 from torchhys.functional.backlash import backlash, play_step
@@ -220,6 +221,7 @@ class GeneralizedPrandtlIshlinskii(_Widths, HysteresisOperator):
 def fit_generalized_pi(
     x: Tensor, y: Tensor, widths: Tensor, *, units: int = 6, ridge: float = 0.0,
     adam_epochs: int = 0, lbfgs_epochs: int = 300, lr: float = 1e-2, warmup: int = 0,
+    anchor: float = 1e-6,
 ) -> GeneralizedPrandtlIshlinskii:
     """Fit a :class:`GeneralizedPrandtlIshlinskii` model ``y ~ g(p[x])``.
 
@@ -228,8 +230,17 @@ def fit_generalized_pi(
     weights raised to at least 1% of the largest (so that none starts dead); ``g`` with
     ``units`` tanh units centred on quantiles of that fit's output, slopes ``2 / spacing``
     and weights ``0.1 spacing`` (spacing: the output's span / units), gain 1, offset 0. Then
-    full-batch training of every parameter but the widths on the mean squared error
+    full-batch training of every parameter but the widths and ``w0`` on the mean squared
+    error plus ``anchor * (|log a - log a_init|^2 + |log s - log s_init|^2)``
     (:func:`~torchhys.fitting.fit_full_batch`: Adam, then L-BFGS).
+
+    Why ``w0`` is held and the logarithms anchored: the model is unchanged when ``p`` is
+    scaled by k and ``g``'s input by 1 / k (``w, w0, b`` times k, ``a, s`` over k), and
+    nearly unchanged when a unit's slope shrinks while its weight grows (it becomes a
+    linear term) or when the gain vanishes and the units carry ``g``. Left free, the fit
+    drifts along these directions until parameters underflow (a gain or slope of 0: no
+    inverse) or the loss turns NaN; holding ``w0`` removes the first, and the anchor (small
+    next to the error of a fit) stops the others.
 
     Args:
         x: input, (time,) or (batch, time); y: output, same shape.
@@ -240,6 +251,8 @@ def fit_generalized_pi(
         adam_epochs, lbfgs_epochs, lr: as in :func:`~torchhys.fitting.fit_full_batch`.
         warmup: samples at the start of each row left out of the initial fit, the centres of
             g and the loss (they still run the plays), to forget the zero initial state.
+        anchor: weight of the penalty on the log-gain and log-slopes moving from their
+            initial values, >= 0 (0: none).
 
     Returns:
         The model, in x's dtype.
@@ -249,6 +262,7 @@ def fit_generalized_pi(
             or y that does not increase with x (the initial fit has no positive linear weight).
     """
     check_int(units, "units", minimum=0)
+    anchor = check_penalty(anchor, "anchor")
     xb, _ = as_batched_sequence(x, "x")
     yb, _ = as_batched_sequence(y, "y")
     check_same_shape(yb, xb, "y", "x")
@@ -268,8 +282,18 @@ def fit_generalized_pi(
         slopes=torch.full_like(centers, 2.0 / spacing),
         unit_weights=torch.full_like(centers, 0.1 * spacing),
     ).to(xb.device)
-    fit_full_batch(model, xb, yb, adam_epochs=adam_epochs, lbfgs_epochs=lbfgs_epochs, lr=lr,
-                   warmup=warmup)
+    log_gain, log_slopes = model.log_gain.detach().clone(), model.log_slopes.detach().clone()
+
+    def drift() -> Tensor:
+        return anchor * ((model.log_gain - log_gain).square()
+                         + (model.log_slopes - log_slopes).square().sum())
+
+    model.log_linear_weight.requires_grad_(False)
+    try:
+        fit_full_batch(model, xb, yb, adam_epochs=adam_epochs, lbfgs_epochs=lbfgs_epochs, lr=lr,
+                       warmup=warmup, penalty=drift if anchor > 0 else None)
+    finally:
+        model.log_linear_weight.requires_grad_(True)
     return model
 
 

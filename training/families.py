@@ -243,9 +243,8 @@ def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
                 pw * sx, w / sx, linear_weight=float(w0) / sx, centers=b, slopes=s,
                 unit_weights=c, gain=float(a), offset=float(off)), x, t, warmup, "the model")
         # The same model, rewritten for a well-conditioned inverse: the PI part divided by k
-        # (its training std; the fit leaves the scale between p and g free, and may drift
-        # to huge p and a tiny gain), g(k v) in its place, scaled by sx and shifted by mx so
-        # that it maps to the physical input. g^-1 is bounded to the PI part's training
+        # (its training std), g(k v) in its place, scaled by sx and shifted by mx so that it
+        # maps to the physical input. g^-1 is bounded to the PI part's training
         # range with a margin of half its span on each side.
         with torch.no_grad():
             k = float(m.prandtl_ishlinskii()(u)[0].std().clamp_min(1e-300))
