@@ -232,7 +232,10 @@ def fit_generalized_pi(
     and weights ``0.1 spacing`` (spacing: the output's span / units), gain 1, offset 0. Then
     full-batch training of every parameter but the widths and ``w0`` on the mean squared
     error plus ``anchor * (|log a - log a_init|^2 + |log s - log s_init|^2)``
-    (:func:`~torchhys.fitting.fit_full_batch`: Adam, then L-BFGS).
+    (:func:`~torchhys.fitting.fit_full_batch`: Adam, then L-BFGS). The fit sees y divided by
+    its standard deviation over the scored samples (then ``a``, ``c_k`` and the offset are
+    scaled back), so that the fit, its tolerances and the anchor mean the same in any units
+    of y.
 
     Why ``w0`` is held and the logarithms anchored: the model is unchanged when ``p`` is
     scaled by k and ``g``'s input by 1 / k (``w, w0, b`` times k, ``a, s`` over k), and
@@ -252,14 +255,15 @@ def fit_generalized_pi(
         warmup: samples at the start of each row left out of the initial fit, the centres of
             g and the loss (they still run the plays), to forget the zero initial state.
         anchor: weight of the penalty on the log-gain and log-slopes moving from their
-            initial values, >= 0 (0: none).
+            initial values (y in units of its standard deviation), >= 0 (0: none).
 
     Returns:
         The model, in x's dtype.
 
     Raises:
         TypeError, ValueError: bad input (see :func:`~torchhys.fitting.fit_prandtl_ishlinskii`),
-            or y that does not increase with x (the initial fit has no positive linear weight).
+            y constant over the scored samples, or y that does not increase with x (the
+            initial fit has no positive linear weight).
     """
     check_int(units, "units", minimum=0)
     anchor = check_penalty(anchor, "anchor")
@@ -267,16 +271,19 @@ def fit_generalized_pi(
     yb, _ = as_batched_sequence(y, "y")
     check_same_shape(yb, xb, "y", "x")
     pi = fit_prandtl_ishlinskii(xb, yb, widths, ridge=ridge, nonnegative=True, warmup=warmup)
-    w0 = float(pi.linear_weight)
+    sy = float(yb[:, warmup:].std())
+    if not sy > 0:
+        raise ValueError("y must vary over the scored samples (after warmup)")
+    w0 = float(pi.linear_weight) / sy
     if not w0 > 0:
         raise ValueError("y does not increase with x (the least-squares static gain is not "
                          "positive): a generalized PI model of increasing loops does not fit")
     with torch.no_grad():
-        v = pi(xb)[0][:, warmup:].reshape(-1)
+        v = pi(xb)[0][:, warmup:].reshape(-1) / sy
         q = (torch.arange(units, dtype=v.dtype, device=v.device) + 0.5) / max(units, 1)
         centers = torch.quantile(v, q) if units else v.new_zeros(0)
         spacing = float((v.max() - v.min()).clamp_min(1e-12)) / max(units, 1)
-        weights = pi.weights.clamp_min(0.01 * float(pi.weights.max()))
+        weights = pi.weights.clamp_min(0.01 * float(pi.weights.max())) / sy
     model = GeneralizedPrandtlIshlinskii(
         pi.get_widths(), weights, linear_weight=w0, centers=centers,
         slopes=torch.full_like(centers, 2.0 / spacing),
@@ -290,10 +297,14 @@ def fit_generalized_pi(
 
     model.log_linear_weight.requires_grad_(False)
     try:
-        fit_full_batch(model, xb, yb, adam_epochs=adam_epochs, lbfgs_epochs=lbfgs_epochs, lr=lr,
-                       warmup=warmup, penalty=drift if anchor > 0 else None)
+        fit_full_batch(model, xb, yb / sy, adam_epochs=adam_epochs, lbfgs_epochs=lbfgs_epochs,
+                       lr=lr, warmup=warmup, penalty=drift if anchor > 0 else None)
     finally:
         model.log_linear_weight.requires_grad_(True)
+    with torch.no_grad():  # g's output back to the units of y
+        model.log_gain.add_(math.log(sy))
+        model.raw_unit_weights.copy_(_inverse_softplus(F.softplus(model.raw_unit_weights) * sy))
+        model.offset.mul_(sy)
     return model
 
 
