@@ -220,7 +220,7 @@ class GeneralizedPrandtlIshlinskii(_Widths, HysteresisOperator):
 
 def fit_generalized_pi(
     x: Tensor, y: Tensor, widths: Tensor, *, units: int = 6, ridge: float = 0.0,
-    adam_epochs: int = 0, lbfgs_epochs: int = 300, lr: float = 1e-2, warmup: int = 0,
+    adam_epochs: int = 0, lbfgs_epochs: int = 1000, lr: float = 1e-2, warmup: int = 0,
     anchor: float = 1e-6,
 ) -> GeneralizedPrandtlIshlinskii:
     """Fit a :class:`GeneralizedPrandtlIshlinskii` model ``y ~ g(p[x])``.

@@ -13,7 +13,7 @@ standardizes the operator's output) maps it back. They are the candidates of
   (``inverse``). Such a model draws loops of one orientation only, so the target's sign is
   chosen by the training fit (both signs are fitted).
 - ``{"name": "gpi", "n_widths": 10, "power": 2.0, "ridge": "auto", "units": 4,
-  "epochs": 200, "direction": "direct"}``: :func:`torchhys.fit_generalized_pi` of the target
+  "epochs": 1000, "direction": "direct"}``: :func:`torchhys.fit_generalized_pi` of the target
   (times the sign that makes it rise with the input) from the input, or of the input from
   it, then :class:`torchhys.GeneralizedPIInverse`.
 - ``{"name": "preisach", "n": 20, "smoothness": "auto"}``: :func:`torchhys.fit_preisach`
@@ -210,7 +210,7 @@ def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     n, power, direction = _grid(spec, 10)
     ridge = _penalty(spec, "ridge")
     units = check_int(spec.get("units", 4), "operator 'gpi': units", minimum=0)
-    epochs = check_int(spec.get("epochs", 200), "operator 'gpi': epochs", minimum=1)
+    epochs = check_int(spec.get("epochs", 1000), "operator 'gpi': epochs", minimum=1)
 
     def fit(x: Tensor, y: Tensor, warmup: int) -> nn.Module:
         sx, t = _standardized(x, y, warmup)
