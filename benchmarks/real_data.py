@@ -28,7 +28,8 @@ the states and are neither fitted nor scored):
   ridge chosen on the hold-out;
 - ``pi_ls``: the same direct fit, unconstrained (the operator of ``configs/measured.yaml``);
 - ``generalized_pi``: ``fit_generalized_pi`` in either direction (the inverse: the exact
-  PI inverse after the output function's inverse, found by bisection), of the target times
+  ``.inverse()``, the output function's inverse bounded to the PI part's training range
+  plus half its span on each side, as ``configs/measured.yaml``'s ``gpi``), of the target times
   the sign that makes it rise with the input, on the widths and ridge chosen for the
   non-negative PI fit of that direction and sign; direction and number of tanh units chosen
   on the hold-out (a refit that diverges passes to the next candidate);
@@ -80,6 +81,7 @@ from torchhys import (
     Backlash,
     InverseHysteresisNet,
     JilesAtherton,
+    fit_generalized_pi,
     fit_jiles_atherton,
     fit_preisach,
     select_penalty,
@@ -91,11 +93,6 @@ from torchhys.training.init import initialize
 from torchhys.training.module import OPTIMIZERS, InverseHysteresisModule
 from torchhys.training.operators import build_operators, fit_data_dependent
 from torchhys.training.selection import CandidateScore, best, standard_error
-
-try:  # the generalized PI model is optional (a newer module)
-    from torchhys.generalized_pi import fit_generalized_pi, monotone_output
-except ImportError:  # pragma: no cover
-    fit_generalized_pi = None
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT / "examples" / "data" / "real"
@@ -151,7 +148,7 @@ class Budget(NamedTuple):
     """Random starts and Levenberg-Marquardt iterations of the Jiles-Atherton fit."""
 
 
-FULL = Budget((5, 10, 20, 40), (1.0, 2.0, 3.0), (10, 20, 30), (2, 4, 8), 200, 40, None, 60.0)
+FULL = Budget((5, 10, 20, 40), (1.0, 2.0, 3.0), (10, 20, 30), (2, 4, 8), 1000, 40, None, 60.0)
 QUICK = Budget((5, 10), (2.0,), (8,), (2,), 20, 4, 20, 5.0, 2, 5)
 
 
@@ -564,26 +561,6 @@ def pi_ls(split: Split, budget: Budget) -> Fitted:
     return d.fitted(lambda v: model(v)[0], f"n={n}, power={power:g}, ridge={ridge:g}", score)
 
 
-def _g_inverse(model, v: Tensor, steps: int = 60) -> Tensor:
-    """Inverse of the increasing output function g of a generalized PI model, by bisection
-    (the library has no inverse of the generalized model)."""
-    _, _, _, a, c, b, s, off = (t.detach() for t in model.parameters_effective())
-
-    def g(u: Tensor) -> Tensor:
-        return monotone_output(u, a, c, b, s, off)
-
-    lo, hi = torch.full_like(v, -1.0), torch.full_like(v, 1.0)
-    while bool((g(lo) > v).any()):
-        lo = torch.where(g(lo) > v, 2 * lo, lo)
-    while bool((g(hi) < v).any()):
-        hi = torch.where(g(hi) < v, 2 * hi, hi)
-    for _ in range(steps):
-        mid = 0.5 * (lo + hi)
-        up = g(mid) < v
-        lo, hi = torch.where(up, mid, lo), torch.where(up, hi, mid)
-    return 0.5 * (lo + hi)
-
-
 def _gpi(d: Scaled, inverse: bool, n: int, power: float, ridge: float, units: int, end: int,
          epochs: int) -> Callable[[Tensor], Tensor]:
     """Generalized PI model of t = sign x target from the input, fitted on samples [0, end)
@@ -596,8 +573,11 @@ def _gpi(d: Scaled, inverse: bool, n: int, power: float, ridge: float, units: in
                                ridge=ridge, lbfgs_epochs=epochs)
     if not inverse:
         return lambda v: sign * model(v)[0]
-    pi_inverse = model.prandtl_ishlinskii().inverse()
-    return lambda v: sign * pi_inverse(_g_inverse(model, v))[0]
+    with torch.no_grad():  # g^-1 bounded to the PI part's training range, +- half its span
+        p = model.prandtl_ishlinskii()(u)[0]
+    lo, hi = float(p.min()), float(p.max())
+    exact = model.inverse(lower=lo - 0.5 * (hi - lo), upper=hi + 0.5 * (hi - lo))
+    return lambda v: sign * exact(v)[0]
 
 
 def generalized_pi(split: Split, budget: Budget) -> Fitted:
@@ -830,7 +810,7 @@ MODELS: dict[str, Callable[..., Fitted]] = {
     "poly": poly,
     "pi_constrained": pi_constrained,
     "pi_ls": pi_ls,
-    **({"generalized_pi": generalized_pi} if fit_generalized_pi is not None else {}),
+    "generalized_pi": generalized_pi,
     "preisach": preisach,
     "jiles_atherton": jiles_atherton,
     "eiho_net": eiho_net,
