@@ -573,10 +573,7 @@ def _gpi(d: Scaled, inverse: bool, n: int, power: float, ridge: float, units: in
                                ridge=ridge, lbfgs_epochs=epochs)
     if not inverse:
         return lambda v: sign * model(v)[0]
-    with torch.no_grad():  # g^-1 bounded to the PI part's training range, +- half its span
-        p = model.prandtl_ishlinskii()(u)[0]
-    lo, hi = float(p.min()), float(p.max())
-    exact = model.inverse(lower=lo - 0.5 * (hi - lo), upper=hi + 0.5 * (hi - lo))
+    exact = model.bounded_inverse(u)  # g^-1 within the PI part's training range +- half
     return lambda v: sign * exact(v)[0]
 
 

@@ -62,6 +62,18 @@ def test_bounds_hold_g_inverse_at_the_bound():
     torch.testing.assert_close(inside(m(x)[0])[0], x, rtol=0, atol=1e-12)
 
 
+
+def test_bounded_inverse_widens_the_training_range_of_the_pi_part():
+    m, x = model(), walks(300)
+    p = m.prandtl_ishlinskii()(x)[0].numpy()
+    span = p.max() - p.min()
+    for margin in (0.0, 0.5):
+        inv = m.bounded_inverse(x, margin=margin)
+        assert float(inv.lower) == pytest.approx(p.min() - margin * span, rel=0, abs=1e-12)
+        assert float(inv.upper) == pytest.approx(p.max() + margin * span, rel=0, abs=1e-12)
+        torch.testing.assert_close(inv(m(x)[0])[0], x, rtol=0, atol=1e-9)
+
+
 @pytest.mark.parametrize("sizes", [(1, 299), (100, 200), (7, 93, 200)])
 def test_chunked_calls_equal_one_call(sizes):
     inv = model().inverse()
@@ -129,6 +141,8 @@ def test_bad_input():
         GeneralizedPIInverse(2, -1)
     with pytest.raises(ValueError, match="lower must be below upper"):
         model().inverse(lower=1.0, upper=1.0)
+    with pytest.raises(ValueError, match="margin must be >= 0"):
+        model().bounded_inverse(walks(50), margin=-0.1)
 
 
 @pytest.mark.slow

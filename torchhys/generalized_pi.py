@@ -214,6 +214,24 @@ class GeneralizedPrandtlIshlinskii(_Widths, HysteresisOperator):
 
         return GeneralizedPIInverse.from_model(self, lower=lower, upper=upper)
 
+    def bounded_inverse(self, x: Tensor, *, margin: float = 0.5) -> GeneralizedPIInverse:
+        """:meth:`inverse` with ``g^-1`` bounded to the range of the PI part's output on x
+        (the training input), widened by ``margin`` times its span on each side.
+
+        Args:
+            x: the input the model was fitted on, (time,) or (batch, time).
+            margin: the widening, a share of the span, >= 0.
+
+        Raises:
+            ValueError: a negative or non-finite margin, a PI part that is constant on x,
+                or no inverse (see :meth:`inverse`).
+        """
+        margin = check_penalty(margin, "margin")
+        with torch.no_grad():
+            p = self.prandtl_ishlinskii()(x)[0]
+        lo, hi = float(p.min()), float(p.max())
+        return self.inverse(lower=lo - margin * (hi - lo), upper=hi + margin * (hi - lo))
+
     def extra_repr(self) -> str:
         return f"n_plays={self.n_operators}, n_units={self.centers.shape[0]}"
 

@@ -251,11 +251,7 @@ def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
         scaled = GeneralizedPrandtlIshlinskii(
             pw, w / k, linear_weight=float(w0) / k, centers=b / k, slopes=s * k,
             unit_weights=c * sx, gain=float(a) * k * sx, offset=float(off) * sx + mx)
-        with torch.no_grad():
-            p = scaled.prandtl_ishlinskii()(u)[0]
-        lo, hi = float(p.min()), float(p.max())
-        inverse = scaled.inverse(lower=lo - 0.5 * (hi - lo), upper=hi + 0.5 * (hi - lo))
-        return _checked(inverse, x, t, warmup, "the inverse")
+        return _checked(scaled.bounded_inverse(u), x, t, warmup, "the inverse")
 
     if direction == "direct":
         placeholder: nn.Module = GeneralizedPrandtlIshlinskii(
