@@ -72,6 +72,16 @@ def test_bounded_inverse_widens_the_training_range_of_the_pi_part():
         assert float(inv.lower) == pytest.approx(p.min() - margin * span, rel=0, abs=1e-12)
         assert float(inv.upper) == pytest.approx(p.max() + margin * span, rel=0, abs=1e-12)
         torch.testing.assert_close(inv(m(x)[0])[0], x, rtol=0, atol=1e-9)
+        given = m.bounded_inverse(x, margin=margin, pi_output=torch.as_tensor(p))
+        assert (float(given.lower), float(given.upper)) == (float(inv.lower), float(inv.upper))
+
+
+def test_bounded_inverse_checks_the_given_pi_output():
+    m, x = model(), walks(300)
+    with pytest.raises(ValueError, match=r"pi_output must have the shape of x"):
+        m.bounded_inverse(x, pi_output=torch.zeros(x.shape[-1] - 1, dtype=x.dtype))
+    with pytest.raises(ValueError, match="lower must be below upper"):
+        m.bounded_inverse(x, pi_output=torch.ones_like(x))
 
 
 @pytest.mark.parametrize("sizes", [(1, 299), (100, 200), (7, 93, 200)])

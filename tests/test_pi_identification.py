@@ -60,8 +60,9 @@ def test_width_grid() -> None:
         play_width_grid(torch.ones(5), 3)
     with pytest.raises(ValueError, match="n must"):
         play_width_grid(u, 0)
-    with pytest.raises(ValueError, match="power"):
-        play_width_grid(u, 3, power=-1.0)
+    for bad in (-1.0, float("inf"), True):
+        with pytest.raises(ValueError, match=f"power must be a finite number > 0, got {bad!r}"):
+            play_width_grid(u, 3, power=bad)
 
 
 def test_bad_input() -> None:

@@ -15,6 +15,7 @@ from torch import Tensor
 from torchhys._checks import (
     as_batched_sequence,
     check_int,
+    check_positive,
     check_same_shape,
     check_warmup,
     check_widths,
@@ -166,8 +167,7 @@ def play_width_grid(u: Tensor, n: int = 30, *, power: float = 3.0) -> Tensor:
     """
     ub, _ = as_batched_sequence(u, "u")
     check_int(n, "n", minimum=1)
-    if not (isinstance(power, (int, float)) and math.isfinite(power) and power > 0):
-        raise ValueError(f"power must be a positive number, got {power!r}")
+    power = check_positive(power, "power")
     span = (ub.max() - ub.min()).detach()
     if float(span) == 0.0:
         raise ValueError("u is constant: its span gives no scale for the widths")

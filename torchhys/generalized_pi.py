@@ -214,21 +214,28 @@ class GeneralizedPrandtlIshlinskii(_Widths, HysteresisOperator):
 
         return GeneralizedPIInverse.from_model(self, lower=lower, upper=upper)
 
-    def bounded_inverse(self, x: Tensor, *, margin: float = 0.5) -> GeneralizedPIInverse:
+    def bounded_inverse(self, x: Tensor, *, margin: float = 0.5,
+                        pi_output: Tensor | None = None) -> GeneralizedPIInverse:
         """:meth:`inverse` with ``g^-1`` bounded to the range of the PI part's output on x
         (the training input), widened by ``margin`` times its span on each side.
 
         Args:
             x: the input the model was fitted on, (time,) or (batch, time).
             margin: the widening, a share of the span, >= 0.
+            pi_output: the PI part's output on x (``self.prandtl_ishlinskii()(x)[0]``), when
+                the caller has it already; computed if None.
 
         Raises:
-            ValueError: a negative or non-finite margin, a PI part that is constant on x,
-                or no inverse (see :meth:`inverse`).
+            ValueError: a negative or non-finite margin, a ``pi_output`` not the shape of x,
+                a PI part that is constant on x, or no inverse (see :meth:`inverse`).
         """
         margin = check_penalty(margin, "margin")
-        with torch.no_grad():
-            p = self.prandtl_ishlinskii()(x)[0]
+        if pi_output is None:
+            with torch.no_grad():
+                p = self.prandtl_ishlinskii()(x)[0]
+        else:
+            check_same_shape(pi_output, torch.as_tensor(x), "pi_output", "x")
+            p = pi_output.detach()
         lo, hi = float(p.min()), float(p.max())
         return self.inverse(lower=lo - margin * (hi - lo), upper=hi + margin * (hi - lo))
 

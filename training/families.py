@@ -98,12 +98,10 @@ def _penalty(spec: Mapping[str, Any], key: str) -> float | str:
 def _grid(spec: Mapping[str, Any], n_default: int) -> tuple[int, float, str]:
     n = check_int(spec.get("n_widths", n_default), f"operator {spec['name']!r}: n_widths",
                   minimum=1)
-    power = spec.get("power", 2.0)
-    if isinstance(power, bool) or not isinstance(power, (int, float)) or not power > 0:
-        raise ValueError(f"operator {spec['name']!r}: power must be a number > 0, got {power!r}")
+    power = check_positive(spec.get("power", 2.0), f"operator {spec['name']!r}: power")
     direction = check_choice(spec.get("direction", "direct"),
                              f"operator {spec['name']!r}: direction", ["direct", "inverse"])
-    return n, float(power), direction
+    return n, power, direction
 
 
 def _standardized(x: Tensor, y: Tensor, warmup: int) -> tuple[float, Tensor]:
@@ -247,11 +245,12 @@ def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
         # maps to the physical input. g^-1 is bounded to the PI part's training
         # range with a margin of half its span on each side.
         with torch.no_grad():
-            k = float(m.prandtl_ishlinskii()(u)[0].std().clamp_min(1e-300))
+            p = m.prandtl_ishlinskii()(u)[0]
+        k = float(p.std().clamp_min(1e-300))
         scaled = GeneralizedPrandtlIshlinskii(
             pw, w / k, linear_weight=float(w0) / k, centers=b / k, slopes=s * k,
             unit_weights=c * sx, gain=float(a) * k * sx, offset=float(off) * sx + mx)
-        return _checked(scaled.bounded_inverse(u), x, t, warmup, "the inverse")
+        return _checked(scaled.bounded_inverse(u, pi_output=p / k), x, t, warmup, "the inverse")
 
     if direction == "direct":
         placeholder: nn.Module = GeneralizedPrandtlIshlinskii(
