@@ -264,6 +264,11 @@ def test_bad_fit_input():
         fit_generalized_pi(x, x, widths, anchor=math.nan)
     with pytest.raises(ValueError, match="y must vary over the scored samples"):
         fit_generalized_pi(x, torch.ones_like(x), widths)
+    for bad in (-1, True, 2.5):
+        with pytest.raises(ValueError, match=f"lbfgs_epochs must be an int >= 0, got {bad!r}"):
+            fit_generalized_pi(x, x, widths, lbfgs_epochs=bad)
+    with pytest.raises(ValueError, match="adam_epochs must be an int >= 0, got 1.5"):
+        fit_generalized_pi(x, x, widths, adam_epochs=1.5)
 
 
 def test_fit_full_batch_adds_a_penalty_and_reports_the_error_without_it():

@@ -4,6 +4,8 @@ the bisection against a float64 numpy reference, bounds, chunking, the per-sampl
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -80,8 +82,12 @@ def test_bounded_inverse_checks_the_given_pi_output():
     m, x = model(), walks(300)
     with pytest.raises(ValueError, match=r"pi_output must have the shape of x"):
         m.bounded_inverse(x, pi_output=torch.zeros(x.shape[-1] - 1, dtype=x.dtype))
-    with pytest.raises(ValueError, match="lower must be below upper"):
+    with pytest.raises(ValueError, match=r"the PI part is constant \(1\) on x"):
         m.bounded_inverse(x, pi_output=torch.ones_like(x))
+    with pytest.raises(ValueError, match="pi_output must be finite"):
+        m.bounded_inverse(x, pi_output=torch.full_like(x, math.inf))
+    with pytest.raises(ValueError, match="the PI part is constant"):
+        m.bounded_inverse(torch.zeros_like(x))
 
 
 @pytest.mark.parametrize("sizes", [(1, 299), (100, 200), (7, 93, 200)])
@@ -171,3 +177,15 @@ def test_exports_to_aoti_and_runs(tmp_path):
         expected = net(y)[0]
     out = torch.cat([stepper.step(v.reshape(1)).reshape(-1) for v in y])
     torch.testing.assert_close(out.double(), expected, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("bad, error, match", [
+    (torch.tensor([0, 1, 2]), TypeError, "x must have a floating-point dtype"),
+    (torch.tensor([0.0, float("nan")], dtype=F64), ValueError, "x must be finite"),
+    (torch.zeros(2, 3, 4, dtype=F64), ValueError, r"x must have shape \(time,\)"),
+])
+def test_bad_input_is_an_error_before_g_inverse(bad, error, match):
+    """Bounded or not, the inverse checks its input before g^-1 (which would cast or pass it)."""
+    for inv in (model().inverse(), model().inverse(lower=-1.0, upper=1.0)):
+        with pytest.raises(error, match=match):
+            inv(bad)

@@ -229,6 +229,10 @@ def test_bad_input_is_named():
         m(torch.tensor([0.0, float("nan")], dtype=F64))
     with pytest.raises(ValueError, match=r"state must have shape \(2, 2\)"):
         m(b, torch.zeros(3, 2, dtype=F64))
+    with pytest.raises(ValueError, match="state must be finite"):
+        m(b, torch.tensor([[0.0, math.nan], [0.0, 0.0]], dtype=F64))
+    with pytest.raises(TypeError, match="state must be a torch.Tensor, got list"):
+        m(b, [[0.0, 0.0], [0.0, 0.0]])
     with pytest.raises(ValueError, match="warmup must leave samples to fit: warmup=16 of 16"):
         fit_jiles_atherton(b, b, warmup=16)
     with pytest.raises(ValueError, match="y must have the shape of x"):
@@ -277,3 +281,21 @@ def test_state_dict_carries_mu0_and_substeps():
     assert int(loaded.state_dict()["saved_substeps"]) == 3
     with pytest.raises(ValueError, match="substeps must be"):
         loaded.substeps = 0
+
+
+@pytest.mark.parametrize("key, value, match", [
+    ("saved_substeps", torch.tensor(0), "saved_substeps must be an int >= 1, got 0.0"),
+    ("saved_mu0", torch.tensor(-1.0, dtype=F64), "saved_mu0 must be a finite number > 0"),
+    ("raw", torch.full((5,), math.nan, dtype=F64), "raw must be finite"),
+])
+def test_a_bad_state_dict_is_an_error_and_leaves_the_module(key, value, match):
+    m = JilesAtherton(**FERRITE, substeps=3)
+    before = {k: v.clone() for k, v in m.state_dict().items()}
+    state = JilesAtherton(**FERRITE, substeps=5, mu0=2e-6).state_dict()
+    state["raw"] = state["raw"] + 0.1
+    state[key] = value
+    with pytest.raises(ValueError, match=match):
+        m.load_state_dict(state)
+    for k, v in m.state_dict().items():
+        assert torch.equal(v, before[k]), k
+    assert m.substeps == 3 and m.mu0 == MU0

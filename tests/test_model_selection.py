@@ -352,6 +352,10 @@ def test_leave_one_recording_out_on_the_command_line(monkeypatch, capsys, tmp_pa
      ValueError, r"validation split is empty \(data: paper\): .*model.select_cv"),
     ({"split: [0.5, 0.25, 0.25]": "split: paper"},
      ValueError, r"validation split is the training data \(split='paper'\)"),
+    ({"- {operator: [{name: plays, n: 4}]}": "- {operator: [{name: playz, n: 4}]}"},
+     ValueError, r"model.select\[2\] .*operator name must be one of .*got 'playz'"),
+    ({"- {operator: [{name: plays, n: 4}]}": "- {operator: [{name: plays, m: 4}]}"},
+     ValueError, r"model.select\[2\] .*operator 'plays': unknown option\(s\) \['m'\]"),
     ({"  select:\n": "  select_cv: 1\n  select:\n"},
      ValueError, r"model.select_cv must be an int >= 2, got 1"),
 

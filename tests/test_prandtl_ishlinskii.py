@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -70,6 +72,24 @@ def test_inverse_from_reachable_state():
     yd = _desired() + h_prefix[-1]
     u, _ = pi.inverse()(yd, pi.inverse_state(z))
     torch.testing.assert_close(pi(u, z)[0], yd, rtol=0, atol=1e-10)
+
+
+def test_inverse_state_and_a_linear_inverse_check_their_input():
+    pi = _model()
+    n = pi.n_operators
+    with pytest.raises(ValueError, match=rf"state must have shape \({n},\) or \(batch, {n}\)"):
+        pi.inverse_state(torch.zeros(n + 1, dtype=torch.float64))
+    with pytest.raises(ValueError, match="state must be finite"):
+        pi.inverse_state(torch.full((n,), math.nan, dtype=torch.float64))
+    with pytest.raises(TypeError, match="state must have a floating-point dtype"):
+        pi.inverse_state(torch.zeros(n, dtype=torch.long))
+    linear = PrandtlIshlinskii(torch.tensor([0.0]), torch.tensor([0.5]),
+                               linear_weight=0.5).inverse()
+    assert linear.widths.numel() == 0
+    with pytest.raises(ValueError, match="y must be finite"):
+        linear(torch.tensor([0.0, math.nan]))
+    with pytest.raises(ValueError, match=r"y must have shape \(time,\)"):
+        linear(torch.zeros(2, 3, 4))
 
 
 def test_inverse_parameters_analytic_two_operators():

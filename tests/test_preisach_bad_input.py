@@ -91,6 +91,57 @@ def test_negative_weights_in_a_state_dict():
     assert bool((m.weights == 0.5).all())
 
 
+@pytest.mark.parametrize("key, value, match", [
+    ("alpha", torch.full((6,), math.nan), "alpha and beta must be finite thresholds"),
+    ("beta", torch.full((6,), 5.0), "alpha >= beta"),
+    ("initial_relays", torch.zeros(6), "initial_relays must hold relay values"),
+])
+def test_bad_grid_or_relays_in_a_state_dict(key, value, match):
+    m = Preisach(-1.0, 1.0, 3)
+    before = {k: v.clone() for k, v in m.state_dict().items()}
+    sd = {k: v.clone() for k, v in m.state_dict().items()}
+    sd["weights"] = torch.full((6,), 0.5)
+    sd[key] = value.to(sd[key].dtype)
+    with pytest.raises(ValueError, match=match):
+        m.load_state_dict(sd)
+    assert all(torch.equal(v, before[k]) for k, v in m.state_dict().items())
+    assert (m.lo, m.hi) == (-1.0, 1.0)
+
+
+def test_a_rejected_state_dict_leaves_a_composite_unchanged():
+    """Loading is all or nothing: the Preisach stage rejects its density after the PI stage
+    before it would have loaded (nn.Module loads module by module)."""
+    from torchhys import Cascade, InverseHysteresisNet, PrandtlIshlinskii
+
+    def cascade(scale: float) -> Cascade:
+        return Cascade([PrandtlIshlinskii(torch.tensor([0.2, 0.5]) * scale,
+                                          torch.tensor([0.3, 0.1]) * scale),
+                        Preisach(-1.0, 1.0, 3)])
+
+    for module, other in ((cascade(1.0), cascade(2.0)),
+                          (InverseHysteresisNet([cascade(1.0)], 2),
+                           InverseHysteresisNet([cascade(2.0)], 2))):
+        before = {k: v.clone() for k, v in module.state_dict().items()}
+        sd = other.state_dict()
+        key = next(k for k in sd if k.endswith("weights") and sd[k].numel() == 6)
+        sd[key] = torch.full((6,), -1.0)
+        with pytest.raises(ValueError, match="weights must be finite and non-negative"):
+            module.load_state_dict(sd)
+        same(module.state_dict(), before)
+        with pytest.raises(RuntimeError, match="size mismatch"):
+            module.load_state_dict({**other.state_dict(), key: torch.ones(7)})
+        same(module.state_dict(), before)
+        module.load_state_dict(other.state_dict())  # a valid one loads
+        same(module.state_dict(), other.state_dict())
+
+
+def same(a: dict, b: dict) -> None:
+    """Equal state dicts (a network's unfitted normalization buffers are NaN)."""
+    assert list(a) == list(b)
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, equal_nan=True, msg=k)
+
+
 @pytest.mark.parametrize(
     "kwargs, match",
     [

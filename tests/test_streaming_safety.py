@@ -85,6 +85,13 @@ def test_nonfinite_first_samples_hold_initial_command() -> None:
     torch.testing.assert_close(u[2:], comp(x), rtol=0, atol=0)
 
 
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), True, "0"])
+def test_bad_initial_command(bad: object) -> None:
+    net, _ = make_net()
+    with pytest.raises(ValueError, match=f"initial_command must be a finite number, got {bad!r}"):
+        StreamingCompensator(net, limits=(-1.0, 1.0), initial_command=bad)
+
+
 def test_batch_rows_are_independent_under_nan() -> None:
     net, x = make_net()
     comp = StreamingCompensator(net, limits=(-1e3, 1e3))

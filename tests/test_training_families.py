@@ -127,7 +127,8 @@ def test_a_family_that_cannot_fit_raises_fit_error():
 
 @pytest.mark.parametrize("spec, match", [
     ({"name": "pi_nonneg", "direction": "sideways"}, "direction must be one of"),
-    ({"name": "pi_nonneg", "ridge": -1.0}, "ridge must be 'auto' or a number >= 0"),
+    ({"name": "pi_nonneg", "ridge": -1.0}, "ridge must be 'auto' or a finite number >= 0"),
+    ({"name": "gpi", "ridge": float("inf")}, "ridge must be 'auto' or a finite number >= 0"),
     ({"name": "gpi", "unit": 3}, r"unknown option\(s\) \['unit'\]"),
     ({"name": "gpi", "power": 0}, "power must be a finite number > 0"),
     ({"name": "pi_nonneg", "power": float("inf")}, "power must be a finite number > 0"),

@@ -311,7 +311,11 @@ def test_recording_shorter_than_its_warmup(tmp_path: Path) -> None:
       "gives the val split none of the 0 recordings left by the listed stages"),
      (dict(test_recordings=[10, 12]), r"test_recordings: unknown recording 12; the "
       r"recordings of .*runs\.csv are \[10, 11\]"),
-     (dict(train_recordings=[10, 10]), "train_recordings: recording 10 is listed twice")],
+     (dict(train_recordings=[10, 10]), "train_recordings: recording 10 is listed twice"),
+     (dict(train_recordings=[10, 11], test_recordings=[11]),
+      r"recording\(s\) \[11\] are listed in train_recordings and in test_recordings"),
+     (dict(train_recordings=[10], val_recordings=[10], split="paper"),
+      r"\[10\] are listed in train_recordings and in val_recordings")],
 )
 def test_split_errors(tmp_path: Path, kwargs: dict, match: str) -> None:
     path = write_runs(tmp_path / "runs.csv", {10: 40, 11: 30})
@@ -364,7 +368,10 @@ def test_time_restarting_needs_the_run_column(tmp_path: Path) -> None:
     [(dict(split_by="run"), "split_by must be one of"),
      (dict(train_recordings=[0]), "train_recordings need split_by='recording'"),
      (dict(run_column="loop"), "run_column='loop' needs recorded data"),
-     (dict(path=[]), "path must be a file or a non-empty list of files")],
+     (dict(path=[]), "path must be a file or a non-empty list of files"),
+     (dict(path=["a.csv", "./a.csv"]), "path lists the file './a.csv' twice"),
+     (dict(min_samples=0), "min_samples must be an int >= 1, got 0"),
+     (dict(min_samples="16"), "min_samples must be an int >= 1, got '16'")],
 )
 def test_bad_options(kwargs: dict, match: str) -> None:
     with pytest.raises(ValueError, match=match):

@@ -61,7 +61,9 @@ def fit_full_batch(
         x: input, (time,) or (batch, time).
         y: target, same shape.
         adam_epochs: Adam steps.
-        lbfgs_epochs: L-BFGS iterations.
+        lbfgs_epochs: L-BFGS iterations, run as whole ``LBFGS.step`` calls of 20, so
+            rounded up to a multiple of 20; fewer when L-BFGS converges or the MSE falls
+            below ``tolerance``.
         lr: Adam learning rate.
         tolerance: stop L-BFGS once the MSE is below this value.
         warmup: samples at the start of each row left out of the loss (they still run the
@@ -77,6 +79,8 @@ def fit_full_batch(
             outputs or one that needs the target; a warmup out of range.
     """
     start = time.perf_counter()
+    check_int(adam_epochs, "adam_epochs", minimum=0)
+    check_int(lbfgs_epochs, "lbfgs_epochs", minimum=0)
     check_warmup(warmup, x.shape[-1])
     loss_fn = (_network_loss(model, x, y, warmup) if isinstance(model, InverseHysteresisNet)
                else _operator_loss(model, x, y, warmup))

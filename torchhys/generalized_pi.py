@@ -41,7 +41,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from torchhys._checks import as_batched_sequence, check_int, check_same_shape
+from torchhys._checks import as_batched_sequence, check_finite, check_int, check_same_shape
 from torchhys._nnls import check_penalty
 from torchhys.backlash import _inverse_softplus, _Widths
 from torchhys.fitting import fit_full_batch, fit_prandtl_ishlinskii
@@ -235,8 +235,13 @@ class GeneralizedPrandtlIshlinskii(_Widths, HysteresisOperator):
                 p = self.prandtl_ishlinskii()(x)[0]
         else:
             check_same_shape(pi_output, torch.as_tensor(x), "pi_output", "x")
-            p = pi_output.detach()
+            p = check_finite(pi_output.detach(), "pi_output")
+        if p.numel() == 0:
+            raise ValueError("x must hold at least one sample")
         lo, hi = float(p.min()), float(p.max())
+        if not hi > lo:
+            raise ValueError(f"the PI part is constant ({lo:.6g}) on x: its range gives no "
+                             "bounds for g^-1")
         return self.inverse(lower=lo - margin * (hi - lo), upper=hi + margin * (hi - lo))
 
     def extra_repr(self) -> str:

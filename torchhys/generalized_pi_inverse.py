@@ -25,7 +25,7 @@ so that the inverse holds ``v`` at the bound for an input beyond ``g(upper)`` (o
 import torch
 from torch import Tensor
 
-from torchhys._checks import check_int
+from torchhys._checks import as_batched_sequence, check_int
 from torchhys.functional.backlash import backlash, play_step
 from torchhys.functional.prandtl_ishlinskii import (
     pi_output,
@@ -179,6 +179,7 @@ class GeneralizedPIInverse(HysteresisOperator):
         return inverse
 
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        as_batched_sequence(x, "x")  # g^-1 comes first: check x before it
         v = monotone_inverse(x, *(t.to(x.dtype) for t in (
             self.gain, self.unit_weights, self.centers, self.slopes, self.offset, self.lower,
             self.upper)))

@@ -18,9 +18,11 @@ from torch import Tensor, nn
 
 from torchhys._checks import (
     as_batched_sequence,
+    check_finite,
     check_int,
     check_positive,
     check_same_shape,
+    check_tensor,
     check_warmup,
 )
 from torchhys.functional.jiles_atherton import MU0, jiles_atherton, jiles_atherton_step
@@ -113,13 +115,21 @@ class JilesAtherton(HysteresisOperator):
         self.saved_substeps.fill_(check_int(value, "substeps", minimum=1))
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[override]
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+        # checked before anything is copied (a bad value is an error, the module unchanged)
+        raw = state_dict.get(prefix + "raw")
+        if isinstance(raw, Tensor) and not bool(raw.isfinite().all()):
+            raise ValueError(f"{prefix}raw must be finite, got {raw.tolist()}")
         mu0 = state_dict.get(prefix + "saved_mu0")
         if isinstance(mu0, Tensor) and mu0.numel() == 1:
-            self.mu0 = check_positive(float(mu0), "mu0")
+            mu0 = check_positive(float(mu0), f"{prefix}saved_mu0")
         steps = state_dict.get(prefix + "saved_substeps")
         if isinstance(steps, Tensor) and steps.numel() == 1:
-            self.substeps = round(float(steps))
+            v = float(steps)
+            if not (math.isfinite(v) and v == round(v) and v >= 1):
+                raise ValueError(f"{prefix}saved_substeps must be an int >= 1, got {v!r}")
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+        if isinstance(mu0, float):
+            self.mu0 = mu0
 
     def parameters_effective(self) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """``(ms, a, k, alpha, c)``, each 0-dim (differentiable)."""
@@ -135,10 +145,12 @@ class JilesAtherton(HysteresisOperator):
         b, unbatched = as_batched_sequence(x, "x")
         start = None
         if state is not None:
+            check_tensor(state, "state")
             s = state.unsqueeze(0) if state.dim() == 1 else state
             if s.shape != (b.shape[0], 2):
                 raise ValueError(f"state must have shape ({b.shape[0]}, 2) (B and H), got "
                                  f"{tuple(state.shape)}")
+            check_finite(s, "state")
             start = (s[:, 0].to(b.dtype), s[:, 1].to(b.dtype))
         p = [v.to(b.dtype) for v in self.parameters_effective()]
         h, (b_last, h_last) = jiles_atherton(b, *p, mu0=self.mu0, substeps=self.substeps,

@@ -7,7 +7,13 @@ import torch
 from torch import Tensor, nn
 
 from torchhys._checks import as_batched_sequence, check_choice, check_int
-from torchhys.operator import HysteresisOperator, OperatorStep, check_operator, make_operator
+from torchhys.operator import (
+    AtomicLoad,
+    HysteresisOperator,
+    OperatorStep,
+    check_operator,
+    make_operator,
+)
 
 __all__ = ["InverseHysteresisNet"]
 
@@ -25,7 +31,7 @@ def _make_operator(spec: Operator, kwargs: dict) -> HysteresisOperator:
     return check_operator(spec)
 
 
-class InverseHysteresisNet(nn.Module):
+class InverseHysteresisNet(AtomicLoad, nn.Module):
     """Elementary operator(s) plus a one-hidden-layer network: ``y = W sigma(V [x, f(x)])``.
 
     The input is expanded with the outputs of the elementary operators (Theorem 1: the map

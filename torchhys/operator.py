@@ -39,6 +39,7 @@ fixed when it is built.
 """
 
 import abc
+import copy
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -50,6 +51,7 @@ from torchhys._checks import check_choice, check_int
 
 __all__ = [
     "OPERATORS",
+    "AtomicLoad",
     "HysteresisOperator",
     "OperatorStep",
     "StateBlock",
@@ -144,7 +146,21 @@ class OperatorStep(nn.Module, abc.ABC):
         return torch.stack(outs, dim=1)
 
 
-class HysteresisOperator(nn.Module, abc.ABC):
+class AtomicLoad:
+    """Mixin of ``nn.Module`` subclasses: ``load_state_dict`` loads all or nothing.
+
+    ``nn.Module.load_state_dict`` copies module by module, so a state dict that one
+    submodule rejects (a shape mismatch, a negative Preisach density) leaves the submodules
+    before it loaded. Here the state dict is first loaded into a copy of the module; only if
+    that succeeds is it loaded into the module itself. On error the module is as it was.
+    """
+
+    def load_state_dict(self, state_dict: Any, strict: bool = True, assign: bool = False) -> Any:
+        nn.Module.load_state_dict(copy.deepcopy(self), state_dict, strict=strict, assign=assign)
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)  # type: ignore[misc]
+
+
+class HysteresisOperator(AtomicLoad, nn.Module, abc.ABC):
     """Base class of the operators that networks, streaming and export compose.
 
     Subclasses implement :meth:`forward` and :meth:`streaming_step`, and set ``n_outputs``.

@@ -3,6 +3,7 @@
 import torch
 from torch import Tensor, nn
 
+from torchhys._checks import as_batched_sequence, check_finite, check_floating, check_tensor
 from torchhys.backlash import _Widths
 from torchhys.functional.backlash import backlash, play_step
 from torchhys.functional.prandtl_ishlinskii import (
@@ -118,7 +119,18 @@ class PrandtlIshlinskii(_Widths, HysteresisOperator):
         Returns:
             The inverse model's play-operator state, (M,) or (batch, M), M the
             number of operators with positive width.
+
+        Raises:
+            TypeError, ValueError: a state that is not a finite floating-point (N,) or
+                (batch, N) tensor.
         """
+        check_tensor(state, "state")
+        check_floating(state, "state")
+        n = self.n_operators
+        if state.dim() not in (1, 2) or state.shape[-1] != n:
+            raise ValueError(f"state must have shape ({n},) or (batch, {n}), got shape "
+                             f"{tuple(state.shape)}")
+        check_finite(state, "state")
         p = prandtl_ishlinskii_inverse_parameters(
             self.get_widths().detach(), self.weights.detach(), self.linear_weight.detach()
         )
@@ -162,6 +174,7 @@ class PrandtlIshlinskiiInverse(nn.Module):
 
     def forward(self, y: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
         if self.widths.numel() == 0:  # purely linear model
+            as_batched_sequence(y, "y")
             return self.linear_weight.to(y.dtype) * y, y.new_zeros(y.shape[:-1] + (0,))
         z = backlash(y, self.widths, y0=state)
         u = pi_output(y, z, self.weights.to(z.dtype), self.linear_weight.to(z.dtype))

@@ -133,8 +133,15 @@ class Preisach(HysteresisOperator):
             raise ValueError(f"{prefix}weights must be finite and non-negative (a Preisach "
                              f"density), got minimum {w.min().item():.6g}; call project_() "
                              "before saving")
+        a, b = state_dict.get(prefix + "alpha"), state_dict.get(prefix + "beta")
+        if isinstance(a, Tensor) and isinstance(b, Tensor) and a.shape == b.shape and not bool(
+                (a.isfinite() & b.isfinite() & (a >= b)).all()):
+            raise ValueError(f"{prefix}alpha and {prefix}beta must be finite thresholds with "
+                             "alpha >= beta (a Preisach grid)")
+        r = state_dict.get(prefix + "initial_relays")
+        if isinstance(r, Tensor) and not bool(((r == 1) | (r == -1)).all()):
+            raise ValueError(f"{prefix}initial_relays must hold relay values +-1")
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
-        a = state_dict.get(prefix + "alpha")
         if isinstance(a, Tensor) and a.shape == self.alpha.shape and self.n > 1:
             # the grid range of the loaded thresholds (cell centres, module docstring)
             lo, hi = float(a.min()), float(a.max())

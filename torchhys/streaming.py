@@ -152,7 +152,7 @@ class StreamingCompensator(nn.Module):
 
     Raises:
         ValueError: a non-causal operator (``EIHO(a="segment")``), an uncalibrated
-            ``threshold="auto"``, bad ``limits``.
+            ``threshold="auto"``, bad ``limits``, a non-finite ``initial_command``.
         TypeError: a model without streaming steps, or a step outside the protocol.
     """
 
@@ -186,6 +186,9 @@ class StreamingCompensator(nn.Module):
         low, high = _check_limits(default_limits(model) if limits is None else limits)
         self.register_buffer("low", torch.tensor(low, dtype=dtype))
         self.register_buffer("high", torch.tensor(high, dtype=dtype))
+        if isinstance(initial_command, bool) or not isinstance(initial_command, (int, float)) \
+                or not math.isfinite(initial_command):
+            raise ValueError(f"initial_command must be a finite number, got {initial_command!r}")
         u0 = min(max(float(initial_command), low), high)
         self.register_buffer("u0", torch.tensor(u0, dtype=dtype))
         self.register_buffer("zero", torch.zeros((), dtype=dtype))  # the hold test's 0

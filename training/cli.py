@@ -60,6 +60,7 @@ from torchhys.training import selection
 from torchhys.training.callbacks import PredictionWriter
 from torchhys.training.data import HysteresisDataModule
 from torchhys.training.module import InverseHysteresisModule
+from torchhys.training.operators import build_operators
 
 __all__ = ["TorchhysCLI", "main"]
 
@@ -162,6 +163,11 @@ class TorchhysCLI(LightningCLI):
             raise ValueError(f"model.select[{index}] {overrides}: {err}") from None
         finally:
             parser.exit_on_error = exit_on_error
+        model = cfg["model"]
+        try:  # the operators' specs, checked before any candidate trains
+            build_operators(model["operator"], model["operator_kwargs"])
+        except (ValueError, TypeError) as err:
+            raise ValueError(f"model.select[{index}] {overrides}: {err}") from None
         _pop_select(cfg)
         full = self.config.clone()
         full[self.subcommand] = cfg

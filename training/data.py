@@ -194,6 +194,7 @@ class HysteresisDataModule(L.LightningDataModule):
     def _check_inputs(self) -> None:
         hp = self.hparams
         check_int(hp.warmup, "warmup", minimum=0)
+        check_int(hp.min_samples, "min_samples", minimum=1)
         check_int(hp.repeat, "repeat", minimum=1)
         check_choice(hp.split_by, "split_by", SPLIT_BY)
         if hp.path is None:
@@ -207,6 +208,13 @@ class HysteresisDataModule(L.LightningDataModule):
             and all(isinstance(p, (str, Path)) for p in hp.path)
         ):
             raise ValueError(f"path must be a file or a non-empty list of files, got {hp.path!r}")
+        if hp.path is not None and not isinstance(hp.path, (str, Path)):
+            seen: set[Path] = set()
+            for p in hp.path:
+                if Path(p).resolve() in seen:
+                    raise ValueError(f"path lists the file {str(p)!r} twice: each recording "
+                                     "once, or its copies would be in training and held out")
+                seen.add(Path(p).resolve())
         listed = [f"{s}_recordings" for s in STAGES if hp[f"{s}_recordings"] is not None]
         if listed and hp.split_by != "recording":
             raise ValueError(

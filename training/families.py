@@ -40,6 +40,7 @@ model selection scores that candidate as failed.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -89,9 +90,10 @@ def _penalty(spec: Mapping[str, Any], key: str) -> float | str:
     value = spec.get(key, "auto")
     if value == "auto":
         return value
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
-        raise ValueError(f"operator {spec['name']!r}: {key} must be 'auto' or a number >= 0, "
-                         f"got {value!r}")
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
+            math.isfinite(value) and value >= 0):
+        raise ValueError(f"operator {spec['name']!r}: {key} must be 'auto' or a finite number "
+                         f">= 0, got {value!r}")
     return float(value)
 
 

@@ -24,6 +24,7 @@ exports carry them.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -31,7 +32,7 @@ import torch
 from torch import Tensor, nn
 
 from torchhys import Backlash, PrandtlIshlinskii
-from torchhys._checks import check_choice, check_int, check_warmup
+from torchhys._checks import check_choice, check_int, check_positive, check_warmup
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid
 from torchhys.operator import OPERATORS, make_operator
 from torchhys.training.families import FAMILIES
@@ -61,19 +62,22 @@ def _check_keys(spec: Mapping[str, Any], allowed: set[str]) -> None:
         )
 
 
+def _flag(spec: Mapping[str, Any], key: str) -> bool:
+    value = spec.get(key, False)
+    if not isinstance(value, bool):
+        raise ValueError(f"operator {spec['name']!r}: {key} must be true or false, got {value!r}")
+    return value
+
+
 def _plays(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter | None]:
     _check_keys(spec, {"n", "power", "span_fraction", "learnable", "widths"})
-    learnable = bool(spec.get("learnable", False))
+    learnable = _flag(spec, "learnable")
     if spec.get("widths") is not None:
         widths = torch.as_tensor(spec["widths"], dtype=torch.get_default_dtype())
         return Backlash(widths, learnable=learnable), None
     n = _positive_int(spec, "n", 16)
-    power = float(spec.get("power", 1.0))
-    fraction = float(spec.get("span_fraction", 1.0))
-    if not (power > 0 and fraction > 0):
-        raise ValueError(
-            f"operator 'plays': power and span_fraction must be > 0, got {power}, {fraction}"
-        )
+    power = check_positive(spec.get("power", 1.0), "operator 'plays': power")
+    fraction = check_positive(spec.get("span_fraction", 1.0), "operator 'plays': span_fraction")
 
     def fit(x: Tensor, y: Tensor, warmup: int) -> nn.Module:
         return Backlash(fraction * play_width_grid(x, n, power=power), learnable=learnable)
@@ -84,11 +88,12 @@ def _plays(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter | None]:
 def _pi_ls(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     _check_keys(spec, {"n_widths", "power", "ridge", "learnable"})
     n = _positive_int(spec, "n_widths", 30)
-    power = float(spec.get("power", 3.0))
-    ridge = float(spec.get("ridge", 0.0))
-    learnable = bool(spec.get("learnable", False))
-    if not power > 0:
-        raise ValueError(f"operator 'pi_ls': power must be > 0, got {power}")
+    power = check_positive(spec.get("power", 3.0), "operator 'pi_ls': power")
+    ridge = spec.get("ridge", 0.0)
+    if isinstance(ridge, bool) or not isinstance(ridge, (int, float)) or not (
+            math.isfinite(ridge) and ridge >= 0):
+        raise ValueError(f"operator 'pi_ls': ridge must be a finite number >= 0, got {ridge!r}")
+    learnable = _flag(spec, "learnable")
 
     def fit(x: Tensor, y: Tensor, warmup: int) -> nn.Module:
         widths = play_width_grid(x, n, power=power)
