@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 import torch
 
-from torchhys._checks import check_choice, check_int, check_same_shape
+from torchhys._checks import (
+    as_batched_sequence,
+    check_bool,
+    check_choice,
+    check_int,
+    check_same_shape,
+)
 
 
 @pytest.mark.parametrize("value, minimum", [(0, None), (-5, None), (3, 3), (10, 3), (0, 0)])
@@ -50,3 +56,17 @@ def test_same_shape() -> None:
         check_same_shape(torch.zeros(2, 4), torch.zeros(2, 5), "y", "x")
     with pytest.raises(ValueError, match=r"x \(5,\), got shape \(1, 5\)"):
         check_same_shape(torch.zeros(1, 5), torch.zeros(5), "y", "x")  # no broadcasting
+
+
+def test_bool_accepts_only_bools() -> None:
+    assert check_bool(True, "flag") is True and check_bool(False, "flag") is False
+    for bad in ("false", 0, 1.0, None, np.bool_(True)):
+        with pytest.raises(TypeError, match=f"flag must be True or False, got .*{bad!r}"):
+            check_bool(bad, "flag")
+
+
+def test_a_sequence_needs_a_row_and_a_sample() -> None:
+    with pytest.raises(ValueError, match=r"x must hold at least one row, got shape \(0, 5\)"):
+        as_batched_sequence(torch.zeros(0, 5))
+    with pytest.raises(ValueError, match=r"x must hold at least one sample"):
+        as_batched_sequence(torch.zeros(2, 0))

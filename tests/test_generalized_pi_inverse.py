@@ -189,3 +189,13 @@ def test_bad_input_is_an_error_before_g_inverse(bad, error, match):
     for inv in (model().inverse(), model().inverse(lower=-1.0, upper=1.0)):
         with pytest.raises(error, match=match):
             inv(bad)
+
+
+def test_bounds_must_be_real_numbers():
+    m = model()
+    with pytest.raises(ValueError, match=r"lower must be a real number \(or \+-inf\)"):
+        m.inverse(lower=torch.tensor([0.0, 1.0]))
+    with pytest.raises(ValueError, match="upper must be a real number"):
+        m.inverse(upper=math.nan)
+    inv = m.inverse(lower=torch.tensor(-2.0), upper=np.float64(3.0))
+    assert (float(inv.lower), float(inv.upper)) == (-2.0, 3.0)

@@ -7,7 +7,12 @@ import torch
 from _helpers import random_walk, run_chunked
 
 from torchhys import InverseHysteresisNet, PrandtlIshlinskii
-from torchhys.fitting import fit_full_batch, fit_prandtl_ishlinskii, play_width_grid
+from torchhys.fitting import (
+    fit_full_batch,
+    fit_prandtl_ishlinskii,
+    play_width_grid,
+    select_pi_ridge,
+)
 from torchhys.functional import prandtl_ishlinskii, prandtl_ishlinskii_inverse_parameters
 from torchhys.plants import paper_plant_widths, paper_simulation
 from torchhys.signals import exponential_decay, multisine, to_range
@@ -72,6 +77,12 @@ def test_bad_input() -> None:
         fit_prandtl_ishlinskii(u, u[:, :-1], widths)
     with pytest.raises(ValueError, match="ridge"):
         fit_prandtl_ishlinskii(u, u, widths, ridge=-1.0)
+    with pytest.raises(TypeError, match="nonnegative must be True or False, got str 'no'"):
+        fit_prandtl_ishlinskii(u, u, widths, nonnegative="no")
+    with pytest.raises(TypeError, match="learnable must be True or False, got int 1"):
+        fit_prandtl_ishlinskii(u, u, widths, learnable=1)
+    with pytest.raises(TypeError, match="ridges must be a sequence of candidate values"):
+        select_pi_ridge(u, u, widths, 0.1)
     with pytest.raises(ValueError, match="non-negative"):
         fit_prandtl_ishlinskii(u, u, -widths)
     with pytest.raises(TypeError, match="floating"):

@@ -65,8 +65,15 @@ def test_bad_weights_and_module_options():
         preisach(X, torch.full((6,), math.nan), A, B)
     with pytest.raises(ValueError, match="initial must be one of"):
         Preisach(-1.0, 1.0, 3, initial="saturated")
-    with pytest.raises(ValueError, match="initial must be one of"):
+    with pytest.raises(ValueError, match=r"initial must hold relay values \+-1, got values \[0"):
         Preisach(-1.0, 1.0, 3, initial=torch.zeros(6))
+    with pytest.raises(ValueError, match=r"initial must be one of .* got shape \(3,\)"):
+        Preisach(-1.0, 1.0, 3, initial=torch.ones(3))
+    for flag in ("linear", "offset"):
+        with pytest.raises(TypeError, match=f"{flag} must be True or False, got str 'no'"):
+            Preisach(-1.0, 1.0, 3, **{flag: "no"})
+    with pytest.raises(ValueError, match=r"x must hold at least one row, got shape \(0, 5\)"):
+        Preisach(-1.0, 1.0, 3)(torch.zeros(0, 5))
     with pytest.raises(ValueError, match="smooth must be None"):
         Preisach(-1.0, 1.0, 3, smooth=-0.1)
     m = Preisach(-1.0, 1.0, 3)
@@ -154,7 +161,8 @@ def same(a: dict, b: dict) -> None:
         ({"warmup": 1.0}, "warmup must be an int >= 0, got 1.0"),
         ({"ridge": -1.0}, "ridge must be >= 0"),
         ({"smoothness": math.nan}, "smoothness must be finite"),
-        ({"x": torch.ones(3)}, "lo must be less than hi"),
+        ({"x": torch.ones(3)}, r"x is constant \(1\): its range gives no grid"),
+        ({"x": torch.ones(3), "lo": 1.0, "hi": 1.0}, "lo must be less than hi"),
         ({"n": 0}, "n must be an int >= 1"),
     ],
 )
@@ -202,3 +210,14 @@ def test_loaded_grid_sets_the_range():
     dst.load_state_dict(src.state_dict())
     assert dst.lo == pytest.approx(-2.0) and dst.hi == pytest.approx(3.0)
     torch.testing.assert_close(dst.alpha, src.alpha)
+
+
+def test_a_constant_input_without_a_range_is_named():
+    x = torch.ones(1, 20, dtype=torch.float64)
+    y = torch.linspace(0.0, 1.0, 20, dtype=torch.float64)[None]
+    with pytest.raises(ValueError, match=r"x is constant \(1\): its range gives no grid; give lo"):
+        fit_preisach(x, y)
+    with pytest.raises(ValueError, match="x is constant"):
+        select_penalty(x, y, [0.0, 1e-3], lo=None, hi=None, n=4)
+    with pytest.raises(TypeError, match="penalties must be a sequence of candidate values"):
+        select_penalty(y, y, 0.1, n=4)

@@ -73,6 +73,12 @@ def test_npz_arrays_and_table(tmp_path: Path) -> None:
     b = read_record(tmp_path / "b.npz", input_column=2, target_column=1, time_column=0)
     np.testing.assert_array_equal(a.x, b.x)
     np.testing.assert_array_equal(a.t, b.t)
+    for name, bad in (("complex", rows[:, 2] + 1j), ("text", rows[:, 2].astype(str))):
+        np.savez(tmp_path / f"{name}.npz", time=rows[:, 0], command=rows[:, 1], response=bad)
+        with pytest.raises(DataFileError, match=r"column 'response' \(input_column\) must hold "
+                           rf"real numbers, got dtype {bad.dtype}"):
+            read_record(tmp_path / f"{name}.npz", input_column="response",
+                        target_column="command")
 
 
 def _problem_csv(tmp_path: Path, kind: str) -> tuple[Path, dict]:
@@ -141,7 +147,8 @@ def test_split_too_small_names_file_and_rows(tmp_path: Path) -> None:
         dm.setup("fit")
 
 
-@pytest.mark.parametrize("split", ["all", [0.5, 0.6, 0.1], [0.0, 0.5, 0.5], [0.5, 0.5]])
+@pytest.mark.parametrize("split", ["all", [0.5, 0.6, 0.1], [0.0, 0.5, 0.5], [0.5, 0.5],
+                                   [True, 0, 0], [0.5, "0.2", 0.1]])
 def test_bad_split(split) -> None:
     with pytest.raises(ValueError, match="split"):
         HysteresisDataModule(split=split)

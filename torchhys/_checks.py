@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "check_bool",
     "check_choice",
     "check_finite",
     "check_floating",
@@ -76,6 +77,14 @@ def check_warmup(warmup: object, T: int) -> int:
     return warmup
 
 
+def check_bool(value: object, name: str) -> bool:
+    """Raise ``TypeError`` unless ``value`` is a bool (a flag given as a string or a number
+    would otherwise act by its truth value)."""
+    if not isinstance(value, bool):
+        raise TypeError(f"{name} must be True or False, got {type(value).__name__} {value!r}")
+    return value
+
+
 def check_positive(value: object, name: str) -> float:
     """Raise ``ValueError`` unless ``value`` is a finite int or float ``> 0`` (a bool is not);
     return it as a float."""
@@ -136,6 +145,8 @@ def as_batched_sequence(x: Tensor, name: str = "x") -> tuple[Tensor, bool]:
         )
     if x.shape[-1] == 0:
         raise ValueError(f"{name} must hold at least one sample, got shape {tuple(x.shape)}")
+    if x.dim() == 2 and x.shape[0] == 0:
+        raise ValueError(f"{name} must hold at least one row, got shape {tuple(x.shape)}")
     check_finite(x, name)
     if x.dim() == 1:
         return x.unsqueeze(0), True

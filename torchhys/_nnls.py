@@ -98,6 +98,9 @@ def select_on_holdout(
     Raises:
         ValueError, TypeError: no penalty, or a bad one.
     """
+    if isinstance(penalties, (str, bytes)) or not isinstance(penalties, (Sequence, Tensor)):
+        raise TypeError(f"{name} must be a sequence of candidate values (e.g. [0.0, 1e-4]), "
+                        f"got {type(penalties).__name__} {penalties!r}")
     if len(penalties) == 0:
         raise ValueError(f"{name} must hold at least one value, got none")
     values = [check_penalty(p, name) for p in penalties]

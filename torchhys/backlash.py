@@ -4,7 +4,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from torchhys._checks import check_finite, check_floating, check_tensor, check_widths
+from torchhys._checks import (
+    check_bool,
+    check_finite,
+    check_floating,
+    check_tensor,
+    check_widths,
+)
 from torchhys.functional.backlash import backlash, play_step
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
 
@@ -29,7 +35,7 @@ class _Widths(nn.Module):
         if not widths.is_floating_point():
             widths = widths.to(torch.get_default_dtype())
         check_widths(widths, "widths")
-        self.learnable = bool(learnable)
+        self.learnable = check_bool(learnable, "learnable")
         if self.learnable:
             self.raw_widths = nn.Parameter(_inverse_softplus(widths.detach().clone()))
         else:

@@ -17,7 +17,7 @@ import warnings
 import torch
 from torch import Tensor, nn
 
-from torchhys._checks import as_batched_sequence, check_warmup
+from torchhys._checks import as_batched_sequence, check_bool, check_warmup
 from torchhys._nnls import Moments, check_penalty, holdout_cuts, nnls_gram, select_on_holdout
 from torchhys.functional.preisach import (
     _check_smooth,
@@ -79,6 +79,8 @@ class Preisach(HysteresisOperator):
         initial: str | Tensor = "demagnetized",
     ) -> None:
         super().__init__()
+        check_bool(linear, "linear")
+        check_bool(offset, "offset")
         alpha, beta = preisach_grid(lo, hi, n, dtype=torch.float64)
         self.lo, self.hi, self.n, self.n_relays = float(lo), float(hi), n, alpha.numel()
         self.smooth = _check_smooth(smooth)
@@ -96,9 +98,12 @@ class Preisach(HysteresisOperator):
     def _initial(self, initial: str | Tensor, alpha: Tensor, beta: Tensor) -> Tensor:
         choices = ("demagnetized", "negative", "positive")
         if isinstance(initial, Tensor):
-            if initial.shape != alpha.shape or not bool(((initial == 1) | (initial == -1)).all()):
+            if initial.shape != alpha.shape:
                 raise ValueError(f"initial must be one of {choices} or a tensor of shape "
                                  f"({alpha.numel()},) of +-1, got shape {tuple(initial.shape)}")
+            if not bool(((initial == 1) | (initial == -1)).all()):
+                raise ValueError("initial must hold relay values +-1, got values "
+                                 f"{sorted(set(initial.tolist()))[:5]}")
             return initial.to(alpha.dtype).clone()
         if initial == "demagnetized":
             return demagnetized_state(alpha, beta, 0.5 * (self.lo + self.hi))
@@ -264,6 +269,9 @@ def _prepare(x: Tensor, y: Tensor, lo: float | None, hi: float | None, n: int, l
                          f"{tuple(y.shape)}")
     T = xb.shape[1]
     check_warmup(warmup, T)
+    if (lo is None or hi is None) and not float(xb.max()) > float(xb.min()):
+        raise ValueError(f"x is constant ({float(xb.min()):.6g}): its range gives no grid; "
+                         "give lo and hi")
     lo = float(xb.min()) if lo is None else _real(lo, "lo")
     hi = float(xb.max()) if hi is None else _real(hi, "hi")
     model = Preisach(lo, hi, n, linear=linear).to(xb.dtype)

@@ -165,6 +165,9 @@ class _Table:
         if self._arrays is None:
             out = np.array([_number(v) for v in raw], dtype=np.float64)
         else:
+            if not (np.issubdtype(raw.dtype, np.floating) or np.issubdtype(raw.dtype, np.integer)):
+                raise DataFileError(f"{self.path}: column {name!r} ({role}) must hold real "
+                                    f"numbers, got dtype {raw.dtype}")
             try:
                 out = np.asarray(raw, dtype=np.float64)
             except ValueError as exc:

@@ -40,6 +40,8 @@ def check_split(split: str | list[float] | tuple[float, ...]) -> tuple[float, fl
         raise ValueError(
             f"split must be 'paper' or three fractions [train, val, test], got {split!r}"
         )
+    if any(isinstance(f, bool) or not isinstance(f, (int, float)) for f in split):
+        raise ValueError(f"split fractions must be numbers, got {list(split)}")
     fr = tuple(float(f) for f in split)
     if not (fr[0] > 0 and min(fr) >= 0 and sum(fr) <= 1.0 + 1e-9):
         raise ValueError(

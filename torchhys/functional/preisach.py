@@ -283,7 +283,7 @@ def _relay_chunks(
     u = torch.full((ua.shape[0], B, 1), -1, dtype=torch.int32, device=x.device)
     d = torch.full((ub.shape[0], B, 1), -1, dtype=torch.int32, device=x.device)
     r0 = r0.t().unsqueeze(-1)  # (K, B, 1)
-    length = max(1, _CHUNK // (B * max(K, ua.shape[0], ub.shape[0])))
+    length = max(1, _CHUNK // (max(B, 1) * max(K, ua.shape[0], ub.shape[0])))
     for start in range(0, T, length):
         stop = min(start + length, T)
         t = torch.arange(start, stop, dtype=torch.int32, device=x.device)
