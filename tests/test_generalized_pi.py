@@ -243,6 +243,8 @@ def test_registered_by_name():
 def test_bad_parameters(kwargs, match):
     with pytest.raises(ValueError, match=match):
         model(**kwargs)
+    with pytest.raises(TypeError, match="learnable_widths must be True or False, got str"):
+        model(learnable_widths="no")
 
 
 def test_bad_fit_input():
@@ -321,3 +323,22 @@ def test_fit_leaves_the_warmup_samples_out():
         fit_full_batch(clean, x, y, lbfgs_epochs=1, warmup=x.shape[-1])
     with pytest.raises(ValueError, match="warmup must be an int >= 0"):
         fit_full_batch(clean, x, y, lbfgs_epochs=1, warmup=-1)
+
+
+@pytest.mark.parametrize("learnable", [False, True])
+def test_predictor_equals_forward_with_its_gradient(learnable):
+    """The fitting closure (plays once, matrix products) equals the sequence path up to
+    rounding, and so does its gradient with respect to every parameter."""
+    m = model(learnable_widths=learnable)
+    x = walks(300)
+    predict = m.predictor(x)
+    out = predict()
+    ref = m(x)[0]
+    torch.testing.assert_close(out, ref, rtol=0, atol=1e-12)
+    grads = torch.autograd.grad(out.square().sum(), list(m.parameters()))
+    refs = torch.autograd.grad(ref.square().sum(), list(m.parameters()))
+    for g, r in zip(grads, refs, strict=True):
+        torch.testing.assert_close(g, r, rtol=1e-10, atol=1e-10)
+    with torch.no_grad():  # the closure reads the current parameters
+        m.offset.add_(1.0)
+    torch.testing.assert_close(predict(), ref.detach() + 1.0, rtol=0, atol=1e-12)

@@ -14,6 +14,7 @@ from torch import Tensor
 
 from torchhys._checks import (
     as_batched_sequence,
+    check_bool,
     check_int,
     check_positive,
     check_same_shape,
@@ -54,7 +55,9 @@ def fit_full_batch(
     trainable parameters their outputs are computed once and only the network is trained.
     ``y`` is passed as ``target`` (used only by per-segment, non-causal EIHOs). An operator
     with one output (e.g. :class:`~torchhys.generalized_pi.GeneralizedPrandtlIshlinskii`)
-    is fitted as a model of ``y`` itself: the loss is ``mean((op(x) - y)^2)``.
+    is fitted as a model of ``y`` itself: the loss is ``mean((op(x) - y)^2)``, computed through
+    ``op.predictor(x)`` where the operator has one (a faster closure of its output on this
+    fixed input, e.g. :meth:`~torchhys.GeneralizedPrandtlIshlinskii.predictor`).
 
     Args:
         model: the network, or a causal operator with ``n_outputs == 1``.
@@ -145,7 +148,9 @@ def _operator_loss(op: object, x: Tensor, y: Tensor, warmup: int) -> Callable[[]
     xb, _ = as_batched_sequence(x, "x")
     yb, _ = as_batched_sequence(y, "y")
     check_same_shape(yb, xb, "y", "x")
-    return lambda: torch.mean((op(xb)[0] - yb)[:, warmup:] ** 2)
+    # an operator may give a faster closure of its output on this fixed input
+    predict = op.predictor(xb) if hasattr(op, "predictor") else (lambda: op(xb)[0])
+    return lambda: torch.mean((predict() - yb)[:, warmup:] ** 2)
 
 
 def play_width_grid(u: Tensor, n: int = 30, *, power: float = 3.0) -> Tensor:
@@ -231,6 +236,7 @@ def fit_prandtl_ishlinskii(
     """
     ub, yb = _check_pi_data(u, y, widths, warmup)
     ridge = _check_ridge(ridge)
+    check_bool(nonnegative, "nonnegative")
     (A, target), = _pi_segments(ub, yb, widths, [warmup, ub.shape[1]])
     if nonnegative:
         m = moments(A, target)
@@ -272,7 +278,7 @@ def select_pi_ridge(
     ub, yb = _check_pi_data(u, y, widths, warmup)
     cuts = holdout_cuts(ub.shape[1], warmup, validation)
     (A, t), (Av, tv) = _pi_segments(ub, yb, widths, cuts)
-    floor = _linear_floor(A[:, 0], t) if nonnegative else 0.0
+    floor = _linear_floor(A[:, 0], t) if check_bool(nonnegative, "nonnegative") else 0.0
 
     def solve(G: Tensor, h: Tensor, ridge: float) -> Tensor:
         return _pi_solve(G, h, ridge, bool(nonnegative), floor)

@@ -34,14 +34,20 @@ References:
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from torchhys._checks import as_batched_sequence, check_finite, check_int, check_same_shape
+from torchhys._checks import (
+    as_batched_sequence,
+    check_bool,
+    check_finite,
+    check_int,
+    check_same_shape,
+)
 from torchhys._nnls import check_penalty
 from torchhys.backlash import _inverse_softplus, _Widths
 from torchhys.fitting import fit_full_batch, fit_prandtl_ishlinskii
@@ -157,7 +163,7 @@ class GeneralizedPrandtlIshlinskii(_Widths, HysteresisOperator):
         unit_weights: Tensor | Sequence[float] | None = None, gain: float = 1.0,
         offset: float = 0.0, learnable_widths: bool = False,
     ) -> None:
-        super().__init__(widths, learnable=learnable_widths)
+        super().__init__(widths, learnable=check_bool(learnable_widths, "learnable_widths"))
         n, dtype = self.n_operators, self.get_widths().dtype
         w = torch.ones(n, dtype=dtype) if weights is None else weights
         b = torch.linspace(-1.0, 1.0, 5, dtype=dtype) if centers is None else centers
@@ -190,6 +196,28 @@ class GeneralizedPrandtlIshlinskii(_Widths, HysteresisOperator):
         y = backlash(x, widths, y0=state)
         w, w0, a, c, b, s, off = (t.to(y.dtype) for t in rest)
         return monotone_output(pi_output(x, y, w, w0), a, c, b, s, off), y[..., -1, :]
+
+    def predictor(self, x: Tensor) -> Callable[[], Tensor]:
+        """The output on a fixed input x (batch, time), zero initial state, as a closure of
+        the parameters, for fitting (:func:`~torchhys.fitting.fit_full_batch` calls it at
+        every step). With fixed widths the plays are computed once and ``p`` and ``g`` are
+        matrix products: about half the time of :meth:`forward` per call on 1e5 samples,
+        equal to it up to rounding (forward sums in a fixed order, so that chunked calls
+        equal one call; this closure does not need that)."""
+        if self.learnable:
+            return lambda: self(x)[0]
+        widths = self.get_widths()
+        with torch.no_grad():
+            z = backlash(x, widths)
+        design = torch.cat([x.unsqueeze(-1), z], -1).reshape(-1, widths.shape[0] + 1)
+
+        def predict() -> Tensor:
+            w, w0, a, c, b, s, off = (t.to(design.dtype) for t in self.parameters_effective()[1:])
+            p = design @ torch.cat([w0.reshape(1), w])
+            units = torch.tanh(s * (p.unsqueeze(-1) - b))
+            return (a * p + units @ c + off).reshape(x.shape)
+
+        return predict
 
     def streaming_step(self, dtype: torch.dtype) -> GeneralizedPIStep:
         """The per-sample step with the current parameters (detached), in ``dtype``."""
