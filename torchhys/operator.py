@@ -152,11 +152,17 @@ class AtomicLoad:
     ``nn.Module.load_state_dict`` copies module by module, so a state dict that one
     submodule rejects (a shape mismatch, a negative Preisach density) leaves the submodules
     before it loaded. Here the state dict is first loaded into a copy of the module; only if
-    that succeeds is it loaded into the module itself. On error the module is as it was.
+    that succeeds is it loaded into the module itself. On error the module is as it was
+    (a module that cannot be deep-copied loads directly, module by module).
     """
 
     def load_state_dict(self, state_dict: Any, strict: bool = True, assign: bool = False) -> Any:
-        nn.Module.load_state_dict(copy.deepcopy(self), state_dict, strict=strict, assign=assign)
+        try:
+            trial = copy.deepcopy(self)
+        except RuntimeError:  # an attribute that cannot be copied (a non-leaf tensor)
+            trial = None
+        if trial is not None:
+            nn.Module.load_state_dict(trial, state_dict, strict=strict, assign=assign)
         return super().load_state_dict(state_dict, strict=strict, assign=assign)  # type: ignore[misc]
 
 
