@@ -197,3 +197,16 @@ def test_exports_to_aoti_and_runs(tmp_path) -> None:
     torch.testing.assert_close(got, ref, rtol=0, atol=1e-12)
     stepper.step(torch.tensor([float("nan")], dtype=torch.float64))
     assert int(stepper.nonfinite_count()) == 1
+
+
+def test_a_module_that_cannot_be_copied_still_loads() -> None:
+    """AtomicLoad tries a deep copy first; a non-leaf tensor attribute (which deepcopy
+    refuses) makes it load directly instead of failing."""
+    from torchhys import PrandtlIshlinskii
+
+    src = PrandtlIshlinskii(torch.tensor([0.2, 0.5]), torch.tensor([0.3, 0.1]))
+    dst = PrandtlIshlinskii(torch.tensor([0.1, 0.4]), torch.tensor([0.0, 0.0]))
+    dst.cache = torch.ones(2, requires_grad=True) * 2.0
+    dst.load_state_dict(src.state_dict())
+    for a, b in zip(dst.state_dict().values(), src.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
