@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -60,8 +62,11 @@ def test_same_shape() -> None:
 
 def test_bool_accepts_only_bools() -> None:
     assert check_bool(True, "flag") is True and check_bool(False, "flag") is False
-    for bad in ("false", 0, 1.0, None, np.bool_(True)):
-        with pytest.raises(TypeError, match=f"flag must be True or False, got .*{bad!r}"):
+    assert check_bool(np.bool_(True), "flag") is True
+    assert check_bool(torch.tensor(False), "flag") is False
+    for bad in ("false", 0, 1.0, None, torch.tensor([True, False])):
+        with pytest.raises(TypeError,
+                           match=f"flag must be True or False, got .*{re.escape(repr(bad))}"):
             check_bool(bad, "flag")
 
 

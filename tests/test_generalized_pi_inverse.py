@@ -84,6 +84,8 @@ def test_bounded_inverse_checks_the_given_pi_output():
         m.bounded_inverse(x, pi_output=torch.zeros(x.shape[-1] - 1, dtype=x.dtype))
     with pytest.raises(ValueError, match=r"the PI part is constant \(1\) on x"):
         m.bounded_inverse(x, pi_output=torch.ones_like(x))
+    with pytest.raises(TypeError, match="pi_output must be a torch.Tensor, got list"):
+        m.bounded_inverse(x, pi_output=[0.0, 1.0])
     with pytest.raises(ValueError, match="pi_output must be finite"):
         m.bounded_inverse(x, pi_output=torch.full_like(x, math.inf))
     with pytest.raises(ValueError, match="the PI part is constant"):

@@ -210,3 +210,29 @@ def test_a_module_that_cannot_be_copied_still_loads() -> None:
     dst.load_state_dict(src.state_dict())
     for a, b in zip(dst.state_dict().values(), src.state_dict().values(), strict=True):
         assert torch.equal(a, b)
+    import threading
+
+    del dst.cache
+    dst.lock = threading.Lock()  # deepcopy raises TypeError (cannot pickle)
+    dst.load_state_dict(PrandtlIshlinskii(torch.tensor([0.3, 0.6]),
+                                          torch.tensor([0.2, 0.2])).state_dict())
+    assert torch.equal(dst.weights, torch.tensor([0.2, 0.2]))
+
+
+def test_fit_full_batch_calls_a_predictor_method_only() -> None:
+    """A submodule named ``predictor`` is not the fitting hook."""
+    from torchhys import PrandtlIshlinskii
+    from torchhys.fitting import fit_full_batch
+
+    class Scaled(PrandtlIshlinskii):
+        def __init__(self) -> None:
+            super().__init__(torch.tensor([0.2, 0.5]), torch.tensor([0.3, 0.1]))
+            self.predictor = torch.nn.Linear(1, 1)
+
+        def forward(self, x, state=None):
+            y, s = super().forward(x, state)
+            return self.predictor(y.unsqueeze(-1)).squeeze(-1), s
+
+    x = torch.sin(torch.linspace(0, 6, 50))[None]
+    result = fit_full_batch(Scaled(), x, 2 * x, adam_epochs=3, lbfgs_epochs=0)
+    assert result.mse >= 0

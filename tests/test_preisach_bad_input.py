@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import warnings
 
+import numpy as np
 import pytest
 import torch
 
@@ -221,3 +222,7 @@ def test_a_constant_input_without_a_range_is_named():
         select_penalty(x, y, [0.0, 1e-3], lo=None, hi=None, n=4)
     with pytest.raises(TypeError, match="penalties must be a sequence of candidate values"):
         select_penalty(y, y, 0.1, n=4)
+    p, scores = select_penalty(y, y, np.array([0.0, 1e-2]), n=4)  # an array is a sequence
+    assert p in (0.0, 1e-2) and len(scores) == 2
+    m = fit_preisach(x, y, lo=0.0, n=4)  # one bound given: the grid is [0, 1]
+    assert (m.lo, m.hi) == (0.0, 1.0)

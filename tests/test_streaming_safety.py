@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import warnings
 
+import numpy as np
 import pytest
 import torch
 
@@ -88,8 +89,12 @@ def test_nonfinite_first_samples_hold_initial_command() -> None:
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), True, "0"])
 def test_bad_initial_command(bad: object) -> None:
     net, _ = make_net()
-    with pytest.raises(ValueError, match=f"initial_command must be a finite number, got {bad!r}"):
+    with pytest.raises(ValueError, match=f"initial_command must be a finite real number, got "
+                       f"{bad!r}"):
         StreamingCompensator(net, limits=(-1.0, 1.0), initial_command=bad)
+    for good in (torch.tensor(0.25), np.float32(0.25), np.int64(0)):  # numbers of any kind
+        comp = StreamingCompensator(net, limits=(-1.0, 1.0), initial_command=good)
+        assert float(comp.u0) == float(good)
 
 
 def test_batch_rows_are_independent_under_nan() -> None:

@@ -312,9 +312,9 @@ def test_recording_shorter_than_its_warmup(tmp_path: Path) -> None:
      (dict(test_recordings=[10, 12]), r"test_recordings: unknown recording 12; the "
       r"recordings of .*runs\.csv are \[10, 11\]"),
      (dict(train_recordings=[10, 10]), "train_recordings: recording 10 is listed twice"),
-     (dict(train_recordings=[10, 11], test_recordings=[11]),
+     (dict(train_recordings=[10, 11], test_recordings=[11], split=[0.5, 0.0, 0.5]),
       r"recording\(s\) \[11\] are listed in train_recordings and in test_recordings"),
-     (dict(train_recordings=[10], val_recordings=[10], split="paper"),
+     (dict(train_recordings=[10], val_recordings=[10], split=[0.5, 0.0, 0.5]),
       r"\[10\] are listed in train_recordings and in val_recordings")],
 )
 def test_split_errors(tmp_path: Path, kwargs: dict, match: str) -> None:
@@ -382,3 +382,10 @@ def test_tensors_needs_a_single_sequence(tmp_path: Path) -> None:
     dm = data(write_runs(tmp_path / "runs.csv", LENGTHS), split_by="recording")
     with pytest.raises(ValueError, match=r"tensors\('train'\) needs a stage of one sequence"):
         dm.tensors("train")
+
+
+def test_paper_split_may_evaluate_on_training_recordings(tmp_path: Path) -> None:
+    path = write_runs(tmp_path / "runs.csv", {10: 40, 11: 30})
+    dm = data(path, split_by="recording", split="paper", train_recordings=[10, 11],
+              test_recordings=[11])
+    assert dm is not None

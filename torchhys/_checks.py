@@ -7,14 +7,17 @@ Every public function validates its arguments once, here, and raises a
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Iterable
 from typing import TypeVar
 
+import numpy as np
 import torch
 from torch import Tensor
 
 __all__ = [
     "check_bool",
+    "check_real",
     "check_choice",
     "check_finite",
     "check_floating",
@@ -78,11 +81,25 @@ def check_warmup(warmup: object, T: int) -> int:
 
 
 def check_bool(value: object, name: str) -> bool:
-    """Raise ``TypeError`` unless ``value`` is a bool (a flag given as a string or a number
-    would otherwise act by its truth value)."""
-    if not isinstance(value, bool):
+    """Raise ``TypeError`` unless ``value`` is a bool, a NumPy bool or a one-element bool
+    tensor (a flag given as a string or a number would otherwise act by its truth value);
+    return it as a bool."""
+    if isinstance(value, Tensor) and value.dtype == torch.bool and value.numel() == 1:
+        return bool(value)
+    if not isinstance(value, (bool, np.bool_)):
         raise TypeError(f"{name} must be True or False, got {type(value).__name__} {value!r}")
-    return value
+    return bool(value)
+
+
+def check_real(value: object, name: str) -> float:
+    """A finite real number (a Python or NumPy number, not a bool, or a one-element tensor)
+    as a float; ``ValueError`` otherwise."""
+    if isinstance(value, Tensor) and value.numel() == 1 and not value.is_complex():
+        value = value.item()
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(
+            float(value)):
+        raise ValueError(f"{name} must be a finite real number, got {value!r}")
+    return float(value)
 
 
 def check_positive(value: object, name: str) -> float:

@@ -98,7 +98,8 @@ def select_on_holdout(
     Raises:
         ValueError, TypeError: no penalty, or a bad one.
     """
-    if isinstance(penalties, (str, bytes)) or not isinstance(penalties, (Sequence, Tensor)):
+    if isinstance(penalties, (str, bytes)) or not hasattr(penalties, "__len__") or (
+            isinstance(penalties, Tensor) and penalties.dim() == 0):
         raise TypeError(f"{name} must be a sequence of candidate values (e.g. [0.0, 1e-4]), "
                         f"got {type(penalties).__name__} {penalties!r}")
     if len(penalties) == 0:

@@ -149,7 +149,8 @@ def _operator_loss(op: object, x: Tensor, y: Tensor, warmup: int) -> Callable[[]
     yb, _ = as_batched_sequence(y, "y")
     check_same_shape(yb, xb, "y", "x")
     # an operator may give a faster closure of its output on this fixed input
-    predict = op.predictor(xb) if hasattr(op, "predictor") else (lambda: op(xb)[0])
+    hook = getattr(type(op), "predictor", None)  # a method, not a submodule of that name
+    predict = op.predictor(xb) if callable(hook) else (lambda: op(xb)[0])
     return lambda: torch.mean((predict() - yb)[:, warmup:] ** 2)
 
 

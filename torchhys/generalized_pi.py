@@ -47,6 +47,7 @@ from torchhys._checks import (
     check_finite,
     check_int,
     check_same_shape,
+    check_tensor,
 )
 from torchhys._nnls import check_penalty
 from torchhys.backlash import _inverse_softplus, _Widths
@@ -262,6 +263,7 @@ class GeneralizedPrandtlIshlinskii(_Widths, HysteresisOperator):
             with torch.no_grad():
                 p = self.prandtl_ishlinskii()(x)[0]
         else:
+            check_tensor(pi_output, "pi_output")
             check_same_shape(pi_output, torch.as_tensor(x), "pi_output", "x")
             p = check_finite(pi_output.detach(), "pi_output")
         if p.numel() == 0:

@@ -153,13 +153,14 @@ class AtomicLoad:
     submodule rejects (a shape mismatch, a negative Preisach density) leaves the submodules
     before it loaded. Here the state dict is first loaded into a copy of the module; only if
     that succeeds is it loaded into the module itself. On error the module is as it was
-    (a module that cannot be deep-copied loads directly, module by module).
+    (a module that cannot be deep-copied loads directly, module by module). Load hooks run
+    on the copy too.
     """
 
     def load_state_dict(self, state_dict: Any, strict: bool = True, assign: bool = False) -> Any:
         try:
             trial = copy.deepcopy(self)
-        except RuntimeError:  # an attribute that cannot be copied (a non-leaf tensor)
+        except Exception:  # an attribute that cannot be copied (a non-leaf tensor, a lock)
             trial = None
         if trial is not None:
             nn.Module.load_state_dict(trial, state_dict, strict=strict, assign=assign)

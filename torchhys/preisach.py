@@ -269,7 +269,7 @@ def _prepare(x: Tensor, y: Tensor, lo: float | None, hi: float | None, n: int, l
                          f"{tuple(y.shape)}")
     T = xb.shape[1]
     check_warmup(warmup, T)
-    if (lo is None or hi is None) and not float(xb.max()) > float(xb.min()):
+    if lo is None and hi is None and not float(xb.max()) > float(xb.min()):
         raise ValueError(f"x is constant ({float(xb.min()):.6g}): its range gives no grid; "
                          "give lo and hi")
     lo = float(xb.min()) if lo is None else _real(lo, "lo")

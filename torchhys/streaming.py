@@ -35,6 +35,7 @@ from typing import Final
 import torch
 from torch import Tensor, nn
 
+from torchhys._checks import check_real
 from torchhys.operator import STATE_KINDS, OperatorStep, StateBlock
 
 __all__ = [
@@ -186,10 +187,7 @@ class StreamingCompensator(nn.Module):
         low, high = _check_limits(default_limits(model) if limits is None else limits)
         self.register_buffer("low", torch.tensor(low, dtype=dtype))
         self.register_buffer("high", torch.tensor(high, dtype=dtype))
-        if isinstance(initial_command, bool) or not isinstance(initial_command, (int, float)) \
-                or not math.isfinite(initial_command):
-            raise ValueError(f"initial_command must be a finite number, got {initial_command!r}")
-        u0 = min(max(float(initial_command), low), high)
+        u0 = min(max(check_real(initial_command, "initial_command"), low), high)
         self.register_buffer("u0", torch.tensor(u0, dtype=dtype))
         self.register_buffer("zero", torch.zeros((), dtype=dtype))  # the hold test's 0
         # with u0 = +0.0 the fresh state's held column (zeros) already holds the initial command

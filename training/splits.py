@@ -89,21 +89,21 @@ def assign_recordings(
         ``{"train": positions in ids, "val": ..., "test": ...}``.
 
     Raises:
-        ValueError: an unknown or repeated id, an id listed for train and for val or test, a
-            bad split, no training recording, or a stage with a positive fraction that gets
-            no recording (an empty split).
+        ValueError: an unknown or repeated id, an id listed for train and for val or test
+            (unless ``split="paper"``), a bad split, no training recording, or a stage with
+            a positive fraction that gets no recording (an empty split).
         TypeError: a ``lists`` entry that is neither None nor a list.
     """
     fractions = check_split(split)
     chosen = {s: _pick(ids, lists[s], f"{s}_recordings", where)
               for s in STAGES if lists.get(s) is not None}
-    for stage in ("val", "test"):
+    for stage in ("val", "test"):  # split="paper" evaluates on training recordings
         both = [ids[i] for i in chosen.get(stage, []) if i in chosen.get("train", [])]
-        if both:
+        if both and split != "paper":
             raise ValueError(
                 f"{where}: recording(s) {both} are listed in train_recordings and in "
-                f"{stage}_recordings; a held-out recording must not be trained on (with "
-                "split='paper', leave the list out to evaluate on the training recordings)")
+                f"{stage}_recordings; a held-out recording must not be trained on (split="
+                "'paper' evaluates on training recordings)")
     if split == "paper":
         held_out = {i for s in ("val", "test") for i in chosen.get(s, [])}
         chosen.setdefault("train", [i for i in range(len(ids)) if i not in held_out])
