@@ -18,6 +18,7 @@ from torch import Tensor
 __all__ = [
     "check_bool",
     "check_real",
+    "check_nonnegative",
     "check_choice",
     "check_finite",
     "check_floating",
@@ -91,14 +92,26 @@ def check_bool(value: object, name: str) -> bool:
     return bool(value)
 
 
-def check_real(value: object, name: str) -> float:
-    """A finite real number (a Python or NumPy number, not a bool, or a one-element tensor)
-    as a float; ``ValueError`` otherwise."""
+def check_real(value: object, name: str, *, allow_inf: bool = False) -> float:
+    """A finite real number (a Python or NumPy number, not a bool, or a one-element tensor;
+    with ``allow_inf`` also +-inf) as a float; ``ValueError`` otherwise (NaN never passes)."""
     if isinstance(value, Tensor) and value.numel() == 1 and not value.is_complex():
         value = value.item()
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(
-            float(value)):
-        raise ValueError(f"{name} must be a finite real number, got {value!r}")
+    ok = not isinstance(value, bool) and isinstance(value, numbers.Real) and (
+        not math.isnan(value) if allow_inf else math.isfinite(value))
+    if not ok:
+        want = "a real number (or +-inf)" if allow_inf else "a finite real number"
+        raise ValueError(f"{name} must be {want}, got {value!r}")
+    return float(value)
+
+
+def check_nonnegative(value: object, name: str, *, alternatives: str = "") -> float:
+    """Raise ``ValueError`` unless ``value`` is a finite int or float ``>= 0`` (a bool is not),
+    e.g. a penalty weight; return it as a float. ``alternatives`` names other accepted values
+    in the message (e.g. ``"'auto' or "``)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
+            math.isfinite(value) and value >= 0):
+        raise ValueError(f"{name} must be {alternatives}a finite number >= 0, got {value!r}")
     return float(value)
 
 

@@ -16,6 +16,7 @@ from torchhys._checks import (
     as_batched_sequence,
     check_bool,
     check_int,
+    check_nonnegative,
     check_positive,
     check_same_shape,
     check_warmup,
@@ -236,7 +237,7 @@ def fit_prandtl_ishlinskii(
         1995, Ch. 23.
     """
     ub, yb = _check_pi_data(u, y, widths, warmup)
-    ridge = _check_ridge(ridge)
+    ridge = check_nonnegative(ridge, "ridge")
     check_bool(nonnegative, "nonnegative")
     (A, target), = _pi_segments(ub, yb, widths, [warmup, ub.shape[1]])
     if nonnegative:
@@ -279,10 +280,11 @@ def select_pi_ridge(
     ub, yb = _check_pi_data(u, y, widths, warmup)
     cuts = holdout_cuts(ub.shape[1], warmup, validation)
     (A, t), (Av, tv) = _pi_segments(ub, yb, widths, cuts)
-    floor = _linear_floor(A[:, 0], t) if check_bool(nonnegative, "nonnegative") else 0.0
+    nonnegative = check_bool(nonnegative, "nonnegative")
+    floor = _linear_floor(A[:, 0], t) if nonnegative else 0.0
 
     def solve(G: Tensor, h: Tensor, ridge: float) -> Tensor:
-        return _pi_solve(G, h, ridge, bool(nonnegative), floor)
+        return _pi_solve(G, h, ridge, nonnegative, floor)
 
     return select_on_holdout(moments(A, t), moments(Av, tv), ridges, solve, name="ridges")
 
@@ -298,13 +300,6 @@ def _check_pi_data(u: Tensor, y: Tensor, widths: Tensor, warmup: int) -> tuple[T
     check_widths(widths, "widths")
     check_warmup(warmup, ub.shape[1])
     return ub, yb
-
-
-def _check_ridge(ridge: object) -> float:
-    if not (isinstance(ridge, (int, float)) and not isinstance(ridge, bool)
-            and math.isfinite(ridge) and ridge >= 0):
-        raise ValueError(f"ridge must be a finite number >= 0, got {ridge!r}")
-    return float(ridge)
 
 
 def _pi_segments(u: Tensor, y: Tensor, widths: Tensor,

@@ -261,13 +261,12 @@ class GeneralizedPrandtlIshlinskii(_Widths, HysteresisOperator):
         margin = check_penalty(margin, "margin")
         if pi_output is None:
             with torch.no_grad():
-                p = self.prandtl_ishlinskii()(x)[0]
+                p = self.prandtl_ishlinskii()(x)[0]  # checks x
         else:
+            as_batched_sequence(x, "x")
             check_tensor(pi_output, "pi_output")
-            check_same_shape(pi_output, torch.as_tensor(x), "pi_output", "x")
+            check_same_shape(pi_output, x, "pi_output", "x")
             p = check_finite(pi_output.detach(), "pi_output")
-        if p.numel() == 0:
-            raise ValueError("x must hold at least one sample")
         lo, hi = float(p.min()), float(p.max())
         if not hi > lo:
             raise ValueError(f"the PI part is constant ({lo:.6g}) on x: its range gives no "

@@ -22,13 +22,10 @@ so that the inverse holds ``v`` at the bound for an input beyond ``g(upper)`` (o
 ``g(lower)``). Unbounded (the exact inverse) by default.
 """
 
-import math
-import numbers
-
 import torch
 from torch import Tensor
 
-from torchhys._checks import as_batched_sequence, check_int
+from torchhys._checks import as_batched_sequence, check_int, check_real
 from torchhys.functional.backlash import backlash, play_step
 from torchhys.functional.prandtl_ishlinskii import (
     pi_output,
@@ -117,15 +114,6 @@ class GeneralizedPIInverseStep(GeneralizedPIStep):
         return pi_output(v, z.unsqueeze(1), self.weights, self.linear_weight), [z]
 
 
-def _bound(value: object, name: str) -> float:
-    """A bound of g^-1: a real number (infinite allowed) or a one-element tensor."""
-    if isinstance(value, Tensor) and value.numel() == 1:
-        value = value.item()
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or math.isnan(value):
-        raise ValueError(f"{name} must be a real number (or +-inf), got {value!r}")
-    return float(value)
-
-
 class GeneralizedPIInverse(HysteresisOperator):
     """``x = p^-1[g^-1(y)]``, the inverse of a :class:`~torchhys.GeneralizedPrandtlIshlinskii`
     model (module docstring). Fixed (buffers only): build it with
@@ -172,7 +160,8 @@ class GeneralizedPIInverse(HysteresisOperator):
             ValueError: the PI part's loading curve is not strictly increasing (no inverse).
         """
         widths, w, w0, a, c, b, s, off = (t.detach() for t in model.parameters_effective())
-        lower, upper = _bound(lower, "lower"), _bound(upper, "upper")
+        lower = check_real(lower, "lower", allow_inf=True)
+        upper = check_real(upper, "upper", allow_inf=True)
         if not lower < upper:
             raise ValueError(f"lower must be below upper, got {lower!r} and {upper!r}")
         p = prandtl_ishlinskii_inverse_parameters(widths, w, w0)

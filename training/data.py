@@ -211,10 +211,11 @@ class HysteresisDataModule(L.LightningDataModule):
         if hp.path is not None and not isinstance(hp.path, (str, Path)):
             seen: set[Path] = set()
             for p in hp.path:
-                if Path(p).resolve() in seen:
+                resolved = Path(p).resolve()
+                if resolved in seen:
                     raise ValueError(f"path lists the file {str(p)!r} twice: each recording "
                                      "once, or its copies would be in training and held out")
-                seen.add(Path(p).resolve())
+                seen.add(resolved)
         listed = [f"{s}_recordings" for s in STAGES if hp[f"{s}_recordings"] is not None]
         if listed and hp.split_by != "recording":
             raise ValueError(

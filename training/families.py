@@ -40,7 +40,6 @@ model selection scores that candidate as failed.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -58,7 +57,7 @@ from torchhys import (
     fit_preisach,
     select_penalty,
 )
-from torchhys._checks import check_choice, check_int, check_positive
+from torchhys._checks import check_choice, check_int, check_nonnegative, check_positive
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
 from torchhys.functional.jiles_atherton import MU0
 from torchhys.jiles_atherton import substeps_for
@@ -90,11 +89,8 @@ def _penalty(spec: Mapping[str, Any], key: str) -> float | str:
     value = spec.get(key, "auto")
     if value == "auto":
         return value
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
-            math.isfinite(value) and value >= 0):
-        raise ValueError(f"operator {spec['name']!r}: {key} must be 'auto' or a finite number "
-                         f">= 0, got {value!r}")
-    return float(value)
+    return check_nonnegative(value, f"operator {spec['name']!r}: {key}",
+                             alternatives="'auto' or ")
 
 
 def _grid(spec: Mapping[str, Any], n_default: int) -> tuple[int, float, str]:

@@ -24,7 +24,6 @@ exports carry them.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -32,7 +31,13 @@ import torch
 from torch import Tensor, nn
 
 from torchhys import Backlash, PrandtlIshlinskii
-from torchhys._checks import check_choice, check_int, check_positive, check_warmup
+from torchhys._checks import (
+    check_choice,
+    check_int,
+    check_nonnegative,
+    check_positive,
+    check_warmup,
+)
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid
 from torchhys.operator import OPERATORS, make_operator
 from torchhys.training.families import FAMILIES
@@ -89,10 +94,7 @@ def _pi_ls(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     _check_keys(spec, {"n_widths", "power", "ridge", "learnable"})
     n = _positive_int(spec, "n_widths", 30)
     power = check_positive(spec.get("power", 3.0), "operator 'pi_ls': power")
-    ridge = spec.get("ridge", 0.0)
-    if isinstance(ridge, bool) or not isinstance(ridge, (int, float)) or not (
-            math.isfinite(ridge) and ridge >= 0):
-        raise ValueError(f"operator 'pi_ls': ridge must be a finite number >= 0, got {ridge!r}")
+    ridge = check_nonnegative(spec.get("ridge", 0.0), "operator 'pi_ls': ridge")
     learnable = _flag(spec, "learnable")
 
     def fit(x: Tensor, y: Tensor, warmup: int) -> nn.Module:
