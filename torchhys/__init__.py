@@ -15,6 +15,7 @@ from torchhys.networks import InverseHysteresisNet
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
 from torchhys.prandtl_ishlinskii import PrandtlIshlinskii, PrandtlIshlinskiiInverse
 from torchhys.preisach import Preisach, fit_preisach, select_penalty
+from torchhys.stop_pi import StopPrandtlIshlinskii, fit_stop_pi, select_stop_pi_ridge
 
 __version__ = "0.1.0"
 
@@ -48,4 +49,7 @@ __all__ = [
     "GeneralizedPIInverse",
     "GeneralizedPrandtlIshlinskii",
     "fit_generalized_pi",
+    "StopPrandtlIshlinskii",
+    "fit_stop_pi",
+    "select_stop_pi_ridge",
 ]

@@ -16,6 +16,7 @@ from torchhys.functional.preisach import (
     relay_states,
     relay_update,
 )
+from torchhys.functional.stop_pi import stop_characteristic, stop_pi
 from torchhys.functional.turning_points import estimate_threshold, turning_points
 
 __all__: list[str] = [
@@ -38,4 +39,6 @@ __all__: list[str] = [
     "preisach_grid",
     "relay_states",
     "relay_update",
+    "stop_characteristic",
+    "stop_pi",
 ]

@@ -1,0 +1,311 @@
+"""The stop-type Prandtl-Ishlinskii model with piecewise-linear characteristics, its
+per-sample step, and its identification by (non-negative) least squares.
+
+The maths is in :mod:`torchhys.functional.stop_pi`; the module holds the thresholds, the
+segment slopes, the linear term, the offset and the input's centre, and the step runs the
+same :func:`~torchhys.functional.play_step` and
+:func:`~torchhys.functional.stop_pi.stop_characteristic` as the sequence path.
+
+A friction element (Coulomb slip) in series with a spring, or a family of them, is a
+superposition of stop operators; a nonlinear spring (stiffening, a dead zone of backlash) is
+the characteristic each stop's output goes through. Such elements dissipate energy: with
+non-negative slopes the loops run clockwise in the (input, output) plane (the output leads),
+the orientation of friction force against displacement and of a magnetic core's field
+against its flux density.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor, nn
+
+from torchhys._checks import (
+    as_batched_sequence,
+    check_bool,
+    check_int,
+    check_real,
+    check_same_shape,
+    check_warmup,
+)
+from torchhys._nnls import Moments, check_penalty, holdout_cuts, nnls_gram, select_on_holdout
+from torchhys.functional.backlash import backlash, play_step
+from torchhys.functional.stop_pi import (
+    check_stop_parameters,
+    stop_characteristic,
+    stop_pi,
+    stop_segments,
+)
+from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
+
+__all__ = ["StopPIStep", "StopPrandtlIshlinskii", "fit_stop_pi", "select_stop_pi_ridge"]
+
+
+class StopPIStep(OperatorStep):
+    """A :class:`StopPrandtlIshlinskii` model, one sample at a time.
+
+    State: ``plays`` (N columns, 0 at the first sample: the plays of ``x - center``).
+    Feature: the model's output.
+    """
+
+    def __init__(self, thresholds: Tensor, weights: Tensor, center: Tensor,
+                 linear_weight: Tensor, offset: Tensor) -> None:
+        super().__init__()
+        self.register_buffer("r", thresholds.detach().clone())
+        self.register_buffer("weights", weights.detach().clone())
+        self.register_buffer("center", center.detach().clone().reshape(()))
+        self.register_buffer("linear_weight", linear_weight.detach().clone().reshape(()))
+        self.register_buffer("offset", offset.detach().clone().reshape(()))
+        self.n_outputs = 1
+        self.state_spec = [StateBlock("plays", int(thresholds.shape[0]))]
+
+    def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
+        u = x - self.center  # (B, 1)
+        p = play_step(u, self.r, state[0])  # (B, N)
+        y = self.offset + self.linear_weight * u + stop_characteristic(
+            (u - p).unsqueeze(1), self.r, self.weights)
+        return y, [p]
+
+
+class StopPrandtlIshlinskii(HysteresisOperator):
+    """Stop-type Prandtl-Ishlinskii model with piecewise-linear characteristics:
+
+        y = offset + w0 u + sum_i sum_k W[i, k] clamp(s_i, kappa[i, k], kappa[i, k + 1]),
+
+    ``u = x - center``, ``s_i`` the stop operator of threshold ``r_i`` of u (in
+    ``[-r_i, r_i]``), ``kappa[i, k] = r_i (2 k / K - 1)`` (K equal segments; ``W[i, k]`` the
+    slope of stop i's characteristic on segment k). ``K = 1`` is the classical stop-type
+    model. See :mod:`torchhys.functional.stop_pi`; identify it with :func:`fit_stop_pi`.
+
+    Args:
+        thresholds: stop thresholds r_i > 0, (N,).
+        weights: segment slopes, (N, K); zeros (one segment) if None.
+        center: the input value at which the stops start (their plays at 0).
+        linear_weight, offset: w0 and the offset.
+        learnable: make the weights, linear weight and offset trainable (the thresholds and
+            the centre stay fixed).
+
+    Shape:
+        - x: (time,) or (batch, time)
+        - state: the plays of ``x - center`` before the first sample, (N,) or (batch, N);
+          zeros if None
+        - returns ``(y, state)``: y the shape of x; state the plays at the last sample
+          (chunked calls with it equal one call).
+    """
+
+    n_outputs: int = 1
+
+    def __init__(
+        self,
+        thresholds: Tensor | Sequence[float],
+        weights: Tensor | None = None,
+        *,
+        center: float = 0.0,
+        linear_weight: float = 0.0,
+        offset: float = 0.0,
+        learnable: bool = False,
+    ) -> None:
+        super().__init__()
+        r = torch.as_tensor(thresholds)
+        if not r.is_floating_point():
+            r = r.to(torch.get_default_dtype())
+        w = torch.zeros(r.shape[0] if r.dim() == 1 else 0, 1, dtype=r.dtype) \
+            if weights is None else weights
+        check_stop_parameters(r, w)
+        check_bool(learnable, "learnable")
+        w = w.detach().to(r.dtype).clone()
+        scalars = {name: torch.tensor(check_real(value, name), dtype=r.dtype) for name, value in
+                   (("center", center), ("linear_weight", linear_weight), ("offset", offset))}
+        self.register_buffer("thresholds", r.detach().clone())
+        self.register_buffer("center", scalars["center"])
+        if learnable:
+            self.weights = nn.Parameter(w)
+            self.linear_weight = nn.Parameter(scalars["linear_weight"])
+            self.offset = nn.Parameter(scalars["offset"])
+        else:
+            self.register_buffer("weights", w)
+            self.register_buffer("linear_weight", scalars["linear_weight"])
+            self.register_buffer("offset", scalars["offset"])
+
+    @property
+    def segments(self) -> int:
+        """K, the segments of each characteristic."""
+        return int(self.weights.shape[1])
+
+    def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        return stop_pi(x, self.thresholds, self.weights, center=self.center,
+                       linear_weight=self.linear_weight, offset=self.offset, p0=state)
+
+    def streaming_step(self, dtype: torch.dtype) -> StopPIStep:
+        """The per-sample step with the current parameters, in ``dtype``."""
+        return StopPIStep(*(t.detach().to(dtype) for t in (
+            self.thresholds, self.weights, self.center, self.linear_weight, self.offset)))
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # noqa: ANN001
+        r, w = state_dict.get(prefix + "thresholds"), state_dict.get(prefix + "weights")
+        if isinstance(r, Tensor) and isinstance(w, Tensor) and r.shape == self.thresholds.shape:
+            check_stop_parameters(r, w)  # positive thresholds, finite weights
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def extra_repr(self) -> str:
+        return (f"thresholds={self.thresholds.numel()}, segments={self.segments}, "
+                f"center={float(self.center):.4g}")
+
+
+# --- identification -----------------------------------------------------------------------
+def _check_data(x: Tensor, y: Tensor, thresholds: Tensor, segments: int,
+                warmup: int) -> tuple[Tensor, Tensor, int]:
+    xb, _ = as_batched_sequence(x, "x")
+    yb, _ = as_batched_sequence(y, "y")
+    check_same_shape(yb, xb, "y", "x")
+    segments = check_int(segments, "segments", minimum=1)
+    check_stop_parameters(thresholds, torch.zeros(thresholds.shape[0] if isinstance(
+        thresholds, Tensor) and thresholds.dim() == 1 else 0, segments, dtype=torch.float64))
+    check_warmup(warmup, xb.shape[1])
+    return xb, yb, segments
+
+
+def _center(xb: Tensor, warmup: int, center: float | None) -> float:
+    """The midpoint of the fitted input's range, or the given centre."""
+    if center is not None:
+        return check_real(center, "center")
+    xs = xb[:, warmup:]
+    return 0.5 * (float(xs.min()) + float(xs.max()))
+
+
+_CHUNK = 8192
+
+
+def _moments(xb: Tensor, yb: Tensor, thresholds: Tensor, segments: int, center: float,
+             cuts: list[int]) -> list[Moments]:
+    """The normal equations of the design ``[1, u, segment features]`` (2 + N K columns) for
+    the samples ``cuts[s]:cuts[s+1]`` of every row, float64, accumulated in chunks."""
+    r = thresholds.detach().double().cpu()
+    m = 2 + r.numel() * segments
+    out = []
+    with torch.no_grad():
+        u = xb.detach().double().cpu() - center
+        t = yb.detach().double().cpu()
+        s = u.unsqueeze(-1) - backlash(u, 2.0 * r)  # (B, T, N)
+        for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+            G, h = torch.zeros(m, m, dtype=torch.float64), torch.zeros(m, dtype=torch.float64)
+            yy, count = torch.zeros((), dtype=torch.float64), 0
+            for row in range(u.shape[0]):
+                for c in range(a, b, _CHUNK):
+                    e = min(b, c + _CHUNK)
+                    A = torch.cat([torch.ones(e - c, 1, dtype=torch.float64), u[row, c:e, None],
+                                   stop_segments(s[row, c:e], r, segments).flatten(1)], 1)
+                    G += A.T @ A
+                    h += A.T @ t[row, c:e]
+                    yy += t[row, c:e] @ t[row, c:e]
+                    count += e - c
+            out.append(Moments(G, h, yy, count))
+    return out
+
+
+def _solve(G: Tensor, h: Tensor, ridge: float, nonnegative: bool) -> Tensor:
+    """``[offset, w0, W.flatten()]`` from the per-sample normal equations plus ``ridge`` on W."""
+    pen = torch.ones_like(h)
+    pen[:2] = 0.0
+    P = G + ridge * torch.diag(pen)
+    if not nonnegative:
+        return torch.linalg.lstsq(P, h[:, None], driver="gelsd").solution[:, 0]
+    free = torch.zeros(h.shape, dtype=torch.bool)
+    free[:2] = True
+    return nnls_gram(P, h, free)
+
+
+def fit_stop_pi(
+    x: Tensor,
+    y: Tensor,
+    thresholds: Tensor,
+    *,
+    segments: int = 8,
+    ridge: float = 0.0,
+    nonnegative: bool = True,
+    center: float | None = None,
+    warmup: int = 0,
+) -> StopPrandtlIshlinskii:
+    """Identify a :class:`StopPrandtlIshlinskii` model by penalised least squares:
+
+        min  mean_t (y[t] - offset - w0 u[t] - a[t] @ W.flatten())**2 + ridge * |W|**2,
+
+    a[t] the segment features of the stops of ``u = x - center`` (each row's plays start at
+    0), subject to ``W >= 0`` when ``nonnegative`` (every characteristic rises: the model's
+    loops run clockwise in the (x, y) plane; fit ``-y`` and negate for the other
+    orientation). Solved in float64 from the normal equations (Lawson-Hanson for the
+    constrained fit, the offset and w0 free).
+
+    Thresholds: :func:`~torchhys.fitting.play_width_grid` of the input gives ``span (k/n)^p``,
+    up to the input's span: the stops above half the span never slip on the training data and
+    make the memoryless (elastic) part of the model, the smaller ones the hysteresis.
+
+    Args:
+        x, y: input and target, (time,) or (batch, time) (rows are independent records).
+        thresholds: stop thresholds r_i > 0, (N,).
+        segments: K, equal segments of each characteristic (1: the classical model).
+        ridge: Tikhonov weight on W (>= 0); choose it with :func:`select_stop_pi_ridge`.
+        nonnegative: constrain W >= 0.
+        center: the input value at which the stops start; default the midpoint of the fitted
+            input's range.
+        warmup: leading samples of each row left out of the fit (the stops still run).
+
+    Returns:
+        The model, in the dtype of ``x`` (parameters detached).
+
+    Raises:
+        TypeError, ValueError: bad or mismatched arguments (each named).
+    """
+    xb, yb, segments = _check_data(x, y, thresholds, segments, warmup)
+    ridge = check_penalty(ridge, "ridge")
+    nonnegative = check_bool(nonnegative, "nonnegative")
+    c = _center(xb, warmup, center)
+    (mom,) = _moments(xb, yb, thresholds, segments, c, [warmup, xb.shape[1]])
+    theta = _solve(mom.gram / mom.count, mom.moment / mom.count, ridge, nonnegative)
+    if not bool(torch.isfinite(theta).all()):
+        raise ValueError("the least-squares solution is not finite (degenerate data?)")
+    n = thresholds.shape[0]
+    dt = xb.dtype
+    return StopPrandtlIshlinskii(
+        thresholds.detach().to(dt), theta[2:].reshape(n, segments).to(dt), center=c,
+        linear_weight=float(theta[1]), offset=float(theta[0])).to(xb.device)
+
+
+def select_stop_pi_ridge(
+    x: Tensor,
+    y: Tensor,
+    thresholds: Tensor,
+    ridges: Sequence[float],
+    *,
+    segments: int = 8,
+    nonnegative: bool = True,
+    center: float | None = None,
+    validation: float = 0.25,
+    warmup: int = 0,
+) -> tuple[float, dict[float, float]]:
+    """Choose the ``ridge`` of :func:`fit_stop_pi` on a time-ordered hold-out: each
+    candidate is fitted on the first ``1 - validation`` of every row (after ``warmup``) and
+    scored by the RMS error on the rest (the stops run through the whole sequence; the
+    centre is taken from the fitted part).
+
+    Returns:
+        The ridge with the least hold-out RMS error (the first on ties), and the RMS error of
+        each. Refit on all samples with ``fit_stop_pi(..., ridge=best)``.
+
+    Raises:
+        TypeError, ValueError: bad arguments, or no training sample before the split.
+    """
+    xb, yb, segments = _check_data(x, y, thresholds, segments, warmup)
+    nonnegative = check_bool(nonnegative, "nonnegative")
+    cuts = holdout_cuts(xb.shape[1], warmup, validation)
+    c = _center(xb[:, :cuts[1]], warmup, center)
+    train, valid = _moments(xb, yb, thresholds, segments, c, cuts)
+
+    def solve(G: Tensor, h: Tensor, ridge: float) -> Tensor:
+        return _solve(G, h, ridge, nonnegative)
+
+    return select_on_holdout(train, valid, ridges, solve, name="ridges")
+
+
+register_operator("stop_pi", StopPrandtlIshlinskii)
