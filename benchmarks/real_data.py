@@ -84,7 +84,9 @@ from torchhys import (
     fit_generalized_pi,
     fit_jiles_atherton,
     fit_preisach,
+    fit_stop_pi,
     select_penalty,
+    select_stop_pi_ridge,
 )
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
 from torchhys.streaming import default_limits
@@ -146,10 +148,13 @@ class Budget(NamedTuple):
     ja_starts: int = 8
     ja_iterations: int = 60
     """Random starts and Levenberg-Marquardt iterations of the Jiles-Atherton fit."""
+    stop_n: tuple[int, ...] = (5, 10, 20)
+    stop_segments: tuple[int, ...] = (1, 2, 4, 8)
+    """Thresholds and characteristic segments of the stop-type PI model."""
 
 
 FULL = Budget((5, 10, 20, 40), (1.0, 2.0, 3.0), (10, 20, 30), (2, 4, 8), 1000, 40, None, 60.0)
-QUICK = Budget((5, 10), (2.0,), (8,), (2,), 20, 4, 20, 5.0, 2, 5)
+QUICK = Budget((5, 10), (2.0,), (8,), (2,), 20, 4, 20, 5.0, 2, 5, (5,), (1, 4))
 
 
 # --- data ---------------------------------------------------------------------------------
@@ -617,6 +622,29 @@ def preisach(split: Split, budget: Budget) -> Fitted:
                     score)
 
 
+def stop_pi(split: Split, budget: Budget) -> Fitted:
+    """``fit_stop_pi`` (non-negative slopes) of the target or of its negative (a non-negative
+    model's loops run clockwise only); thresholds on ``play_width_grid`` (up to the input's
+    span), their number, the grid power, the segments, the sign and the ridge chosen on the
+    hold-out."""
+    d = scaled(split)
+    best = (math.inf, 0, 0.0, 0, 0.0, 0.0)
+    for n in budget.stop_n:
+        for power in (1.0, 2.0):
+            thresholds = play_width_grid(d.x[:, d.warmup:], n, power=power)
+            for segments in budget.stop_segments:
+                for sign in (1.0, -1.0):
+                    ridge, scores = select_stop_pi_ridge(
+                        d.x, sign * d.y, thresholds, RIDGES, segments=segments,
+                        validation=d.validation, warmup=d.warmup)
+                    best = min(best, (scores[ridge], n, power, segments, sign, ridge))
+    score, n, power, segments, sign, ridge = best
+    model = fit_stop_pi(d.x, sign * d.y, play_width_grid(d.x[:, d.warmup:], n, power=power),
+                        segments=segments, ridge=ridge, warmup=d.warmup)
+    return d.fitted(lambda v: sign * model(v)[0], f"n={n}, power={power:g}, "
+                    f"segments={segments}, ridge={ridge:g}, sign={sign:+.0f}", score)
+
+
 class NotApplicable(ValueError):
     """A model that does not apply to this data set (its row reads n/a)."""
 
@@ -809,6 +837,7 @@ MODELS: dict[str, Callable[..., Fitted]] = {
     "pi_ls": pi_ls,
     "generalized_pi": generalized_pi,
     "preisach": preisach,
+    "stop_pi": stop_pi,
     "jiles_atherton": jiles_atherton,
     "eiho_net": eiho_net,
     "default": default,

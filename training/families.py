@@ -19,6 +19,12 @@ standardizes the operator's output) maps it back. They are the candidates of
 - ``{"name": "preisach", "n": 20, "smoothness": "auto"}``: :func:`torchhys.fit_preisach`
   on a grid over the training input's range, both signs of the target fitted, the better
   kept.
+- ``{"name": "stop_pi", "n_widths": 20, "power": 2.0, "segments": 8, "ridge": "auto",
+  "nonnegative": True}``: :func:`torchhys.fit_stop_pi`, stop operators with thresholds on
+  :func:`~torchhys.fitting.play_width_grid` of the input (up to its span: the largest make
+  the memoryless part), each through a piecewise-linear characteristic of ``segments`` equal
+  segments (non-negative slopes: a friction element with a nonlinear spring, whose loops run
+  clockwise); both signs of the target fitted, the better kept.
 - ``{"name": "jiles_atherton", "mu0": 4e-7 pi, "starts": 8, "iterations": 60,
   "substeps": None}``: :func:`torchhys.fit_jiles_atherton`, the inverse Jiles-Atherton model
   of a magnetic core (the input the flux density B, the target the field H), fitted to the
@@ -52,12 +58,21 @@ from torchhys import (
     JilesAtherton,
     PrandtlIshlinskii,
     Preisach,
+    StopPrandtlIshlinskii,
     fit_generalized_pi,
     fit_jiles_atherton,
     fit_preisach,
+    fit_stop_pi,
     select_penalty,
+    select_stop_pi_ridge,
 )
-from torchhys._checks import check_choice, check_int, check_nonnegative, check_positive
+from torchhys._checks import (
+    check_bool,
+    check_choice,
+    check_int,
+    check_nonnegative,
+    check_positive,
+)
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
 from torchhys.functional.jiles_atherton import MU0
 from torchhys.jiles_atherton import substeps_for
@@ -281,6 +296,38 @@ def _preisach(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     return Preisach(0.0, 1.0, n).requires_grad_(False), fit
 
 
+def _stop_pi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
+    _keys(spec, {"n_widths", "power", "segments", "ridge", "nonnegative"})
+    n = check_int(spec.get("n_widths", 20), "operator 'stop_pi': n_widths", minimum=1)
+    power = check_positive(spec.get("power", 2.0), "operator 'stop_pi': power")
+    segments = check_int(spec.get("segments", 8), "operator 'stop_pi': segments", minimum=1)
+    nonnegative = check_bool(spec.get("nonnegative", True), "operator 'stop_pi': nonnegative")
+    ridge = _penalty(spec, "ridge")
+
+    def fit(x: Tensor, y: Tensor, warmup: int) -> nn.Module:
+        sx, t = _standardized(x, y, warmup)
+        u = x / sx
+        thresholds = play_width_grid(u[:, warmup:], n, power=power)
+        fits = []
+        for sign in (1.0, -1.0) if nonnegative else (1.0,):
+            r = ridge
+            if r == "auto":
+                r, _ = select_stop_pi_ridge(u, sign * t, thresholds, PENALTIES,
+                                            segments=segments, nonnegative=nonnegative,
+                                            validation=_holdout(u, warmup), warmup=warmup)
+            m = fit_stop_pi(u, sign * t, thresholds, segments=segments, ridge=r,
+                            nonnegative=nonnegative, warmup=warmup)
+            # the same model of the physical input x, times the sign
+            m = StopPrandtlIshlinskii(
+                m.thresholds * sx, sign * m.weights / sx, center=float(m.center) * sx,
+                linear_weight=sign * float(m.linear_weight) / sx, offset=sign * float(m.offset))
+            fits.append((_rmse(m, x, t, warmup), m))
+        return _checked(min(fits, key=lambda f: f[0])[1], x, t, warmup, "stop_pi")
+
+    return StopPrandtlIshlinskii(torch.arange(1, n + 1) / n,
+                                 torch.zeros(n, segments)).requires_grad_(False), fit
+
+
 def _substeps(x: Tensor) -> int:
     """Euler steps per sample from the 0.99 quantile of the sample steps
     (:func:`~torchhys.jiles_atherton.substeps_for`). The largest steps are left out: a
@@ -317,6 +364,7 @@ FAMILIES: dict[str, Callable[[Mapping[str, Any]], tuple[nn.Module, Fitter]]] = {
     "pi_nonneg": _pi_nonneg,
     "gpi": _gpi,
     "preisach": _preisach,
+    "stop_pi": _stop_pi,
     "jiles_atherton": _jiles_atherton,
 }
 """Builders of the family operators by config name: ``spec -> (placeholder, fitter)``."""
