@@ -1,4 +1,5 @@
-"""Config family operators (``pi_nonneg``, ``gpi``, ``preisach``, ``jiles_atherton``): each
+"""Config family operators (``pi_nonneg``, ``gpi``, ``preisach``, ``stop_pi``,
+``jiles_atherton``): each
 identifies its model on the training split (recovering a plant of its own family), is saved
 in the checkpoint, streams and exports like any operator; a family that cannot be fitted is
 skipped by model selection; bad options are clear errors."""
@@ -22,6 +23,7 @@ from torchhys import (
     JilesAtherton,
     PrandtlIshlinskii,
     Preisach,
+    StopPrandtlIshlinskii,
 )
 from torchhys.export import load_torchscript, to_torchscript
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
@@ -114,6 +116,25 @@ def test_preisach_recovers_a_preisach_plant():
     assert affine_rmse(op(x)[0], y) < 0.1 * float(y.std())
 
 
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_stop_pi_recovers_a_stop_plant_of_either_sign(sign):
+    """A friction element in series with a stiffening spring (non-negative slopes, clockwise
+    loops) and its negation (anticlockwise: the negated fit wins), in physical units: the
+    family's model of the standardized target is mapped back to the input's units."""
+    x = 3.0 * signal(rows=2) + 1.0
+    plant = StopPrandtlIshlinskii(torch.tensor([0.5, 1.5, 4.0], dtype=F64),
+                                  torch.tensor([[0.2, 0.1, 0.3, 0.6], [0.0, 0.4, 0.4, 0.1],
+                                                [0.1, 0.2, 0.2, 0.5]], dtype=F64),
+                                  center=1.0, linear_weight=0.1, offset=2.0)
+    y = sign * plant(x)[0].detach()
+    op = fitted({"name": "stop_pi", "n_widths": 10, "segments": 4, "ridge": 0.0}, x, y)
+    assert isinstance(op, StopPrandtlIshlinskii)
+    assert affine_rmse(op(x)[0], y) < 0.05 * float(y.std())
+    # the family's output is a model of the standardized target: a positive multiple
+    t = (y - y.mean()) / y.std()
+    assert float(torch.corrcoef(torch.stack([op(x)[0].flatten(), t.flatten()]))[0, 1]) > 0.99
+
+
 def test_a_family_that_cannot_fit_raises_fit_error():
     x = signal()
     with pytest.raises(FitError, match="must vary"):
@@ -135,16 +156,25 @@ def test_a_family_that_cannot_fit_raises_fit_error():
     ({"name": "gpi", "power": True}, "power must be a finite number > 0"),
     ({"name": "preisach", "n": 1}, "n must be"),
     ({"name": "preisach", "smoothness": "big"}, "smoothness must be 'auto'"),
+    ({"name": "stop_pi", "segments": 0}, "segments must be"),
+    ({"name": "stop_pi", "n": 5}, r"unknown option\(s\) \['n'\]"),
+    ({"name": "stop_pi", "ridge": -1e-3}, "ridge must be 'auto' or a finite number >= 0"),
 ])
 def test_bad_options(spec, match):
     with pytest.raises(ValueError, match=match):
         build_operators(spec)
 
 
+def test_stop_pi_flag_must_be_a_bool():
+    with pytest.raises(TypeError, match="'stop_pi': nonnegative must be True or False"):
+        build_operators({"name": "stop_pi", "nonnegative": "yes"})
+
+
 @pytest.mark.parametrize("spec", [
     {"name": "pi_nonneg", "n_widths": 6, "direction": "inverse"},
     {"name": "gpi", "n_widths": 6, "units": 2, "epochs": 30, "direction": "inverse"},
     {"name": "preisach", "n": 6, "smoothness": 1e-4},
+    {"name": "stop_pi", "n_widths": 6, "segments": 3},
 ])
 def test_fitted_in_training_saved_and_exported(tmp_path, spec):
     """Through the Lightning module: fitted on the training split, restored from the
