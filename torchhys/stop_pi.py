@@ -143,9 +143,16 @@ class StopPrandtlIshlinskii(HysteresisOperator):
             self.thresholds, self.weights, self.center, self.linear_weight, self.offset)))
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # noqa: ANN001
-        r, w = state_dict.get(prefix + "thresholds"), state_dict.get(prefix + "weights")
-        if isinstance(r, Tensor) and isinstance(w, Tensor) and r.shape == self.thresholds.shape:
-            check_stop_parameters(r, w)  # positive thresholds, finite weights
+        """Checks every saved value it is given before anything is copied (all or nothing,
+        also for a partial state dict)."""
+        r = state_dict.get(prefix + "thresholds")
+        if isinstance(r, Tensor) and r.numel() and not bool((r.isfinite() & (r > 0)).all()):
+            raise ValueError(f"{prefix}thresholds must be finite and positive (stop thresholds), "
+                             f"got minimum {r.min().item():.6g}")
+        for name in ("weights", "center", "linear_weight", "offset"):
+            v = state_dict.get(prefix + name)
+            if isinstance(v, Tensor) and not bool(v.isfinite().all()):
+                raise ValueError(f"{prefix}{name} must be finite, got a non-finite value")
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def extra_repr(self) -> str:
@@ -238,8 +245,9 @@ def fit_stop_pi(
     constrained fit, the offset and w0 free).
 
     Thresholds: :func:`~torchhys.fitting.play_width_grid` of the input gives ``span (k/n)^p``,
-    up to the input's span: the stops above half the span never slip on the training data and
-    make the memoryless (elastic) part of the model, the smaller ones the hysteresis.
+    up to the input's span: with the default centre (the midpoint of the input's range) the
+    stops of at least half the span never slip on the training data and make the memoryless
+    (elastic) part of the model, the smaller ones the hysteresis.
 
     Args:
         x, y: input and target, (time,) or (batch, time) (rows are independent records).

@@ -16,11 +16,12 @@ passes every stop's output through a piecewise-linear characteristic of K equal 
 over ``[-r_i, r_i]`` (``W[i, k]`` the slope on segment k). With ``K = 1`` it is the classical
 stop-type Prandtl-Ishlinskii model ``offset + w0 u + sum_i W[i, 0] s_i``; with ``W >= 0``
 every characteristic rises (a spring that stiffens or softens), as in a friction element in
-series with a nonlinear spring. A stop whose threshold exceeds half the input's span never
-slips after its first reversal: its characteristic is then a memoryless, piecewise-linear
-function of the input (the elastic part of the model).
+series with a nonlinear spring. A stop started at zero never slips while ``|u| <= r_i``: its
+output is then u itself, and its characteristic a memoryless, piecewise-linear function of the
+input. With the centre at the midpoint of the input's range, the stops of thresholds of at
+least half its span are such (the elastic part of the model).
 
-The output is linear in ``(offset, w0, W)``: :func:`torchhys.fitting.fit_stop_pi` identifies
+The output is linear in ``(offset, w0, W)``: :func:`torchhys.fit_stop_pi` identifies
 them by least squares (non-negative ``W`` optionally).
 
 References:
