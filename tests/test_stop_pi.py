@@ -711,11 +711,11 @@ def assert_unchanged(module: torch.nn.Module, before: dict) -> None:
 
 @pytest.mark.parametrize("learnable", [False, True])
 @pytest.mark.parametrize("key, value, match", [
-    ("thresholds", torch.tensor([0.2, 0.0, 1.0], dtype=F64), 
+    ("thresholds", torch.tensor([0.2, 0.0, 1.0], dtype=F64),
      "thresholds must be finite and positive"),
-    ("thresholds", torch.tensor([0.2, -3.0, 1.0], dtype=F64), 
+    ("thresholds", torch.tensor([0.2, -3.0, 1.0], dtype=F64),
      "thresholds must be finite and positive"),
-    ("thresholds", torch.tensor([0.2, NAN, 1.0], dtype=F64), 
+    ("thresholds", torch.tensor([0.2, NAN, 1.0], dtype=F64),
      "thresholds must be finite and positive"),
     ("weights", torch.tensor([[1.0, NAN]] * 3, dtype=F64), "weights must be finite"),
     ("weights", torch.tensor([[1.0, math.inf]] * 3, dtype=F64), "weights must be finite"),
