@@ -212,15 +212,32 @@ def _moments(xb: Tensor, yb: Tensor, thresholds: Tensor, segments: int, center: 
 
 
 def _solve(G: Tensor, h: Tensor, ridge: float, nonnegative: bool) -> Tensor:
-    """``[offset, w0, W.flatten()]`` from the per-sample normal equations plus ``ridge`` on W."""
+    """``[offset, w0, W.flatten()]`` from the per-sample normal equations plus ``ridge`` on W.
+
+    A segment the fitted samples never enter (its feature constant: a knot beyond the
+    input's range) has no data for its slope: its weight is 0 and it is left out of the
+    solve, which removes its exact collinearity with the offset.
+    """
     pen = torch.ones_like(h)
     pen[:2] = 0.0
     P = G + ridge * torch.diag(pen)
+    var = (G.diagonal() - G[0].square() / G[0, 0].clamp_min(1e-300)).clamp_min(0.0)
+    keep = var > _CONSTANT * float(var[2:].max())
+    keep[:2] = True
+    theta = torch.zeros_like(h)
+    Pk, hk = P[keep][:, keep], h[keep]
     if not nonnegative:
-        return torch.linalg.lstsq(P, h[:, None], driver="gelsd").solution[:, 0]
-    free = torch.zeros(h.shape, dtype=torch.bool)
+        theta[keep] = torch.linalg.lstsq(Pk, hk[:, None], driver="gelsd").solution[:, 0]
+        return theta
+    free = torch.zeros(hk.shape, dtype=torch.bool)
     free[:2] = True
-    return nnls_gram(P, h, free)
+    theta[keep] = nnls_gram(Pk, hk, free)
+    return theta
+
+
+_CONSTANT = 1e-12
+"""A feature whose variance over the fitted samples is below this share of the largest one is
+constant there (a segment never entered)."""
 
 
 def fit_stop_pi(
