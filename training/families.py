@@ -19,7 +19,7 @@ standardizes the operator's output) maps it back. They are the candidates of
 - ``{"name": "preisach", "n": 20, "smoothness": "auto"}``: :func:`torchhys.fit_preisach`
   on a grid over the training input's range, both signs of the target fitted, the better
   kept.
-- ``{"name": "stop_pi", "n_widths": 20, "power": 2.0, "segments": 8, "ridge": "auto",
+- ``{"name": "stop_pi", "n_widths": 20, "power": 2.0, "segments": 4, "ridge": "auto",
   "nonnegative": True}``: :func:`torchhys.fit_stop_pi`, stop operators with thresholds on
   :func:`~torchhys.fitting.play_width_grid` of the input (up to its span: the largest make
   the memoryless part), each through a piecewise-linear characteristic of ``segments`` equal
@@ -300,7 +300,7 @@ def _stop_pi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     _keys(spec, {"n_widths", "power", "segments", "ridge", "nonnegative"})
     n = check_int(spec.get("n_widths", 20), "operator 'stop_pi': n_widths", minimum=1)
     power = check_positive(spec.get("power", 2.0), "operator 'stop_pi': power")
-    segments = check_int(spec.get("segments", 8), "operator 'stop_pi': segments", minimum=1)
+    segments = check_int(spec.get("segments", 4), "operator 'stop_pi': segments", minimum=1)
     nonnegative = check_bool(spec.get("nonnegative", True), "operator 'stop_pi': nonnegative")
     ridge = _penalty(spec, "ridge")
 
