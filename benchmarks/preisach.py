@@ -21,39 +21,20 @@ References:
 
 from __future__ import annotations
 
-import argparse
-import json
-import resource
-import statistics
-import subprocess
-import sys
-import time
 import warnings
 
 import torch
+from _isolated import main_or_run, measure, median, walk_signal
 
 N_LEVELS = 31
 METHODS = ("chunked", "smooth", "materialised", "fit", "step")
-
-
-def _rss_bytes() -> int:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * resource.getpagesize()
-
-
-def _signal(T: int) -> torch.Tensor:
-    torch.manual_seed(0)
-    t = torch.arange(T, dtype=torch.float64)
-    walk = (0.05 * torch.randn(T, dtype=torch.float64)).cumsum(0)
-    x = (0.6 + 0.4 * torch.sin(t / T * 12.0)) * torch.sin(0.01 * t + walk)
-    return x.float().unsqueeze(0)
 
 
 def run_one(method: str, T: int, repeats: int) -> dict:
     from torchhys.functional.preisach import preisach, preisach_grid, relay_states
     from torchhys.preisach import Preisach, fit_preisach
 
-    x = _signal(T)
+    x = walk_signal(T)
     alpha, beta = preisach_grid(-1.0, 1.0, N_LEVELS)
     K = alpha.numel()
     w = torch.rand(K, requires_grad=True)
@@ -89,41 +70,18 @@ def run_one(method: str, T: int, repeats: int) -> dict:
         w.grad = None
         xg.grad = None
 
-    base = _rss_bytes()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        call()
-        times.append(time.perf_counter() - t0)
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 - base
-    median = statistics.median(times)
-    per = median / 10_000 * 1e6 if method == "step" else None
-    return {"method": method, "T": T, "K": K, "median_s": median, "min_s": min(times),
+    times, peak = measure(call, repeats)
+    per = median(times) / 10_000 * 1e6 if method == "step" else None
+    return {"method": method, "T": T, "K": K, "median_s": median(times), "min_s": min(times),
             "repeats": len(times), "peak_bytes": peak, "us_per_sample": per,
             "relay_bytes": T * K * 4}
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
-    parser.add_argument("--length", type=int, default=100_000)
-    parser.add_argument("--one", help=argparse.SUPPRESS)
-    args = parser.parse_args()
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    if args.one:
-        print(json.dumps(run_one(args.one, args.length, args.repeats)))
+    ran = main_or_run(__doc__, __file__, METHODS, run_one, few=("fit", "materialised"))
+    if ran is None:
         return
-    rows = []
-    for method in METHODS:
-        repeats = min(args.repeats, 3) if method in ("fit", "materialised") else args.repeats
-        out = subprocess.run(
-            [sys.executable, __file__, "--one", method, "--length", str(args.length),
-             "--repeats", str(repeats), "--threads", str(args.threads)],
-            check=True, capture_output=True, text=True,
-        )
-        rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+    args, rows = ran
     threads = args.threads or torch.get_num_threads()
     print(f"Preisach, T={args.length}, K={rows[0]['K']} relays (n={N_LEVELS}), batch 1, "
           f"float32 (fit: float64), torch {torch.__version__}, {threads} threads\n")

@@ -17,16 +17,8 @@ Usage: python benchmarks/stop_pi.py [--repeats N] [--threads N] [--length T]
 
 from __future__ import annotations
 
-import argparse
-import json
-import resource
-import statistics
-import subprocess
-import sys
-import time
-
 import torch
-from preisach import _rss_bytes, _signal
+from _isolated import main_or_run, measure, median, walk_signal
 
 N, K = 20, 4
 METHODS = ("forward", "backward", "loop", "fit", "step")
@@ -39,7 +31,7 @@ def run_one(method: str, T: int, repeats: int) -> dict:
     from torchhys.functional import play_step
     from torchhys.functional.stop_pi import stop_characteristic
 
-    x = _signal(T)
+    x = walk_signal(T)
     r = play_width_grid(x, N, power=2.0)
     torch.manual_seed(1)
     model = StopPrandtlIshlinskii(r, torch.rand(N, K), learnable=True)
@@ -77,40 +69,18 @@ def run_one(method: str, T: int, repeats: int) -> dict:
         model.zero_grad()
         xg.grad = None
 
-    base = _rss_bytes()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        call()
-        times.append(time.perf_counter() - t0)
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 - base
-    median = statistics.median(times) * (T / LOOP if method == "loop" else 1.0)
-    per = median / LOOP * 1e6 if method == "step" else None
-    return {"method": method, "T": T, "median_s": median, "repeats": len(times),
+    times, peak = measure(call, repeats)
+    seconds = median(times) * (T / LOOP if method == "loop" else 1.0)
+    per = seconds / LOOP * 1e6 if method == "step" else None
+    return {"method": method, "T": T, "median_s": seconds, "repeats": len(times),
             "peak_bytes": peak, "us_per_sample": per}
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
-    parser.add_argument("--length", type=int, default=100_000)
-    parser.add_argument("--one", help=argparse.SUPPRESS)
-    args = parser.parse_args()
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    if args.one:
-        print(json.dumps(run_one(args.one, args.length, args.repeats)))
+    ran = main_or_run(__doc__, __file__, METHODS, run_one, few=("fit", "loop"))
+    if ran is None:
         return
-    rows = []
-    for method in METHODS:
-        repeats = min(args.repeats, 3) if method in ("fit", "loop") else args.repeats
-        out = subprocess.run(
-            [sys.executable, __file__, "--one", method, "--length", str(args.length),
-             "--repeats", str(repeats), "--threads", str(args.threads)],
-            check=True, capture_output=True, text=True,
-        )
-        rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+    args, rows = ran
     threads = args.threads or torch.get_num_threads()
     print(f"stop-type PI, T={args.length}, N={N} stops x K={K} segments, batch 1, float32 "
           f"(fit: float64), torch {torch.__version__}, {threads} threads\n")
