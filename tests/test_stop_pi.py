@@ -809,3 +809,31 @@ def test_registered_by_name():
     assert torchhys.StopPrandtlIshlinskii is StopPrandtlIshlinskii
     assert torchhys.fit_stop_pi is fit_stop_pi
     assert torchhys.select_stop_pi_ridge is select_stop_pi_ridge
+
+
+# --- segments the fitted samples never enter ----------------------------------------------------
+
+
+@pytest.mark.parametrize("nonnegative", [True, False])
+def test_segments_never_entered_get_zero_slope_and_the_solve_converges(nonnegative):
+    """Thresholds up to three times the input's span: the outer segments of the wide stops are
+    never entered (their features are constant, collinear with the offset). Their slopes are
+    exactly 0 in the fit and in every candidate of the hold-out selection, the active-set
+    solve converges without a warning, and the fit still reproduces the data."""
+    t = torch.linspace(0, 6 * math.pi, 400, dtype=F64)
+    x = (0.6 * torch.sin(t) + 0.3 * torch.sin(2.3 * t))[None]
+    y = torch.tanh(2.0 * StopPrandtlIshlinskii(torch.tensor([0.2], dtype=F64),
+                                               torch.ones(1, 1, dtype=F64))(x)[0])
+    span = float(x.max() - x.min())
+    r = torch.linspace(0.05, 3.0, 12, dtype=F64) * span
+    K = 6
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        m = fit_stop_pi(x, y, r, segments=K, ridge=0.0, nonnegative=nonnegative)
+        select_stop_pi_ridge(x, y, r, [0.0, 1e-8, 1e-4], segments=K, nonnegative=nonnegative)
+    u = x[0] - m.center
+    feats = stop_segments(u[:, None] - torchhys.functional.backlash(u, 2 * r), r, K)
+    never = (feats.amax(0) == feats.amin(0))
+    assert int(never.sum()) >= 12  # the test has segments that are never entered
+    assert bool((m.weights[never] == 0).all())
+    assert float((m(x)[0] - y).square().mean().sqrt()) < 0.25 * float(y.std())

@@ -16,6 +16,7 @@ against its flux density.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import torch
@@ -185,9 +186,10 @@ _CHUNK = 8192
 
 
 def _moments(xb: Tensor, yb: Tensor, thresholds: Tensor, segments: int, center: float,
-             cuts: list[int]) -> list[Moments]:
+             cuts: list[int]) -> list[tuple[Moments, Tensor]]:
     """The normal equations of the design ``[1, u, segment features]`` (2 + N K columns) for
-    the samples ``cuts[s]:cuts[s+1]`` of every row, float64, accumulated in chunks."""
+    the samples ``cuts[s]:cuts[s+1]`` of every row, float64, accumulated in chunks; with each,
+    which columns vary over those samples ((2 + N K,) bool; the first two always True)."""
     r = thresholds.detach().double().cpu()
     m = 2 + r.numel() * segments
     out = []
@@ -198,6 +200,8 @@ def _moments(xb: Tensor, yb: Tensor, thresholds: Tensor, segments: int, center: 
         for a, b in zip(cuts[:-1], cuts[1:], strict=True):
             G, h = torch.zeros(m, m, dtype=torch.float64), torch.zeros(m, dtype=torch.float64)
             yy, count = torch.zeros((), dtype=torch.float64), 0
+            lo = torch.full((m,), math.inf, dtype=torch.float64)
+            hi = torch.full((m,), -math.inf, dtype=torch.float64)
             for row in range(u.shape[0]):
                 for c in range(a, b, _CHUNK):
                     e = min(b, c + _CHUNK)
@@ -207,37 +211,33 @@ def _moments(xb: Tensor, yb: Tensor, thresholds: Tensor, segments: int, center: 
                     h += A.T @ t[row, c:e]
                     yy += t[row, c:e] @ t[row, c:e]
                     count += e - c
-            out.append(Moments(G, h, yy, count))
+                    lo = torch.minimum(lo, A.amin(0))
+                    hi = torch.maximum(hi, A.amax(0))
+            varying = hi > lo
+            varying[:2] = True
+            out.append((Moments(G, h, yy, count), varying))
     return out
 
 
-def _solve(G: Tensor, h: Tensor, ridge: float, nonnegative: bool) -> Tensor:
+def _solve(G: Tensor, h: Tensor, ridge: float, nonnegative: bool, varying: Tensor) -> Tensor:
     """``[offset, w0, W.flatten()]`` from the per-sample normal equations plus ``ridge`` on W.
 
-    A segment the fitted samples never enter (its feature constant: a knot beyond the
-    input's range) has no data for its slope: its weight is 0 and it is left out of the
-    solve, which removes its exact collinearity with the offset.
+    A segment the fitted samples never enter (``varying`` False: its feature is constant, a
+    knot beyond the input's range) has no data for its slope: its weight is 0 and it is left
+    out of the solve, which removes its exact collinearity with the offset.
     """
     pen = torch.ones_like(h)
     pen[:2] = 0.0
     P = G + ridge * torch.diag(pen)
-    var = (G.diagonal() - G[0].square() / G[0, 0].clamp_min(1e-300)).clamp_min(0.0)
-    keep = var > _CONSTANT * float(var[2:].max())
-    keep[:2] = True
     theta = torch.zeros_like(h)
-    Pk, hk = P[keep][:, keep], h[keep]
+    Pk, hk = P[varying][:, varying], h[varying]
     if not nonnegative:
-        theta[keep] = torch.linalg.lstsq(Pk, hk[:, None], driver="gelsd").solution[:, 0]
+        theta[varying] = torch.linalg.lstsq(Pk, hk[:, None], driver="gelsd").solution[:, 0]
         return theta
     free = torch.zeros(hk.shape, dtype=torch.bool)
     free[:2] = True
-    theta[keep] = nnls_gram(Pk, hk, free)
+    theta[varying] = nnls_gram(Pk, hk, free)
     return theta
-
-
-_CONSTANT = 1e-12
-"""A feature whose variance over the fitted samples is below this share of the largest one is
-constant there (a segment never entered)."""
 
 
 def fit_stop_pi(
@@ -286,8 +286,8 @@ def fit_stop_pi(
     ridge = check_penalty(ridge, "ridge")
     nonnegative = check_bool(nonnegative, "nonnegative")
     c = _center(xb, warmup, center)
-    (mom,) = _moments(xb, yb, thresholds, segments, c, [warmup, xb.shape[1]])
-    theta = _solve(mom.gram / mom.count, mom.moment / mom.count, ridge, nonnegative)
+    ((mom, varying),) = _moments(xb, yb, thresholds, segments, c, [warmup, xb.shape[1]])
+    theta = _solve(mom.gram / mom.count, mom.moment / mom.count, ridge, nonnegative, varying)
     if not bool(torch.isfinite(theta).all()):
         raise ValueError("the least-squares solution is not finite (degenerate data?)")
     n = thresholds.shape[0]
@@ -325,10 +325,10 @@ def select_stop_pi_ridge(
     nonnegative = check_bool(nonnegative, "nonnegative")
     cuts = holdout_cuts(xb.shape[1], warmup, validation)
     c = _center(xb[:, :cuts[1]], warmup, center)
-    train, valid = _moments(xb, yb, thresholds, segments, c, cuts)
+    (train, varying), (valid, _) = _moments(xb, yb, thresholds, segments, c, cuts)
 
     def solve(G: Tensor, h: Tensor, ridge: float) -> Tensor:
-        return _solve(G, h, ridge, nonnegative)
+        return _solve(G, h, ridge, nonnegative, varying)
 
     return select_on_holdout(train, valid, ridges, solve, name="ridges")
 
