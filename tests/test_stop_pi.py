@@ -594,9 +594,6 @@ NAN = math.nan
      r"weights must have shape \(3, K\).* got shape \(2, 2\)"),
     (T3, torch.ones(3, 0, dtype=F64), ValueError, r"weights must have shape \(3, K\)"),
     (T3, torch.full((3, 2), NAN, dtype=F64), ValueError, "weights must be finite"),
-    (T3, torch.ones(3, 2, dtype=torch.long), TypeError,
-     "weights must have a floating-point dtype"),
-    (T3, [[1.0, 1.0]] * 3, TypeError, "weights must be a torch.Tensor"),
 ])
 def test_bad_thresholds_and_weights(thresholds, weights, err, match):
     with pytest.raises(err, match=match):
@@ -612,6 +609,21 @@ def test_the_functional_core_takes_float_tensor_thresholds_only():
         stop_pi(X, torch.tensor([1, 2, 3]), W3)
     with pytest.raises(TypeError, match="thresholds must be a torch.Tensor"):
         stop_pi(X, [0.2, 0.5, 1.0], W3)
+    with pytest.raises(TypeError, match="weights must have a floating-point dtype"):
+        stop_pi(X, T3, torch.ones(3, 2, dtype=torch.long))
+    with pytest.raises(TypeError, match="weights must be a torch.Tensor"):
+        stop_pi(X, T3, [[1.0, 1.0]] * 3)
+    # the module converts them (nested lists as a config gives them), to the thresholds' dtype
+    for w in ([[1.0, 1.0]] * 3, torch.ones(3, 2, dtype=torch.long)):
+        m = StopPrandtlIshlinskii(T3, w)
+        assert m.weights.dtype == F64 and torch.equal(m.weights, W3)
+    for bad, match in (("abc", "thresholds must be a tensor or a sequence of real numbers"),
+                       ([0.1, None], "thresholds must be a tensor or a sequence of real"),
+                       (torch.tensor([0.1 + 1j]), "thresholds must hold real numbers")):
+        with pytest.raises(TypeError, match=match):
+            StopPrandtlIshlinskii(bad)
+    with pytest.raises(TypeError, match="weights must hold real numbers"):
+        StopPrandtlIshlinskii(T3, torch.ones(3, 2, dtype=torch.complex128))
     for r in ([1, 2, 3], torch.tensor([1, 2, 3])):
         m = StopPrandtlIshlinskii(r, W3)
         assert m.thresholds.dtype == torch.get_default_dtype() == m.weights.dtype
@@ -837,3 +849,26 @@ def test_segments_never_entered_get_zero_slope_and_the_solve_converges(nonnegati
     assert int(never.sum()) >= 12  # the test has segments that are never entered
     assert bool((m.weights[never] == 0).all())
     assert float((m(x)[0] - y).square().mean().sqrt()) < 0.25 * float(y.std())
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"center": NAN}, "center must be a finite real number"),
+    ({"center": torch.tensor([0.0, 5.0], dtype=F64)},
+     r"center must be a finite real number or a one-element real tensor, got a tensor of "
+     r"shape \(2,\)"),
+    ({"offset": "a"}, "offset must be a finite real number"),
+    ({"offset": math.inf}, "offset must be a finite real number"),
+    ({"linear_weight": torch.ones(2, dtype=F64)}, "linear_weight must be a finite real"),
+    ({"linear_weight": torch.tensor(NAN)}, "linear_weight must be a finite real number"),
+])
+def test_functional_scalars_are_checked(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        stop_pi(X, T3, W3, **kwargs)
+
+
+def test_functional_scalars_keep_their_gradient():
+    c, w0, b = (torch.tensor(v, dtype=F64, requires_grad=True) for v in (0.1, 0.5, -0.2))
+    y, _ = stop_pi(X, T3, W3, center=c, linear_weight=w0, offset=b)
+    y.sum().backward()
+    assert b.grad == X.numel() and w0.grad is not None and c.grad is not None
+    torch.testing.assert_close(w0.grad, (X - 0.1).sum())

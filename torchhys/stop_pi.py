@@ -43,6 +43,19 @@ from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, regi
 __all__ = ["StopPIStep", "StopPrandtlIshlinskii", "fit_stop_pi", "select_stop_pi_ridge"]
 
 
+def _as_real_tensor(value: object, name: str) -> Tensor:
+    """A tensor, or a (nested) sequence of real numbers as one; ``TypeError`` naming ``name``
+    for anything else (strings, None entries, complex values)."""
+    try:
+        t = value if isinstance(value, Tensor) else torch.as_tensor(value)
+    except (TypeError, ValueError, RuntimeError):
+        raise TypeError(f"{name} must be a tensor or a sequence of real numbers, got "
+                        f"{value!r}") from None
+    if t.is_complex() or t.dtype == torch.bool:
+        raise TypeError(f"{name} must hold real numbers, got dtype {t.dtype}")
+    return t
+
+
 class StopPIStep(OperatorStep):
     """A :class:`StopPrandtlIshlinskii` model, one sample at a time.
 
@@ -81,7 +94,8 @@ class StopPrandtlIshlinskii(HysteresisOperator):
 
     Args:
         thresholds: stop thresholds r_i > 0, (N,).
-        weights: segment slopes, (N, K); zeros (one segment) if None.
+        weights: segment slopes, (N, K) (a tensor or nested lists); zeros (one segment) if
+            None.
         center: the input value at which the stops start (their plays at 0).
         linear_weight, offset: w0 and the offset.
         learnable: make the weights, linear weight and offset trainable (the thresholds and
@@ -100,7 +114,7 @@ class StopPrandtlIshlinskii(HysteresisOperator):
     def __init__(
         self,
         thresholds: Tensor | Sequence[float],
-        weights: Tensor | None = None,
+        weights: Tensor | Sequence[Sequence[float]] | None = None,
         *,
         center: float = 0.0,
         linear_weight: float = 0.0,
@@ -108,11 +122,11 @@ class StopPrandtlIshlinskii(HysteresisOperator):
         learnable: bool = False,
     ) -> None:
         super().__init__()
-        r = torch.as_tensor(thresholds)
+        r = _as_real_tensor(thresholds, "thresholds")
         if not r.is_floating_point():
             r = r.to(torch.get_default_dtype())
-        w = torch.zeros(r.shape[0] if r.dim() == 1 else 0, 1, dtype=r.dtype) \
-            if weights is None else weights
+        w = (torch.zeros(r.shape[0] if r.dim() == 1 else 0, 1, dtype=r.dtype) if weights is None
+             else _as_real_tensor(weights, "weights").to(r.dtype))
         check_stop_parameters(r, w)
         check_bool(learnable, "learnable")
         w = w.detach().to(r.dtype).clone()

@@ -35,7 +35,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchhys._checks import as_batched_sequence, check_finite, check_floating, check_tensor
+from torchhys._checks import (
+    as_batched_sequence,
+    check_finite,
+    check_floating,
+    check_real,
+    check_tensor,
+)
 from torchhys.functional.backlash import backlash
 
 __all__ = ["check_stop_parameters", "stop_characteristic", "stop_pi", "stop_segments"]
@@ -63,6 +69,18 @@ def check_stop_parameters(thresholds: Tensor, weights: Tensor) -> None:
         raise ValueError(f"weights must have shape ({n}, K), one row of K >= 1 segment slopes "
                          f"per threshold, got shape {tuple(weights.shape)}")
     check_finite(weights, "weights")
+
+
+def _scalar(value: float | Tensor, name: str, like: Tensor) -> Tensor:
+    """A finite real number or one-element real tensor (its gradient kept) as a 0-dim tensor
+    in the dtype and on the device of ``like``; ``ValueError`` naming ``name`` otherwise."""
+    if isinstance(value, Tensor):
+        if value.numel() != 1 or value.is_complex():
+            raise ValueError(f"{name} must be a finite real number or a one-element real "
+                             f"tensor, got a tensor of shape {tuple(value.shape)}")
+        check_real(value.detach(), name)
+        return value.reshape(()).to(device=like.device, dtype=like.dtype)
+    return torch.tensor(check_real(value, name), dtype=like.dtype, device=like.device)
 
 
 def stop_segments(s: Tensor, thresholds: Tensor, segments: int) -> Tensor:
@@ -119,10 +137,10 @@ def stop_pi(
     """
     xb, squeezed = as_batched_sequence(x, "x")
     check_stop_parameters(thresholds, weights)
-    dt = xb.dtype
-    u = xb - torch.as_tensor(center, dtype=dt)
-    p = backlash(u, 2.0 * thresholds.to(dt), y0=p0)  # (B, T, N); checks p0
-    y = (torch.as_tensor(offset, dtype=dt) + torch.as_tensor(linear_weight, dtype=dt) * u
-         + stop_characteristic(u.unsqueeze(-1) - p, thresholds, weights))
+    u = xb - _scalar(center, "center", xb)
+    w0, b = _scalar(linear_weight, "linear_weight", xb), _scalar(offset, "offset", xb)
+    p = backlash(u, 2.0 * thresholds.to(xb.dtype), y0=p0)  # (B, T, N); checks p0
+    y = b + w0 * u + stop_characteristic(u.unsqueeze(-1) - p, thresholds.to(xb.device),
+                                         weights.to(xb.device))
     last = p[:, -1, :]
     return (y[0], last[0]) if squeezed else (y, last)
