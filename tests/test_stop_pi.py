@@ -872,3 +872,17 @@ def test_functional_scalars_keep_their_gradient():
     y.sum().backward()
     assert b.grad == X.numel() and w0.grad is not None and c.grad is not None
     torch.testing.assert_close(w0.grad, (X - 0.1).sum())
+
+
+def test_project_clamps_the_slopes_after_a_step():
+    """Projected gradient for a learnable model: after an optimizer step drives a slope
+    negative, project_() sets it to 0 and leaves the others, in place."""
+    m = StopPrandtlIshlinskii(T3, torch.tensor([[0.01, 1.0]] * 3, dtype=F64), learnable=True)
+    opt = torch.optim.SGD(m.parameters(), lr=1.0)
+    (m(X)[0].sum()).backward()  # every slope has a positive gradient
+    opt.step()
+    assert bool((m.weights < 0).any())
+    before = m.weights.detach().clone()
+    assert m.project_() is m
+    torch.testing.assert_close(m.weights.detach(), before.clamp_min(0.0))
+    assert isinstance(m.weights, torch.nn.Parameter)

@@ -152,6 +152,14 @@ class StopPrandtlIshlinskii(HysteresisOperator):
         return stop_pi(x, self.thresholds, self.weights, center=self.center,
                        linear_weight=self.linear_weight, offset=self.offset, p0=state)
 
+    @torch.no_grad()
+    def project_(self) -> StopPrandtlIshlinskii:
+        """Clamp the slopes at 0 in place (after an optimizer step of a ``learnable`` model
+        fitted with ``nonnegative=True``: projected gradient keeps every characteristic
+        rising, the loops clockwise); returns self."""
+        self.weights.clamp_(min=0.0)
+        return self
+
     def streaming_step(self, dtype: torch.dtype) -> StopPIStep:
         """The per-sample step with the current parameters, in ``dtype``."""
         return StopPIStep(*(t.detach().to(dtype) for t in (
@@ -276,9 +284,12 @@ def fit_stop_pi(
     constrained fit, the offset and w0 free).
 
     Thresholds: :func:`~torchhys.fitting.play_width_grid` of the input gives ``span (k/n)^p``,
-    up to the input's span: with the default centre (the midpoint of the input's range) the
-    stops of at least half the span never slip on the training data and make the memoryless
-    (elastic) part of the model, the smaller ones the hysteresis.
+    up to the input's span: with the default centre (the midpoint of the fitted input's range)
+    the stops of at least half the span never slip on the fitted samples (nor on the warm-up,
+    when it stays inside that range) and make the memoryless (elastic) part of the model, the
+    smaller ones the hysteresis. A segment the fitted samples never enter gets slope 0.
+    Train a ``learnable`` copy further with :meth:`StopPrandtlIshlinskii.project_` after each
+    step to keep the slopes non-negative.
 
     Args:
         x, y: input and target, (time,) or (batch, time) (rows are independent records).
