@@ -886,3 +886,17 @@ def test_project_clamps_the_slopes_after_a_step():
     assert m.project_() is m
     torch.testing.assert_close(m.weights.detach(), before.clamp_min(0.0))
     assert isinstance(m.weights, torch.nn.Parameter)
+
+
+@pytest.mark.parametrize("select", ["stop_pi", "pi", "preisach"])
+@pytest.mark.parametrize("validation", [None, 0.0, 1.0, True, "0.25"])
+def test_every_penalty_selection_names_a_bad_validation_share(select, validation):
+    x = torch.sin(torch.linspace(0, 12, 200, dtype=F64))
+    y = torch.tanh(2 * x)
+    with pytest.raises(ValueError, match=r"validation must be in \(0, 1\)"):
+        if select == "stop_pi":
+            select_stop_pi_ridge(x, y, T3, [0.0], validation=validation)
+        elif select == "pi":
+            torchhys.fitting.select_pi_ridge(x, y, T3, [0.0], validation=validation)
+        else:
+            torchhys.select_penalty(x, y, [0.0], validation=validation, n=4)

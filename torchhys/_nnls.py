@@ -22,8 +22,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-__all__ = ["Moments", "check_penalty", "holdout_cuts", "moments", "nnls_gram",
-           "select_on_holdout"]
+__all__ = ["Moments", "check_penalty", "check_validation", "holdout_cuts", "moments",
+           "nnls_gram", "select_on_holdout"]
 
 
 class Moments(NamedTuple):
@@ -57,6 +57,15 @@ def check_penalty(value: object, name: str) -> float:
     if v < 0:
         raise ValueError(f"{name} must be >= 0, got {v}")
     return v
+
+
+def check_validation(validation: object) -> float:
+    """The hold-out share of a penalty selection: a real number in (0, 1) (None, which
+    :func:`holdout_cuts` reads as "no hold-out", is an error here)."""
+    if (isinstance(validation, bool) or not isinstance(validation, numbers.Real)
+            or not 0.0 < validation < 1.0):
+        raise ValueError(f"validation must be in (0, 1), got {validation!r}")
+    return float(validation)
 
 
 def holdout_cuts(T: int, warmup: int, validation: float | None) -> list[int]:

@@ -22,7 +22,13 @@ from torchhys._checks import (
     check_warmup,
     check_widths,
 )
-from torchhys._nnls import holdout_cuts, moments, nnls_gram, select_on_holdout
+from torchhys._nnls import (
+    check_validation,
+    holdout_cuts,
+    moments,
+    nnls_gram,
+    select_on_holdout,
+)
 from torchhys.functional.backlash import backlash
 from torchhys.networks import InverseHysteresisNet
 from torchhys.operator import HysteresisOperator, check_operator
@@ -278,7 +284,7 @@ def select_pi_ridge(
         TypeError, ValueError: bad arguments, or no training sample before the split.
     """
     ub, yb = _check_pi_data(u, y, widths, warmup)
-    cuts = holdout_cuts(ub.shape[1], warmup, validation)
+    cuts = holdout_cuts(ub.shape[1], warmup, check_validation(validation))
     (A, t), (Av, tv) = _pi_segments(ub, yb, widths, cuts)
     nonnegative = check_bool(nonnegative, "nonnegative")
     floor = _linear_floor(A[:, 0], t) if nonnegative else 0.0

@@ -18,7 +18,14 @@ import torch
 from torch import Tensor, nn
 
 from torchhys._checks import as_batched_sequence, check_bool, check_warmup
-from torchhys._nnls import Moments, check_penalty, holdout_cuts, nnls_gram, select_on_holdout
+from torchhys._nnls import (
+    Moments,
+    check_penalty,
+    check_validation,
+    holdout_cuts,
+    nnls_gram,
+    select_on_holdout,
+)
 from torchhys.functional.preisach import (
     _check_smooth,
     _real,
@@ -250,7 +257,8 @@ def select_penalty(
     """
     if kind not in ("ridge", "smoothness"):
         raise ValueError(f"kind must be one of ('ridge', 'smoothness'), got {kind!r}")
-    xb, yb, model, cuts = _prepare(x, y, lo, hi, n, linear, warmup, validation)
+    xb, yb, model, cuts = _prepare(x, y, lo, hi, n, linear, warmup,
+                                   check_validation(validation))
     train, valid = _normal_equations(xb, yb, model, cuts)
 
     def solve(G: Tensor, h: Tensor, p: float) -> Tensor:

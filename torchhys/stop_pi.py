@@ -30,7 +30,14 @@ from torchhys._checks import (
     check_same_shape,
     check_warmup,
 )
-from torchhys._nnls import Moments, check_penalty, holdout_cuts, nnls_gram, select_on_holdout
+from torchhys._nnls import (
+    Moments,
+    check_penalty,
+    check_validation,
+    holdout_cuts,
+    nnls_gram,
+    select_on_holdout,
+)
 from torchhys.functional.backlash import backlash, play_step
 from torchhys.functional.stop_pi import (
     check_stop_parameters,
@@ -348,7 +355,7 @@ def select_stop_pi_ridge(
     """
     xb, yb, segments = _check_data(x, y, thresholds, segments, warmup)
     nonnegative = check_bool(nonnegative, "nonnegative")
-    cuts = holdout_cuts(xb.shape[1], warmup, validation)
+    cuts = holdout_cuts(xb.shape[1], warmup, check_validation(validation))
     c = _center(xb[:, :cuts[1]], warmup, center)
     (train, varying), (valid, _) = _moments(xb, yb, thresholds, segments, c, cuts)
 
