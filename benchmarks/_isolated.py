@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import json
 import resource
-import statistics
 import subprocess
 import sys
 import time
@@ -74,7 +73,3 @@ def main_or_run(doc: str, script: str, methods: Sequence[str],
         )
         rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
     return args, rows
-
-
-def median(times: list[float]) -> float:
-    return statistics.median(times)

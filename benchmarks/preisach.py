@@ -22,9 +22,10 @@ References:
 from __future__ import annotations
 
 import warnings
+from statistics import median
 
 import torch
-from _isolated import main_or_run, measure, median, walk_signal
+from _isolated import main_or_run, measure, walk_signal
 
 N_LEVELS = 31
 METHODS = ("chunked", "smooth", "materialised", "fit", "step")

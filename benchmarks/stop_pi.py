@@ -17,8 +17,10 @@ Usage: python benchmarks/stop_pi.py [--repeats N] [--threads N] [--length T]
 
 from __future__ import annotations
 
+from statistics import median
+
 import torch
-from _isolated import main_or_run, measure, median, walk_signal
+from _isolated import main_or_run, measure, walk_signal
 
 N, K = 20, 4
 METHODS = ("forward", "backward", "loop", "fit", "step")

@@ -41,6 +41,7 @@ from torchhys._nnls import (
 from torchhys.functional.backlash import backlash, play_step
 from torchhys.functional.stop_pi import (
     check_stop_parameters,
+    check_thresholds,
     stop_characteristic,
     stop_pi,
     stop_segments,
@@ -136,7 +137,7 @@ class StopPrandtlIshlinskii(HysteresisOperator):
              else _as_real_tensor(weights, "weights").to(r.dtype))
         check_stop_parameters(r, w)
         check_bool(learnable, "learnable")
-        w = w.detach().to(r.dtype).clone()
+        w = w.detach().clone()
         scalars = {name: torch.tensor(check_real(value, name), dtype=r.dtype) for name, value in
                    (("center", center), ("linear_weight", linear_weight), ("offset", offset))}
         self.register_buffer("thresholds", r.detach().clone())
@@ -197,8 +198,7 @@ def _check_data(x: Tensor, y: Tensor, thresholds: Tensor, segments: int,
     yb, _ = as_batched_sequence(y, "y")
     check_same_shape(yb, xb, "y", "x")
     segments = check_int(segments, "segments", minimum=1)
-    check_stop_parameters(thresholds, torch.zeros(thresholds.shape[0] if isinstance(
-        thresholds, Tensor) and thresholds.dim() == 1 else 0, segments, dtype=torch.float64))
+    check_thresholds(thresholds)
     check_warmup(warmup, xb.shape[1])
     return xb, yb, segments
 

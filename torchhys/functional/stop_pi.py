@@ -44,14 +44,15 @@ from torchhys._checks import (
 )
 from torchhys.functional.backlash import backlash
 
-__all__ = ["check_stop_parameters", "stop_characteristic", "stop_pi", "stop_segments"]
+__all__ = ["check_stop_parameters", "check_thresholds", "stop_characteristic", "stop_pi",
+           "stop_segments"]
 
 
-def check_stop_parameters(thresholds: Tensor, weights: Tensor) -> None:
-    """Thresholds: finite, positive, floating, (N,); weights: finite, floating, (N, K).
+def check_thresholds(thresholds: Tensor) -> None:
+    """Thresholds: finite, positive, floating, (N,), N >= 1.
 
     Raises:
-        TypeError, ValueError: naming ``thresholds`` or ``weights``.
+        TypeError, ValueError: naming ``thresholds``.
     """
     check_tensor(thresholds, "thresholds")
     check_floating(thresholds, "thresholds")
@@ -62,6 +63,15 @@ def check_stop_parameters(thresholds: Tensor, weights: Tensor) -> None:
     if bool((thresholds <= 0).any()):
         raise ValueError("thresholds must be positive, got minimum "
                          f"{thresholds.min().item():.6g}")
+
+
+def check_stop_parameters(thresholds: Tensor, weights: Tensor) -> None:
+    """Thresholds as :func:`check_thresholds`; weights: finite, floating, (N, K).
+
+    Raises:
+        TypeError, ValueError: naming ``thresholds`` or ``weights``.
+    """
+    check_thresholds(thresholds)
     check_tensor(weights, "weights")
     check_floating(weights, "weights")
     n = thresholds.shape[0]
@@ -139,8 +149,8 @@ def stop_pi(
     check_stop_parameters(thresholds, weights)
     u = xb - _scalar(center, "center", xb)
     w0, b = _scalar(linear_weight, "linear_weight", xb), _scalar(offset, "offset", xb)
-    p = backlash(u, 2.0 * thresholds.to(xb.dtype), y0=p0)  # (B, T, N); checks p0
-    y = b + w0 * u + stop_characteristic(u.unsqueeze(-1) - p, thresholds.to(xb.device),
-                                         weights.to(xb.device))
+    r = thresholds.to(device=xb.device, dtype=xb.dtype)
+    p = backlash(u, 2.0 * r, y0=p0)  # (B, T, N); checks p0
+    y = b + w0 * u + stop_characteristic(u.unsqueeze(-1) - p, r, weights.to(xb.device))
     last = p[:, -1, :]
     return (y[0], last[0]) if squeezed else (y, last)
