@@ -94,7 +94,13 @@ from torchhys.training.families import FitError
 from torchhys.training.init import initialize
 from torchhys.training.module import OPTIMIZERS, InverseHysteresisModule
 from torchhys.training.operators import build_operators, fit_data_dependent
-from torchhys.training.selection import CandidateScore, best, standard_error
+from torchhys.training.selection import (
+    RECORDING,
+    CandidateScore,
+    best,
+    block_split,
+    standard_error,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT / "examples" / "data" / "real"
@@ -731,10 +737,14 @@ def _config_model(path: Path) -> tuple[dict, dict, torch.dtype, int]:
 
 
 def _train_config(path: Path, x: Tensor, y: Tensor, w: int, budget: Budget,
-                  overrides: dict | None = None) -> tuple[InverseHysteresisNet, int, int]:
+                  overrides: dict | None = None,
+                  loss_on: tuple[Tensor, Tensor, Tensor] | None = None,
+                  ) -> tuple[InverseHysteresisNet, int, int]:
     """Build the config's network (its model section with a candidate's ``overrides``), fit
     its data-dependent operators and normalization on (x, y) (rows, time) and train it on
-    samples [w, T): the net, epochs done, epochs asked."""
+    samples [w, T), or with ``loss_on = (x, y, mask)`` on the masked samples of those rows
+    (a cross-validation fold: the rows run whole, the held-out block unscored): the net,
+    epochs done, epochs asked."""
     m, trainer, dtype, seed = _config_model(path)
     m = {**m, **(overrides or {})}
     torch.manual_seed(seed)
@@ -745,6 +755,11 @@ def _train_config(path: Path, x: Tensor, y: Tensor, w: int, budget: Budget,
     x, y = x.to(dtype), y.to(dtype)
     fit_data_dependent(net.operators, fitters, x, y, warmup=w)
     net.fit_normalization(x, y)
+    if loss_on is None:
+        mask = torch.zeros_like(x, dtype=torch.bool)
+        mask[:, w:] = True
+    else:
+        x, y, mask = loss_on[0].to(dtype), loss_on[1].to(dtype), loss_on[2]
     fixed = not any(p.requires_grad for p in net.operators.parameters())
     with torch.no_grad():
         feats = net.features(x)[0] if fixed else None
@@ -758,7 +773,7 @@ def _train_config(path: Path, x: Tensor, y: Tensor, w: int, budget: Budget,
     def closure() -> Tensor:
         opt.zero_grad()
         out = net.head(feats) if fixed else net(x)[0]
-        loss = (out[:, w:] - y[:, w:]).square().mean()
+        loss = (out - y)[mask].square().mean()
         loss.backward()
         return loss
 
@@ -779,32 +794,68 @@ def _describe(m: dict) -> str:
     return f"{names} + {m['hidden']} {m['activation']}"
 
 
+def _score(config: Path, overrides: dict, x: Tensor, y: Tensor, w: int, budget: Budget,
+           cv: int | str | None) -> tuple[float, float] | None:
+    """A candidate's validation MSE and its standard error, as ``torchhys fit`` scores it
+    with ``model.select_cv`` = ``cv``: None, on the last quarter of the scored samples of
+    every training row, fitted before it; ``k``, by blocked cross-validation inside the
+    training rows (:func:`~torchhys.training.selection.block_split`: each fold fitted on
+    the rows without its block, end to end, the states run through the whole rows);
+    ``"recording"``, each training row held out once, fitted on the others. None when a fit
+    fails (``FitError``: the candidate is never chosen) or the MSE is not finite."""
+    if cv is None:
+        c = holdout(x.shape[1], w)
+        folds = [(x[:, :c], y[:, :c], (slice(None), slice(c, None)))]
+    elif cv == RECORDING:
+        if x.shape[0] < 2:
+            raise ValueError(f"model.select_cv={RECORDING!r} holds each training recording out "
+                             f"once, but the protocol has {x.shape[0]} training row")
+        rest = [[j for j in range(len(x)) if j != r] for r in range(len(x))]
+        folds = [(x[rest[r]], y[rest[r]], (slice(r, r + 1), slice(w, None)))
+                 for r in range(len(x))]
+    else:
+        mask = torch.zeros_like(x, dtype=torch.bool)
+        mask[:, w:] = True
+        folds = []
+        for f in range(cv):
+            held, fx, fy = block_split(x, y, mask, cv, f)
+            folds.append((fx, fy, held, (x, y, mask & ~held)))
+    errors = []
+    for fx, fy, held, *loss_on in folds:
+        try:
+            net, _, _ = _train_config(config, fx, fy, w, budget, overrides, *loss_on)
+        except FitError:
+            return None
+        dtype = next(net.parameters()).dtype
+        with torch.no_grad():
+            e = net(x.to(dtype))[0].to(F64) - y
+        errors.append(e[held].square().reshape(-1))
+    e2 = torch.cat(errors)
+    mse = float(e2.mean())
+    return (mse, standard_error(e2)) if math.isfinite(mse) else None
+
+
 def default(split: Split, budget: Budget, config: Path = CONFIG) -> Fitted:
     """The model section of a ``torchhys fit`` config, trained as its trainer section says
-    on the whole training part. With ``model.select``, every candidate is fitted on the
-    part before the hold-out and scored on it (as ``torchhys fit`` scores its validation
-    split), the config's ``select_rule`` chooses one (a candidate that cannot be fitted is
-    skipped), and it is refitted on the whole training part; without, the hold-out RMSE
-    comes from a second fit before it. Its prediction is what ``torchhys export`` deploys:
-    the network's output saturated to the training target range (the default command
-    limits); the candidates are scored without it, as ``torchhys fit`` scores them."""
-    x, y, w, c = split.x, split.y, split.warmup, holdout(split.x.shape[1], split.warmup)
+    on the whole training part. With ``model.select``, every candidate is scored as
+    ``torchhys fit`` scores it (:func:`_score`: on the hold-out, or by the cross-validation
+    of the config's ``select_cv``), the config's ``select_rule`` chooses one (a candidate
+    that cannot be fitted is skipped), and it is refitted on the whole training part;
+    without, the hold-out RMSE comes from a second fit before it. The row's hold-out RMSE
+    is that of the chosen candidate fitted before the hold-out (as every row's, for
+    ``selected``). Its prediction is what ``torchhys export`` deploys: the network's output
+    saturated to the training target range (the default command limits); the candidates are
+    scored without it, as ``torchhys fit`` scores them."""
+    x, y, w = split.x, split.y, split.warmup
     m = _config_model(config)[0]
     candidates = m.pop("select", None) or [{}]
-    m.pop("select_cv", None)
+    cv = m.pop("select_cv", None)
     rule = m.pop("select_rule", None) or "min"
     scores = []
     for i, overrides in enumerate(candidates):
-        try:
-            first, _, _ = _train_config(config, x[:, :c], y[:, :c], w, budget, overrides)
-        except FitError:
-            continue
-        dtype = next(first.parameters()).dtype
-        with torch.no_grad():
-            e2 = (first(x.to(dtype))[0][:, c:].to(F64) - y[:, c:]).square().reshape(-1)
-        mse = float(e2.mean())
-        if math.isfinite(mse):
-            scores.append(CandidateScore(i, overrides, mse, val_se=standard_error(e2)))
+        s = _score(config, overrides, x, y, w, budget, cv)
+        if s is not None:
+            scores.append(CandidateScore(i, overrides, s[0], val_se=s[1]))
     if not scores:
         raise FitError("no candidate of the config could be fitted")
     chosen = best(scores, rule)  # as torchhys fit chooses
@@ -813,20 +864,25 @@ def default(split: Split, budget: Budget, config: Path = CONFIG) -> Fitted:
     for s in order:  # the chosen candidate, or the best one whose refit succeeds
         try:
             refit = _train_config(config, x, y, w, budget, candidates[s.index])
-            score, i = math.sqrt(s.val_mse), s.index
+            i = s.index
             break
         except FitError:
             failed += 1
     if refit is None:
         raise FitError("no candidate of the config could be refitted")
     net, done, epochs = refit
+    validation, score = "", math.sqrt(s.val_mse)
+    if cv is not None:  # the row's hold-out RMSE, as the other rows'
+        validation = f", select_cv {cv} RMSE {score:.4g}"
+        held = _score(config, candidates[i], x, y, w, budget, None)
+        score = math.sqrt(held[0]) if held is not None else math.inf
     dtype = next(net.parameters()).dtype
     low, high = default_limits(net)  # as torchhys export deploys it
     capped = f" (capped at {budget.seconds:g} s)" if done < epochs else ""
     note = f" ({failed} failed refits)" if failed else ""
     label = f"candidate {i}{note}: " if len(candidates) > 1 else ""
     choice = (f"{config.name}: {label}{_describe({**m, **candidates[i]})}, {m['optimizer']} "
-              f"{done} epochs{capped}")
+              f"{done} epochs{capped}{validation}")
     return Fitted(lambda v: net(v.to(dtype))[0].to(F64).clamp(low, high), choice, score)
 
 

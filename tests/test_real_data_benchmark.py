@@ -153,6 +153,71 @@ def test_the_default_row_follows_the_configs_selection_rule(bench, tmp_path, mon
         assert fitted.predict(split.test[0][0][None]).isfinite().all()
 
 
+@pytest.mark.parametrize("cv", [3, "recording"])
+def test_the_default_row_cross_validates_as_its_config_says(bench, tmp_path, monkeypatch, cv):
+    """With model.select_cv, the default row scores every candidate by cross-validation
+    inside the training rows, as torchhys fit does: blocked (each row's scored samples cut
+    into k contiguous blocks, each held out once, the rows run whole) or one training row
+    held out at a time. The straight line's score against numpy least squares per fold."""
+    split = bench.DATASETS["mnzn_ferrite"][1](bench.Files(FERRITE))
+    path = tmp_path / "cv.yaml"
+    path.write_text(_measured_with(f"""  select:
+    - operator: null
+    - operator: [{{name: stop_pi, n_widths: 5, segments: 2}}]
+  select_cv: {cv}
+  select_rule: min
+"""))
+    calls = []
+
+    def spy(scores, rule="min"):
+        calls.append(list(scores))
+        return bench.best.__wrapped__(scores, rule)
+
+    spy.__wrapped__ = bench.best
+    monkeypatch.setattr(bench, "best", spy)
+    fitted = bench.default(split, bench.QUICK, path)
+    scores = calls[-1]
+    assert [s.index for s in scores] == [0, 1] and all(s.val_se > 0 for s in scores)
+    x, y, w = split.x.numpy(), split.y.numpy(), split.warmup
+    rows, T = x.shape
+    if cv == "recording":
+        folds = []
+        for r in range(rows):
+            held = np.zeros_like(x, dtype=bool)
+            held[r, w:] = True
+            train = np.zeros_like(held)
+            train[[j for j in range(rows) if j != r], w:] = True
+            folds.append((train, held))
+    else:
+        folds = []
+        for f in range(cv):
+            held = np.zeros_like(x, dtype=bool)
+            held[:, np.array_split(np.arange(w, T), cv)[f]] = True
+            scored = np.zeros_like(held)
+            scored[:, w:] = True
+            folds.append((scored & ~held, held))
+    errors = []
+    for train, held in folds:
+        design = np.stack([np.ones(train.sum()), x[train]], axis=1)
+        coef = np.linalg.lstsq(design, y[train], rcond=None)[0]
+        errors.append(coef[0] + coef[1] * x[held] - y[held])
+    reference = float(np.mean(np.concatenate(errors) ** 2))
+    assert scores[0].val_mse == pytest.approx(reference, rel=1e-6)
+    chosen = spy.__wrapped__(scores, "min")
+    assert f"candidate {chosen.index}" in fitted.choice
+    assert f"select_cv {cv} RMSE {math.sqrt(chosen.val_mse):.4g}" in fitted.choice
+    assert math.isfinite(fitted.holdout) and fitted.holdout != pytest.approx(
+        math.sqrt(chosen.val_mse))  # the row's hold-out RMSE, not the cross-validation's
+
+
+def test_leave_one_recording_out_needs_two_training_rows(bench, tmp_path):
+    split = bench.DATASETS["mnzn_ferrite_largest"][1](bench.Files(FERRITE))
+    path = tmp_path / "cv.yaml"
+    path.write_text(_measured_with("  select:\n    - operator: null\n  select_cv: recording\n"))
+    with pytest.raises(ValueError, match="select_cv='recording'.* 1 training row"):
+        bench.default(split, bench.QUICK, path)
+
+
 def _piezo_file(path: Path, n: int = 2001, rate: float = 200.0) -> tuple[np.ndarray, ...]:
     """A record in the published SmartHysteresis layout: ',time,displacement,voltage'."""
     t = np.arange(n) / rate

@@ -53,8 +53,8 @@ RECORDING = "recording"
 
 __all__ = [
     "RECORDING", "RULES", "BlockFold", "Build", "CandidateScore", "RecordingFold", "best",
-    "check_candidates", "check_holdout", "config_json", "format_table", "model_arguments",
-    "run_selection", "standard_error", "write_table",
+    "block_split", "check_candidates", "check_holdout", "config_json", "format_table",
+    "model_arguments", "run_selection", "standard_error", "write_table",
 ]
 
 Build = Callable[[int, int | None], tuple[L.LightningModule, L.LightningDataModule, L.Trainer]]
@@ -232,27 +232,56 @@ class BlockFold(_Fold):
             raise ValueError(f"{getattr(data, 'source', 'the data')}: no training data")
         x, y, warmup, mask = batches[0]
         mask = mask.to(torch.bool)
-        held = torch.zeros_like(mask)
-        xs, ys = [], []
-        for r in range(mask.shape[0]):
-            idx = mask[r].nonzero().flatten()
-            if idx.numel() < 2 * k:
-                raise ValueError(
-                    f"model.select_cv={k}: training row {r} of "
-                    f"{getattr(data, 'source', 'the data')} holds {idx.numel()} scored "
-                    f"samples, at least {2 * k} are needed; lower select_cv"
-                )
-            block = torch.tensor_split(idx, k)[fold]
-            a, b, end = int(block[0]), int(block[-1]) + 1, int(idx[-1]) + 1
-            held[r, a:b] = True
-            xs += [x[r, :a], x[r, b:end]]
-            ys += [y[r, :a], y[r, b:end]]
+        held, fit_x, fit_y = block_split(x, y, mask, k, fold,
+                                         source=getattr(data, "source", "the data"))
         self.n_val = int(held.sum())
         """Number of held-out (validation) samples."""
         self._train = (x, y, warmup, mask & ~held)
         self._val = (x, y, warmup, held)
-        self._fit = (torch.cat(xs).unsqueeze(0), torch.cat(ys).unsqueeze(0),
-                     int(warmup.reshape(-1)[0]))
+        self._fit = (fit_x, fit_y, int(warmup.reshape(-1)[0]))
+
+
+def block_split(x: Tensor, y: Tensor, mask: Tensor, k: int, fold: int, *,
+                source: str = "the data") -> tuple[Tensor, Tensor, Tensor]:
+    """Fold ``fold`` of ``k`` of blocked cross-validation (:class:`BlockFold`'s cut, on
+    tensors): the scored samples (``mask``) of each row cut into ``k`` contiguous blocks
+    (sizes differ by at most one), block ``fold`` held out.
+
+    Args:
+        x, y: input and target, (rows, time).
+        mask: the scored samples, (rows, time), bool.
+        k: number of blocks, >= 2.
+        fold: the held-out block, ``0 <= fold < k``.
+        source: the data's name, for the error message.
+
+    Returns:
+        ``(held, fit_x, fit_y)``: the held-out samples, (rows, time), bool; and the samples
+        to fit on, (1, n): each row up to its last scored sample without its held-out
+        block, the rows end to end (the first row's leading unscored samples stay its
+        warm-up).
+
+    Raises:
+        ValueError: ``k`` or ``fold`` out of range, a row with fewer than ``2 k`` scored
+            samples.
+    """
+    check_int(k, "model.select_cv", minimum=2)
+    if not 0 <= fold < k:
+        raise ValueError(f"fold must be in [0, {k}), got {fold}")
+    held = torch.zeros_like(mask)
+    xs, ys = [], []
+    for r in range(mask.shape[0]):
+        idx = mask[r].nonzero().flatten()
+        if idx.numel() < 2 * k:
+            raise ValueError(
+                f"model.select_cv={k}: training row {r} of {source} holds {idx.numel()} "
+                f"scored samples, at least {2 * k} are needed; lower select_cv"
+            )
+        block = torch.tensor_split(idx, k)[fold]
+        a, b, end = int(block[0]), int(block[-1]) + 1, int(idx[-1]) + 1
+        held[r, a:b] = True
+        xs += [x[r, :a], x[r, b:end]]
+        ys += [y[r, :a], y[r, b:end]]
+    return held, torch.cat(xs).unsqueeze(0), torch.cat(ys).unsqueeze(0)
 
 
 class RecordingFold(_Fold):
