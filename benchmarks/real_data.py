@@ -44,14 +44,17 @@ the states and are neither fitted nor scored):
   Backlash(16 widths 0.4 span k/16)], hidden=16)``, trained full-batch with L-BFGS; the number
   of L-BFGS steps and the EIHO's reversal threshold (0 or "auto") chosen on the hold-out;
 - ``default``: what ``configs/measured.yaml`` (or ``--config``) chooses: its candidates
-  (``model.select``) are each fitted on the part before the hold-out and scored on it, the
-  config's ``select_rule`` picks one, which is built through ``build_operators`` +
+  (``model.select``) are each scored as the config's ``model.select_cv`` says, as
+  ``torchhys fit`` scores them (``measured.yaml``: 4-fold blocked cross-validation inside the
+  training rows; without ``select_cv``: fitted on the part before the hold-out and scored on
+  it), the config's ``select_rule`` picks one, which is built through ``build_operators`` +
   ``fit_data_dependent``, trained as the config says (its optimizer, one full-batch step per
   epoch, ``trainer.max_epochs``, the last epoch kept, capped in time) on the whole training
   part, and scored as ``torchhys export`` deploys it: its output saturated to the training
   target range (:func:`~torchhys.streaming.default_limits`, the exported command limits);
-- ``selected``: the row above with the least hold-out RMSE (a model-family choice made on
-  the training part only).
+- ``selected``: the row above with the least hold-out RMSE (for ``default``: its chosen
+  candidate's, fitted before the hold-out; a model-family choice made on the training part
+  only).
 
 Every model but ``line``, ``poly`` and ``default`` sees the input divided by its training
 standard deviation and the standardized target (training statistics), so that grids and

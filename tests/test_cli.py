@@ -290,8 +290,9 @@ def test_forward_preisach_config_predicts_the_smaller_loops(monkeypatch, tmp_pat
 
 def test_measured_config_on_the_ferrite_loops(monkeypatch, tmp_path: Path) -> None:
     """configs/measured.yaml as is on the MnZn ferrite loops (docs/training.md): the
-    candidates chosen by blocked cross-validation inside the training loops (no validation
-    recording), the held-out loops predicted far below a straight line (numpy reference)."""
+    candidates chosen by its blocked cross-validation inside the training loops (there is no
+    validation recording), the held-out loops predicted far below a straight line (numpy
+    reference)."""
     monkeypatch.chdir(ROOT)
     root = tmp_path / "ferrite"
     data = ["--data.path", "examples/data/mnzn_ferrite_bh_loops.csv", "--data.input_column",
@@ -300,7 +301,7 @@ def test_measured_config_on_the_ferrite_loops(monkeypatch, tmp_path: Path) -> No
             "--data.train_recordings", "[0, 3]", "--data.val_recordings", "[]",
             "--data.test_recordings", "[1, 2]", "--data.repeat", "3",
             f"--trainer.default_root_dir={root}", "--trainer.enable_progress_bar=false"]
-    cli(monkeypatch, "fit", "--config", "configs/measured.yaml", *data, "--model.select_cv", "3")
+    cli(monkeypatch, "fit", "--config", "configs/measured.yaml", *data)
     with (root / "selection.csv").open() as fh:
         rows = list(csv.DictReader(fh))
     assert len(rows) == 8 and sum(int(r["selected"]) for r in rows) == 1
