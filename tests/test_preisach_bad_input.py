@@ -78,7 +78,7 @@ def test_bad_weights_and_module_options():
     with pytest.raises(ValueError, match="smooth must be None"):
         Preisach(-1.0, 1.0, 3, smooth=-0.1)
     m = Preisach(-1.0, 1.0, 3)
-    with pytest.raises(ValueError, match="r0 must hold relay values"):
+    with pytest.raises(ValueError, match="^state must hold relay values"):  # forward's name
         m(X, torch.zeros(6))
 
 

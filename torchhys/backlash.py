@@ -11,7 +11,7 @@ from torchhys._checks import (
     check_tensor,
     check_widths,
 )
-from torchhys.functional.backlash import backlash, play_step
+from torchhys.functional.backlash import backlash, check_play_state, play_step
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
 
 __all__ = ["Backlash", "BacklashCell", "PlayStep"]
@@ -136,7 +136,9 @@ class Backlash(_Widths, HysteresisOperator):
         return self.n_operators
 
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        y = backlash(x, self.get_widths(), y0=state)
+        widths = self.get_widths()
+        check_play_state(state, x, widths.shape[0], "state")
+        y = backlash(x, widths, y0=state)
         return y, y[..., -1, :]
 
     def streaming_step(self, dtype: torch.dtype) -> PlayStep:

@@ -52,7 +52,7 @@ from torchhys._checks import (
 from torchhys._nnls import check_penalty
 from torchhys.backlash import _inverse_softplus, _Widths
 from torchhys.fitting import fit_full_batch, fit_prandtl_ishlinskii
-from torchhys.functional.backlash import backlash, play_step
+from torchhys.functional.backlash import backlash, check_play_state, play_step
 from torchhys.functional.prandtl_ishlinskii import pi_output
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
 from torchhys.prandtl_ishlinskii import PrandtlIshlinskii
@@ -194,6 +194,7 @@ class GeneralizedPrandtlIshlinskii(_Widths, HysteresisOperator):
 
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
         widths, *rest = self.parameters_effective()
+        check_play_state(state, x, widths.shape[0], "state")
         y = backlash(x, widths, y0=state)
         w, w0, a, c, b, s, off = (t.to(y.dtype) for t in rest)
         return monotone_output(pi_output(x, y, w, w0), a, c, b, s, off), y[..., -1, :]

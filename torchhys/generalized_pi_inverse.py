@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from torchhys._checks import as_batched_sequence, check_int, check_real
-from torchhys.functional.backlash import backlash, play_step
+from torchhys.functional.backlash import backlash, check_play_state, play_step
 from torchhys.functional.prandtl_ishlinskii import (
     pi_output,
     prandtl_ishlinskii_inverse_parameters,
@@ -182,6 +182,7 @@ class GeneralizedPIInverse(HysteresisOperator):
 
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
         as_batched_sequence(x, "x")  # g^-1 comes first: check x before it
+        check_play_state(state, x, self.widths.shape[0], "state")
         v = monotone_inverse(x, *(t.to(x.dtype) for t in (
             self.gain, self.unit_weights, self.centers, self.slopes, self.offset, self.lower,
             self.upper)))

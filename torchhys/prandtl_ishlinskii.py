@@ -5,7 +5,7 @@ from torch import Tensor, nn
 
 from torchhys._checks import as_batched_sequence, check_finite, check_floating, check_tensor
 from torchhys.backlash import _Widths
-from torchhys.functional.backlash import backlash, play_step
+from torchhys.functional.backlash import backlash, check_play_state, play_step
 from torchhys.functional.prandtl_ishlinskii import (
     _check_weights,
     pi_output,
@@ -91,7 +91,9 @@ class PrandtlIshlinskii(_Widths, HysteresisOperator):
             self.register_buffer("linear_weight", w0)
 
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        y = backlash(x, self.get_widths(), y0=state)
+        widths = self.get_widths()
+        check_play_state(state, x, widths.shape[0], "state")
+        y = backlash(x, widths, y0=state)
         h = pi_output(x, y, self.weights.to(y.dtype), self.linear_weight.to(y.dtype))
         return h, y[..., -1, :]
 
@@ -176,6 +178,7 @@ class PrandtlIshlinskiiInverse(nn.Module):
         if self.widths.numel() == 0:  # purely linear model
             as_batched_sequence(y, "y")
             return self.linear_weight.to(y.dtype) * y, y.new_zeros(y.shape[:-1] + (0,))
+        check_play_state(state, y, self.widths.shape[0], "state")
         z = backlash(y, self.widths, y0=state)
         u = pi_output(y, z, self.weights.to(z.dtype), self.linear_weight.to(z.dtype))
         return u, z[..., -1, :]

@@ -30,6 +30,7 @@ from torchhys.functional.preisach import (
     _check_smooth,
     _real,
     _relay_chunks,
+    check_relay_state,
     demagnetized_state,
     preisach_grid,
     preisach_with_state,
@@ -119,6 +120,7 @@ class Preisach(HysteresisOperator):
         raise ValueError(f"initial must be one of {choices} or a tensor, got {initial!r}")
 
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        check_relay_state(state, x, self.alpha.shape[0], "state")
         r0 = self.initial_relays if state is None else state
         return preisach_with_state(
             x, self.weights.clamp_min(0.0), self.alpha, self.beta, offset=self.offset,

@@ -38,7 +38,7 @@ from torchhys._nnls import (
     nnls_gram,
     select_on_holdout,
 )
-from torchhys.functional.backlash import backlash, play_step
+from torchhys.functional.backlash import backlash, check_play_state, play_step
 from torchhys.functional.stop_pi import (
     check_stop_parameters,
     check_thresholds,
@@ -157,6 +157,7 @@ class StopPrandtlIshlinskii(HysteresisOperator):
         return int(self.weights.shape[1])
 
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        check_play_state(state, x, self.thresholds.shape[0], "state")
         return stop_pi(x, self.thresholds, self.weights, center=self.center,
                        linear_weight=self.linear_weight, offset=self.offset, p0=state)
 

@@ -42,7 +42,7 @@ from torchhys.functional._kernel import (
     play_forward_kernel,
 )
 
-__all__ = ["backlash", "play_step"]
+__all__ = ["backlash", "check_play_state", "play_step"]
 
 
 def play_step(x_t: Tensor, r: Tensor, y_prev: Tensor) -> Tensor:
@@ -231,6 +231,19 @@ def _check_state(y0: Tensor | None, x: Tensor, n: int, name: str = "y0") -> Tens
         )
     check_finite(y0, name)
     return y0.to(dtype=x.dtype, device=x.device).expand(B, n)
+
+
+def check_play_state(state: Tensor | None, x: Tensor, n: int, name: str) -> None:
+    """Raise unless ``state`` is None or the outputs of ``n`` play operators before the first
+    sample of ``x`` (time,) or (batch, time): a finite floating tensor of shape (n,) or
+    (batch, n). The messages name the argument ``name`` (``state`` of a module's
+    ``forward``, ``p0`` of a functional model), where :func:`backlash` names its ``y0``.
+
+    Raises:
+        TypeError, ValueError: a bad ``x`` (named ``x``) or ``state``.
+    """
+    if state is not None:
+        _check_state(state, as_batched_sequence(x, "x")[0], n, name)
 
 
 def backlash(x: Tensor, widths: Tensor, *, y0: Tensor | None = None) -> Tensor:

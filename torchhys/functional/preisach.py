@@ -58,6 +58,7 @@ from torch.autograd.function import once_differentiable
 from torchhys._checks import as_batched_sequence, check_finite, check_floating, check_tensor
 
 __all__ = [
+    "check_relay_state",
     "demagnetized_state",
     "preisach",
     "preisach_grid",
@@ -339,10 +340,27 @@ def _check_inputs(
     K = alpha.shape[0]
     if r0 is None:
         r0 = demagnetized_state(alpha, beta)
-    check_tensor(r0, "r0")
-    if r0.shape not in ((K,), (xb.shape[0], K)):
-        raise ValueError(f"r0 must have shape ({K},) or ({xb.shape[0]}, {K}), got shape "
+    _check_relays(r0, xb.shape[0], K, "r0")
+    return xb, alpha, beta, r0.to(xb.dtype).expand(xb.shape[0], K), squeeze
+
+
+def _check_relays(r0: Tensor, B: int, K: int, name: str) -> None:
+    check_tensor(r0, name)
+    if r0.shape not in ((K,), (B, K)):
+        raise ValueError(f"{name} must have shape ({K},) or ({B}, {K}), got shape "
                          f"{tuple(r0.shape)}")
     if not bool(((r0 == 1) | (r0 == -1)).all()):
-        raise ValueError("r0 must hold relay values +1 or -1 only")
-    return xb, alpha, beta, r0.to(xb.dtype).expand(xb.shape[0], K), squeeze
+        raise ValueError(f"{name} must hold relay values +1 or -1 only")
+
+
+def check_relay_state(state: Tensor | None, x: Tensor, K: int, name: str) -> None:
+    """Raise unless ``state`` is None or the ``K`` relays before the first sample of ``x``
+    (time,) or (batch, time): a tensor of +-1 of shape (K,) or (batch, K). The messages name
+    the argument ``name`` (``state`` of :class:`~torchhys.Preisach`'s ``forward``), where the
+    functions here name their ``r0``.
+
+    Raises:
+        TypeError, ValueError: a bad ``x`` (named ``x``) or ``state``.
+    """
+    if state is not None:
+        _check_relays(state, as_batched_sequence(x, "x")[0].shape[0], K, name)

@@ -42,7 +42,7 @@ from torchhys._checks import (
     check_real,
     check_tensor,
 )
-from torchhys.functional.backlash import backlash
+from torchhys.functional.backlash import backlash, check_play_state
 
 __all__ = ["check_stop_parameters", "check_thresholds", "stop_characteristic", "stop_pi",
            "stop_segments"]
@@ -149,8 +149,9 @@ def stop_pi(
     check_stop_parameters(thresholds, weights)
     u = xb - _scalar(center, "center", xb)
     w0, b = _scalar(linear_weight, "linear_weight", xb), _scalar(offset, "offset", xb)
+    check_play_state(p0, xb, thresholds.shape[0], "p0")
     r = thresholds.to(device=xb.device, dtype=xb.dtype)
-    p = backlash(u, 2.0 * r, y0=p0)  # (B, T, N); checks p0
+    p = backlash(u, 2.0 * r, y0=p0)  # (B, T, N)
     y = b + w0 * u + stop_characteristic(u.unsqueeze(-1) - p, r, weights.to(xb.device))
     last = p[:, -1, :]
     return (y[0], last[0]) if squeezed else (y, last)

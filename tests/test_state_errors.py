@@ -1,0 +1,64 @@
+"""A bad initial state passed to an operator's ``forward(x, state)`` is a clear error that
+names ``state`` (the argument the caller wrote), not the name of a function inside; the
+functional stop-type model names its ``p0``."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchhys
+from torchhys.functional import stop_pi
+
+W = torch.tensor([0.2, 0.5], dtype=torch.float64)
+OPERATORS = {
+    "backlash": lambda: torchhys.Backlash(W),
+    "prandtl_ishlinskii": lambda: torchhys.PrandtlIshlinskii(W),
+    "prandtl_ishlinskii_inverse": lambda: torchhys.PrandtlIshlinskii(
+        W, linear_weight=1.0).inverse(),
+    "generalized_pi": lambda: torchhys.GeneralizedPrandtlIshlinskii(W),
+    "generalized_pi_inverse": lambda: torchhys.GeneralizedPrandtlIshlinskii(W).inverse(),
+    "stop_pi": lambda: torchhys.StopPrandtlIshlinskii(W, torch.ones(2, 3, dtype=torch.float64)),
+    "preisach": lambda: torchhys.Preisach(-1.0, 1.0, 4),
+    "jiles_atherton": lambda: torchhys.JilesAtherton(),
+}
+X = torch.linspace(0.0, 0.5, 12, dtype=torch.float64)
+
+
+@pytest.mark.parametrize("name", list(OPERATORS))
+def test_a_state_of_the_wrong_shape_names_state(name: str) -> None:
+    op = OPERATORS[name]().double()
+    _, good = op(X)
+    with pytest.raises(ValueError, match=r"^state must have shape"):
+        op(X, torch.zeros(good.numel() + 5, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"^state must have shape"):
+        op(X[None].expand(3, -1), torch.zeros(2, *good.shape, dtype=torch.float64))
+    # the state it returned is accepted, and continues the sequence where it stopped
+    y_whole, _ = op(torch.cat([X, X.flip(0)]))
+    y_first, state = op(X)
+    y_rest, _ = op(X.flip(0), state)
+    torch.testing.assert_close(torch.cat([y_first, y_rest]), y_whole, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", [n for n in OPERATORS if n not in ("preisach",
+                                                                     "jiles_atherton")])
+def test_a_nonfinite_play_state_names_state(name: str) -> None:
+    op = OPERATORS[name]().double()
+    _, good = op(X)
+    with pytest.raises(ValueError, match="state"):
+        op(X, torch.full_like(good, float("nan")))
+
+
+def test_a_preisach_state_that_is_not_plus_or_minus_one_names_state() -> None:
+    op = torchhys.Preisach(-1.0, 1.0, 4).double()
+    _, good = op(X)
+    with pytest.raises(ValueError, match=r"^state must hold relay values \+1 or -1"):
+        op(X, torch.zeros_like(good))
+
+
+def test_the_functional_stop_model_names_p0() -> None:
+    weights = torch.ones(2, 3, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"^p0 must have shape \(2,\)"):
+        stop_pi(X, W, weights, p0=torch.zeros(5, dtype=torch.float64))
+    with pytest.raises(ValueError, match="p0"):
+        stop_pi(X, W, weights, p0=torch.tensor([0.0, float("inf")], dtype=torch.float64))
