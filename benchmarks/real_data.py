@@ -798,14 +798,16 @@ def _describe(m: dict) -> str:
 
 
 def _score(config: Path, overrides: dict, x: Tensor, y: Tensor, w: int, budget: Budget,
-           cv: int | str | None) -> tuple[float, float] | None:
+           cv: int | str | None) -> tuple[float, float, bool]:
     """A candidate's validation MSE and its standard error, as ``torchhys fit`` scores it
     with ``model.select_cv`` = ``cv``: None, on the last quarter of the scored samples of
     every training row, fitted before it; ``k``, by blocked cross-validation inside the
     training rows (:func:`~torchhys.training.selection.block_split`: each fold fitted on
     the rows without its block, end to end, the states run through the whole rows);
-    ``"recording"``, each training row held out once, fitted on the others. None when a fit
-    fails (``FitError``: the candidate is never chosen) or the MSE is not finite."""
+    ``"recording"``, each training row held out once, fitted on the others. Returns the MSE
+    and its standard error, NaN (never chosen, as ``torchhys fit`` scores it) when a fit
+    fails (``FitError``) or the MSE is not finite, and whether a training stopped at the
+    budget's time cap."""
     if cv is None:
         c = holdout(x.shape[1], w)
         folds = [(x[:, :c], y[:, :c], (slice(None), slice(c, None)))]
@@ -823,19 +825,22 @@ def _score(config: Path, overrides: dict, x: Tensor, y: Tensor, w: int, budget: 
         for f in range(cv):
             held, fx, fy = block_split(x, y, mask, cv, f)
             folds.append((fx, fy, held, (x, y, mask & ~held)))
-    errors = []
+    errors, capped = [], False
     for fx, fy, held, *loss_on in folds:
         try:
-            net, _, _ = _train_config(config, fx, fy, w, budget, overrides, *loss_on)
+            net, done, epochs = _train_config(config, fx, fy, w, budget, overrides, *loss_on)
         except FitError:
-            return None
+            return math.nan, math.nan, capped
+        capped |= done < epochs
         dtype = next(net.parameters()).dtype
         with torch.no_grad():
             e = net(x.to(dtype))[0].to(F64) - y
         errors.append(e[held].square().reshape(-1))
     e2 = torch.cat(errors)
     mse = float(e2.mean())
-    return (mse, standard_error(e2)) if math.isfinite(mse) else None
+    if not math.isfinite(mse):
+        return math.nan, math.nan, capped
+    return mse, standard_error(e2), capped
 
 
 def default(split: Split, budget: Budget, config: Path = CONFIG) -> Fitted:
@@ -854,15 +859,16 @@ def default(split: Split, budget: Budget, config: Path = CONFIG) -> Fitted:
     candidates = m.pop("select", None) or [{}]
     cv = m.pop("select_cv", None)
     rule = m.pop("select_rule", None) or "min"
-    scores = []
+    scores, capped_cv = [], False
     for i, overrides in enumerate(candidates):
-        s = _score(config, overrides, x, y, w, budget, cv)
-        if s is not None:
-            scores.append(CandidateScore(i, overrides, s[0], val_se=s[1]))
-    if not scores:
+        mse, se, capped = _score(config, overrides, x, y, w, budget, cv)
+        scores.append(CandidateScore(i, overrides, mse, val_se=se))  # NaN: never chosen
+        capped_cv |= capped
+    if all(math.isnan(s.val_mse) for s in scores):
         raise FitError("no candidate of the config could be fitted")
-    chosen = best(scores, rule)  # as torchhys fit chooses
-    order = [chosen] + sorted((s for s in scores if s is not chosen), key=lambda s: s.val_mse)
+    chosen = best(scores, rule)  # as torchhys fit chooses (the first candidate NaN or not)
+    order = [chosen] + sorted((s for s in scores if s is not chosen
+                               and not math.isnan(s.val_mse)), key=lambda s: s.val_mse)
     failed, refit = 0, None
     for s in order:  # the chosen candidate, or the best one whose refit succeeds
         try:
@@ -877,11 +883,13 @@ def default(split: Split, budget: Budget, config: Path = CONFIG) -> Fitted:
     validation, score = "", math.sqrt(s.val_mse)
     if cv is not None:  # the row's hold-out RMSE, as the other rows'
         validation = f", select_cv {cv} RMSE {score:.4g}"
-        held = _score(config, candidates[i], x, y, w, budget, None)
-        score = math.sqrt(held[0]) if held is not None else math.inf
+        held = _score(config, candidates[i], x, y, w, budget, None)[0]
+        score = math.sqrt(held) if math.isfinite(held) else math.inf
     dtype = next(net.parameters()).dtype
     low, high = default_limits(net)  # as torchhys export deploys it
     capped = f" (capped at {budget.seconds:g} s)" if done < epochs else ""
+    if capped_cv:
+        capped += f" (a validation training capped at {budget.seconds:g} s)"
     note = f" ({failed} failed refits)" if failed else ""
     label = f"candidate {i}{note}: " if len(candidates) > 1 else ""
     choice = (f"{config.name}: {label}{_describe({**m, **candidates[i]})}, {m['optimizer']} "

@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
+import sys
+
 import lightning as L
+import pytest
+import torch
+
+from torchhys.training.cli import main
 
 
 def trainer(max_epochs: int = 4, **kwargs) -> L.Trainer:
@@ -13,3 +19,10 @@ def trainer(max_epochs: int = 4, **kwargs) -> L.Trainer:
                 limit_val_batches=0)
     opts.update(kwargs)
     return L.Trainer(**opts)
+
+
+def cli(monkeypatch: pytest.MonkeyPatch, *args: str) -> None:
+    """Run the ``torchhys`` command line with ``args`` (one torch thread)."""
+    monkeypatch.setattr(sys, "argv", ["torchhys"])  # no stray pytest arguments
+    torch.set_num_threads(1)
+    main(list(args))

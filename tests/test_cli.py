@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from _training_helpers import cli
 
 from torchhys.export import load_torchscript
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
-from torchhys.training.cli import main
 from torchhys.training.export_cmd import main as export_main
 from torchhys.training.operators import build_operators
 
@@ -57,12 +57,6 @@ PI_TINY = TINY.replace("""  operator: zhao_tan
       n: 3
 """)
 """TINY with data-dependent operators (fitted on the training split at fit start)."""
-
-
-def cli(monkeypatch: pytest.MonkeyPatch, *args: str) -> None:
-    monkeypatch.setattr(sys, "argv", ["torchhys"])  # no stray pytest arguments
-    torch.set_num_threads(1)
-    main(list(args))
 
 
 @pytest.fixture

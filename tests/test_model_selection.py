@@ -6,24 +6,23 @@ from __future__ import annotations
 import csv
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 import yaml
-from _training_helpers import trainer
+from _training_helpers import cli, trainer
 
 from torchhys.export import load_torchscript
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
-from torchhys.training.cli import main
 from torchhys.training.export_cmd import main as export_main
 from torchhys.training.selection import (
     BlockFold,
     CandidateScore,
     RecordingFold,
     best,
+    block_split,
     check_candidates,
     model_arguments,
     standard_error,
@@ -62,12 +61,6 @@ data:
 """
 DATA = {"dt": 0.05, "t_end": 25.2, "split": [0.5, 0.25, 0.25]}
 PI = [{"name": "pi_ls", "n_widths": 8}]
-
-
-def cli(monkeypatch: pytest.MonkeyPatch, *args: str) -> None:
-    monkeypatch.setattr(sys, "argv", ["torchhys"])  # no stray pytest arguments
-    torch.set_num_threads(1)
-    main(list(args))
 
 
 def config(tmp_path: Path, text: str = SELECT, **replace: str) -> Path:
@@ -228,6 +221,30 @@ def test_block_folds_of_several_recordings() -> None:
     (_, _, _, vmask), = list(fold.val_dataloader())
     assert mask.shape[0] == 4 and (vmask.sum(1) == 43).all()
     assert fold.train_tensors()[0].shape == (1, 4 * (129 - 43))
+
+
+def test_block_split_on_tensors() -> None:
+    """The cut on plain tensors: a mask of any dtype, a gap inside a block left out of the
+    validation samples, rows of other lengths (padding unscored), bad shapes named."""
+    x = torch.arange(24.0).reshape(2, 12)
+    y = -x
+    mask = torch.ones(2, 12, dtype=torch.uint8)
+    mask[:, :2] = 0  # warm-up
+    mask[1, 10:] = 0  # a shorter second row
+    mask[0, 5] = 0  # a gap
+    held, fx, fy = block_split(x, y, mask, 3, 1)
+    assert held.dtype == torch.bool
+    # row 0 scores 2-4, 6-11 (9 samples): blocks 2-4 | 6-8 | 9-11; row 1 scores 2-9
+    assert held[0].nonzero().flatten().tolist() == [6, 7, 8]
+    assert held[1].nonzero().flatten().tolist() == [5, 6, 7]
+    assert fx.tolist() == [[0, 1, 2, 3, 4, 5, 9, 10, 11, 12, 13, 14, 15, 16, 20, 21]]
+    assert torch.equal(fy, -fx)
+    held, _, _ = block_split(x, y, mask, 3, 0)
+    assert held[0].nonzero().flatten().tolist() == [2, 3, 4]  # the gap at 5 is not held
+    with pytest.raises(ValueError, match=r"x, y and mask must have the same shape"):
+        block_split(x, y, mask[:, :5], 3, 0)
+    with pytest.raises(ValueError, match=r"fold must be in \[0, 3\)"):
+        block_split(x, y, mask, 3, 3)
 
 
 FERRITE = {"path": str(ROOT / "examples/data/mnzn_ferrite_bh_loops.csv"), "input_column": "B_T",

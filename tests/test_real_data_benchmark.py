@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 from _helpers import load_benchmark
+from _training_helpers import cli
 
 ROOT = Path(__file__).resolve().parents[1]
 FERRITE = ROOT / "examples" / "data" / "mnzn_ferrite_bh_loops.csv"
@@ -208,6 +209,68 @@ def test_the_default_row_cross_validates_as_its_config_says(bench, tmp_path, mon
     assert f"select_cv {cv} RMSE {math.sqrt(chosen.val_mse):.4g}" in fitted.choice
     assert math.isfinite(fitted.holdout) and fitted.holdout != pytest.approx(
         math.sqrt(chosen.val_mse))  # the row's hold-out RMSE, not the cross-validation's
+
+
+def test_the_default_rows_cross_validation_scores_as_torchhys_fit_does(bench, tmp_path,
+                                                                       monkeypatch):
+    """The default row's blocked cross-validation gives the scores of ``torchhys fit
+    --model.select_cv 3`` (its selection.csv) on the same training loops: a fitted family
+    operator (the stop-type model, refitted in every fold on the fold's training samples
+    only) and the line."""
+    select = """  select:
+    - operator: null
+    - operator: [{name: stop_pi, n_widths: 5, segments: 2}]
+  select_cv: 3
+  select_rule: min
+"""
+    path = tmp_path / "cv.yaml"
+    path.write_text(_measured_with(select))
+    root = tmp_path / "run"
+    cli(monkeypatch, "fit", "--config", str(path), "--data.path", str(FERRITE),
+        "--data.input_column", "B_T", "--data.target_column", "H_Apm",
+        "--data.time_column", "null", "--data.run_column", "loop", "--data.warmup", "0",
+        "--data.split_by", "recording", "--data.train_recordings", "[0, 3]",
+        "--data.val_recordings", "[]", "--data.test_recordings", "[1, 2]",
+        "--data.repeat", "3", "--trainer.max_epochs", "10", f"--trainer.default_root_dir={root}",
+        "--trainer.enable_progress_bar=false")
+    with (root / "selection.csv").open() as fh:
+        expected = [(float(r["val_mse"]), float(r["val_se"])) for r in csv.DictReader(fh)]
+    split = bench.DATASETS["mnzn_ferrite"][1](bench.Files(FERRITE))
+    candidates = [{"operator": None}, {"operator": [{"name": "stop_pi", "n_widths": 5,
+                                                     "segments": 2}]}]
+    for candidate, (mse, se) in zip(candidates, expected, strict=True):
+        got, got_se, capped = bench._score(path, candidate, split.x, split.y, split.warmup,
+                                           bench.QUICK, 3)
+        # the CLI logs each fold's MSE in float32
+        assert got == pytest.approx(mse, rel=1e-6) and got_se == pytest.approx(se, rel=1e-6)
+        assert not capped
+
+
+def test_a_candidate_that_cannot_be_fitted_keeps_its_place(bench, tmp_path, monkeypatch):
+    """A candidate whose family cannot be fitted scores NaN in its place (as torchhys fit
+    scores it), so the one-standard-error rule still reads the first candidate as the
+    baseline, and a NaN is never chosen."""
+    split = bench.DATASETS["mnzn_ferrite"][1](bench.Files(FERRITE))
+    path = tmp_path / "nan.yaml"
+    path.write_text(_measured_with("""  select:
+    - operator: [{name: pi_nonneg, n_widths: 10, direction: direct}]
+    - operator: [{name: stop_pi, n_widths: 5, segments: 2}]
+  select_cv: 3
+  select_rule: 1se
+"""))
+    calls = []
+
+    def spy(scores, rule="min"):
+        calls.append(list(scores))
+        return bench.best.__wrapped__(scores, rule)
+
+    spy.__wrapped__ = bench.best
+    monkeypatch.setattr(bench, "best", spy)
+    fitted = bench.default(split, bench.QUICK, path)
+    scores = calls[-1]
+    assert [s.index for s in scores] == [0, 1]
+    assert math.isnan(scores[0].val_mse) and math.isfinite(scores[1].val_mse)
+    assert "candidate 1" in fitted.choice
 
 
 def test_leave_one_recording_out_needs_two_training_rows(bench, tmp_path):

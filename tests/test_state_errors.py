@@ -45,7 +45,7 @@ def test_a_state_of_the_wrong_shape_names_state(name: str) -> None:
 def test_a_nonfinite_play_state_names_state(name: str) -> None:
     op = OPERATORS[name]().double()
     _, good = op(X)
-    with pytest.raises(ValueError, match="state"):
+    with pytest.raises(ValueError, match=r"^state must be finite"):
         op(X, torch.full_like(good, float("nan")))
 
 

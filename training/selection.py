@@ -267,6 +267,10 @@ def block_split(x: Tensor, y: Tensor, mask: Tensor, k: int, fold: int, *,
     check_int(k, "model.select_cv", minimum=2)
     if not 0 <= fold < k:
         raise ValueError(f"fold must be in [0, {k}), got {fold}")
+    if x.dim() != 2 or y.shape != x.shape or mask.shape != x.shape:
+        raise ValueError(f"x, y and mask must have the same shape (rows, time), got "
+                         f"{tuple(x.shape)}, {tuple(y.shape)} and {tuple(mask.shape)}")
+    mask = mask.to(torch.bool)
     held = torch.zeros_like(mask)
     xs, ys = [], []
     for r in range(mask.shape[0]):
@@ -278,7 +282,7 @@ def block_split(x: Tensor, y: Tensor, mask: Tensor, k: int, fold: int, *,
             )
         block = torch.tensor_split(idx, k)[fold]
         a, b, end = int(block[0]), int(block[-1]) + 1, int(idx[-1]) + 1
-        held[r, a:b] = True
+        held[r, block] = True  # the scored samples of the block (a mask may have gaps)
         xs += [x[r, :a], x[r, b:end]]
         ys += [y[r, :a], y[r, b:end]]
     return held, torch.cat(xs).unsqueeze(0), torch.cat(ys).unsqueeze(0)

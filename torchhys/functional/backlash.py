@@ -217,11 +217,7 @@ class _PlayScan(torch.autograd.Function):
         )
 
 
-def _check_state(y0: Tensor | None, x: Tensor, n: int, name: str = "y0") -> Tensor:
-    """Return the initial state as (B, N) in x's dtype and device."""
-    B = x.shape[0]
-    if y0 is None:
-        return x.new_zeros(B, n)
+def _validate_state(y0: Tensor, B: int, n: int, name: str) -> None:
     check_tensor(y0, name)
     check_floating(y0, name)
     if y0.shape not in (torch.Size([n]), torch.Size([B, n])):
@@ -230,6 +226,14 @@ def _check_state(y0: Tensor | None, x: Tensor, n: int, name: str = "y0") -> Tens
             f"got shape {tuple(y0.shape)}"
         )
     check_finite(y0, name)
+
+
+def _check_state(y0: Tensor | None, x: Tensor, n: int, name: str = "y0") -> Tensor:
+    """Return the initial state as (B, N) in x's dtype and device."""
+    B = x.shape[0]
+    if y0 is None:
+        return x.new_zeros(B, n)
+    _validate_state(y0, B, n, name)
     return y0.to(dtype=x.dtype, device=x.device).expand(B, n)
 
 
@@ -240,10 +244,12 @@ def check_play_state(state: Tensor | None, x: Tensor, n: int, name: str) -> None
     ``forward``, ``p0`` of a functional model), where :func:`backlash` names its ``y0``.
 
     Raises:
-        TypeError, ValueError: a bad ``x`` (named ``x``) or ``state``.
+        TypeError, ValueError: a bad ``state``. ``x`` is only read for its batch size
+        (checked where it is used: an ``x`` that is not a (time,) or (batch, time) tensor
+        leaves the state to that check).
     """
-    if state is not None:
-        _check_state(state, as_batched_sequence(x, "x")[0], n, name)
+    if state is not None and isinstance(x, Tensor) and x.dim() in (1, 2):
+        _validate_state(state, x.shape[0] if x.dim() == 2 else 1, n, name)
 
 
 def backlash(x: Tensor, widths: Tensor, *, y0: Tensor | None = None) -> Tensor:

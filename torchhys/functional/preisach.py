@@ -360,7 +360,9 @@ def check_relay_state(state: Tensor | None, x: Tensor, K: int, name: str) -> Non
     functions here name their ``r0``.
 
     Raises:
-        TypeError, ValueError: a bad ``x`` (named ``x``) or ``state``.
+        TypeError, ValueError: a bad ``state``. ``x`` is only read for its batch size
+        (checked where it is used: an ``x`` that is not a (time,) or (batch, time) tensor
+        leaves the state to that check).
     """
-    if state is not None:
-        _check_relays(state, as_batched_sequence(x, "x")[0].shape[0], K, name)
+    if state is not None and isinstance(x, Tensor) and x.dim() in (1, 2):
+        _check_relays(state, x.shape[0] if x.dim() == 2 else 1, K, name)
