@@ -76,7 +76,7 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
-import yaml
+from jsonargparse import get_loader
 from torch import Tensor
 
 from torchhys import (
@@ -728,9 +728,10 @@ def eiho_net(split: Split, budget: Budget) -> Fitted:
 
 
 def _config_model(path: Path) -> tuple[dict, dict, torch.dtype, int]:
-    """The model section (with the module's defaults), trainer section, dtype and seed."""
+    """The model section (with the module's defaults), trainer section, dtype and seed, read
+    as ``torchhys fit`` reads the file (jsonargparse's YAML loader: ``1e-8`` is a number)."""
     with open(path) as f:
-        cfg = yaml.safe_load(f)
+        cfg = get_loader("yaml")(f.read())
     defaults = {k: p.default for k, p in
                 inspect.signature(InverseHysteresisModule.__init__).parameters.items()
                 if p.default is not inspect.Parameter.empty}

@@ -273,6 +273,16 @@ def test_a_candidate_that_cannot_be_fitted_keeps_its_place(bench, tmp_path, monk
     assert "candidate 1" in fitted.choice
 
 
+def test_the_config_is_read_as_torchhys_fit_reads_it(bench, tmp_path):
+    """``ridge: 1e-8`` is a number, as jsonargparse reads it (PyYAML's safe loader reads a
+    string)."""
+    path = tmp_path / "c.yaml"
+    path.write_text(_measured_with(
+        "  select:\n    - operator: [{name: stop_pi, n_widths: 5, ridge: 1e-8}]\n"))
+    model = bench._config_model(path)[0]
+    assert model["select"][0]["operator"][0]["ridge"] == 1e-8
+
+
 def test_leave_one_recording_out_needs_two_training_rows(bench, tmp_path):
     split = bench.DATASETS["mnzn_ferrite_largest"][1](bench.Files(FERRITE))
     path = tmp_path / "cv.yaml"
