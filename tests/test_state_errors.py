@@ -62,3 +62,19 @@ def test_the_functional_stop_model_names_p0() -> None:
         stop_pi(X, W, weights, p0=torch.zeros(5, dtype=torch.float64))
     with pytest.raises(ValueError, match="p0"):
         stop_pi(X, W, weights, p0=torch.tensor([0.0, float("inf")], dtype=torch.float64))
+
+
+def test_the_pi_inverse_names_its_input_y_and_checks_a_linear_models_state() -> None:
+    inverse = torchhys.PrandtlIshlinskii(W, linear_weight=1.0).inverse()
+    with pytest.raises(ValueError, match=r"^y must be finite"):
+        inverse(torch.tensor([0.0, float("nan")], dtype=torch.float64))
+    # a zero-width play is linear: the inverse of 0.5 x + 0.5 x has no play
+    linear = torchhys.PrandtlIshlinskii(torch.tensor([0.0], dtype=torch.float64),
+                                        torch.tensor([0.5], dtype=torch.float64),
+                                        linear_weight=0.5).inverse()
+    y, state = linear(X)
+    torch.testing.assert_close(y, X, rtol=0, atol=1e-15)
+    assert state.shape == (0,)
+    linear(X, state)  # its own (empty) state is accepted
+    with pytest.raises(ValueError, match=r"^state must have shape \(0,\)"):
+        linear(X, torch.zeros(3, dtype=torch.float64))

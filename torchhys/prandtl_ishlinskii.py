@@ -175,10 +175,10 @@ class PrandtlIshlinskiiInverse(nn.Module):
         self.register_buffer("linear_weight", p.linear_weight.clone())
 
     def forward(self, y: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        if self.widths.numel() == 0:  # purely linear model
-            as_batched_sequence(y, "y")
-            return self.linear_weight.to(y.dtype) * y, y.new_zeros(y.shape[:-1] + (0,))
+        as_batched_sequence(y, "y")  # its input is y (backlash would name it x)
         check_play_state(state, y, self.widths.shape[0], "state")
+        if self.widths.numel() == 0:  # purely linear model
+            return self.linear_weight.to(y.dtype) * y, y.new_zeros(y.shape[:-1] + (0,))
         z = backlash(y, self.widths, y0=state)
         u = pi_output(y, z, self.weights.to(z.dtype), self.linear_weight.to(z.dtype))
         return u, z[..., -1, :]
