@@ -161,6 +161,15 @@ def check_widths(widths: Tensor, name: str = "widths") -> Tensor:
     return widths
 
 
+def sequence_batch(x: object) -> int | None:
+    """The batch size of a sequence (time,) -> 1 or (batch, time) -> batch, read from its
+    shape only (no pass over its values); None for anything else, which
+    :func:`as_batched_sequence` names where the sequence is used."""
+    if isinstance(x, Tensor) and x.dim() in (1, 2):
+        return x.shape[0] if x.dim() == 2 else 1
+    return None
+
+
 def as_batched_sequence(x: Tensor, name: str = "x") -> tuple[Tensor, bool]:
     """Check a sequence of shape (T,) or (B, T) and return it as (B, T).
 

@@ -35,6 +35,7 @@ from torchhys._checks import (
     check_floating,
     check_tensor,
     check_widths,
+    sequence_batch,
 )
 from torchhys.functional._kernel import (
     kernel_available,
@@ -248,8 +249,9 @@ def check_play_state(state: Tensor | None, x: Tensor, n: int, name: str) -> None
         (checked where it is used: an ``x`` that is not a (time,) or (batch, time) tensor
         leaves the state to that check).
     """
-    if state is not None and isinstance(x, Tensor) and x.dim() in (1, 2):
-        _validate_state(state, x.shape[0] if x.dim() == 2 else 1, n, name)
+    B = sequence_batch(x)
+    if state is not None and B is not None:
+        _validate_state(state, B, n, name)
 
 
 def backlash(x: Tensor, widths: Tensor, *, y0: Tensor | None = None) -> Tensor:

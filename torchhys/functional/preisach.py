@@ -55,7 +55,13 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from torchhys._checks import as_batched_sequence, check_finite, check_floating, check_tensor
+from torchhys._checks import (
+    as_batched_sequence,
+    check_finite,
+    check_floating,
+    check_tensor,
+    sequence_batch,
+)
 
 __all__ = [
     "check_relay_state",
@@ -364,5 +370,6 @@ def check_relay_state(state: Tensor | None, x: Tensor, K: int, name: str) -> Non
         (checked where it is used: an ``x`` that is not a (time,) or (batch, time) tensor
         leaves the state to that check).
     """
-    if state is not None and isinstance(x, Tensor) and x.dim() in (1, 2):
-        _check_relays(state, x.shape[0] if x.dim() == 2 else 1, K, name)
+    B = sequence_batch(x)
+    if state is not None and B is not None:
+        _check_relays(state, B, K, name)
