@@ -14,6 +14,8 @@ import torch
 from _helpers import load_benchmark
 from _training_helpers import cli
 
+from torchhys.training.selection import best
+
 ROOT = Path(__file__).resolve().parents[1]
 FERRITE = ROOT / "examples" / "data" / "mnzn_ferrite_bh_loops.csv"
 COLUMNS = ("dataset", "model", "rmse", "ratio", "n_train", "n_test", "choice")
@@ -22,6 +24,19 @@ COLUMNS = ("dataset", "model", "rmse", "ratio", "n_train", "n_test", "choice")
 @pytest.fixture(scope="module")
 def bench():
     return load_benchmark("real_data.py")
+
+
+@pytest.fixture
+def choices(bench, monkeypatch):
+    """The ``(scores, rule)`` of every choice the benchmark makes (its ``best``, watched)."""
+    calls = []
+
+    def watched(scores, rule="min"):
+        calls.append((list(scores), rule))
+        return best(scores, rule)
+
+    monkeypatch.setattr(bench, "best", watched)
+    return calls
 
 
 @pytest.fixture(scope="module")
@@ -124,7 +139,7 @@ def test_short_and_long_records_keep_the_held_out_part(bench):
     np.testing.assert_array_equal(long.x[:, T:2 * T].numpy(), split.x.numpy())
 
 
-def test_the_default_row_follows_the_configs_selection_rule(bench, tmp_path, monkeypatch):
+def test_the_default_row_follows_the_configs_selection_rule(bench, tmp_path, choices):
     """The default row scores each candidate on the hold-out (MSE and its standard error)
     and chooses with the config's select_rule, as torchhys fit does."""
     split = bench.DATASETS["mnzn_ferrite"][1](bench.Files(FERRITE))
@@ -133,29 +148,21 @@ def test_the_default_row_follows_the_configs_selection_rule(bench, tmp_path, mon
     - operator: [{name: gpi, n_widths: 5, units: 2, epochs: 40, direction: inverse}]
   select_rule: RULE
 """)
-    calls = []
-
-    def spy(scores, rule="min"):
-        calls.append((list(scores), rule))
-        return bench.best.__wrapped__(scores, rule)
-
-    spy.__wrapped__ = bench.best
-    monkeypatch.setattr(bench, "best", spy)
     for rule in ("min", "1se"):
         path = tmp_path / f"{rule}.yaml"
         path.write_text(two.replace("RULE", rule))
         fitted = bench.default(split, bench.QUICK, path)
-        scores, used = calls[-1]
+        scores, used = choices[-1]
         assert used == rule and [s.index for s in scores] == [0, 1]
         assert all(s.val_se > 0 for s in scores)
-        chosen = spy.__wrapped__(scores, rule)
+        chosen = best(scores, rule)
         assert f"candidate {chosen.index}" in fitted.choice
         assert fitted.holdout == pytest.approx(math.sqrt(chosen.val_mse), rel=1e-12)
         assert fitted.predict(split.test[0][0][None]).isfinite().all()
 
 
 @pytest.mark.parametrize("cv", [3, "recording"])
-def test_the_default_row_cross_validates_as_its_config_says(bench, tmp_path, monkeypatch, cv):
+def test_the_default_row_cross_validates_as_its_config_says(bench, tmp_path, choices, cv):
     """With model.select_cv, the default row scores every candidate by cross-validation
     inside the training rows, as torchhys fit does: blocked (each row's scored samples cut
     into k contiguous blocks, each held out once, the rows run whole) or one training row
@@ -168,16 +175,8 @@ def test_the_default_row_cross_validates_as_its_config_says(bench, tmp_path, mon
   select_cv: {cv}
   select_rule: min
 """))
-    calls = []
-
-    def spy(scores, rule="min"):
-        calls.append(list(scores))
-        return bench.best.__wrapped__(scores, rule)
-
-    spy.__wrapped__ = bench.best
-    monkeypatch.setattr(bench, "best", spy)
     fitted = bench.default(split, bench.QUICK, path)
-    scores = calls[-1]
+    scores, _ = choices[-1]
     assert [s.index for s in scores] == [0, 1] and all(s.val_se > 0 for s in scores)
     x, y, w = split.x.numpy(), split.y.numpy(), split.warmup
     rows, T = x.shape
@@ -204,7 +203,7 @@ def test_the_default_row_cross_validates_as_its_config_says(bench, tmp_path, mon
         errors.append(coef[0] + coef[1] * x[held] - y[held])
     reference = float(np.mean(np.concatenate(errors) ** 2))
     assert scores[0].val_mse == pytest.approx(reference, rel=1e-6)
-    chosen = spy.__wrapped__(scores, "min")
+    chosen = best(scores, "min")
     assert f"candidate {chosen.index}" in fitted.choice
     assert f"select_cv {cv} RMSE {math.sqrt(chosen.val_mse):.4g}" in fitted.choice
     assert math.isfinite(fitted.holdout) and fitted.holdout != pytest.approx(
@@ -246,7 +245,7 @@ def test_the_default_rows_cross_validation_scores_as_torchhys_fit_does(bench, tm
         assert not capped
 
 
-def test_a_candidate_that_cannot_be_fitted_keeps_its_place(bench, tmp_path, monkeypatch):
+def test_a_candidate_that_cannot_be_fitted_keeps_its_place(bench, tmp_path, choices):
     """A candidate whose family cannot be fitted scores NaN in its place (as torchhys fit
     scores it), so the one-standard-error rule still reads the first candidate as the
     baseline, and a NaN is never chosen."""
@@ -258,16 +257,8 @@ def test_a_candidate_that_cannot_be_fitted_keeps_its_place(bench, tmp_path, monk
   select_cv: 3
   select_rule: 1se
 """))
-    calls = []
-
-    def spy(scores, rule="min"):
-        calls.append(list(scores))
-        return bench.best.__wrapped__(scores, rule)
-
-    spy.__wrapped__ = bench.best
-    monkeypatch.setattr(bench, "best", spy)
     fitted = bench.default(split, bench.QUICK, path)
-    scores = calls[-1]
+    scores, _ = choices[-1]
     assert [s.index for s in scores] == [0, 1]
     assert math.isnan(scores[0].val_mse) and math.isfinite(scores[1].val_mse)
     assert "candidate 1" in fitted.choice
