@@ -249,7 +249,7 @@ def block_split(x: Tensor, y: Tensor, mask: Tensor, k: int, fold: int, *,
 
     Args:
         x, y: input and target, (rows, time).
-        mask: the scored samples, (rows, time), bool.
+        mask: the scored samples, (rows, time), bool or 0/1.
         k: number of blocks, >= 2.
         fold: the held-out block, ``0 <= fold < k``.
         source: the data's name, for the error message.
