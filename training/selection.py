@@ -45,6 +45,7 @@ from torch import Tensor
 from torch.utils.data import DataLoader
 
 from torchhys._checks import check_choice, check_int
+from torchhys.functional.turning_points import estimate_threshold, reversal_ranges
 from torchhys.training.data import join_sequences
 from torchhys.training.families import FitError
 
@@ -53,8 +54,8 @@ RECORDING = "recording"
 
 __all__ = [
     "RECORDING", "RULES", "BlockFold", "Build", "CandidateScore", "RecordingFold", "best",
-    "block_split", "check_candidates", "check_holdout", "config_json", "format_table",
-    "model_arguments", "run_selection", "standard_error", "write_table",
+    "block_split", "check_candidates", "check_holdout", "config_json", "coverage_warning",
+    "format_table", "model_arguments", "run_selection", "standard_error", "write_table",
 ]
 
 Build = Callable[[int, int | None], tuple[L.LightningModule, L.LightningDataModule, L.Trainer]]
@@ -155,6 +156,108 @@ def check_holdout(datamodule: L.LightningDataModule) -> None:
             "data.val_recordings), or cross-validate inside the training part "
             "(model.select_cv: k)"
         )
+
+
+ONE_AMPLITUDE = 0.8
+"""Complete branches whose ranges all lie within this fraction of the largest one make
+loops of one amplitude (:func:`coverage_warning`)."""
+CLOSED_LOOP = 1.6
+"""The scored samples of a row hold a closed loop when the input travels at least this
+multiple of their span (a whole loop travels twice its span: :func:`coverage_warning`)."""
+MIN_REVERSAL = 0.05
+"""A reversal counts where the input swings back by more than this fraction of the
+training input's span (or the noise threshold, if larger: :func:`coverage_warning`)."""
+WHAT_TO_RECORD = "docs/training.md, 'What to record for a fit'"
+
+
+def coverage_warning(x: Tensor, mask: Tensor, *, source: str = "the data") -> str | None:
+    """What no split of a training part can show: a message when its scored samples hold
+    less than one closed loop, or loops of one amplitude only; else None.
+
+    Each row is run from its start through its last scored sample. A reversal counts where
+    the input swings back by more than :data:`MIN_REVERSAL` (5 %) of the span of the
+    scored input, or by more than the row's noise threshold
+    (:func:`~torchhys.functional.estimate_threshold`) if that is larger.
+
+    - **Less than one closed loop**: in no row does the input travel, between its first
+      and last scored samples, :data:`CLOSED_LOOP` (1.6) times the span of its scored
+      samples (a whole loop travels twice its span; part of one stroke, once). No split
+      of it shows how a model predicts a reversal.
+    - **One amplitude**: the complete branches (from one turning point to the next,
+      :func:`~torchhys.functional.reversal_ranges`) that start at a scored sample or later
+      (in a row with none, those that end after its first scored sample) all span at least
+      :data:`ONE_AMPLITUDE` (80 %) of the largest. Every block of a
+      blocked cross-validation then holds the same amplitude, so the scores cannot rank
+      how the models predict smaller or larger loops (a model whose saturating output
+      extrapolates the loop tip well may still predict smaller loops badly).
+
+    Args:
+        x: the training input, (rows, time), each row from its initial state.
+        mask: its scored samples, (rows, time), bool or 0/1.
+        source: the data's name, for the message.
+
+    Returns:
+        The message, or None (loops of several amplitudes, or no scored sample).
+
+    Raises:
+        ValueError: ``x`` and ``mask`` not of the same shape (rows, time).
+    """
+    if x.dim() != 2 or mask.shape != x.shape:
+        raise ValueError(f"x and mask must have the same shape (rows, time), got "
+                         f"{tuple(x.shape)} and {tuple(mask.shape)}")
+    mask = mask.to(torch.bool)
+    scored = x.detach()[mask]
+    if scored.numel() == 0:
+        return None
+    span = float(scored.max() - scored.min())
+    closed, ranges = False, []
+    for r in range(x.shape[0]):
+        idx = mask[r].nonzero().flatten()
+        if idx.numel() < 3:
+            continue
+        first, last = int(idx[0]), int(idx[-1])
+        row = x[r, :last + 1].detach()
+        threshold = max(MIN_REVERSAL * span, float(estimate_threshold(row)))
+        branches = reversal_ranges(row, threshold=threshold)
+        keep = branches.end > first
+        inside = branches.start >= first
+        ranges.append(branches.range[inside if bool(inside.any()) else keep])
+        points = torch.cat([idx[:1], branches.end[keep], idx[-1:]])
+        travel = float((row[points[1:]] - row[points[:-1]]).abs().sum())
+        closed |= travel >= CLOSED_LOOP * float(row[first:].max() - row[first:].min())
+    guide = f"({WHAT_TO_RECORD})"
+    if not closed:
+        return (f"the scored training samples of {source} hold less than one closed loop "
+                "(in no recording does the input travel its span there and back): no split "
+                "of them shows how a model predicts a reversal; record whole cycles in both "
+                f"directions, a few times over {guide}")
+    size = torch.cat(ranges)
+    low, high = float(size.min()), float(size.max())
+    if low >= ONE_AMPLITUDE * high:
+        n = f"{size.numel()} complete branch" + ("es" if size.numel() != 1 else "")
+        return (f"every branch of the training part of {source} spans {low:.4g} to "
+                f"{high:.4g} ({n}): loops of one amplitude, so "
+                "no split of it shows how a model predicts loops of other amplitudes; record "
+                "several amplitudes across the range the device will be driven over "
+                f"{guide}")
+    return None
+
+
+def _warn_coverage(data: L.LightningDataModule) -> None:
+    """Warn once (:func:`coverage_warning`) about what the training part of a
+    :class:`~torchhys.training.HysteresisDataModule` cannot show (other datamodules are
+    not read)."""
+    batches = getattr(data, "batches", None)
+    if batches is None:
+        return
+    data.setup("fit")
+    train = batches("train")
+    if not train:
+        return
+    x, _, _, mask = train[0]
+    message = coverage_warning(x, mask, source=getattr(data, "source", "the data"))
+    if message is not None:
+        warnings.warn(f"model.select: {message}", UserWarning, stacklevel=3)
 
 
 def _one(items: list[Any]) -> Any:
@@ -411,6 +514,8 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
         if cv is None:
             module, data, trainer = build(i, None)
             check_holdout(data)
+            if i == 0:
+                _warn_coverage(data)
             mse, errors = _validation(module, data, trainer)
             scores.append(CandidateScore(i, overrides, mse, val_se=standard_error(errors)))
             continue
@@ -419,6 +524,8 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
         while k is None or j < k:
             module, data, trainer = build(i, j)
             fold = RecordingFold(data, j) if cv == RECORDING else BlockFold(data, cv, j)
+            if i == 0 and j == 0:
+                _warn_coverage(data)
             k = fold.k
             mse, e = _validation(module, fold, trainer)
             folds.append(mse)

@@ -17,13 +17,20 @@ from torchhys.functional.preisach import (
     relay_update,
 )
 from torchhys.functional.stop_pi import stop_characteristic, stop_pi
-from torchhys.functional.turning_points import estimate_threshold, turning_points
+from torchhys.functional.turning_points import (
+    Branches,
+    estimate_threshold,
+    reversal_ranges,
+    turning_points,
+)
 
 __all__: list[str] = [
     "BranchState",
+    "Branches",
     "NonCausalWarning",
     "eiho",
     "estimate_threshold",
+    "reversal_ranges",
     "segment_coefficients",
     "turning_points",
     "zhao_tan",

@@ -22,7 +22,9 @@ from torch import Tensor
 
 from torchhys._checks import as_batched_sequence
 
-__all__ = ["Zigzag", "estimate_threshold", "turning_points", "zigzag"]
+__all__ = [
+    "Branches", "Zigzag", "estimate_threshold", "reversal_ranges", "turning_points", "zigzag",
+]
 
 #: Factor applied to the robust noise estimate by ``threshold="auto"``.
 AUTO_FACTOR = 10.0
@@ -116,6 +118,45 @@ def estimate_threshold(x: Tensor, *, factor: float = AUTO_FACTOR) -> Tensor:
     mad = (e - e.median(dim=1, keepdim=True).values).abs().median(dim=1).values
     th = factor * 1.4826 * mad / math.sqrt(6.0)
     return th[0] if squeezed else th
+
+
+class Branches(NamedTuple):
+    """The complete branches of a sequence (:func:`reversal_ranges`), in time order."""
+
+    start: Tensor
+    """(n,) long: the sample where each branch starts (a turning point)."""
+    end: Tensor
+    """(n,) long: the sample where each branch ends (the next turning point)."""
+    range: Tensor
+    """(n,): the input's change along each branch, ``|x[end] - x[start]|``."""
+
+
+def reversal_ranges(x: Tensor, *, threshold: float | str | Tensor = 0.0) -> Branches:
+    """The complete branches of ``x``: from each turning point to the next
+    (:func:`turning_points`), with the range ``|x[s_{i+1}] - x[s_i]|`` of each.
+
+    A periodic loop of one amplitude gives ranges that all equal its peak-to-peak span;
+    minor loops add smaller ones (the half-cycles of rainflow counting, without pairing).
+    The branch from the first sample to the first turning point and the one after the last
+    are not complete, and not counted.
+
+    Args:
+        x: input, shape (time,), floating point, finite.
+        threshold: reversal threshold, as in :func:`turning_points` (``"auto"``: from the
+            noise): a smaller swing back is not a reversal.
+
+    Returns:
+        :class:`Branches` of ``n`` branches (the number of turning points less one; none
+        with fewer than two).
+
+    Raises:
+        TypeError, ValueError: as :func:`turning_points`; ``x`` not 1-D.
+    """
+    if isinstance(x, Tensor) and x.dim() != 1:
+        raise ValueError(f"x must be a sequence of shape (time,), got {tuple(x.shape)}")
+    index = turning_points(x, threshold=threshold).nonzero().flatten()
+    values = x.detach()[index]
+    return Branches(index[:-1], index[1:], (values[1:] - values[:-1]).abs())
 
 
 def resolve_threshold(threshold: float | str | Tensor, xb: Tensor) -> Tensor:
