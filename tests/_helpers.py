@@ -5,8 +5,9 @@ from __future__ import annotations
 import importlib.util
 import math
 import types
+from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -69,6 +70,19 @@ def run_chunked(module: torch.nn.Module, x: torch.Tensor, sizes: list[int], **kw
         y, state = module(c, state, **kw)
         outs.append(y)
     return torch.cat(outs, dim=-1)
+
+
+def run_split(module: Callable[[torch.Tensor, Any], tuple[torch.Tensor, Any]], x: torch.Tensor,
+              splits: list[int]) -> tuple[torch.Tensor, Any]:
+    """``module(chunk, state) -> (y, state)`` called on ``x`` (batch, time, ...) cut along time
+    into chunks of the sizes ``splits`` (summing to time), the state carried from a None start:
+    the outputs joined along time, (batch, time, ...), and the state after the last chunk.
+    Unlike :func:`run_chunked`, outputs may carry feature axes after time."""
+    parts, state = [], None
+    for chunk in x.split(splits, dim=1):
+        y, state = module(chunk, state)
+        parts.append(y)
+    return torch.cat(parts, dim=1), state
 
 
 def sine_loops(amplitudes: list[float], periods: int = 3, n: int = 128) -> torch.Tensor:

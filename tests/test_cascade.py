@@ -9,6 +9,7 @@ import warnings
 
 import pytest
 import torch
+from _helpers import run_split
 
 from torchhys import EIHO, Backlash, Cascade, InverseHysteresisNet, PrandtlIshlinskii
 from torchhys.dynamics import StateSpace, TransferFunction
@@ -77,11 +78,8 @@ def test_chunked_calls_equal_one_call(name, splits):
     x = _signal(time=sum(splits), seed=1)
     with torch.no_grad():
         whole, _ = op(x)
-        parts, state = [], None
-        for chunk in x.split(splits, dim=1):
-            f, state = op(chunk, state)
-            parts.append(f)
-    torch.testing.assert_close(torch.cat(parts, 1), whole, rtol=0, atol=1e-12)
+        chunked, _ = run_split(op, x, splits)
+    torch.testing.assert_close(chunked, whole, rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("name", list(_cascades()))

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 from _dynamics_helpers import BACKENDS, signal, stable_denominator, use_backend
+from _helpers import run_split
 from torch.autograd import gradcheck, gradgradcheck
 from torch.func import functional_call
 
@@ -252,13 +253,10 @@ def test_chunked_calls_equal_one_call(backend, name, splits):
     x = _inputs((3, sum(splits), 2), seed=10)
     with use_backend(backend), torch.no_grad():
         whole, final = block(x)
-        parts, state = [], None
-        for chunk in x.split(splits, dim=1):
-            y, state = block(chunk, state)
-            parts.append(y)
+        chunked, state = run_split(block, x, splits)
     # the kernel runs the same arithmetic in the same order for the transfer functions
     tol = 0 if backend == "kernel" and name == "tfm" else 1e-12
-    torch.testing.assert_close(torch.cat(parts, 1), whole, rtol=0, atol=tol)
+    torch.testing.assert_close(chunked, whole, rtol=0, atol=tol)
     torch.testing.assert_close(state, final, rtol=0, atol=tol)
 
 

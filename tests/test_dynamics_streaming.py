@@ -9,6 +9,7 @@ import warnings
 import pytest
 import torch
 from _dynamics_helpers import BACKENDS, signal, step_loop, use_backend
+from _helpers import run_split
 
 from torchhys import Backlash, InverseHysteresisNet
 from torchhys.dynamics import StateSpace, TransferFunction
@@ -41,13 +42,10 @@ def test_chunked_calls_equal_one_call(backend, name, splits):
     x = signal((3, sum(splits)), seed=1)
     with use_backend(backend), torch.no_grad():
         whole, final = block(x)
-        parts, state = [], None
-        for chunk in x.split(splits, dim=1):
-            y, state = block(chunk, state)
-            parts.append(y)
+        chunked, state = run_split(block, x, splits)
     exact = backend == "kernel" and name == "tf"  # the same arithmetic in the same order
     tol = 0 if exact else 1e-12
-    torch.testing.assert_close(torch.cat(parts, 1), whole, rtol=0, atol=tol)
+    torch.testing.assert_close(chunked, whole, rtol=0, atol=tol)
     torch.testing.assert_close(state, final, rtol=0, atol=tol)
 
 

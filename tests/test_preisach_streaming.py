@@ -7,7 +7,7 @@ import warnings
 
 import pytest
 import torch
-from _helpers import assert_streams_as_eager
+from _helpers import assert_streams_as_eager, run_split
 from _preisach_helpers import model, signal
 
 from torchhys.operator import OPERATORS, make_operator
@@ -20,11 +20,8 @@ def test_chunked_calls_equal_one_call(smooth, splits):
     m = model(smooth=smooth)
     x = signal(3, sum(splits), 9, seed=5)
     whole, final = m(x)
-    parts, state = [], None
-    for chunk in x.split(splits, dim=1):
-        y, state = m(chunk, state)
-        parts.append(y)
-    torch.testing.assert_close(torch.cat(parts, 1), whole, rtol=0, atol=1e-14)
+    chunked, state = run_split(m, x, splits)
+    torch.testing.assert_close(chunked, whole, rtol=0, atol=1e-14)
     torch.testing.assert_close(state, final, rtol=0, atol=0)
 
 

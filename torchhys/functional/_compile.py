@@ -17,11 +17,13 @@ import shutil
 import subprocess
 import tempfile
 import warnings
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import torch
+from torch import Tensor
 
-__all__ = ["FLAGS", "SUFFIX", "build"]
+__all__ = ["FLAGS", "SUFFIX", "build", "servable"]
 
 FLAGS = ["-O2", "-shared", "-fPIC", "-fno-fast-math", "-ffp-contract=off"]
 """Compiler flags: no fast math, no fused multiply-add contraction (results bit-equal to the
@@ -47,7 +49,15 @@ def _compile(compiler: str, name: str, source: str, lib_path: Path) -> None:
         os.replace(staged, lib_path)  # atomic: concurrent builders never see a partial file
 
 
-def build(name: str, source: str, *, what: str, fallback: str
+def servable(*tensors: Tensor) -> bool:
+    """Whether a kernel is built for these tensors: all on the CPU, in a dtype of
+    :data:`SUFFIX` (float32 or float64). Whether it is switched on and built is the caller's
+    check."""
+    return all(t.device.type == "cpu" and t.dtype in SUFFIX for t in tensors)
+
+
+def build(name: str, source: str, *, what: str, fallback: str,
+          argtypes: Mapping[str, Sequence[type]] | None = None
           ) -> tuple[ctypes.CDLL | None, str | None]:
     """The library built from ``source`` (cached as ``{name}_{hash}.so``), or None and why.
 
@@ -56,6 +66,9 @@ def build(name: str, source: str, *, what: str, fallback: str
         source: C source.
         what: what the kernel is, for the warning (``"play-operator kernel"``).
         fallback: what is used instead, for the warning (``"the pure-torch scan"``).
+        argtypes: the :mod:`ctypes` argument types of each exported function, by its name
+            without the dtype suffix (``{"play_forward": [c_void_p, ..., c_long]}``); set on
+            the function of every suffix of :data:`SUFFIX`.
     """
     if os.environ.get("TORCHHYS_DISABLE_KERNEL", "") not in ("", "0"):
         return None, "disabled by the environment variable TORCHHYS_DISABLE_KERNEL"
@@ -68,8 +81,12 @@ def build(name: str, source: str, *, what: str, fallback: str
     try:
         if not lib_path.exists():
             _compile(compiler, name, source, lib_path)
-        return ctypes.CDLL(str(lib_path)), None
+        lib = ctypes.CDLL(str(lib_path))
     except (OSError, subprocess.SubprocessError) as err:
         warnings.warn(f"torchhys: could not build the compiled {what} ({err}); using {fallback} "
                       "instead", RuntimeWarning, stacklevel=5)
         return None, f"the kernel could not be built with {compiler} ({err})"
+    for stem, types in (argtypes or {}).items():
+        for suffix in SUFFIX.values():
+            getattr(lib, f"{stem}_{suffix}").argtypes = list(types)
+    return lib, None

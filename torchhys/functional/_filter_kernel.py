@@ -31,7 +31,7 @@ import torch
 from torch import Tensor
 
 from torchhys.functional._compile import SUFFIX as _SUFFIX
-from torchhys.functional._compile import build
+from torchhys.functional._compile import build, servable
 
 __all__ = [
     "MAX_FUSED_ORDER",
@@ -163,17 +163,11 @@ FILTER_DEFINE(double, f64)
 @functools.lru_cache(maxsize=1)
 def _load() -> tuple[ctypes.CDLL | None, str | None]:
     """The compiled library, or None and the reason it cannot be used."""
-    lib, reason = build("filter", _SOURCE, what="filter kernel",
-                        fallback="the pure-torch chunked scan")
-    if lib is None:
-        return None, reason
     p, lng = ctypes.c_void_p, ctypes.c_long
-    for suffix in _SUFFIX.values():
-        getattr(lib, f"df2t_{suffix}").argtypes = [p] * 6 + [lng] * 4
-        getattr(lib, f"linrec_{suffix}").argtypes = [p] * 4 + [lng] * 3
-        getattr(lib, f"df2t_adjoint_{suffix}").argtypes = [p] * 11 + [lng] * 4
-        getattr(lib, f"linrec_adjoint_{suffix}").argtypes = [p] * 7 + [lng] * 3
-    return lib, None
+    return build("filter", _SOURCE, what="filter kernel", fallback="the pure-torch chunked scan",
+                 argtypes={"df2t": [p] * 6 + [lng] * 4, "linrec": [p] * 4 + [lng] * 3,
+                           "df2t_adjoint": [p] * 11 + [lng] * 4,
+                           "linrec_adjoint": [p] * 7 + [lng] * 3})
 
 
 def filter_kernel_unavailable_reason() -> str | None:
@@ -183,11 +177,7 @@ def filter_kernel_unavailable_reason() -> str | None:
 
 def filter_kernel_available(*tensors: Tensor) -> bool:
     """Whether the compiled kernels can serve these tensors (CPU, float32 or float64)."""
-    if not _enabled:
-        return False
-    if not all(t.device.type == "cpu" and t.dtype in _SUFFIX for t in tensors):
-        return False
-    return _load()[0] is not None
+    return _enabled and servable(*tensors) and _load()[0] is not None
 
 
 def df2t_kernel(x: Tensor, b: Tensor, a: Tensor, zi: Tensor) -> tuple[Tensor, Tensor]:

@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from torchhys.functional._compile import SUFFIX as _SUFFIX
-from torchhys.functional._compile import build
+from torchhys.functional._compile import build, servable
 
 __all__ = [
     "kernel_available",
@@ -99,15 +99,10 @@ PLAY_DEFINE(double, f64)
 @functools.lru_cache(maxsize=1)
 def _load() -> tuple[ctypes.CDLL | None, str | None]:
     """The compiled library, or None and the reason it cannot be used."""
-    lib, reason = build("play", _SOURCE, what="play-operator kernel",
-                        fallback="the pure-torch scan")
-    if lib is None:
-        return None, reason
     p, lng = ctypes.c_void_p, ctypes.c_long
-    for suffix in _SUFFIX.values():
-        getattr(lib, f"play_forward_{suffix}").argtypes = [p, p, p, p, lng, lng, lng]
-        getattr(lib, f"play_backward_{suffix}").argtypes = [p] * 10 + [lng, lng, lng]
-    return lib, None
+    return build("play", _SOURCE, what="play-operator kernel", fallback="the pure-torch scan",
+                 argtypes={"play_forward": [p, p, p, p, lng, lng, lng],
+                           "play_backward": [p] * 10 + [lng, lng, lng]})
 
 
 def _library() -> ctypes.CDLL | None:
@@ -126,11 +121,7 @@ def kernel_unavailable_reason() -> str | None:
 
 def kernel_available(*tensors: Tensor) -> bool:
     """Whether the compiled kernel can serve these tensors (CPU, float32 or float64)."""
-    if not _enabled:
-        return False
-    if not all(t.device.type == "cpu" and t.dtype in _SUFFIX for t in tensors):
-        return False
-    return _library() is not None
+    return _enabled and servable(*tensors) and _library() is not None
 
 
 def _ptr(t: Tensor) -> int:
