@@ -201,3 +201,29 @@ def test_bounds_must_be_real_numbers():
         m.inverse(upper=math.nan)
     inv = m.inverse(lower=torch.tensor(-2.0), upper=np.float64(3.0))
     assert (float(inv.lower), float(inv.upper)) == (-2.0, 3.0)
+
+
+@pytest.mark.parametrize(("key", "value", "match"), [
+    ("gain", -0.5, r"gain must be finite and > 0"),
+    ("gain", math.nan, r"gain must be finite and > 0"),
+    ("unit_weights", -0.1, r"unit_weights must be finite and >= 0"),
+    ("slopes", 0.0, r"slopes must be finite and > 0"),
+    ("widths", -1.0, r"widths must be finite and >= 0"),
+    ("weights", math.inf, r"weights must be finite"),
+    ("lower", math.nan, r"lower must be a number or -inf"),
+    ("upper", -10.0, r"lower must be below .*upper"),
+])
+def test_loading_a_state_dict_that_breaks_g_is_refused(key, value, match) -> None:
+    """``g^-1`` needs an increasing ``g``: a loaded buffer that breaks it names its key, and
+    the module keeps its buffers."""
+    inverse = GeneralizedPIInverse(3, 2)
+    good = {k: v.clone() for k, v in inverse.state_dict().items()}
+    good["lower"].fill_(-5.0)
+    bad = {k: v.clone() for k, v in good.items()}
+    bad[key].reshape(-1)[0] = value
+    with pytest.raises(ValueError, match=r"^net\." + match):
+        torch.nn.ModuleDict({"net": inverse}).load_state_dict(
+            {"net." + k: v for k, v in bad.items()})
+    assert float(inverse.lower) == -math.inf
+    inverse.load_state_dict(good)
+    assert float(inverse.lower) == -5.0

@@ -193,3 +193,35 @@ def test_bad_nonnegative_fit_input():
     assert decreasing.linear_weight.item() == 0.0 and bool((decreasing.weights == 0).all())
     with pytest.raises(ValueError, match="no inverse"):
         decreasing.inverse()
+
+
+def test_nonnegative_model_refuses_negative_weights():
+    """A ``nonnegative`` model (what ``fit_prandtl_ishlinskii(nonnegative=True)`` returns)
+    refuses negative weights at construction and from a state dict, inside a composite too,
+    and leaves its weights as they were; an unconstrained model loads them."""
+    u = walk(1, 300, 3)
+    fitted = fit_prandtl_ishlinskii(u, prandtl_ishlinskii(u, WIDTHS, MIXED.abs()), WIDTHS,
+                                    nonnegative=True)
+    assert fitted.nonnegative and "nonnegative=True" in repr(fitted)
+    bad = {k: v.clone() for k, v in fitted.state_dict().items()}
+    bad["weights"][2] = -1e-3
+    before = fitted.weights.clone()
+    with pytest.raises(ValueError, match=r"^weights must be finite and >= 0 .*-0\.001"):
+        fitted.load_state_dict(bad)
+    torch.testing.assert_close(fitted.weights, before, rtol=0, atol=0)
+    net = torch.nn.Sequential(fitted)
+    with pytest.raises(ValueError, match=r"^0\.linear_weight must be finite and >= 0"):
+        net.load_state_dict({"0." + k: v for k, v in fitted.state_dict().items()}
+                            | {"0.linear_weight": torch.tensor(-0.5, dtype=F64)})
+    free = PrandtlIshlinskii(WIDTHS)
+    free.load_state_dict(bad)  # unconstrained: negative weights are a model
+    assert float(free.weights[2]) == -1e-3
+    with pytest.raises(ValueError, match="weights must be finite and >= 0"):
+        PrandtlIshlinskii(WIDTHS, MIXED, nonnegative=True)
+    with pytest.raises(ValueError, match="linear_weight must be finite and >= 0"):
+        PrandtlIshlinskii(WIDTHS, MIXED.abs(), linear_weight=-1.0, nonnegative=True)
+    learnable = PrandtlIshlinskii(WIDTHS, MIXED.abs(), nonnegative=True, learnable=True)
+    with torch.no_grad():
+        learnable.weights[0] = -2.0
+    assert float(learnable.project_().weights.min()) == 0.0
+    assert not fit_prandtl_ishlinskii(u, u, WIDTHS).nonnegative

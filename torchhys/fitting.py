@@ -230,7 +230,9 @@ def fit_prandtl_ishlinskii(
         nonnegative: constrain the weights as above (a monotone, invertible model).
 
     Returns:
-        :class:`~torchhys.PrandtlIshlinskii` in the dtype of ``u`` (detached parameters).
+        :class:`~torchhys.PrandtlIshlinskii` in the dtype of ``u`` (detached parameters;
+        with ``nonnegative=True`` a ``nonnegative`` model, which refuses negative weights
+        from a state dict).
 
     Raises:
         TypeError, ValueError: bad or mismatched ``u``, ``y``, ``widths``, ``ridge``,
@@ -254,7 +256,7 @@ def fit_prandtl_ishlinskii(
         w = _pi_lstsq(A, target, ridge)
     model = PrandtlIshlinskii(
         widths.detach().to(ub.dtype), w[1:].to(ub.dtype), linear_weight=float(w[0]),
-        learnable=learnable,
+        learnable=learnable, nonnegative=nonnegative,
     )
     return model.to(ub.device)
 

@@ -114,6 +114,35 @@ class GeneralizedPIInverseStep(GeneralizedPIStep):
         return pi_output(v, z.unsqueeze(1), self.weights, self.linear_weight), [z]
 
 
+_LOADED = {
+    "widths": ("finite and >= 0 (play widths)", lambda t: t.isfinite() & (t >= 0)),
+    "weights": ("finite", torch.isfinite),
+    "linear_weight": ("finite", torch.isfinite),
+    "gain": ("finite and > 0 (g increasing)", lambda t: t.isfinite() & (t > 0)),
+    "unit_weights": ("finite and >= 0 (g increasing)", lambda t: t.isfinite() & (t >= 0)),
+    "centers": ("finite", torch.isfinite),
+    "slopes": ("finite and > 0 (g increasing)", lambda t: t.isfinite() & (t > 0)),
+    "offset": ("finite", torch.isfinite),
+    "lower": ("a number or -inf", lambda t: ~t.isnan() & (t < torch.inf)),
+    "upper": ("a number or +inf", lambda t: ~t.isnan() & (t > -torch.inf)),
+}
+"""What :class:`GeneralizedPIInverse` asks of a loaded buffer: ``g^-1`` needs an increasing
+``g`` (:func:`monotone_inverse`'s bracket and bisection)."""
+
+
+def _check_loaded(state_dict: dict, prefix: str) -> None:
+    """Raise ``ValueError`` naming the key of a buffer that breaks :data:`_LOADED`, or bounds
+    with ``lower >= upper``."""
+    for name, (what, ok) in _LOADED.items():
+        t = state_dict.get(prefix + name)
+        if isinstance(t, Tensor) and t.is_floating_point() and not bool(ok(t).all()):
+            raise ValueError(f"{prefix}{name} must be {what}, got {t.tolist()!r:.80}")
+    lower, upper = state_dict.get(prefix + "lower"), state_dict.get(prefix + "upper")
+    if isinstance(lower, Tensor) and isinstance(upper, Tensor) and not bool(lower < upper):
+        raise ValueError(f"{prefix}lower must be below {prefix}upper, got {float(lower)!r} "
+                         f"and {float(upper)!r}")
+
+
 class GeneralizedPIInverse(HysteresisOperator):
     """``x = p^-1[g^-1(y)]``, the inverse of a :class:`~torchhys.GeneralizedPrandtlIshlinskii`
     model (module docstring). Fixed (buffers only): build it with
@@ -195,6 +224,10 @@ class GeneralizedPIInverse(HysteresisOperator):
         return GeneralizedPIInverseStep(*(t.to(dtype) for t in (
             self.widths, self.weights, self.linear_weight, self.gain, self.unit_weights,
             self.centers, self.slopes, self.offset, self.lower, self.upper)))
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[override]
+        _check_loaded(state_dict, prefix)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def extra_repr(self) -> str:
         return (f"n_plays={self.widths.shape[0]}, n_units={self.centers.shape[0]}, "

@@ -3,7 +3,13 @@
 import torch
 from torch import Tensor, nn
 
-from torchhys._checks import as_batched_sequence, check_finite, check_floating, check_tensor
+from torchhys._checks import (
+    as_batched_sequence,
+    check_bool,
+    check_finite,
+    check_floating,
+    check_tensor,
+)
 from torchhys.backlash import _Widths
 from torchhys.functional.backlash import backlash, check_play_state, play_step
 from torchhys.functional.prandtl_ishlinskii import (
@@ -14,6 +20,17 @@ from torchhys.functional.prandtl_ishlinskii import (
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
 
 __all__ = ["PIStep", "PrandtlIshlinskii", "PrandtlIshlinskiiInverse"]
+
+
+def _check_nonnegative(weights: Tensor, linear_weight: Tensor, prefix: str) -> None:
+    """Raise ``ValueError`` unless the weights of a ``nonnegative`` model are finite and
+    >= 0 (``prefix``: a state dict's key prefix)."""
+    for name, w in (("weights", weights), ("linear_weight", linear_weight)):
+        if w.numel() and not bool((w.isfinite() & (w >= 0)).all()):
+            raise ValueError(
+                f"{prefix}{name} must be finite and >= 0 (a nonnegative Prandtl-Ishlinskii "
+                f"model), got minimum {w.min().item():.6g}; call project_() before saving"
+            )
 
 
 class PIStep(OperatorStep):
@@ -51,6 +68,12 @@ class PrandtlIshlinskii(_Widths, HysteresisOperator):
         linear_weight: weight w0 of the linear term.
         learnable: make widths, weights and linear weight trainable (widths stay
             non-negative through softplus).
+        nonnegative: a constrained model (``w_i >= 0``, ``w0 >= 0``: monotone, and with
+            ``w0 > 0`` or a positive weight at width 0, invertible), as
+            :func:`~torchhys.fitting.fit_prandtl_ishlinskii` fits it with
+            ``nonnegative=True``: negative weights are refused here and by
+            ``load_state_dict``; :meth:`project_` restores the constraint after an optimizer
+            step.
 
     Shape:
         - x: (time,) or (batch, time)
@@ -74,8 +97,10 @@ class PrandtlIshlinskii(_Widths, HysteresisOperator):
         *,
         linear_weight: float = 0.0,
         learnable: bool = False,
+        nonnegative: bool = False,
     ) -> None:
         super().__init__(widths, learnable=learnable)
+        self.nonnegative = check_bool(nonnegative, "nonnegative")
         n = self.n_operators
         dtype = self.get_widths().dtype
         w = torch.ones(n, dtype=dtype) if weights is None else torch.as_tensor(weights).to(dtype)
@@ -83,6 +108,8 @@ class PrandtlIshlinskii(_Widths, HysteresisOperator):
         w0 = torch.tensor(float(linear_weight), dtype=dtype)
         if not torch.isfinite(w0):
             raise ValueError(f"linear_weight must be finite, got {linear_weight}")
+        if self.nonnegative:
+            _check_nonnegative(w, w0, "")
         if learnable:
             self.weights = nn.Parameter(w.clone())
             self.linear_weight = nn.Parameter(w0)
@@ -101,6 +128,24 @@ class PrandtlIshlinskii(_Widths, HysteresisOperator):
         """The per-sample step with the current parameters, in ``dtype``."""
         return PIStep(*(t.detach().to(dtype) for t in (
             self.get_widths(), self.weights, self.linear_weight)))
+
+    @torch.no_grad()
+    def project_(self) -> "PrandtlIshlinskii":
+        """Clamp the weights and the linear weight at 0 (after an optimizer step of a
+        ``nonnegative`` model); returns self."""
+        self.weights.clamp_(min=0.0)
+        self.linear_weight.clamp_(min=0.0)
+        return self
+
+    def extra_repr(self) -> str:
+        return f"n={self.n_operators}" + (", nonnegative=True" if self.nonnegative else "")
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[override]
+        if self.nonnegative:
+            w, w0 = state_dict.get(prefix + "weights"), state_dict.get(prefix + "linear_weight")
+            if isinstance(w, Tensor) and isinstance(w0, Tensor):
+                _check_nonnegative(w, w0, prefix)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def inverse(self) -> "PrandtlIshlinskiiInverse":
         """The exact inverse model, built from the current parameters (detached).
