@@ -142,3 +142,30 @@ def test_return_point_memory():
     torch.testing.assert_close(s1, s0, rtol=0, atol=0)
     tail = ramps([0.5, -0.3, 0.2])[:, 1:]
     torch.testing.assert_close(m(tail, s1)[0], m(tail, s0)[0], rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("initial", ["positive", "negative", "given", "demagnetized"])
+def test_module_initial_relays_and_fixed_terms(initial: str) -> None:
+    """``Preisach(initial=...)`` starts from the stated relays (against the plain loop), and
+    ``linear=False`` / ``offset=False`` hold those terms at 0 outside the parameters."""
+    n = 6
+    alpha, beta = preisach_grid(-1.0, 1.0, n, dtype=F64)
+    K = alpha.numel()
+    g = torch.Generator().manual_seed(7)
+    given = torch.where(torch.rand(K, generator=g, dtype=F64) < 0.5, -1.0, 1.0).to(F64)
+    r0 = {"positive": np.ones(K), "negative": -np.ones(K), "given": given.numpy(),
+          "demagnetized": demag_reference(n)}[initial]
+    m = Preisach(-1.0, 1.0, n, linear=False, offset=False,
+                 initial=given if initial == "given" else initial).to(F64)
+    w = torch.rand(K, generator=g, dtype=F64)
+    with torch.no_grad():
+        m.weights.copy_(w)
+    names = {name for name, _ in m.named_parameters()}
+    assert names == {"weights"}
+    x = (0.15 * torch.randn(1, 120, generator=g, dtype=F64)).cumsum(1).clamp(-1.2, 1.2)
+    relays = relay_reference(x.numpy(), alpha.numpy(), beta.numpy(), r0[None])
+    expected = torch.from_numpy(relays @ w.numpy())
+    torch.testing.assert_close(m(x)[0], expected, rtol=0, atol=1e-12)
+    with torch.no_grad():  # a held term is a buffer: it still reads from the state dict
+        m.offset.fill_(0.25)
+    torch.testing.assert_close(m(x)[0], expected + 0.25, rtol=0, atol=1e-12)

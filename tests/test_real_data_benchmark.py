@@ -72,8 +72,8 @@ def test_table_columns_and_rows(bench, table):
         written = list(reader)
     assert tuple(reader.fieldnames) == COLUMNS
     assert [r["model"] for r in written] == [*bench.MODELS, "selected"]
-    assert {"line", "poly", "pi_constrained", "preisach", "eiho_net", "default"} <= set(
-        bench.MODELS)
+    assert {"line", "poly", "pi_constrained", "generalized_pi", "preisach", "eiho_net",
+            "default"} <= set(bench.MODELS)
     base = min(r["rmse"] for r in rows if r["model"] in ("line", "poly"))
     for r, w in zip(rows, written, strict=True):
         assert tuple(r) == COLUMNS
