@@ -235,8 +235,9 @@ def coverage_warning(x: Tensor, mask: Tensor, *, source: str = "the data") -> st
     low, high = float(size.min()), float(size.max())
     if low >= ONE_AMPLITUDE * high:
         n = f"{size.numel()} complete branch" + ("es" if size.numel() != 1 else "")
-        return (f"every branch of the training part of {source} spans {low:.4g} to "
-                f"{high:.4g} ({n}): loops of one amplitude, so "
+        spans = f"{low:.4g}" if f"{low:.4g}" == f"{high:.4g}" else f"{low:.4g} to {high:.4g}"
+        return (f"every branch of the training part of {source} spans {spans} ({n}): "
+                "loops of one amplitude, so "
                 "no split of it shows how a model predicts loops of other amplitudes; record "
                 "several amplitudes across the range the device will be driven over "
                 f"{guide}")
