@@ -16,7 +16,7 @@ import torch
 from _training_helpers import cli
 
 from torchhys.functional import reversal_ranges
-from torchhys.training.selection import coverage_warning
+from torchhys.training.selection import WHAT_TO_RECORD, coverage_warning
 
 F64 = torch.float64
 
@@ -108,11 +108,37 @@ def test_less_than_one_closed_loop(scored: slice) -> None:
     assert "one amplitude" in coverage_warning(x, mask)
 
 
-def test_coverage_warning_errors_and_empty_mask() -> None:
+@pytest.mark.parametrize("points", [
+    [-1.0, 1.0, -1.0, 1.0, -1.0],  # two whole loops, every sample scored
+    [0.0, 1.0, -1.0, 1.0, -1.0, 0.0],  # a sine's two periods from 0
+])
+def test_one_amplitude_scored_from_the_first_sample(points: list[float]) -> None:
+    """Without a warm-up the first reversal ends no complete branch; the loops still close."""
+    x = zigzag(points)[None]
+    message = coverage_warning(x, torch.ones_like(x, dtype=torch.bool))
+    assert message is not None and "loops of one amplitude" in message
+    one_period = sine([1.0])[None]  # a whole period scored from its start: a closed loop
+    assert "less than one closed loop" not in (
+        coverage_warning(one_period, torch.ones_like(one_period, dtype=torch.bool)) or "")
+
+
+def test_a_recording_at_rest_does_not_close_the_loop() -> None:
+    """A row whose scored part is at rest travels nothing: with part of a stroke in the
+    other row, the training part still holds less than one closed loop."""
+    stroke = torch.linspace(-1.0, 1.0, 120, dtype=F64)
+    x = torch.stack([stroke, torch.zeros_like(stroke)])
+    message = coverage_warning(x, scored_after(x, 20))
+    assert message is not None and "less than one closed loop" in message
+
+
+def test_coverage_warning_errors_constant_input_and_empty_mask() -> None:
     x = sine([1.0, 0.5])[None]
     with pytest.raises(ValueError, match=r"x and mask must have the same shape"):
         coverage_warning(x, torch.ones(1, 10, dtype=torch.bool))
     assert coverage_warning(x, torch.zeros_like(x, dtype=torch.bool)) is None
+    flat = torch.ones(2, 50, dtype=F64)
+    assert coverage_warning(flat, scored_after(flat, 5)) is None  # the fits say why
+    assert coverage_warning(x.float(), scored_after(x, 5).float()) is None  # 0/1 mask
 
 
 CONFIG = """\
@@ -155,7 +181,8 @@ def test_fit_warns_on_one_amplitude(monkeypatch, tmp_path: Path, amplitudes: lis
     with warnings.catch_warnings(record=True) as record:
         warnings.simplefilter("always")
         cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={tmp_path}")
-    mine = [str(w.message) for w in record if "loops of one amplitude" in str(w.message)]
-    assert len(mine) == (1 if warns else 0)
+    mine = [str(w.message) for w in record if WHAT_TO_RECORD in str(w.message)]
+    assert len(mine) == (1 if warns else 0), mine
     if warns:
         assert mine[0].startswith("model.select: every branch of the training part of")
+        assert "loops of one amplitude" in mine[0]

@@ -207,7 +207,7 @@ def test_bounds_must_be_real_numbers():
     ("gain", -0.5, r"gain must be finite and > 0"),
     ("gain", math.nan, r"gain must be finite and > 0"),
     ("unit_weights", -0.1, r"unit_weights must be finite and >= 0"),
-    ("slopes", 0.0, r"slopes must be finite and > 0"),
+    ("slopes", -1e-3, r"slopes must be finite and >= 0"),
     ("widths", -1.0, r"widths must be finite and >= 0"),
     ("weights", math.inf, r"weights must be finite"),
     ("lower", math.nan, r"lower must be a number or -inf"),

@@ -213,6 +213,10 @@ def test_nonnegative_model_refuses_negative_weights():
     with pytest.raises(ValueError, match=r"^0\.linear_weight must be finite and >= 0"):
         net.load_state_dict({"0." + k: v for k, v in fitted.state_dict().items()}
                             | {"0.linear_weight": torch.tensor(-0.5, dtype=F64)})
+    for key in ("weights", "linear_weight"):  # a partial state dict is checked too
+        with pytest.raises(ValueError, match=f"^{key} must be finite and >= 0"):
+            fitted.load_state_dict({key: -torch.ones_like(getattr(fitted, key))}, strict=False)
+    torch.testing.assert_close(fitted.weights, before, rtol=0, atol=0)
     free = PrandtlIshlinskii(WIDTHS)
     free.load_state_dict(bad)  # unconstrained: negative weights are a model
     assert float(free.weights[2]) == -1e-3

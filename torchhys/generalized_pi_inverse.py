@@ -121,13 +121,15 @@ _LOADED = {
     "gain": ("finite and > 0 (g increasing)", lambda t: t.isfinite() & (t > 0)),
     "unit_weights": ("finite and >= 0 (g increasing)", lambda t: t.isfinite() & (t >= 0)),
     "centers": ("finite", torch.isfinite),
-    "slopes": ("finite and > 0 (g increasing)", lambda t: t.isfinite() & (t > 0)),
+    "slopes": ("finite and >= 0 (g non-decreasing in each unit)",
+               lambda t: t.isfinite() & (t >= 0)),
     "offset": ("finite", torch.isfinite),
     "lower": ("a number or -inf", lambda t: ~t.isnan() & (t < torch.inf)),
     "upper": ("a number or +inf", lambda t: ~t.isnan() & (t > -torch.inf)),
 }
 """What :class:`GeneralizedPIInverse` asks of a loaded buffer: ``g^-1`` needs an increasing
-``g`` (:func:`monotone_inverse`'s bracket and bisection)."""
+``g`` (:func:`monotone_inverse`'s bracket and bisection): ``gain > 0``, each unit's weight
+and slope ``>= 0`` (a slope that underflowed to 0 makes its unit constant)."""
 
 
 def _check_loaded(state_dict: dict, prefix: str) -> None:

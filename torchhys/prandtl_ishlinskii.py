@@ -22,15 +22,14 @@ from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, regi
 __all__ = ["PIStep", "PrandtlIshlinskii", "PrandtlIshlinskiiInverse"]
 
 
-def _check_nonnegative(weights: Tensor, linear_weight: Tensor, prefix: str) -> None:
-    """Raise ``ValueError`` unless the weights of a ``nonnegative`` model are finite and
-    >= 0 (``prefix``: a state dict's key prefix)."""
-    for name, w in (("weights", weights), ("linear_weight", linear_weight)):
-        if w.numel() and not bool((w.isfinite() & (w >= 0)).all()):
-            raise ValueError(
-                f"{prefix}{name} must be finite and >= 0 (a nonnegative Prandtl-Ishlinskii "
-                f"model), got minimum {w.min().item():.6g}; call project_() before saving"
-            )
+def _check_nonnegative(w: Tensor, name: str) -> None:
+    """Raise ``ValueError`` naming ``name`` unless the weights ``w`` of a ``nonnegative``
+    model are finite and >= 0."""
+    if w.numel() and not bool((w.isfinite() & (w >= 0)).all()):
+        raise ValueError(
+            f"{name} must be finite and >= 0 (a nonnegative Prandtl-Ishlinskii model), got "
+            f"minimum {w.min().item():.6g}; call project_() before saving"
+        )
 
 
 class PIStep(OperatorStep):
@@ -109,7 +108,8 @@ class PrandtlIshlinskii(_Widths, HysteresisOperator):
         if not torch.isfinite(w0):
             raise ValueError(f"linear_weight must be finite, got {linear_weight}")
         if self.nonnegative:
-            _check_nonnegative(w, w0, "")
+            _check_nonnegative(w, "weights")
+            _check_nonnegative(w0, "linear_weight")
         if learnable:
             self.weights = nn.Parameter(w.clone())
             self.linear_weight = nn.Parameter(w0)
@@ -141,10 +141,11 @@ class PrandtlIshlinskii(_Widths, HysteresisOperator):
         return f"n={self.n_operators}" + (", nonnegative=True" if self.nonnegative else "")
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[override]
-        if self.nonnegative:
-            w, w0 = state_dict.get(prefix + "weights"), state_dict.get(prefix + "linear_weight")
-            if isinstance(w, Tensor) and isinstance(w0, Tensor):
-                _check_nonnegative(w, w0, prefix)
+        if self.nonnegative:  # each key present (a partial dict under strict=False too)
+            for name in ("weights", "linear_weight"):
+                w = state_dict.get(prefix + name)
+                if isinstance(w, Tensor):
+                    _check_nonnegative(w, prefix + name)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def inverse(self) -> "PrandtlIshlinskiiInverse":

@@ -45,7 +45,11 @@ from torch import Tensor
 from torch.utils.data import DataLoader
 
 from torchhys._checks import check_choice, check_int
-from torchhys.functional.turning_points import estimate_threshold, reversal_ranges
+from torchhys.functional.turning_points import (
+    estimate_threshold,
+    reversal_ranges,
+    turning_points,
+)
 from torchhys.training.data import join_sequences
 from torchhys.training.families import FitError
 
@@ -197,7 +201,8 @@ def coverage_warning(x: Tensor, mask: Tensor, *, source: str = "the data") -> st
         source: the data's name, for the message.
 
     Returns:
-        The message, or None (loops of several amplitudes, or no scored sample).
+        The message, or None: loops of several amplitudes, no scored sample, a constant
+        input, or a closed loop without a complete branch to compare.
 
     Raises:
         ValueError: ``x`` and ``mask`` not of the same shape (rows, time).
@@ -210,28 +215,33 @@ def coverage_warning(x: Tensor, mask: Tensor, *, source: str = "the data") -> st
     if scored.numel() == 0:
         return None
     span = float(scored.max() - scored.min())
+    if not span > 0:
+        return None  # a constant input: nothing to judge (the fits say so themselves)
     closed, ranges = False, []
     for r in range(x.shape[0]):
-        idx = mask[r].nonzero().flatten()
+        idx = mask[r].nonzero().flatten().to(x.device)
         if idx.numel() < 3:
             continue
         first, last = int(idx[0]), int(idx[-1])
         row = x[r, :last + 1].detach()
         threshold = max(MIN_REVERSAL * span, float(estimate_threshold(row)))
         branches = reversal_ranges(row, threshold=threshold)
-        keep = branches.end > first
         inside = branches.start >= first
-        ranges.append(branches.range[inside if bool(inside.any()) else keep])
-        points = torch.cat([idx[:1], branches.end[keep], idx[-1:]])
+        ranges.append(branches.range[inside if bool(inside.any()) else branches.end > first])
+        turns = turning_points(row, threshold=threshold).nonzero().flatten()
+        points = torch.cat([idx[:1], turns[(turns > first) & (turns < last)], idx[-1:]])
         travel = float((row[points[1:]] - row[points[:-1]]).abs().sum())
-        closed |= travel >= CLOSED_LOOP * float(row[first:].max() - row[first:].min())
+        scored_span = float(row[idx].max() - row[idx].min())
+        closed |= scored_span > 0 and travel >= CLOSED_LOOP * scored_span
     guide = f"({WHAT_TO_RECORD})"
     if not closed:
         return (f"the scored training samples of {source} hold less than one closed loop "
                 "(in no recording does the input travel its span there and back): no split "
                 "of them shows how a model predicts a reversal; record whole cycles in both "
                 f"directions, a few times over {guide}")
-    size = torch.cat(ranges)
+    size = torch.cat(ranges) if ranges else x.new_zeros(0)
+    if size.numel() == 0:
+        return None  # a closed loop without a complete branch: no amplitude to compare
     low, high = float(size.min()), float(size.max())
     if low >= ONE_AMPLITUDE * high:
         n = f"{size.numel()} complete branch" + ("es" if size.numel() != 1 else "")
