@@ -93,7 +93,7 @@ from torchhys import (
 )
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
 from torchhys.streaming import default_limits
-from torchhys.training.families import FitError
+from torchhys.training.families import PENALTIES, VALIDATION, FitError
 from torchhys.training.init import initialize
 from torchhys.training.module import OPTIMIZERS, InverseHysteresisModule
 from torchhys.training.operators import build_operators, fit_data_dependent
@@ -120,8 +120,8 @@ QUAD_RUNS = (3, 4, 5, 6, 7, 8)
 CONFIG = ROOT / "configs" / "measured.yaml"
 COLUMNS = ("dataset", "model", "rmse", "ratio", "n_train", "n_test", "choice")
 F64 = torch.float64
-VALIDATION = 0.25
-RIDGES = (0.0, 1e-8, 1e-6, 1e-4, 1e-2, 1e-1)
+RIDGES = PENALTIES
+"""The ridge grid of every row: the config families' ``"auto"`` grid."""
 SMOOTHNESS = (0.0, 1e-8, 1e-6, 1e-4, 1e-2)
 
 
