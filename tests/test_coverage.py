@@ -141,6 +141,12 @@ def test_coverage_warning_errors_constant_input_and_empty_mask() -> None:
     assert coverage_warning(x.float(), scored_after(x, 5).float()) is None  # 0/1 mask
 
 
+SELECT = """\
+  select:
+    - {operator: null}
+    - {operator: [{name: pi_nonneg, n_widths: 4}]}
+  select_cv: 2
+"""
 CONFIG = """\
 seed_everything: 0
 trainer:
@@ -168,21 +174,29 @@ data:
 """
 
 
+@pytest.mark.parametrize("select", [True, False])
 @pytest.mark.parametrize(("amplitudes", "warns"), [([1.0] * 6, True),
                                                    ([1.0, 0.4] * 3, False)])
 def test_fit_warns_on_one_amplitude(monkeypatch, tmp_path: Path, amplitudes: list[float],
-                                    warns: bool) -> None:
+                                    warns: bool, select: bool) -> None:
+    """Once, with model selection (before the candidates train) or without (before the
+    fit)."""
     u = sine(amplitudes).numpy()
     y = u + 0.2 * np.tanh(np.gradient(u) * 10)  # a lagging, loop-shaped response
     data = tmp_path / "loops.csv"
     np.savetxt(data, np.c_[u, y], delimiter=",", header="u,y", comments="")
     cfg = tmp_path / "fit.yaml"
-    cfg.write_text(CONFIG.replace("PATH", str(data)))
+    text = CONFIG.replace("PATH", str(data))
+    if not select:
+        text = text.replace(SELECT, "").replace(
+            "  operator: null\n", "  operator: [{name: pi_ls, n_widths: 4}]\n")
+    cfg.write_text(text)
     with warnings.catch_warnings(record=True) as record:
         warnings.simplefilter("always")
         cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={tmp_path}")
     mine = [str(w.message) for w in record if WHAT_TO_RECORD in str(w.message)]
     assert len(mine) == (1 if warns else 0), mine
     if warns:
-        assert mine[0].startswith("model.select: every branch of the training part of")
+        prefix = "model.select" if select else "fit"
+        assert mine[0].startswith(f"{prefix}: every branch of the training part of")
         assert "loops of one amplitude" in mine[0]

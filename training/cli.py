@@ -112,6 +112,13 @@ class TorchhysCLI(LightningCLI):
                 "init_args": {"save_dir": root, "name": "logs"},
             }
 
+    def before_fit(self) -> None:
+        """A plain fit warns as model selection does (once) when the training record holds
+        less than one closed loop or loops of one amplitude
+        (:func:`~torchhys.training.selection.coverage_warning`)."""
+        if not getattr(self, "_selected", False):
+            selection.warn_coverage(self.datamodule, "fit")
+
     # --- model selection ------------------------------------------------------------------
     def _select(self) -> None:
         """Take ``model.select``/``select_cv`` out of the config; in ``fit``, score the
@@ -147,6 +154,7 @@ class TorchhysCLI(LightningCLI):
             return self._instantiate_run(configs[i], seed, root / "selection", i, fold)
 
         scores = selection.run_selection(candidates, build, cv=cv)
+        self._selected = True  # run_selection has warned about the record's coverage
         chosen = selection.best(scores, rule or "min")
         _report(scores, chosen, root / "selection.csv", cv, rule or "min")
         self.config = configs[chosen.index]

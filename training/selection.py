@@ -59,7 +59,8 @@ RECORDING = "recording"
 __all__ = [
     "RECORDING", "RULES", "BlockFold", "Build", "CandidateScore", "RecordingFold", "best",
     "block_split", "check_candidates", "check_holdout", "config_json", "coverage_warning",
-    "format_table", "model_arguments", "run_selection", "standard_error", "write_table",
+    "format_table", "model_arguments", "run_selection", "standard_error", "warn_coverage",
+    "write_table",
 ]
 
 Build = Callable[[int, int | None], tuple[L.LightningModule, L.LightningDataModule, L.Trainer]]
@@ -254,10 +255,10 @@ def coverage_warning(x: Tensor, mask: Tensor, *, source: str = "the data") -> st
     return None
 
 
-def _warn_coverage(data: L.LightningDataModule) -> None:
-    """Warn once (:func:`coverage_warning`) about what the training part of a
-    :class:`~torchhys.training.HysteresisDataModule` cannot show (other datamodules are
-    not read)."""
+def warn_coverage(data: L.LightningDataModule, prefix: str = "model.select") -> None:
+    """Warn (:func:`coverage_warning`, a ``UserWarning`` starting with ``prefix``) about what
+    the training part of a :class:`~torchhys.training.HysteresisDataModule` cannot show
+    (other datamodules are not read)."""
     batches = getattr(data, "batches", None)
     if batches is None:
         return
@@ -268,7 +269,7 @@ def _warn_coverage(data: L.LightningDataModule) -> None:
     x, _, _, mask = train[0]
     message = coverage_warning(x, mask, source=getattr(data, "source", "the data"))
     if message is not None:
-        warnings.warn(f"model.select: {message}", UserWarning, stacklevel=3)
+        warnings.warn(f"{prefix}: {message}", UserWarning, stacklevel=3)
 
 
 def _one(items: list[Any]) -> Any:
@@ -526,7 +527,7 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
             module, data, trainer = build(i, None)
             check_holdout(data)
             if i == 0:
-                _warn_coverage(data)
+                warn_coverage(data)
             mse, errors = _validation(module, data, trainer)
             scores.append(CandidateScore(i, overrides, mse, val_se=standard_error(errors)))
             continue
@@ -536,7 +537,7 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
             module, data, trainer = build(i, j)
             fold = RecordingFold(data, j) if cv == RECORDING else BlockFold(data, cv, j)
             if i == 0 and j == 0:
-                _warn_coverage(data)
+                warn_coverage(data)
             k = fold.k
             mse, e = _validation(module, fold, trainer)
             folds.append(mse)
