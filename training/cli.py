@@ -116,13 +116,14 @@ class TorchhysCLI(LightningCLI):
         """A plain fit warns as model selection does (once) when the training record holds
         less than one closed loop or loops of one amplitude
         (:func:`~torchhys.training.selection.coverage_warning`)."""
-        if not getattr(self, "_selected", False):
+        if not self._selected:
             selection.warn_coverage(self.datamodule, "fit")
 
     # --- model selection ------------------------------------------------------------------
     def _select(self) -> None:
         """Take ``model.select``/``select_cv`` out of the config; in ``fit``, score the
         candidates and put the chosen one's model section in their place."""
+        self._selected = False  # set once run_selection has run (and warned, before_fit)
         sub = self.subcommand
         cfg = self.config[sub] if sub else self.config
         select, cv, rule = _pop_select(cfg)
@@ -154,7 +155,7 @@ class TorchhysCLI(LightningCLI):
             return self._instantiate_run(configs[i], seed, root / "selection", i, fold)
 
         scores = selection.run_selection(candidates, build, cv=cv)
-        self._selected = True  # run_selection has warned about the record's coverage
+        self._selected = True
         chosen = selection.best(scores, rule or "min")
         _report(scores, chosen, root / "selection.csv", cv, rule or "min")
         self.config = configs[chosen.index]

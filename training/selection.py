@@ -46,8 +46,8 @@ from torch.utils.data import DataLoader
 
 from torchhys._checks import check_choice, check_int
 from torchhys.functional.turning_points import (
+    branches_between,
     estimate_threshold,
-    reversal_ranges,
     turning_points,
 )
 from torchhys.training.data import join_sequences
@@ -226,10 +226,10 @@ def coverage_warning(x: Tensor, mask: Tensor, *, source: str = "the data") -> st
         first, last = int(idx[0]), int(idx[-1])
         row = x[r, :last + 1].detach()
         threshold = max(MIN_REVERSAL * span, float(estimate_threshold(row)))
-        branches = reversal_ranges(row, threshold=threshold)
+        turns = turning_points(row, threshold=threshold).nonzero().flatten()
+        branches = branches_between(row, turns)  # reversal_ranges, from the same turns
         inside = branches.start >= first
         ranges.append(branches.range[inside if bool(inside.any()) else branches.end > first])
-        turns = turning_points(row, threshold=threshold).nonzero().flatten()
         points = torch.cat([idx[:1], turns[(turns > first) & (turns < last)], idx[-1:]])
         travel = float((row[points[1:]] - row[points[:-1]]).abs().sum())
         scored_span = float(row[idx].max() - row[idx].min())

@@ -23,7 +23,8 @@ from torch import Tensor
 from torchhys._checks import as_batched_sequence
 
 __all__ = [
-    "Branches", "Zigzag", "estimate_threshold", "reversal_ranges", "turning_points", "zigzag",
+    "Branches", "Zigzag", "branches_between", "estimate_threshold", "reversal_ranges",
+    "turning_points", "zigzag",
 ]
 
 #: Factor applied to the robust noise estimate by ``threshold="auto"``.
@@ -154,9 +155,14 @@ def reversal_ranges(x: Tensor, *, threshold: float | str | Tensor = 0.0) -> Bran
     """
     if isinstance(x, Tensor) and x.dim() != 1:
         raise ValueError(f"x must be a sequence of shape (time,), got {tuple(x.shape)}")
-    index = turning_points(x, threshold=threshold).nonzero().flatten()
-    values = x.detach()[index]
-    return Branches(index[:-1], index[1:], (values[1:] - values[:-1]).abs())
+    return branches_between(x, turning_points(x, threshold=threshold).nonzero().flatten())
+
+
+def branches_between(x: Tensor, turns: Tensor) -> Branches:
+    """The branches of ``x`` (time,) between consecutive turning points ``turns`` (m,) long,
+    in time order (:func:`reversal_ranges` on turning points already found)."""
+    values = x.detach()[turns]
+    return Branches(turns[:-1], turns[1:], (values[1:] - values[:-1]).abs())
 
 
 def resolve_threshold(threshold: float | str | Tensor, xb: Tensor) -> Tensor:
