@@ -53,7 +53,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import yaml
 from scipy.optimize import minimize, nnls
 from scipy.signal import lfilter
 from torch import nn
@@ -72,6 +71,7 @@ from torchhys.fitting import FitResult, fit_full_batch
 from torchhys.functional import backlash
 from torchhys.plants import PiezoStage, bouc_wen, paper_plant_widths
 from torchhys.signals import chirp, decaying_sine, multisine, to_range
+from torchhys.training.cli import read_config
 from torchhys.training.init import initialize
 from torchhys.training.operators import build_operators, fit_data_dependent
 
@@ -152,9 +152,9 @@ ABLATIONS = ("ablation: re-based EIHO alone", "ablation: level EIHO (dominant) +
 
 
 def load_model_config(path: Path = CONFIG) -> dict:
-    """The ``model:`` section of a ``torchhys fit`` config (``configs/compensator.yaml``)."""
-    with open(path) as f:
-        return yaml.safe_load(f)["model"]
+    """The ``model:`` section of a ``torchhys fit`` config (``configs/compensator.yaml``),
+    read as the command reads it."""
+    return read_config(path)["model"]
 
 
 def config_operators(model: dict, y: torch.Tensor, u: torch.Tensor) -> list[nn.Module]:

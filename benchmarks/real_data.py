@@ -76,7 +76,6 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
-from jsonargparse import get_loader
 from torch import Tensor
 
 from torchhys import (
@@ -93,6 +92,7 @@ from torchhys import (
 )
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
 from torchhys.streaming import default_limits
+from torchhys.training.cli import read_config
 from torchhys.training.families import PENALTIES, VALIDATION, FitError
 from torchhys.training.init import initialize
 from torchhys.training.module import OPTIMIZERS, InverseHysteresisModule
@@ -730,8 +730,7 @@ def eiho_net(split: Split, budget: Budget) -> Fitted:
 def _config_model(path: Path) -> tuple[dict, dict, torch.dtype, int]:
     """The model section (with the module's defaults), trainer section, dtype and seed, read
     as ``torchhys fit`` reads the file (jsonargparse's YAML loader: ``1e-8`` is a number)."""
-    with open(path) as f:
-        cfg = get_loader("yaml")(f.read())
+    cfg = read_config(path)
     defaults = {k: p.default for k, p in
                 inspect.signature(InverseHysteresisModule.__init__).parameters.items()
                 if p.default is not inspect.Parameter.empty}

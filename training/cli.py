@@ -50,7 +50,7 @@ import warnings
 from pathlib import Path
 from typing import Any, Literal
 
-from jsonargparse import ArgumentError, Namespace
+from jsonargparse import ArgumentError, Namespace, get_loader
 from lightning.pytorch import Trainer, seed_everything
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
@@ -62,7 +62,7 @@ from torchhys.training.data import HysteresisDataModule
 from torchhys.training.module import InverseHysteresisModule
 from torchhys.training.operators import build_operators
 
-__all__ = ["TorchhysCLI", "main"]
+__all__ = ["TorchhysCLI", "main", "read_config"]
 
 _DESCRIPTION = (
     "Train and evaluate inverse-hysteresis models. Subcommands: fit, validate, test, "
@@ -229,6 +229,23 @@ def _report(scores: list[selection.CandidateScore], chosen: selection.CandidateS
     print(f"model selection on {how}:\n{selection.format_table(scores, chosen)}\n"
           f"selected candidate {chosen.index}: {selection.config_json(chosen.overrides)} "
           f"(val_mse {chosen.val_mse:.6g}); table written to {path}", flush=True)
+
+
+def read_config(path: str | Path) -> dict[str, Any]:
+    """A config file as ``torchhys fit --config`` reads it: jsonargparse's YAML loader, so
+    that ``ridge: 1e-8`` is the number 1e-8 (YAML 1.1, as PyYAML's ``safe_load`` follows,
+    reads it as the string '1e-8'). For scripts that build a config's model outside the
+    command (the benchmarks).
+
+    Raises:
+        ValueError: the file does not hold a mapping (naming the path).
+    """
+    with open(path) as f:
+        cfg = get_loader("yaml")(f.read())
+    if not isinstance(cfg, dict):
+        raise ValueError(f"config {path}: expected a mapping of sections (model:, data:, "
+                         f"trainer:), got {type(cfg).__name__}")
+    return cfg
 
 
 def main(argv: list[str] | None = None) -> None:
