@@ -92,6 +92,7 @@ from torchhys import (
 )
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
 from torchhys.streaming import default_limits
+from torchhys.training.baselines import fit_polynomial
 from torchhys.training.cli import read_config
 from torchhys.training.families import PENALTIES, VALIDATION, FitError
 from torchhys.training.init import initialize
@@ -446,28 +447,21 @@ def _rmse(a: Tensor, b: Tensor) -> float:
     return float((a - b).square().mean().sqrt())
 
 
-def _flat(v: Tensor, a: int, b: int | None = None) -> np.ndarray:
-    return v[:, a:b].reshape(-1).numpy()
+def _scored(split: Split) -> Tensor:
+    mask = torch.zeros_like(split.x, dtype=torch.bool)
+    mask[:, split.warmup:] = True
+    return mask
 
 
 def line(split: Split, budget: Budget) -> Fitted:
-    w, c = split.warmup, holdout(split.x.shape[1], split.warmup)
-    k, b = np.polyfit(_flat(split.x, w, c), _flat(split.y, w, c), 1)
-    score = float(np.sqrt(np.mean((k * _flat(split.x, c) + b - _flat(split.y, c)) ** 2)))
-    k, b = np.polyfit(_flat(split.x, w), _flat(split.y, w), 1)
-    return Fitted(lambda v: k * v + b, f"slope={k:.4g}, offset={b:.4g}", score)
+    p = fit_polynomial(split.x, split.y, _scored(split), degrees=(1,))
+    b, k = p.p.convert().coef
+    return Fitted(p, f"slope={k:.4g}, offset={b:.4g}", p.validation_rmse)
 
 
 def poly(split: Split, budget: Budget) -> Fitted:
-    w, c = split.warmup, holdout(split.x.shape[1], split.warmup)
-    fx, fy, vx, vy = _flat(split.x, w, c), _flat(split.y, w, c), _flat(split.x, c), _flat(
-        split.y, c)
-    scores = {deg: float(np.sqrt(np.mean((np.polynomial.Polynomial.fit(fx, fy, deg)(vx) - vy)
-                                         ** 2))) for deg in range(1, 10)}
-    deg = min(scores, key=scores.get)
-    p = np.polynomial.Polynomial.fit(_flat(split.x, w), _flat(split.y, w), deg)
-    return Fitted(lambda v: torch.as_tensor(p(v.numpy()), dtype=F64), f"degree={deg}",
-                  scores[deg])
+    p = fit_polynomial(split.x, split.y, _scored(split))
+    return Fitted(p, f"degree={p.degree}", p.validation_rmse)
 
 
 class Scaled(NamedTuple):

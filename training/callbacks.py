@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -10,7 +11,65 @@ import numpy as np
 import torch
 from lightning.pytorch.callbacks import BasePredictionWriter
 
-__all__ = ["PredictionWriter"]
+from torchhys._checks import check_int
+from torchhys.training.baselines import MAX_DEGREE, fit_polynomial
+
+__all__ = ["BaselineComparison", "PredictionWriter"]
+
+
+class BaselineComparison(L.Callback):
+    """After ``test``: the model beside two memoryless baselines fitted on the same training
+    part, a straight line and a polynomial of the input (its degree chosen on the training
+    part's time-ordered hold-out, :func:`~torchhys.training.baselines.fit_polynomial`), each
+    scored on the test split's scored samples. Logged (and so printed in the test table and
+    returned by ``trainer.test``):
+
+    - ``test_line_mse``, ``test_poly_mse``: the baselines' test MSE;
+    - ``test_ratio``: the model's test RMSE over the better baseline's (below 1: the model
+      earns its place; the ``ratio`` of docs/real-data.md).
+
+    :attr:`results` keeps them, with ``poly_degree`` and the model's ``test_mse``. Runs when
+    the datamodule has ``batches`` (:class:`~torchhys.training.HysteresisDataModule`);
+    otherwise it does nothing.
+
+    Args:
+        max_degree: the highest polynomial degree tried (>= 1; 1: the line twice).
+    """
+
+    def __init__(self, max_degree: int = MAX_DEGREE) -> None:
+        self.max_degree = check_int(max_degree, "max_degree", minimum=1)
+        self.results: dict[str, float] = {}
+
+    def on_test_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        dm = getattr(trainer, "datamodule", None)
+        if dm is None or not hasattr(dm, "batches"):
+            return
+        train, test = dm.batches("train"), dm.batches("test")
+        if not train or not test:
+            return
+        x, y, _, mask = train[0]
+        tx, ty, _, tmask = test[0]
+        tmask = tmask.to(torch.bool)
+        degrees = range(1, self.max_degree + 1)
+        line = fit_polynomial(x, y, mask, degrees=(1,))
+        poly = fit_polynomial(x, y, mask, degrees=degrees)
+        dtype = next(pl_module.parameters()).dtype
+        with torch.no_grad():
+            pred = pl_module(tx.to(dtype), target=ty.to(dtype)).to(torch.float64)
+        ty = ty.to(torch.float64)
+
+        def mse(p: torch.Tensor) -> float:
+            return float((p - ty)[tmask].square().mean())
+
+        tx = tx.to(torch.float64)
+        model, line_mse, poly_mse = mse(pred), mse(line(tx)), mse(poly(tx))
+        best = min(line_mse, poly_mse)
+        ratio = math.sqrt(model / best) if best > 0 else math.inf
+        self.results = {"test_mse": model, "test_line_mse": line_mse,
+                        "test_poly_mse": poly_mse, "poly_degree": float(poly.degree),
+                        "test_ratio": ratio}
+        for key in ("test_line_mse", "test_poly_mse", "test_ratio"):
+            pl_module.log(key, self.results[key], on_step=False, on_epoch=True, sync_dist=True)
 
 
 class PredictionWriter(BasePredictionWriter):

@@ -57,7 +57,7 @@ from lightning.pytorch.cli import LightningCLI
 from lightning.pytorch.utilities import rank_zero_only, rank_zero_warn
 
 from torchhys.training import selection
-from torchhys.training.callbacks import PredictionWriter
+from torchhys.training.callbacks import BaselineComparison, PredictionWriter
 from torchhys.training.data import HysteresisDataModule
 from torchhys.training.module import InverseHysteresisModule
 from torchhys.training.operators import build_operators
@@ -74,12 +74,16 @@ _DESCRIPTION = (
 class TorchhysCLI(LightningCLI):
     """LightningCLI with a CSV logger under ``default_root_dir`` (unless one is configured),
     a :class:`~torchhys.training.callbacks.PredictionWriter` (``--predictions.filename``), a
+    :class:`~torchhys.training.callbacks.BaselineComparison` in ``test`` (the line and the
+    memoryless polynomial fitted on the training split, ``--baselines.max_degree``), a
     checkpoint after every training epoch (``--checkpoint.*``; ``last.ckpt`` to resume), and
     model selection by validation in ``fit`` (``--model.select``, ``--model.select_cv``: see
     the module docstring)."""
 
     def add_arguments_to_parser(self, parser) -> None:  # noqa: ANN001 (jsonargparse parser)
         parser.add_lightning_class_args(PredictionWriter, "predictions")
+        # test: the straight line and the memoryless polynomial beside the model
+        parser.add_lightning_class_args(BaselineComparison, "baselines")
         # Full-batch runs often validate rarely: save at the end of every training epoch.
         parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
         parser.set_defaults({"checkpoint.save_on_train_epoch_end": True,

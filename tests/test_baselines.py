@@ -1,0 +1,172 @@
+"""The memoryless baselines (straight line, polynomial of a chosen degree) against numpy
+least squares, and ``torchhys test``'s comparison of the model with them."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from tests._training_helpers import cli, trainer
+from torchhys.training import HysteresisDataModule, InverseHysteresisModule
+from torchhys.training.baselines import fit_polynomial, holdout_mask
+from torchhys.training.callbacks import BaselineComparison
+
+
+def _data(seed: int = 0, rows: int = 2, T: int = 200) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    x = torch.randn(rows, T, generator=g, dtype=torch.float64)
+    y = 0.5 - 1.5 * x + 0.3 * x**3 + 0.2 * torch.randn(rows, T, generator=g, dtype=torch.float64)
+    return x, y
+
+
+def _reference_holdout(mask: np.ndarray, share: float = 0.25) -> np.ndarray:
+    """The last share of each row's scored samples, by a plain loop."""
+    held = np.zeros_like(mask)
+    for r in range(mask.shape[0]):
+        idx = [t for t in range(mask.shape[1]) if mask[r, t]]
+        n = max(1, int(round(share * len(idx))))
+        for t in idx[len(idx) - n:]:
+            held[r, t] = True
+    return held
+
+
+def test_holdout_is_the_last_quarter_of_each_rows_scored_samples() -> None:
+    mask = torch.zeros(3, 20, dtype=torch.bool)
+    mask[0, 4:] = True  # warm-up
+    mask[1, 2:15] = True  # padded row
+    mask[2, ::3] = True  # gaps
+    held = holdout_mask(mask)
+    np.testing.assert_array_equal(held.numpy(), _reference_holdout(mask.numpy()))
+    assert bool((held <= mask).all())
+    assert held[0].nonzero().flatten().tolist() == [16, 17, 18, 19]
+
+
+def test_line_is_numpy_least_squares_on_the_scored_samples() -> None:
+    x, y = _data()
+    mask = torch.ones_like(x, dtype=torch.bool)
+    mask[:, :20] = False
+    y[:, :20] = float("nan")  # unscored samples are never read
+    line = fit_polynomial(x, y, mask, degrees=(1,))
+    k, b = np.polyfit(x[mask].numpy(), y[mask].numpy(), 1)
+    v = torch.linspace(-2, 2, 7, dtype=torch.float64)
+    np.testing.assert_allclose(line(v).numpy(), k * v.numpy() + b, rtol=1e-10, atol=1e-12)
+    assert line.degree == 1
+    # its validation RMSE: fitted before the hold-out, scored on it
+    held = torch.from_numpy(_reference_holdout(mask.numpy()))
+    fit = mask & ~held
+    k0, b0 = np.polyfit(x[fit].numpy(), y[fit].numpy(), 1)
+    ref = np.sqrt(np.mean((k0 * x[held].numpy() + b0 - y[held].numpy()) ** 2))
+    assert line.validation_rmse == pytest.approx(ref, rel=1e-10)
+
+
+def test_degree_is_chosen_on_the_holdout() -> None:
+    x, y = _data(seed=1)
+    mask = torch.ones_like(x, dtype=torch.bool)
+    held = torch.from_numpy(_reference_holdout(mask.numpy()))
+    fit = mask & ~held
+    scores = {}
+    for d in range(1, 10):  # numpy's plain polyfit, an independent least-squares solver
+        c = np.polyfit(x[fit].numpy(), y[fit].numpy(), d)
+        scores[d] = np.sqrt(np.mean((np.polyval(c, x[held].numpy()) - y[held].numpy()) ** 2))
+    expected = min(scores, key=scores.get)
+    poly = fit_polynomial(x, y)
+    assert poly.degree == expected >= 3  # the data are cubic
+    assert poly.validation_rmse == pytest.approx(scores[expected], rel=1e-8)
+    c = np.polyfit(x.flatten().numpy(), y.flatten().numpy(), expected)
+    v = torch.linspace(-2, 2, 9, dtype=torch.float64)
+    np.testing.assert_allclose(poly(v).numpy(), np.polyval(c, v.numpy()), rtol=1e-8, atol=1e-8)
+
+
+def test_polynomial_keeps_the_input_dtype_and_shape() -> None:
+    x, y = _data(T=60)
+    poly = fit_polynomial(x, y, degrees=(2,))
+    v = torch.zeros(2, 3, 4, dtype=torch.float32)
+    out = poly(v)
+    assert out.shape == v.shape and out.dtype == torch.float32
+    # one sequence, (time,)
+    assert fit_polynomial(x[0], y[0], degrees=(1,)).degree == 1
+
+
+@pytest.mark.parametrize(("args", "kwargs", "match"), [
+    ((torch.zeros(2, 10), torch.zeros(2, 9)), {}, "x and y must have the same shape"),
+    ((torch.zeros(2, 10), torch.zeros(2, 10), torch.ones(2, 9, dtype=torch.bool)), {},
+     "mask must have the shape"),
+    ((torch.tensor([[0.0, float("nan")] * 10]), torch.zeros(1, 20)), {},
+     "x holds NaN or inf"),
+    ((torch.zeros(1, 20), torch.tensor([[0.0, float("inf")] * 10])), {},
+     "y holds NaN or inf"),
+    ((torch.randn(1, 20), torch.randn(1, 20)), {"degrees": (0, 1)}, "degrees"),
+    ((torch.randn(1, 20), torch.randn(1, 20)), {"degrees": ()}, "at least one degree"),
+    ((torch.randn(1, 12), torch.randn(1, 12)), {}, "degree 9 needs at least 10 scored"),
+    ((torch.randn(1, 20), torch.randn(1, 20)), {"validation": 1.0}, "validation"),
+])
+def test_bad_input_is_a_clear_error(args, kwargs, match) -> None:
+    with pytest.raises(ValueError, match=match):
+        fit_polynomial(*args, **kwargs)
+
+
+def test_constant_input_gives_the_mean() -> None:
+    y = torch.arange(20.0, dtype=torch.float64)[None]
+    poly = fit_polynomial(torch.ones_like(y), y)
+    assert float(poly(torch.tensor([3.0]))) == pytest.approx(float(y.mean()))
+
+
+def test_comparison_scores_the_baselines_on_the_test_split() -> None:
+    torch.manual_seed(0)
+    dm = HysteresisDataModule(simulation="paper", t_end=12.6, split=[0.6, 0.2, 0.2], warmup=60)
+    module = InverseHysteresisModule(operator="zhao_tan", operator_kwargs={"scale": 1.8},
+                                     hidden=6, optimizer="lbfgs")
+    comparison = BaselineComparison(max_degree=5)
+    t = trainer(max_epochs=3, callbacks=[comparison])
+    t.fit(module, datamodule=dm)
+    (logged,) = t.test(module, datamodule=dm, verbose=False)
+    # the reference: numpy on the stage tensors
+    (x, y, _, mask), = dm.batches("train")
+    (tx, ty, _, tmask), = dm.batches("test")
+    m, tm = mask.numpy().astype(bool), tmask.numpy().astype(bool)
+    xs, ys, txs, tys = x.numpy(), y.numpy(), tx.numpy(), ty.numpy()
+    held = _reference_holdout(m)
+    scores = {}
+    for d in range(1, 6):
+        c = np.polyfit(xs[m & ~held], ys[m & ~held], d)
+        scores[d] = np.mean((np.polyval(c, xs[held]) - ys[held]) ** 2)
+    d = min(scores, key=scores.get)
+    line = np.mean((np.polyval(np.polyfit(xs[m], ys[m], 1), txs[tm]) - tys[tm]) ** 2)
+    poly = np.mean((np.polyval(np.polyfit(xs[m], ys[m], d), txs[tm]) - tys[tm]) ** 2)
+    assert logged["test_line_mse"] == pytest.approx(line, rel=1e-6)
+    assert logged["test_poly_mse"] == pytest.approx(poly, rel=1e-6)
+    assert comparison.results["poly_degree"] == d
+    # the model's own test MSE, as the module logs it
+    assert comparison.results["test_mse"] == pytest.approx(logged["test_mse"], rel=1e-6)
+    assert logged["test_ratio"] == pytest.approx(
+        math.sqrt(logged["test_mse"] / min(line, poly)), rel=1e-6)
+
+
+def test_torchhys_test_logs_the_comparison(monkeypatch, tmp_path: Path) -> None:
+    config = tmp_path / "c.yaml"
+    config.write_text("""\
+seed_everything: 0
+trainer: {accelerator: cpu, devices: 1, precision: 64-true, max_epochs: 10,
+          enable_progress_bar: false, enable_model_summary: false}
+model: {operator: null, hidden: 1, activation: identity, optimizer: lbfgs,
+        optimizer_kwargs: {max_iter: 20, tolerance_grad: 1.0e-12, tolerance_change: 1.0e-15}}
+data: {simulation: paper, t_end: 6.3, split: [0.6, 0.2, 0.2]}
+""")
+    root = tmp_path / "run"
+    cli(monkeypatch, "fit", "--config", str(config), f"--trainer.default_root_dir={root}")
+    ckpt = root / "logs/version_0/checkpoints/last.ckpt"
+    cli(monkeypatch, "test", "--config", str(config), f"--trainer.default_root_dir={root}",
+        f"--ckpt_path={ckpt}", "--baselines.max_degree=1")
+    with (root / "logs/version_1/metrics.csv").open() as fh:
+        (row,) = [r for r in csv.DictReader(fh) if r.get("test_ratio")]
+    # an affine network of the input is the least-squares line: ratio 1
+    assert float(row["test_line_mse"]) == float(row["test_poly_mse"])
+    assert float(row["test_ratio"]) == pytest.approx(1.0, rel=1e-6)
+    with pytest.raises(ValueError, match="max_degree must be an int >= 1, got 0"):
+        cli(monkeypatch, "test", "--config", str(config), f"--trainer.default_root_dir={root}",
+            f"--ckpt_path={ckpt}", "--baselines.max_degree=0")
