@@ -170,3 +170,19 @@ data: {simulation: paper, t_end: 6.3, split: [0.6, 0.2, 0.2]}
     with pytest.raises(ValueError, match="max_degree must be an int >= 1, got 0"):
         cli(monkeypatch, "test", "--config", str(config), f"--trainer.default_root_dir={root}",
             f"--ckpt_path={ckpt}", "--baselines.max_degree=0")
+
+
+def test_a_short_training_split_caps_the_degree() -> None:
+    """8 training samples: 6 before the hold-out determine degrees up to 5, not 9."""
+    dm = HysteresisDataModule(simulation="paper", t_end=0.2, split=[0.4, 0.3, 0.3],
+                              min_samples=4)
+    module = InverseHysteresisModule(operator=None, hidden=1, activation="identity",
+                                     optimizer="lbfgs")
+    comparison = BaselineComparison()
+    t = trainer(max_epochs=1, callbacks=[comparison])
+    t.fit(module, datamodule=dm)
+    (logged,) = t.test(module, datamodule=dm, verbose=False)
+    (_, _, _, mask), = dm.batches("train")
+    assert int(mask.sum()) == 8
+    assert 1 <= comparison.results["poly_degree"] <= 5
+    assert math.isfinite(logged["test_ratio"])

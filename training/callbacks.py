@@ -10,9 +10,10 @@ import lightning as L
 import numpy as np
 import torch
 from lightning.pytorch.callbacks import BasePredictionWriter
+from lightning.pytorch.utilities import rank_zero_warn
 
 from torchhys._checks import check_int
-from torchhys.training.baselines import MAX_DEGREE, fit_polynomial
+from torchhys.training.baselines import MAX_DEGREE, fit_polynomial, holdout_mask
 
 __all__ = ["BaselineComparison", "PredictionWriter"]
 
@@ -32,6 +33,9 @@ class BaselineComparison(L.Callback):
     the datamodule has ``batches`` (:class:`~torchhys.training.HysteresisDataModule`);
     otherwise it does nothing.
 
+    On a training split too short for ``max_degree`` (fewer than ``max_degree + 1`` scored
+    samples before its hold-out) the degrees are capped at what its samples determine.
+
     Args:
         max_degree: the highest polynomial degree tried (>= 1; 1: the line twice).
     """
@@ -49,10 +53,15 @@ class BaselineComparison(L.Callback):
             return
         x, y, _, mask = train[0]
         tx, ty, _, tmask = test[0]
-        tmask = tmask.to(torch.bool)
-        degrees = range(1, self.max_degree + 1)
+        tmask, mask = tmask.to(torch.bool), mask.to(torch.bool)
+        # a short training part: the degrees its samples before the hold-out determine
+        top = min(self.max_degree, int((mask & ~holdout_mask(mask)).sum()) - 1)
+        if top < 1:
+            rank_zero_warn("baselines: the training split has too few scored samples to fit "
+                           "a straight line before its hold-out; no comparison")
+            return
         line = fit_polynomial(x, y, mask, degrees=(1,))
-        poly = fit_polynomial(x, y, mask, degrees=degrees)
+        poly = fit_polynomial(x, y, mask, degrees=range(1, top + 1))
         dtype = next(pl_module.parameters()).dtype
         with torch.no_grad():
             pred = pl_module(tx.to(dtype), target=ty.to(dtype)).to(torch.float64)
