@@ -90,6 +90,7 @@ from torchhys import (
     select_penalty,
     select_stop_pi_ridge,
 )
+from torchhys._nnls import holdout_cuts
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
 from torchhys.streaming import default_limits
 from torchhys.training.baselines import fit_polynomial
@@ -429,8 +430,8 @@ class Fitted(NamedTuple):
 
 def holdout(T: int, warmup: int) -> int:
     """First hold-out sample of a training row: the last quarter of its scored samples
-    (cut as :func:`torchhys.fitting.select_pi_ridge` cuts it)."""
-    return T - max(1, round(VALIDATION * (T - warmup)))
+    (as :func:`torchhys.training.baselines.holdout_mask` cuts the scored samples)."""
+    return warmup + holdout_cuts(T - warmup, 0, VALIDATION)[1]
 
 
 def test_rmse(predict: Predict, split: Split) -> tuple[float, int]:
@@ -455,7 +456,7 @@ def _scored(split: Split) -> Tensor:
 
 def line(split: Split, budget: Budget) -> Fitted:
     p = fit_polynomial(split.x, split.y, _scored(split), degrees=(1,))
-    b, k = p.p.convert().coef
+    b, k = (*p.p.convert().coef, 0.0)[:2]  # a constant input: the mean, slope 0
     return Fitted(p, f"slope={k:.4g}, offset={b:.4g}", p.validation_rmse)
 
 

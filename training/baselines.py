@@ -14,6 +14,7 @@ scaled domain, well conditioned up to degree 9).
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Iterable
 from typing import NamedTuple
 
@@ -22,9 +23,10 @@ import torch
 from torch import Tensor
 
 from torchhys._checks import check_int
+from torchhys._nnls import check_validation, holdout_cuts
 from torchhys.training.families import VALIDATION
 
-__all__ = ["MAX_DEGREE", "Polynomial", "fit_polynomial", "holdout_mask"]
+__all__ = ["MAX_DEGREE", "Polynomial", "fit_polynomial", "holdout_mask", "max_degree"]
 
 MAX_DEGREE = 9
 """The highest degree :func:`fit_polynomial` tries by default."""
@@ -49,7 +51,8 @@ class Polynomial(NamedTuple):
 
 def holdout_mask(mask: Tensor, validation: float = VALIDATION) -> Tensor:
     """The hold-out of a training part: the last ``validation`` share (at least one sample)
-    of each row's scored samples.
+    of each row's scored samples (:func:`torchhys.fitting.select_pi_ridge`'s cut of a row,
+    :func:`torchhys._nnls.holdout_cuts`, applied to the row's scored samples).
 
     Args:
         mask: the scored samples, (rows, time), bool.
@@ -58,29 +61,34 @@ def holdout_mask(mask: Tensor, validation: float = VALIDATION) -> Tensor:
     Returns:
         (rows, time) bool, inside ``mask``.
     """
-    if not 0.0 < float(validation) < 1.0:
-        raise ValueError(f"validation must be in (0, 1), got {validation!r}")
-    held = torch.zeros_like(mask, dtype=torch.bool)
+    validation = check_validation(validation)
+    mask = torch.as_tensor(mask).to(torch.bool)
+    held = torch.zeros_like(mask)
     for r in range(mask.shape[0]):
         idx = mask[r].nonzero().flatten()
         if idx.numel():
-            held[r, idx[idx.numel() - max(1, round(validation * idx.numel())):]] = True
+            held[r, idx[holdout_cuts(idx.numel(), 0, validation)[1]:]] = True
     return held
 
 
+def max_degree(mask: Tensor, validation: float = VALIDATION) -> int:
+    """The highest degree the scored samples before the hold-out determine (their number
+    less one; 0 or below: not even a line), for :func:`fit_polynomial` on a short record."""
+    mask = torch.as_tensor(mask).to(torch.bool)
+    return int((mask & ~holdout_mask(mask, validation)).sum()) - 1
+
+
 def _samples(x: Tensor, y: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
-    x = torch.as_tensor(x)
-    y = torch.as_tensor(y)
-    if x.dim() == 1 and y.dim() == 1:
-        x, y = x[None], y[None]
-        mask = None if mask is None else torch.as_tensor(mask).reshape(1, -1)
-    if x.dim() != 2 or y.shape != x.shape:
+    x, y = torch.as_tensor(x), torch.as_tensor(y)
+    mask = torch.ones_like(x, dtype=torch.bool) if mask is None else torch.as_tensor(mask)
+    if x.dim() not in (1, 2) or y.shape != x.shape:
         raise ValueError(f"x and y must have the same shape, (time,) or (rows, time), got "
                          f"{tuple(x.shape)} and {tuple(y.shape)}")
-    mask = torch.ones_like(x, dtype=torch.bool) if mask is None else torch.as_tensor(mask)
     if mask.shape != x.shape:
         raise ValueError(f"mask must have the shape of x {tuple(x.shape)}, got "
                          f"{tuple(mask.shape)}")
+    if x.dim() == 1:
+        x, y, mask = x[None], y[None], mask[None]
     mask = mask.to(torch.bool)
     for name, v in (("x", x), ("y", y)):
         if not bool(v[mask].isfinite().all()):
@@ -91,7 +99,9 @@ def _samples(x: Tensor, y: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor,
 def _fit(x: np.ndarray, y: np.ndarray, degree: int) -> np.polynomial.Polynomial:
     if np.ptp(x) == 0:  # a constant input: the mean (a polynomial of degree 0)
         return np.polynomial.Polynomial([float(np.mean(y))])
-    return np.polynomial.Polynomial.fit(x, y, degree)
+    with warnings.catch_warnings():  # a rank-deficient degree: the hold-out judges it
+        warnings.simplefilter("ignore", np.exceptions.RankWarning)
+        return np.polynomial.Polynomial.fit(x, y, degree)
 
 
 def fit_polynomial(
@@ -120,6 +130,9 @@ def fit_polynomial(
             below 1, fewer scored samples before the hold-out than the highest degree + 1.
     """
     xs, ys, mask = _samples(x, y, mask)
+    if not isinstance(degrees, Iterable):
+        raise TypeError(f"degrees must be an iterable of ints >= 1 (e.g. (1,) or range(1, 6)), "
+                        f"got {degrees!r}")
     degrees = sorted({check_int(d, "degrees", minimum=1) for d in degrees})
     if not degrees:
         raise ValueError("degrees must hold at least one degree >= 1")

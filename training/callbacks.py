@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -13,7 +14,7 @@ from lightning.pytorch.callbacks import BasePredictionWriter
 from lightning.pytorch.utilities import rank_zero_warn
 
 from torchhys._checks import check_int
-from torchhys.training.baselines import MAX_DEGREE, fit_polynomial, holdout_mask
+from torchhys.training.baselines import MAX_DEGREE, fit_polynomial, max_degree
 
 __all__ = ["BaselineComparison", "PredictionWriter"]
 
@@ -22,58 +23,69 @@ class BaselineComparison(L.Callback):
     """After ``test``: the model beside two memoryless baselines fitted on the same training
     part, a straight line and a polynomial of the input (its degree chosen on the training
     part's time-ordered hold-out, :func:`~torchhys.training.baselines.fit_polynomial`), each
-    scored on the test split's scored samples. Logged (and so printed in the test table and
+    scored on the samples the test scored. Logged (and so printed in the test table and
     returned by ``trainer.test``):
 
     - ``test_line_mse``, ``test_poly_mse``: the baselines' test MSE;
     - ``test_ratio``: the model's test RMSE over the better baseline's (below 1: the model
-      earns its place; the ``ratio`` of docs/real-data.md).
+      earns its place; the ``ratio`` of docs/real-data.md; 1 when both are 0).
 
-    :attr:`results` keeps them, with ``poly_degree`` and the model's ``test_mse``. Runs when
-    the datamodule has ``batches`` (:class:`~torchhys.training.HysteresisDataModule`);
-    otherwise it does nothing.
+    The tested samples are those of the batches the test ran (their scored inputs, targets
+    and predictions, as :class:`~torchhys.training.InverseHysteresisModule`'s ``test_step``
+    returns them); the training part is the trainer's datamodule's (``batches("train")``,
+    :class:`~torchhys.training.HysteresisDataModule`). Without either it does nothing.
+    :attr:`results` keeps the logged values, with ``poly_degree`` and the model's
+    ``test_mse`` over the same samples.
 
     On a training split too short for ``max_degree`` (fewer than ``max_degree + 1`` scored
-    samples before its hold-out) the degrees are capped at what its samples determine.
+    samples before its hold-out) the degrees are capped at what its samples determine
+    (:func:`~torchhys.training.baselines.max_degree`).
 
     Args:
         max_degree: the highest polynomial degree tried (>= 1; 1: the line twice).
     """
 
+    KEYS = ("input", "target", "prediction")
+    """What ``test_step`` returns: the scored samples of the batch, each flat."""
+
     def __init__(self, max_degree: int = MAX_DEGREE) -> None:
         self.max_degree = check_int(max_degree, "max_degree", minimum=1)
         self.results: dict[str, float] = {}
+        self._tested: list[tuple[torch.Tensor, ...]] = []
+
+    def on_test_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._tested, self.results = [], {}
+
+    def on_test_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule,
+                          outputs: Any, batch: Any, batch_idx: int,
+                          dataloader_idx: int = 0) -> None:
+        if isinstance(outputs, Mapping) and all(k in outputs for k in self.KEYS):
+            self._tested.append(tuple(outputs[k].detach().reshape(-1).to("cpu", torch.float64)
+                                      for k in self.KEYS))
 
     def on_test_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         dm = getattr(trainer, "datamodule", None)
-        if dm is None or not hasattr(dm, "batches"):
+        if not self._tested or dm is None or not hasattr(dm, "batches"):
             return
-        train, test = dm.batches("train"), dm.batches("test")
-        if not train or not test:
+        train = dm.batches("train")
+        if not train:
             return
-        x, y, _, mask = train[0]
-        tx, ty, _, tmask = test[0]
-        tmask, mask = tmask.to(torch.bool), mask.to(torch.bool)
-        # a short training part: the degrees its samples before the hold-out determine
-        top = min(self.max_degree, int((mask & ~holdout_mask(mask)).sum()) - 1)
+        x, y, _, mask = train[0]  # the datamodule's training part is one batch
+        top = min(self.max_degree, max_degree(mask))
         if top < 1:
             rank_zero_warn("baselines: the training split has too few scored samples to fit "
                            "a straight line before its hold-out; no comparison")
             return
         line = fit_polynomial(x, y, mask, degrees=(1,))
         poly = fit_polynomial(x, y, mask, degrees=range(1, top + 1))
-        dtype = next(pl_module.parameters()).dtype
-        with torch.no_grad():
-            pred = pl_module(tx.to(dtype), target=ty.to(dtype)).to(torch.float64)
-        ty = ty.to(torch.float64)
+        tx, ty, pred = (torch.cat(v) for v in zip(*self._tested, strict=True))
 
         def mse(p: torch.Tensor) -> float:
-            return float((p - ty)[tmask].square().mean())
+            return float((p - ty).square().mean())
 
-        tx = tx.to(torch.float64)
         model, line_mse, poly_mse = mse(pred), mse(line(tx)), mse(poly(tx))
         best = min(line_mse, poly_mse)
-        ratio = math.sqrt(model / best) if best > 0 else math.inf
+        ratio = math.sqrt(model / best) if best > 0 else (1.0 if model == 0 else math.inf)
         self.results = {"test_mse": model, "test_line_mse": line_mse,
                         "test_poly_mse": poly_mse, "poly_degree": float(poly.degree),
                         "test_ratio": ratio}

@@ -236,10 +236,11 @@ def _report(scores: list[selection.CandidateScore], chosen: selection.CandidateS
 
 
 def read_config(path: str | Path) -> dict[str, Any]:
-    """A config file as ``torchhys fit --config`` reads it: jsonargparse's YAML loader, so
-    that ``ridge: 1e-8`` is the number 1e-8 (YAML 1.1, as PyYAML's ``safe_load`` follows,
-    reads it as the string '1e-8'). For scripts that build a config's model outside the
-    command (the benchmarks).
+    """A config file's sections, parsed with the YAML loader of ``torchhys fit --config``
+    (jsonargparse's), so that ``ridge: 1e-8`` is the number 1e-8 (YAML 1.1, which PyYAML's
+    ``safe_load`` follows, reads it as the string '1e-8'). Only the loader is shared: no
+    defaults are filled in and nothing is checked. For scripts that build a config's model
+    outside the command (the benchmarks).
 
     Raises:
         ValueError: the file does not hold a mapping (naming the path).

@@ -278,20 +278,26 @@ class InverseHysteresisModule(L.LightningModule):
         self.log("train_loss", loss, on_step=False, on_epoch=True, prog_bar=True)
         return None
 
-    def _evaluate(self, batch: Batch, stage: str) -> None:
+    def _evaluate(self, batch: Batch, stage: str) -> dict[str, Tensor]:
         x, y, scored = _unpack(batch)
         y = y.to(self.dtype)
         with torch.no_grad():
             pred = self._predict(x, y, stage)()
         metric = self.val_mse if stage == "val" else self.test_mse
-        metric(scored(pred).reshape(-1), scored(y).reshape(-1))
+        out = {"input": scored(x).reshape(-1), "target": scored(y).reshape(-1),
+               "prediction": scored(pred).reshape(-1)}
+        metric(out["prediction"], out["target"])
         self.log(f"{stage}_mse", metric, on_step=False, on_epoch=True, prog_bar=True)
+        return out
 
     def validation_step(self, batch: Batch, batch_idx: int) -> None:
         self._evaluate(batch, "val")
 
-    def test_step(self, batch: Batch, batch_idx: int) -> None:
-        self._evaluate(batch, "test")
+    def test_step(self, batch: Batch, batch_idx: int) -> dict[str, Tensor]:
+        """Log ``test_mse``; return the batch's scored samples, each flat: ``input``,
+        ``target`` and ``prediction`` (for
+        :class:`~torchhys.training.callbacks.BaselineComparison`)."""
+        return self._evaluate(batch, "test")
 
     def predict_step(self, batch: Batch, batch_idx: int) -> Tensor:
         """The model output over the whole batch, (batch, time)."""
