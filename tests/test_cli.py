@@ -312,6 +312,13 @@ def test_measured_config_on_the_ferrite_loops(monkeypatch, tmp_path: Path) -> No
     line = float(np.sqrt(np.mean((k * b[test] + c - h[test]) ** 2)))
     # measured: 0.96 A/m (the stop-type PI model, 40 thresholds) against the line's 11.8 A/m
     assert rmse < 0.25 * line, (rmse, line)
+    # torchhys test's own baselines: the same line (the last of the 3 periods scored), and
+    # the model at most half the better baseline's error (measured: 0.35, the polynomial
+    # of degree 9 at 2.74 A/m)
+    logged = next(r for r in metrics(root, 1) if r.get("test_ratio"))
+    assert float(logged["test_line_mse"]) == pytest.approx(line**2, rel=1e-5)
+    assert float(logged["test_poly_mse"]) < float(logged["test_line_mse"])
+    assert float(logged["test_ratio"]) < 0.5
 
 
 def test_magnetic_config_parses_with_the_jiles_atherton_candidate(monkeypatch, capsys) -> None:
