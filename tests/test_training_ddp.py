@@ -44,7 +44,15 @@ def run(folder: Path, devices: int) -> None:
             enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
             num_sanity_val_steps=0, callbacks=[SaveParameters(str(folder))],
         )
-        trainer.fit(module, dm)
+        try:
+            trainer.fit(module, dm)
+        except torch.multiprocessing.ProcessExitedException as err:
+            # gloo's threads can abort a worker while the process exits ("terminate called
+            # without an active exception"), after training: the results are written by then
+            done = all((folder / f"rank{k}.pt").is_file() for k in range(devices))
+            if err.signal_name != "SIGABRT" or not done:
+                raise
+            print(f"a DDP worker aborted at exit, after writing its results: {err}")
 
 
 def test_ddp_cg_matches_a_single_process(tmp_path: Path) -> None:
