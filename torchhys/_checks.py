@@ -161,6 +161,15 @@ def check_widths(widths: Tensor, name: str = "widths") -> Tensor:
     return widths
 
 
+def check_nonnegative_weights(w: Tensor, name: str, what: str) -> None:
+    """Raise ``ValueError`` naming ``name`` unless the weights ``w`` of a constrained model
+    (any shape; empty passes) are finite and non-negative; ``what`` completes "must be
+    finite and ..." (``">= 0 (a nonnegative Prandtl-Ishlinskii model)"``)."""
+    if w.numel() and not bool((w.isfinite() & (w >= 0)).all()):
+        raise ValueError(f"{name} must be finite and {what}, got minimum "
+                         f"{w.min().item():.6g}; call project_() before saving")
+
+
 def sequence_batch(x: object) -> int | None:
     """The batch size of a sequence (time,) -> 1 or (batch, time) -> batch, read from its
     shape only (no pass over its values); None for anything else, which

@@ -8,6 +8,7 @@ from torchhys._checks import (
     check_bool,
     check_finite,
     check_floating,
+    check_nonnegative_weights,
     check_tensor,
 )
 from torchhys.backlash import _Widths
@@ -25,11 +26,7 @@ __all__ = ["PIStep", "PrandtlIshlinskii", "PrandtlIshlinskiiInverse"]
 def _check_nonnegative(w: Tensor, name: str) -> None:
     """Raise ``ValueError`` naming ``name`` unless the weights ``w`` of a ``nonnegative``
     model are finite and >= 0."""
-    if w.numel() and not bool((w.isfinite() & (w >= 0)).all()):
-        raise ValueError(
-            f"{name} must be finite and >= 0 (a nonnegative Prandtl-Ishlinskii model), got "
-            f"minimum {w.min().item():.6g}; call project_() before saving"
-        )
+    check_nonnegative_weights(w, name, ">= 0 (a nonnegative Prandtl-Ishlinskii model)")
 
 
 class PIStep(OperatorStep):

@@ -17,7 +17,12 @@ import warnings
 import torch
 from torch import Tensor, nn
 
-from torchhys._checks import as_batched_sequence, check_bool, check_warmup
+from torchhys._checks import (
+    as_batched_sequence,
+    check_bool,
+    check_nonnegative_weights,
+    check_warmup,
+)
 from torchhys._nnls import (
     Moments,
     check_penalty,
@@ -143,10 +148,8 @@ class Preisach(HysteresisOperator):
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[override]
         w = state_dict.get(prefix + "weights")
-        if isinstance(w, Tensor) and w.numel() and not bool((w >= 0).all() & w.isfinite().all()):
-            raise ValueError(f"{prefix}weights must be finite and non-negative (a Preisach "
-                             f"density), got minimum {w.min().item():.6g}; call project_() "
-                             "before saving")
+        if isinstance(w, Tensor):
+            check_nonnegative_weights(w, prefix + "weights", "non-negative (a Preisach density)")
         a, b = state_dict.get(prefix + "alpha"), state_dict.get(prefix + "beta")
         if isinstance(a, Tensor) and isinstance(b, Tensor) and a.shape == b.shape and not bool(
                 (a.isfinite() & b.isfinite() & (a >= b)).all()):
