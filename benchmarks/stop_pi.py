@@ -11,6 +11,9 @@ Methods:
                naive layout), on the first 1e4 samples, time scaled to T
     fit        fit_stop_pi (float64 normal equations, chunked, + Lawson-Hanson NNLS)
     step       the scripted per-sample StopPIStep, time per sample (1e4 samples)
+    inverse    StopPIInverse.forward (the exact inverse, a loop over time) of the model's
+               output, no gradient, on the first 1e4 samples, time scaled to T
+    inverse_step  the scripted per-sample StopPIInverseStep, time per sample (1e4 samples)
 
 Usage: python benchmarks/stop_pi.py [--repeats N] [--threads N] [--length T]
 """
@@ -23,7 +26,7 @@ import torch
 from _isolated import main_or_run, measure, walk_signal
 
 N, K = 20, 4
-METHODS = ("forward", "backward", "loop", "fit", "step")
+METHODS = ("forward", "backward", "loop", "fit", "step", "inverse", "inverse_step")
 LOOP = 10_000
 
 
@@ -36,7 +39,7 @@ def run_one(method: str, T: int, repeats: int) -> dict:
     x = walk_signal(T)
     r = play_width_grid(x, N, power=2.0)
     torch.manual_seed(1)
-    model = StopPrandtlIshlinskii(r, torch.rand(N, K), learnable=True)
+    model = StopPrandtlIshlinskii(r, torch.rand(N, K), linear_weight=0.1, learnable=True)
     probe = torch.randn_like(x)
     xg = x.clone().requires_grad_()
     state: dict = {}
@@ -68,18 +71,35 @@ def run_one(method: str, T: int, repeats: int) -> dict:
             with torch.no_grad():
                 for xt in x[:, :LOOP].unbind(1):
                     _, s = step(xt.unsqueeze(1), s)
+        elif method in ("inverse", "inverse_step"):
+            if "y" not in state:
+                with torch.no_grad():
+                    state["y"] = model(x)[0][:, :LOOP]
+                    inverse = model.inverse()
+                state["inverse"] = (inverse if method == "inverse" else
+                                    torch.jit.script(inverse.streaming_step(torch.float32)))
+            with torch.no_grad():
+                if method == "inverse":
+                    state["inverse"](state["y"])
+                else:
+                    s = [torch.zeros(1, N)]
+                    for yt in state["y"].unbind(1):
+                        _, s = state["inverse"](yt.unsqueeze(1), s)
         model.zero_grad()
         xg.grad = None
 
     times, peak = measure(call, repeats)
-    seconds = median(times) * (T / LOOP if method == "loop" else 1.0)
-    per = seconds / LOOP * 1e6 if method == "step" else None
+    seconds = median(times) * (T / LOOP if method in ("loop", "inverse") else 1.0)
+    per = (seconds / T if method == "inverse" else seconds / LOOP if method.endswith("step")
+           else None)
+    per = None if per is None else per * 1e6
     return {"method": method, "T": T, "median_s": seconds, "repeats": len(times),
             "peak_bytes": peak, "us_per_sample": per}
 
 
 def main() -> None:
-    ran = main_or_run(__doc__, __file__, METHODS, run_one, few=("fit", "loop"))
+    ran = main_or_run(__doc__, __file__, METHODS, run_one,
+                      few=("fit", "loop", "inverse", "inverse_step"))
     if ran is None:
         return
     args, rows = ran

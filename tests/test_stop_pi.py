@@ -494,6 +494,46 @@ def test_nonnegative_fit_matches_scipy_nnls(ridge, warmup, K):
         objective(A, b, ours, ridge)
 
 
+@pytest.mark.parametrize("nonnegative, ridge, bound", [(True, 0.0, 0.9), (True, 1e-3, 0.0),
+                                                       (False, 0.0, 0.9)])
+def test_min_linear_weight_matches_scipy_bounded_least_squares(nonnegative, ridge, bound):
+    """``w0 >= min_linear_weight`` (and W >= 0 when nonnegative) against
+    scipy.optimize.lsq_linear with the same bounds on the design plus ridge rows: the same
+    solution; the bound is active where the free fit's w0 is below it."""
+    from scipy.optimize import lsq_linear
+
+    x = fit_input(seed=8)
+    K, warmup = 2, 20
+    W = weights_of(4, K, seed=40)
+    y, _ = stop_pi(x, torch.tensor(FIT_R, dtype=F64), W, center=0.1, linear_weight=-0.4,
+                   offset=0.3)
+    y = y + noise(y.shape, 0.05, 9)
+    thresholds = torch.tensor(FIT_R, dtype=F64)
+    m = fit_stop_pi(x, y, thresholds, segments=K, ridge=ridge, center=0.1, warmup=warmup,
+                    nonnegative=nonnegative, min_linear_weight=bound)
+    free = fit_stop_pi(x, y, thresholds, segments=K, ridge=ridge, center=0.1, warmup=warmup,
+                       nonnegative=nonnegative)
+    A = design_reference(x.numpy(), FIT_R, K, 0.1, warmup)
+    b = y[:, warmup:].reshape(-1).numpy()
+    n, cols = A.shape
+    pen = np.hstack([np.zeros((cols - 2, 2)), math.sqrt(ridge * n) * np.eye(cols - 2)])
+    lower = np.r_[-np.inf, bound, np.zeros(cols - 2) if nonnegative else np.full(cols - 2, -np.inf)]
+    ref = lsq_linear(np.vstack([A, pen]), np.r_[b, np.zeros(cols - 2)], bounds=(lower, np.inf),
+                     method="bvls", tol=1e-14).x
+    ours = np.r_[float(m.offset), float(m.linear_weight), m.weights.numpy().ravel()]
+    assert float(free.linear_weight) < bound == float(m.linear_weight)  # active
+    np.testing.assert_allclose(ours, ref, rtol=0, atol=1e-7)
+    assert objective(A, b, ours, ridge) <= objective(A, b, ref, ridge) * (1 + 1e-10) + 1e-14
+    # the same bound in the hold-out choice of the ridge: its fits respect it
+    best, scores = select_stop_pi_ridge(x, y, thresholds, [0.0, 1e-2], segments=K,
+                                        center=0.1, warmup=warmup, nonnegative=nonnegative,
+                                        min_linear_weight=bound)
+    assert best in scores and all(math.isfinite(v) for v in scores.values())
+    _, free_scores = select_stop_pi_ridge(x, y, thresholds, [0.0, 1e-2], segments=K,
+                                          center=0.1, warmup=warmup, nonnegative=nonnegative)
+    assert scores != free_scores
+
+
 def test_warmup_leaves_samples_out_of_the_fit_and_of_the_centre():
     x = fit_input(seed=5)
     thresholds = torch.tensor(FIT_R, dtype=F64)
@@ -686,6 +726,9 @@ Y = torch.sin(3 * X)
     ({"warmup": -1}, ValueError, "warmup must be an int >= 0"),
     ({"nonnegative": "no"}, TypeError, "nonnegative must be True or False"),
     ({"center": NAN}, ValueError, "center must be a finite real number"),
+    ({"min_linear_weight": -0.1}, ValueError, "min_linear_weight must be >= 0"),
+    ({"min_linear_weight": NAN}, ValueError, "min_linear_weight must be finite"),
+    ({"min_linear_weight": "1"}, TypeError, "min_linear_weight must be a real number"),
 ])
 def test_bad_fit_input(kwargs, err, match):
     args = {"x": X, "y": Y, "thresholds": T3, **kwargs}
@@ -703,6 +746,7 @@ def test_bad_fit_input(kwargs, err, match):
     ({"segments": 0}, ValueError, "segments must be an int >= 1"),
     ({"nonnegative": None}, TypeError, "nonnegative must be True or False"),
     ({"y": Y[:5]}, ValueError, "y must have the shape of x"),
+    ({"min_linear_weight": -1.0}, ValueError, "min_linear_weight must be >= 0"),
 ])
 def test_bad_select_input(kwargs, err, match):
     args = {"x": X, "y": Y, "thresholds": T3, "ridges": [0.0, 1e-2], **kwargs}

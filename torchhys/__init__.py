@@ -16,6 +16,7 @@ from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, regi
 from torchhys.prandtl_ishlinskii import PrandtlIshlinskii, PrandtlIshlinskiiInverse
 from torchhys.preisach import Preisach, fit_preisach, select_penalty
 from torchhys.stop_pi import StopPrandtlIshlinskii, fit_stop_pi, select_stop_pi_ridge
+from torchhys.stop_pi_inverse import StopPIInverse
 
 __version__ = "0.1.0"
 
@@ -49,6 +50,7 @@ __all__ = [
     "GeneralizedPIInverse",
     "GeneralizedPrandtlIshlinskii",
     "fit_generalized_pi",
+    "StopPIInverse",
     "StopPrandtlIshlinskii",
     "fit_stop_pi",
     "select_stop_pi_ridge",

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor, nn
@@ -47,6 +48,9 @@ from torchhys.functional.stop_pi import (
     stop_segments,
 )
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
+
+if TYPE_CHECKING:
+    from torchhys.stop_pi_inverse import StopPIInverse
 
 __all__ = ["StopPIStep", "StopPrandtlIshlinskii", "fit_stop_pi", "select_stop_pi_ridge"]
 
@@ -169,6 +173,19 @@ class StopPrandtlIshlinskii(HysteresisOperator):
         self.weights.clamp_(min=0.0)
         return self
 
+    def inverse(self) -> StopPIInverse:
+        """The exact inverse ``x = F^-1[y]`` as an operator (:class:`~torchhys.StopPIInverse`,
+        detached parameters; see :mod:`torchhys.stop_pi_inverse`): the compensator of this
+        model. It shares the model's state (the plays of ``x - center``).
+
+        Raises:
+            ValueError: the output is not strictly monotone in the input (``linear_weight``
+                zero, or a segment slope of the other sign).
+        """
+        from torchhys.stop_pi_inverse import StopPIInverse
+
+        return StopPIInverse.from_model(self)
+
     def streaming_step(self, dtype: torch.dtype) -> StopPIStep:
         """The per-sample step with the current parameters, in ``dtype``."""
         return StopPIStep(*(t.detach().to(dtype) for t in (
@@ -212,6 +229,13 @@ def _center(xb: Tensor, warmup: int, center: float | None) -> float:
     return 0.5 * (float(xs.min()) + float(xs.max()))
 
 
+def _min_linear_weight(value: float | None) -> float | None:
+    """None, or a finite number >= 0 as a float; ``ValueError`` naming the argument."""
+    if value is None:
+        return None
+    return check_penalty(value, "min_linear_weight")
+
+
 _CHUNK = 8192
 
 
@@ -249,24 +273,33 @@ def _moments(xb: Tensor, yb: Tensor, thresholds: Tensor, segments: int, center: 
     return out
 
 
-def _solve(G: Tensor, h: Tensor, ridge: float, nonnegative: bool, varying: Tensor) -> Tensor:
-    """``[offset, w0, W.flatten()]`` from the per-sample normal equations plus ``ridge`` on W.
+def _solve(G: Tensor, h: Tensor, ridge: float, nonnegative: bool, varying: Tensor,
+           min_linear_weight: float | None = None) -> Tensor:
+    """``[offset, w0, W.flatten()]`` from the per-sample normal equations plus ``ridge`` on W,
+    with ``w0 >= min_linear_weight`` when it is given.
 
     A segment the fitted samples never enter (``varying`` False: its feature is constant, a
     knot beyond the input's range) has no data for its slope: its weight is 0 and it is left
-    out of the solve, which removes its exact collinearity with the offset.
+    out of the solve, which removes its exact collinearity with the offset. The bound on w0
+    is a non-negativity constraint on ``w0 - min_linear_weight`` (the target less
+    ``min_linear_weight * u``).
     """
     pen = torch.ones_like(h)
     pen[:2] = 0.0
     P = G + ridge * torch.diag(pen)
     theta = torch.zeros_like(h)
+    if min_linear_weight is not None:
+        h = h - min_linear_weight * G[:, 1]
     Pk, hk = P[varying][:, varying], h[varying]
-    if not nonnegative:
+    if not nonnegative and min_linear_weight is None:
         theta[varying] = torch.linalg.lstsq(Pk, hk[:, None], driver="gelsd").solution[:, 0]
         return theta
-    free = torch.zeros(hk.shape, dtype=torch.bool)
-    free[:2] = True
+    free = torch.full(hk.shape, not nonnegative, dtype=torch.bool)
+    free[0] = True
+    free[1] = min_linear_weight is None
     theta[varying] = nnls_gram(Pk, hk, free)
+    if min_linear_weight is not None:
+        theta[1] += min_linear_weight
     return theta
 
 
@@ -278,6 +311,7 @@ def fit_stop_pi(
     segments: int = 4,
     ridge: float = 0.0,
     nonnegative: bool = True,
+    min_linear_weight: float | None = None,
     center: float | None = None,
     warmup: int = 0,
 ) -> StopPrandtlIshlinskii:
@@ -305,6 +339,13 @@ def fit_stop_pi(
         segments: K, equal segments of each characteristic (1: the classical model).
         ridge: Tikhonov weight on W (>= 0); choose it with :func:`select_stop_pi_ridge`.
         nonnegative: constrain W >= 0.
+        min_linear_weight: None (w0 free), or a number >= 0: constrain ``w0 >=`` it. With
+            ``nonnegative`` and a positive bound the output rises with the input at every
+            state, also beyond the fitted range, where every stop slips and w0 is the slope
+            left: the model then has an exact inverse (:meth:`StopPrandtlIshlinskii.inverse`,
+            a compensator). Left free, w0 often comes out negative: the largest stops, which
+            never slip on the fitted samples, carry the memoryless slope, and w0 trades off
+            against them.
         center: the input value at which the stops start; default the midpoint of the fitted
             input's range.
         warmup: leading samples of each row left out of the fit (the stops still run).
@@ -318,9 +359,11 @@ def fit_stop_pi(
     xb, yb, segments = _check_data(x, y, thresholds, segments, warmup)
     ridge = check_penalty(ridge, "ridge")
     nonnegative = check_bool(nonnegative, "nonnegative")
+    bound = _min_linear_weight(min_linear_weight)
     c = _center(xb, warmup, center)
     ((mom, varying),) = _moments(xb, yb, thresholds, segments, c, [warmup, xb.shape[1]])
-    theta = _solve(mom.gram / mom.count, mom.moment / mom.count, ridge, nonnegative, varying)
+    theta = _solve(mom.gram / mom.count, mom.moment / mom.count, ridge, nonnegative, varying,
+                   bound)
     if not bool(torch.isfinite(theta).all()):
         raise ValueError("the least-squares solution is not finite (degenerate data?)")
     n = thresholds.shape[0]
@@ -338,6 +381,7 @@ def select_stop_pi_ridge(
     *,
     segments: int = 4,
     nonnegative: bool = True,
+    min_linear_weight: float | None = None,
     center: float | None = None,
     validation: float = 0.25,
     warmup: int = 0,
@@ -356,12 +400,13 @@ def select_stop_pi_ridge(
     """
     xb, yb, segments = _check_data(x, y, thresholds, segments, warmup)
     nonnegative = check_bool(nonnegative, "nonnegative")
+    bound = _min_linear_weight(min_linear_weight)
     cuts = holdout_cuts(xb.shape[1], warmup, check_validation(validation))
     c = _center(xb[:, :cuts[1]], warmup, center)
     (train, varying), (valid, _) = _moments(xb, yb, thresholds, segments, c, cuts)
 
     def solve(G: Tensor, h: Tensor, ridge: float) -> Tensor:
-        return _solve(G, h, ridge, nonnegative, varying)
+        return _solve(G, h, ridge, nonnegative, varying, bound)
 
     return select_on_holdout(train, valid, ridges, solve, name="ridges")
 

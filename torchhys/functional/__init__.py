@@ -16,7 +16,7 @@ from torchhys.functional.preisach import (
     relay_states,
     relay_update,
 )
-from torchhys.functional.stop_pi import stop_characteristic, stop_pi
+from torchhys.functional.stop_pi import stop_characteristic, stop_pi, stop_pi_inverse
 from torchhys.functional.turning_points import (
     Branches,
     estimate_threshold,
@@ -48,4 +48,5 @@ __all__: list[str] = [
     "relay_update",
     "stop_characteristic",
     "stop_pi",
+    "stop_pi_inverse",
 ]

@@ -1,0 +1,155 @@
+"""The exact inverse of a stop-type Prandtl-Ishlinskii model, as an operator.
+
+A :class:`~torchhys.StopPrandtlIshlinskii` model ``y = F[x]`` whose output is strictly
+monotone in the current input (``linear_weight`` nonzero and every segment slope of its sign:
+:func:`~torchhys.functional.stop_pi.check_invertible`, the case of a fit with non-negative
+slopes and a positive linear weight) has an exact inverse: at each sample the output is a
+piecewise-linear, strictly monotone function of the input given the stops' state, solved in
+closed form on the segment that holds the target
+(:func:`~torchhys.functional.stop_pi.stop_pi_inverse_step`), and the stops then move with the
+solved input. Fitted in the direction where the stop-type model has the right shape (e.g. a
+forward model, command -> response), it is the compensator (response -> command) of that
+model: fed the model's output from the same state, it returns the model's input.
+
+The sequence path loops over time (each sample's state depends on the inputs solved before
+it), so it is slower than the model's own (a scan): about 0.1 ms a sample on a CPU.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchhys._checks import check_int
+from torchhys.functional.backlash import check_play_state
+from torchhys.functional.stop_pi import (
+    check_invertible,
+    check_stop_parameters,
+    stop_pi_inverse,
+    stop_pi_inverse_step,
+)
+from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
+from torchhys.stop_pi import StopPrandtlIshlinskii
+
+__all__ = ["StopPIInverse", "StopPIInverseStep"]
+
+
+class StopPIInverseStep(OperatorStep):
+    """Per-sample step of :class:`StopPIInverse`
+    (:func:`~torchhys.functional.stop_pi.stop_pi_inverse_step`).
+
+    State: ``plays`` (N columns, 0 at the first sample: the model's plays of ``x - center``).
+    Feature: the solved input. Shapes: y (batch, 1) -> features (batch, 1).
+    """
+
+    def __init__(self, thresholds: Tensor, weights: Tensor, center: Tensor,
+                 linear_weight: Tensor, offset: Tensor) -> None:
+        super().__init__()
+        self.register_buffer("r", thresholds.detach().clone())
+        self.register_buffer("weights", weights.detach().clone())
+        self.register_buffer("center", center.detach().clone().reshape(()))
+        self.register_buffer("linear_weight", linear_weight.detach().clone().reshape(()))
+        self.register_buffer("offset", offset.detach().clone().reshape(()))
+        self.n_outputs = 1
+        self.state_spec = [StateBlock("plays", int(thresholds.shape[0]))]
+
+    def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
+        u, p = stop_pi_inverse_step(x, state[0], self.r, self.weights, self.center,
+                                    self.linear_weight, self.offset)
+        return u, [p]
+
+
+class StopPIInverse(HysteresisOperator):
+    """``x = F^-1[y]``, the exact inverse of a :class:`~torchhys.StopPrandtlIshlinskii`
+    model F (module docstring). Fixed (buffers only): build it with :meth:`from_model` (or
+    ``model.inverse()``); the plain constructor gives a placeholder of the right shape for
+    ``load_state_dict``.
+
+    Args:
+        n_stops: number of stop operators N (>= 1).
+        segments: segments K of each characteristic (>= 1).
+
+    Shape:
+        - y: (time,) or (batch, time)
+        - state: the model's plays before the first sample, (N,) or (batch, N); zeros if
+          None (the inverse of the model started from zero state)
+        - returns ``(x, state)``: x the shape of y; state the model's plays at the last
+          sample (chunked calls with it equal one call).
+    """
+
+    n_outputs: int = 1
+
+    def __init__(self, n_stops: int = 1, segments: int = 1) -> None:
+        super().__init__()
+        check_int(n_stops, "n_stops", minimum=1)
+        check_int(segments, "segments", minimum=1)
+        dtype = torch.get_default_dtype()
+        self.register_buffer("thresholds",
+                             torch.arange(1, n_stops + 1, dtype=dtype) / n_stops)
+        self.register_buffer("weights", torch.zeros(n_stops, segments, dtype=dtype))
+        self.register_buffer("center", torch.zeros((), dtype=dtype))
+        self.register_buffer("linear_weight", torch.ones((), dtype=dtype))
+        self.register_buffer("offset", torch.zeros((), dtype=dtype))
+
+    @classmethod
+    @torch.no_grad()
+    def from_model(cls, model: StopPrandtlIshlinskii) -> StopPIInverse:
+        """The inverse of ``model`` (its current parameters, detached), in its dtype.
+
+        Raises:
+            TypeError: ``model`` is not a :class:`~torchhys.StopPrandtlIshlinskii`.
+            ValueError: the model's output is not strictly monotone in its input (no
+                inverse; :func:`~torchhys.functional.stop_pi.check_invertible`).
+        """
+        if not isinstance(model, StopPrandtlIshlinskii):
+            raise TypeError(f"model must be a StopPrandtlIshlinskii, got "
+                            f"{type(model).__name__}")
+        check_invertible(model.weights.detach(), model.linear_weight.detach())
+        n, k = model.weights.shape
+        inverse = cls(int(n), int(k)).to(model.thresholds.dtype)
+        for name in ("thresholds", "weights", "center", "linear_weight", "offset"):
+            getattr(inverse, name).copy_(getattr(model, name).detach())
+        return inverse.to(model.thresholds.device)
+
+    @property
+    def segments(self) -> int:
+        """K, the segments of each characteristic."""
+        return int(self.weights.shape[1])
+
+    def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        check_play_state(state, x, self.thresholds.shape[0], "state")
+        return stop_pi_inverse(x, self.thresholds, self.weights, center=self.center,
+                               linear_weight=self.linear_weight, offset=self.offset, p0=state)
+
+    def streaming_step(self, dtype: torch.dtype) -> StopPIInverseStep:
+        """The per-sample step with the current buffers, in ``dtype``."""
+        return StopPIInverseStep(*(t.detach().to(dtype) for t in (
+            self.thresholds, self.weights, self.center, self.linear_weight, self.offset)))
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # noqa: ANN001
+        """Checks the model it would hold before anything is copied (all or nothing, also
+        for a partial state dict, whose missing keys keep their current values): the shapes
+        and values of :func:`~torchhys.functional.stop_pi.check_stop_parameters`, finite
+        scalars, and an invertible model; each error names its key."""
+        def saved(name: str) -> Tensor:  # the saved value, or the current one if not given
+            v = state_dict.get(prefix + name)
+            return v if isinstance(v, Tensor) else getattr(self, name)
+
+        for name in ("center", "linear_weight", "offset"):
+            v = saved(name)
+            if v.numel() != 1 or not bool(v.isfinite().all()):
+                raise ValueError(f"{prefix}{name} must be one finite number, got "
+                                 f"{v.tolist()!r:.80}")
+        try:
+            check_stop_parameters(saved("thresholds"), saved("weights"))
+            check_invertible(saved("weights"), saved("linear_weight"))
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"{prefix}{err}") from None
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def extra_repr(self) -> str:
+        return (f"n_stops={self.thresholds.numel()}, segments={self.segments}, "
+                f"center={float(self.center):.4g}")
+
+
+register_operator("stop_pi_inverse", StopPIInverse)
