@@ -264,3 +264,38 @@ def test_comparison_scores_the_dataloaders_the_test_ran(tmp_path: Path) -> None:
     line = np.mean((k * vx[v].numpy() + b - vy[v].numpy()) ** 2)
     assert comparison.results["test_line_mse"] == pytest.approx(line, rel=1e-9)
     assert logged["test_ratio"] == pytest.approx(math.sqrt(logged["test_mse"] / line), rel=1e-6)
+
+
+def test_comparison_fits_on_every_training_batch(tmp_path: Path) -> None:
+    """A datamodule that serves its training recordings as two batches of different lengths:
+    the baselines are fitted on the scored samples of both (padding left out)."""
+    paths = _recording_files(tmp_path, [300, 420, 260])
+    warmup = 25
+    dm = HysteresisDataModule(path=paths, split_by="recording", train_recordings=[0, 1],
+                              val_recordings=[2], test_recordings=[2], warmup=warmup)
+    dm.setup("fit")
+    whole = dm.batches("train")
+
+    class TwoBatches(HysteresisDataModule):
+        def batches(self, stage: str) -> list:
+            if stage != "train":
+                return super().batches(stage)
+            (x, y, z, mask), = whole
+            first = (x[:1, :300], y[:1, :300], z[:1], mask[:1, :300])
+            return [first, (x[1:], y[1:], z[1:], mask[1:])]
+
+    split = TwoBatches(path=paths, split_by="recording", train_recordings=[0, 1],
+                       val_recordings=[2], test_recordings=[2], warmup=warmup)
+    assert split.batches("train")[0][0].shape == (1, 300)  # really two batches
+    module = InverseHysteresisModule(operator=None, hidden=1, activation="identity",
+                                     optimizer="lbfgs")
+    comparison = BaselineComparison(max_degree=3)
+    t = trainer(max_epochs=1, callbacks=[comparison])
+    t.fit(module, datamodule=dm)
+    t.test(module, datamodule=split, verbose=False)
+    data = [np.loadtxt(p, delimiter=",", skiprows=1) for p in paths]
+    fx = np.concatenate([d[warmup:, 0] for d in data[:2]])
+    fy = np.concatenate([d[warmup:, 1] for d in data[:2]])
+    tx, ty = data[2][warmup:, 0], data[2][warmup:, 1]
+    line = np.mean((np.polyval(np.polyfit(fx, fy, 1), tx) - ty) ** 2)
+    assert comparison.results["test_line_mse"] == pytest.approx(line, rel=1e-9)

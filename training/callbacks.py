@@ -32,8 +32,9 @@ class BaselineComparison(L.Callback):
 
     The tested samples are those of the batches the test ran (their scored inputs, targets
     and predictions, as :class:`~torchhys.training.InverseHysteresisModule`'s ``test_step``
-    returns them); the training part is the trainer's datamodule's (``batches("train")``,
-    :class:`~torchhys.training.HysteresisDataModule`). Without either it does nothing.
+    returns them); the training part is the trainer's datamodule's: the rows of every batch
+    of ``batches("train")`` (:class:`~torchhys.training.HysteresisDataModule` serves one).
+    Without either it does nothing.
     :attr:`results` keeps the logged values, with ``poly_degree`` and the model's
     ``test_mse`` over the same samples.
 
@@ -70,7 +71,7 @@ class BaselineComparison(L.Callback):
         train = dm.batches("train")
         if not train:
             return
-        x, y, _, mask = train[0]  # the datamodule's training part is one batch
+        x, y, mask = _rows(train)
         top = min(self.max_degree, max_degree(mask))
         if top < 1:
             rank_zero_warn("baselines: the training split has too few scored samples to fit "
@@ -91,6 +92,21 @@ class BaselineComparison(L.Callback):
                         "test_ratio": ratio}
         for key in ("test_line_mse", "test_poly_mse", "test_ratio"):
             pl_module.log(key, self.results[key], on_step=False, on_epoch=True, sync_dist=True)
+
+
+def _rows(batches: list) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The rows of every ``(x, y, ..., mask)`` batch as one ``(x, y, mask)``, each row padded
+    at its end to the longest (padding not scored)."""
+    T = max(int(b[0].shape[-1]) for b in batches)
+
+    def pad(t: torch.Tensor, value: float | bool) -> torch.Tensor:
+        t = t.detach().to("cpu").reshape(-1, t.shape[-1])
+        return torch.nn.functional.pad(t, (0, T - t.shape[-1]), value=value)
+
+    x = torch.cat([pad(b[0].double(), 0.0) for b in batches])
+    y = torch.cat([pad(b[1].double(), 0.0) for b in batches])
+    mask = torch.cat([pad(b[-1].bool(), False) for b in batches])
+    return x, y, mask
 
 
 class PredictionWriter(BasePredictionWriter):
