@@ -534,6 +534,32 @@ def test_min_linear_weight_matches_scipy_bounded_least_squares(nonnegative, ridg
     assert scores != free_scores
 
 
+@pytest.mark.parametrize("bound", [0.0, 0.05, 0.2, 0.5])
+def test_min_linear_weight_on_collinear_stops_keeps_the_optimum(bound):
+    """Thresholds up to the input's span (play_width_grid): the largest stops never slip, so
+    their features and u are collinear and the Gram matrix is singular. A bound on w0 then
+    costs nothing: with free slopes the bounded fit reaches the unbounded fit's error (the
+    never-slipping stops take up the slope), deterministically."""
+    from torchhys.fitting import play_width_grid
+
+    t = torch.linspace(0, 1, 1500, dtype=F64)
+    x = 1.5 * torch.sin(12 * math.pi * t) * (0.3 + 0.7 * t)
+    y = torch.tanh(2.0 * x) + stop_pi(x, torch.tensor([0.1, 0.3, 0.6], dtype=F64),
+                                      torch.tensor([[0.2], [0.15], [0.1]], dtype=F64))[0]
+    y = y + noise(y.shape, 1e-3, 12)
+    thresholds = play_width_grid(x, 20, power=2.0)
+    free = fit_stop_pi(x, y, thresholds, segments=4, nonnegative=False)
+
+    def rmse(m: StopPrandtlIshlinskii) -> float:
+        return float((m(x)[0] - y).square().mean().sqrt())
+
+    fits = [fit_stop_pi(x, y, thresholds, segments=4, nonnegative=False,
+                        min_linear_weight=bound) for _ in range(2)]
+    assert float(fits[0].linear_weight) >= bound
+    assert rmse(fits[0]) == pytest.approx(rmse(free), rel=1e-6)
+    torch.testing.assert_close(fits[0].weights, fits[1].weights, rtol=0, atol=0)
+
+
 def test_warmup_leaves_samples_out_of_the_fit_and_of_the_centre():
     x = fit_input(seed=5)
     thresholds = torch.tensor(FIT_R, dtype=F64)

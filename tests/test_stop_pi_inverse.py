@@ -188,7 +188,7 @@ def test_gradcheck_inverse():
     y = (0.4 * torch.randn(2, 20, dtype=F64, generator=g)).cumsum(1)
     r = torch.tensor(R, dtype=F64)
     W = weights_of(3, 3, seed=6, zeros=False)
-    p0 = torch.tensor([[0.1, -0.2, 0.3], [-0.05, 0.4, -0.6]], dtype=F64)
+    p0 = torch.tensor([[0.13, -0.21, 0.37], [-0.05, 0.42, -0.61]], dtype=F64)  # no ties
     args = [t.clone().requires_grad_(True) for t in (
         y, W, torch.tensor(0.1, dtype=F64), torch.tensor(0.5, dtype=F64),
         torch.tensor(-0.2, dtype=F64), p0)]
@@ -197,12 +197,37 @@ def test_gradcheck_inverse():
         return stop_pi_inverse(y, r, W, center=c, linear_weight=w0, offset=off, p0=p0)[0]
 
     torch.autograd.gradcheck(f, args)
-    # the gradient with respect to y is 1 / the model's slope at the solution (a sample
-    # whose stops all slip: only the linear term and the free stops count)
+    # the gradient reaches every argument (none silently detached)
     x = f(*args)
     assert all(a.grad is None for a in args)
     x.sum().backward()
     assert all(a.grad is not None and bool(a.grad.abs().sum() > 0) for a in args)
+
+
+@pytest.mark.parametrize("y", [
+    torch.tensor([0.0, 0.7, 1.4, 2.1, 2.1, 2.1, 1.0, 1.0, -0.5, -0.5], dtype=F64),
+    walks(1, 60)[0],  # quantized, with held samples
+])
+def test_gradient_on_held_samples_is_one_sided(y):
+    """A held target after the stops slipped puts the solution exactly on breakpoints (the
+    slipped stops' ``p_i + r_i``), where the solution has a kink: dx_t/dy_t is then the
+    derivative on one of the two segments (a one-sided difference quotient), never a split
+    between them or 0."""
+    inv = model(3, seed=2).inverse()
+    J = torch.autograd.functional.jacobian(lambda v: inv(v)[0], y)
+    x, _ = inv(y)
+    h = 1e-7
+    eye = torch.eye(len(y), dtype=F64)
+    up, down = (torch.stack([(inv(y + d * eye[t])[0][t] - x[t]) / d for t in range(len(y))])
+                for d in (h, -h))
+    diag = J.diagonal()
+    one_sided = ((diag - up).abs() <= 1e-5 * up.abs() + 1e-7) | (
+        (diag - down).abs() <= 1e-5 * down.abs() + 1e-7)
+    assert bool(one_sided.all()), (diag, up, down)
+    held = (y[1:] == y[:-1]).nonzero().flatten() + 1
+    kinks = (up - down).abs() > 1e-3
+    assert bool(kinks[held].any())  # the case is there: held samples at a kink
+    assert bool((diag > 0).all())
 
 
 # --- 5. export ---------------------------------------------------------------------------------
@@ -297,6 +322,15 @@ def test_bad_sequence_input(y, state, err, match):
     inv = model(2).inverse()
     with pytest.raises(err, match=match):
         inv(y if not y.is_floating_point() else y.double(), state)
+
+
+@pytest.mark.parametrize("name, match", [("weights", "weights must be finite"),
+                                         ("linear_weight", "linear_weight must be finite")])
+def test_a_model_made_non_finite_has_no_inverse(name, match):
+    m = model(2)
+    getattr(m, name).fill_(math.nan)  # after construction, in place
+    with pytest.raises(ValueError, match=match):
+        m.inverse()
 
 
 def test_from_model_takes_a_stop_model_only():

@@ -280,27 +280,43 @@ def _solve(G: Tensor, h: Tensor, ridge: float, nonnegative: bool, varying: Tenso
 
     A segment the fitted samples never enter (``varying`` False: its feature is constant, a
     knot beyond the input's range) has no data for its slope: its weight is 0 and it is left
-    out of the solve, which removes its exact collinearity with the offset. The bound on w0
-    is a non-negativity constraint on ``w0 - min_linear_weight`` (the target less
-    ``min_linear_weight * u``).
+    out of the solve, which removes its exact collinearity with the offset. The bound on w0:
+    with non-negative slopes, a non-negativity constraint on ``w0 - min_linear_weight`` (the
+    target less ``min_linear_weight * u``); with free slopes, the unbounded solution if its
+    w0 meets the bound, else the best one with w0 at the bound (one bound on one variable of
+    a convex problem: the optimum is on it).
     """
     pen = torch.ones_like(h)
     pen[:2] = 0.0
     P = G + ridge * torch.diag(pen)
     theta = torch.zeros_like(h)
-    if min_linear_weight is not None:
-        h = h - min_linear_weight * G[:, 1]
-    Pk, hk = P[varying][:, varying], h[varying]
-    if not nonnegative and min_linear_weight is None:
-        theta[varying] = torch.linalg.lstsq(Pk, hk[:, None], driver="gelsd").solution[:, 0]
+    m = min_linear_weight
+    if not nonnegative:
+        theta[varying] = _lstsq(P[varying][:, varying], h[varying])
+        if m is None or float(theta[1]) >= m:
+            return theta
+        # the bound is active: w0 = m, the rest unconstrained on the target less m u
+        keep = varying.clone()
+        keep[1] = False
+        theta.zero_()
+        theta[keep] = _lstsq(P[keep][:, keep], (h - m * P[:, 1])[keep])
+        theta[1] = m
         return theta
-    free = torch.full(hk.shape, not nonnegative, dtype=torch.bool)
+    if m is not None:
+        h = h - m * P[:, 1]
+    free = torch.zeros(h.shape, dtype=torch.bool)
     free[0] = True
-    free[1] = min_linear_weight is None
-    theta[varying] = nnls_gram(Pk, hk, free)
-    if min_linear_weight is not None:
-        theta[1] += min_linear_weight
+    free[1] = m is None
+    theta[varying] = nnls_gram(P[varying][:, varying], h[varying], free[varying])
+    if m is not None:
+        theta[1] += m
     return theta
+
+
+def _lstsq(P: Tensor, h: Tensor) -> Tensor:
+    """The minimum-norm solution of ``P theta = h`` (rank-revealing: the Gram matrix is
+    singular when the largest stops never slip, their features then collinear with u)."""
+    return torch.linalg.lstsq(P, h[:, None], driver="gelsd").solution[:, 0]
 
 
 def fit_stop_pi(

@@ -12,7 +12,8 @@ forward model, command -> response), it is the compensator (response -> command)
 model: fed the model's output from the same state, it returns the model's input.
 
 The sequence path loops over time (each sample's state depends on the inputs solved before
-it), so it is slower than the model's own (a scan): about 0.1 ms a sample on a CPU.
+it), so it is much slower than the model's own (a scan); the scripted step costs about
+three of the model's steps (``benchmarks/stop_pi.py``).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from torchhys.functional.backlash import check_play_state
 from torchhys.functional.stop_pi import (
     check_invertible,
     check_stop_parameters,
+    inverse_constants,
     stop_pi_inverse,
     stop_pi_inverse_step,
 )
@@ -45,17 +47,18 @@ class StopPIInverseStep(OperatorStep):
     def __init__(self, thresholds: Tensor, weights: Tensor, center: Tensor,
                  linear_weight: Tensor, offset: Tensor) -> None:
         super().__init__()
-        self.register_buffer("r", thresholds.detach().clone())
-        self.register_buffer("weights", weights.detach().clone())
-        self.register_buffer("center", center.detach().clone().reshape(()))
-        self.register_buffer("linear_weight", linear_weight.detach().clone().reshape(()))
-        self.register_buffer("offset", offset.detach().clone().reshape(()))
+        sign, w, w0, knots, jumps = inverse_constants(
+            thresholds.detach(), weights.detach(), linear_weight.detach().reshape(()))
+        for name, v in (("r", thresholds), ("sign", sign), ("w", w), ("w0", w0),
+                        ("knots", knots), ("jumps", jumps), ("center", center.reshape(())),
+                        ("offset", offset.reshape(()))):
+            self.register_buffer(name, v.detach().clone())
         self.n_outputs = 1
         self.state_spec = [StateBlock("plays", int(thresholds.shape[0]))]
 
     def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
-        u, p = stop_pi_inverse_step(x, state[0], self.r, self.weights, self.center,
-                                    self.linear_weight, self.offset)
+        u, p = stop_pi_inverse_step(x, state[0], self.r, self.sign, self.w, self.w0,
+                                    self.knots, self.jumps, self.center, self.offset)
         return u, [p]
 
 
@@ -104,6 +107,7 @@ class StopPIInverse(HysteresisOperator):
         if not isinstance(model, StopPrandtlIshlinskii):
             raise TypeError(f"model must be a StopPrandtlIshlinskii, got "
                             f"{type(model).__name__}")
+        check_stop_parameters(model.thresholds.detach(), model.weights.detach())
         check_invertible(model.weights.detach(), model.linear_weight.detach())
         n, k = model.weights.shape
         inverse = cls(int(n), int(k)).to(model.thresholds.dtype)

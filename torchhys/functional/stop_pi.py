@@ -32,6 +32,8 @@ References:
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -45,8 +47,8 @@ from torchhys._checks import (
 from torchhys.functional.backlash import backlash, check_play_state
 
 __all__ = ["check_invertible", "check_stop_parameters", "check_thresholds",
-           "stop_characteristic", "stop_pi", "stop_pi_inverse", "stop_pi_inverse_step",
-           "stop_segments"]
+           "inverse_constants", "stop_characteristic", "stop_pi", "stop_pi_inverse",
+           "stop_pi_inverse_step", "stop_segments"]
 
 
 def check_thresholds(thresholds: Tensor) -> None:
@@ -160,16 +162,21 @@ def stop_pi(
 
 # --- the exact inverse --------------------------------------------------------------------
 def check_invertible(weights: Tensor, linear_weight: Tensor) -> None:
-    """A stop-type model whose output is strictly monotone in the current input, whatever
-    its state: ``linear_weight`` nonzero and every segment slope of its sign or zero (the
-    output's slope in u is ``w0`` plus the slopes of the stops that do not slip: never 0,
-    never of the other sign). Otherwise ``ValueError`` naming the argument, with the fit
-    that gives such a model (``fit_stop_pi(..., nonnegative=True, min_linear_weight=...)``).
+    """Raise unless the output is strictly monotone in the current input whatever the state,
+    as the inverse needs it: ``linear_weight`` finite and nonzero, every segment slope finite
+    and of its sign or zero. (The output's slope in u is ``w0`` plus the slopes of the stops
+    that do not slip; this sufficient condition is the one a non-negative fit with a bounded
+    linear weight meets.) The ``ValueError`` names the argument and the fit that gives such a
+    model (``fit_stop_pi(..., nonnegative=True, min_linear_weight=...)``).
     """
     hint = ("; fit_stop_pi(..., nonnegative=True, min_linear_weight=m) with m > 0 fits a "
             "model with an inverse")
     w0 = float(linear_weight)
-    if not w0 != 0.0:
+    if not math.isfinite(w0):
+        raise ValueError(f"linear_weight must be finite, got {w0}")
+    if not bool(torch.isfinite(weights).all()):
+        raise ValueError("weights must be finite, got a non-finite value")
+    if w0 == 0.0:
         raise ValueError("linear_weight must be nonzero for an inverse (where every stop "
                          f"slips, the output's slope is linear_weight alone), got 0{hint}")
     wrong = float(weights.min()) if w0 > 0 else float(weights.max())
@@ -180,57 +187,78 @@ def check_invertible(weights: Tensor, linear_weight: Tensor) -> None:
                          f"monotone in the input{hint}")
 
 
-def stop_pi_inverse_step(y: Tensor, p: Tensor, r: Tensor, weights: Tensor, center: Tensor,
-                         linear_weight: Tensor, offset: Tensor) -> tuple[Tensor, Tensor]:
+def inverse_constants(thresholds: Tensor, weights: Tensor,
+                      linear_weight: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """What :func:`stop_pi_inverse_step` needs of the model, computed once: the sign that
+    makes the output increase (``-1`` when ``linear_weight < 0``), the slopes and linear
+    weight times it, the knots ``kappa`` (N, K + 1), and the change of the output's slope
+    at each breakpoint ``p_i + kappa[i, k]``, ``W[i, k] - W[i, k - 1]`` (``W[i, -1] =
+    W[i, K] = 0``: beyond ``+-r_i`` the stop slips), flat (N (K + 1),). Scriptable."""
+    sign = torch.where(linear_weight < 0, -torch.ones_like(linear_weight),
+                       torch.ones_like(linear_weight))
+    w = weights * sign
+    n, k = w.shape[0], w.shape[1]
+    steps = torch.arange(k + 1, dtype=w.dtype, device=w.device) * (2.0 / k) - 1.0
+    knots = thresholds.to(w.dtype).unsqueeze(-1) * steps
+    zero = torch.zeros(n, 1, dtype=w.dtype, device=w.device)
+    jumps = (torch.cat([w, zero], 1) - torch.cat([zero, w], 1)).reshape(-1)
+    return sign, w, linear_weight * sign, knots, jumps
+
+
+def stop_pi_inverse_step(y: Tensor, p: Tensor, r: Tensor, sign: Tensor, w: Tensor, w0: Tensor,
+                         knots: Tensor, jumps: Tensor, center: Tensor,
+                         offset: Tensor) -> tuple[Tensor, Tensor]:
     """One sample of the exact inverse: the input x with ``F(x - center) = y``, F the
     model's output at this sample as a function of the current input, given the plays p.
 
     ``F(u) = offset + w0 u + sum_i psi_i(clamp(u - p_i, -r_i, r_i))`` is piecewise linear
-    in u with breakpoints ``p_i + kappa[i, k]``; at each, the slope changes by
-    ``W[i, k] - W[i, k - 1]`` (``W[i, -1] = W[i, K] = 0``: beyond ``+-r_i`` the stop slips).
-    The breakpoints are sorted, F accumulated over them (below the lowest every stop is at
-    ``-r_i``), the segment holding y found by ``searchsorted``, and u solved on it in closed
-    form: exact to rounding, and differentiable (the gradient of the solution on that
-    segment, the implicit-function one). Needs a strictly monotone F
-    (:func:`check_invertible`; a decreasing one is negated). Scriptable.
+    in u with breakpoints ``p_i + kappa[i, k]``. The breakpoints are sorted and F
+    accumulated over them (below the lowest every stop is at ``-r_i``) only to find, by
+    ``searchsorted``, the segment that holds y; on it F and its slope are evaluated directly
+    at a point strictly inside (its midpoint; a unit beyond the breakpoints at either end,
+    where the slope is ``w0``) and F is solved in closed form. Exact to rounding; the
+    gradient is that of the solution on the chosen segment (the implicit-function one), kept
+    when rounding puts the solution a hair outside the segment and it is clamped back: at a
+    breakpoint (a held sample after the stops slipped) it is the derivative on one side of
+    the kink, the side rounding picks. A
+    decreasing F is handled through ``sign`` (:func:`inverse_constants`). Scriptable.
 
     Args:
-        y: (B, 1); p: the plays before this sample, (B, N); r: thresholds (N,); weights:
-        (N, K); center, linear_weight, offset: 0-dim.
+        y: (B, 1); p: the plays before this sample, (B, N); r: thresholds (N,);
+        sign, w, w0, knots, jumps: :func:`inverse_constants`; center, offset: 0-dim.
 
     Returns:
         ``(x, p_new)``: x (B, 1), the new plays (B, N).
     """
-    sign = torch.where(linear_weight < 0, -torch.ones_like(linear_weight),
-                       torch.ones_like(linear_weight))
-    w = weights * sign
-    w0 = linear_weight * sign
-    target = (y - offset) * sign  # (B, 1)
-    n, k = w.shape[0], w.shape[1]
-    steps = torch.arange(k + 1, dtype=y.dtype, device=y.device) * (2.0 / k) - 1.0
-    knots = r.unsqueeze(-1) * steps  # (N, K + 1)
-    zero = torch.zeros(n, 1, dtype=w.dtype, device=w.device)
-    jumps = (torch.cat([w, zero], 1) - torch.cat([zero, w], 1)).reshape(-1)  # (M,)
+    target = (y - offset) * sign  # (B, 1): solve w0 u + sum_i psi_i = target, increasing
     b = (p.unsqueeze(-1) + knots).reshape(p.shape[0], -1)  # (B, M) breakpoints in u
-    bs, order = b.sort(-1)
-    slopes = w0 + jumps[order].cumsum(-1)  # on [bs_j, bs_j+1]; after the last: w0
-    start = w0 * bs[:, :1] + (w * knots[:, :-1]).sum()  # F at bs_0: every stop at -r_i
-    gaps = bs[:, 1:] - bs[:, :-1]
-    fb = torch.cat([start, start + (slopes[:, :-1] * gaps).cumsum(-1)], -1)  # (B, M)
-    j = torch.searchsorted(fb.detach().contiguous(), target.detach().contiguous(),
-                           right=True) - 1  # (B, 1): -1 below bs_0
-    below = j < 0
-    i = j.clamp_min(0)
-    anchor, f_anchor = bs.gather(-1, i), fb.gather(-1, i)
-    slope = torch.where(below, w0.expand_as(anchor), slopes.gather(-1, i))
-    u = anchor + (target - f_anchor) / slope
-    # rounding in the accumulated F can pick a neighbouring segment: stay inside this one
-    inf = torch.full_like(anchor, float("inf"))
-    lo = torch.where(below, -inf, anchor)
-    hi = torch.where(i + 1 < bs.shape[1], bs.gather(-1, (i + 1).clamp_max(bs.shape[1] - 1)),
-                     inf)
-    hi = torch.where(below, anchor, hi)
-    u = torch.minimum(torch.maximum(u, lo), hi)
+    bs, order = b.detach().sort(-1)
+    with torch.no_grad():
+        slopes = w0 + jumps[order].cumsum(-1)  # on [bs_j, bs_j+1]
+        start = w0 * bs[:, :1] + (w * knots[:, :-1]).sum()  # F at bs_0: every stop at -r_i
+        fb = torch.cat([start, start + (slopes[:, :-1] * (bs[:, 1:] - bs[:, :-1])).cumsum(-1)],
+                       -1)
+        j = torch.searchsorted(fb.contiguous(), target.detach().contiguous(), right=True) - 1
+    m = bs.shape[1]
+    below, above = j < 0, j >= m - 1  # beyond the breakpoints: the slope is w0
+    i = j.clamp(0, m - 1)
+    lower = bs.gather(-1, i)
+    upper = bs.gather(-1, (i + 1).clamp_max(m - 1))
+    # a point strictly inside the segment (no stop at a knot there: F is smooth at it), the
+    # midpoint, or a unit beyond the breakpoints: F and its slope there, with their gradient
+    q = torch.where(below, lower - 1.0, torch.where(above, lower + 1.0, 0.5 * (lower + upper)))
+    f_q = w0 * q + stop_characteristic(
+        torch.minimum(torch.maximum(q - p, -r), r).unsqueeze(1), r, w)
+    s_q = (q - p).unsqueeze(-1)  # (B, N, 1)
+    inside = (s_q > knots[:, :-1]) & (s_q < knots[:, 1:])  # (B, N, K)
+    slope = w0 + (inside.to(w.dtype) * w).sum((-2, -1)).unsqueeze(-1)
+    u = q + (target - f_q) / slope
+    # rounding in the accumulated F can pick a neighbouring segment: the value is clamped
+    # into the chosen one, the gradient kept
+    inf = torch.full_like(lower, float("inf"))
+    lo = torch.where(below, -inf, lower)
+    hi = torch.where(above, inf, torch.where(below, lower, upper))
+    u = u + (torch.minimum(torch.maximum(u.detach(), lo), hi) - u.detach())
     return u + center, torch.minimum(torch.maximum(p, u - r), u + r)
 
 
@@ -269,12 +297,14 @@ def stop_pi_inverse(
     check_invertible(weights.detach(), w0.detach())
     check_play_state(p0, yb, thresholds.shape[0], "p0")
     r = thresholds.to(device=yb.device, dtype=yb.dtype)
-    w = weights.to(device=yb.device, dtype=yb.dtype)
+    sign, w, w0s, knots, jumps = inverse_constants(
+        r, weights.to(device=yb.device, dtype=yb.dtype), w0)
     p = (yb.new_zeros(yb.shape[0], r.shape[0]) if p0 is None
-         else p0.to(yb.dtype).reshape(-1, r.shape[0]).expand(yb.shape[0], -1))
+         else p0.to(device=yb.device, dtype=yb.dtype).reshape(-1, r.shape[0])
+         .expand(yb.shape[0], -1))
     xs = []
     for t in range(yb.shape[1]):
-        x_t, p = stop_pi_inverse_step(yb[:, t:t + 1], p, r, w, c, w0, b)
+        x_t, p = stop_pi_inverse_step(yb[:, t:t + 1], p, r, sign, w, w0s, knots, jumps, c, b)
         xs.append(x_t)
-    x = torch.cat(xs, 1) if xs else yb.clone()
+    x = torch.cat(xs, 1)
     return (x[0], p[0]) if squeezed else (x, p)
