@@ -112,6 +112,36 @@ def assert_streams_as_eager(net: InverseHysteresisNet, x: torch.Tensor, atol: fl
     torch.testing.assert_close(u, y, rtol=0, atol=atol)
 
 
+def assert_torchscript_as_eager(net: InverseHysteresisNet, x: torch.Tensor, path: Path,
+                                atol: float, limits: tuple[float, float] = (-50.0, 50.0)
+                                ) -> None:
+    """``to_torchscript(net, path)`` loaded back equals the network's sequence path and its
+    eager :class:`StreamingCompensator` on ``x`` within ``atol`` times the output's scale (at
+    least 1), in x's shape and dtype, and stepping it sample by sample from a reset equals
+    its sequence call exactly."""
+    import warnings
+
+    from torchhys.export import to_torchscript
+    from torchhys.streaming import StreamingCompensator
+
+    to_torchscript(net, path, limits=limits)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"`torch\.jit\.load` is deprecated",
+                                category=DeprecationWarning)
+        loaded = torch.jit.load(str(path))
+    with torch.no_grad():
+        ref, _ = net(x)
+        eager = StreamingCompensator(net, limits=limits)(x)
+    seq = loaded(x)
+    assert seq.shape == x.shape and seq.dtype == x.dtype
+    tol = atol * max(1.0, float(ref.abs().max()))
+    torch.testing.assert_close(seq, ref, rtol=0, atol=tol)
+    torch.testing.assert_close(seq, eager, rtol=0, atol=tol)
+    loaded.reset()
+    steps = torch.stack([loaded.step(xt) for xt in x.unbind(-1)], dim=-1)
+    torch.testing.assert_close(steps, seq, rtol=0, atol=0)
+
+
 def steps_of(comp: StreamingCompensator, x: torch.Tensor) -> torch.Tensor:
     """The compensator stepped sample by sample from a reset: (batch, time)."""
     comp.reset()

@@ -13,11 +13,10 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from _helpers import random_walk, run_chunked
+from _helpers import assert_torchscript_as_eager, random_walk, run_chunked
 from scipy.optimize import nnls
 
 import torchhys
-from torchhys.export import to_torchscript
 from torchhys.functional.stop_pi import stop_characteristic, stop_pi, stop_segments
 from torchhys.operator import OPERATORS, make_operator
 from torchhys.stop_pi import (
@@ -26,7 +25,6 @@ from torchhys.stop_pi import (
     fit_stop_pi,
     select_stop_pi_ridge,
 )
-from torchhys.streaming import StreamingCompensator
 
 F64 = torch.float64
 R = [0.3, 0.8, 1.5]  # thresholds of the forward tests
@@ -384,23 +382,7 @@ def test_torchscript_export_of_a_network(tmp_path, dtype, atol):
     torch.manual_seed(0)
     net = torchhys.InverseHysteresisNet([op], hidden=4).to(dtype)
     net.fit_normalization(x, torch.tanh(x))
-    path = tmp_path / "comp.pt"
-    to_torchscript(net, path, limits=(-50.0, 50.0))
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=r"`torch\.jit\.load` is deprecated",
-                                category=DeprecationWarning)
-        loaded = torch.jit.load(str(path))
-    with torch.no_grad():
-        ref, _ = net(x)
-        eager = StreamingCompensator(net, limits=(-50.0, 50.0))(x)
-    seq = loaded(x)
-    assert seq.shape == x.shape and seq.dtype == dtype
-    scale = float(ref.abs().max())
-    torch.testing.assert_close(seq, ref, rtol=0, atol=atol * max(1.0, scale))
-    torch.testing.assert_close(seq, eager, rtol=0, atol=atol * max(1.0, scale))
-    loaded.reset()
-    steps = torch.stack([loaded.step(xt) for xt in x.unbind(-1)], dim=-1)
-    torch.testing.assert_close(steps, seq, rtol=0, atol=0)
+    assert_torchscript_as_eager(net, x, tmp_path / "comp.pt", atol)
 
 
 # --- 6. identification ----------------------------------------------------------------------------

@@ -12,16 +12,14 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from _helpers import random_walk
+from _helpers import assert_torchscript_as_eager, random_walk
 
 import torchhys
-from torchhys.export import to_torchscript
 from torchhys.fitting import play_width_grid
 from torchhys.functional.stop_pi import stop_pi, stop_pi_inverse
 from torchhys.operator import OPERATORS, make_operator
 from torchhys.stop_pi import StopPrandtlIshlinskii, fit_stop_pi
 from torchhys.stop_pi_inverse import StopPIInverse, StopPIInverseStep
-from torchhys.streaming import StreamingCompensator
 
 F64 = torch.float64
 R = [0.3, 0.8, 1.5]
@@ -240,19 +238,7 @@ def test_torchscript_export_of_a_network(tmp_path, dtype, atol):
     torch.manual_seed(0)
     net = torchhys.InverseHysteresisNet([inv], hidden=4).to(dtype)
     net.fit_normalization(y, torch.tanh(y))
-    path = tmp_path / "comp.pt"
-    to_torchscript(net, path, limits=(-50.0, 50.0))
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=r"`torch\.jit\.load` is deprecated",
-                                category=DeprecationWarning)
-        loaded = torch.jit.load(str(path))
-    with torch.no_grad():
-        ref, _ = net(y)
-        eager = StreamingCompensator(net, limits=(-50.0, 50.0))(y)
-    seq = loaded(y)
-    scale = max(1.0, float(ref.abs().max()))
-    torch.testing.assert_close(seq, ref, rtol=0, atol=atol * scale)
-    torch.testing.assert_close(seq, eager, rtol=0, atol=atol * scale)
+    assert_torchscript_as_eager(net, y, tmp_path / "comp.pt", atol)
 
 
 # --- 6. a fitted model as a compensator -----------------------------------------------------------
