@@ -47,18 +47,19 @@ class StopPIInverseStep(OperatorStep):
     def __init__(self, thresholds: Tensor, weights: Tensor, center: Tensor,
                  linear_weight: Tensor, offset: Tensor) -> None:
         super().__init__()
-        sign, w, w0, knots, jumps = inverse_constants(
+        sign, w, w0, knots, jumps, floor = inverse_constants(
             thresholds.detach(), weights.detach(), linear_weight.detach().reshape(()))
         for name, v in (("r", thresholds), ("sign", sign), ("w", w), ("w0", w0),
-                        ("knots", knots), ("jumps", jumps), ("center", center.reshape(())),
-                        ("offset", offset.reshape(()))):
+                        ("knots", knots), ("jumps", jumps), ("floor", floor),
+                        ("center", center.reshape(())), ("offset", offset.reshape(()))):
             self.register_buffer(name, v.detach().clone())
         self.n_outputs = 1
         self.state_spec = [StateBlock("plays", int(thresholds.shape[0]))]
 
     def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
         u, p = stop_pi_inverse_step(x, state[0], self.r, self.sign, self.w, self.w0,
-                                    self.knots, self.jumps, self.center, self.offset)
+                                    self.knots, self.jumps, self.floor, self.center,
+                                    self.offset)
         return u, [p]
 
 

@@ -44,7 +44,7 @@ from torchhys._checks import (
     check_real,
     check_tensor,
 )
-from torchhys.functional.backlash import backlash, check_play_state
+from torchhys.functional.backlash import backlash, check_play_state, play_step
 
 __all__ = ["check_invertible", "check_stop_parameters", "check_thresholds",
            "inverse_constants", "stop_characteristic", "stop_pi", "stop_pi_inverse",
@@ -187,13 +187,16 @@ def check_invertible(weights: Tensor, linear_weight: Tensor) -> None:
                          f"monotone in the input{hint}")
 
 
-def inverse_constants(thresholds: Tensor, weights: Tensor,
-                      linear_weight: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+def inverse_constants(
+    thresholds: Tensor, weights: Tensor, linear_weight: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """What :func:`stop_pi_inverse_step` needs of the model, computed once: the sign that
     makes the output increase (``-1`` when ``linear_weight < 0``), the slopes and linear
-    weight times it, the knots ``kappa`` (N, K + 1), and the change of the output's slope
-    at each breakpoint ``p_i + kappa[i, k]``, ``W[i, k] - W[i, k - 1]`` (``W[i, -1] =
-    W[i, K] = 0``: beyond ``+-r_i`` the stop slips), flat (N (K + 1),). Scriptable."""
+    weight times it, the knots ``kappa`` (N, K + 1), the change of the output's slope at
+    each breakpoint ``p_i + kappa[i, k]``, ``W[i, k] - W[i, k - 1]`` (``W[i, -1] =
+    W[i, K] = 0``: beyond ``+-r_i`` the stop slips), flat (N (K + 1),), and the stops'
+    part of the output below every breakpoint (every stop at ``-r_i``), 0-dim, detached
+    (it only locates the segment). Scriptable."""
     sign = torch.where(linear_weight < 0, -torch.ones_like(linear_weight),
                        torch.ones_like(linear_weight))
     w = weights * sign
@@ -202,11 +205,12 @@ def inverse_constants(thresholds: Tensor, weights: Tensor,
     knots = thresholds.to(w.dtype).unsqueeze(-1) * steps
     zero = torch.zeros(n, 1, dtype=w.dtype, device=w.device)
     jumps = (torch.cat([w, zero], 1) - torch.cat([zero, w], 1)).reshape(-1)
-    return sign, w, linear_weight * sign, knots, jumps
+    floor = (w * knots[:, :-1]).sum().detach()
+    return sign, w, linear_weight * sign, knots, jumps, floor
 
 
 def stop_pi_inverse_step(y: Tensor, p: Tensor, r: Tensor, sign: Tensor, w: Tensor, w0: Tensor,
-                         knots: Tensor, jumps: Tensor, center: Tensor,
+                         knots: Tensor, jumps: Tensor, floor: Tensor, center: Tensor,
                          offset: Tensor) -> tuple[Tensor, Tensor]:
     """One sample of the exact inverse: the input x with ``F(x - center) = y``, F the
     model's output at this sample as a function of the current input, given the plays p.
@@ -225,17 +229,17 @@ def stop_pi_inverse_step(y: Tensor, p: Tensor, r: Tensor, sign: Tensor, w: Tenso
 
     Args:
         y: (B, 1); p: the plays before this sample, (B, N); r: thresholds (N,);
-        sign, w, w0, knots, jumps: :func:`inverse_constants`; center, offset: 0-dim.
+        sign, w, w0, knots, jumps, floor: :func:`inverse_constants`; center, offset: 0-dim.
 
     Returns:
         ``(x, p_new)``: x (B, 1), the new plays (B, N).
     """
     target = (y - offset) * sign  # (B, 1): solve w0 u + sum_i psi_i = target, increasing
-    b = (p.unsqueeze(-1) + knots).reshape(p.shape[0], -1)  # (B, M) breakpoints in u
-    bs, order = b.detach().sort(-1)
-    with torch.no_grad():
+    with torch.no_grad():  # locate the segment
+        b = (p.unsqueeze(-1) + knots).reshape(p.shape[0], -1)  # (B, M) breakpoints in u
+        bs, order = b.sort(-1)
         slopes = w0 + jumps[order].cumsum(-1)  # on [bs_j, bs_j+1]
-        start = w0 * bs[:, :1] + (w * knots[:, :-1]).sum()  # F at bs_0: every stop at -r_i
+        start = w0 * bs[:, :1] + floor  # F at bs_0: every stop at -r_i
         fb = torch.cat([start, start + (slopes[:, :-1] * (bs[:, 1:] - bs[:, :-1])).cumsum(-1)],
                        -1)
         j = torch.searchsorted(fb.contiguous(), target.detach().contiguous(), right=True) - 1
@@ -259,7 +263,7 @@ def stop_pi_inverse_step(y: Tensor, p: Tensor, r: Tensor, sign: Tensor, w: Tenso
     lo = torch.where(below, -inf, lower)
     hi = torch.where(above, inf, torch.where(below, lower, upper))
     u = u + (torch.minimum(torch.maximum(u.detach(), lo), hi) - u.detach())
-    return u + center, torch.minimum(torch.maximum(p, u - r), u + r)
+    return u + center, play_step(u, r, p)
 
 
 def stop_pi_inverse(
@@ -297,14 +301,15 @@ def stop_pi_inverse(
     check_invertible(weights.detach(), w0.detach())
     check_play_state(p0, yb, thresholds.shape[0], "p0")
     r = thresholds.to(device=yb.device, dtype=yb.dtype)
-    sign, w, w0s, knots, jumps = inverse_constants(
+    sign, w, w0s, knots, jumps, floor = inverse_constants(
         r, weights.to(device=yb.device, dtype=yb.dtype), w0)
     p = (yb.new_zeros(yb.shape[0], r.shape[0]) if p0 is None
          else p0.to(device=yb.device, dtype=yb.dtype).reshape(-1, r.shape[0])
          .expand(yb.shape[0], -1))
     xs = []
     for t in range(yb.shape[1]):
-        x_t, p = stop_pi_inverse_step(yb[:, t:t + 1], p, r, sign, w, w0s, knots, jumps, c, b)
+        x_t, p = stop_pi_inverse_step(yb[:, t:t + 1], p, r, sign, w, w0s, knots, jumps, floor,
+                                      c, b)
         xs.append(x_t)
     x = torch.cat(xs, 1)
     return (x[0], p[0]) if squeezed else (x, p)
