@@ -142,6 +142,37 @@ def assert_torchscript_as_eager(net: InverseHysteresisNet, x: torch.Tensor, path
     torch.testing.assert_close(steps, seq, rtol=0, atol=0)
 
 
+def assert_aoti_as_eager(net: InverseHysteresisNet, x: torch.Tensor, path: Path,
+                         atol: float = 1e-12) -> None:
+    """``to_aoti(net, path)`` (batch 1, command limits wide enough not to act) stepped over
+    the sequence ``x`` (time,) equals the network's sequence path within ``atol``."""
+    from torchhys.export import load_aoti, to_aoti
+
+    to_aoti(net, path, limits=(-1e6, 1e6))
+    stepper = load_aoti(path)
+    with torch.no_grad():
+        expected = net(x)[0]
+    out = torch.cat([stepper.step(v.reshape(1)).reshape(-1) for v in x])
+    torch.testing.assert_close(out.double(), expected, rtol=0, atol=atol)
+
+
+def scripted_run(step: torch.nn.Module, x: torch.Tensor) -> tuple[torch.Tensor, list]:
+    """An operator step scripted by TorchScript, stepped over x (batch, time) from its
+    initial state: its features (batch, time, n_outputs) and its final state."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"`torch\.jit\.script` is deprecated",
+                                category=DeprecationWarning)
+        scripted = torch.jit.script(step)
+    state = step.initial_state(x[:, :1])
+    outs = []
+    for xt in x.unbind(1):
+        o, state = scripted(xt.unsqueeze(1), state)
+        outs.append(o)
+    return torch.stack(outs, 1), state
+
+
 def steps_of(comp: StreamingCompensator, x: torch.Tensor) -> torch.Tensor:
     """The compensator stepped sample by sample from a reset: (batch, time)."""
     comp.reset()

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 from _gpi_helpers import F64, WIDTHS, model, walks
-from _helpers import assert_streams_as_eager, net_of
+from _helpers import assert_aoti_as_eager, assert_streams_as_eager, net_of
 
 from torchhys import GeneralizedPIInverse, InverseHysteresisNet
 from torchhys.generalized_pi import monotone_output
@@ -167,18 +167,11 @@ def test_bad_input():
 def test_exports_to_aoti_and_runs(tmp_path):
     """The bisection loop compiles into the AOTI package (unrolled); the compiled step
     equals the eager network in float64."""
-    from torchhys.export import load_aoti, to_aoti
-
     y = 1.5 * torch.sin(torch.linspace(0, 12, 120, dtype=F64))
     net = InverseHysteresisNet([model().inverse(lower=-10.0, upper=10.0)], 1,
                                activation="identity").double()
     net.fit_normalization(y, torch.tanh(y))
-    to_aoti(net, tmp_path / "inv.pt2", limits=(-1e6, 1e6))
-    stepper = load_aoti(tmp_path / "inv.pt2")
-    with torch.no_grad():
-        expected = net(y)[0]
-    out = torch.cat([stepper.step(v.reshape(1)).reshape(-1) for v in y])
-    torch.testing.assert_close(out.double(), expected, rtol=0, atol=1e-12)
+    assert_aoti_as_eager(net, y, tmp_path / "inv.pt2")
 
 
 @pytest.mark.parametrize("bad, error, match", [

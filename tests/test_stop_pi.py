@@ -13,7 +13,7 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from _helpers import assert_torchscript_as_eager, random_walk, run_chunked
+from _helpers import assert_torchscript_as_eager, random_walk, run_chunked, scripted_run
 from scipy.optimize import nnls
 
 import torchhys
@@ -317,16 +317,7 @@ def test_streaming_step_equals_the_sequence_path():
         _, state = step(xt.unsqueeze(1), state)
     torch.testing.assert_close(state[0], final, rtol=0, atol=0)
     # scripted (the export path) equals eager
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=r"`torch\.jit\.script` is deprecated",
-                                category=DeprecationWarning)
-        scripted = torch.jit.script(step)
-    state = step.initial_state(x[:, :1])
-    outs = []
-    for xt in x.unbind(1):
-        o, state = scripted(xt.unsqueeze(1), state)
-        outs.append(o)
-    torch.testing.assert_close(torch.stack(outs, 1), f, rtol=0, atol=0)
+    torch.testing.assert_close(scripted_run(step, x)[0], f, rtol=0, atol=0)
     # float32: a step in float32 of the float64 model stays close
     f32 = m.streaming_step(torch.float32).run(x.float())
     assert f32.dtype == torch.float32

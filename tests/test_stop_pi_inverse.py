@@ -7,12 +7,11 @@ models without an inverse, all-or-nothing loading and the registry."""
 from __future__ import annotations
 
 import math
-import warnings
 
 import numpy as np
 import pytest
 import torch
-from _helpers import assert_torchscript_as_eager, random_walk
+from _helpers import assert_aoti_as_eager, assert_torchscript_as_eager, random_walk, scripted_run
 
 import torchhys
 from torchhys.fitting import play_width_grid
@@ -159,16 +158,8 @@ def test_streaming_step_equals_the_sequence_path():
     assert step.n_outputs == 1 and [(b.name, b.size) for b in step.state_spec] == [("plays", 3)]
     f = step.run(y)
     torch.testing.assert_close(f[..., 0], x, rtol=0, atol=0)
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=r"`torch\.jit\.script` is deprecated",
-                                category=DeprecationWarning)
-        scripted = torch.jit.script(step)
-    state = step.initial_state(y[:, :1])
-    outs = []
-    for yt in y.unbind(1):
-        o, state = scripted(yt.unsqueeze(1), state)
-        outs.append(o)
-    torch.testing.assert_close(torch.stack(outs, 1), f, rtol=0, atol=0)
+    scripted, state = scripted_run(step, y)
+    torch.testing.assert_close(scripted, f, rtol=0, atol=0)
     torch.testing.assert_close(state[0], final, rtol=0, atol=0)
     f32 = inv.streaming_step(torch.float32).run(y.float())
     assert f32.dtype == torch.float32
@@ -373,15 +364,8 @@ def test_registered_by_name():
 def test_exports_to_aoti_and_runs(tmp_path):
     """The sort, cumulative sums and searchsorted of the step compile into an AOTI package;
     the compiled step equals the eager network in float64."""
-    from torchhys.export import load_aoti, to_aoti
-
     y = 1.5 * torch.sin(torch.linspace(0, 12, 120, dtype=F64))
     net = torchhys.InverseHysteresisNet([model(3, seed=9).inverse()], 1,
                                         activation="identity").double()
     net.fit_normalization(y, torch.tanh(y))
-    to_aoti(net, tmp_path / "inv.pt2", limits=(-1e6, 1e6))
-    stepper = load_aoti(tmp_path / "inv.pt2")
-    with torch.no_grad():
-        expected = net(y)[0]
-    out = torch.cat([stepper.step(v.reshape(1)).reshape(-1) for v in y])
-    torch.testing.assert_close(out.double(), expected, rtol=0, atol=1e-12)
+    assert_aoti_as_eager(net, y, tmp_path / "inv.pt2")
