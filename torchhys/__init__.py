@@ -15,6 +15,7 @@ from torchhys.networks import InverseHysteresisNet
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
 from torchhys.prandtl_ishlinskii import PrandtlIshlinskii, PrandtlIshlinskiiInverse
 from torchhys.preisach import Preisach, fit_preisach, select_penalty
+from torchhys.preisach_inverse import PreisachInverse
 from torchhys.stop_pi import StopPrandtlIshlinskii, fit_stop_pi, select_stop_pi_ridge
 from torchhys.stop_pi_inverse import StopPIInverse
 
@@ -43,6 +44,7 @@ __all__ = [
     "PrandtlIshlinskii",
     "PrandtlIshlinskiiInverse",
     "Preisach",
+    "PreisachInverse",
     "JilesAtherton",
     "fit_jiles_atherton",
     "fit_preisach",

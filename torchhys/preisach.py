@@ -13,6 +13,7 @@ References:
 from __future__ import annotations
 
 import warnings
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor, nn
@@ -36,13 +37,19 @@ from torchhys.functional.preisach import (
     _real,
     _relay_chunks,
     check_relay_state,
+    check_scale,
     demagnetized_state,
+    graded_input,
+    graded_input_inverse,
     preisach_grid,
     preisach_with_state,
     relay_output,
     relay_update,
 )
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
+
+if TYPE_CHECKING:
+    from torchhys.preisach_inverse import PreisachInverse
 
 __all__ = ["Preisach", "PreisachStep", "fit_preisach", "select_penalty"]
 
@@ -68,6 +75,14 @@ class Preisach(HysteresisOperator):
         initial: relays before the first sample: ``"demagnetized"`` (+1 below the line
             ``alpha + beta = lo + hi``, -1 on and above it), ``"negative"`` or ``"positive"``
             (after saturation: all -1 or all +1), or a (K,) tensor of +-1.
+        scale: None (an even grid), or s > 0: a graded grid
+            (:func:`~torchhys.functional.preisach_grid`), whose levels are equal steps of
+            ``g(x) = c + s asinh((x - c) / s)``, c = (lo + hi) / 2: dense within about s of
+            the centre, sparse beyond. The linear term then reads g(x), a reversible part
+            that saturates. For a magnetic core modelled from its field (H -> B; invert it
+            with :meth:`inverse` for the compensator B -> H), s about a tenth of the largest
+            field puts thresholds where the small loops turn. Saved in the state dict
+            (buffer ``grading``: centre, then scale or 0).
 
     Shape:
         - x: (time,) or (batch, time)
@@ -90,14 +105,20 @@ class Preisach(HysteresisOperator):
         offset: bool = True,
         smooth: float | None = None,
         initial: str | Tensor = "demagnetized",
+        scale: float | None = None,
     ) -> None:
         super().__init__()
         check_bool(linear, "linear")
         check_bool(offset, "offset")
-        alpha, beta = preisach_grid(lo, hi, n, dtype=torch.float64)
+        alpha, beta = preisach_grid(lo, hi, n, scale=scale, dtype=torch.float64)
         self.lo, self.hi, self.n, self.n_relays = float(lo), float(hi), n, alpha.numel()
         self.smooth = _check_smooth(smooth)
+        self.centre, self.scale = 0.5 * (self.lo + self.hi), check_scale(scale)
         dtype = torch.get_default_dtype()
+        # (centre, scale) of the grading, scale 0 for none: saved with the model
+        self.register_buffer("grading", torch.tensor(
+            [self.centre, 0.0 if self.scale is None else self.scale], dtype=dtype))
+        self._read_grading()
         self.register_buffer("initial_relays", self._initial(initial, alpha, beta).to(dtype))
         self.register_buffer("alpha", alpha.to(dtype))
         self.register_buffer("beta", beta.to(dtype))
@@ -124,12 +145,19 @@ class Preisach(HysteresisOperator):
             return torch.full_like(alpha, -1.0 if initial == "negative" else 1.0)
         raise ValueError(f"initial must be one of {choices} or a tensor, got {initial!r}")
 
+    def _read_grading(self) -> None:
+        """The grading as Python numbers, from the saved buffer (in its dtype's rounding, so
+        that a loaded copy computes the same)."""
+        self.centre = float(self.grading[0])
+        self.scale = float(self.grading[1]) if float(self.grading[1]) > 0 else None
+
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
         check_relay_state(state, x, self.alpha.shape[0], "state")
         r0 = self.initial_relays if state is None else state
         return preisach_with_state(
             x, self.weights.clamp_min(0.0), self.alpha, self.beta, offset=self.offset,
-            linear=self.linear, r0=r0, smooth=self.smooth,
+            linear=self.linear, r0=r0, smooth=self.smooth, centre=self.centre,
+            scale=self.scale,
         )
 
     @torch.no_grad()
@@ -141,10 +169,25 @@ class Preisach(HysteresisOperator):
     def streaming_step(self, dtype: torch.dtype) -> PreisachStep:
         """The per-sample step with the current parameters (detached), in ``dtype``."""
         return PreisachStep(self.alpha, self.beta, self.weights.clamp_min(0.0), self.linear,
-                            self.offset, self.initial_relays, self.smooth, dtype)
+                            self.offset, self.initial_relays, self.smooth, dtype,
+                            self.centre, self.scale)
+
+    def inverse(self) -> PreisachInverse:
+        """The exact inverse ``x = F^-1[y]`` as an operator (:class:`~torchhys.PreisachInverse`,
+        detached parameters; see :mod:`torchhys.preisach_inverse`): the compensator of this
+        model. It shares the model's state (the relays).
+
+        Raises:
+            ValueError: smooth relays, or an output that does not rise strictly with the
+                input (``linear`` not > 0).
+        """
+        from torchhys.preisach_inverse import PreisachInverse
+
+        return PreisachInverse.from_model(self)
 
     def extra_repr(self) -> str:
-        return f"lo={self.lo}, hi={self.hi}, n={self.n}, smooth={self.smooth}"
+        graded = "" if self.scale is None else f", scale={self.scale:.6g}"
+        return f"lo={self.lo}, hi={self.hi}, n={self.n}, smooth={self.smooth}{graded}"
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[override]
         w = state_dict.get(prefix + "weights")
@@ -158,12 +201,25 @@ class Preisach(HysteresisOperator):
         r = state_dict.get(prefix + "initial_relays")
         if isinstance(r, Tensor) and not bool(((r == 1) | (r == -1)).all()):
             raise ValueError(f"{prefix}initial_relays must hold relay values +-1")
+        g = state_dict.get(prefix + "grading")
+        if g is None and isinstance(a, Tensor):  # saved before graded grids: an even grid
+            state_dict[prefix + "grading"] = torch.tensor(
+                [0.5 * float(a.max() + a.min()), 0.0], dtype=self.grading.dtype)
+        elif isinstance(g, Tensor) and (g.shape != (2,) or not bool(g.isfinite().all())
+                                        or float(g[1]) < 0):
+            raise ValueError(f"{prefix}grading must be (centre, scale), finite, scale >= 0 "
+                             f"(0: an even grid), got {g.tolist()!r:.80}")
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+        self._read_grading()
         if isinstance(a, Tensor) and a.shape == self.alpha.shape and self.n > 1:
-            # the grid range of the loaded thresholds (cell centres, module docstring)
-            lo, hi = float(a.min()), float(a.max())
-            half = 0.5 * (hi - lo) / (self.n - 1)
-            self.lo, self.hi = lo - half, hi + half
+            # the grid range of the loaded thresholds (cell centres, module docstring),
+            # in the graded variable where the cells are equal
+            c, s = self.centre, self.scale
+            gl, gh = (graded_input(torch.stack([a.min(), a.max()]).double().cpu(), c, s)
+                      .tolist())
+            half = 0.5 * (gh - gl) / (self.n - 1)
+            self.lo, self.hi = graded_input_inverse(
+                torch.tensor([gl - half, gh + half], dtype=torch.float64), c, s).tolist()
 
 
 class PreisachStep(OperatorStep):
@@ -176,11 +232,12 @@ class PreisachStep(OperatorStep):
 
     def __init__(self, alpha: Tensor, beta: Tensor, weights: Tensor, linear: Tensor,
                  offset: Tensor, initial: Tensor, smooth: float | None,
-                 dtype: torch.dtype) -> None:
+                 dtype: torch.dtype, centre: float = 0.0, scale: float | None = None) -> None:
         super().__init__()
         self.n_outputs = 1
         self.state_spec = [StateBlock("relays", alpha.numel(), start=initial.tolist())]
         self.smooth = smooth
+        self.centre, self.scale = float(centre), scale
         for name, v in (("alpha", alpha), ("beta", beta), ("weights", weights[:, None]),
                         ("linear", linear), ("offset", offset)):
             self.register_buffer(name, v.detach().to(dtype).clone())
@@ -188,7 +245,8 @@ class PreisachStep(OperatorStep):
     def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
         r = relay_update(x, self.alpha, self.beta, state[0])
         out = relay_output(x, self.alpha, self.beta, r, self.smooth)
-        return self.offset + self.linear * x + out @ self.weights, [r]
+        lin = self.linear * graded_input(x, self.centre, self.scale)
+        return self.offset + lin + out @ self.weights, [r]
 
 
 def fit_preisach(
@@ -202,6 +260,7 @@ def fit_preisach(
     smoothness: float = 0.0,
     linear: bool = True,
     warmup: int = 0,
+    scale: float | None = None,
 ) -> Preisach:
     """Identify a :class:`Preisach` model (demagnetised start, hard relays) by penalised
     non-negative least squares of the density, with a free offset and linear term:
@@ -220,6 +279,7 @@ def fit_preisach(
         n: levels per axis; ridge, smoothness: penalties (>= 0); linear: fit the linear term.
         warmup: samples at the start of each row left out of the fit (their relays still
             run), to forget the assumed initial state.
+        scale: None (an even grid), or a graded grid's scale (:class:`Preisach`).
 
     Returns:
         The fitted model, in x's dtype.
@@ -231,7 +291,7 @@ def fit_preisach(
     Warns:
         RuntimeWarning: once, with the share of samples of x outside [lo, hi].
     """
-    xb, yb, model, cuts = _prepare(x, y, lo, hi, n, linear, warmup, None)
+    xb, yb, model, cuts = _prepare(x, y, lo, hi, n, linear, warmup, None, scale)
     (G, h, _, count), = _normal_equations(xb, yb, model, cuts)
     theta = _solve(G / count, h / count, model, check_penalty(ridge, "ridge"),
                    check_penalty(smoothness, "smoothness"))
@@ -250,6 +310,7 @@ def select_penalty(
     n: int = 20,
     linear: bool = True,
     warmup: int = 0,
+    scale: float | None = None,
 ) -> tuple[float, dict[float, float]]:
     """Choose the ``kind`` penalty (``"ridge"`` or ``"smoothness"``, the other 0) of
     :func:`fit_preisach` on a time-ordered hold-out: fit on the first ``1 - validation`` of
@@ -263,7 +324,7 @@ def select_penalty(
     if kind not in ("ridge", "smoothness"):
         raise ValueError(f"kind must be one of ('ridge', 'smoothness'), got {kind!r}")
     xb, yb, model, cuts = _prepare(x, y, lo, hi, n, linear, warmup,
-                                   check_validation(validation))
+                                   check_validation(validation), scale)
     train, valid = _normal_equations(xb, yb, model, cuts)
 
     def solve(G: Tensor, h: Tensor, p: float) -> Tensor:
@@ -273,7 +334,8 @@ def select_penalty(
 
 
 def _prepare(x: Tensor, y: Tensor, lo: float | None, hi: float | None, n: int, linear: bool,
-             warmup: int, validation: float | None) -> tuple[Tensor, Tensor, Preisach, list[int]]:
+             warmup: int, validation: float | None,
+             scale: float | None) -> tuple[Tensor, Tensor, Preisach, list[int]]:
     """Check the data, warn about samples outside [lo, hi]; the model and the segment cuts."""
     xb, _ = as_batched_sequence(x, "x")
     yb, _ = as_batched_sequence(y, "y")
@@ -287,7 +349,7 @@ def _prepare(x: Tensor, y: Tensor, lo: float | None, hi: float | None, n: int, l
                          "give lo and hi")
     lo = float(xb.min()) if lo is None else _real(lo, "lo")
     hi = float(xb.max()) if hi is None else _real(hi, "hi")
-    model = Preisach(lo, hi, n, linear=linear).to(xb.dtype)
+    model = Preisach(lo, hi, n, linear=linear, scale=scale).to(xb.dtype)
     outside = float(((xb < lo) | (xb > hi)).double().mean())
     if outside > 0:
         warnings.warn(f"{outside:.2%} of the samples of x lie outside [lo, hi] = [{lo:.6g}, "
@@ -309,7 +371,8 @@ def _normal_equations(x: Tensor, y: Tensor, model: Preisach,
             lo, hi = max(a, start), min(b, stop)
             if lo >= hi:
                 continue
-            xs = x[:, lo:hi].reshape(1, -1).to(torch.float64)
+            xs = graded_input(x[:, lo:hi].reshape(1, -1).to(torch.float64), model.centre,
+                              model.scale)
             cols = [r[:, :, lo - start:hi - start].reshape(K, -1)]
             cols += [xs] if m > K + 1 else []
             A = torch.cat(cols + [torch.ones_like(xs)])

@@ -16,9 +16,13 @@ standardizes the operator's output) maps it back. They are the candidates of
   "epochs": 1000, "direction": "direct"}``: :func:`torchhys.fit_generalized_pi` of the target
   (times the sign that makes it rise with the input) from the input, or of the input from
   it, then :class:`torchhys.GeneralizedPIInverse`.
-- ``{"name": "preisach", "n": 20, "smoothness": "auto"}``: :func:`torchhys.fit_preisach`
-  on a grid over the training input's range, both signs of the target fitted, the better
-  kept.
+- ``{"name": "preisach", "n": 20, "smoothness": "auto", "grading": None,
+  "direction": "direct"}``: :func:`torchhys.fit_preisach` of the target from the input on a
+  grid over the input's training range (``direct``), or of the input from the target, then
+  its exact inverse (``inverse``, :class:`torchhys.PreisachInverse`: a magnetic core's flux
+  density from its field, inverted into the compensator); both signs of the target fitted,
+  the better kept. ``grading``: None for an even grid, or a graded one whose ``scale`` is
+  that fraction of half the grid's span (:class:`torchhys.Preisach`).
 - ``{"name": "stop_pi", "n_widths": 20, "power": 2.0, "segments": 4, "ridge": "auto",
   "nonnegative": True}``: :func:`torchhys.fit_stop_pi`, stop operators with thresholds on
   :func:`~torchhys.fitting.play_width_grid` of the input (up to its span: the largest make
@@ -58,6 +62,7 @@ from torchhys import (
     JilesAtherton,
     PrandtlIshlinskii,
     Preisach,
+    PreisachInverse,
     StopPrandtlIshlinskii,
     fit_generalized_pi,
     fit_jiles_atherton,
@@ -274,26 +279,54 @@ def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
 
 
 def _preisach(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
-    _keys(spec, {"n", "smoothness"})
+    _keys(spec, {"n", "smoothness", "grading", "direction"})
     n = check_int(spec.get("n", 20), "operator 'preisach': n", minimum=2)
     smoothness = _penalty(spec, "smoothness")
+    grading = spec.get("grading")
+    if grading is not None:
+        grading = check_positive(grading, "operator 'preisach': grading (or null)")
+    direction = check_choice(spec.get("direction", "direct"), "operator 'preisach': direction",
+                             ["direct", "inverse"])
+
+    def one_sign(u: Tensor, out: Tensor, warmup: int) -> Preisach:
+        """The Preisach model of ``out`` from ``u`` on a grid over u's range."""
+        lo, hi = float(u.min()), float(u.max())
+        scale = None if grading is None else grading * 0.5 * (hi - lo)
+        p = smoothness
+        if p == "auto":
+            p, _ = select_penalty(u, out, list(PENALTIES), kind="smoothness",
+                                  validation=_holdout(u, warmup), lo=lo, hi=hi, n=n,
+                                  warmup=warmup, scale=scale)
+        return fit_preisach(u, out, lo=lo, hi=hi, n=n, smoothness=p, warmup=warmup,
+                            scale=scale)
 
     def fit(x: Tensor, y: Tensor, warmup: int) -> nn.Module:
-        _, t = _standardized(x, y, warmup)
-        lo, hi = float(x.min()), float(x.max())
+        sx, t = _standardized(x, y, warmup)
+        mx = float(x[:, warmup:].mean())
         fits = []
         for sign in (1.0, -1.0):
-            p = smoothness
-            if p == "auto":
-                p, _ = select_penalty(x, sign * t, list(PENALTIES), kind="smoothness",
-                                      validation=_holdout(x, warmup), lo=lo, hi=hi, n=n,
-                                      warmup=warmup)
-            m = fit_preisach(x, sign * t, lo=lo, hi=hi, n=n, smoothness=p, warmup=warmup)
+            if direction == "direct":
+                m: nn.Module = one_sign(x, sign * t, warmup)
+            else:
+                # the model of the centred, scaled input from sign x the target, mapped back
+                # to the physical input, then inverted
+                forward = one_sign(sign * t, (x - mx) / sx, warmup)
+                with torch.no_grad():
+                    forward.weights.mul_(sx)
+                    forward.linear.mul_(sx)
+                    forward.offset.mul_(sx).add_(mx)
+                try:
+                    m = forward.inverse()
+                except ValueError:
+                    continue
             fits.append((_rmse(m, x, sign * t, warmup), sign, m))
+        if not fits:
+            raise FitError(f"preisach ({direction}): no invertible fit of either sign")
         rmse, sign, m = min(fits, key=lambda f: f[0])
         return _checked(m, x, sign * t, warmup, "preisach")
 
-    return Preisach(0.0, 1.0, n).requires_grad_(False), fit
+    placeholder = Preisach(0.0, 1.0, n) if direction == "direct" else PreisachInverse(n)
+    return placeholder.requires_grad_(False), fit
 
 
 def _stop_pi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:

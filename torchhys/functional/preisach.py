@@ -65,7 +65,10 @@ from torchhys._checks import (
 
 __all__ = [
     "check_relay_state",
+    "check_scale",
     "demagnetized_state",
+    "graded_input",
+    "graded_input_inverse",
     "preisach",
     "preisach_grid",
     "preisach_with_state",
@@ -80,7 +83,8 @@ _CHUNK = 1 << 18  # relay-samples per chunk of the sequence path
 
 
 def preisach_grid(
-    lo: float, hi: float, n: int, *, dtype: torch.dtype | None = None
+    lo: float, hi: float, n: int, *, scale: float | None = None,
+    dtype: torch.dtype | None = None
 ) -> tuple[Tensor, Tensor]:
     """Thresholds of the triangular Preisach grid on ``[lo, hi]`` with n levels per axis.
 
@@ -89,21 +93,61 @@ def preisach_grid(
     ``beta = level[j]`` (see the module docstring). An input at or beyond hi (lo) sets every
     relay to +1 (-1): the relays saturate.
 
+    With ``scale = s``, a graded grid: the cells are equal in :func:`graded_input`
+    ``c + s asinh((x - c) / s)``, c = (lo + hi) / 2, so the levels are dense within about s
+    of the centre and sparse beyond (a magnetic core's field: the loops of small amplitude
+    need fine thresholds near 0, the tips of the large ones few).
+
     Returns:
         alpha, beta: (K,) each, K = n (n + 1) / 2, in ``dtype`` (default: torch's).
 
     Raises:
-        ValueError: n < 1, lo or hi not finite, lo >= hi.
+        ValueError: n < 1, lo or hi not finite, lo >= hi, scale not None or finite > 0.
     """
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"n must be an int >= 1, got {n!r}")
     lo_f, hi_f = _real(lo, "lo"), _real(hi, "hi")
     if not lo_f < hi_f:
         raise ValueError(f"lo must be less than hi, got lo={lo_f} and hi={hi_f}")
-    levels = lo_f + (hi_f - lo_f) * (torch.arange(n, dtype=torch.float64) + 0.5) / n
+    scale = check_scale(scale)
+    c = 0.5 * (lo_f + hi_f)
+    glo, ghi = (graded_input(torch.tensor([lo_f, hi_f], dtype=torch.float64), c, scale)
+                .tolist())
+    cells = glo + (ghi - glo) * (torch.arange(n, dtype=torch.float64) + 0.5) / n
+    levels = graded_input_inverse(cells, c, scale)
     i, j = torch.tril_indices(n, n)
     dtype = torch.get_default_dtype() if dtype is None else dtype
     return levels[i].to(dtype), levels[j].to(dtype)
+
+
+def check_scale(scale: object) -> float | None:
+    """None, or a finite number > 0 as a float (the ``scale`` of a graded grid)."""
+    if scale is None:
+        return None
+    if isinstance(scale, bool) or not isinstance(scale, numbers.Real) or not (
+            0.0 < float(scale) < math.inf):
+        raise ValueError(f"scale must be None or a finite number > 0, got {scale!r}")
+    return float(scale)
+
+
+def graded_input(x: Tensor, centre: float, scale: float | None) -> Tensor:
+    """``centre + scale * asinh((x - centre) / scale)``: x near the centre, growing like the
+    logarithm of ``|x - centre|`` beyond ``scale``; x itself when ``scale`` is None.
+
+    A graded Preisach model (:func:`preisach_grid` with ``scale``) spaces its levels equally
+    in this variable, and its linear term reads it: a reversible part that saturates (the
+    flux density of a magnetic core against its field).
+    """
+    if scale is None:
+        return x
+    return centre + scale * torch.asinh((x - centre) / scale)
+
+
+def graded_input_inverse(v: Tensor, centre: float, scale: float | None) -> Tensor:
+    """The inverse of :func:`graded_input`: ``centre + scale * sinh((v - centre) / scale)``."""
+    if scale is None:
+        return v
+    return centre + scale * torch.sinh((v - centre) / scale)
 
 
 def demagnetized_state(alpha: Tensor, beta: Tensor, centre: float | None = None) -> Tensor:
@@ -192,6 +236,8 @@ def preisach(
     linear: float | Tensor = 0.0,
     r0: Tensor | None = None,
     smooth: float | None = None,
+    centre: float = 0.0,
+    scale: float | None = None,
 ) -> Tensor:
     """Preisach model ``offset + linear * x + relays @ weights``, chunked (module docstring).
 
@@ -203,13 +249,16 @@ def preisach(
         r0: relays before the first sample, +-1, (K,) or (batch, K); default
             :func:`demagnetized_state`.
         smooth: temperature of smooth relays, or None for hard relays.
+        centre, scale: a graded grid's (:func:`preisach_grid`): the linear term reads
+            ``graded_input(x, centre, scale)``; scale None: x.
 
     Returns:
         y, the shape of x. Supports autograd (weights, offset, linear; x through ``linear``
         and, when smooth, through the relays).
     """
     return preisach_with_state(
-        x, weights, alpha, beta, offset=offset, linear=linear, r0=r0, smooth=smooth
+        x, weights, alpha, beta, offset=offset, linear=linear, r0=r0, smooth=smooth,
+        centre=centre, scale=scale,
     )[0]
 
 
@@ -223,9 +272,12 @@ def preisach_with_state(
     linear: float | Tensor = 0.0,
     r0: Tensor | None = None,
     smooth: float | None = None,
+    centre: float = 0.0,
+    scale: float | None = None,
 ) -> tuple[Tensor, Tensor]:
     """:func:`preisach`, also returning the relays at the last sample, (K,) or (batch, K),
-    to pass as r0 to the call on the continuation of the sequence."""
+    to pass as r0 to the call on the continuation of the sequence. With ``scale`` (a graded
+    grid) the linear term reads ``graded_input(x, centre, scale)``."""
     xb, alpha, beta, r0b, squeeze = _check_inputs(x, alpha, beta, r0, smooth)
     check_tensor(weights, "weights")
     check_floating(weights, "weights")
@@ -234,7 +286,7 @@ def preisach_with_state(
                          f"shape {tuple(weights.shape)}")
     check_finite(weights, "weights")
     relays, last = _PreisachRelays.apply(xb, weights.to(xb.dtype), alpha, beta, r0b, smooth)
-    y = relays + linear * xb + offset
+    y = relays + linear * graded_input(xb, centre, check_scale(scale)) + offset
     return (y[0], last[0]) if squeeze else (y, last)
 
 
@@ -373,3 +425,133 @@ def check_relay_state(state: Tensor | None, x: Tensor, K: int, name: str) -> Non
     B = sequence_batch(x)
     if state is not None and B is not None:
         _check_relays(state, B, K, name)
+
+
+# --- the exact inverse --------------------------------------------------------------------
+def check_preisach_invertible(weights: Tensor, linear: Tensor) -> None:
+    """Raise unless a hard-relay Preisach model with this density and linear term rises
+    strictly with its input at every state (finite weights >= 0 and a finite linear term
+    > 0), so that it has an exact inverse.
+
+    Raises:
+        ValueError: naming ``weights`` or ``linear``.
+    """
+    if not bool(torch.isfinite(weights).all()) or bool((weights < 0).any()):
+        raise ValueError("weights must be finite and non-negative (a Preisach density) for "
+                         "an inverse")
+    if linear.numel() != 1 or not (math.isfinite(float(linear)) and float(linear) > 0):
+        raise ValueError(f"linear must be one finite number > 0 for an inverse (the output "
+                         f"must rise with the input between the relays' thresholds), got "
+                         f"{linear.tolist()!r:.60}")
+
+
+def preisach_inverse_constants(
+    alpha: Tensor, beta: Tensor, centre: float, scale: float | None
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The constants of :func:`preisach_inverse_step`: the distinct thresholds (levels, (L,)
+    ascending), their graded values (:func:`graded_input`, (L,)), and the one-hot maps of
+    each relay's alpha and beta to its level, (K, L) each, in alpha's dtype."""
+    levels = torch.unique(torch.cat([alpha, beta]))
+    one = torch.eye(levels.shape[0], dtype=alpha.dtype, device=alpha.device)
+    ma = one[torch.searchsorted(levels, alpha)]
+    mb = one[torch.searchsorted(levels, beta)]
+    return levels, graded_input(levels, centre, scale), ma, mb
+
+
+def preisach_inverse_step(
+    y: Tensor, r: Tensor, alpha: Tensor, beta: Tensor, weights: Tensor, levels: Tensor,
+    glevels: Tensor, ma: Tensor, mb: Tensor, linear: Tensor, offset: Tensor, centre: float,
+    scale: float | None,
+) -> tuple[Tensor, Tensor]:
+    """One sample of the inverse: the input x at which the model, from relays r, outputs y.
+
+    Given r, the output is a non-decreasing function of the input x: between neighbouring
+    levels it is ``offset + linear * graded_input(x) + const``, and at a level it jumps by
+    ``(1 - r_k) w_k`` for the relays with alpha there and ``(1 + r_k) w_k`` for those with
+    beta there. The jumps are summed level by level, the segment whose range holds y is
+    found by ``searchsorted``, and y is solved in closed form on it; a y inside a jump (which
+    the model cannot output) gives that level itself, where the relays switch as the model
+    switches them at an input equal to it (both its alpha and its beta relays). x is kept
+    strictly inside its segment (against rounding in the graded map), so that the relays
+    then switch as the solution says (:func:`relay_update`).
+
+    Args:
+        y: target, (batch, 1). r: relays, (batch, K).
+        alpha, beta, weights: (K,); levels, glevels, ma, mb: :func:`preisach_inverse_constants`.
+        linear, offset: 0-dim (linear > 0: :func:`check_preisach_invertible`).
+        centre, scale: the grading (:func:`graded_input`).
+
+    Returns:
+        ``(x, r)``: x (batch, 1), the relays after it (batch, K). Differentiable in y, the
+        weights, linear and offset on the chosen segment (0 in y inside a jump).
+    """
+    jumps = ((1.0 - r) * weights) @ ma + ((1.0 + r) * weights) @ mb  # (B, L)
+    above = jumps.cumsum(-1)  # what the relays add just above each level
+    base = offset - weights.sum()
+    upper = base + linear * glevels + above  # the output just above each level
+    L = levels.shape[0]
+    with torch.no_grad():
+        m = torch.searchsorted(upper.detach(), y.detach().contiguous())  # (B, 1): # below y
+    prev = (m - 1).clamp_min(0)
+    below = torch.where(m > 0, above.gather(1, prev), torch.zeros_like(y))
+    g = (y - base - below) / linear
+    nxt = m.clamp_max(L - 1)
+    inf = torch.full_like(y, math.inf)
+    cap = torch.where(m < L, glevels[nxt], inf)  # the next level, where the output jumps
+    inside_jump = g >= cap
+    x = graded_input_inverse(torch.minimum(g, cap), centre, scale)
+    lo = torch.where(m > 0, torch.nextafter(levels[prev], inf), -inf)
+    hi = torch.where(m < L, torch.where(inside_jump, levels[nxt],
+                                        torch.nextafter(levels[nxt], -inf)), inf)
+    x = torch.maximum(torch.minimum(x, hi), lo)
+    return x, relay_update(x, alpha, beta, r)
+
+
+def preisach_inverse(
+    y: Tensor,
+    weights: Tensor,
+    alpha: Tensor,
+    beta: Tensor,
+    *,
+    offset: Tensor,
+    linear: Tensor,
+    r0: Tensor | None = None,
+    centre: float = 0.0,
+    scale: float | None = None,
+) -> tuple[Tensor, Tensor]:
+    """The exact inverse of the hard-relay Preisach model :func:`preisach`: the input x,
+    sample by sample, at which the model outputs y (:func:`preisach_inverse_step`; a loop
+    over time).
+
+    Args:
+        y: target, (time,) or (batch, time).
+        weights, alpha, beta, offset, linear: the model (non-negative weights, linear > 0).
+        r0: relays before the first sample, (K,) or (batch, K); default
+            :func:`demagnetized_state`.
+        centre, scale: its grading (:func:`preisach_grid`).
+
+    Returns:
+        ``(x, r)``: x the shape of y, r the relays at the last sample.
+
+    Raises:
+        ValueError: bad arguments; a model without an inverse
+            (:func:`check_preisach_invertible`).
+    """
+    yb, alpha, beta, r, squeeze = _check_inputs(y, alpha, beta, r0, None)
+    check_tensor(weights, "weights")
+    if weights.shape != alpha.shape:
+        raise ValueError(f"weights must have shape {tuple(alpha.shape)} (one per relay), got "
+                         f"shape {tuple(weights.shape)}")
+    linear = torch.as_tensor(linear, dtype=yb.dtype, device=yb.device).reshape(())
+    offset = torch.as_tensor(offset, dtype=yb.dtype, device=yb.device).reshape(())
+    check_preisach_invertible(weights.detach(), linear.detach())
+    scale = check_scale(scale)
+    levels, glevels, ma, mb = preisach_inverse_constants(alpha, beta, float(centre), scale)
+    w = weights.to(yb.dtype)
+    xs = []
+    for t in range(yb.shape[1]):
+        x, r = preisach_inverse_step(yb[:, t:t + 1], r, alpha, beta, w, levels, glevels, ma,
+                                     mb, linear, offset, float(centre), scale)
+        xs.append(x)
+    x = torch.cat(xs, 1) if xs else yb.clone()
+    return (x[0], r[0]) if squeeze else (x, r)

@@ -1,0 +1,170 @@
+"""The exact inverse of a Preisach model, as an operator.
+
+A :class:`~torchhys.Preisach` model with hard relays, a non-negative density and a linear
+term > 0 rises strictly with its input at every state: given the relays, its output is
+``offset + linear * g(x)`` plus a constant between neighbouring thresholds (g the grading,
+:func:`~torchhys.functional.preisach.graded_input`; x itself on an even grid), and jumps up
+at each threshold where relays switch. So each sample has one solution, found in closed form
+on the segment that holds the target, or the threshold itself when the target lies inside a
+jump (:func:`~torchhys.functional.preisach.preisach_inverse_step`); the relays then switch
+with the solved input. Fitted in the direction where the Preisach model has the right shape
+(the flux density of a magnetic core from its field, H -> B), it is the compensator of that
+model (B -> H): fed the model's output from the same state, it returns the model's input.
+
+The sequence path loops over time (each sample's relays depend on the inputs solved before
+it), so it is much slower than the model's own (a scan).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchhys._checks import check_int
+from torchhys.functional.preisach import (
+    check_preisach_invertible,
+    check_relay_state,
+    preisach_inverse,
+    preisach_inverse_constants,
+    preisach_inverse_step,
+)
+from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
+from torchhys.preisach import Preisach
+
+__all__ = ["PreisachInverse", "PreisachInverseStep"]
+
+
+class PreisachInverseStep(OperatorStep):
+    """Per-sample step of :class:`PreisachInverse`
+    (:func:`~torchhys.functional.preisach.preisach_inverse_step`).
+
+    State: one block ``"relays"`` (batch, K), starting at the model's initial relays.
+    Feature: the solved input. Shapes: y (batch, 1) -> features (batch, 1). Written for
+    TorchScript and ``torch.export``.
+    """
+
+    def __init__(self, alpha: Tensor, beta: Tensor, weights: Tensor, linear: Tensor,
+                 offset: Tensor, initial: Tensor, centre: float, scale: float | None) -> None:
+        super().__init__()
+        levels, glevels, ma, mb = preisach_inverse_constants(alpha, beta, centre, scale)
+        for name, v in (("alpha", alpha), ("beta", beta), ("weights", weights),
+                        ("levels", levels), ("glevels", glevels), ("ma", ma), ("mb", mb),
+                        ("linear", linear.reshape(())), ("offset", offset.reshape(()))):
+            self.register_buffer(name, v.detach().clone())
+        self.centre, self.scale = float(centre), scale
+        self.n_outputs = 1
+        self.state_spec = [StateBlock("relays", alpha.numel(), start=initial.tolist())]
+
+    def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
+        u, r = preisach_inverse_step(x, state[0], self.alpha, self.beta, self.weights,
+                                     self.levels, self.glevels, self.ma, self.mb, self.linear,
+                                     self.offset, self.centre, self.scale)
+        return u, [r]
+
+
+class PreisachInverse(HysteresisOperator):
+    """``x = F^-1[y]``, the exact inverse of a hard-relay :class:`~torchhys.Preisach` model F
+    (module docstring). Fixed (buffers only): build it with :meth:`from_model` (or
+    ``model.inverse()``); the plain constructor gives a placeholder of the right shape for
+    ``load_state_dict``.
+
+    Args:
+        n: levels per axis of the model's grid (>= 1): K = n (n + 1) / 2 relays.
+
+    Shape:
+        - y: (time,) or (batch, time)
+        - state: the model's relays before the first sample, (K,) or (batch, K), +-1; None:
+          the model's initial relays
+        - returns ``(x, state)``: x the shape of y; state the relays at the last sample
+          (chunked calls with it equal one call).
+    """
+
+    n_outputs: int = 1
+
+    def __init__(self, n: int = 1) -> None:
+        super().__init__()
+        check_int(n, "n", minimum=1)
+        model = Preisach(-1.0, 1.0, n)
+        dtype = torch.get_default_dtype()
+        for name in ("alpha", "beta", "initial_relays", "grading"):
+            self.register_buffer(name, getattr(model, name).detach().to(dtype).clone())
+        self.register_buffer("weights", torch.zeros_like(self.alpha))
+        self.register_buffer("linear", torch.ones((), dtype=dtype))
+        self.register_buffer("offset", torch.zeros((), dtype=dtype))
+        self.n = n
+        self.centre, self.scale = model.centre, model.scale
+
+    @classmethod
+    @torch.no_grad()
+    def from_model(cls, model: Preisach) -> PreisachInverse:
+        """The inverse of ``model`` (its current parameters, detached), in its dtype.
+
+        Raises:
+            TypeError: ``model`` is not a :class:`~torchhys.Preisach`.
+            ValueError: smooth relays, or no inverse
+                (:func:`~torchhys.functional.preisach.check_preisach_invertible`).
+        """
+        if not isinstance(model, Preisach):
+            raise TypeError(f"model must be a Preisach, got {type(model).__name__}")
+        if model.smooth is not None:
+            raise ValueError("the inverse is of a model with hard relays (smooth=None), got "
+                             f"smooth={model.smooth}")
+        check_preisach_invertible(model.weights.detach(), model.linear.detach())
+        inverse = cls(model.n).to(model.alpha.dtype)
+        for name in ("alpha", "beta", "initial_relays", "grading", "weights", "linear",
+                     "offset"):
+            getattr(inverse, name).copy_(getattr(model, name).detach())
+        inverse.centre, inverse.scale = model.centre, model.scale
+        return inverse.to(model.alpha.device)
+
+    def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        check_relay_state(state, x, self.alpha.shape[0], "state")
+        r0 = self.initial_relays if state is None else state
+        return preisach_inverse(x, self.weights, self.alpha, self.beta, offset=self.offset,
+                                linear=self.linear, r0=r0, centre=self.centre,
+                                scale=self.scale)
+
+    def streaming_step(self, dtype: torch.dtype) -> PreisachInverseStep:
+        """The per-sample step with the current buffers, in ``dtype``."""
+        alpha, beta, weights, linear, offset, initial = (t.detach().to(dtype) for t in (
+            self.alpha, self.beta, self.weights, self.linear, self.offset,
+            self.initial_relays))
+        return PreisachInverseStep(alpha, beta, weights, linear, offset, initial, self.centre,
+                                   self.scale)
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # noqa: ANN001
+        """Checks the model it would hold before anything is copied (all or nothing, also
+        for a partial state dict, whose missing keys keep their current values): thresholds
+        ``alpha >= beta`` finite, relays +-1, the grading, and an invertible model; each
+        error names its key."""
+        def saved(name: str) -> Tensor:  # the saved value, or the current one if not given
+            v = state_dict.get(prefix + name)
+            return v if isinstance(v, Tensor) else getattr(self, name)
+
+        a, b, r, g = saved("alpha"), saved("beta"), saved("initial_relays"), saved("grading")
+        if a.shape != b.shape or not bool((a.isfinite() & b.isfinite() & (a >= b)).all()):
+            raise ValueError(f"{prefix}alpha and {prefix}beta must be finite thresholds with "
+                             "alpha >= beta (a Preisach grid)")
+        if r.shape != a.shape or not bool(((r == 1) | (r == -1)).all()):
+            raise ValueError(f"{prefix}initial_relays must hold one relay value +-1 per relay")
+        if g.shape != (2,) or not bool(g.isfinite().all()) or float(g[1]) < 0:
+            raise ValueError(f"{prefix}grading must be (centre, scale), finite, scale >= 0 "
+                             f"(0: an even grid), got {g.tolist()!r:.80}")
+        for name in ("linear", "offset"):
+            v = saved(name)
+            if v.numel() != 1 or not bool(v.isfinite().all()):
+                raise ValueError(f"{prefix}{name} must be one finite number, got "
+                                 f"{v.tolist()!r:.80}")
+        try:
+            check_preisach_invertible(saved("weights"), saved("linear"))
+        except ValueError as err:
+            raise ValueError(f"{prefix}{err}") from None
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+        Preisach._read_grading(self)  # type: ignore[arg-type]
+
+    def extra_repr(self) -> str:
+        graded = "" if self.scale is None else f", scale={self.scale:.6g}"
+        return f"n={self.n}, relays={self.alpha.numel()}{graded}"
+
+
+register_operator("preisach_inverse", PreisachInverse)
