@@ -12,6 +12,9 @@ Methods:
     materialised  relay_states (batch, time, K) @ weights with autograd: the naive layout
     fit           fit_preisach (float64 normal equations, chunked, + Lawson-Hanson NNLS)
     step          the scripted per-sample PreisachStep, time per sample (1e4 samples)
+    inverse       the exact inverse (PreisachInverse, linear term 1) of the model's output:
+                  its sequence path, a loop over time, time per sample (1e4 samples)
+    inverse_step  the inverse's scripted PreisachInverseStep, time per sample (1e4 samples)
 
 Usage: python benchmarks/preisach.py [--repeats N] [--threads N] [--length T]
 
@@ -28,7 +31,8 @@ import torch
 from _isolated import main_or_run, measure, walk_signal
 
 N_LEVELS = 31
-METHODS = ("chunked", "smooth", "materialised", "fit", "step")
+METHODS = ("chunked", "smooth", "materialised", "fit", "step", "inverse", "inverse_step")
+PER_SAMPLE = ("step", "inverse", "inverse_step")
 
 
 def run_one(method: str, T: int, repeats: int) -> dict:
@@ -57,22 +61,36 @@ def run_one(method: str, T: int, repeats: int) -> dict:
                 with torch.no_grad():
                     y_fit = preisach(x, w, alpha, beta).double()
             fit_preisach(x.double(), y_fit, lo=-1.0, hi=1.0, n=N_LEVELS)
-        elif method == "step":
+        elif method in ("step", "inverse_step"):
             if step is None:
+                model = Preisach(-1.0, 1.0, N_LEVELS)
+                with torch.no_grad():
+                    model.linear.fill_(1.0)
+                    y_fit = model(x[:, :10_000])[0]
+                op = model if method == "step" else model.inverse()
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", DeprecationWarning)
-                    eager = Preisach(-1.0, 1.0, N_LEVELS).streaming_step(torch.float32)
+                    eager = op.streaming_step(torch.float32)
                     step = (eager, torch.jit.script(eager))
-            xs = x[:, :10_000]
+            xs = x[:, :10_000] if method == "step" else y_fit
             state = step[0].initial_state(xs[:, :1])
             with torch.no_grad():
                 for xt in xs.unbind(1):
                     _, state = step[1](xt.unsqueeze(1), state)
+        elif method == "inverse":
+            if step is None:
+                model = Preisach(-1.0, 1.0, N_LEVELS)
+                with torch.no_grad():
+                    model.linear.fill_(1.0)
+                    y_fit = model(x[:, :10_000])[0]
+                step = model.inverse()
+            with torch.no_grad():
+                step(y_fit)
         w.grad = None
         xg.grad = None
 
     times, peak = measure(call, repeats)
-    per = median(times) / 10_000 * 1e6 if method == "step" else None
+    per = median(times) / 10_000 * 1e6 if method in PER_SAMPLE else None
     return {"method": method, "T": T, "K": K, "median_s": median(times), "min_s": min(times),
             "repeats": len(times), "peak_bytes": peak, "us_per_sample": per,
             "relay_bytes": T * K * 4}
