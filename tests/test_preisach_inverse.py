@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from _helpers import assert_torchscript_as_eager, random_walk, scripted_run
+from _helpers import assert_torchscript_as_eager, random_walk, run_split, scripted_run
 
 import torchhys
 from torchhys import Preisach, PreisachInverse, fit_preisach
@@ -194,11 +194,8 @@ def test_inverse_with_a_given_state_and_chunked_calls():
     xi, _ = inv(y[:, 70:], r_mid)
     torch.testing.assert_close(xi, x[:, 70:], rtol=0, atol=1e-10)
     full, last = inv(y)
-    parts, state = [], None
-    for chunk in y.split([1, 50, 9, 100], dim=1):
-        out, state = inv(chunk, state)
-        parts.append(out)
-    assert torch.equal(torch.cat(parts, 1), full) and torch.equal(state, last)
+    joined, state = run_split(inv, y, [1, 50, 9, 100])
+    assert torch.equal(joined, full) and torch.equal(state, last)
 
 
 @pytest.mark.parametrize("dtype,atol", [(F64, 1e-12), (torch.float32, 1e-4)])

@@ -193,22 +193,12 @@ class Preisach(HysteresisOperator):
         w = state_dict.get(prefix + "weights")
         if isinstance(w, Tensor):
             check_nonnegative_weights(w, prefix + "weights", "non-negative (a Preisach density)")
-        a, b = state_dict.get(prefix + "alpha"), state_dict.get(prefix + "beta")
-        if isinstance(a, Tensor) and isinstance(b, Tensor) and a.shape == b.shape and not bool(
-                (a.isfinite() & b.isfinite() & (a >= b)).all()):
-            raise ValueError(f"{prefix}alpha and {prefix}beta must be finite thresholds with "
-                             "alpha >= beta (a Preisach grid)")
-        r = state_dict.get(prefix + "initial_relays")
-        if isinstance(r, Tensor) and not bool(((r == 1) | (r == -1)).all()):
-            raise ValueError(f"{prefix}initial_relays must hold relay values +-1")
-        g = state_dict.get(prefix + "grading")
+        a, b, r, g = (state_dict.get(prefix + k) for k in ("alpha", "beta", "initial_relays",
+                                                             "grading"))
+        check_saved_grid(prefix, *(v if isinstance(v, Tensor) else None for v in (a, b, r, g)))
         if g is None and isinstance(a, Tensor):  # saved before graded grids: an even grid
             state_dict[prefix + "grading"] = torch.tensor(
                 [0.5 * float(a.max() + a.min()), 0.0], dtype=self.grading.dtype)
-        elif isinstance(g, Tensor) and (g.shape != (2,) or not bool(g.isfinite().all())
-                                        or float(g[1]) < 0):
-            raise ValueError(f"{prefix}grading must be (centre, scale), finite, scale >= 0 "
-                             f"(0: an even grid), got {g.tolist()!r:.80}")
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
         self._read_grading()
         if isinstance(a, Tensor) and a.shape == self.alpha.shape and self.n > 1:
@@ -220,6 +210,27 @@ class Preisach(HysteresisOperator):
             half = 0.5 * (gh - gl) / (self.n - 1)
             self.lo, self.hi = graded_input_inverse(
                 torch.tensor([gl - half, gh + half], dtype=torch.float64), c, s).tolist()
+
+
+def check_saved_grid(prefix: str, alpha: Tensor | None, beta: Tensor | None,
+                     initial: Tensor | None, grading: Tensor | None) -> None:
+    """The values of a Preisach grid about to be loaded (each None where not given): finite
+    thresholds ``alpha >= beta`` (when both are given, of one shape), initial relays of +-1,
+    and a grading ``(centre, scale)``, finite, scale >= 0.
+
+    Raises:
+        ValueError: naming the key (after ``prefix``).
+    """
+    if alpha is not None and beta is not None and alpha.shape == beta.shape and not bool(
+            (alpha.isfinite() & beta.isfinite() & (alpha >= beta)).all()):
+        raise ValueError(f"{prefix}alpha and {prefix}beta must be finite thresholds with "
+                         "alpha >= beta (a Preisach grid)")
+    if initial is not None and not bool(((initial == 1) | (initial == -1)).all()):
+        raise ValueError(f"{prefix}initial_relays must hold relay values +-1")
+    if grading is not None and (grading.shape != (2,) or not bool(grading.isfinite().all())
+                                or float(grading[1]) < 0):
+        raise ValueError(f"{prefix}grading must be (centre, scale), finite, scale >= 0 "
+                         f"(0: an even grid), got {grading.tolist()!r:.80}")
 
 
 class PreisachStep(OperatorStep):

@@ -29,7 +29,7 @@ from torchhys.functional.preisach import (
     preisach_inverse_step,
 )
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
-from torchhys.preisach import Preisach
+from torchhys.preisach import Preisach, check_saved_grid
 
 __all__ = ["PreisachInverse", "PreisachInverseStep"]
 
@@ -142,14 +142,12 @@ class PreisachInverse(HysteresisOperator):
             return v if isinstance(v, Tensor) else getattr(self, name)
 
         a, b, r, g = saved("alpha"), saved("beta"), saved("initial_relays"), saved("grading")
-        if a.shape != b.shape or not bool((a.isfinite() & b.isfinite() & (a >= b)).all()):
+        if a.shape != b.shape:
             raise ValueError(f"{prefix}alpha and {prefix}beta must be finite thresholds with "
-                             "alpha >= beta (a Preisach grid)")
-        if r.shape != a.shape or not bool(((r == 1) | (r == -1)).all()):
+                             "alpha >= beta (a Preisach grid) of one shape")
+        if r.shape != a.shape:
             raise ValueError(f"{prefix}initial_relays must hold one relay value +-1 per relay")
-        if g.shape != (2,) or not bool(g.isfinite().all()) or float(g[1]) < 0:
-            raise ValueError(f"{prefix}grading must be (centre, scale), finite, scale >= 0 "
-                             f"(0: an even grid), got {g.tolist()!r:.80}")
+        check_saved_grid(prefix, a, b, r, g)
         for name in ("linear", "offset"):
             v = saved(name)
             if v.numel() != 1 or not bool(v.isfinite().all()):

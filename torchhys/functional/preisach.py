@@ -122,12 +122,7 @@ def preisach_grid(
 
 def check_scale(scale: object) -> float | None:
     """None, or a finite number > 0 as a float (the ``scale`` of a graded grid)."""
-    if scale is None:
-        return None
-    if isinstance(scale, bool) or not isinstance(scale, numbers.Real) or not (
-            0.0 < float(scale) < math.inf):
-        raise ValueError(f"scale must be None or a finite number > 0, got {scale!r}")
-    return float(scale)
+    return _positive_or_none(scale, "scale")
 
 
 def graded_input(x: Tensor, centre: float, scale: float | None) -> Tensor:
@@ -364,14 +359,19 @@ def _real(value: object, name: str) -> float:
     return float(value)
 
 
-def _check_smooth(smooth: object) -> float | None:
-    """None, or a finite number > 0 as a float."""
-    if smooth is None:
+def _positive_or_none(value: object, name: str) -> float | None:
+    """None, or a finite real number > 0 as a float; else ``ValueError`` naming ``name``."""
+    if value is None:
         return None
-    if isinstance(smooth, bool) or not isinstance(smooth, numbers.Real) or not (
-            0.0 < float(smooth) < math.inf):
-        raise ValueError(f"smooth must be None or a finite number > 0, got {smooth!r}")
-    return float(smooth)
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not (
+            0.0 < float(value) < math.inf):
+        raise ValueError(f"{name} must be None or a finite number > 0, got {value!r}")
+    return float(value)
+
+
+def _check_smooth(smooth: object) -> float | None:
+    """None, or a finite number > 0 as a float (a smooth relay's temperature)."""
+    return _positive_or_none(smooth, "smooth")
 
 
 def _check_inputs(
