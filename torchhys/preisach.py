@@ -12,6 +12,7 @@ References:
 
 from __future__ import annotations
 
+import functools
 import warnings
 from typing import TYPE_CHECKING
 
@@ -338,8 +339,13 @@ def select_penalty(
                                    check_validation(validation), scale)
     train, valid = _normal_equations(xb, yb, model, cuts)
 
+    last: list[Tensor] = []  # each penalty's fit starts from the previous one's solution
+
     def solve(G: Tensor, h: Tensor, p: float) -> Tensor:
-        return _solve(G, h, model, *((p, 0.0) if kind == "ridge" else (0.0, p)))
+        theta = _solve(G, h, model, *((p, 0.0) if kind == "ridge" else (0.0, p)),
+                       init=last[-1] if last else None)
+        last.append(theta)
+        return theta
 
     return select_on_holdout(train, valid, penalties, solve)
 
@@ -395,10 +401,11 @@ def _normal_equations(x: Tensor, y: Tensor, model: Preisach,
     return [Moments(*seg) for seg in out]
 
 
-def _solve(G: Tensor, h: Tensor, model: Preisach, ridge: float, smoothness: float) -> Tensor:
-    """The penalised NNLS solution: density (K,), then the free linear term and offset."""
-    K, m = model.n_relays, G.shape[0]
-    n = model.n
+@functools.lru_cache(maxsize=8)
+def _difference_gram(n: int) -> Tensor:
+    """``D'D`` (K, K), float64, of the first differences D of the density between
+    neighbouring relays of an n-level grid (along alpha and along beta); read only."""
+    K = n * (n + 1) // 2
     i, j = torch.tril_indices(n, n)
     k = torch.arange(K)
     pairs = [(k[i < n - 1], (i * (i + 1) // 2 + i + 1 + j)[i < n - 1]), (k[j < i], k[j < i] + 1)]
@@ -407,10 +414,18 @@ def _solve(G: Tensor, h: Tensor, model: Preisach, ridge: float, smoothness: floa
     D = torch.zeros(first.numel(), K, dtype=torch.float64)
     D[torch.arange(first.numel()), first] = -1.0
     D[torch.arange(first.numel()), second] = 1.0
+    return D.T @ D
+
+
+def _solve(G: Tensor, h: Tensor, model: Preisach, ridge: float, smoothness: float,
+           init: Tensor | None = None) -> Tensor:
+    """The penalised NNLS solution: density (K,), then the free linear term and offset
+    (``init``: a warm start, :func:`~torchhys._nnls.nnls_gram`)."""
+    K, m = model.n_relays, G.shape[0]
     P = G.clone()
-    P[:K, :K] += ridge * torch.eye(K, dtype=torch.float64) + smoothness * (D.T @ D)
+    P[:K, :K] += ridge * torch.eye(K, dtype=torch.float64) + smoothness * _difference_gram(model.n)
     free = torch.arange(m) >= K
-    return nnls_gram(P, h, free)
+    return nnls_gram(P, h, free, init)
 
 
 def _set(model: Preisach, theta: Tensor) -> Preisach:

@@ -1,0 +1,86 @@
+"""The active-set solver shared by the least-squares fits (torchhys._nnls.nnls_gram), cold
+and warm-started, against scipy's bounded least squares in float64."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from torchhys._nnls import nnls_gram
+
+optimize = pytest.importorskip("scipy.optimize")
+
+
+def _problem(seed: int, rows: int = 60, m: int = 25, n_free: int = 2):
+    g = torch.Generator().manual_seed(seed)
+    A = torch.randn(rows, m, generator=g, dtype=torch.float64)
+    A[:, :5] *= 100.0  # badly scaled columns: the solver scales them itself
+    y = torch.randn(rows, generator=g, dtype=torch.float64)
+    free = torch.zeros(m, dtype=torch.bool)
+    free[m - n_free:] = True
+    return A, y, free
+
+
+def _reference(A: torch.Tensor, y: torch.Tensor, free: torch.Tensor) -> np.ndarray:
+    lower = np.where(free.numpy(), -np.inf, 0.0)
+    res = optimize.lsq_linear(A.numpy(), y.numpy(), bounds=(lower, np.inf), method="bvls",
+                              tol=1e-14)
+    return res.x
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_cold_start_matches_bounded_least_squares(seed: int) -> None:
+    A, y, free = _problem(seed)
+    w = nnls_gram(A.T @ A, A.T @ y, free)
+    ref = _reference(A, y, free)
+    assert (w[~free] >= 0).all()
+    assert 0 < int((w[~free] == 0).sum()) < int((~free).sum())  # some bounds are active
+    np.testing.assert_allclose(w.numpy(), ref, atol=1e-9 * np.abs(ref).max())
+
+
+@pytest.mark.parametrize("start", ["solution", "other penalty", "negative", "all positive",
+                                   "zeros"])
+def test_warm_start_gives_the_same_solution(start: str) -> None:
+    """Whatever its support, a warm start ends at the cold start's solution."""
+    A, y, free = _problem(7)
+    G, h = A.T @ A, A.T @ y
+    cold = nnls_gram(G, h, free)
+    g = torch.Generator().manual_seed(1)
+    init = {
+        "solution": cold,
+        "other penalty": nnls_gram(G + 5.0 * torch.eye(G.shape[0], dtype=G.dtype), h, free),
+        "negative": -torch.rand(h.shape, generator=g, dtype=torch.float64),
+        "all positive": torch.rand(h.shape, generator=g, dtype=torch.float64),
+        "zeros": torch.zeros_like(h),
+    }[start]
+    kept = init.clone()
+    warm = nnls_gram(G, h, free, init)
+    assert torch.equal(init, kept)  # not modified
+    np.testing.assert_allclose(warm.numpy(), cold.numpy(), atol=1e-10 * float(cold.abs().max()))
+    np.testing.assert_allclose(warm.numpy(), _reference(A, y, free),
+                               atol=1e-9 * float(cold.abs().max()))
+
+
+def test_warm_start_from_a_near_solution_takes_fewer_solves(monkeypatch) -> None:
+    """Started from the solution of a slightly different penalty, the active set method
+    solves the passive set's equations fewer times than from the free variables alone."""
+    import torchhys._nnls as nnls
+
+    A, y, free = _problem(3, rows=200, m=80)
+    G, h = A.T @ A, A.T @ y
+    calls = []
+    solve = nnls._passive_solve
+
+    def counted(*args):
+        calls.append(1)
+        return solve(*args)
+
+    monkeypatch.setattr(nnls, "_passive_solve", counted)
+    near = nnls_gram(G + 1e-3 * torch.eye(80, dtype=G.dtype), h, free)
+    calls.clear()
+    cold = nnls_gram(G, h, free)
+    n_cold = len(calls)
+    calls.clear()
+    warm = nnls_gram(G, h, free, near)
+    assert len(calls) < n_cold / 2, (len(calls), n_cold)
+    np.testing.assert_allclose(warm.numpy(), cold.numpy(), atol=1e-10 * float(cold.abs().max()))
