@@ -140,12 +140,22 @@ def test_paper_configs_run(monkeypatch, tmp_path: Path, name: str) -> None:
     assert checkpoints(root)
 
 
-def test_measured_config_runs_out_of_the_box(monkeypatch, tmp_path: Path) -> None:
-    monkeypatch.chdir(ROOT)  # the config names the example file relative to the repository
-    root = tmp_path / "measured"
-    cli(monkeypatch, "fit", "--config", "configs/measured.yaml",
-        f"--trainer.default_root_dir={root}", "--trainer.max_epochs=2",
-        "--trainer.check_val_every_n_epoch=1", "--trainer.enable_progress_bar=false")
+@pytest.fixture(scope="module")
+def measured_run(tmp_path_factory) -> Path:
+    """configs/measured.yaml fitted as is on its example file (2 epochs, validated after
+    each), once for the tests that read the run."""
+    root = tmp_path_factory.mktemp("measured")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.chdir(ROOT)  # the config names the example file relative to the repository
+        cli(mp, "fit", "--config", "configs/measured.yaml",
+            f"--trainer.default_root_dir={root}", "--trainer.max_epochs=2",
+            "--trainer.check_val_every_n_epoch=1", "--trainer.enable_progress_bar=false")
+    return root
+
+
+def test_measured_config_runs_out_of_the_box(monkeypatch, measured_run: Path) -> None:
+    monkeypatch.chdir(ROOT)
+    root = measured_run
     (ckpt,) = checkpoints(root)
     assert any(r.get("val_mse") for r in metrics(root, 0))
     cli(monkeypatch, "test", "--config", "configs/measured.yaml",
@@ -218,14 +228,9 @@ def test_data_dependent_operators_resume_and_export(monkeypatch, tmp_path: Path)
                                atol=1e-9)
 
 
-def test_measured_config_exports(monkeypatch, tmp_path: Path) -> None:
-    monkeypatch.chdir(ROOT)
-    root = tmp_path / "measured"
-    cli(monkeypatch, "fit", "--config", "configs/measured.yaml",
-        f"--trainer.default_root_dir={root}", "--trainer.max_epochs=2",
-        "--trainer.enable_progress_bar=false")
+def test_measured_config_exports(measured_run: Path, tmp_path: Path) -> None:
     out = tmp_path / "comp.pt"
-    assert export_main(["--ckpt", str(root / "logs/version_0/checkpoints/last.ckpt"),
+    assert export_main(["--ckpt", str(measured_run / "logs/version_0/checkpoints/last.ckpt"),
                         "--format", "torchscript", "--out", str(out)]) == 0
     assert load_torchscript(out)(torch.linspace(-2.0, 2.0, 50, dtype=torch.float64)).isfinite(
     ).all()
