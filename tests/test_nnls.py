@@ -84,3 +84,22 @@ def test_warm_start_from_a_near_solution_takes_fewer_solves(monkeypatch) -> None
     warm = nnls_gram(G, h, free, near)
     assert len(calls) < n_cold / 2, (len(calls), n_cold)
     np.testing.assert_allclose(warm.numpy(), cold.numpy(), atol=1e-10 * float(cold.abs().max()))
+
+
+def test_a_singular_passive_set_gets_the_minimum_norm_solution() -> None:
+    """Two equal columns (a singular Gram matrix), both in the passive set from a warm
+    start: the weight splits evenly between them (the minimum-norm solution), the same on
+    every call, at the least squares' value."""
+    g = torch.Generator().manual_seed(5)
+    a, b = (torch.rand(40, generator=g, dtype=torch.float64) for _ in range(2))
+    A = torch.stack([a, a, b, torch.ones(40, dtype=torch.float64)], 1)
+    y = 3.0 * a + 0.5 * b + 0.01 * torch.randn(40, generator=g, dtype=torch.float64)
+    free = torch.tensor([False, False, False, True])
+    G, h = A.T @ A, A.T @ y
+    runs = [nnls_gram(G, h, free, torch.ones(4, dtype=torch.float64)) for _ in range(5)]
+    assert all(torch.equal(runs[0], r) for r in runs[1:])
+    w = runs[0]
+    assert float(w[0]) == pytest.approx(float(w[1]), rel=1e-9) and float(w[0]) > 0
+    ref = _reference(A[:, 1:], y, free[1:])  # the same fit with one copy of the column
+    np.testing.assert_allclose([float(w[0] + w[1]), *w[2:].tolist()], ref, rtol=1e-8,
+                               atol=1e-10)

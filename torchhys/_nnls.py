@@ -199,13 +199,16 @@ def _feasible_descent(G: Tensor, h: Tensor, free: Tensor, passive: Tensor, w: Te
 
 
 def _passive_solve(G: Tensor, h: Tensor, passive: Tensor) -> Tensor:
-    """Solve the equations of the passive set (Cholesky; least squares if singular)."""
+    """Solve the equations of the passive set (Cholesky; if singular, the minimum-norm
+    least-squares solution by SVD: pivoted QR (``gelsy``) decides the rank of a singular
+    set differently from call to call, with the data's memory alignment, and the active
+    set's path with it)."""
     z = torch.zeros_like(h)
     idx = passive.nonzero().squeeze(1)
     if idx.numel():
         A, b = G[idx][:, idx], h[idx]
         L, info = torch.linalg.cholesky_ex(A)
         sol = (torch.cholesky_solve(b[:, None], L)[:, 0] if int(info) == 0
-               else torch.linalg.lstsq(A, b[:, None]).solution[:, 0])
+               else torch.linalg.lstsq(A, b[:, None], driver="gelsd").solution[:, 0])
         z[idx] = sol
     return z
