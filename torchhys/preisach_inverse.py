@@ -114,7 +114,7 @@ class PreisachInverse(HysteresisOperator):
         for name in ("alpha", "beta", "initial_relays", "grading", "weights", "linear",
                      "offset"):
             getattr(inverse, name).copy_(getattr(model, name).detach())
-        inverse.centre, inverse.scale = model.centre, model.scale
+        Preisach._read_grading(inverse)  # type: ignore[arg-type]
         return inverse.to(model.alpha.device)
 
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:

@@ -153,12 +153,14 @@ def _holdout(x: Tensor, warmup: int) -> float:
 
 
 def _checked(model: nn.Module, x: Tensor, t: Tensor, warmup: int, name: str,
-             mean: float = 0.0, std: float = 1.0) -> nn.Module:
+             mean: float = 0.0, std: float = 1.0, rmse: float | None = None) -> nn.Module:
     """``model`` if it fits the standardized target t on the scored training samples better
     than a straight line in x does, else :class:`FitError` (a diverged or degenerate fit;
     an exact inverse of a poor forward fit can blow up). A model of the physical target
-    gives the target's ``mean`` and ``std``: its output is standardized as t was."""
-    rmse = _rmse(model, x, t, warmup, mean, std)
+    gives the target's ``mean`` and ``std``: its output is standardized as t was. ``rmse``:
+    the model's :func:`_rmse` when the caller has it already (not computed again)."""
+    if rmse is None:
+        rmse = _rmse(model, x, t, warmup, mean, std)
     xs, ts = x[:, warmup:].reshape(-1), t[:, warmup:].reshape(-1)
     design = torch.stack([xs, torch.ones_like(xs)], 1)
     line = float((design @ torch.linalg.lstsq(design, ts[:, None]).solution - ts[:, None])
@@ -214,7 +216,8 @@ def _pi_nonneg(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
             fits.append((_rmse(m, x, t, warmup), sign, m))
         if not fits:
             raise FitError(f"pi_nonneg ({direction}): no invertible fit of either sign")
-        return _checked(min(fits, key=lambda f: f[0])[2], x, t, warmup, "pi_nonneg")
+        rmse, _, m = min(fits, key=lambda f: f[0])
+        return _checked(m, x, t, warmup, "pi_nonneg", rmse=rmse)
 
     placeholder: nn.Module = (PrandtlIshlinskii(torch.arange(1, n + 1) / n, torch.zeros(n))
                               if direction == "direct" else GeneralizedPIInverse(n, 0))
@@ -323,7 +326,7 @@ def _preisach(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
         if not fits:
             raise FitError(f"preisach ({direction}): no invertible fit of either sign")
         rmse, sign, m = min(fits, key=lambda f: f[0])
-        return _checked(m, x, sign * t, warmup, "preisach")
+        return _checked(m, x, sign * t, warmup, "preisach", rmse=rmse)
 
     placeholder = Preisach(0.0, 1.0, n) if direction == "direct" else PreisachInverse(n)
     return placeholder.requires_grad_(False), fit
@@ -355,7 +358,8 @@ def _stop_pi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
                 m.thresholds * sx, sign * m.weights / sx, center=float(m.center) * sx,
                 linear_weight=sign * float(m.linear_weight) / sx, offset=sign * float(m.offset))
             fits.append((_rmse(m, x, t, warmup), m))
-        return _checked(min(fits, key=lambda f: f[0])[1], x, t, warmup, "stop_pi")
+        rmse, m = min(fits, key=lambda f: f[0])
+        return _checked(m, x, t, warmup, "stop_pi", rmse=rmse)
 
     return StopPrandtlIshlinskii(torch.arange(1, n + 1) / n,
                                  torch.zeros(n, segments)).requires_grad_(False), fit
