@@ -13,7 +13,13 @@ Methods:
     fit           fit_preisach (float64 normal equations, chunked, + Lawson-Hanson NNLS)
     step          the scripted per-sample PreisachStep, time per sample (1e4 samples)
     inverse       the exact inverse (PreisachInverse, linear term 1) of the model's output:
-                  its sequence path, a loop over time, time per sample (1e4 samples)
+                  its sequence path (windows of samples between the relays' switches),
+                  time per sample (1e4 samples)
+    inverse_loop  the same by a Python loop of preisach_inverse_step over time (what the
+                  windows replace), time per sample (1e4 samples)
+    inverse_slow  the inverse's sequence path on a recorded loop's kind of signal: two
+                  periods of a sine, 5000 samples each, with noise of 0.3 % of its amplitude
+                  (fewer switches per sample than the input above), time per sample
     inverse_step  the inverse's scripted PreisachInverseStep, time per sample (1e4 samples)
 
 Usage: python benchmarks/preisach.py [--repeats N] [--threads N] [--length T]
@@ -31,8 +37,25 @@ import torch
 from _isolated import main_or_run, measure, walk_signal
 
 N_LEVELS = 31
-METHODS = ("chunked", "smooth", "materialised", "fit", "step", "inverse", "inverse_step")
-PER_SAMPLE = ("step", "inverse", "inverse_step")
+METHODS = ("chunked", "smooth", "materialised", "fit", "step", "inverse", "inverse_loop",
+           "inverse_slow", "inverse_step")
+PER_SAMPLE = ("step", "inverse", "inverse_loop", "inverse_slow", "inverse_step")
+
+
+def inverse_loop(inverse, y: torch.Tensor) -> torch.Tensor:  # noqa: ANN001
+    """The inverse's sequence path as a loop of its per-sample function: y (1, T) -> x."""
+    from torchhys.functional.preisach import preisach_inverse_constants, preisach_inverse_step
+
+    levels, glevels, ma, mb = preisach_inverse_constants(inverse.alpha, inverse.beta,
+                                                         inverse.centre, inverse.scale)
+    r, xs = inverse.initial_relays.expand(y.shape[0], -1), []
+    for t in range(y.shape[1]):
+        x, r = preisach_inverse_step(y[:, t:t + 1], r, inverse.alpha, inverse.beta,
+                                     inverse.weights, levels, glevels, ma, mb,
+                                     inverse.linear, inverse.offset, inverse.centre,
+                                     inverse.scale)
+        xs.append(x)
+    return torch.cat(xs, 1)
 
 
 def run_one(method: str, T: int, repeats: int) -> dict:
@@ -77,15 +100,23 @@ def run_one(method: str, T: int, repeats: int) -> dict:
             with torch.no_grad():
                 for xt in xs.unbind(1):
                     _, state = step[1](xt.unsqueeze(1), state)
-        elif method == "inverse":
+        elif method in ("inverse", "inverse_loop", "inverse_slow"):
             if step is None:
                 model = Preisach(-1.0, 1.0, N_LEVELS)
+                u = x[:, :10_000]
+                if method == "inverse_slow":
+                    t = torch.arange(10_000, dtype=torch.float64)
+                    noise = 0.0027 * torch.randn(10_000, dtype=torch.float64)
+                    u = (0.9 * torch.sin(2 * torch.pi * t / 5000) + noise).float()[None]
                 with torch.no_grad():
                     model.linear.fill_(1.0)
-                    y_fit = model(x[:, :10_000])[0]
+                    y_fit = model(u)[0]
                 step = model.inverse()
             with torch.no_grad():
-                step(y_fit)
+                if method == "inverse_loop":
+                    inverse_loop(step, y_fit)
+                else:
+                    step(y_fit)
         w.grad = None
         xg.grad = None
 

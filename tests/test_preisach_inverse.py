@@ -1,7 +1,7 @@
 """Graded Preisach grids and the exact inverse of a Preisach model: the grid and the graded
 linear term against plain formulas and a float64 relay loop, the inverse against a plain loop
-that solves each sample by bisection, round trips both ways, chunked calls, the per-sample
-step (eager and scripted), gradcheck, TorchScript export inside a network, fitting a graded
+that solves each sample by bisection, round trips both ways, chunked calls, the sequence
+path's windows against a loop of the per-sample step, the step (eager and scripted), gradcheck, TorchScript export inside a network, fitting a graded
 model, the ``preisach`` family in the inverse direction, bad input and all-or-nothing
 loading."""
 
@@ -17,10 +17,13 @@ from _helpers import assert_torchscript_as_eager, random_walk, run_split, script
 import torchhys
 from torchhys import Preisach, PreisachInverse, fit_preisach
 from torchhys.functional.preisach import (
+    _inverse_windows,
     graded_input,
     graded_input_inverse,
     preisach_grid,
     preisach_inverse,
+    preisach_inverse_constants,
+    preisach_inverse_step,
 )
 from torchhys.operator import OPERATORS, make_operator
 from torchhys.preisach_inverse import PreisachInverseStep
@@ -195,7 +198,59 @@ def test_inverse_with_a_given_state_and_chunked_calls():
     torch.testing.assert_close(xi, x[:, 70:], rtol=0, atol=1e-10)
     full, last = inv(y)
     joined, state = run_split(inv, y, [1, 50, 9, 100])
-    assert torch.equal(joined, full) and torch.equal(state, last)
+    # the same relays at every sample; x to the last bit or two of the graded map's sinh
+    # (vectorized and scalar evaluation round differently, and the chunks cut the windows
+    # of the sequence path elsewhere)
+    assert torch.equal(state, last)
+    torch.testing.assert_close(joined, full, rtol=0, atol=4e-15)
+
+
+def step_loop(y: torch.Tensor, r: torch.Tensor, m: Preisach) -> tuple[torch.Tensor, torch.Tensor]:
+    """The sequence path's reference: :func:`preisach_inverse_step` sample by sample."""
+    levels, glevels, ma, mb = preisach_inverse_constants(m.alpha, m.beta, m.centre, m.scale)
+    xs = []
+    for t in range(y.shape[1]):
+        x, r = preisach_inverse_step(y[:, t:t + 1], r, m.alpha, m.beta, m.weights.detach(),
+                                     levels, glevels, ma, mb, m.linear.detach().reshape(()),
+                                     m.offset.detach().reshape(()), m.centre, m.scale)
+        xs.append(x)
+    return torch.cat(xs, 1), r
+
+
+@pytest.mark.parametrize("scale", [None, 0.5])
+@pytest.mark.parametrize("windows", [(1, 1), (1, 3), (8, 4096), (64, 64)])
+def test_windows_equal_a_loop_of_steps(scale, windows):
+    """Windows of any sizes give the loop's relays at every sample and its inputs (to the
+    bit on an even grid): targets from the model (on its branches), noisy ones and ones
+    inside the jumps; rows that switch at different samples; a diagonal-only density (relays
+    that switch on both sides of one threshold); a state given."""
+    g = torch.Generator().manual_seed(11)
+    heavy = model(n=5, scale=scale, seed=12)
+    with torch.no_grad():
+        heavy.weights.mul_(20.0)  # jumps far above the linear term: many targets inside them
+    diag = model(n=6, scale=scale, seed=13)
+    with torch.no_grad():
+        diag.weights.mul_((diag.alpha == diag.beta).to(F64))
+    for m in (model(scale=scale, seed=10), heavy, diag):
+        y = m(walks(3, 300))[0].detach()
+        y = torch.cat([y, y + 0.05 * torch.randn(y.shape, generator=g, dtype=F64)])
+        r0 = torch.where(torch.rand(6, m.n_relays, generator=g) < 0.5, 1.0, -1.0).to(F64)
+        levels, glevels, ma, mb = preisach_inverse_constants(m.alpha, m.beta, m.centre,
+                                                             m.scale)
+        x, r = _inverse_windows(y, r0, m.alpha, m.beta, m.weights.detach(), levels, glevels,
+                                ma, mb, m.linear.detach().reshape(()),
+                                m.offset.detach().reshape(()), m.centre, m.scale, *windows)
+        ref, r_ref = step_loop(y, r0, m)
+        assert torch.equal(r, r_ref)
+        if scale is None:
+            assert torch.equal(x, ref)
+        else:
+            torch.testing.assert_close(x, ref, rtol=0, atol=4e-15)
+        # the relays at every sample: those the model holds after the solved inputs
+        for t in (1, 57, 299):
+            _, r_t = m(x[:, :t], r0)
+            _, r_ref_t = step_loop(y[:, :t], r0, m)
+            assert torch.equal(r_t, r_ref_t)
 
 
 @pytest.mark.parametrize("dtype,atol", [(F64, 1e-12), (torch.float32, 1e-4)])

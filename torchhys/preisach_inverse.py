@@ -11,8 +11,10 @@ with the solved input. Fitted in the direction where the Preisach model has the 
 (the flux density of a magnetic core from its field, H -> B), it is the compensator of that
 model (B -> H): fed the model's output from the same state, it returns the model's input.
 
-The sequence path loops over time (each sample's relays depend on the inputs solved before
-it), so it is much slower than the model's own (a scan).
+Each sample's relays depend on the inputs solved before it, so the sequence path is
+sequential; but the relays change only where a solution reaches a threshold, and it solves
+the samples between two switches at once (:func:`~torchhys.functional.preisach.preisach_inverse`).
+Still slower than the model's own (a scan) where the relays switch often.
 """
 
 from __future__ import annotations
@@ -76,7 +78,8 @@ class PreisachInverse(HysteresisOperator):
         - state: the model's relays before the first sample, (K,) or (batch, K), +-1; None:
           the model's initial relays
         - returns ``(x, state)``: x the shape of y; state the relays at the last sample
-          (chunked calls with it equal one call).
+          (chunked calls with it equal one call: the same relays, x to the last bit or two
+          on a graded grid, whose sinh rounds differently in longer vectors).
     """
 
     n_outputs: int = 1
