@@ -339,13 +339,12 @@ def select_penalty(
                                    check_validation(validation), scale)
     train, valid = _normal_equations(xb, yb, model, cuts)
 
-    last: list[Tensor] = []  # each penalty's fit starts from the previous one's solution
+    last: Tensor | None = None  # each penalty's fit starts from the previous one's solution
 
     def solve(G: Tensor, h: Tensor, p: float) -> Tensor:
-        theta = _solve(G, h, model, *((p, 0.0) if kind == "ridge" else (0.0, p)),
-                       init=last[-1] if last else None)
-        last.append(theta)
-        return theta
+        nonlocal last
+        last = _solve(G, h, model, *((p, 0.0) if kind == "ridge" else (0.0, p)), init=last)
+        return last
 
     return select_on_holdout(train, valid, penalties, solve)
 
