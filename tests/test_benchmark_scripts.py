@@ -45,7 +45,7 @@ def number(cell: str) -> float:
 
 @pytest.mark.parametrize(("script", "methods"), [
     ("preisach.py", ("chunked", "smooth", "materialised", "fit", "step", "inverse",
-                     "inverse_step")),
+                     "inverse_loop", "inverse_slow", "inverse_step")),
     ("stop_pi.py", ("forward", "backward", "loop", "fit", "step", "inverse", "inverse_step")),
 ])
 def test_benchmark_prints_a_row_per_method(script: str, methods: tuple[str, ...]) -> None:

@@ -1,9 +1,9 @@
 """Graded Preisach grids and the exact inverse of a Preisach model: the grid and the graded
 linear term against plain formulas and a float64 relay loop, the inverse against a plain loop
 that solves each sample by bisection, round trips both ways, chunked calls, the sequence
-path's windows against a loop of the per-sample step, the step (eager and scripted), gradcheck, TorchScript export inside a network, fitting a graded
-model, the ``preisach`` family in the inverse direction, bad input and all-or-nothing
-loading."""
+path's windows against a loop of the per-sample step, the step (eager and scripted),
+gradcheck, TorchScript export inside a network, fitting a graded model, the ``preisach``
+family in the inverse direction, bad input and all-or-nothing loading."""
 
 from __future__ import annotations
 
