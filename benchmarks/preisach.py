@@ -46,14 +46,13 @@ def inverse_loop(inverse, y: torch.Tensor) -> torch.Tensor:  # noqa: ANN001
     """The inverse's sequence path as a loop of its per-sample function: y (1, T) -> x."""
     from torchhys.functional.preisach import preisach_inverse_constants, preisach_inverse_step
 
-    levels, glevels, ma, mb = preisach_inverse_constants(inverse.alpha, inverse.beta,
-                                                         inverse.centre, inverse.scale)
+    tables = preisach_inverse_constants(inverse.alpha, inverse.beta, inverse.weights,
+                                        inverse.linear, inverse.offset, inverse.centre,
+                                        inverse.scale)
     r, xs = inverse.initial_relays.expand(y.shape[0], -1), []
     for t in range(y.shape[1]):
-        x, r = preisach_inverse_step(y[:, t:t + 1], r, inverse.alpha, inverse.beta,
-                                     inverse.weights, levels, glevels, ma, mb,
-                                     inverse.linear, inverse.offset, inverse.centre,
-                                     inverse.scale)
+        x, r = preisach_inverse_step(y[:, t:t + 1], r, inverse.alpha, inverse.beta, *tables,
+                                     inverse.linear, inverse.centre, inverse.scale)
         xs.append(x)
     return torch.cat(xs, 1)
 

@@ -207,12 +207,13 @@ def test_inverse_with_a_given_state_and_chunked_calls():
 
 def step_loop(y: torch.Tensor, r: torch.Tensor, m: Preisach) -> tuple[torch.Tensor, torch.Tensor]:
     """The sequence path's reference: :func:`preisach_inverse_step` sample by sample."""
-    levels, glevels, ma, mb = preisach_inverse_constants(m.alpha, m.beta, m.centre, m.scale)
+    linear = m.linear.detach().reshape(())
+    tables = preisach_inverse_constants(m.alpha, m.beta, m.weights.detach(), linear,
+                                        m.offset.detach().reshape(()), m.centre, m.scale)
     xs = []
     for t in range(y.shape[1]):
-        x, r = preisach_inverse_step(y[:, t:t + 1], r, m.alpha, m.beta, m.weights.detach(),
-                                     levels, glevels, ma, mb, m.linear.detach().reshape(()),
-                                     m.offset.detach().reshape(()), m.centre, m.scale)
+        x, r = preisach_inverse_step(y[:, t:t + 1], r, m.alpha, m.beta, *tables, linear,
+                                     m.centre, m.scale)
         xs.append(x)
     return torch.cat(xs, 1), r
 
@@ -235,11 +236,11 @@ def test_windows_equal_a_loop_of_steps(scale, windows):
         y = m(walks(3, 300))[0].detach()
         y = torch.cat([y, y + 0.05 * torch.randn(y.shape, generator=g, dtype=F64)])
         r0 = torch.where(torch.rand(6, m.n_relays, generator=g) < 0.5, 1.0, -1.0).to(F64)
-        levels, glevels, ma, mb = preisach_inverse_constants(m.alpha, m.beta, m.centre,
-                                                             m.scale)
-        x, r = _inverse_windows(y, r0, m.alpha, m.beta, m.weights.detach(), levels, glevels,
-                                ma, mb, m.linear.detach().reshape(()),
-                                m.offset.detach().reshape(()), m.centre, m.scale, *windows)
+        linear = m.linear.detach().reshape(())
+        tables = preisach_inverse_constants(m.alpha, m.beta, m.weights.detach(), linear,
+                                            m.offset.detach().reshape(()), m.centre, m.scale)
+        x, r = _inverse_windows(y, r0, m.alpha, m.beta, tables, linear, m.centre, m.scale,
+                                *windows)
         ref, r_ref = step_loop(y, r0, m)
         assert torch.equal(r, r_ref)
         if scale is None:

@@ -48,19 +48,21 @@ class PreisachInverseStep(OperatorStep):
     def __init__(self, alpha: Tensor, beta: Tensor, weights: Tensor, linear: Tensor,
                  offset: Tensor, initial: Tensor, centre: float, scale: float | None) -> None:
         super().__init__()
-        levels, glevels, ma, mb = preisach_inverse_constants(alpha, beta, centre, scale)
-        for name, v in (("alpha", alpha), ("beta", beta), ("weights", weights),
-                        ("levels", levels), ("glevels", glevels), ("ma", ma), ("mb", mb),
-                        ("linear", linear.reshape(())), ("offset", offset.reshape(()))):
+        linear, offset = linear.detach().reshape(()), offset.detach().reshape(())
+        tables = preisach_inverse_constants(alpha, beta, weights.detach(), linear, offset,
+                                            centre, scale)
+        for name, v in (("alpha", alpha), ("beta", beta), ("linear", linear),
+                        *zip(("offs0", "doffs", "lin_g", "cap", "level", "bounds"), tables,
+                             strict=True)):
             self.register_buffer(name, v.detach().clone())
         self.centre, self.scale = float(centre), scale
         self.n_outputs = 1
         self.state_spec = [StateBlock("relays", alpha.numel(), start=initial.tolist())]
 
     def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
-        u, r = preisach_inverse_step(x, state[0], self.alpha, self.beta, self.weights,
-                                     self.levels, self.glevels, self.ma, self.mb, self.linear,
-                                     self.offset, self.centre, self.scale)
+        u, r = preisach_inverse_step(x, state[0], self.alpha, self.beta, self.offs0,
+                                     self.doffs, self.lin_g, self.cap, self.level,
+                                     self.bounds, self.linear, self.centre, self.scale)
         return u, [r]
 
 

@@ -446,21 +446,47 @@ def check_preisach_invertible(weights: Tensor, linear: Tensor) -> None:
 
 
 def preisach_inverse_constants(
-    alpha: Tensor, beta: Tensor, centre: float, scale: float | None
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The constants of :func:`preisach_inverse_step`: the distinct thresholds (levels, (L,)
-    ascending), their graded values (:func:`graded_input`, (L,)), and the one-hot maps of
-    each relay's alpha and beta to its level, (K, L) each, in alpha's dtype."""
+    alpha: Tensor, beta: Tensor, weights: Tensor, linear: Tensor, offset: Tensor,
+    centre: float, scale: float | None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The tables of :func:`inverse_on_relays` for the model with thresholds alpha, beta
+    (K,), density ``weights`` (K,), 0-dim ``linear`` and ``offset``, and its grading;
+    differentiable in the weights, linear and offset. With the L distinct thresholds
+    (levels, ascending) and their graded values g (:func:`graded_input`), each table is
+    indexed by m, the number of levels below the solution (0..L):
+
+    - ``offs0`` (L + 1,) and ``doffs`` (K, L + 1): the output less its linear term just
+      above level m - 1 (below every level for m = 0) is ``offs0 + r @ doffs`` for relays r.
+      Relay k adds ``(1 - r_k) w_k`` at its alpha and ``(1 + r_k) w_k`` at its beta to
+      ``offset - sum(w)``; summed over the levels up to m - 1 that is
+      ``w @ (A + B) + r @ (w (B - A))``, A and B counting whether each relay's alpha and
+      beta lie at or below the level.
+    - ``lin_g`` (L,): ``linear * g``, the linear term at each level.
+    - ``cap`` (L + 1,): g at level m, where the output jumps (inf for m = L); ``level``
+      (L + 1,): level m (the last level for m = L, never used); ``bounds`` (2, L + 1): the
+      nearest floats inside the open segment between levels m - 1 and m (-inf and inf at
+      the ends).
+    """
     levels = torch.unique(torch.cat([alpha, beta]))
     one = torch.eye(levels.shape[0], dtype=alpha.dtype, device=alpha.device)
-    ma = one[torch.searchsorted(levels, alpha)]
-    mb = one[torch.searchsorted(levels, beta)]
-    return levels, graded_input(levels, centre, scale), ma, mb
+    at_a = one[torch.searchsorted(levels, alpha)].cumsum(-1)  # (K, L): alpha <= level
+    at_b = one[torch.searchsorted(levels, beta)].cumsum(-1)
+    w = weights.to(alpha.dtype)
+    base = (offset - w.sum()).reshape(1)
+    offs0 = torch.cat([base, base + w @ (at_a + at_b)])
+    doffs = torch.cat([torch.zeros_like(w)[:, None], w[:, None] * (at_b - at_a)], -1)
+    glevels = graded_input(levels, centre, scale)
+    inf = torch.full_like(levels[:1], math.inf)
+    cap = torch.cat([glevels, inf])
+    level = torch.cat([levels, levels[-1:]])
+    bounds = torch.stack([torch.cat([-inf, torch.nextafter(levels, inf)]),
+                          torch.cat([torch.nextafter(levels, -inf), inf])])
+    return offs0, doffs, linear * glevels, cap, level, bounds
 
 
 def inverse_on_relays(
-    y: Tensor, r: Tensor, weights: Tensor, levels: Tensor, glevels: Tensor, ma: Tensor,
-    mb: Tensor, linear: Tensor, offset: Tensor, centre: float, scale: float | None,
+    y: Tensor, r: Tensor, offs0: Tensor, doffs: Tensor, lin_g: Tensor, cap: Tensor,
+    level: Tensor, bounds: Tensor, linear: Tensor, centre: float, scale: float | None,
 ) -> Tensor:
     """The input x at which the model outputs y while its relays stay r: the solve of
     :func:`preisach_inverse_step`, for any number of samples of y against one state.
@@ -468,46 +494,37 @@ def inverse_on_relays(
     Given r, the output is a non-decreasing function of the input x: between neighbouring
     levels it is ``offset + linear * graded_input(x) + const``, and at a level it jumps by
     ``(1 - r_k) w_k`` for the relays with alpha there and ``(1 + r_k) w_k`` for those with
-    beta there. The jumps are summed level by level, the segment whose range holds y is
-    found by ``searchsorted``, and y is solved in closed form on it; a y inside a jump (which
-    the model cannot output) gives that level itself, where the relays switch as the model
+    beta there. The jumps are summed level by level (one matrix product with the tables of
+    :func:`preisach_inverse_constants`), the segment whose range holds y is found by
+    ``searchsorted``, and y is solved in closed form on it; a y inside a jump (which the
+    model cannot output) gives that level itself, where the relays switch as the model
     switches them at an input equal to it (both its alpha and its beta relays). x is kept
     strictly inside its segment (against rounding in the graded map), so that the relays
     then switch as the solution says (:func:`relay_update`).
 
     Args:
         y: target, (batch, m). r: relays, (batch, K).
-        weights: (K,); levels, glevels, ma, mb: :func:`preisach_inverse_constants`.
-        linear, offset: 0-dim (linear > 0: :func:`check_preisach_invertible`).
+        offs0, doffs, lin_g, cap, level, bounds: :func:`preisach_inverse_constants`.
+        linear: 0-dim (> 0: :func:`check_preisach_invertible`).
         centre, scale: the grading (:func:`graded_input`).
 
     Returns:
-        x, (batch, m). Differentiable in y, the weights, linear and offset on the chosen
-        segment (0 in y inside a jump).
+        x, (batch, m). Differentiable in y and in what the tables are differentiable in, on
+        the chosen segment (0 in y inside a jump).
     """
-    jumps = ((1.0 - r) * weights) @ ma + ((1.0 + r) * weights) @ mb  # (B, L)
-    above = jumps.cumsum(-1)  # what the relays add just above each level
-    base = offset - weights.sum()
-    upper = base + linear * glevels + above  # the output just above each level
-    L = levels.shape[0]
-    with torch.no_grad():
-        m = torch.searchsorted(upper.detach(), y.detach().contiguous())  # (B, m): # below y
-    prev = (m - 1).clamp_min(0)
-    below = torch.where(m > 0, above.gather(1, prev), torch.zeros_like(y))
-    g = (y - base - below) / linear
-    nxt = m.clamp_max(L - 1)
-    inf = torch.full_like(y, math.inf)
-    cap = torch.where(m < L, glevels[nxt], inf)  # the next level, where the output jumps
-    x = graded_input_inverse(torch.minimum(g, cap), centre, scale)
-    lo = torch.where(m > 0, torch.nextafter(levels[prev], inf), -inf)
-    hi = torch.where(m < L, torch.nextafter(levels[nxt], -inf), inf)
-    x = torch.maximum(torch.minimum(x, hi), lo)
-    return torch.where(g >= cap, levels[nxt], x)  # inside a jump: the level itself, exactly
+    offs = offs0 + r @ doffs  # (B, L + 1): the output less its linear term above level m - 1
+    with torch.no_grad():  # m: the number of levels whose output just above lies below y
+        m = torch.searchsorted((lin_g + offs[:, 1:]).detach(), y.detach().contiguous())
+    g = (y - offs.gather(1, m)) / linear
+    c = cap[m]
+    x = graded_input_inverse(torch.minimum(g, c), centre, scale)
+    x = torch.maximum(torch.minimum(x, bounds[1][m]), bounds[0][m])
+    return torch.where(g >= c, level[m], x)  # inside a jump: the level itself, exactly
 
 
 def preisach_inverse_step(
-    y: Tensor, r: Tensor, alpha: Tensor, beta: Tensor, weights: Tensor, levels: Tensor,
-    glevels: Tensor, ma: Tensor, mb: Tensor, linear: Tensor, offset: Tensor, centre: float,
+    y: Tensor, r: Tensor, alpha: Tensor, beta: Tensor, offs0: Tensor, doffs: Tensor,
+    lin_g: Tensor, cap: Tensor, level: Tensor, bounds: Tensor, linear: Tensor, centre: float,
     scale: float | None,
 ) -> tuple[Tensor, Tensor]:
     """One sample of the inverse: the input x at which the model, from relays r, outputs y
@@ -515,22 +532,22 @@ def preisach_inverse_step(
 
     Args:
         y: target, (batch, 1). r: relays, (batch, K).
-        alpha, beta, weights: (K,); levels, glevels, ma, mb: :func:`preisach_inverse_constants`.
-        linear, offset: 0-dim (linear > 0: :func:`check_preisach_invertible`).
+        alpha, beta: (K,); offs0, doffs, lin_g, cap, level, bounds:
+            :func:`preisach_inverse_constants`.
+        linear: 0-dim (linear > 0: :func:`check_preisach_invertible`).
         centre, scale: the grading (:func:`graded_input`).
 
     Returns:
         ``(x, r)``: x (batch, 1), the relays after it (batch, K).
     """
-    x = inverse_on_relays(y, r, weights, levels, glevels, ma, mb, linear, offset, centre,
+    x = inverse_on_relays(y, r, offs0, doffs, lin_g, cap, level, bounds, linear, centre,
                           scale)
     return x, relay_update(x, alpha, beta, r)
 
 
 def _inverse_windows(
-    y: Tensor, r: Tensor, alpha: Tensor, beta: Tensor, weights: Tensor, levels: Tensor,
-    glevels: Tensor, ma: Tensor, mb: Tensor, linear: Tensor, offset: Tensor, centre: float,
-    scale: float | None, first: int = 8, largest: int = 4096,
+    y: Tensor, r: Tensor, alpha: Tensor, beta: Tensor, tables: tuple[Tensor, ...],
+    linear: Tensor, centre: float, scale: float | None, first: int = 8, largest: int = 4096,
 ) -> tuple[Tensor, Tensor]:
     """The sequence path of :func:`preisach_inverse`, for y (batch, time >= 1), from relays
     r (batch, K): what a loop of :func:`preisach_inverse_step` returns, in fewer steps.
@@ -556,8 +573,7 @@ def _inverse_windows(
     s = 0
     width = first
     while s < T:
-        x = inverse_on_relays(y[:, s:s + width], r, weights, levels, glevels, ma, mb, linear,
-                              offset, centre, scale)
+        x = inverse_on_relays(y[:, s:s + width], r, *tables, linear, centre, scale)
         # the thresholds that switch a relay next: a relay down switches up at x >= alpha;
         # one up switches down at x <= beta, a diagonal one (alpha == beta) at x < beta
         up = r > 0
@@ -618,9 +634,9 @@ def preisach_inverse(
     offset = torch.as_tensor(offset, dtype=yb.dtype, device=yb.device).reshape(())
     check_preisach_invertible(weights.detach(), linear.detach())
     scale = check_scale(scale)
-    levels, glevels, ma, mb = preisach_inverse_constants(alpha, beta, float(centre), scale)
+    tables = preisach_inverse_constants(alpha, beta, weights.to(yb.dtype), linear, offset,
+                                        float(centre), scale)
     if yb.shape[1] == 0:
         return (yb[0].clone(), r[0]) if squeeze else (yb.clone(), r)
-    x, r = _inverse_windows(yb, r, alpha, beta, weights.to(yb.dtype), levels, glevels, ma, mb,
-                            linear, offset, float(centre), scale)
+    x, r = _inverse_windows(yb, r, alpha, beta, tables, linear, float(centre), scale)
     return (x[0], r[0]) if squeeze else (x, r)
