@@ -636,7 +636,5 @@ def preisach_inverse(
     scale = check_scale(scale)
     tables = preisach_inverse_constants(alpha, beta, weights.to(yb.dtype), linear, offset,
                                         float(centre), scale)
-    if yb.shape[1] == 0:
-        return (yb[0].clone(), r[0]) if squeeze else (yb.clone(), r)
     x, r = _inverse_windows(yb, r, alpha, beta, tables, linear, float(centre), scale)
     return (x[0], r[0]) if squeeze else (x, r)
