@@ -268,6 +268,24 @@ def test_step_eager_and_scripted_equal_the_sequence_path(dtype, atol):
         assert torch.equal(state[0], last)
 
 
+@pytest.mark.parametrize("scale", [None, 0.5])
+def test_step_through_torch_export_equals_the_sequence_path(scale):
+    m = model(scale=scale, seed=14)
+    inv = m.inverse()
+    y = m(walks(2, 120))[0].detach()
+    seq, last = inv(y)
+    step = inv.streaming_step(F64)
+    state = step.initial_state(y[:, :1])
+    exported = torch.export.export(step, (y[:, :1], state)).module()
+    outs = []
+    with torch.no_grad():
+        for yt in y.unbind(1):
+            x, state = exported(yt.unsqueeze(1), state)
+            outs.append(x)
+    torch.testing.assert_close(torch.cat(outs, 1), seq, rtol=0, atol=1e-12)
+    assert torch.equal(state[0], last)
+
+
 def test_gradcheck():
     m = model(n=4, seed=8)
     a, b, r0 = m.alpha, m.beta, m.initial_relays
