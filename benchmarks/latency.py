@@ -2,10 +2,13 @@
 
     python benchmarks/latency.py [--samples 5000] [--rounds 5] [--skip-aoti]
 
-Three compensators (weights do not matter for latency): the compensation benchmark's
+Four compensators (weights do not matter for latency): the compensation benchmark's
 deployed EIHO network (``EIHO(a, rule="recent", output="branch")`` + 16 play operators of the
 input, 64 sigmoid units), the same with the level dominant-rule EIHO (its configuration before
-``output="branch"``), and a network of the 16 play operators alone (``--nets`` picks some).
+``output="branch"``), a network of the 16 play operators alone, and the B-H compensator of
+``configs/measured.yaml``'s last candidate (40 stops through 4-segment characteristics beside
+the exact inverse of a 40-level graded Preisach model, one affine readout; ``--nets`` picks
+some).
 Each path runs ``step`` on a batch of one, one thread;
 the C++ rows use deploy/cpp/controller (built on first use, ``--rate 0``), which times each
 step with a steady clock (TorchScript: the module frozen, ``step_explicit`` with the state
@@ -28,7 +31,14 @@ from pathlib import Path
 
 import torch
 
-from torchhys import EIHO, Backlash, InverseHysteresisNet
+from torchhys import (
+    EIHO,
+    Backlash,
+    InverseHysteresisNet,
+    Preisach,
+    PreisachInverse,
+    StopPrandtlIshlinskii,
+)
 from torchhys.export import load_aoti, load_torchscript, to_aoti, to_torchscript
 from torchhys.streaming import StreamingCompensator
 
@@ -47,6 +57,15 @@ def controller() -> Path:
     return out / "controller"
 
 
+def preisach_inverse() -> PreisachInverse:
+    """The exact inverse of a Preisach model on 40 levels graded towards 0 over the input's
+    range (``configs/measured.yaml``'s last candidate fits one on a B-H loop)."""
+    model = Preisach(-70.0, 70.0, 40, scale=7.0)
+    with torch.no_grad():
+        model.linear.fill_(1.0)
+    return model.inverse()
+
+
 def models() -> dict[str, InverseHysteresisNet]:
     t = torch.linspace(0, 60, 2000)
     y = 70 * torch.sin(t) * torch.exp(-t / 60)
@@ -57,6 +76,9 @@ def models() -> dict[str, InverseHysteresisNet]:
         "level EIHO (dominant) + 16 plays": InverseHysteresisNet(
             [EIHO(a=0.5, rule="dominant"), Backlash(plays)], hidden=64),
         "16 plays": InverseHysteresisNet(Backlash(plays), hidden=64),
+        "40 stops + graded Preisach inverse": InverseHysteresisNet(
+            [StopPrandtlIshlinskii(torch.linspace(1.75, 70.0, 40), torch.full((40, 4), 0.01)),
+             preisach_inverse()], hidden=1, activation="identity"),
     }
     for net in nets.values():
         net.fit_normalization(y, y / 12)
