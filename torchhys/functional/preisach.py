@@ -569,23 +569,29 @@ def _inverse_windows(
     """
     xs: list[Tensor] = []
     diagonal = alpha == beta
+
+    def next_switches(r: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The thresholds that switch one of the relays r next, (B, 1) each: a relay down
+        switches up at x >= alpha; one up switches down at x <= beta, a diagonal one
+        (alpha == beta) at x < beta."""
+        up = r > 0
+        return (torch.where(up, math.inf, alpha).amin(-1, keepdim=True),
+                torch.where(up & ~diagonal, beta, -math.inf).amax(-1, keepdim=True),
+                torch.where(up & diagonal, beta, -math.inf).amax(-1, keepdim=True))
+
+    next_up, next_down, next_below = next_switches(r)
     T = y.shape[1]
     s = 0
     width = first
     while s < T:
         x = inverse_on_relays(y[:, s:s + width], r, *tables, linear, centre, scale)
-        # the thresholds that switch a relay next: a relay down switches up at x >= alpha;
-        # one up switches down at x <= beta, a diagonal one (alpha == beta) at x < beta
-        up = r > 0
-        next_up = torch.where(up, math.inf, alpha).amin(-1, keepdim=True)  # (B, 1)
-        next_down = torch.where(up & ~diagonal, beta, -math.inf).amax(-1, keepdim=True)
-        next_below = torch.where(up & diagonal, beta, -math.inf).amax(-1, keepdim=True)
         switch = ((x >= next_up) | (x <= next_down) | (x < next_below)).any(0)  # (m,)
         m = x.shape[1]
         # the first switch, or m where there is none (argmax returns the first maximum)
         j = int(torch.cat([switch, switch.new_ones(1)]).to(torch.int8).argmax())
         if j < m:
             r = relay_update(x[:, j:j + 1], alpha, beta, r)
+            next_up, next_down, next_below = next_switches(r)
             x = x[:, :j + 1]
             width = min(max(2 * (j + 1), first), largest)
         else:
