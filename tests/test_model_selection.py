@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import math
 from pathlib import Path
 
@@ -163,6 +164,42 @@ def test_select_on_the_command_line(monkeypatch, tmp_path) -> None:
     assert (root / "selection.csv").stat().st_mtime_ns == before
     assert torch.load(root / "logs/version_1/checkpoints/last.ckpt",
                       weights_only=True)["hyper_parameters"]["hidden"] == 2
+
+
+def test_candidate_runs_print_one_line_each(monkeypatch, capsys, tmp_path) -> None:
+    """The candidates' runs are quiet: no progress bar, model summary or device and seed
+    messages per run (6 runs here), one progress line per candidate instead; the final fit
+    keeps the config's bar and summary."""
+    cfg = config(tmp_path, **{"  enable_progress_bar: false\n": "",
+                              "  enable_model_summary: false\n": "",
+                              "split: [0.5, 0.25, 0.25]": "split: [0.6, 0.0, 0.4]",
+                              "  select:\n": "  select_cv: 2\n  select:\n"})
+    records: list[str] = []
+    handler = logging.Handler(logging.INFO)
+    handler.emit = lambda record: records.append(record.getMessage())  # type: ignore[method-assign]
+    loggers = [logging.getLogger(n) for n in ("lightning.pytorch", "lightning.fabric")]
+    for log in loggers:
+        log.addHandler(handler)
+    try:
+        cli(monkeypatch, "fit", "--config", str(cfg),
+            f"--trainer.default_root_dir={tmp_path / 'run'}")
+    finally:
+        for log in loggers:
+            log.removeHandler(handler)
+    out, err = capsys.readouterr()
+    lines = [line for line in out.splitlines() if line.startswith("candidate ")]
+    assert [line.split(":")[0] for line in lines] == [
+        "candidate 0 (1 of 3)", "candidate 1 (2 of 3)", "candidate 2 (3 of 3)"]
+    rows = table(tmp_path / "run")
+    for line, row in zip(lines, rows, strict=True):
+        assert f"val_mse {float(row['val_mse']):.6g}, 2 folds, " in line
+        assert line.endswith(row["config"])
+    assert sum("GPU available" in r for r in records) == 1  # the final fit's
+    assert sum("Trainable params" in r for r in records + [out]) == 1
+    assert sum(r.startswith("Seed set to") for r in records) <= 2  # the CLI's, the final fit's
+    assert err.count("Sanity Checking") <= 2  # the final fit's bar only
+    # the levels are restored: a later trainer reports as usual
+    assert all(log.level == logging.INFO for log in loggers[:1])
 
 
 def test_blocked_cross_validation_inside_the_training_part(monkeypatch, tmp_path,

@@ -227,10 +227,11 @@ data: {{dt: 0.05, t_end: 12.6, split: [0.5, 0.25, 0.25]}}
 
     monkeypatch.setattr("torchhys.training.families.fit_generalized_pi", refuse)
     monkeypatch.setattr(sys, "argv", ["torchhys"])
-    with pytest.warns(RuntimeWarning, match="candidate skipped: gpi .*refused"):
+    with pytest.warns(RuntimeWarning, match="candidate 1 skipped: gpi .*refused"):
         main(["fit", "--config", str(cfg)])
     text = capsys.readouterr().out
     assert "nan" in text and "selected candidate 0" in text
+    assert "candidate 1 (2 of 2): val_mse nan" in text  # the progress line
     assert (Path(tmp_path) / "run" / "selection.csv").exists()
 
 

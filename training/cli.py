@@ -25,7 +25,8 @@ before the module is built)::
       select_rule: null                         # "1se": the first unless beaten by > 1 s.e.
 
 Every candidate is trained from the same seed with the same trainer settings (CSV logs
-under ``<default_root_dir>/selection/candidate_<i>``, no checkpoints) and scored by its
+under ``<default_root_dir>/selection/candidate_<i>``, no checkpoints; no progress bar, model
+summary or informational Lightning messages: one line per candidate) and scored by its
 validation MSE at the end of training: on the validation split (which must not overlap the
 training split), or with ``model.select_cv: k`` by blocked cross-validation inside the
 training part (``k`` trainings per candidate), or with ``model.select_cv: recording`` by
@@ -45,8 +46,12 @@ without ``select``, ``last.ckpt`` as usual), ready for ``torchhys test --ckpt_pa
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import sys
+import time
 import warnings
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, Literal
 
@@ -158,7 +163,9 @@ class TorchhysCLI(LightningCLI):
         def build(i: int, fold: int | None) -> tuple[Any, Any, Trainer]:
             return self._instantiate_run(configs[i], seed, root / "selection", i, fold)
 
-        scores = selection.run_selection(candidates, build, cv=cv)
+        with _quiet_lightning():
+            scores = selection.run_selection(candidates, build, cv=cv,
+                                             report=_progress(len(candidates)))
         self._selected = True
         chosen = selection.best(scores, rule or "min")
         _report(scores, chosen, root / "selection.csv", cv, rule or "min")
@@ -197,7 +204,10 @@ class TorchhysCLI(LightningCLI):
             trainer["logger"] = {"class_path": "lightning.pytorch.loggers.CSVLogger",
                                  "init_args": {"save_dir": str(root), "name": name}}
         trainer["enable_checkpointing"] = False
-        seed_everything(seed, workers=True)
+        # one line per candidate instead (_progress): no bar, summary or seed message per run
+        trainer["enable_progress_bar"] = False
+        trainer["enable_model_summary"] = False
+        seed_everything(seed, workers=True, verbose=False)
         self.config = run  # the instantiator takes the module's hyperparameters from it
         self.__dict__.pop("config_dump", None)
         instantiate = getattr(self.parser, "instantiate", None) or self.parser.instantiate_classes
@@ -219,6 +229,37 @@ def _pop_select(cfg: Namespace) -> tuple[Any, Any, Any]:
         if key in cfg:
             del cfg[key]
     return values[0], values[1], values[2]
+
+
+@contextlib.contextmanager
+def _quiet_lightning() -> Iterator[None]:
+    """Lightning's informational messages (devices found, seeds, tips) off while the
+    candidates train, once per run each; its warnings and errors still show."""
+    loggers = [logging.getLogger(name) for name in ("lightning.pytorch", "lightning.fabric")]
+    levels = [log.level for log in loggers]
+    for log in loggers:
+        log.setLevel(max(log.getEffectiveLevel(), logging.WARNING))
+    try:
+        yield
+    finally:
+        for log, level in zip(loggers, levels, strict=True):
+            log.setLevel(level)
+
+
+def _progress(n: int) -> Callable[[selection.CandidateScore], None]:
+    """Print one line per scored candidate: its validation MSE and the seconds it took."""
+    start = [time.perf_counter()]
+
+    @rank_zero_only
+    def report(score: selection.CandidateScore) -> None:
+        now = time.perf_counter()
+        folds = f", {len(score.folds)} folds" if score.folds else ""
+        print(f"candidate {score.index} ({score.index + 1} of {n}): val_mse "
+              f"{score.val_mse:.6g}{folds}, {now - start[0]:.1f} s: "
+              f"{selection.config_json(score.overrides)}", flush=True)
+        start[0] = now
+
+    return report
 
 
 @rank_zero_only

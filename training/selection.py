@@ -473,14 +473,14 @@ def _squared_errors(module: L.LightningModule, datamodule: L.LightningDataModule
 
 
 def _validation(module: L.LightningModule, datamodule: L.LightningDataModule,
-                trainer: L.Trainer) -> tuple[float, Tensor]:
+                trainer: L.Trainer, run: str) -> tuple[float, Tensor]:
     """Train, then the validation MSE of the trained module and its squared errors (NaN and
-    none, with a warning, when a family operator cannot be fitted to the data:
-    :class:`~torchhys.training.families.FitError`)."""
+    none, with a warning naming the ``run``, when a family operator cannot be fitted to the
+    data: :class:`~torchhys.training.families.FitError`)."""
     try:
         trainer.fit(module, datamodule=datamodule)
     except FitError as err:
-        warnings.warn(f"model.select: candidate skipped: {err}", RuntimeWarning, stacklevel=2)
+        warnings.warn(f"model.select: {run} skipped: {err}", RuntimeWarning, stacklevel=3)
         return math.nan, torch.zeros(0, dtype=torch.float64)
     results = trainer.validate(module, datamodule=datamodule, verbose=False)
     if not results or "val_mse" not in results[0]:
@@ -508,7 +508,9 @@ def standard_error(squared_errors: Tensor) -> float:
 
 
 def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
-                  cv: int | str | None = None) -> list[CandidateScore]:
+                  cv: int | str | None = None,
+                  report: Callable[[CandidateScore], None] | None = None
+                  ) -> list[CandidateScore]:
     """Train and score every candidate.
 
     Args:
@@ -517,6 +519,7 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
         cv: ``k`` for blocked cross-validation inside the training part,
             ``"recording"`` to hold out each training recording once, None for the
             datamodule's validation split (checked by :func:`check_holdout`).
+        report: called with each candidate's score as soon as it is known (progress).
 
     Returns:
         One :class:`CandidateScore` per candidate, in order.
@@ -528,8 +531,10 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
             check_holdout(data)
             if i == 0:
                 warn_coverage(data)
-            mse, errors = _validation(module, data, trainer)
+            mse, errors = _validation(module, data, trainer, f"candidate {i}")
             scores.append(CandidateScore(i, overrides, mse, val_se=standard_error(errors)))
+            if report is not None:
+                report(scores[-1])
             continue
         folds, counts, errors = [], [], []
         j, k = 0, None
@@ -539,7 +544,7 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
             if i == 0 and j == 0:
                 warn_coverage(data)
             k = fold.k
-            mse, e = _validation(module, fold, trainer)
+            mse, e = _validation(module, fold, trainer, f"candidate {i}, fold {j + 1} of {k}")
             folds.append(mse)
             counts.append(fold.n_val)
             errors.append(e)
@@ -547,6 +552,8 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
         pooled = sum(m * n for m, n in zip(folds, counts, strict=True)) / sum(counts)
         se = standard_error(torch.cat(errors)) if math.isfinite(pooled) else math.nan
         scores.append(CandidateScore(i, overrides, pooled, tuple(folds), se))
+        if report is not None:
+            report(scores[-1])
     return scores
 
 
