@@ -250,6 +250,19 @@ def pneumatic() -> Split:
     return Split(x, y, 0, [(_t(recs[i][0]), _t(recs[i][1]), 0) for i in (1, 2)])
 
 
+def sma() -> Split:
+    """Chamber temperature (C) -> extension (mm) of a shape-memory-alloy specimen cycled
+    between -30 and 50 C under a constant load (7 cycles): the record up to the fifth start of
+    cooling (four cycles) trains, the load ramp at 50 C before the first cooling only running
+    the states; the rest (three cycles) is held out, the whole record run from the start and
+    scored from the cut."""
+    d = read_csv(REAL / "sma_isobaric_thermal_cycles.csv")
+    temp, ext = d["chamber_temperature_C"], d["extension_mm"]
+    cooling = np.flatnonzero((temp[:-1] >= 45.0) & (temp[1:] < 45.0)) + 1  # 45 C crossed down
+    w, cut = int(cooling[0]), int(cooling[4])
+    return Split(_t(temp[:cut])[None], _t(ext[:cut])[None], w, [(_t(temp), _t(ext), cut)])
+
+
 def read_piezo(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Time (s), voltage (V) and displacement (um) of the SmartHysteresis piezo record, as
     published: no header, columns (empty index, time, displacement, voltage).
@@ -389,6 +402,7 @@ DATASETS: dict[str, tuple[str, Callable[[Files], Split]]] = {
     "friction_damper_sines": ("displacement -> force, 1 in sines / 0.5 and 1.5 in sines",
                               lambda f: friction_damper((1, 4, 7), (0, 2, 3, 5, 6, 8, 9))),
     "pneumatic_oring": ("position -> friction, 1+7 / 3+5 bar", lambda f: pneumatic()),
+    "sma_actuator": ("temperature -> extension, cycles 1-4 / 5-7", lambda f: sma()),
     "mnzn_ferrite_short": ("mnzn_ferrite, training loops sampled every 5th: 52 samples",
                            lambda f: shortened(ferrite(f.ferrite, [0, 3], [1, 2]), stride=True)),
     "mr_damper_0V_short": ("mr_damper_0V, the first 50 scored samples of one training row",

@@ -309,6 +309,32 @@ def test_piezo_record_is_split_in_time(bench, tmp_path):
     np.testing.assert_array_equal(fwd.test[0][1].numpy(), disp)
 
 
+def test_sma_record_is_split_in_time(bench):
+    """Temperature -> extension: four thermal cycles train (from the first cooling; the load
+    ramp at the hot temperature before it only runs the states), the last three are held
+    out, the whole record run from its start."""
+    d = bench.read_csv(bench.REAL / "sma_isobaric_thermal_cycles.csv")
+    temp, ext = d["chamber_temperature_C"], d["extension_mm"]
+    assert len(temp) == 1176 and np.isfinite(temp).all() and np.isfinite(ext).all()
+    split = bench.DATASETS["sma_actuator"][1](bench.Files())
+    w, cut = split.warmup, split.x.shape[1]
+    np.testing.assert_array_equal(split.x.numpy(), temp[None, :cut])
+    np.testing.assert_array_equal(split.y.numpy(), ext[None, :cut])
+    (x, y, start), = split.test
+    np.testing.assert_array_equal(x.numpy(), temp)
+    np.testing.assert_array_equal(y.numpy(), ext)
+    assert start == cut
+    # before w: the load ramp at 50 C (the temperature held, the extension rising with the
+    # load); from w: cooling; each cycle reaches -30 C once: 4 in training, 3 held out
+    assert temp[:w].min() >= 45.0 > temp[w]
+    assert np.ptp(d["load_N"][w:]) < 0.05 * d["load_N"][w:].mean()  # the load is held
+
+    def cycles(a):  # falls below -25 C
+        return int(((a[:-1] >= -25.0) & (a[1:] < -25.0)).sum())
+    assert cycles(temp[w:cut]) == 4 and cycles(temp[cut:]) == 3
+    assert temp[cut] < 45.0 <= temp[cut - 1]  # the cut: the fifth start of cooling
+
+
 def test_piezo_file_errors_name_the_option(bench, tmp_path):
     bad = tmp_path / "bad.csv"
     bad.write_text("time,voltage\n0,1\n")
