@@ -137,6 +137,10 @@ def test_npz_problems_name_file_column_row(tmp_path: Path, kind: str) -> None:
     assert expected[0] in msg
     if expected[1]:
         assert expected[1] in msg
+    if kind == "time":  # the values as numbers, and the way out
+        t = rows[:, 0]
+        assert f"time {t[30]:.10g} does not increase (previous row {t[29]:.10g})" in msg
+        assert "np.float64" not in msg and "leave time_column out" in msg
 
 
 def test_split_too_small_names_file_and_rows(tmp_path: Path) -> None:

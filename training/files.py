@@ -230,8 +230,9 @@ def _check_time(table: _Table, t: np.ndarray, start: int, column: Column) -> Non
         i = start + int(bad[0]) + 1
         raise DataFileError(
             f"{table.path}: column {column!r} (time_column), row {i}{table.line(i)}: time "
-            f"{t[i - start]!r} does not increase (previous row {t[i - start - 1]!r}); sort the "
-            "file or remove repeated samples"
+            f"{float(t[i - start]):.10g} does not increase (previous row "
+            f"{float(t[i - start - 1]):.10g}); sort the file, remove repeated samples, or "
+            "leave time_column out (null: the models use the order of the rows, not the times)"
         )
 
 
