@@ -6,6 +6,7 @@ skipped by model selection; bad options are clear errors."""
 
 from __future__ import annotations
 
+import csv
 import math
 import sys
 import warnings
@@ -26,7 +27,7 @@ from torchhys import (
     StopPrandtlIshlinskii,
 )
 from torchhys.export import load_torchscript, to_torchscript
-from torchhys.training import HysteresisDataModule, InverseHysteresisModule
+from torchhys.training import HysteresisDataModule, InverseHysteresisModule, selection
 from torchhys.training.cli import main
 from torchhys.training.families import FitError, _substeps
 from torchhys.training.operators import build_operators, fit_data_dependent
@@ -233,6 +234,56 @@ data: {{dt: 0.05, t_end: 12.6, split: [0.5, 0.25, 0.25]}}
     assert "nan" in text and "selected candidate 0" in text
     assert "candidate 1 (2 of 2): val_mse nan" in text  # the progress line
     assert (Path(tmp_path) / "run" / "selection.csv").exists()
+
+
+def test_a_candidate_that_fails_a_fold_is_not_trained_on_the_others(monkeypatch, tmp_path,
+                                                                    capsys):
+    """Under cross-validation a candidate that cannot be fitted on one fold scores NaN
+    (pooled over the folds it would be NaN anyway): one warning, no fits on later folds,
+    NaN in every fold column of its row; the other candidates run every fold."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"""\
+seed_everything: 0
+trainer: {{accelerator: cpu, devices: 1, precision: 64-true, max_epochs: 3,
+          enable_progress_bar: false, enable_model_summary: false,
+          default_root_dir: {tmp_path / 'run'}}}
+model:
+  operator: null
+  hidden: 1
+  activation: identity
+  optimizer: lbfgs
+  lr: 1.0
+  select:
+    - {{operator: null}}
+    - {{operator: [{{name: gpi, n_widths: 4, units: 2, epochs: 5}}]}}
+  select_cv: 3
+data: {{dt: 0.05, t_end: 12.6, split: [0.6, 0.0, 0.4]}}
+""")
+    def refuse(*args, **kwargs):
+        raise FitError("gpi: refused for the test")
+
+    runs = []
+    validation = selection._validation
+
+    def watched(module, data, trainer, run):
+        runs.append(run)
+        return validation(module, data, trainer, run)
+
+    monkeypatch.setattr("torchhys.training.families.fit_generalized_pi", refuse)
+    monkeypatch.setattr(selection, "_validation", watched)
+    monkeypatch.setattr(sys, "argv", ["torchhys"])
+    with pytest.warns(RuntimeWarning, match="skipped") as record:
+        main(["fit", "--config", str(cfg)])
+    skipped = [str(w.message) for w in record if "skipped" in str(w.message)]
+    assert len(skipped) == 1 and "candidate 1, fold 1 of 3 skipped: gpi" in skipped[0]
+    assert runs == [f"candidate 0, fold {j} of 3" for j in (1, 2, 3)] + [
+        "candidate 1, fold 1 of 3"]
+    with (tmp_path / "run" / "selection.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    folds = [[float(r[f"fold_{j}"]) for j in (1, 2, 3)] for r in rows]
+    assert all(math.isfinite(v) for v in folds[0])
+    assert all(math.isnan(v) for v in folds[1]) and math.isnan(float(rows[1]["val_mse"]))
+    assert "candidate 1 (2 of 2): val_mse nan, 3 folds" in capsys.readouterr().out
 
 
 def test_identity_readout_is_affine():

@@ -522,7 +522,9 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
         report: called with each candidate's score as soon as it is known (progress).
 
     Returns:
-        One :class:`CandidateScore` per candidate, in order.
+        One :class:`CandidateScore` per candidate, in order. A candidate whose fold scores
+        NaN (it cannot be fitted to that fold's data, or its training diverged) scores NaN
+        without training on the remaining folds (NaN there too).
     """
     scores = []
     for i, overrides in enumerate(candidates):
@@ -549,6 +551,10 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
             counts.append(fold.n_val)
             errors.append(e)
             j += 1
+            if math.isnan(mse):  # the pooled MSE is NaN whatever the other folds give
+                folds += [math.nan] * (k - j)
+                counts += [1] * (k - j)
+                break
         pooled = sum(m * n for m, n in zip(folds, counts, strict=True)) / sum(counts)
         se = standard_error(torch.cat(errors)) if math.isfinite(pooled) else math.nan
         scores.append(CandidateScore(i, overrides, pooled, tuple(folds), se))
