@@ -7,6 +7,7 @@ that hold parameters and state are re-exported here.
 from torchhys import dynamics, export, fitting, operator, optim, plants, signals, streaming
 from torchhys.backlash import Backlash, BacklashCell
 from torchhys.cascade import Cascade
+from torchhys.drift import Drift, fit_drift
 from torchhys.eiho import EIHO, ZhaoTanOperator
 from torchhys.generalized_pi import GeneralizedPrandtlIshlinskii, fit_generalized_pi
 from torchhys.generalized_pi_inverse import GeneralizedPIInverse
@@ -37,6 +38,8 @@ __all__ = [
     "register_operator",
     "Backlash",
     "Cascade",
+    "Drift",
+    "fit_drift",
     "EIHO",
     "InverseHysteresisNet",
     "ZhaoTanOperator",

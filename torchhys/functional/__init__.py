@@ -2,6 +2,7 @@
 
 from torchhys.functional._branch import BranchState
 from torchhys.functional.backlash import backlash, play_step
+from torchhys.functional.drift import accumulated_variation, drift
 from torchhys.functional.eiho import NonCausalWarning, eiho, segment_coefficients, zhao_tan
 from torchhys.functional.jiles_atherton import jiles_atherton, jiles_atherton_step
 from torchhys.functional.linear_filter import lfilter
@@ -27,6 +28,8 @@ from torchhys.functional.turning_points import (
 __all__: list[str] = [
     "BranchState",
     "Branches",
+    "accumulated_variation",
+    "drift",
     "NonCausalWarning",
     "eiho",
     "estimate_threshold",

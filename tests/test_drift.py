@@ -1,0 +1,181 @@
+"""The drift of the accumulated input variation: against a plain float64 loop, chunked calls,
+the per-sample step (eager, TorchScript, inside an exported network), gradients, its
+least-squares fit against scipy's NNLS, bad input."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+import torch
+from _helpers import assert_streams_as_eager, assert_torchscript_as_eager, net_of, run_split
+from scipy.optimize import nnls
+
+from torchhys import Backlash, Drift, fit_drift
+from torchhys.functional.drift import accumulated_variation, drift
+from torchhys.operator import OPERATORS, make_operator
+
+F64 = torch.float64
+SCALES = [0.5, 2.0, 8.0]
+
+
+def signal(rows: int = 3, T: int = 300, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return torch.randn(rows, T, generator=g, dtype=F64).cumsum(1) * 0.1
+
+
+def reference(x: np.ndarray, scales, weights, offset, prev=None, v0=0.0) -> tuple:
+    """A plain loop in float64: the drift and the final (previous input, variation)."""
+    out, v = np.empty(len(x)), v0
+    p = x[0] if prev is None else prev
+    for t, xt in enumerate(x):
+        v += abs(xt - p)
+        p = xt
+        out[t] = offset + sum(w * (1.0 - math.exp(-v / c))
+                              for w, c in zip(weights, scales, strict=True))
+    return out, (p, v)
+
+
+def test_equals_a_plain_loop():
+    x = signal()
+    w = torch.tensor([0.7, -0.3, 1.5], dtype=F64)
+    d, state = drift(x, torch.tensor(SCALES, dtype=F64), w, 0.25)
+    assert d.shape == x.shape and state.shape == (3, 2) and state.dtype == F64
+    for row in range(3):
+        ref, (p, v) = reference(x[row].numpy(), SCALES, w.tolist(), 0.25)
+        np.testing.assert_allclose(d[row].numpy(), ref, rtol=0, atol=1e-13)
+        assert state[row, 0].item() == p
+        assert state[row, 1].item() == pytest.approx(v, rel=1e-14)
+    # a given state: the variation before the first sample and the jump to it count
+    s0 = torch.tensor([0.4, 3.0], dtype=F64)
+    d1, _ = drift(x[0], torch.tensor(SCALES, dtype=F64), w, 0.25, s0)
+    ref1, _ = reference(x[0].numpy(), SCALES, w.tolist(), 0.25, prev=0.4, v0=3.0)
+    np.testing.assert_allclose(d1.numpy(), ref1, rtol=0, atol=1e-13)
+    v, _ = accumulated_variation(torch.tensor([1.0, 3.0, 2.0, 2.0, -1.0], dtype=F64))
+    assert v.tolist() == [0.0, 2.0, 3.0, 3.0, 6.0]  # total variation, from the first sample
+
+
+@pytest.mark.parametrize("splits", [[1] * 40, [7, 100, 193], [299, 1]])
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_chunked_calls_equal_one_call(splits, dtype):
+    m = Drift(SCALES, [0.7, -0.3, 1.5], offset=0.25).to(dtype)
+    x = signal(T=sum(splits)).to(dtype)
+    whole, final = m(x)
+    chunked, state = run_split(m, x, splits)
+    assert torch.equal(chunked, whole) and torch.equal(state, final)
+
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_step_eager_and_scripted_equal_the_sequence_path(dtype):
+    m = Drift(SCALES, [0.7, -0.3, 1.5], offset=0.25).to(dtype)
+    x = signal(2, 150, seed=3).to(dtype)
+    y, final = m(x)
+    step = m.streaming_step(dtype)
+    assert step.n_outputs == 1 and [b.kind for b in step.state_spec] == ["float64"] * 2
+    with warnings.catch_warnings():  # torch.jit.script is deprecated in torch 2.13
+        warnings.filterwarnings("ignore", message=r"`torch\.jit\.script` is deprecated",
+                                category=DeprecationWarning)
+        scripted = torch.jit.script(step)
+    for s in (step, scripted):
+        state = step.initial_state(x[:, :1])
+        outs = []
+        for xt in x.unbind(1):
+            f, state = s(xt.unsqueeze(1), state)
+            outs.append(f)
+        got = torch.stack(outs, 1)[..., 0]
+        assert got.dtype == dtype and torch.equal(got, y)
+        assert torch.equal(torch.cat(state, 1), final)
+
+
+def test_step_through_torch_export_equals_the_sequence_path():
+    m = Drift(SCALES, [0.7, -0.3, 1.5], offset=0.25).double()
+    x = signal(2, 120, seed=7)
+    seq, last = m(x)
+    step = m.streaming_step(F64)
+    state = step.initial_state(x[:, :1])
+    exported = torch.export.export(step, (x[:, :1], state)).module()
+    outs = []
+    with torch.no_grad():
+        for xt in x.unbind(1):
+            f, state = exported(xt.unsqueeze(1), state)
+            outs.append(f)
+    assert torch.equal(torch.cat(outs, 1), seq) and torch.equal(torch.cat(state, 1), last)
+
+
+def test_streams_and_exports_inside_a_network(tmp_path):
+    x = signal(1, 200, seed=4)
+    net = net_of([Drift(SCALES, [0.7, -0.3, 1.5], offset=0.25), Backlash([0.1, 0.3])], F64,
+                 x)
+    assert_streams_as_eager(net, x, atol=1e-12)
+    assert_torchscript_as_eager(net, x, tmp_path / "drift.pt", atol=1e-12)
+
+
+def test_gradients():
+    x = signal(2, 40, seed=5).requires_grad_(True)
+    w = torch.tensor([0.7, -0.3, 1.5], dtype=F64, requires_grad=True)
+    off = torch.tensor(0.25, dtype=F64, requires_grad=True)
+    c = torch.tensor(SCALES, dtype=F64)
+    assert torch.autograd.gradcheck(lambda a, b, o: drift(a, c, b, o)[0], (x, w, off))
+    m = Drift(SCALES, learnable=True)
+    assert {n for n, _ in m.named_parameters()} == {"weights", "offset"}
+
+
+def test_registered():
+    assert OPERATORS["drift"] is Drift
+    assert isinstance(make_operator("drift", scales=SCALES), Drift)
+
+
+def test_fit_recovers_a_drift_and_equals_scipy_nnls():
+    x = signal(2, 400, seed=6)
+    true = Drift(SCALES, [-0.4, 0.0, -2.0], offset=1.5).double()
+    with torch.no_grad():
+        y, _ = true(x)
+    fitted = fit_drift(x, y, SCALES)
+    torch.testing.assert_close(fitted.weights, true.weights, rtol=0, atol=1e-8)
+    assert float(fitted.offset) == pytest.approx(1.5, abs=1e-8)
+    # noisy, with a warm-up: the same solution as scipy's NNLS on the design, both signs
+    noisy = y + 0.05 * torch.randn(y.shape, generator=torch.Generator().manual_seed(1),
+                                   dtype=F64)
+    fitted = fit_drift(x, noisy, SCALES, warmup=30)
+    v, _ = accumulated_variation(x)
+    g = 1.0 - np.exp(-v[:, 30:].reshape(-1, 1).numpy() / np.array(SCALES))
+    t = noisy[:, 30:].reshape(-1).numpy()
+    best = None
+    for sign in (1.0, -1.0):
+        A = np.hstack([g, np.ones((len(t), 1)), -np.ones((len(t), 1))])
+        coef, res = nnls(A, sign * t)
+        if best is None or res < best[0] - 1e-12:
+            best = (res, sign, coef)
+    _, sign, coef = best
+    np.testing.assert_allclose(fitted.weights.numpy(), sign * coef[:3], rtol=0, atol=1e-7)
+    assert float(fitted.offset) == pytest.approx(sign * (coef[3] - coef[4]), abs=1e-7)
+
+
+def test_bad_input():
+    with pytest.raises(ValueError, match="scales must be finite and positive"):
+        Drift([1.0, 0.0])
+    with pytest.raises(ValueError, match="scales must be finite and positive"):
+        Drift([1.0, float("nan")])
+    with pytest.raises(ValueError, match=r"scales must have shape \(K,\)"):
+        Drift([])
+    with pytest.raises(ValueError, match="weights must have the shape of scales"):
+        Drift([1.0, 2.0], [1.0])
+    m = Drift(SCALES)
+    x = signal(2, 10)
+    with pytest.raises(ValueError, match=r"state must have shape \(2,\) or \(2, 2\)"):
+        m(x, torch.zeros(3, dtype=F64))
+    with pytest.raises(ValueError, match="accumulated variation .* must be >= 0"):
+        m(x, torch.tensor([0.0, -1.0], dtype=F64))
+    with pytest.raises(ValueError, match="x must be finite"):
+        m(torch.tensor([0.0, float("nan")], dtype=F64))
+    with pytest.raises(ValueError, match="x and y must have the same shape"):
+        fit_drift(x, x[:1], SCALES)
+    with pytest.raises(ValueError, match="warmup"):
+        fit_drift(x, x, SCALES, warmup=10)
+    saved = {k: v.clone() for k, v in m.state_dict().items()}
+    bad = dict(saved, scales=torch.tensor([1.0, -2.0, 3.0], dtype=F64))
+    with pytest.raises(ValueError, match="scales must be finite and positive"):
+        m.load_state_dict(bad)
+    assert all(torch.equal(m.state_dict()[k], v) for k, v in saved.items())

@@ -1,0 +1,170 @@
+"""A slow drift driven by the input's accumulated variation, its per-sample step, and its
+identification by non-negative least squares.
+
+The maths is in :mod:`torchhys.functional.drift`: ``d = offset + sum_k w_k (1 - exp(-v /
+c_k))``, v the input's total variation since the start of the record. Beside a hysteresis
+model (one affine readout of both, e.g. ``operator: [{name: stop_pi}, {name: drift}]`` in a
+config) it shifts the loop as the device is used: the ratcheting of a shape-memory alloy
+cycled under load, the settling of a seal or a core over its first cycles.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor, nn
+
+from torchhys._checks import as_batched_sequence, check_bool, check_real, check_warmup
+from torchhys._nnls import nnls_gram
+from torchhys.functional.drift import (
+    accumulated_variation,
+    check_scales,
+    drift,
+    drift_features,
+    drift_step,
+)
+from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
+
+__all__ = ["Drift", "DriftStep", "fit_drift"]
+
+
+class DriftStep(OperatorStep):
+    """A :class:`Drift`, one sample at a time.
+
+    State: ``previous`` (the last input, float64; the first sample itself at the start) and
+    ``variation`` (the accumulated variation, float64; 0 at the start). Feature: the drift.
+    """
+
+    def __init__(self, scales: Tensor, weights: Tensor, offset: Tensor) -> None:
+        super().__init__()
+        self.register_buffer("scales", scales.detach().to(torch.float64).clone())
+        self.register_buffer("weights", weights.detach().clone())
+        self.register_buffer("offset", offset.detach().clone().reshape(()))
+        self.n_outputs = 1
+        self.state_spec = [StateBlock("previous", 1, kind="float64", from_sample=1.0),
+                           StateBlock("variation", 1, kind="float64")]
+
+    def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
+        d, previous, variation = drift_step(x, state[0], state[1], self.scales, self.weights,
+                                            self.offset)
+        return d, [previous, variation]
+
+
+class Drift(HysteresisOperator):
+    """A drift of the accumulated input variation v (see :mod:`torchhys.functional.drift`):
+
+        d = offset + sum_k w_k (1 - exp(-v / c_k)),   v[t] = sum_{s <= t} |x[s] - x[s-1]|.
+
+    Identify it with :func:`fit_drift` (weights of one sign: a monotone, decelerating
+    drift).
+
+    Args:
+        scales: saturation scales c_k > 0 in input units, (K,) (a full cycle of amplitude A
+            adds 2 A to v).
+        weights: w_k, (K,); zeros if None.
+        offset: the drift at the start.
+        learnable: make the weights and the offset trainable (the scales stay fixed).
+
+    Shape:
+        - x: (time,) or (batch, time)
+        - state: ``(previous input, accumulated variation)`` before the first sample, (2,) or
+          (batch, 2); None: a fresh start (no variation before the first sample)
+        - returns ``(d, state)``: d the shape of x; the state after the last sample, float64
+          (chunked calls with it equal one call).
+    """
+
+    n_outputs: int = 1
+
+    def __init__(self, scales: Tensor | Sequence[float], weights: Tensor | Sequence[float] |
+                 None = None, *, offset: float = 0.0, learnable: bool = False) -> None:
+        super().__init__()
+        c = torch.as_tensor(scales)
+        if not c.is_floating_point():
+            c = c.to(torch.get_default_dtype())
+        check_scales(c)
+        w = (torch.zeros_like(c) if weights is None
+             else torch.as_tensor(weights, dtype=c.dtype).detach().clone())
+        if w.shape != c.shape:
+            raise ValueError(f"weights must have the shape of scales {tuple(c.shape)}, got "
+                             f"{tuple(w.shape)}")
+        if not bool(w.isfinite().all()):
+            raise ValueError(f"weights must be finite, got {w.tolist()}")
+        check_bool(learnable, "learnable")
+        o = torch.tensor(check_real(offset, "offset"), dtype=c.dtype)
+        self.register_buffer("scales", c.detach().clone())
+        if learnable:
+            self.weights = nn.Parameter(w)
+            self.offset = nn.Parameter(o)
+        else:
+            self.register_buffer("weights", w)
+            self.register_buffer("offset", o)
+
+    def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        return drift(x, self.scales, self.weights, self.offset, state)
+
+    def streaming_step(self, dtype: torch.dtype) -> DriftStep:
+        """The per-sample step with the current parameters (weights and offset in
+        ``dtype``, the accumulation in float64)."""
+        return DriftStep(self.scales, self.weights.detach().to(dtype),
+                         self.offset.detach().to(dtype))
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # noqa: ANN001
+        """Checks the saved scales before anything is copied."""
+        c = state_dict.get(prefix + "scales")
+        if isinstance(c, Tensor) and c.numel() and not bool((c.isfinite() & (c > 0)).all()):
+            raise ValueError(f"{prefix}scales must be finite and positive (saturation scales), "
+                             f"got minimum {c.min().item():.6g}")
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+
+def fit_drift(x: Tensor, y: Tensor, scales: Tensor | Sequence[float], *,
+              warmup: int = 0) -> Drift:
+    """Identify a :class:`Drift` (fresh start of every row) by least squares with weights of
+    one sign, the offset free:
+
+        min  mean_t (y[t] - offset - s sum_k w_k g_k[t])**2   subject to w >= 0,
+
+    ``g_k = 1 - exp(-v / c_k)``, for s = +1 and s = -1; the better fit is kept (+1 on ties).
+    Solved in float64 from the normal equations (Lawson-Hanson).
+
+    Args:
+        x, y: input and target, (time,) or (batch, time) (rows are independent records).
+        scales: saturation scales c_k > 0, (K,).
+        warmup: samples at the start of each row left out of the fit (their variation still
+            counts).
+
+    Returns:
+        The fitted drift, in x's dtype.
+
+    Raises:
+        ValueError: NaN/inf, shapes differ, bad scales, warmup >= time.
+    """
+    xb, _ = as_batched_sequence(x, "x")
+    yb, _ = as_batched_sequence(y, "y")
+    if xb.shape != yb.shape:
+        raise ValueError(f"x and y must have the same shape, got {tuple(x.shape)} and "
+                         f"{tuple(y.shape)}")
+    check_warmup(warmup, xb.shape[1])
+    c = torch.as_tensor(scales, dtype=torch.float64)
+    check_scales(c)
+    v, _ = accumulated_variation(xb)
+    g = drift_features(v[:, warmup:].reshape(-1), c)  # (n, K)
+    t = yb[:, warmup:].reshape(-1).to(torch.float64)
+    A = torch.cat([g, torch.ones_like(t)[:, None]], dim=1)
+    n, K = t.numel(), c.numel()
+    G, h0 = A.T @ A / n, A.T @ t / n
+    free = torch.arange(K + 1) == K
+    best: tuple[float, float, Tensor] | None = None
+    for sign in (1.0, -1.0):
+        theta = nnls_gram(G, sign * h0, free)
+        theta[:K] = theta[:K].clamp_min(0.0)
+        sse = float(((A @ theta - sign * t) ** 2).sum())
+        if best is None or sse < best[0]:
+            best = (sse, sign, theta)
+    _, sign, theta = best
+    return Drift(c.to(xb.dtype), sign * theta[:K].to(xb.dtype),
+                 offset=sign * float(theta[K]))
+
+
+register_operator("drift", Drift)
