@@ -138,19 +138,23 @@ def test_fit_recovers_a_drift_and_equals_scipy_nnls():
     # noisy, with a warm-up: the same solution as scipy's NNLS on the design, both signs
     noisy = y + 0.05 * torch.randn(y.shape, generator=torch.Generator().manual_seed(1),
                                    dtype=F64)
-    fitted = fit_drift(x, noisy, SCALES, warmup=30)
     v, _ = accumulated_variation(x)
     g = 1.0 - np.exp(-v[:, 30:].reshape(-1, 1).numpy() / np.array(SCALES))
     t = noisy[:, 30:].reshape(-1).numpy()
-    best = None
-    for sign in (1.0, -1.0):
-        A = np.hstack([g, np.ones((len(t), 1)), -np.ones((len(t), 1))])
-        coef, res = nnls(A, sign * t)
-        if best is None or res < best[0] - 1e-12:
-            best = (res, sign, coef)
-    _, sign, coef = best
-    np.testing.assert_allclose(fitted.weights.numpy(), sign * coef[:3], rtol=0, atol=1e-7)
-    assert float(fitted.offset) == pytest.approx(sign * (coef[3] - coef[4]), abs=1e-7)
+    xs = x[:, 30:].reshape(-1, 1).numpy()
+    for linear in (False, True):
+        fitted = fit_drift(x, noisy, SCALES, warmup=30, linear=linear)
+        # the free offset (and slope) as differences of two non-negative columns
+        free = np.hstack([np.ones_like(xs)] + ([xs] if linear else []))
+        best = None
+        for sign in (1.0, -1.0):
+            coef, res = nnls(np.hstack([g, free, -free]), sign * t)
+            if best is None or res < best[0] - 1e-12:
+                best = (res, sign, coef)
+        _, sign, coef = best
+        np.testing.assert_allclose(fitted.weights.numpy(), sign * coef[:3], rtol=0, atol=1e-7)
+        assert float(fitted.offset) == pytest.approx(
+            sign * (coef[3] - coef[3 + free.shape[1]]), abs=1e-7)
 
 
 def test_bad_input():

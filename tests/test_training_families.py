@@ -18,6 +18,7 @@ from _helpers import sine_loops
 from _training_helpers import trainer
 
 from torchhys import (
+    Drift,
     GeneralizedPIInverse,
     GeneralizedPrandtlIshlinskii,
     InverseHysteresisNet,
@@ -136,6 +137,36 @@ def test_stop_pi_recovers_a_stop_plant_of_either_sign(sign):
     assert float(torch.corrcoef(torch.stack([op(x)[0].flatten(), t.flatten()]))[0, 1]) > 0.99
 
 
+def ratcheting_plant(x: torch.Tensor) -> torch.Tensor:
+    """A PI loop whose level climbs with the input's accumulated variation and slows down
+    (a shape-memory alloy's ratcheting)."""
+    drift = Drift(torch.tensor([15.0, 60.0], dtype=F64), torch.tensor([0.8, 1.2], dtype=F64))
+    return pi_plant(x) + drift(x)[0]
+
+
+def test_drift_beside_stop_pi_follows_a_ratcheting_plant():
+    """Fitted on the first two thirds of the record, one affine readout of the stop-type
+    model and the drift predicts the last third (where the level has climbed further) far
+    better than the stop-type model alone; each family's output is a fitted model."""
+    x = signal(T=900)
+    y = ratcheting_plant(x)
+    cut = 600
+    (stop, drift), fitters = build_operators([{"name": "stop_pi", "n_widths": 8},
+                                              {"name": "drift"}])
+    ops = torch.nn.ModuleList([stop.double(), drift.double()])
+    fit_data_dependent(ops, fitters, x[:, :cut], y[:, :cut])
+    assert isinstance(ops[1], Drift) and bool((ops[1].weights >= 0).all())
+    feats = [op(x)[0].reshape(-1) for op in ops]
+
+    def held_out(columns):
+        a = torch.stack(columns + [x.reshape(-1), torch.ones(x.numel(), dtype=F64)], 1)
+        coef = torch.linalg.lstsq(a[:cut], y.reshape(-1, 1)[:cut]).solution
+        return float((a[cut:] @ coef - y.reshape(-1, 1)[cut:]).square().mean().sqrt())
+
+    alone, both = held_out(feats[:1]), held_out(feats)
+    assert both < 0.3 * alone, (both, alone)
+
+
 def test_a_family_that_cannot_fit_raises_fit_error():
     x = signal()
     with pytest.raises(FitError, match="must vary"):
@@ -160,6 +191,9 @@ def test_a_family_that_cannot_fit_raises_fit_error():
     ({"name": "stop_pi", "segments": 0}, "segments must be"),
     ({"name": "stop_pi", "n": 5}, r"unknown option\(s\) \['n'\]"),
     ({"name": "stop_pi", "ridge": -1e-3}, "ridge must be 'auto' or a finite number >= 0"),
+    ({"name": "drift", "scales": []}, "scales must be a non-empty list"),
+    ({"name": "drift", "scales": [1.0, -2.0]}, r"scales\[\] must be a finite number > 0"),
+    ({"name": "drift", "n": 3}, r"unknown option\(s\) \['n'\]"),
 ])
 def test_bad_options(spec, match):
     with pytest.raises(ValueError, match=match):
@@ -176,14 +210,16 @@ def test_stop_pi_flag_must_be_a_bool():
     {"name": "gpi", "n_widths": 6, "units": 2, "epochs": 30, "direction": "inverse"},
     {"name": "preisach", "n": 6, "smoothness": 1e-4},
     {"name": "stop_pi", "n_widths": 6, "segments": 3},
+    [{"name": "stop_pi", "n_widths": 6, "segments": 3}, {"name": "drift"}],
 ])
 def test_fitted_in_training_saved_and_exported(tmp_path, spec):
     """Through the Lightning module: fitted on the training split, restored from the
     checkpoint bit for bit, and the TorchScript compensator equals the module."""
     torch.manual_seed(0)
     dm = HysteresisDataModule(t_end=2 * math.pi, split=[0.6, 0.2, 0.2])
-    module = InverseHysteresisModule(operator=[spec], hidden=1, activation="identity",
-                                     optimizer="lbfgs", lr=1.0)
+    module = InverseHysteresisModule(operator=spec if isinstance(spec, list) else [spec],
+                                     hidden=1, activation="identity", optimizer="lbfgs",
+                                     lr=1.0)
     t = trainer(max_epochs=3, enable_checkpointing=True, default_root_dir=tmp_path)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)

@@ -119,20 +119,24 @@ class Drift(HysteresisOperator):
 
 
 def fit_drift(x: Tensor, y: Tensor, scales: Tensor | Sequence[float], *,
-              warmup: int = 0) -> Drift:
+              warmup: int = 0, linear: bool = True) -> Drift:
     """Identify a :class:`Drift` (fresh start of every row) by least squares with weights of
     one sign, the offset free:
 
-        min  mean_t (y[t] - offset - s sum_k w_k g_k[t])**2   subject to w >= 0,
+        min  mean_t (y[t] - offset - b x[t] - s sum_k w_k g_k[t])**2   subject to w >= 0,
 
     ``g_k = 1 - exp(-v / c_k)``, for s = +1 and s = -1; the better fit is kept (+1 on ties).
-    Solved in float64 from the normal equations (Lawson-Hanson).
+    With ``linear`` the slope b is free and not part of the returned drift: the drift of a
+    target that also follows the input (a loop beside it), which a drift alone would confuse
+    with the input's own rise and fall; without it b = 0. Solved in float64 from the normal
+    equations (Lawson-Hanson).
 
     Args:
         x, y: input and target, (time,) or (batch, time) (rows are independent records).
         scales: saturation scales c_k > 0, (K,).
         warmup: samples at the start of each row left out of the fit (their variation still
             counts).
+        linear: fit a free slope in x beside the drift (left out of the returned model).
 
     Returns:
         The fitted drift, in x's dtype.
@@ -146,15 +150,18 @@ def fit_drift(x: Tensor, y: Tensor, scales: Tensor | Sequence[float], *,
         raise ValueError(f"x and y must have the same shape, got {tuple(x.shape)} and "
                          f"{tuple(y.shape)}")
     check_warmup(warmup, xb.shape[1])
+    check_bool(linear, "linear")
     c = torch.as_tensor(scales, dtype=torch.float64)
     check_scales(c)
     v, _ = accumulated_variation(xb)
     g = drift_features(v[:, warmup:].reshape(-1), c)  # (n, K)
     t = yb[:, warmup:].reshape(-1).to(torch.float64)
-    A = torch.cat([g, torch.ones_like(t)[:, None]], dim=1)
+    xs = xb[:, warmup:].reshape(-1, 1).to(torch.float64)
+    # the offset at column K (free), then the slope (free)
+    A = torch.cat([g, torch.ones_like(t)[:, None]] + ([xs - xs.mean()] if linear else []), 1)
     n, K = t.numel(), c.numel()
     G, h0 = A.T @ A / n, A.T @ t / n
-    free = torch.arange(K + 1) == K
+    free = torch.arange(A.shape[1]) >= K
     best: tuple[float, float, Tensor] | None = None
     for sign in (1.0, -1.0):
         theta = nnls_gram(G, sign * h0, free)
@@ -163,8 +170,8 @@ def fit_drift(x: Tensor, y: Tensor, scales: Tensor | Sequence[float], *,
         if best is None or sse < best[0]:
             best = (sse, sign, theta)
     _, sign, theta = best
-    return Drift(c.to(xb.dtype), sign * theta[:K].to(xb.dtype),
-                 offset=sign * float(theta[K]))
+    offset = float(theta[K]) - (float(theta[K + 1] * xs.mean()) if linear else 0.0)
+    return Drift(c.to(xb.dtype), sign * theta[:K].to(xb.dtype), offset=sign * offset)
 
 
 register_operator("drift", Drift)

@@ -37,6 +37,13 @@ standardizes the operator's output) maps it back. They are the candidates of
   a sample step of the 0.99 quantile moves the input by at most 1/32 of its range, so that
   the few large jumps where a cross-validation fold joins its pieces do not multiply the
   cost).
+- ``{"name": "drift", "scales": [0.5, 1, 2, 4, 8, 16, 32]}``: :func:`torchhys.fit_drift`, a
+  monotone, decelerating drift of the target with the input's accumulated variation
+  (saturation scales in spans of the scored training input), weights of one sign; beside a
+  hysteresis model in one candidate (``[{name: stop_pi}, {name: drift}]``, one affine
+  readout of both) it shifts the loop as the device is used (the ratcheting of a
+  shape-memory alloy). It is fitted beside a free slope in the input (not part of the
+  drift), so that a loop's rise and fall with the input is not taken for a drift.
 
 ``ridge``/``smoothness: "auto"`` picks the penalty on a time-ordered hold-out inside the
 training split (the last quarter of each row's scored samples; :func:`select_pi_ridge`,
@@ -57,6 +64,7 @@ import torch
 from torch import Tensor, nn
 
 from torchhys import (
+    Drift,
     GeneralizedPIInverse,
     GeneralizedPrandtlIshlinskii,
     JilesAtherton,
@@ -64,6 +72,7 @@ from torchhys import (
     Preisach,
     PreisachInverse,
     StopPrandtlIshlinskii,
+    fit_drift,
     fit_generalized_pi,
     fit_jiles_atherton,
     fit_preisach,
@@ -365,6 +374,28 @@ def _stop_pi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
                                  torch.zeros(n, segments)).requires_grad_(False), fit
 
 
+DRIFT_SCALES = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
+"""Saturation scales of the ``drift`` family, in spans of the scored training input (a full
+cycle over the span adds two spans to the accumulated variation)."""
+
+
+def _drift(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
+    _keys(spec, {"scales"})
+    scales = spec.get("scales", DRIFT_SCALES)
+    if (isinstance(scales, (str, bytes)) or not hasattr(scales, "__len__")
+            or len(scales) == 0):
+        raise ValueError(f"operator 'drift': scales must be a non-empty list of positive "
+                         f"numbers (spans of the training input), got {scales!r}")
+    mult = [check_positive(c, "operator 'drift': scales[]") for c in scales]
+
+    def fit(x: Tensor, y: Tensor, warmup: int) -> nn.Module:
+        _, t = _standardized(x, y, warmup)
+        span = float(x[:, warmup:].max() - x[:, warmup:].min())
+        return fit_drift(x, t, [span * c for c in mult], warmup=warmup)
+
+    return Drift(torch.ones(len(mult))).requires_grad_(False), fit
+
+
 def _substeps(x: Tensor) -> int:
     """Euler steps per sample from the 0.99 quantile of the sample steps
     (:func:`~torchhys.jiles_atherton.substeps_for`). The largest steps are left out: a
@@ -403,5 +434,6 @@ FAMILIES: dict[str, Callable[[Mapping[str, Any]], tuple[nn.Module, Fitter]]] = {
     "preisach": _preisach,
     "stop_pi": _stop_pi,
     "jiles_atherton": _jiles_atherton,
+    "drift": _drift,
 }
 """Builders of the family operators by config name: ``spec -> (placeholder, fitter)``."""

@@ -12,10 +12,11 @@ dict ``{"name": NAME, **kwargs}``:
 - ``{"name": "pi_ls", "n_widths": 30, "power": 3.0, "ridge": 0.0, "learnable": False}``:
   the least-squares Prandtl-Ishlinskii model of the target from the input
   (:func:`torchhys.fitting.fit_prandtl_ishlinskii` on :func:`~torchhys.fitting.play_width_grid`);
-- ``pi_nonneg``, ``gpi``, ``preisach``, ``stop_pi``, ``jiles_atherton``: constrained model
-  families identified on the training split (:mod:`torchhys.training.families`); their names
-  stand for the family, not for the registered operator of the same name (build that one in
-  Python, e.g. :func:`torchhys.operator.make_operator`).
+- ``pi_nonneg``, ``gpi``, ``preisach``, ``stop_pi``, ``jiles_atherton``, ``drift``:
+  constrained model families identified on the training split
+  (:mod:`torchhys.training.families`); their names stand for the family, not for the
+  registered operator of the same name (build that one in Python, e.g.
+  :func:`torchhys.operator.make_operator`).
 
 All of them are causal except an EIHO with ``a="segment"``. ``plays`` (without ``widths``)
 and ``pi_ls`` depend on the training data: they are built as placeholders of the right
