@@ -922,12 +922,15 @@ MODELS: dict[str, Callable[..., Fitted]] = {
 
 
 def evaluate(name: str, split: Split, budget: Budget, log: list[str], *,
-             config: Path = CONFIG) -> list[dict]:
-    """One row per model (held-out RMSE, ratio to the best memoryless baseline, choice),
-    then ``selected``: the model with the least hold-out RMSE."""
+             config: Path = CONFIG, models: Sequence[str] = tuple(MODELS)) -> list[dict]:
+    """One row per model of ``models`` (held-out RMSE, ratio to the best memoryless
+    baseline, choice; the line and the polynomial always), then ``selected``: the model with
+    the least hold-out RMSE among them."""
     rows = []
     n_train = split.y[:, split.warmup:].numel()
     for model, run in MODELS.items():
+        if model not in models and model not in ("line", "poly"):
+            continue
         start = time.perf_counter()
         try:
             with warnings.catch_warnings():
@@ -974,6 +977,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
                         "(not shipped; default: examples/data/external/slac_quad_4194)")
     parser.add_argument("--config", type=Path, default=CONFIG,
                         help="torchhys fit config of the 'default' row")
+    parser.add_argument("--models", nargs="+", choices=list(MODELS), default=list(MODELS),
+                        metavar="MODEL", help="rows to fit (default: all; the line and the "
+                        f"polynomial always): {', '.join(MODELS)}")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     budget = QUICK if args.quick else FULL
@@ -989,7 +995,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
             print(f"skipping {name}: {missing[0]} not found (--{need})")
             continue
         log.append(f"{name}: {protocol}")
-        rows += evaluate(name, build(files), budget, log, config=args.config)
+        rows += evaluate(name, build(files), budget, log, config=args.config,
+                         models=args.models)
     print("\n".join(log))
     print(f"\ntotal {time.perf_counter() - start:.0f} s\n")
     print(markdown(rows))

@@ -86,6 +86,15 @@ def test_table_columns_and_rows(bench, table):
         assert r["choice"] and not r["choice"].startswith("failed")
 
 
+def test_models_option_fits_those_rows_beside_the_baselines(bench, table):
+    rows = bench.main(["--quick", "--data", "mnzn_ferrite", "--ferrite", str(FERRITE),
+                       "--models", "stop_pi"])
+    assert [r["model"] for r in rows] == ["line", "poly", "stop_pi", "selected"]
+    full = {r["model"]: r for r in table[0]}
+    for r in rows[:3]:  # the same fits as in the full table
+        assert r["rmse"] == full[r["model"]]["rmse"] and r["ratio"] == full[r["model"]]["ratio"]
+
+
 def test_baselines_use_the_training_part_only(bench, table):
     rows = {r["model"]: r for r in table[0]}
     split = bench.DATASETS["mnzn_ferrite"][1](bench.Files(FERRITE))
