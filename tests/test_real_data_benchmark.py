@@ -507,24 +507,24 @@ def test_the_default_holds_below_the_line_beyond_the_training_range(bench):
     assert default < 0.8 * line
 
 
-def test_the_default_beats_the_line_on_the_sma_record(bench):
-    """sma_actuator: the default (cross-validation chooses its Preisach candidate; measured
-    0.77 of the line) is below the line, not below half of it: fitted on cycles 1-4, it
-    predicts cycles 5-7 about 2 mm short on average, as the line does (the extension
-    ratchets up from cycle to cycle), which is most of the line's bias and a large part of
-    the default's error."""
+def test_the_default_follows_the_sma_records_drift(bench):
+    """sma_actuator: fitted on cycles 1-4, the line predicts cycles 5-7 about 2 mm short on
+    average (the extension ratchets up from cycle to cycle); the default's cross-validation
+    chooses the 40 stops beside a drift of the accumulated temperature variation, which
+    takes most of that offset (measured: mean error -0.50 mm, RMSE 0.52 of the line's;
+    without the drift candidate it chose Preisach at 0.77, mean error about -1.9 mm)."""
     split = bench.DATASETS["sma_actuator"][1](bench.Files())
     fitted = bench.default(split, bench.QUICK)
     line = bench.line(split, bench.QUICK)
-    assert "preisach" in fitted.choice, fitted.choice
+    assert "stop_pi+drift" in fitted.choice, fitted.choice
     x, y, start = split.test[0]
     errors = {name: (f.predict(x[None])[0] - y)[start:].detach()
               for name, f in (("default", fitted), ("line", line))}
     rmse = {k: float(e.square().mean().sqrt()) for k, e in errors.items()}
-    assert rmse["default"] < 0.85 * rmse["line"], rmse
+    assert rmse["default"] < 0.6 * rmse["line"], rmse
     assert rmse["default"] == pytest.approx(bench.test_rmse(fitted.predict, split)[0])
-    for e in errors.values():  # the ratcheting: both predict the later cycles short
-        assert -2.3 < float(e.mean()) < -1.5
+    assert -2.3 < float(errors["line"].mean()) < -1.5
+    assert abs(float(errors["default"].mean())) < 1.0
 
 
 @pytest.mark.slow
