@@ -10,7 +10,13 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from _helpers import assert_streams_as_eager, assert_torchscript_as_eager, net_of, run_split
+from _helpers import (
+    assert_aoti_as_eager,
+    assert_streams_as_eager,
+    assert_torchscript_as_eager,
+    net_of,
+    run_split,
+)
 from scipy.optimize import nnls
 
 from torchhys import Backlash, Drift, fit_drift
@@ -110,6 +116,16 @@ def test_streams_and_exports_inside_a_network(tmp_path):
                  x)
     assert_streams_as_eager(net, x, atol=1e-12)
     assert_torchscript_as_eager(net, x, tmp_path / "drift.pt", atol=1e-12)
+
+
+@pytest.mark.slow
+def test_exports_to_aoti_inside_a_network(tmp_path):
+    """An AOTInductor compile (about 10 s): the float64 accumulator blocks step as the
+    sequence path does."""
+    x = signal(1, 150, seed=4)
+    net = net_of([Drift(SCALES, [0.7, -0.3, 1.5], offset=0.25), Backlash([0.1, 0.3])], F64,
+                 x)
+    assert_aoti_as_eager(net, x[0], tmp_path / "drift.pt2")
 
 
 def test_gradients():
