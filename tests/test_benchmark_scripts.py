@@ -112,6 +112,17 @@ def test_stop_pi_figure_is_drawn_and_beats_the_line(tmp_path: Path) -> None:
     assert 0 < stop < line
 
 
+def test_sma_figure_is_drawn_and_the_drift_takes_the_offset(tmp_path: Path) -> None:
+    out = run("sma_figure.py", "--out", str(tmp_path / "fig.png"))
+    assert (tmp_path / "fig.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    rmse, bias = (dict(zip(*[iter(part.replace(" mm", "").replace(",", "").split())] * 2,
+                           strict=True))
+                  for part in out.strip().split("RMSE on cycles 5-7: ")[1].split("; mean error: "))
+    assert list(rmse) == ["default", "stop_pi", "line"], out
+    assert 0 < float(rmse["default"]) < float(rmse["stop_pi"]) < float(rmse["line"])
+    assert abs(float(bias["default"])) < 0.5 * abs(float(bias["stop_pi"]))
+
+
 def test_latency_benchmark_times_every_path() -> None:
     if shutil.which(os.environ.get("CXX", "g++")) is None:
         pytest.skip("no C++ compiler found (set CXX or install g++): the C++ rows need it")
