@@ -274,7 +274,7 @@ def test_selection_skips_a_candidate_that_cannot_be_fitted(monkeypatch, tmp_path
         main(["fit", "--config", str(cfg)])
     text = capsys.readouterr().out
     assert "nan" in text and "selected candidate 0" in text
-    assert "candidate 1 (2 of 2): val_mse nan" in text  # the progress line
+    assert "candidate 1 (2 of 2): val_mse nan (skipped)" in text  # the progress line
     assert (Path(tmp_path) / "run" / "selection.csv").exists()
 
 
@@ -309,7 +309,7 @@ def test_a_candidate_that_fails_a_fold_is_not_trained_on_the_others(monkeypatch,
     folds = [[float(r[f"fold_{j}"]) for j in (1, 2, 3)] for r in rows]
     assert all(math.isfinite(v) for v in folds[0])
     assert all(math.isnan(v) for v in folds[1]) and math.isnan(float(rows[1]["val_mse"]))
-    assert "candidate 1 (2 of 2): val_mse nan, 3 folds" in capsys.readouterr().out
+    assert "candidate 1 (2 of 2): val_mse nan (skipped), 3 folds" in capsys.readouterr().out
 
 
 def test_identity_readout_is_affine():

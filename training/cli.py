@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import sys
 import time
 import warnings
@@ -254,8 +255,9 @@ def _progress(n: int) -> Callable[[selection.CandidateScore], None]:
     def report(score: selection.CandidateScore) -> None:
         now = time.perf_counter()
         folds = f", {len(score.folds)} folds" if score.folds else ""
+        skipped = " (skipped)" if math.isnan(score.val_mse) else ""
         print(f"candidate {score.index} ({score.index + 1} of {n}): val_mse "
-              f"{score.val_mse:.6g}{folds}, {now - start[0]:.1f} s: "
+              f"{score.val_mse:.6g}{skipped}{folds}, {now - start[0]:.1f} s: "
               f"{selection.config_json(score.overrides)}", flush=True)
         start[0] = now
 
