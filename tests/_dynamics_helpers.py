@@ -38,12 +38,3 @@ def stable_denominator(poles: list[complex]) -> np.ndarray:
     full = [p for p in poles] + [np.conj(p) for p in poles if np.imag(p) != 0]
     return np.poly(full).real
 
-
-def step_loop(step: torch.nn.Module, x: torch.Tensor, state: list[torch.Tensor]
-              ) -> tuple[torch.Tensor, list[torch.Tensor]]:
-    """An operator step run over x (batch, time) from ``state``: ((batch, time, p), state)."""
-    outs = []
-    for xt in x.unbind(1):
-        f, state = step(xt.unsqueeze(1), state)
-        outs.append(f)
-    return torch.stack(outs, 1), state

@@ -156,6 +156,17 @@ def assert_aoti_as_eager(net: InverseHysteresisNet, x: torch.Tensor, path: Path,
     torch.testing.assert_close(out.double(), expected, rtol=0, atol=atol)
 
 
+def step_loop(step: Callable[[torch.Tensor, Any], tuple[torch.Tensor, Any]], x: torch.Tensor,
+              state: Any) -> tuple[torch.Tensor, Any]:
+    """An operator step (eager, scripted or exported) run over x (batch, time) from
+    ``state``: its features (batch, time, n_outputs) and its final state."""
+    outs = []
+    for xt in x.unbind(1):
+        f, state = step(xt.unsqueeze(1), state)
+        outs.append(f)
+    return torch.stack(outs, 1), state
+
+
 def scripted_run(step: torch.nn.Module, x: torch.Tensor) -> tuple[torch.Tensor, list]:
     """An operator step scripted by TorchScript, stepped over x (batch, time) from its
     initial state: its features (batch, time, n_outputs) and its final state."""
@@ -165,12 +176,7 @@ def scripted_run(step: torch.nn.Module, x: torch.Tensor) -> tuple[torch.Tensor, 
         warnings.filterwarnings("ignore", message=r"`torch\.jit\.script` is deprecated",
                                 category=DeprecationWarning)
         scripted = torch.jit.script(step)
-    state = step.initial_state(x[:, :1])
-    outs = []
-    for xt in x.unbind(1):
-        o, state = scripted(xt.unsqueeze(1), state)
-        outs.append(o)
-    return torch.stack(outs, 1), state
+    return step_loop(scripted, x, step.initial_state(x[:, :1]))
 
 
 def steps_of(comp: StreamingCompensator, x: torch.Tensor) -> torch.Tensor:

@@ -5,7 +5,6 @@ least-squares fit against scipy's NNLS, bad input."""
 from __future__ import annotations
 
 import math
-import warnings
 
 import numpy as np
 import pytest
@@ -16,6 +15,8 @@ from _helpers import (
     assert_torchscript_as_eager,
     net_of,
     run_split,
+    scripted_run,
+    step_loop,
 )
 from scipy.optimize import nnls
 
@@ -80,18 +81,9 @@ def test_step_eager_and_scripted_equal_the_sequence_path(dtype):
     y, final = m(x)
     step = m.streaming_step(dtype)
     assert step.n_outputs == 1 and [b.kind for b in step.state_spec] == ["float64"] * 2
-    with warnings.catch_warnings():  # torch.jit.script is deprecated in torch 2.13
-        warnings.filterwarnings("ignore", message=r"`torch\.jit\.script` is deprecated",
-                                category=DeprecationWarning)
-        scripted = torch.jit.script(step)
-    for s in (step, scripted):
-        state = step.initial_state(x[:, :1])
-        outs = []
-        for xt in x.unbind(1):
-            f, state = s(xt.unsqueeze(1), state)
-            outs.append(f)
-        got = torch.stack(outs, 1)[..., 0]
-        assert got.dtype == dtype and torch.equal(got, y)
+    for got, state in (step_loop(step, x, step.initial_state(x[:, :1])),
+                       scripted_run(step, x)):
+        assert got.dtype == dtype and torch.equal(got[..., 0], y)
         assert torch.equal(torch.cat(state, 1), final)
 
 
@@ -102,12 +94,9 @@ def test_step_through_torch_export_equals_the_sequence_path():
     step = m.streaming_step(F64)
     state = step.initial_state(x[:, :1])
     exported = torch.export.export(step, (x[:, :1], state)).module()
-    outs = []
     with torch.no_grad():
-        for xt in x.unbind(1):
-            f, state = exported(xt.unsqueeze(1), state)
-            outs.append(f)
-    assert torch.equal(torch.cat(outs, 1), seq) and torch.equal(torch.cat(state, 1), last)
+        got, state = step_loop(exported, x, state)
+    assert torch.equal(got[..., 0], seq) and torch.equal(torch.cat(state, 1), last)
 
 
 def test_streams_and_exports_inside_a_network(tmp_path):

@@ -8,8 +8,8 @@ import warnings
 
 import pytest
 import torch
-from _dynamics_helpers import BACKENDS, signal, step_loop, use_backend
-from _helpers import run_split
+from _dynamics_helpers import BACKENDS, signal, use_backend
+from _helpers import run_split, step_loop
 
 from torchhys import Backlash, InverseHysteresisNet
 from torchhys.dynamics import StateSpace, TransferFunction

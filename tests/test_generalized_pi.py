@@ -5,14 +5,21 @@ streaming inside a network, bad input."""
 from __future__ import annotations
 
 import math
-import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 from _gpi_helpers import F64, WIDTHS, model, walks
-from _helpers import assert_streams_as_eager, net_of, play_reference, run_chunked, smooth_input
+from _helpers import (
+    assert_streams_as_eager,
+    net_of,
+    play_reference,
+    run_chunked,
+    scripted_run,
+    smooth_input,
+    step_loop,
+)
 
 from torchhys import Backlash, InverseHysteresisNet, PrandtlIshlinskii
 from torchhys.fitting import fit_full_batch, fit_prandtl_ishlinskii, play_width_grid
@@ -70,18 +77,8 @@ def test_step_eager_and_scripted_equal_sequence(dtype):
         y, final = m(x)
     step = m.streaming_step(dtype)
     assert step.n_outputs == 1 and [b.size for b in step.state_spec] == [5]
-    with warnings.catch_warnings():  # torch.jit.script is deprecated in torch 2.13
-        warnings.filterwarnings("ignore", message=r"`torch\.jit\.script` is deprecated",
-                                category=DeprecationWarning)
-        scripted = torch.jit.script(step)
     tol = 1e-13 if dtype == torch.float64 else 1e-5
-    for s in (step, scripted):
-        state = step.initial_state(x[:, :1])
-        outs = []
-        for xt in x.unbind(1):
-            f, state = s(xt.unsqueeze(1), state)
-            outs.append(f)
-        f = torch.stack(outs, 1)
+    for f, state in (step_loop(step, x, step.initial_state(x[:, :1])), scripted_run(step, x)):
         assert f.shape == (3, 200, 1) and f.dtype == dtype
         torch.testing.assert_close(f[..., 0], y, rtol=0, atol=tol)
         torch.testing.assert_close(state[0], final, rtol=0, atol=0)

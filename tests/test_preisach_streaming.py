@@ -7,7 +7,7 @@ import warnings
 
 import pytest
 import torch
-from _helpers import assert_streams_as_eager, run_split
+from _helpers import assert_streams_as_eager, run_split, step_loop
 from _preisach_helpers import model, signal
 
 from torchhys.operator import OPERATORS, make_operator
@@ -25,15 +25,6 @@ def test_chunked_calls_equal_one_call(smooth, splits):
     torch.testing.assert_close(state, final, rtol=0, atol=0)
 
 
-def _run(step, x: torch.Tensor, init) -> tuple[torch.Tensor, list[torch.Tensor]]:
-    state = init.initial_state(x[:, :1])
-    outs = []
-    for xt in x.unbind(1):
-        f, state = step(xt.unsqueeze(1), state)
-        outs.append(f)
-    return torch.stack(outs, 1), state
-
-
 @pytest.mark.parametrize("smooth", [None, 0.05])
 @pytest.mark.parametrize("initial", ["demagnetized", "positive", "negative"])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
@@ -48,7 +39,7 @@ def test_step_eager_and_scripted_equal_sequence(smooth, initial, dtype):
                                 category=DeprecationWarning)
         scripted = torch.jit.script(step)
     for s in (step, scripted):
-        f, state = _run(s, x, step)
+        f, state = step_loop(s, x, step.initial_state(x[:, :1]))
         assert f.shape == (2, 150, 1) and f.dtype == dtype
         tol = 1e-13 if dtype == torch.float64 else 1e-5
         torch.testing.assert_close(f[..., 0], y.detach(), rtol=0, atol=tol)
@@ -76,7 +67,7 @@ def test_exported_step_equals_sequence(smooth):
     exported = torch.export.export(step, (x[:, :1], state)).module()
     with torch.no_grad():
         y, final = m(x)
-        f, state = _run(exported, x, step)
+        f, state = step_loop(exported, x, step.initial_state(x[:, :1]))
     torch.testing.assert_close(f[..., 0], y, rtol=0, atol=1e-5)
     torch.testing.assert_close(state[0], final, rtol=0, atol=0)
 
