@@ -15,7 +15,13 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-from torchhys._checks import as_batched_sequence, check_bool, check_real, check_warmup
+from torchhys._checks import (
+    as_batched_sequence,
+    check_bool,
+    check_finite,
+    check_real,
+    check_warmup,
+)
 from torchhys._nnls import nnls_gram
 from torchhys.functional.drift import (
     accumulated_variation,
@@ -88,8 +94,7 @@ class Drift(HysteresisOperator):
         if w.shape != c.shape:
             raise ValueError(f"weights must have the shape of scales {tuple(c.shape)}, got "
                              f"{tuple(w.shape)}")
-        if not bool(w.isfinite().all()):
-            raise ValueError(f"weights must be finite, got {w.tolist()}")
+        check_finite(w, "weights")
         check_bool(learnable, "learnable")
         o = torch.tensor(check_real(offset, "offset"), dtype=c.dtype)
         self.register_buffer("scales", c.detach().clone())
