@@ -37,6 +37,12 @@ the states and are neither fitted nor scored):
   smoothness penalty and the sign of the target (a non-negative density draws loops of one
   orientation; its free linear term lets the negated fit draw the other) chosen on the
   hold-out;
+- ``stop_pi``: ``fit_stop_pi`` (non-negative slopes) of the target or of its negative, on
+  ``play_width_grid`` thresholds; their number, the grid power, the characteristic segments,
+  the sign and the ridge chosen on the hold-out;
+- ``stop_pi_drift``: those stops beside ``fit_drift`` (a drift of the accumulated input
+  variation, free slope, the ``drift`` family's scales), an affine least-squares readout of
+  the two; the stops' settings chosen on the hold-out of the whole;
 - ``jiles_atherton``: ``fit_jiles_atherton`` (the inverse Jiles-Atherton model, five physical
   parameters, Levenberg-Marquardt from 8 starts) in physical units, on the B -> H records
   only (n/a elsewhere); nothing to choose, the hold-out RMSE is that of the fit before it;
@@ -83,6 +89,7 @@ from torchhys import (
     Backlash,
     InverseHysteresisNet,
     JilesAtherton,
+    fit_drift,
     fit_generalized_pi,
     fit_jiles_atherton,
     fit_preisach,
@@ -95,7 +102,7 @@ from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_
 from torchhys.streaming import default_limits
 from torchhys.training.baselines import fit_polynomial
 from torchhys.training.cli import read_config
-from torchhys.training.families import PENALTIES, VALIDATION, FitError
+from torchhys.training.families import DRIFT_SCALES, PENALTIES, VALIDATION, FitError
 from torchhys.training.init import initialize
 from torchhys.training.module import OPTIMIZERS, InverseHysteresisModule
 from torchhys.training.operators import build_operators, fit_data_dependent
@@ -663,6 +670,49 @@ def stop_pi(split: Split, budget: Budget) -> Fitted:
                     f"segments={segments}, ridge={ridge:g}, sign={sign:+.0f}", score)
 
 
+def _stop_pi_drift(d: Scaled, n: int, power: float, segments: int, sign: float, ridge: float,
+                   end: int) -> Callable[[Tensor], Tensor]:
+    """The stops (as the ``stop_pi`` row fits them) and a :class:`~torchhys.Drift` (free
+    slope, ``DRIFT_SCALES`` spans of the scored input), each fitted on the samples before
+    ``end``, then a least-squares affine readout of the two outputs on the same samples."""
+    x, y, w = d.x[:, :end], d.y[:, :end], d.warmup
+    stops = fit_stop_pi(x, sign * y, play_width_grid(d.x[:, w:], n, power=power),
+                        segments=segments, ridge=ridge, warmup=w)
+    span = float(x[:, w:].max() - x[:, w:].min())
+    drift = fit_drift(x, y, [span * c for c in DRIFT_SCALES], warmup=w)
+
+    def features(v: Tensor) -> Tensor:
+        return torch.stack([stops(v)[0], drift(v)[0], torch.ones_like(v)], -1)
+
+    with torch.no_grad():
+        coef = torch.linalg.lstsq(features(x)[:, w:].reshape(-1, 3).to(F64),
+                                  y[:, w:].reshape(-1, 1).to(F64)).solution[:, 0]
+    return lambda v: features(v).to(F64) @ coef
+
+
+def stop_pi_drift(split: Split, budget: Budget) -> Fitted:
+    """The stop-type PI model beside a drift of the accumulated input variation (the
+    ``[stop_pi, drift]`` candidate of ``configs/measured.yaml``, its readout by least
+    squares): the stops' number, grid power, segments and sign chosen on the hold-out of the
+    whole, each setting's ridge as the ``stop_pi`` row chooses it (on the stops alone)."""
+    d = scaled(split)
+    best = (math.inf, 0, 0.0, 0, 0.0, 0.0)
+    for n in budget.stop_n:
+        for power in (1.0, 2.0):
+            thresholds = play_width_grid(d.x[:, d.warmup:], n, power=power)
+            for segments in budget.stop_segments:
+                for sign in (1.0, -1.0):
+                    ridge, _ = select_stop_pi_ridge(
+                        d.x, sign * d.y, thresholds, RIDGES, segments=segments,
+                        validation=d.validation, warmup=d.warmup)
+                    score = d.score(_stop_pi_drift(d, n, power, segments, sign, ridge, d.cut))
+                    best = min(best, (score, n, power, segments, sign, ridge))
+    score, n, power, segments, sign, ridge = best
+    model = _stop_pi_drift(d, n, power, segments, sign, ridge, d.x.shape[1])
+    return d.fitted(model, f"n={n}, power={power:g}, segments={segments}, ridge={ridge:g}, "
+                    f"sign={sign:+.0f}", score)
+
+
 class NotApplicable(ValueError):
     """A model that does not apply to this data set (its row reads n/a)."""
 
@@ -914,6 +964,7 @@ MODELS: dict[str, Callable[..., Fitted]] = {
     "generalized_pi": generalized_pi,
     "preisach": preisach,
     "stop_pi": stop_pi,
+    "stop_pi_drift": stop_pi_drift,
     "jiles_atherton": jiles_atherton,
     "eiho_net": eiho_net,
     "default": default,
