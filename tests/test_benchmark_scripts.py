@@ -118,9 +118,11 @@ def test_sma_figure_is_drawn_and_the_drift_takes_the_offset(tmp_path: Path) -> N
     rmse, bias = (dict(zip(*[iter(part.replace(" mm", "").replace(",", "").split())] * 2,
                            strict=True))
                   for part in out.strip().split("RMSE on cycles 5-7: ")[1].split("; mean error: "))
-    assert list(rmse) == ["default", "stop_pi", "line"], out
+    assert list(rmse) == ["default", "stop_pi_drift", "stop_pi", "line"], out
     assert 0 < float(rmse["default"]) < float(rmse["stop_pi"]) < float(rmse["line"])
-    assert abs(float(bias["default"])) < 0.5 * abs(float(bias["stop_pi"]))
+    assert 0 < float(rmse["stop_pi_drift"]) < float(rmse["stop_pi"])
+    for model in ("default", "stop_pi_drift"):
+        assert abs(float(bias[model])) < 0.5 * abs(float(bias["stop_pi"])), out
 
 
 def test_latency_benchmark_times_every_path() -> None:
