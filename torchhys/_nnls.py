@@ -122,6 +122,10 @@ def select_on_holdout(
     return min(scores, key=scores.__getitem__), scores
 
 
+STALLED_STEPS = 10
+"""Steps in a row that do not lower the objective after which :func:`nnls_gram` stops."""
+
+
 def nnls_gram(G: Tensor, h: Tensor, free: Tensor, init: Tensor | None = None) -> Tensor:
     """Lawson-Hanson active set for ``min w'Gw/2 - h'w`` subject to ``w[~free] >= 0``.
 
@@ -136,6 +140,12 @@ def nnls_gram(G: Tensor, h: Tensor, free: Tensor, init: Tensor | None = None) ->
         free: (m,) bool, the unconstrained variables.
         init: (m,) float64 starting point, or None (start from the free variables alone).
             Its negative constrained entries count as 0.
+
+    Every step of the method lowers the objective in exact arithmetic. On a singular or
+    nearly singular ``G`` (collinear features and no penalty) rounding can make the steps
+    cycle among supports at the same objective: after ``STALLED_STEPS`` steps in a row
+    that do not lower it, the method stops and returns the best point it met (the
+    optimum to rounding; a positive penalty makes the problem well posed).
 
     Returns:
         The solution w, (m,).
@@ -159,8 +169,9 @@ def nnls_gram(G: Tensor, h: Tensor, free: Tensor, init: Tensor | None = None) ->
         passive = free | (w > 0)
         w = _feasible_descent(G, h, free, passive, w)
     tol = 1e-12 * max(1.0, float(h.abs().max())) if m else 0.0
+    dual = h - G @ w
+    best, lowest, stalled = w, _objective(w, h, dual), 0
     for _ in range(3 * m + 10):
-        dual = h - G @ w
         cand = ~passive & ~blocked & (dual > tol)
         if not bool(cand.any()):
             break
@@ -172,10 +183,24 @@ def nnls_gram(G: Tensor, h: Tensor, free: Tensor, init: Tensor | None = None) ->
             passive[j], blocked[j] = False, True
             continue
         w, blocked = _feasible_descent(G, h, free, passive, w, z), torch.zeros_like(free)
+        dual = h - G @ w
+        value = _objective(w, h, dual)
+        if value < lowest:
+            best, lowest, stalled = w, value, 0
+            continue
+        stalled += 1
+        if stalled >= STALLED_STEPS:  # cycling at rounding level
+            w = best
+            break
     else:
         warnings.warn(f"NNLS stopped after {3 * m + 10} iterations before convergence",
                       RuntimeWarning, stacklevel=3)
     return s * w
+
+
+def _objective(w: Tensor, h: Tensor, dual: Tensor) -> float:
+    """``w'Gw/2 - h'w`` from the dual ``h - G w``."""
+    return -0.5 * float(w @ (h + dual))
 
 
 def _feasible_descent(G: Tensor, h: Tensor, free: Tensor, passive: Tensor, w: Tensor,
