@@ -76,7 +76,7 @@ import inspect
 import math
 import time
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import NamedTuple
 
@@ -647,13 +647,13 @@ def preisach(split: Split, budget: Budget) -> Fitted:
                     score)
 
 
-def stop_pi(split: Split, budget: Budget) -> Fitted:
-    """``fit_stop_pi`` (non-negative slopes) of the target or of its negative (a non-negative
-    model's loops run clockwise only); thresholds on ``play_width_grid`` (up to the input's
-    span), their number, the grid power, the segments, the sign and the ridge chosen on the
-    hold-out."""
-    d = scaled(split)
-    best = (math.inf, 0, 0.0, 0, 0.0, 0.0)
+StopSetting = tuple[int, float, int, float, float]
+"""(number of thresholds, grid power, segments, sign, ridge) of the stop-type rows."""
+
+
+def _stop_settings(d: Scaled, budget: Budget) -> Iterator[tuple[StopSetting, float]]:
+    """Every setting of the stop-type grid, each with the ridge ``select_stop_pi_ridge``
+    chooses for the stops alone on the hold-out, and that ridge's hold-out RMSE."""
     for n in budget.stop_n:
         for power in (1.0, 2.0):
             thresholds = play_width_grid(d.x[:, d.warmup:], n, power=power)
@@ -662,19 +662,33 @@ def stop_pi(split: Split, budget: Budget) -> Fitted:
                     ridge, scores = select_stop_pi_ridge(
                         d.x, sign * d.y, thresholds, RIDGES, segments=segments,
                         validation=d.validation, warmup=d.warmup)
-                    best = min(best, (scores[ridge], n, power, segments, sign, ridge))
-    score, n, power, segments, sign, ridge = best
+                    yield (n, power, segments, sign, ridge), scores[ridge]
+
+
+def _stop_choice(setting: StopSetting) -> str:
+    n, power, segments, sign, ridge = setting
+    return (f"n={n}, power={power:g}, segments={segments}, ridge={ridge:g}, "
+            f"sign={sign:+.0f}")
+
+
+def stop_pi(split: Split, budget: Budget) -> Fitted:
+    """``fit_stop_pi`` (non-negative slopes) of the target or of its negative (a non-negative
+    model's loops run clockwise only); thresholds on ``play_width_grid`` (up to the input's
+    span), their number, the grid power, the segments, the sign and the ridge chosen on the
+    hold-out."""
+    d = scaled(split)
+    score, setting = min((score, setting) for setting, score in _stop_settings(d, budget))
+    n, power, segments, sign, ridge = setting
     model = fit_stop_pi(d.x, sign * d.y, play_width_grid(d.x[:, d.warmup:], n, power=power),
                         segments=segments, ridge=ridge, warmup=d.warmup)
-    return d.fitted(lambda v: sign * model(v)[0], f"n={n}, power={power:g}, "
-                    f"segments={segments}, ridge={ridge:g}, sign={sign:+.0f}", score)
+    return d.fitted(lambda v: sign * model(v)[0], _stop_choice(setting), score)
 
 
-def _stop_pi_drift(d: Scaled, n: int, power: float, segments: int, sign: float, ridge: float,
-                   end: int) -> Callable[[Tensor], Tensor]:
+def _stop_pi_drift(d: Scaled, setting: StopSetting, end: int) -> Callable[[Tensor], Tensor]:
     """The stops (as the ``stop_pi`` row fits them) and a :class:`~torchhys.Drift` (free
     slope, ``DRIFT_SCALES`` spans of the scored input), each fitted on the samples before
     ``end``, then a least-squares affine readout of the two outputs on the same samples."""
+    n, power, segments, sign, ridge = setting
     x, y, w = d.x[:, :end], d.y[:, :end], d.warmup
     stops = fit_stop_pi(x, sign * y, play_width_grid(d.x[:, w:], n, power=power),
                         segments=segments, ridge=ridge, warmup=w)
@@ -696,21 +710,9 @@ def stop_pi_drift(split: Split, budget: Budget) -> Fitted:
     squares): the stops' number, grid power, segments and sign chosen on the hold-out of the
     whole, each setting's ridge as the ``stop_pi`` row chooses it (on the stops alone)."""
     d = scaled(split)
-    best = (math.inf, 0, 0.0, 0, 0.0, 0.0)
-    for n in budget.stop_n:
-        for power in (1.0, 2.0):
-            thresholds = play_width_grid(d.x[:, d.warmup:], n, power=power)
-            for segments in budget.stop_segments:
-                for sign in (1.0, -1.0):
-                    ridge, _ = select_stop_pi_ridge(
-                        d.x, sign * d.y, thresholds, RIDGES, segments=segments,
-                        validation=d.validation, warmup=d.warmup)
-                    score = d.score(_stop_pi_drift(d, n, power, segments, sign, ridge, d.cut))
-                    best = min(best, (score, n, power, segments, sign, ridge))
-    score, n, power, segments, sign, ridge = best
-    model = _stop_pi_drift(d, n, power, segments, sign, ridge, d.x.shape[1])
-    return d.fitted(model, f"n={n}, power={power:g}, segments={segments}, ridge={ridge:g}, "
-                    f"sign={sign:+.0f}", score)
+    score, setting = min((d.score(_stop_pi_drift(d, setting, d.cut)), setting)
+                         for setting, _ in _stop_settings(d, budget))
+    return d.fitted(_stop_pi_drift(d, setting, d.x.shape[1]), _stop_choice(setting), score)
 
 
 class NotApplicable(ValueError):
