@@ -600,7 +600,7 @@ def _gpi(d: Scaled, inverse: bool, n: int, power: float, ridge: float, units: in
     t = sign * d.y[:, :end]
     u, out = (t, d.x[:, :end]) if inverse else (d.x[:, :end], t)
     model = fit_generalized_pi(u, out, play_width_grid(u, n, power=power), units=units,
-                               ridge=ridge, lbfgs_epochs=epochs)
+                               ridge=ridge, lbfgs_epochs=epochs, warmup=d.warmup)
     if not inverse:
         return lambda v: sign * model(v)[0]
     exact = model.bounded_inverse(u)  # g^-1 within the PI part's training range +- half

@@ -264,7 +264,8 @@ def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
 
     def fitted(x: Tensor, t: Tensor, u: Tensor, out: Tensor, widths: Tensor, r: float,
                sx: float, mx: float, warmup: int) -> nn.Module:
-        m = fit_generalized_pi(u, out, widths, units=units, ridge=r, lbfgs_epochs=epochs)
+        m = fit_generalized_pi(u, out, widths, units=units, ridge=r, lbfgs_epochs=epochs,
+                               warmup=warmup)
         pw, w, w0, a, c, b, s, off = (v.detach() for v in m.parameters_effective())
         if direction == "direct":  # the same model of the physical input x
             return _checked(GeneralizedPrandtlIshlinskii(
