@@ -87,6 +87,7 @@ from torch import Tensor
 from torchhys import (
     EIHO,
     Backlash,
+    Drift,
     InverseHysteresisNet,
     JilesAtherton,
     fit_drift,
@@ -684,16 +685,23 @@ def stop_pi(split: Split, budget: Budget) -> Fitted:
     return d.fitted(lambda v: sign * model(v)[0], _stop_choice(setting), score)
 
 
-def _stop_pi_drift(d: Scaled, setting: StopSetting, end: int) -> Callable[[Tensor], Tensor]:
-    """The stops (as the ``stop_pi`` row fits them) and a :class:`~torchhys.Drift` (free
-    slope, ``DRIFT_SCALES`` spans of the scored input), each fitted on the samples before
-    ``end``, then a least-squares affine readout of the two outputs on the same samples."""
+def _drift(d: Scaled, end: int) -> Drift:
+    """:func:`~torchhys.fit_drift` (free slope, ``DRIFT_SCALES`` spans of the scored input) on
+    the samples before ``end``."""
+    x, y, w = d.x[:, :end], d.y[:, :end], d.warmup
+    span = float(x[:, w:].max() - x[:, w:].min())
+    return fit_drift(x, y, [span * c for c in DRIFT_SCALES], warmup=w)
+
+
+def _stop_pi_drift(d: Scaled, setting: StopSetting, drift: Drift,
+                   end: int) -> Callable[[Tensor], Tensor]:
+    """The stops (as the ``stop_pi`` row fits them) fitted on the samples before ``end``
+    beside ``drift`` (fitted on the same samples, :func:`_drift`), then a least-squares
+    affine readout of the two outputs on those samples."""
     n, power, segments, sign, ridge = setting
     x, y, w = d.x[:, :end], d.y[:, :end], d.warmup
     stops = fit_stop_pi(x, sign * y, play_width_grid(d.x[:, w:], n, power=power),
                         segments=segments, ridge=ridge, warmup=w)
-    span = float(x[:, w:].max() - x[:, w:].min())
-    drift = fit_drift(x, y, [span * c for c in DRIFT_SCALES], warmup=w)
 
     def features(v: Tensor) -> Tensor:
         return torch.stack([stops(v)[0], drift(v)[0], torch.ones_like(v)], -1)
@@ -710,9 +718,12 @@ def stop_pi_drift(split: Split, budget: Budget) -> Fitted:
     squares): the stops' number, grid power, segments and sign chosen on the hold-out of the
     whole, each setting's ridge as the ``stop_pi`` row chooses it (on the stops alone)."""
     d = scaled(split)
-    score, setting = min((d.score(_stop_pi_drift(d, setting, d.cut)), setting)
+    drift = _drift(d, d.cut)  # the same for every setting of the stops
+    score, setting = min((d.score(_stop_pi_drift(d, setting, drift, d.cut)), setting)
                          for setting, _ in _stop_settings(d, budget))
-    return d.fitted(_stop_pi_drift(d, setting, d.x.shape[1]), _stop_choice(setting), score)
+    end = d.x.shape[1]
+    return d.fitted(_stop_pi_drift(d, setting, _drift(d, end), end), _stop_choice(setting),
+                    score)
 
 
 class NotApplicable(ValueError):
