@@ -25,6 +25,7 @@ __all__ = [
     "check_int",
     "check_same_shape",
     "check_warmup",
+    "fitted_samples",
     "check_tensor",
     "check_widths",
     "as_batched_sequence",
@@ -79,6 +80,38 @@ def check_warmup(warmup: object, T: int) -> int:
     if warmup >= T:
         raise ValueError(f"warmup must leave samples to fit: warmup={warmup} of {T} samples")
     return warmup
+
+
+def fitted_samples(mask: object, shape: tuple[int, int], warmup: int) -> Tensor:
+    """The samples a fit uses, (rows, time) bool: those of ``mask`` (None: every sample)
+    from sample ``warmup`` of each row on.
+
+    ``mask`` is a bool tensor of the data's shape ``(rows, time)``, or ``(time,)`` for one
+    row: the samples to fit (False: left out of the fit, e.g. a held-out block of a
+    cross-validation or the padding of a shorter recording; the states still run through
+    them). ``warmup`` must already be checked (:func:`check_warmup`).
+
+    Raises:
+        TypeError: ``mask`` not a bool tensor.
+        ValueError: ``mask`` of another shape, or no sample left to fit.
+    """
+    rows, T = shape
+    if mask is None:
+        out = torch.zeros(rows, T, dtype=torch.bool)
+        out[:, warmup:] = True
+        return out
+    check_tensor(mask, "mask")
+    if mask.dtype != torch.bool:
+        raise TypeError(f"mask must be a bool tensor (True: fit the sample), got {mask.dtype}")
+    m = mask.unsqueeze(0) if mask.dim() == 1 else mask
+    if tuple(m.shape) != (rows, T):
+        raise ValueError(f"mask must have the data's shape {(rows, T)} (rows, time), got "
+                         f"{tuple(mask.shape)}")
+    out = m.detach().cpu().clone()
+    out[:, :warmup] = False
+    if not bool(out.any()):
+        raise ValueError(f"mask (with warmup={warmup}) leaves no sample to fit")
+    return out
 
 
 def check_bool(value: object, name: str) -> bool:

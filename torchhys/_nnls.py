@@ -22,8 +22,10 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-__all__ = ["Moments", "check_penalty", "check_validation", "holdout_cuts", "moments",
-           "nnls_gram", "select_on_holdout"]
+from torchhys._checks import fitted_samples
+
+__all__ = ["Moments", "check_penalty", "check_validation", "fit_segments", "holdout_cuts",
+           "moments", "nnls_gram", "select_on_holdout"]
 
 
 class Moments(NamedTuple):
@@ -85,6 +87,43 @@ def holdout_cuts(T: int, warmup: int, validation: float | None) -> list[int]:
         raise ValueError(f"warmup ({warmup}) leaves no training samples before the "
                          f"validation split at {split}")
     return [warmup, split, T]
+
+
+def fit_segments(shape: tuple[int, int], warmup: int, mask: Tensor | None,
+                 validation: float | None) -> list[Tensor]:
+    """The samples of each segment of a fit, (rows, time) bool each: ``[fitted]``, or
+    ``[training, hold-out]`` with ``validation`` in (0, 1).
+
+    Without a mask the segments are :func:`holdout_cuts`' (the last ``validation`` share of
+    every row's T samples held out). With one (:func:`~torchhys._checks.fitted_samples`),
+    the last ``validation`` share of each row's masked samples (at least one, where it has
+    any) is held out.
+
+    Raises:
+        TypeError, ValueError: a bad mask, ``validation`` not in (0, 1), no training sample
+            before the hold-out.
+    """
+    rows, T = shape
+    if mask is None:
+        cuts = holdout_cuts(T, warmup, validation)
+        out = []
+        for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+            m = torch.zeros(rows, T, dtype=torch.bool)
+            m[:, a:b] = True
+            out.append(m)
+        return out
+    fitted = fitted_samples(mask, shape, warmup)
+    if validation is None:
+        return [fitted]
+    validation = check_validation(validation)
+    count = fitted.sum(1, keepdim=True)
+    held = torch.where(count > 0, (validation * count).round().clamp_min(1), 0)
+    valid = fitted & (fitted.cumsum(1) > count - held)
+    train = fitted & ~valid
+    if not bool(train.any()):
+        raise ValueError(f"the mask's {int(count.sum())} samples leave no training sample "
+                         f"before the validation share ({validation:g}) of each row")
+    return [train, valid]
 
 
 def select_on_holdout(

@@ -22,7 +22,7 @@ from torchhys._checks import (
     check_real,
     check_warmup,
 )
-from torchhys._nnls import nnls_gram
+from torchhys._nnls import fit_segments, nnls_gram
 from torchhys.functional.drift import (
     accumulated_variation,
     check_scales,
@@ -124,7 +124,7 @@ class Drift(HysteresisOperator):
 
 
 def fit_drift(x: Tensor, y: Tensor, scales: Tensor | Sequence[float], *,
-              warmup: int = 0, linear: bool = True) -> Drift:
+              warmup: int = 0, linear: bool = True, mask: Tensor | None = None) -> Drift:
     """Identify a :class:`Drift` (fresh start of every row) by least squares with weights of
     one sign, the offset free:
 
@@ -142,12 +142,15 @@ def fit_drift(x: Tensor, y: Tensor, scales: Tensor | Sequence[float], *,
         warmup: samples at the start of each row left out of the fit (their variation still
             counts).
         linear: fit a free slope in x beside the drift (left out of the returned model).
+        mask: the samples to fit, bool, the shape of ``x`` (False: left out of the fit,
+            their variation still counts, e.g. a held-out block or a shorter row's padding);
+            None: every sample (after ``warmup`` in both cases).
 
     Returns:
         The fitted drift, in x's dtype.
 
     Raises:
-        ValueError: NaN/inf, shapes differ, bad scales, warmup >= time.
+        ValueError: NaN/inf, shapes differ, bad scales, warmup >= time, a bad mask.
     """
     xb, _ = as_batched_sequence(x, "x")
     yb, _ = as_batched_sequence(y, "y")
@@ -158,10 +161,12 @@ def fit_drift(x: Tensor, y: Tensor, scales: Tensor | Sequence[float], *,
     check_bool(linear, "linear")
     c = torch.as_tensor(scales, dtype=torch.float64)
     check_scales(c)
+    (fitted,) = fit_segments(tuple(xb.shape), warmup, mask, None)
+    fitted = fitted.to(xb.device)
     v, _ = accumulated_variation(xb)
-    g = drift_features(v[:, warmup:].reshape(-1), c)  # (n, K)
-    t = yb[:, warmup:].reshape(-1).to(torch.float64)
-    xs = xb[:, warmup:].reshape(-1, 1).to(torch.float64)
+    g = drift_features(v[fitted], c)  # (n, K)
+    t = yb[fitted].to(torch.float64)
+    xs = xb[fitted].unsqueeze(1).to(torch.float64)
     # the offset at column K (free), then the slope (free)
     A = torch.cat([g, torch.ones_like(t)[:, None]] + ([xs - xs.mean()] if linear else []), 1)
     n, K = t.numel(), c.numel()

@@ -21,10 +21,11 @@ from torchhys._checks import (
     check_same_shape,
     check_warmup,
     check_widths,
+    fitted_samples,
 )
 from torchhys._nnls import (
     check_validation,
-    holdout_cuts,
+    fit_segments,
     moments,
     nnls_gram,
     select_on_holdout,
@@ -54,7 +55,7 @@ class FitResult(NamedTuple):
 def fit_full_batch(
     model: InverseHysteresisNet | HysteresisOperator, x: Tensor, y: Tensor, *,
     adam_epochs: int = 2000, lbfgs_epochs: int = 500, lr: float = 1e-2, tolerance: float = 0.0,
-    warmup: int = 0, penalty: Callable[[], Tensor] | None = None,
+    warmup: int = 0, penalty: Callable[[], Tensor] | None = None, mask: Tensor | None = None,
 ) -> FitResult:
     """Fit ``model`` to (x, y) with full-batch Adam then L-BFGS (strong Wolfe line search).
 
@@ -80,20 +81,27 @@ def fit_full_batch(
             states), ``0 <= warmup < time``.
         penalty: a term added to the loss (a 0-dim tensor of the model's parameters), or
             None. :class:`FitResult` reports the mean squared error without it.
+        mask: the samples in the loss (and in a network's normalization), bool, the shape
+            of ``y`` (False: left out, the states still run through them); None: every
+            sample (after ``warmup`` in both cases).
 
     Returns:
         :class:`FitResult`.
 
     Raises:
         TypeError, ValueError: a model that is neither, or an operator with several
-            outputs or one that needs the target; a warmup out of range.
+            outputs or one that needs the target; a warmup out of range, a bad mask.
     """
     start = time.perf_counter()
     check_int(adam_epochs, "adam_epochs", minimum=0)
     check_int(lbfgs_epochs, "lbfgs_epochs", minimum=0)
     check_warmup(warmup, x.shape[-1])
-    loss_fn = (_network_loss(model, x, y, warmup) if isinstance(model, InverseHysteresisNet)
-               else _operator_loss(model, x, y, warmup))
+    if mask is not None:
+        rows = x.shape[0] if x.dim() == 2 else 1
+        mask = fitted_samples(mask, (rows, x.shape[-1]), warmup).to(x.device)
+    loss_fn = (_network_loss(model, x, y, warmup, mask)
+               if isinstance(model, InverseHysteresisNet)
+               else _operator_loss(model, x, y, warmup, mask))
     objective = loss_fn if penalty is None else (lambda: loss_fn() + penalty())
     params = [p for p in model.parameters() if p.requires_grad]
     if not params:
@@ -134,19 +142,26 @@ def fit_full_batch(
     return FitResult(mse, adam_epochs + done, time.perf_counter() - start)
 
 
-def _network_loss(model: InverseHysteresisNet, x: Tensor, y: Tensor,
-                  warmup: int) -> Callable[[], Tensor]:
-    model.fit_normalization(x, y)
+def _mse(error: Tensor, warmup: int, mask: Tensor | None) -> Tensor:
+    """Mean square of ``error`` (rows, time) over the samples from ``warmup`` on, or over
+    those of ``mask`` (already combined with ``warmup``)."""
+    return torch.mean(error[:, warmup:] ** 2) if mask is None else torch.mean(error[mask] ** 2)
+
+
+def _network_loss(model: InverseHysteresisNet, x: Tensor, y: Tensor, warmup: int,
+                  mask: Tensor | None) -> Callable[[], Tensor]:
+    model.fit_normalization(x, y, mask=mask)
     trainable_ops = any(p.requires_grad for p in model.operators.parameters())
     yb = y.reshape(-1, y.shape[-1])
     if not trainable_ops:
         with torch.no_grad():
             feats, _ = model.features(x, target=y)
-        return lambda: torch.mean((model.head(feats) - yb)[..., warmup:] ** 2)
-    return lambda: torch.mean((model(x.reshape(yb.shape), target=yb)[0] - yb)[..., warmup:] ** 2)
+        return lambda: _mse(model.head(feats).reshape(yb.shape) - yb, warmup, mask)
+    return lambda: _mse(model(x.reshape(yb.shape), target=yb)[0] - yb, warmup, mask)
 
 
-def _operator_loss(op: object, x: Tensor, y: Tensor, warmup: int) -> Callable[[], Tensor]:
+def _operator_loss(op: object, x: Tensor, y: Tensor, warmup: int,
+                   mask: Tensor | None) -> Callable[[], Tensor]:
     op = check_operator(op, "model")
     if op.n_outputs != 1 or not op.causal:
         raise ValueError(f"model must be an InverseHysteresisNet or a causal operator with one "
@@ -158,7 +173,7 @@ def _operator_loss(op: object, x: Tensor, y: Tensor, warmup: int) -> Callable[[]
     # an operator may give a faster closure of its output on this fixed input
     hook = getattr(type(op), "predictor", None)  # a method, not a submodule of that name
     predict = op.predictor(xb) if callable(hook) else (lambda: op(xb)[0])
-    return lambda: torch.mean((predict() - yb)[:, warmup:] ** 2)
+    return lambda: _mse(predict() - yb, warmup, mask)
 
 
 def play_width_grid(u: Tensor, n: int = 30, *, power: float = 3.0) -> Tensor:
@@ -194,7 +209,7 @@ def play_width_grid(u: Tensor, n: int = 30, *, power: float = 3.0) -> Tensor:
 
 def fit_prandtl_ishlinskii(
     u: Tensor, y: Tensor, widths: Tensor, *, ridge: float = 0.0, learnable: bool = False,
-    warmup: int = 0, nonnegative: bool = False,
+    warmup: int = 0, nonnegative: bool = False, mask: Tensor | None = None,
 ) -> PrandtlIshlinskii:
     """Least-squares Prandtl-Ishlinskii model ``y ~ w0 u + sum_i w_i play_{d_i}[u]``.
 
@@ -228,6 +243,9 @@ def fit_prandtl_ishlinskii(
         warmup: leading samples of each row left out of the least-squares fit,
             ``0 <= warmup < time``.
         nonnegative: constrain the weights as above (a monotone, invertible model).
+        mask: the samples to fit, bool, the shape of ``u`` (False: left out of the fit, the
+            plays still run through them, e.g. a held-out block or a shorter row's
+            padding); None: every sample (after ``warmup`` in both cases).
 
     Returns:
         :class:`~torchhys.PrandtlIshlinskii` in the dtype of ``u`` (detached parameters;
@@ -247,7 +265,7 @@ def fit_prandtl_ishlinskii(
     ub, yb = _check_pi_data(u, y, widths, warmup)
     ridge = check_nonnegative(ridge, "ridge")
     check_bool(nonnegative, "nonnegative")
-    (A, target), = _pi_segments(ub, yb, widths, [warmup, ub.shape[1]])
+    (A, target), = _pi_segments(ub, yb, widths, fit_segments(ub.shape, warmup, mask, None))
     if nonnegative:
         m = moments(A, target)
         floor = _linear_floor(A[:, 0], target)
@@ -264,6 +282,7 @@ def fit_prandtl_ishlinskii(
 def select_pi_ridge(
     u: Tensor, y: Tensor, widths: Tensor, ridges: Sequence[float], *,
     nonnegative: bool = False, validation: float = 0.25, warmup: int = 0,
+    mask: Tensor | None = None,
 ) -> tuple[float, dict[float, float]]:
     """Choose the ``ridge`` of :func:`fit_prandtl_ishlinskii` on a time-ordered hold-out.
 
@@ -274,9 +293,10 @@ def select_pi_ridge(
     ``nonnegative`` floor of the linear weight).
 
     Args:
-        u, y, widths, warmup, nonnegative: as in :func:`fit_prandtl_ishlinskii`.
+        u, y, widths, warmup, nonnegative, mask: as in :func:`fit_prandtl_ishlinskii`.
         ridges: candidate ridge weights (each >= 0), at least one.
-        validation: share of the samples of each row held out at its end, in (0, 1).
+        validation: share of the samples of each row held out at its end, in (0, 1) (with
+            a ``mask``: of its masked samples).
 
     Returns:
         The ridge with the least hold-out RMS error (the first on ties), and the RMS error
@@ -286,8 +306,8 @@ def select_pi_ridge(
         TypeError, ValueError: bad arguments, or no training sample before the split.
     """
     ub, yb = _check_pi_data(u, y, widths, warmup)
-    cuts = holdout_cuts(ub.shape[1], warmup, check_validation(validation))
-    (A, t), (Av, tv) = _pi_segments(ub, yb, widths, cuts)
+    segments = fit_segments(ub.shape, warmup, mask, check_validation(validation))
+    (A, t), (Av, tv) = _pi_segments(ub, yb, widths, segments)
     nonnegative = check_bool(nonnegative, "nonnegative")
     floor = _linear_floor(A[:, 0], t) if nonnegative else 0.0
 
@@ -311,15 +331,14 @@ def _check_pi_data(u: Tensor, y: Tensor, widths: Tensor, warmup: int) -> tuple[T
 
 
 def _pi_segments(u: Tensor, y: Tensor, widths: Tensor,
-                 cuts: list[int]) -> list[tuple[Tensor, Tensor]]:
+                 segments: list[Tensor]) -> list[tuple[Tensor, Tensor]]:
     """Design ``[u, plays]`` (rows, N + 1) and target (rows,), float64 on the CPU, of the
-    samples ``cuts[s]:cuts[s+1]`` of every row, for each segment s (the plays run from 0)."""
+    samples of each segment (a (batch, time) bool mask; the plays run from 0)."""
     with torch.no_grad():
         u64, y64 = u.detach().double().cpu(), y.detach().double().cpu()
         plays = backlash(u64, widths.detach().double().cpu())
         design = torch.cat([u64.unsqueeze(-1), plays], dim=-1)
-        return [(design[:, a:b].reshape(-1, design.shape[-1]), y64[:, a:b].reshape(-1))
-                for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
+        return [(design[m], y64[m]) for m in segments]
 
 
 def _pi_lstsq(A: Tensor, target: Tensor, ridge: float) -> Tensor:

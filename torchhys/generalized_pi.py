@@ -49,7 +49,7 @@ from torchhys._checks import (
     check_same_shape,
     check_tensor,
 )
-from torchhys._nnls import check_penalty
+from torchhys._nnls import check_penalty, fit_segments
 from torchhys.backlash import _inverse_softplus, _Widths
 from torchhys.fitting import fit_full_batch, fit_prandtl_ishlinskii
 from torchhys.functional.backlash import backlash, check_play_state, play_step
@@ -281,7 +281,7 @@ class GeneralizedPrandtlIshlinskii(_Widths, HysteresisOperator):
 def fit_generalized_pi(
     x: Tensor, y: Tensor, widths: Tensor, *, units: int = 6, ridge: float = 0.0,
     adam_epochs: int = 0, lbfgs_epochs: int = 1000, lr: float = 1e-2, warmup: int = 0,
-    anchor: float = 1e-6,
+    anchor: float = 1e-6, mask: Tensor | None = None,
 ) -> GeneralizedPrandtlIshlinskii:
     """Fit a :class:`GeneralizedPrandtlIshlinskii` model ``y ~ g(p[x])``.
 
@@ -316,6 +316,10 @@ def fit_generalized_pi(
             g and the loss (they still run the plays), to forget the zero initial state.
         anchor: weight of the penalty on the log-gain and log-slopes moving from their
             initial values (y in units of its standard deviation), >= 0 (0: none).
+        mask: the scored samples, bool, the shape of ``x`` (False: left out of the initial
+            fit, the centres, the scale of y and the loss, as the warm-up; the plays still run
+            through them, e.g. a held-out block or a shorter row's padding); None: every
+            sample (after ``warmup`` in both cases).
 
     Returns:
         The model, in x's dtype.
@@ -330,8 +334,11 @@ def fit_generalized_pi(
     xb, _ = as_batched_sequence(x, "x")
     yb, _ = as_batched_sequence(y, "y")
     check_same_shape(yb, xb, "y", "x")
-    pi = fit_prandtl_ishlinskii(xb, yb, widths, ridge=ridge, nonnegative=True, warmup=warmup)
-    sy = float(yb[:, warmup:].std())
+    pi = fit_prandtl_ishlinskii(xb, yb, widths, ridge=ridge, nonnegative=True, warmup=warmup,
+                                mask=mask)
+    (scored,) = fit_segments(tuple(xb.shape), warmup, mask, None)
+    scored = scored.to(xb.device)
+    sy = float(yb[scored].std())
     if not sy > 0:
         raise ValueError("y must vary over the scored samples (after warmup)")
     w0 = float(pi.linear_weight) / sy
@@ -339,7 +346,7 @@ def fit_generalized_pi(
         raise ValueError("y does not increase with x (the least-squares static gain is not "
                          "positive): a generalized PI model of increasing loops does not fit")
     with torch.no_grad():
-        v = pi(xb)[0][:, warmup:].reshape(-1) / sy
+        v = pi(xb)[0][scored] / sy
         q = (torch.arange(units, dtype=v.dtype, device=v.device) + 0.5) / max(units, 1)
         centers = torch.quantile(v, q) if units else v.new_zeros(0)
         spacing = float((v.max() - v.min()).clamp_min(1e-12)) / max(units, 1)
@@ -358,7 +365,8 @@ def fit_generalized_pi(
     model.log_linear_weight.requires_grad_(False)
     try:
         fit_full_batch(model, xb, yb / sy, adam_epochs=adam_epochs, lbfgs_epochs=lbfgs_epochs,
-                       lr=lr, warmup=warmup, penalty=drift if anchor > 0 else None)
+                       lr=lr, warmup=warmup, penalty=drift if anchor > 0 else None,
+                       mask=mask)
     finally:
         model.log_linear_weight.requires_grad_(True)
     with torch.no_grad():  # g's output back to the units of y

@@ -24,7 +24,9 @@ from torchhys._checks import (
     check_same_shape,
     check_tensor,
     check_warmup,
+    fitted_samples,
 )
+from torchhys._nnls import fit_segments
 from torchhys.functional.jiles_atherton import MU0, jiles_atherton, jiles_atherton_step
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
 
@@ -180,7 +182,7 @@ def substeps_for(x: Tensor, resolution: int = 32, quantile: float = 1.0) -> int:
 
 def fit_jiles_atherton(x: Tensor, y: Tensor, *, warmup: int = 0, mu0: float = MU0,
                        substeps: int | None = None, starts: int = 8, iterations: int = 60,
-                       seed: int = 0) -> JilesAtherton:
+                       seed: int = 0, mask: Tensor | None = None) -> JilesAtherton:
     """Fit an inverse Jiles-Atherton model ``y = H[x]`` (B -> H) by least squares.
 
     Levenberg-Marquardt on the logarithms of the parameters (forward-difference Jacobians)
@@ -198,6 +200,9 @@ def fit_jiles_atherton(x: Tensor, y: Tensor, *, warmup: int = 0, mu0: float = MU
             1/32 of its range (at most 64).
         starts, iterations: random starts and Levenberg-Marquardt iterations of each.
         seed: the starts' random generator seed.
+        mask: the samples to fit, bool, the shape of ``x`` (False: left out of the fit, the
+            state still runs through them, e.g. a held-out block or a shorter row's
+            padding); None: every sample (after ``warmup`` in both cases).
 
     Returns:
         The fitted :class:`JilesAtherton` (float64 parameters).
@@ -215,8 +220,11 @@ def fit_jiles_atherton(x: Tensor, y: Tensor, *, warmup: int = 0, mu0: float = MU
     starts = check_int(starts, "starts", minimum=1)
     iterations = check_int(iterations, "iterations", minimum=1)
     xb, yb = xb.to(torch.float64), yb.to(torch.float64)
-    bmax, hmax = float(xb.abs().max()), float(yb.abs().max())
-    xs, ys = xb[:, warmup:], yb[:, warmup:]  # the fitted samples
+    (fitted,) = fit_segments((xb.shape[0], T), warmup, mask, None)
+    fitted = fitted.to(xb.device)
+    known = fitted_samples(mask, (xb.shape[0], T), 0).to(xb.device)  # the warm-up's too
+    bmax, hmax = float(xb.abs().max()), float(yb[known].abs().max())
+    xs, ys = xb[fitted], yb[fitted]  # the fitted samples
     if not (float(xb.std()) > 0 and float(ys.std()) > 0):
         raise ValueError("x and y must vary (a constant record has no loop to fit)")
     if float(((xs - xs.mean()) * (ys - ys.mean())).sum()) <= 0:
@@ -233,7 +241,7 @@ def fit_jiles_atherton(x: Tensor, y: Tensor, *, warmup: int = 0, mu0: float = MU
         ms, a, k, alpha = p[:, :4].exp().unbind(1)
         h, _ = jiles_atherton(xb.repeat(P, 1), ms, a, k, alpha, torch.sigmoid(p[:, 4]),
                               mu0=mu0, substeps=K)
-        r = h[:, warmup:].reshape(P, -1) - target
+        r = h.reshape(P, R, T)[:, fitted] - target
         mse = r.square().mean(1)
         return r, torch.where(torch.isfinite(mse), mse, torch.full_like(mse, math.inf))
 

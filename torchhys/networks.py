@@ -6,7 +6,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-from torchhys._checks import as_batched_sequence, check_choice, check_int
+from torchhys._checks import as_batched_sequence, check_choice, check_int, fitted_samples
 from torchhys.operator import (
     AtomicLoad,
     HysteresisOperator,
@@ -134,41 +134,48 @@ class InverseHysteresisNet(AtomicLoad, nn.Module):
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     @torch.no_grad()
-    def fit_normalization(self, x: Tensor, y: Tensor) -> None:
+    def fit_normalization(self, x: Tensor, y: Tensor, *, mask: Tensor | None = None) -> None:
         """Fit the input/output normalization buffers to training data (physical units).
 
         Args:
             x: model input, (time,) or (batch, time).
             y: targets, same shape.
+            mask: the samples the statistics are taken over, bool, the shape of ``x``
+                (False: left out, e.g. a held-out block or a shorter row's padding; the
+                operators still run through them); None: every sample.
 
         Each operator's data-dependent settings are calibrated on ``x`` first
         (:meth:`~torchhys.HysteresisOperator.calibrate`, e.g. a ``threshold="auto"``).
 
         Raises:
-            ValueError: mismatched shapes, fewer than 2 samples, a constant ``x`` or ``y``.
+            ValueError: mismatched shapes, fewer than 2 samples, a constant ``x`` or ``y``,
+                a bad ``mask``.
         """
         xb, _ = as_batched_sequence(x, "x")
         yb, _ = as_batched_sequence(y, "y")
         if yb.shape != xb.shape:
             raise ValueError(f"y must have the shape of x {tuple(xb.shape)}, got {tuple(y.shape)}")
-        if xb.shape[-1] < 2:
+        m = None if mask is None else fitted_samples(mask, tuple(xb.shape), 0).to(xb.device)
+        if (xb.shape[-1] if m is None else int(m.sum())) < 2:
             raise ValueError(
                 f"x must hold at least 2 samples to fit a normalization, got {tuple(x.shape)}"
+                + ("" if m is None else f" with {int(m.sum())} in its mask")
             )
-        for name, v in (("x", xb), ("y", yb)):
+        xs, ys = (xb, yb) if m is None else (xb[m], yb[m])
+        for name, v in (("x", xs), ("y", ys)):
             if float(v.std()) == 0.0:
                 raise ValueError(f"{name} is constant (std 0): cannot fit a normalization")
         for op in self.operators:
             op.calibrate(xb)
         feats, _ = self.features(xb, target=yb)
-        flat = feats.reshape(-1, feats.shape[-1])
+        flat = feats.reshape(-1, feats.shape[-1]) if m is None else feats[m]
         std = flat.std(dim=0)
         self.in_mean.copy_(flat.mean(dim=0))
         self.in_std.copy_(torch.where(std > 0, std, torch.ones_like(std)))
-        self.out_mean.copy_(yb.mean())
-        self.out_std.copy_(yb.std())
-        self.out_min.copy_(yb.min())
-        self.out_max.copy_(yb.max())
+        self.out_mean.copy_(ys.mean())
+        self.out_std.copy_(ys.std())
+        self.out_min.copy_(ys.min())
+        self.out_max.copy_(ys.max())
 
     def streaming_steps(self, dtype: torch.dtype) -> list[OperatorStep]:
         """The operators' per-sample steps in ``dtype`` (for

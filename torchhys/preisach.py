@@ -29,7 +29,7 @@ from torchhys._nnls import (
     Moments,
     check_penalty,
     check_validation,
-    holdout_cuts,
+    fit_segments,
     nnls_gram,
     select_on_holdout,
 )
@@ -273,6 +273,7 @@ def fit_preisach(
     linear: bool = True,
     warmup: int = 0,
     scale: float | None = None,
+    mask: Tensor | None = None,
 ) -> Preisach:
     """Identify a :class:`Preisach` model (demagnetised start, hard relays) by penalised
     non-negative least squares of the density, with a free offset and linear term:
@@ -292,6 +293,9 @@ def fit_preisach(
         warmup: samples at the start of each row left out of the fit (their relays still
             run), to forget the assumed initial state.
         scale: None (an even grid), or a graded grid's scale (:class:`Preisach`).
+        mask: the samples to fit, bool, the shape of ``x`` (False: left out of the fit, the
+            relays still run through them, e.g. a held-out block or a shorter row's
+            padding); None: every sample (after ``warmup`` in both cases).
 
     Returns:
         The fitted model, in x's dtype.
@@ -303,8 +307,8 @@ def fit_preisach(
     Warns:
         RuntimeWarning: once, with the share of samples of x outside [lo, hi].
     """
-    xb, yb, model, cuts = _prepare(x, y, lo, hi, n, linear, warmup, None, scale)
-    (G, h, _, count), = _normal_equations(xb, yb, model, cuts)
+    xb, yb, model, samples = _prepare(x, y, lo, hi, n, linear, warmup, None, scale, mask)
+    (G, h, _, count), = _normal_equations(xb, yb, model, samples)
     theta = _solve(G / count, h / count, model, check_penalty(ridge, "ridge"),
                    check_penalty(smoothness, "smoothness"))
     return _set(model, theta)
@@ -323,10 +327,12 @@ def select_penalty(
     linear: bool = True,
     warmup: int = 0,
     scale: float | None = None,
+    mask: Tensor | None = None,
 ) -> tuple[float, dict[float, float]]:
     """Choose the ``kind`` penalty (``"ridge"`` or ``"smoothness"``, the other 0) of
     :func:`fit_preisach` on a time-ordered hold-out: fit on the first ``1 - validation`` of
-    each row, score the RMS error on the rest (the relays run through the whole sequence).
+    each row (after ``warmup``; with a ``mask``, of its masked samples), score the RMS error
+    on the rest (the relays run through the whole sequence).
 
     Returns:
         The penalty with the least validation RMS error (the first on ties), and the RMS
@@ -335,9 +341,9 @@ def select_penalty(
     """
     if kind not in ("ridge", "smoothness"):
         raise ValueError(f"kind must be one of ('ridge', 'smoothness'), got {kind!r}")
-    xb, yb, model, cuts = _prepare(x, y, lo, hi, n, linear, warmup,
-                                   check_validation(validation), scale)
-    train, valid = _normal_equations(xb, yb, model, cuts)
+    xb, yb, model, samples = _prepare(x, y, lo, hi, n, linear, warmup,
+                                      check_validation(validation), scale, mask)
+    train, valid = _normal_equations(xb, yb, model, samples)
 
     last: Tensor | None = None  # each penalty's fit starts from the previous one's solution
 
@@ -350,9 +356,10 @@ def select_penalty(
 
 
 def _prepare(x: Tensor, y: Tensor, lo: float | None, hi: float | None, n: int, linear: bool,
-             warmup: int, validation: float | None,
-             scale: float | None) -> tuple[Tensor, Tensor, Preisach, list[int]]:
-    """Check the data, warn about samples outside [lo, hi]; the model and the segment cuts."""
+             warmup: int, validation: float | None, scale: float | None,
+             mask: Tensor | None) -> tuple[Tensor, Tensor, Preisach, list[Tensor]]:
+    """Check the data, warn about samples outside [lo, hi]; the model and the samples of
+    each segment (:func:`~torchhys._nnls.fit_segments`)."""
     xb, _ = as_batched_sequence(x, "x")
     yb, _ = as_batched_sequence(y, "y")
     if xb.shape != yb.shape:
@@ -370,29 +377,29 @@ def _prepare(x: Tensor, y: Tensor, lo: float | None, hi: float | None, n: int, l
     if outside > 0:
         warnings.warn(f"{outside:.2%} of the samples of x lie outside [lo, hi] = [{lo:.6g}, "
                       f"{hi:.6g}]: the relays saturate there", RuntimeWarning, stacklevel=3)
-    return xb, yb, model, holdout_cuts(T, warmup, validation)
+    return xb, yb, model, fit_segments(tuple(xb.shape), warmup, mask, validation)
 
 
 def _normal_equations(x: Tensor, y: Tensor, model: Preisach,
-                      cuts: list[int]) -> list[Moments]:
+                      samples: list[Tensor]) -> list[Moments]:
     """The :class:`~torchhys._nnls.Moments` ``(A'A, A'y, y'y, rows)`` in float64 of the
-    design ``A = [relays, x, 1]`` over the samples ``cuts[s]:cuts[s+1]`` of every row, for
-    each segment s."""
+    design ``A = [relays, x, 1]`` over the samples of each segment (a (rows, time) bool
+    mask)."""
     K, m = model.n_relays, model.n_relays + 1 + isinstance(model.linear, nn.Parameter)
     out = [[x.new_zeros(m, m, dtype=torch.float64), x.new_zeros(m, dtype=torch.float64),
-            x.new_zeros((), dtype=torch.float64), 0] for _ in cuts[1:]]
+            x.new_zeros((), dtype=torch.float64), 0] for _ in samples]
     r0 = model.initial_relays.to(torch.float64).expand(x.shape[0], K)
     for start, stop, r in _relay_chunks(x, model.alpha, model.beta, r0):
-        for seg, a, b in zip(out, cuts[:-1], cuts[1:], strict=True):
-            lo, hi = max(a, start), min(b, stop)
-            if lo >= hi:
+        for seg, mask in zip(out, samples, strict=True):
+            chunk = mask[:, start:stop].to(x.device)
+            if not bool(chunk.any()):
                 continue
-            xs = graded_input(x[:, lo:hi].reshape(1, -1).to(torch.float64), model.centre,
-                              model.scale)
-            cols = [r[:, :, lo - start:hi - start].reshape(K, -1)]
+            xs = graded_input(x[:, start:stop][chunk].unsqueeze(0).to(torch.float64),
+                              model.centre, model.scale)
+            cols = [r[:, chunk]]
             cols += [xs] if m > K + 1 else []
             A = torch.cat(cols + [torch.ones_like(xs)])
-            ys = y[:, lo:hi].reshape(-1).to(torch.float64)
+            ys = y[:, start:stop][chunk].to(torch.float64)
             seg[0] += A @ A.T
             seg[1] += A @ ys
             seg[2] += ys @ ys

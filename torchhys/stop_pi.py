@@ -35,7 +35,7 @@ from torchhys._nnls import (
     Moments,
     check_penalty,
     check_validation,
-    holdout_cuts,
+    fit_segments,
     nnls_gram,
     select_on_holdout,
 )
@@ -221,11 +221,12 @@ def _check_data(x: Tensor, y: Tensor, thresholds: Tensor, segments: int,
     return xb, yb, segments
 
 
-def _center(xb: Tensor, warmup: int, center: float | None) -> float:
-    """The midpoint of the fitted input's range, or the given centre."""
+def _center(xb: Tensor, fitted: Tensor, center: float | None) -> float:
+    """The midpoint of the range of the fitted input (the samples of the (rows, time) bool
+    mask ``fitted``), or the given centre."""
     if center is not None:
         return check_real(center, "center")
-    xs = xb[:, warmup:]
+    xs = xb[fitted.to(xb.device)]
     return 0.5 * (float(xs.min()) + float(xs.max()))
 
 
@@ -240,10 +241,11 @@ _CHUNK = 8192
 
 
 def _moments(xb: Tensor, yb: Tensor, thresholds: Tensor, segments: int, center: float,
-             cuts: list[int]) -> list[tuple[Moments, Tensor]]:
+             samples: list[Tensor]) -> list[tuple[Moments, Tensor]]:
     """The normal equations of the design ``[1, u, segment features]`` (2 + N K columns) for
-    the samples ``cuts[s]:cuts[s+1]`` of every row, float64, accumulated in chunks; with each,
-    which columns vary over those samples ((2 + N K,) bool; the first two always True)."""
+    the samples of each segment (a (rows, time) bool mask), float64, accumulated in chunks;
+    with each, which columns vary over those samples ((2 + N K,) bool; the first two always
+    True)."""
     r = thresholds.detach().double().cpu()
     m = 2 + r.numel() * segments
     out = []
@@ -251,20 +253,19 @@ def _moments(xb: Tensor, yb: Tensor, thresholds: Tensor, segments: int, center: 
         u = xb.detach().double().cpu() - center
         t = yb.detach().double().cpu()
         s = u.unsqueeze(-1) - backlash(u, 2.0 * r)  # (B, T, N)
-        for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+        for seg in samples:
             G, h = torch.zeros(m, m, dtype=torch.float64), torch.zeros(m, dtype=torch.float64)
             yy, count = torch.zeros((), dtype=torch.float64), 0
             lo = torch.full((m,), math.inf, dtype=torch.float64)
             hi = torch.full((m,), -math.inf, dtype=torch.float64)
             for row in range(u.shape[0]):
-                for c in range(a, b, _CHUNK):
-                    e = min(b, c + _CHUNK)
-                    A = torch.cat([torch.ones(e - c, 1, dtype=torch.float64), u[row, c:e, None],
-                                   stop_segments(s[row, c:e], r, segments).flatten(1)], 1)
+                for i in seg[row].nonzero().flatten().split(_CHUNK):
+                    A = torch.cat([torch.ones(i.numel(), 1, dtype=torch.float64), u[row, i, None],
+                                   stop_segments(s[row, i], r, segments).flatten(1)], 1)
                     G += A.T @ A
-                    h += A.T @ t[row, c:e]
-                    yy += t[row, c:e] @ t[row, c:e]
-                    count += e - c
+                    h += A.T @ t[row, i]
+                    yy += t[row, i] @ t[row, i]
+                    count += i.numel()
                     lo = torch.minimum(lo, A.amin(0))
                     hi = torch.maximum(hi, A.amax(0))
             varying = hi > lo
@@ -330,6 +331,7 @@ def fit_stop_pi(
     min_linear_weight: float | None = None,
     center: float | None = None,
     warmup: int = 0,
+    mask: Tensor | None = None,
 ) -> StopPrandtlIshlinskii:
     """Identify a :class:`StopPrandtlIshlinskii` model by penalised least squares:
 
@@ -365,6 +367,10 @@ def fit_stop_pi(
         center: the input value at which the stops start; default the midpoint of the fitted
             input's range.
         warmup: leading samples of each row left out of the fit (the stops still run).
+        mask: the samples to fit, bool, the shape of ``x`` (False: left out of the fit and
+            of the default centre, the stops still run through them, e.g. a held-out block
+            or a shorter row's padding); None: every sample (after ``warmup`` in both
+            cases).
 
     Returns:
         The model, in the dtype of ``x`` (parameters detached).
@@ -376,8 +382,9 @@ def fit_stop_pi(
     ridge = check_penalty(ridge, "ridge")
     nonnegative = check_bool(nonnegative, "nonnegative")
     bound = _min_linear_weight(min_linear_weight)
-    c = _center(xb, warmup, center)
-    ((mom, varying),) = _moments(xb, yb, thresholds, segments, c, [warmup, xb.shape[1]])
+    (fitted,) = fit_segments(xb.shape, warmup, mask, None)
+    c = _center(xb, fitted, center)
+    ((mom, varying),) = _moments(xb, yb, thresholds, segments, c, [fitted])
     theta = _solve(mom.gram / mom.count, mom.moment / mom.count, ridge, nonnegative, varying,
                    bound)
     if not bool(torch.isfinite(theta).all()):
@@ -401,11 +408,12 @@ def select_stop_pi_ridge(
     center: float | None = None,
     validation: float = 0.25,
     warmup: int = 0,
+    mask: Tensor | None = None,
 ) -> tuple[float, dict[float, float]]:
     """Choose the ``ridge`` of :func:`fit_stop_pi` on a time-ordered hold-out: each
-    candidate is fitted on the first ``1 - validation`` of every row (after ``warmup``) and
-    scored by the RMS error on the rest (the stops run through the whole sequence; the
-    centre is taken from the fitted part).
+    candidate is fitted on the first ``1 - validation`` of every row (after ``warmup``; with
+    a ``mask``, of its masked samples) and scored by the RMS error on the rest (the stops run
+    through the whole sequence; the centre is taken from the fitted part).
 
     Returns:
         The ridge with the least hold-out RMS error (the first on ties), and the RMS error of
@@ -417,9 +425,9 @@ def select_stop_pi_ridge(
     xb, yb, segments = _check_data(x, y, thresholds, segments, warmup)
     nonnegative = check_bool(nonnegative, "nonnegative")
     bound = _min_linear_weight(min_linear_weight)
-    cuts = holdout_cuts(xb.shape[1], warmup, check_validation(validation))
-    c = _center(xb[:, :cuts[1]], warmup, center)
-    (train, varying), (valid, _) = _moments(xb, yb, thresholds, segments, c, cuts)
+    fitted, held = fit_segments(xb.shape, warmup, mask, check_validation(validation))
+    c = _center(xb, fitted, center)
+    (train, varying), (valid, _) = _moments(xb, yb, thresholds, segments, c, [fitted, held])
 
     def solve(G: Tensor, h: Tensor, ridge: float) -> Tensor:
         return _solve(G, h, ridge, nonnegative, varying, bound)
