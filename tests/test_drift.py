@@ -33,14 +33,14 @@ def signal(rows: int = 3, T: int = 300, seed: int = 0) -> torch.Tensor:
     return torch.randn(rows, T, generator=g, dtype=F64).cumsum(1) * 0.1
 
 
-def reference(x: np.ndarray, scales, weights, offset, prev=None, v0=0.0) -> tuple:
+def reference(x: np.ndarray, scales, weights, offset, prev=None, v0=0.0, floor=0.0) -> tuple:
     """A plain loop in float64: the drift and the final (previous input, variation)."""
     out, v = np.empty(len(x)), v0
     p = x[0] if prev is None else prev
     for t, xt in enumerate(x):
         v += abs(xt - p)
         p = xt
-        out[t] = offset + sum(w * (1.0 - math.exp(-v / c))
+        out[t] = offset + sum(w * (1.0 - math.exp(-max(v, floor) / c))
                               for w, c in zip(weights, scales, strict=True))
     return out, (p, v)
 
@@ -64,19 +64,38 @@ def test_equals_a_plain_loop():
     assert v.tolist() == [0.0, 2.0, 3.0, 3.0, 6.0]  # total variation, from the first sample
 
 
+def test_the_floor_holds_the_drift_below_it():
+    x = signal()
+    w = [0.7, -0.3, 1.5]
+    c64, w64 = torch.tensor(SCALES, dtype=F64), torch.tensor(w, dtype=F64)
+    m = Drift(c64, w64, offset=0.25, min_variation=1.5)
+    d, state = m(x)
+    v, _ = accumulated_variation(x)
+    assert bool((v[:, 0] < 1.5).all()) and bool((v[:, -1] > 1.5).all())  # both sides
+    for row in range(3):
+        ref, (_, vend) = reference(x[row].numpy(), SCALES, w, 0.25, floor=1.5)
+        np.testing.assert_allclose(d[row].numpy(), ref, rtol=0, atol=1e-13)
+        assert state[row, 1].item() == pytest.approx(vend, rel=1e-14)  # v itself runs on
+    held = v < 1.5
+    assert torch.equal(d[held], torch.full_like(d[held], float(d[held][0])))
+    plain, _ = Drift(c64, w64, offset=0.25)(x)
+    assert torch.equal(d[~held], plain[~held])
+
+
 @pytest.mark.parametrize("splits", [[1] * 40, [7, 100, 193], [299, 1]])
 @pytest.mark.parametrize("dtype", [F64, torch.float32])
 def test_chunked_calls_equal_one_call(splits, dtype):
-    m = Drift(SCALES, [0.7, -0.3, 1.5], offset=0.25).to(dtype)
+    m = Drift(SCALES, [0.7, -0.3, 1.5], offset=0.25, min_variation=1.0).to(dtype)
     x = signal(T=sum(splits)).to(dtype)
     whole, final = m(x)
     chunked, state = run_split(m, x, splits)
     assert torch.equal(chunked, whole) and torch.equal(state, final)
 
 
+@pytest.mark.parametrize("floor", [0.0, 1.0])
 @pytest.mark.parametrize("dtype", [F64, torch.float32])
-def test_step_eager_and_scripted_equal_the_sequence_path(dtype):
-    m = Drift(SCALES, [0.7, -0.3, 1.5], offset=0.25).to(dtype)
+def test_step_eager_and_scripted_equal_the_sequence_path(dtype, floor):
+    m = Drift(SCALES, [0.7, -0.3, 1.5], offset=0.25, min_variation=floor).to(dtype)
     x = signal(2, 150, seed=3).to(dtype)
     y, final = m(x)
     step = m.streaming_step(dtype)
@@ -88,7 +107,7 @@ def test_step_eager_and_scripted_equal_the_sequence_path(dtype):
 
 
 def test_step_through_torch_export_equals_the_sequence_path():
-    m = Drift(SCALES, [0.7, -0.3, 1.5], offset=0.25).double()
+    m = Drift(SCALES, [0.7, -0.3, 1.5], offset=0.25, min_variation=1.0).double()
     x = signal(2, 120, seed=7)
     seq, last = m(x)
     step = m.streaming_step(F64)
@@ -101,8 +120,8 @@ def test_step_through_torch_export_equals_the_sequence_path():
 
 def test_streams_and_exports_inside_a_network(tmp_path):
     x = signal(1, 200, seed=4)
-    net = net_of([Drift(SCALES, [0.7, -0.3, 1.5], offset=0.25), Backlash([0.1, 0.3])], F64,
-                 x)
+    net = net_of([Drift(SCALES, [0.7, -0.3, 1.5], offset=0.25, min_variation=1.0),
+                  Backlash([0.1, 0.3])], F64, x)
     assert_streams_as_eager(net, x, atol=1e-12)
     assert_torchscript_as_eager(net, x, tmp_path / "drift.pt", atol=1e-12)
 
@@ -160,6 +179,29 @@ def test_fit_recovers_a_drift_and_equals_scipy_nnls():
         np.testing.assert_allclose(fitted.weights.numpy(), sign * coef[:3], rtol=0, atol=1e-7)
         assert float(fitted.offset) == pytest.approx(
             sign * (coef[3] - coef[3 + free.shape[1]]), abs=1e-7)
+        # the floor: the least variation of the fitted samples
+        assert float(fitted.min_variation) == float(v[:, 30:].min())
+
+
+def test_a_drift_fitted_after_a_held_out_start_is_not_extrapolated_back():
+    """Fitted on a record without its first stretch (a held-out block), the drift holds at
+    the variation it starts from: before it, its error stays that of its first fitted
+    samples, where the exponentials it fits on their flat tails would run away."""
+    x = signal(1, 600, seed=2)
+    v, _ = accumulated_variation(x)
+    y = Drift([0.5, 8.0], [-3.0, -1.0], offset=1.0).double()(x)[0]
+    y = y + 0.02 * torch.randn(y.shape, generator=torch.Generator().manual_seed(3),
+                               dtype=F64)
+    mask = torch.ones_like(x, dtype=torch.bool)
+    mask[:, :150] = False
+    fitted = fit_drift(x, y, [0.25, 0.5, 1.0, 2.0, 4.0, 8.0], mask=mask, linear=False)
+    assert float(fitted.min_variation) == float(v[0, 150])
+    with torch.no_grad():
+        d = fitted(x)[0]
+        free = Drift(fitted.scales, fitted.weights, offset=float(fitted.offset))(x)[0]
+    start = float((d - y)[:, :150].abs().max())
+    assert start <= float(y[:, :150].max() - y[:, :150].min()) + 0.1
+    assert torch.equal(d[:, 150:], free[:, 150:])
 
 
 def test_bad_input():
@@ -188,3 +230,15 @@ def test_bad_input():
     with pytest.raises(ValueError, match="scales must be finite and positive"):
         m.load_state_dict(bad)
     assert all(torch.equal(m.state_dict()[k], v) for k, v in saved.items())
+    with pytest.raises(ValueError, match="min_variation must be a finite number >= 0"):
+        Drift(SCALES, min_variation=-1.0)
+    with pytest.raises(ValueError, match="min_variation must be finite and >= 0"):
+        m.load_state_dict(dict(saved, min_variation=torch.tensor(float("nan"), dtype=F64)))
+    assert all(torch.equal(m.state_dict()[k], v) for k, v in saved.items())
+    # a state dict saved before the floor existed loads with none
+    old = {k: v for k, v in dict(saved, min_variation=torch.tensor(2.0, dtype=F64)).items()}
+    m.load_state_dict(old)
+    assert float(m.min_variation) == 2.0
+    del old["min_variation"]
+    m.load_state_dict(old)
+    assert float(m.min_variation) == 0.0

@@ -19,6 +19,7 @@ from torchhys._checks import (
     as_batched_sequence,
     check_bool,
     check_finite,
+    check_nonnegative,
     check_real,
     check_warmup,
 )
@@ -42,28 +43,32 @@ class DriftStep(OperatorStep):
     ``variation`` (the accumulated variation, float64; 0 at the start). Feature: the drift.
     """
 
-    def __init__(self, scales: Tensor, weights: Tensor, offset: Tensor) -> None:
+    def __init__(self, scales: Tensor, weights: Tensor, offset: Tensor,
+                 min_variation: Tensor | None = None) -> None:
         super().__init__()
         self.register_buffer("scales", scales.detach().to(torch.float64).clone())
         self.register_buffer("weights", weights.detach().clone())
         self.register_buffer("offset", offset.detach().clone().reshape(()))
+        floor = torch.zeros(()) if min_variation is None else min_variation.detach()
+        self.register_buffer("min_variation", floor.to(torch.float64).clone().reshape(()))
         self.n_outputs = 1
         self.state_spec = [StateBlock("previous", 1, kind="float64", from_sample=1.0),
                            StateBlock("variation", 1, kind="float64")]
 
     def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
         d, previous, variation = drift_step(x, state[0], state[1], self.scales, self.weights,
-                                            self.offset)
+                                            self.offset, self.min_variation)
         return d, [previous, variation]
 
 
 class Drift(HysteresisOperator):
     """A drift of the accumulated input variation v (see :mod:`torchhys.functional.drift`):
 
-        d = offset + sum_k w_k (1 - exp(-v / c_k)),   v[t] = sum_{s <= t} |x[s] - x[s-1]|.
+        d = offset + sum_k w_k (1 - exp(-max(v, v_0) / c_k)),
+        v[t] = sum_{s <= t} |x[s] - x[s-1]|.
 
     Identify it with :func:`fit_drift` (weights of one sign: a monotone, decelerating
-    drift).
+    drift; ``v_0`` the least variation of the fitted samples).
 
     Args:
         scales: saturation scales c_k > 0 in input units, (K,) (a full cycle of amplitude A
@@ -71,6 +76,8 @@ class Drift(HysteresisOperator):
         weights: w_k, (K,); zeros if None.
         offset: the drift at the start.
         learnable: make the weights and the offset trainable (the scales stay fixed).
+        min_variation: the floor v_0 >= 0: below it the drift is held at its value there (not
+            extrapolated backwards from the variation it was identified on); 0: none.
 
     Shape:
         - x: (time,) or (batch, time)
@@ -83,7 +90,8 @@ class Drift(HysteresisOperator):
     n_outputs: int = 1
 
     def __init__(self, scales: Tensor | Sequence[float], weights: Tensor | Sequence[float] |
-                 None = None, *, offset: float = 0.0, learnable: bool = False) -> None:
+                 None = None, *, offset: float = 0.0, learnable: bool = False,
+                 min_variation: float = 0.0) -> None:
         super().__init__()
         c = torch.as_tensor(scales)
         if not c.is_floating_point():
@@ -97,7 +105,9 @@ class Drift(HysteresisOperator):
         check_finite(w, "weights")
         check_bool(learnable, "learnable")
         o = torch.tensor(check_real(offset, "offset"), dtype=c.dtype)
+        floor = check_nonnegative(min_variation, "min_variation")
         self.register_buffer("scales", c.detach().clone())
+        self.register_buffer("min_variation", torch.tensor(floor, dtype=torch.float64))
         if learnable:
             self.weights = nn.Parameter(w)
             self.offset = nn.Parameter(o)
@@ -106,13 +116,13 @@ class Drift(HysteresisOperator):
             self.register_buffer("offset", o)
 
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        return drift(x, self.scales, self.weights, self.offset, state)
+        return drift(x, self.scales, self.weights, self.offset, state, self.min_variation)
 
     def streaming_step(self, dtype: torch.dtype) -> DriftStep:
         """The per-sample step with the current parameters (weights and offset in
         ``dtype``, the accumulation in float64)."""
         return DriftStep(self.scales, self.weights.detach().to(dtype),
-                         self.offset.detach().to(dtype))
+                         self.offset.detach().to(dtype), self.min_variation)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # noqa: ANN001
         """Checks the saved scales before anything is copied."""
@@ -120,6 +130,11 @@ class Drift(HysteresisOperator):
         if isinstance(c, Tensor) and c.numel() and not bool((c.isfinite() & (c > 0)).all()):
             raise ValueError(f"{prefix}scales must be finite and positive (saturation scales), "
                              f"got minimum {c.min().item():.6g}")
+        # state dicts saved before the floor existed: none (0)
+        state_dict.setdefault(prefix + "min_variation", torch.zeros((), dtype=torch.float64))
+        v0 = state_dict[prefix + "min_variation"]
+        if isinstance(v0, Tensor) and not (bool(v0.isfinite().all()) and bool((v0 >= 0).all())):
+            raise ValueError(f"{prefix}min_variation must be finite and >= 0, got {v0.tolist()}")
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
 
@@ -131,6 +146,9 @@ def fit_drift(x: Tensor, y: Tensor, scales: Tensor | Sequence[float], *,
         min  mean_t (y[t] - offset - b x[t] - s sum_k w_k g_k[t])**2   subject to w >= 0,
 
     ``g_k = 1 - exp(-v / c_k)``, for s = +1 and s = -1; the better fit is kept (+1 on ties).
+    The returned drift's floor (``min_variation``) is the least variation of the fitted
+    samples: on a record whose fitted samples start late (after a held-out block) it is held
+    there rather than extrapolated backwards.
     With ``linear`` the slope b is free and not part of the returned drift: the drift of a
     target that also follows the input (a loop beside it), which a drift alone would confuse
     with the input's own rise and fall; without it b = 0. Solved in float64 from the normal
@@ -165,6 +183,7 @@ def fit_drift(x: Tensor, y: Tensor, scales: Tensor | Sequence[float], *,
     fitted = fitted.to(xb.device)
     v, _ = accumulated_variation(xb)
     g = drift_features(v[fitted], c)  # (n, K)
+    floor = float(v[fitted].min())
     t = yb[fitted].to(torch.float64)
     xs = xb[fitted].unsqueeze(1).to(torch.float64)
     # the offset at column K (free), then the slope (free)
@@ -181,7 +200,8 @@ def fit_drift(x: Tensor, y: Tensor, scales: Tensor | Sequence[float], *,
             best = (sse, sign, theta)
     _, sign, theta = best
     offset = float(theta[K]) - (float(theta[K + 1] * xs.mean()) if linear else 0.0)
-    return Drift(c.to(xb.dtype), sign * theta[:K].to(xb.dtype), offset=sign * offset)
+    return Drift(c.to(xb.dtype), sign * theta[:K].to(xb.dtype), offset=sign * offset,
+                 min_variation=floor)
 
 
 register_operator("drift", Drift)

@@ -11,9 +11,14 @@ start of the record),
     d[t] = offset + sum_k w_k (1 - exp(-v[t] / c_k)),
 
 with saturation scales ``c_k > 0`` (in input units: a full cycle of amplitude A adds 2 A to
-v). With weights of one sign the drift is monotone and decelerating, the form of the
-accumulated transformation strain of shape-memory alloys. The drift has memory (v) but no
-loop: beside a hysteresis model it shifts the whole loop as the device is used.
+v). A variation floor ``v_0 >= 0`` (``min_variation``) holds the drift at its value there for
+smaller v: ``d[t]`` uses ``max(v[t], v_0)``. A drift identified on samples whose variation is
+at least ``v_0`` (a record whose first cycles were held out) is then not extrapolated
+backwards, where large weights fitted on the flat tails of its exponentials would move it
+far; from ``v_0`` on it is unchanged (0: no floor, v is never negative). With weights of one
+sign the drift is monotone and decelerating, the form of the accumulated transformation
+strain of shape-memory alloys. The drift has memory (v) but no loop: beside a hysteresis
+model it shifts the whole loop as the device is used.
 
 v is accumulated in float64 (the sum of many small steps); chunked calls with the returned
 state equal one call exactly.
@@ -124,8 +129,10 @@ def weighted_sum(g: Tensor, weights: Tensor) -> Tensor:
 
 
 def drift(x: Tensor, scales: Tensor, weights: Tensor, offset: Tensor | float = 0.0,
-          state: Tensor | None = None) -> tuple[Tensor, Tensor]:
-    """The drift ``offset + sum_k w_k (1 - exp(-v / c_k))`` of the accumulated variation v.
+          state: Tensor | None = None,
+          min_variation: Tensor | float = 0.0) -> tuple[Tensor, Tensor]:
+    """The drift ``offset + sum_k w_k (1 - exp(-max(v, v_0) / c_k))`` of the accumulated
+    variation v.
 
     Args:
         x: input, (time,) or (batch, time).
@@ -133,6 +140,7 @@ def drift(x: Tensor, scales: Tensor, weights: Tensor, offset: Tensor | float = 0
         weights: w_k, (K,).
         offset: a scalar.
         state: as :func:`accumulated_variation`.
+        min_variation: the floor v_0 >= 0 (a scalar; 0: none).
 
     Returns:
         ``(d, state)``: d in x's dtype, the shape of x; the state after the last sample.
@@ -143,16 +151,19 @@ def drift(x: Tensor, scales: Tensor, weights: Tensor, offset: Tensor | float = 0
         raise ValueError(f"weights must have the shape of scales {tuple(scales.shape)}, got "
                          f"{tuple(weights.shape)}")
     v, new = accumulated_variation(x, state)
-    g = drift_features(v, scales).to(x.dtype)
+    floor = torch.as_tensor(min_variation, dtype=torch.float64, device=v.device)
+    g = drift_features(torch.maximum(v, floor), scales).to(x.dtype)
     return offset + weighted_sum(g, weights.to(x.dtype)), new
 
 
 def drift_step(x: Tensor, previous: Tensor, variation: Tensor, scales: Tensor,
-               weights: Tensor, offset: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+               weights: Tensor, offset: Tensor,
+               min_variation: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """One sample of :func:`drift` (scriptable): x (B, 1); previous input and accumulated
-    variation (B, 1) float64 -> the drift (B, 1) in x's dtype, and the new previous input
-    and variation."""
+    variation (B, 1) float64; the floor, a 0-dim float64 tensor -> the drift (B, 1) in x's
+    dtype, and the new previous input and variation."""
     x64 = x.to(torch.float64)
     v = variation + (x64 - previous).abs()
-    g = drift_features(v, scales).to(x.dtype)  # (B, 1, K)
+    g = drift_features(torch.maximum(v, min_variation.to(torch.float64)),
+                       scales).to(x.dtype)  # (B, 1, K)
     return offset + weighted_sum(g, weights), x64, v
