@@ -812,14 +812,12 @@ def _config_model(path: Path) -> tuple[dict, dict, torch.dtype, int]:
 
 
 def _train_config(path: Path, x: Tensor, y: Tensor, w: int, budget: Budget,
-                  overrides: dict | None = None,
-                  loss_on: tuple[Tensor, Tensor, Tensor] | None = None,
+                  overrides: dict | None = None, held: Tensor | None = None,
                   ) -> tuple[InverseHysteresisNet, int, int]:
     """Build the config's network (its model section with a candidate's ``overrides``), fit
     its data-dependent operators and normalization on (x, y) (rows, time) and train it on
-    samples [w, T), or with ``loss_on = (x, y, mask)`` on the masked samples of those rows
-    (a cross-validation fold: the rows run whole, the held-out block unscored): the net,
-    epochs done, epochs asked."""
+    samples [w, T), without the samples ``held`` ((rows, time) bool: a cross-validation
+    fold's block, the states running through it): the net, epochs done, epochs asked."""
     m, trainer, dtype, seed = _config_model(path)
     m = {**m, **(overrides or {})}
     torch.manual_seed(seed)
@@ -828,13 +826,13 @@ def _train_config(path: Path, x: Tensor, y: Tensor, w: int, budget: Budget,
     initialize(net, m["init"])
     net.to(dtype)
     x, y = x.to(dtype), y.to(dtype)
-    fit_data_dependent(net.operators, fitters, x, y, warmup=w)
-    net.fit_normalization(x, y)
-    if loss_on is None:
-        mask = torch.zeros_like(x, dtype=torch.bool)
-        mask[:, w:] = True
-    else:
-        x, y, mask = loss_on[0].to(dtype), loss_on[1].to(dtype), loss_on[2]
+    known = None if held is None else ~held  # the samples the fits may use
+    fit_data_dependent(net.operators, fitters, x, y, warmup=w, mask=known)
+    net.fit_normalization(x, y, mask=known)
+    mask = torch.zeros_like(x, dtype=torch.bool)
+    mask[:, w:] = True
+    if held is not None:
+        mask &= ~held
     fixed = not any(p.requires_grad for p in net.operators.parameters())
     with torch.no_grad():
         feats = net.features(x)[0] if fixed else None
@@ -875,39 +873,39 @@ def _score(config: Path, overrides: dict, x: Tensor, y: Tensor, w: int, budget: 
     with ``model.select_cv`` = ``cv``: None, on the last quarter of the scored samples of
     every training row, fitted before it; ``k``, by blocked cross-validation inside the
     training rows (:func:`~torchhys.training.selection.block_split`: each fold fitted on
-    the rows without its block, end to end, the states run through the whole rows);
+    the whole rows without its block's targets, the states running through it);
     ``"recording"``, each training row held out once, fitted on the others. Returns the MSE
     and its standard error, NaN (never chosen, as ``torchhys fit`` scores it) when a fit
     fails (``FitError``) or the MSE is not finite, and whether a training stopped at the
     budget's time cap."""
     if cv is None:
         c = holdout(x.shape[1], w)
-        folds = [(x[:, :c], y[:, :c], (slice(None), slice(c, None)))]
+        folds = [(x[:, :c], y[:, :c], (slice(None), slice(c, None)), None)]
     elif cv == RECORDING:
         if x.shape[0] < 2:
             raise ValueError(f"model.select_cv={RECORDING!r} holds each training recording out "
                              f"once, but the protocol has {x.shape[0]} training row")
         rest = [[j for j in range(len(x)) if j != r] for r in range(len(x))]
-        folds = [(x[rest[r]], y[rest[r]], (slice(r, r + 1), slice(w, None)))
+        folds = [(x[rest[r]], y[rest[r]], (slice(r, r + 1), slice(w, None)), None)
                  for r in range(len(x))]
     else:
         mask = torch.zeros_like(x, dtype=torch.bool)
         mask[:, w:] = True
         folds = []
         for f in range(cv):
-            held, fx, fy = block_split(x, y, mask, cv, f)
-            folds.append((fx, fy, held, (x, y, mask & ~held)))
+            held = block_split(mask, cv, f)
+            folds.append((x, y, held, held))
     errors, capped = [], False
-    for fx, fy, held, *loss_on in folds:
+    for fx, fy, scored, held in folds:
         try:
-            net, done, epochs = _train_config(config, fx, fy, w, budget, overrides, *loss_on)
+            net, done, epochs = _train_config(config, fx, fy, w, budget, overrides, held)
         except FitError:
             return math.nan, math.nan, capped
         capped |= done < epochs
         dtype = next(net.parameters()).dtype
         with torch.no_grad():
             e = net(x.to(dtype))[0].to(F64) - y
-        errors.append(e[held].square().reshape(-1))
+        errors.append(e[scored].square().reshape(-1))
     e2 = torch.cat(errors)
     mse = float(e2.mean())
     if not math.isfinite(mse):

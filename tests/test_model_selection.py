@@ -236,12 +236,13 @@ def test_block_folds_partition_the_scored_samples(warmup: int) -> None:
         idx = vmask[0].nonzero().flatten()
         assert torch.equal(idx, torch.arange(int(idx[0]), int(idx[-1]) + 1))  # contiguous
         assert fold.n_val == idx.numel()
-        # the fits see neither the held-out targets nor anything after the training part
+        # the fits run the whole rows (the states through the block) but use neither the
+        # held-out targets nor anything after the training part
         fx, fy = fold.train_tensors()
-        assert fx.shape == (1, x.shape[-1] - idx.numel()) and fold.train_warmup == warmup
-        keep = torch.ones(x.shape[-1], dtype=torch.bool)
-        keep[idx] = False
-        assert torch.equal(fy[0], y[0, keep])
+        assert torch.equal(fx, x) and torch.equal(fy, y) and fold.train_warmup == warmup
+        keep = torch.ones_like(mask)
+        keep[0, idx] = False
+        assert torch.equal(fold.train_mask, keep)
         held.append(vmask)
     assert torch.equal(torch.stack(held).sum(0), mask.long())
     with pytest.raises(ValueError, match=r"holds \d+ scored samples, at least 600"):
@@ -257,31 +258,31 @@ def test_block_folds_of_several_recordings() -> None:
     fold = BlockFold(dm, 3, 2)
     (_, _, _, vmask), = list(fold.val_dataloader())
     assert mask.shape[0] == 4 and (vmask.sum(1) == 43).all()
-    assert fold.train_tensors()[0].shape == (1, 4 * (129 - 43))
+    assert fold.train_tensors()[0].shape == (4, 129)
+    assert torch.equal(fold.train_mask, mask & ~vmask)
 
 
 def test_block_split_on_tensors() -> None:
     """The cut on plain tensors: a mask of any dtype, a gap inside a block left out of the
     validation samples, rows of other lengths (padding unscored), bad shapes named."""
-    x = torch.arange(24.0).reshape(2, 12)
-    y = -x
     mask = torch.ones(2, 12, dtype=torch.uint8)
     mask[:, :2] = 0  # warm-up
     mask[1, 10:] = 0  # a shorter second row
     mask[0, 5] = 0  # a gap
-    held, fx, fy = block_split(x, y, mask, 3, 1)
+    held = block_split(mask, 3, 1)
     assert held.dtype == torch.bool
     # row 0 scores 2-4, 6-11 (9 samples): blocks 2-4 | 6-8 | 9-11; row 1 scores 2-9
     assert held[0].nonzero().flatten().tolist() == [6, 7, 8]
     assert held[1].nonzero().flatten().tolist() == [5, 6, 7]
-    assert fx.tolist() == [[0, 1, 2, 3, 4, 5, 9, 10, 11, 12, 13, 14, 15, 16, 20, 21]]
-    assert torch.equal(fy, -fx)
-    held, _, _ = block_split(x, y, mask, 3, 0)
+    held = block_split(mask, 3, 0)
     assert held[0].nonzero().flatten().tolist() == [2, 3, 4]  # the gap at 5 is not held
-    with pytest.raises(ValueError, match=r"x, y and mask must have the same shape"):
-        block_split(x, y, mask[:, :5], 3, 0)
+    with pytest.raises(ValueError, match=r"mask must have shape \(rows, time\)"):
+        block_split(mask[0], 3, 0)
     with pytest.raises(ValueError, match=r"fold must be in \[0, 3\)"):
-        block_split(x, y, mask, 3, 3)
+        block_split(mask, 3, 3)
+    with pytest.raises(ValueError, match=r"row 0 of the data holds 9 scored samples, at "
+                                         r"least 10"):
+        block_split(mask, 5, 0)
 
 
 FERRITE = {"path": str(ROOT / "examples/data/mnzn_ferrite_bh_loops.csv"), "input_column": "B_T",
@@ -310,15 +311,15 @@ def test_recording_folds_hold_each_recording_out_whole(repeat: int) -> None:
         assert torch.equal(tmask, mask[keep])
         # the fits see the other recordings only: (2, time), the loops have equal lengths
         fx, fy = fold.train_tensors()
-        assert torch.equal(fx, x[keep]) and torch.equal(fy, y[keep])
+        assert torch.equal(fx, x[keep]) and torch.equal(fy, y[keep]) and fold.train_mask is None
         assert fold.train_warmup == int(first[0]) == (repeat - 1) * 129
         held.append(vmask[0])
     assert torch.equal(torch.stack(held), mask)
 
 
 def test_recording_folds_of_recordings_of_different_lengths(tmp_path: Path) -> None:
-    """Recordings of different lengths: the fits see the other recordings end to end, each
-    up to its last sample (not the padding)."""
+    """Recordings of different lengths: the fits see the other recordings, one row each
+    from its own initial state, up to its last sample (the padding outside the mask)."""
     path = tmp_path / "runs.csv"
     t = np.arange(300) * 0.05
     rows = [(r, np.sin(k), np.sin(k) ** 3) for r, n in ((0, 100), (1, 160), (2, 120))
@@ -330,8 +331,12 @@ def test_recording_folds_of_recordings_of_different_lengths(tmp_path: Path) -> N
                               test_recordings=[], warmup=10)
     fold = RecordingFold(dm, 0)
     fx, fy = fold.train_tensors()
-    assert fx.shape == (1, 160 + 120) and fold.train_warmup == 10
-    assert torch.allclose(fy[0, :160], torch.sin(torch.tensor(t[:160])) ** 3)
+    assert fx.shape == (2, 160) and fold.train_warmup == 10
+    assert torch.allclose(fy[0], torch.sin(torch.tensor(t[:160])) ** 3)
+    assert torch.allclose(fy[1, :120], torch.sin(torch.tensor(t[:120])) ** 3)
+    expect = torch.ones(2, 160, dtype=torch.bool)
+    expect[1, 120:] = False  # the shorter recording's padding
+    assert torch.equal(fold.train_mask, expect)
     assert fold.n_val == 100 - 10
 
 

@@ -142,8 +142,10 @@ def test_time_split_cuts_each_recording(tmp_path: Path) -> None:
     assert x.shape == (2, 60) and warmup.tolist() == [20, 40]  # the preceding rows warm up
     assert mask.sum(1).tolist() == [10, 20]
     assert torch.equal(x[0, :30], torch.from_numpy(dm.recordings[0].x[:30]))
-    xt, yt = dm.train_tensors()  # different lengths: end to end for the fits
-    assert xt.shape == (1, 60) and dm.train_warmup == 3
+    xt, yt = dm.train_tensors()  # different lengths: one row each, the shorter padded
+    assert xt.shape == (2, 40) and dm.train_warmup == 3
+    assert dm.train_mask.sum(1).tolist() == [20, 40]
+    assert torch.equal(xt[0, 20:], xt[0, 19].expand(20))  # padded with its last sample
     assert dm.bounds == {}  # only for a single recording
 
 

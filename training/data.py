@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from pathlib import Path
+from typing import NamedTuple
 
 import lightning as L
 import numpy as np
@@ -32,7 +33,7 @@ from torchhys.training.splits import STAGES, Window, assign_recordings, check_sp
 
 __all__ = [
     "SIMULATIONS", "SPLIT_BY", "STAGES", "HysteresisDataModule", "SequenceDataset", "Window",
-    "assign_recordings", "join_sequences", "simulate",
+    "FitTensors", "assign_recordings", "fit_tensors", "simulate", "stack_sequences",
 ]
 
 SIMULATIONS = ("paper", "fig6", "bouc_wen")
@@ -104,16 +105,50 @@ def _pad(rows: list[Tensor], length: int) -> Tensor:
     return torch.stack([torch.cat([r, r[-1:].expand(length - r.numel())]) for r in rows])
 
 
-def join_sequences(seqs: list[tuple[Tensor, Tensor, int]]) -> tuple[Tensor, Tensor, int]:
+class FitTensors(NamedTuple):
+    """The training data that normalizations and data-dependent operators are fitted on."""
+
+    x: Tensor
+    """Input, (rows, time): one row per recording, right-padded with its last sample."""
+    y: Tensor
+    """Target, (rows, time), padded as x."""
+    warmup: int
+    """Leading samples of every row left out of the fits (their states still run)."""
+    mask: Tensor | None
+    """None (every sample of every row), or the samples the fits may use, (rows, time)
+    bool: False on a row's padding, on a held-out block, and on the samples of a longer
+    warm-up than ``warmup`` (the targets there are not used; the states run through)."""
+
+
+def fit_tensors(x: Tensor, y: Tensor, first: Tensor | Sequence[int], end: Tensor | Sequence[int],
+                held: Tensor | None = None) -> FitTensors:
+    """:class:`FitTensors` of rows ``x``, ``y`` (rows, time) whose row r is scored from
+    sample ``first[r]`` to ``end[r]`` (exclusive; padding after it), without the samples
+    ``held`` ((rows, time) bool, e.g. a cross-validation block; None: none). ``warmup`` is
+    the least ``first``; the mask is None when every row is whole, scored from ``warmup``
+    and holds nothing out."""
+    first = torch.as_tensor(first, dtype=torch.long).reshape(-1, 1)
+    end = torch.as_tensor(end, dtype=torch.long).reshape(-1, 1)
+    T = x.shape[-1]
+    w = int(first.min())
+    if bool((first == w).all()) and bool((end == T).all()) and (held is None
+                                                                or not bool(held.any())):
+        return FitTensors(x, y, w, None)
+    t = torch.arange(T)
+    mask = (t < end) & ((t < w) | (t >= first))
+    if held is not None:
+        mask &= ~held.to(torch.bool)
+    return FitTensors(x, y, w, mask)
+
+
+def stack_sequences(seqs: list[tuple[Tensor, Tensor, int]]) -> FitTensors:
     """Training sequences ``(x, y, first scored)``, each (time,), as the tensors that
-    normalizations and data-dependent operators are fitted on: stacked to (recordings, time)
-    when they share their length and warm-up, else end to end as (1, time) (the fits then
-    see states carried from one recording to the next, and the warm-up of the first only);
-    and the warm-up."""
-    if len({s[0].numel() for s in seqs}) == 1 and len({s[2] for s in seqs}) == 1:
-        return torch.stack([s[0] for s in seqs]), torch.stack([s[1] for s in seqs]), seqs[0][2]
-    x, y = torch.cat([s[0] for s in seqs]), torch.cat([s[1] for s in seqs])
-    return x.unsqueeze(0), y.unsqueeze(0), seqs[0][2]
+    normalizations and data-dependent operators are fitted on (:class:`FitTensors`): one
+    row per sequence, each from its own initial state, right-padded with its last sample
+    to the longest; with a mask when their lengths or warm-ups differ."""
+    length = max(s[0].numel() for s in seqs)
+    return fit_tensors(_pad([s[0] for s in seqs], length), _pad([s[1] for s in seqs], length),
+                       [s[2] for s in seqs], [s[0].numel() for s in seqs])
 
 
 class HysteresisDataModule(L.LightningDataModule):
@@ -339,22 +374,27 @@ class HysteresisDataModule(L.LightningDataModule):
             return [self._batch([w]) for w in windows]
         return [self._batch(windows)] if windows else []
 
-    def _train_fit(self) -> tuple[Tensor, Tensor, int]:
-        return join_sequences([self._sequence(w) for w in self._stage_windows("train")])
+    def _train_fit(self) -> FitTensors:
+        return stack_sequences([self._sequence(w) for w in self._stage_windows("train")])
 
     def train_tensors(self) -> tuple[Tensor, Tensor]:
-        """The training sequences ``(x, y)``, float64, to fit normalizations and
-        data-dependent operators on: (recordings, time) when they share their length and
-        warm-up (their first :attr:`train_warmup` samples), else (1, time), all end to end
-        (then the fits see states carried from one recording to the next, and the warm-up
-        of the first only)."""
-        x, y, _ = self._train_fit()
-        return x, y
+        """The training sequences ``(x, y)``, float64, (recordings, time), to fit
+        normalizations and data-dependent operators on: each recording from its own initial
+        state, right-padded with its last sample to the longest (the padding, and a longer
+        warm-up than :attr:`train_warmup`, outside :attr:`train_mask`)."""
+        fit = self._train_fit()
+        return fit.x, fit.y
 
     @property
     def train_warmup(self) -> int:
         """Leading samples of :meth:`train_tensors` outside the loss and data-dependent fits."""
-        return self._train_fit()[2]
+        return self._train_fit().warmup
+
+    @property
+    def train_mask(self) -> Tensor | None:
+        """The samples of :meth:`train_tensors` the fits may use, (recordings, time) bool, or
+        None (all) when the recordings share their length and warm-up."""
+        return self._train_fit().mask
 
     def tensors(self, stage: str) -> tuple[Tensor, Tensor, int]:
         """``(x, y, warmup)`` of a stage of one sequence: (time,) tensors including the

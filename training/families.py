@@ -35,8 +35,7 @@ standardizes the operator's output) maps it back. They are the candidates of
   target in its physical units (``mu0``: input units per target unit of free space, the
   default for B in T and H in A/m). ``substeps`` (Euler steps per sample; None: enough that
   a sample step of the 0.99 quantile moves the input by at most 1/32 of its range, so that
-  the few large jumps where a cross-validation fold joins its pieces do not multiply the
-  cost).
+  a few large jumps do not multiply the cost).
 - ``{"name": "drift", "scales": [0.5, 1, 2, 4, 8, 16, 32]}``: :func:`torchhys.fit_drift`, a
   monotone, decelerating drift of the target with the input's accumulated variation
   (saturation scales in spans of the scored training input), weights of one sign; beside a
@@ -86,6 +85,7 @@ from torchhys._checks import (
     check_int,
     check_nonnegative,
     check_positive,
+    fitted_samples,
 )
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
 from torchhys.functional.jiles_atherton import MU0
@@ -99,7 +99,7 @@ VALIDATION = 0.25
 """The hold-out share of ``"auto"`` penalties: the last quarter of each row's scored
 samples."""
 
-Fitter = Callable[[Tensor, Tensor, int], nn.Module]
+Fitter = Callable[[Tensor, Tensor, int, Tensor | None], nn.Module]
 
 
 class FitError(ValueError):
@@ -131,37 +131,49 @@ def _grid(spec: Mapping[str, Any], n_default: int) -> tuple[int, float, str]:
     return n, power, direction
 
 
-def _standardized(x: Tensor, y: Tensor, warmup: int) -> tuple[float, Tensor]:
+def _samples(x: Tensor, warmup: int, mask: Tensor | None) -> tuple[Tensor, Tensor]:
+    """The scored samples (in ``mask``, after the warm-up) and the known ones (in ``mask``,
+    the warm-up's too), (rows, time) bool each; ``mask`` None: every sample."""
+    known = fitted_samples(mask, (x.shape[0], x.shape[1]), 0).to(x.device)
+    scored = known.clone()
+    scored[:, :warmup] = False
+    if not bool(scored.any()):
+        raise FitError(f"no scored training sample (warmup {warmup}, {int(known.sum())} "
+                       "samples in the mask)")
+    return scored, known
+
+
+def _standardized(x: Tensor, y: Tensor, scored: Tensor) -> tuple[float, Tensor]:
     """The input's scale (std of the scored samples) and the standardized target."""
-    xs, ys = x[:, warmup:], y[:, warmup:]
+    xs, ys = x[scored], y[scored]
     sx, sy = float(xs.std()), float(ys.std())
     if not (sx > 0 and sy > 0):
         raise FitError("the input and the target must vary over the scored training samples")
     return sx, (y - ys.mean()) / sy
 
 
-def _rmse(model: nn.Module, x: Tensor, t: Tensor, warmup: int, mean: float = 0.0,
+def _rmse(model: nn.Module, x: Tensor, t: Tensor, scored: Tensor, mean: float = 0.0,
           std: float = 1.0) -> float:
     """RMSE of ``(model(x) - mean) / std`` against t on the scored samples."""
     with torch.no_grad():
-        return float(((model(x)[0] - mean) / std - t)[:, warmup:].square().mean().sqrt())
+        return float(((model(x)[0] - mean) / std - t)[scored].square().mean().sqrt())
 
 
-def _holdout(x: Tensor, warmup: int) -> float:
-    """The share of each row (of length T) that holds the last :data:`VALIDATION` of its
-    scored samples, as ``select_pi_ridge`` / ``select_penalty`` take it.
+def _holdout(scored: Tensor) -> float:
+    """:data:`VALIDATION`, the share of each row's scored samples (the mask given to
+    ``select_pi_ridge`` / ``select_penalty``) held out to choose a penalty.
 
     Raises:
         FitError: fewer than 8 scored samples (no hold-out to choose a penalty on).
     """
-    T = x.shape[-1]
-    if T - warmup < 8:
-        raise FitError(f"{T - warmup} scored training samples are too few to choose a penalty "
+    n = int(scored.sum())
+    if n < 8:
+        raise FitError(f"{n} scored training samples are too few to choose a penalty "
                        "on a hold-out; give the penalty as a number")
-    return max(1, round(VALIDATION * (T - warmup))) / T
+    return VALIDATION
 
 
-def _checked(model: nn.Module, x: Tensor, t: Tensor, warmup: int, name: str,
+def _checked(model: nn.Module, x: Tensor, t: Tensor, scored: Tensor, name: str,
              mean: float = 0.0, std: float = 1.0, rmse: float | None = None) -> nn.Module:
     """``model`` if it fits the standardized target t on the scored training samples better
     than a straight line in x does, else :class:`FitError` (a diverged or degenerate fit;
@@ -169,8 +181,8 @@ def _checked(model: nn.Module, x: Tensor, t: Tensor, warmup: int, name: str,
     gives the target's ``mean`` and ``std``: its output is standardized as t was. ``rmse``:
     the model's :func:`_rmse` when the caller has it already (not computed again)."""
     if rmse is None:
-        rmse = _rmse(model, x, t, warmup, mean, std)
-    xs, ts = x[:, warmup:].reshape(-1), t[:, warmup:].reshape(-1)
+        rmse = _rmse(model, x, t, scored, mean, std)
+    xs, ts = x[scored], t[scored]
     design = torch.stack([xs, torch.ones_like(xs)], 1)
     line = float((design @ torch.linalg.lstsq(design, ts[:, None]).solution - ts[:, None])
                  .square().mean().sqrt())
@@ -181,11 +193,11 @@ def _checked(model: nn.Module, x: Tensor, t: Tensor, warmup: int, name: str,
 
 
 def _pi_fit(u: Tensor, out: Tensor, widths: Tensor, ridge: float | str,
-            warmup: int) -> PrandtlIshlinskii:
+            scored: Tensor) -> PrandtlIshlinskii:
     if ridge == "auto":
         ridge, _ = select_pi_ridge(u, out, widths, PENALTIES, nonnegative=True,
-                                   validation=_holdout(u, warmup), warmup=warmup)
-    return fit_prandtl_ishlinskii(u, out, widths, ridge=ridge, warmup=warmup, nonnegative=True)
+                                   validation=_holdout(scored), mask=scored)
+    return fit_prandtl_ishlinskii(u, out, widths, ridge=ridge, mask=scored, nonnegative=True)
 
 
 def _pi_nonneg(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
@@ -193,17 +205,19 @@ def _pi_nonneg(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     n, power, direction = _grid(spec, 10)
     ridge = _penalty(spec, "ridge")
 
-    def one_sign(x: Tensor, t: Tensor, sx: float, warmup: int) -> nn.Module:
+    def one_sign(x: Tensor, t: Tensor, sx: float, scored: Tensor, known: Tensor) -> nn.Module:
         """The PI model of t from x (physical input units)."""
         if direction == "direct":
-            m = _pi_fit(x / sx, t, play_width_grid(x / sx, n, power=power), ridge, warmup)
+            m = _pi_fit(x / sx, t, play_width_grid((x / sx)[known], n, power=power), ridge,
+                        scored)
             return PrandtlIshlinskii(m.get_widths() * sx, m.weights / sx,
                                      linear_weight=float(m.linear_weight) / sx)
         # the forward model of the centred, scaled input (a PI model has no offset), and its
         # exact inverse after the input map (x - mx) / sx: a GeneralizedPIInverse whose g is
         # the affine map sx v + mx
-        mx = float(x[:, warmup:].mean())
-        forward = _pi_fit(t, (x - mx) / sx, play_width_grid(t, n, power=power), ridge, warmup)
+        mx = float(x[scored].mean())
+        forward = _pi_fit(t, (x - mx) / sx, play_width_grid(t[known], n, power=power), ridge,
+                          scored)
         try:
             return GeneralizedPrandtlIshlinskii(
                 forward.get_widths(), forward.weights, centers=[], gain=sx, offset=mx,
@@ -211,22 +225,23 @@ def _pi_nonneg(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
         except ValueError as err:
             raise FitError(f"pi_nonneg inverse: {err}") from None
 
-    def fit(x: Tensor, y: Tensor, warmup: int) -> nn.Module:
-        sx, t = _standardized(x, y, warmup)
+    def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
+        scored, known = _samples(x, warmup, mask)
+        sx, t = _standardized(x, y, scored)
         fits = []
         for sign in (1.0, -1.0):
             try:
-                m = one_sign(x, sign * t, sx, warmup)
+                m = one_sign(x, sign * t, sx, scored, known)
             except FitError:
                 continue
             with torch.no_grad():
                 m.weights.mul_(sign)
                 m.linear_weight.mul_(sign)
-            fits.append((_rmse(m, x, t, warmup), sign, m))
+            fits.append((_rmse(m, x, t, scored), sign, m))
         if not fits:
             raise FitError(f"pi_nonneg ({direction}): no invertible fit of either sign")
         rmse, _, m = min(fits, key=lambda f: f[0])
-        return _checked(m, x, t, warmup, "pi_nonneg", rmse=rmse)
+        return _checked(m, x, t, scored, "pi_nonneg", rmse=rmse)
 
     placeholder: nn.Module = (PrandtlIshlinskii(torch.arange(1, n + 1) / n, torch.zeros(n))
                               if direction == "direct" else GeneralizedPIInverse(n, 0))
@@ -240,48 +255,50 @@ def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     units = check_int(spec.get("units", 4), "operator 'gpi': units", minimum=0)
     epochs = check_int(spec.get("epochs", 1000), "operator 'gpi': epochs", minimum=1)
 
-    def fit(x: Tensor, y: Tensor, warmup: int) -> nn.Module:
-        sx, t = _standardized(x, y, warmup)
-        xs, ts = (x / sx)[:, warmup:], t[:, warmup:]
+    def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
+        scored, known = _samples(x, warmup, mask)
+        sx, t = _standardized(x, y, scored)
+        xs, ts = (x / sx)[scored], t[scored]
         t = t if float(((xs - xs.mean()) * ts).sum()) >= 0 else -t  # rising with x
-        mx = float(x[:, warmup:].mean())  # the inverse route fits the centred input
+        mx = float(x[scored].mean())  # the inverse route fits the centred input
         u, out = (x / sx, t) if direction == "direct" else (t, (x - mx) / sx)
-        widths = play_width_grid(u, n, power=power)
+        widths = play_width_grid(u[known], n, power=power)
         ridges = [ridge]
         if ridge == "auto":
             _, scores = select_pi_ridge(u, out, widths, PENALTIES, nonnegative=True,
-                                        validation=_holdout(u, warmup), warmup=warmup)
+                                        validation=_holdout(scored), mask=scored)
             # the local optimum of the fit depends on its start (the initial PI fit): if the
             # fit with the best ridge fails, the next best start it elsewhere
             ridges = sorted(scores, key=lambda r: scores[r])[:3]
         errors = []
         for r in ridges:
             try:
-                return fitted(x, t, u, out, widths, r, sx, mx, warmup)
+                return fitted(x, t, u, out, widths, r, sx, mx, scored, known)
             except (ValueError, FloatingPointError) as err:  # FitError, diverged, no inverse
                 errors.append(f"ridge {r:g}: {err}")
         raise FitError(f"gpi ({direction}): " + "; ".join(errors))
 
     def fitted(x: Tensor, t: Tensor, u: Tensor, out: Tensor, widths: Tensor, r: float,
-               sx: float, mx: float, warmup: int) -> nn.Module:
+               sx: float, mx: float, scored: Tensor, known: Tensor) -> nn.Module:
         m = fit_generalized_pi(u, out, widths, units=units, ridge=r, lbfgs_epochs=epochs,
-                               warmup=warmup)
+                               mask=scored)
         pw, w, w0, a, c, b, s, off = (v.detach() for v in m.parameters_effective())
         if direction == "direct":  # the same model of the physical input x
             return _checked(GeneralizedPrandtlIshlinskii(
                 pw * sx, w / sx, linear_weight=float(w0) / sx, centers=b, slopes=s,
-                unit_weights=c, gain=float(a), offset=float(off)), x, t, warmup, "the model")
+                unit_weights=c, gain=float(a), offset=float(off)), x, t, scored, "the model")
         # The same model, rewritten for a well-conditioned inverse: the PI part divided by k
         # (its training std), g(k v) in its place, scaled by sx and shifted by mx so that it
         # maps to the physical input. g^-1 is bounded to the PI part's training
         # range with a margin of half its span on each side.
         with torch.no_grad():
             p = m.prandtl_ishlinskii()(u)[0]
-        k = float(p.std().clamp_min(1e-300))
+        k = float(p[known].std().clamp_min(1e-300))
         scaled = GeneralizedPrandtlIshlinskii(
             pw, w / k, linear_weight=float(w0) / k, centers=b / k, slopes=s * k,
             unit_weights=c * sx, gain=float(a) * k * sx, offset=float(off) * sx + mx)
-        return _checked(scaled.bounded_inverse(u, pi_output=p / k), x, t, warmup, "the inverse")
+        return _checked(scaled.bounded_inverse(u[known], pi_output=(p / k)[known]), x, t,
+                        scored, "the inverse")
 
     if direction == "direct":
         placeholder: nn.Module = GeneralizedPrandtlIshlinskii(
@@ -301,29 +318,30 @@ def _preisach(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     direction = check_choice(spec.get("direction", "direct"), "operator 'preisach': direction",
                              ["direct", "inverse"])
 
-    def one_sign(u: Tensor, out: Tensor, warmup: int) -> Preisach:
-        """The Preisach model of ``out`` from ``u`` on a grid over u's range."""
-        lo, hi = float(u.min()), float(u.max())
+    def one_sign(u: Tensor, out: Tensor, scored: Tensor, known: Tensor) -> Preisach:
+        """The Preisach model of ``out`` from ``u`` on a grid over u's (known) range."""
+        lo, hi = float(u[known].min()), float(u[known].max())
         scale = None if grading is None else grading * 0.5 * (hi - lo)
         p = smoothness
         if p == "auto":
             p, _ = select_penalty(u, out, list(PENALTIES), kind="smoothness",
-                                  validation=_holdout(u, warmup), lo=lo, hi=hi, n=n,
-                                  warmup=warmup, scale=scale)
-        return fit_preisach(u, out, lo=lo, hi=hi, n=n, smoothness=p, warmup=warmup,
+                                  validation=_holdout(scored), lo=lo, hi=hi, n=n,
+                                  mask=scored, scale=scale)
+        return fit_preisach(u, out, lo=lo, hi=hi, n=n, smoothness=p, mask=scored,
                             scale=scale)
 
-    def fit(x: Tensor, y: Tensor, warmup: int) -> nn.Module:
-        sx, t = _standardized(x, y, warmup)
-        mx = float(x[:, warmup:].mean())
+    def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
+        scored, known = _samples(x, warmup, mask)
+        sx, t = _standardized(x, y, scored)
+        mx = float(x[scored].mean())
         fits = []
         for sign in (1.0, -1.0):
             if direction == "direct":
-                m: nn.Module = one_sign(x, sign * t, warmup)
+                m: nn.Module = one_sign(x, sign * t, scored, known)
             else:
                 # the model of the centred, scaled input from sign x the target, mapped back
                 # to the physical input, then inverted
-                forward = one_sign(sign * t, (x - mx) / sx, warmup)
+                forward = one_sign(sign * t, (x - mx) / sx, scored, known)
                 with torch.no_grad():
                     forward.weights.mul_(sx)
                     forward.linear.mul_(sx)
@@ -332,11 +350,11 @@ def _preisach(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
                     m = forward.inverse()
                 except ValueError:
                     continue
-            fits.append((_rmse(m, x, sign * t, warmup), sign, m))
+            fits.append((_rmse(m, x, sign * t, scored), sign, m))
         if not fits:
             raise FitError(f"preisach ({direction}): no invertible fit of either sign")
         rmse, sign, m = min(fits, key=lambda f: f[0])
-        return _checked(m, x, sign * t, warmup, "preisach", rmse=rmse)
+        return _checked(m, x, sign * t, scored, "preisach", rmse=rmse)
 
     placeholder = Preisach(0.0, 1.0, n) if direction == "direct" else PreisachInverse(n)
     return placeholder.requires_grad_(False), fit
@@ -350,26 +368,27 @@ def _stop_pi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     nonnegative = check_bool(spec.get("nonnegative", True), "operator 'stop_pi': nonnegative")
     ridge = _penalty(spec, "ridge")
 
-    def fit(x: Tensor, y: Tensor, warmup: int) -> nn.Module:
-        sx, t = _standardized(x, y, warmup)
+    def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
+        scored, _ = _samples(x, warmup, mask)
+        sx, t = _standardized(x, y, scored)
         u = x / sx
-        thresholds = play_width_grid(u[:, warmup:], n, power=power)
+        thresholds = play_width_grid(u[scored], n, power=power)
         fits = []
         for sign in (1.0, -1.0) if nonnegative else (1.0,):
             r = ridge
             if r == "auto":
                 r, _ = select_stop_pi_ridge(u, sign * t, thresholds, PENALTIES,
                                             segments=segments, nonnegative=nonnegative,
-                                            validation=_holdout(u, warmup), warmup=warmup)
+                                            validation=_holdout(scored), mask=scored)
             m = fit_stop_pi(u, sign * t, thresholds, segments=segments, ridge=r,
-                            nonnegative=nonnegative, warmup=warmup)
+                            nonnegative=nonnegative, mask=scored)
             # the same model of the physical input x, times the sign
             m = StopPrandtlIshlinskii(
                 m.thresholds * sx, sign * m.weights / sx, center=float(m.center) * sx,
                 linear_weight=sign * float(m.linear_weight) / sx, offset=sign * float(m.offset))
-            fits.append((_rmse(m, x, t, warmup), m))
+            fits.append((_rmse(m, x, t, scored), m))
         rmse, m = min(fits, key=lambda f: f[0])
-        return _checked(m, x, t, warmup, "stop_pi", rmse=rmse)
+        return _checked(m, x, t, scored, "stop_pi", rmse=rmse)
 
     return StopPrandtlIshlinskii(torch.arange(1, n + 1) / n,
                                  torch.zeros(n, segments)).requires_grad_(False), fit
@@ -389,19 +408,19 @@ def _drift(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
                          f"numbers (spans of the training input), got {scales!r}")
     mult = [check_positive(c, "operator 'drift': scales[]") for c in scales]
 
-    def fit(x: Tensor, y: Tensor, warmup: int) -> nn.Module:
-        _, t = _standardized(x, y, warmup)
-        span = float(x[:, warmup:].max() - x[:, warmup:].min())
-        return fit_drift(x, t, [span * c for c in mult], warmup=warmup)
+    def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
+        scored, _ = _samples(x, warmup, mask)
+        _, t = _standardized(x, y, scored)
+        span = float(x[scored].max() - x[scored].min())
+        return fit_drift(x, t, [span * c for c in mult], mask=scored)
 
     return Drift(torch.ones(len(mult))).requires_grad_(False), fit
 
 
 def _substeps(x: Tensor) -> int:
     """Euler steps per sample from the 0.99 quantile of the sample steps
-    (:func:`~torchhys.jiles_atherton.substeps_for`). The largest steps are left out: a
-    cross-validation fold joins its pieces end to end, and its few jumps would set the
-    count (and the cost of every fit) for all samples."""
+    (:func:`~torchhys.jiles_atherton.substeps_for`). The largest steps are left out: a few
+    jumps would set the count (and the cost of every fit) for all samples."""
     return substeps_for(x, quantile=0.99)
 
 
@@ -415,16 +434,17 @@ def _jiles_atherton(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     if substeps is not None:
         substeps = check_int(substeps, "operator 'jiles_atherton': substeps", minimum=1)
 
-    def fit(x: Tensor, y: Tensor, warmup: int) -> nn.Module:
-        _, t = _standardized(x, y, warmup)
+    def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
+        scored, _ = _samples(x, warmup, mask)
+        _, t = _standardized(x, y, scored)
         try:
-            m = fit_jiles_atherton(x, y, warmup=warmup, mu0=mu0, starts=starts,
+            m = fit_jiles_atherton(x, y, warmup=warmup, mask=mask, mu0=mu0, starts=starts,
                                    iterations=iterations,
                                    substeps=_substeps(x) if substeps is None else substeps)
         except (ValueError, torch.linalg.LinAlgError) as err:
             raise FitError(f"jiles_atherton: {err}") from None
-        ys = y[:, warmup:]
-        return _checked(m, x, t, warmup, "jiles_atherton", float(ys.mean()), float(ys.std()))
+        ys = y[scored]
+        return _checked(m, x, t, scored, "jiles_atherton", float(ys.mean()), float(ys.std()))
 
     return JilesAtherton(mu0=mu0).requires_grad_(False), fit
 

@@ -191,16 +191,19 @@ class InverseHysteresisModule(L.LightningModule):
         if str(getattr(self.trainer, "precision", "")).startswith("64"):
             self.net.double()  # as the precision plugin will: fit in float64 from the start
         x, y = dm.train_tensors()
-        self.fit_normalization(x, y, warmup=int(getattr(dm, "train_warmup", 0)))
+        self.fit_normalization(x, y, warmup=int(getattr(dm, "train_warmup", 0)),
+                               mask=getattr(dm, "train_mask", None))
 
-    def fit_normalization(self, x: Tensor, y: Tensor, *, warmup: int = 0) -> None:
-        """Fit the data-dependent operators (``plays``, ``pi_ls``; without the first
-        ``warmup`` samples), then the network's normalization, to training data (physical
-        units), (batch, time)."""
-        fit_data_dependent(self.net.operators, self._fitters, x, y, warmup=warmup)
+    def fit_normalization(self, x: Tensor, y: Tensor, *, warmup: int = 0,
+                          mask: Tensor | None = None) -> None:
+        """Fit the data-dependent operators (``plays``, ``pi_ls``, the families; without the
+        first ``warmup`` samples), then the network's normalization, to training data
+        (physical units), (batch, time); with ``mask`` ((batch, time) bool) on its samples
+        only (the states run through the others: a held-out block, a row's padding)."""
+        fit_data_dependent(self.net.operators, self._fitters, x, y, warmup=warmup, mask=mask)
         ref = next(iter(self.net.buffers()), None)
         dtype = ref.dtype if ref is not None else torch.get_default_dtype()
-        self.net.fit_normalization(x.to(dtype), y.to(dtype))
+        self.net.fit_normalization(x.to(dtype), y.to(dtype), mask=mask)
         self.normalization_fitted.fill_(True)
         self._feature_cache.clear()
 

@@ -40,6 +40,7 @@ from torchhys._checks import (
     check_nonnegative,
     check_positive,
     check_warmup,
+    fitted_samples,
 )
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid
 from torchhys.operator import OPERATORS, make_operator
@@ -53,9 +54,11 @@ __all__ = [
 OperatorSpec = str | Mapping[str, Any]
 """``"eiho"``, ``"zhao_tan"`` or ``{"name": NAME, **kwargs}``."""
 
-Fitter = Callable[[Tensor, Tensor, int], nn.Module]
-"""Builds the fitted operator from the training input and target, (batch, time) each, and
-the number of leading warm-up samples to leave out of the fit."""
+Fitter = Callable[[Tensor, Tensor, int, Tensor | None], nn.Module]
+"""Builds the fitted operator from the training input and target, (batch, time) each, the
+number of leading warm-up samples to leave out of the fit, and the mask of the samples to use
+((batch, time) bool, False: a held-out block or a shorter row's padding, the states running
+through them; None: all)."""
 
 
 def _positive_int(spec: Mapping[str, Any], key: str, default: int) -> int:
@@ -77,6 +80,11 @@ def _flag(spec: Mapping[str, Any], key: str) -> bool:
     return value
 
 
+def _known(x: Tensor, mask: Tensor | None) -> Tensor:
+    """The samples of x (batch, time) in ``mask`` (None: all)."""
+    return x if mask is None else x[mask]
+
+
 def _plays(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter | None]:
     _check_keys(spec, {"n", "power", "span_fraction", "learnable", "widths"})
     learnable = _flag(spec, "learnable")
@@ -87,8 +95,9 @@ def _plays(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter | None]:
     power = check_positive(spec.get("power", 1.0), "operator 'plays': power")
     fraction = check_positive(spec.get("span_fraction", 1.0), "operator 'plays': span_fraction")
 
-    def fit(x: Tensor, y: Tensor, warmup: int) -> nn.Module:
-        return Backlash(fraction * play_width_grid(x, n, power=power), learnable=learnable)
+    def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
+        return Backlash(fraction * play_width_grid(_known(x, mask), n, power=power),
+                        learnable=learnable)
 
     return Backlash(torch.arange(1, n + 1) / n, learnable=learnable), fit
 
@@ -100,10 +109,10 @@ def _pi_ls(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     ridge = check_nonnegative(spec.get("ridge", 0.0), "operator 'pi_ls': ridge")
     learnable = _flag(spec, "learnable")
 
-    def fit(x: Tensor, y: Tensor, warmup: int) -> nn.Module:
-        widths = play_width_grid(x, n, power=power)
+    def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
+        widths = play_width_grid(_known(x, mask), n, power=power)
         return fit_prandtl_ishlinskii(x, y, widths, ridge=ridge, learnable=learnable,
-                                      warmup=warmup)
+                                      warmup=warmup, mask=mask)
 
     placeholder = PrandtlIshlinskii(torch.arange(1, n + 1) / n, torch.zeros(n),
                                     learnable=learnable)
@@ -177,7 +186,7 @@ def build_operators(
 
 @torch.no_grad()
 def fit_data_dependent(operators: nn.ModuleList, fitters: Mapping[int, Fitter], x: Tensor,
-                       y: Tensor, *, warmup: int = 0) -> None:
+                       y: Tensor, *, warmup: int = 0, mask: Tensor | None = None) -> None:
     """Fit the data-dependent operators in place on training data (physical units).
 
     The fitted module's state (widths, weights) is copied into ``operators[i]``, in that
@@ -189,15 +198,20 @@ def fit_data_dependent(operators: nn.ModuleList, fitters: Mapping[int, Fitter], 
         fitters: from :func:`build_operators`.
         x: training input, (batch, time); y: training target, same shape.
         warmup: leading samples left out of least-squares fits (states run through them).
+        mask: the samples the fits may use, bool, the shape of x (False: a held-out block of
+            a cross-validation, a shorter recording's padding; the states run through them,
+            their targets are not used); None: all.
 
     Raises:
-        ValueError: ``warmup`` not smaller than the number of samples.
+        ValueError: ``warmup`` not smaller than the number of samples, a bad mask.
     """
     check_warmup(warmup, x.shape[-1])
+    xb, yb = x.reshape(-1, x.shape[-1]), y.reshape(-1, y.shape[-1])
+    if mask is not None:
+        mask = fitted_samples(mask, (xb.shape[0], xb.shape[1]), 0)
     for i, fit in fitters.items():
         target = operators[i]
         ref = next(iter(target.state_dict().values()))
-        fitted = fit(x.reshape(-1, x.shape[-1]).to(torch.float64),
-                     y.reshape(-1, y.shape[-1]).to(torch.float64), warmup)
+        fitted = fit(xb.to(torch.float64), yb.to(torch.float64), warmup, mask)
         state = {k: v.to(ref.dtype) for k, v in fitted.state_dict().items()}
         target.load_state_dict(state)

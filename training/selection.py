@@ -50,7 +50,7 @@ from torchhys.functional.turning_points import (
     estimate_threshold,
     turning_points,
 )
-from torchhys.training.data import join_sequences
+from torchhys.training.data import FitTensors, fit_tensors
 from torchhys.training.families import FitError
 
 RECORDING = "recording"
@@ -279,24 +279,31 @@ def _one(items: list[Any]) -> Any:
 
 class _Fold(L.LightningDataModule):
     """A cross-validation fold of a datamodule's training batch: ``_train`` and ``_val``
-    batches ``(x, y, warmup, mask)``, ``_fit`` the ``(x, y, warmup)`` that the normalization
-    and the data-dependent operators are fitted on, ``k`` folds, ``n_val`` held-out samples."""
+    batches ``(x, y, warmup, mask)``, ``_fit`` the :class:`FitTensors` that the
+    normalization and the data-dependent operators are fitted on, ``k`` folds, ``n_val``
+    held-out samples."""
 
     k: int
     n_val: int
     _train: tuple[Tensor, Tensor, Tensor, Tensor]
     _val: tuple[Tensor, Tensor, Tensor, Tensor]
-    _fit: tuple[Tensor, Tensor, int]
+    _fit: FitTensors
 
     def train_tensors(self) -> tuple[Tensor, Tensor]:
-        """The fold's training samples ``(x, y)``, (rows, time), to fit the normalization
-        and the data-dependent operators on (their first :attr:`train_warmup` left out)."""
-        return self._fit[0], self._fit[1]
+        """The fold's training rows ``(x, y)``, (rows, time), to fit the normalization and
+        the data-dependent operators on (their first :attr:`train_warmup` samples, and the
+        samples outside :attr:`train_mask`, left out)."""
+        return self._fit.x, self._fit.y
 
     @property
     def train_warmup(self) -> int:
         """Leading samples of :meth:`train_tensors` outside the data-dependent fits."""
-        return self._fit[2]
+        return self._fit.warmup
+
+    @property
+    def train_mask(self) -> Tensor | None:
+        """The samples of :meth:`train_tensors` the fits may use (rows, time), or None: all."""
+        return self._fit.mask
 
     def train_dataloader(self) -> DataLoader:
         return DataLoader([self._train], batch_size=1, collate_fn=_one)
@@ -319,10 +326,11 @@ class BlockFold(_Fold):
         val      not scored      -             scored            -                (fold 1)
 
     The held-out block still runs the operator states (a warm-up inside the record), but
-    enters neither the training loss nor the fits of the data-dependent operators and the
-    normalization: :meth:`train_tensors` is each row without its held-out block, the rows
-    end to end (the fits see states carried across the cuts, and the warm-up of the first
-    row only).
+    its targets enter neither the training loss nor the fits of the data-dependent
+    operators and the normalization: :meth:`train_tensors` are the whole rows and
+    :attr:`train_mask` leaves the block out. (A family fitted in the ``inverse`` direction
+    fits a model of the input from the target, so the block's targets run its states into
+    the samples after the block, as a warm-up; they are never fitted or scored.)
 
     Args:
         data: the datamodule (set up here).
@@ -347,47 +355,46 @@ class BlockFold(_Fold):
             raise ValueError(f"{getattr(data, 'source', 'the data')}: no training data")
         x, y, warmup, mask = batches[0]
         mask = mask.to(torch.bool)
-        held, fit_x, fit_y = block_split(x, y, mask, k, fold,
-                                         source=getattr(data, "source", "the data"))
+        held = block_split(mask, k, fold, source=getattr(data, "source", "the data"))
         self.n_val = int(held.sum())
         """Number of held-out (validation) samples."""
         self._train = (x, y, warmup, mask & ~held)
         self._val = (x, y, warmup, held)
-        self._fit = (fit_x, fit_y, int(warmup.reshape(-1)[0]))
+        self._fit = fit_tensors(x, y, warmup, _ends(mask), held)
 
 
-def block_split(x: Tensor, y: Tensor, mask: Tensor, k: int, fold: int, *,
-                source: str = "the data") -> tuple[Tensor, Tensor, Tensor]:
+def _ends(mask: Tensor) -> Tensor:
+    """One past each row's last scored sample, (rows,) (the padding starts there)."""
+    t = torch.arange(1, mask.shape[-1] + 1)
+    return (mask.to(torch.bool) * t).amax(-1)
+
+
+def block_split(mask: Tensor, k: int, fold: int, *, source: str = "the data") -> Tensor:
     """Fold ``fold`` of ``k`` of blocked cross-validation (:class:`BlockFold`'s cut, on
     tensors): the scored samples (``mask``) of each row cut into ``k`` contiguous blocks
     (sizes differ by at most one), block ``fold`` held out.
 
     Args:
-        x, y: input and target, (rows, time).
         mask: the scored samples, (rows, time), bool or 0/1.
         k: number of blocks, >= 2.
         fold: the held-out block, ``0 <= fold < k``.
         source: the data's name, for the error message.
 
     Returns:
-        ``(held, fit_x, fit_y)``: the held-out samples, (rows, time), bool; and the samples
-        to fit on, (1, n): each row up to its last scored sample without its held-out
-        block, the rows end to end (the first row's leading unscored samples stay its
-        warm-up).
+        The held-out samples, (rows, time), bool. The candidate is fitted on the whole rows
+        with the scored samples outside them (the states running through the block).
 
     Raises:
-        ValueError: ``k`` or ``fold`` out of range, a row with fewer than ``2 k`` scored
-            samples.
+        ValueError: ``k`` or ``fold`` out of range, a mask that is not (rows, time), a row
+            with fewer than ``2 k`` scored samples.
     """
     check_int(k, "model.select_cv", minimum=2)
     if not 0 <= fold < k:
         raise ValueError(f"fold must be in [0, {k}), got {fold}")
-    if x.dim() != 2 or y.shape != x.shape or mask.shape != x.shape:
-        raise ValueError(f"x, y and mask must have the same shape (rows, time), got "
-                         f"{tuple(x.shape)}, {tuple(y.shape)} and {tuple(mask.shape)}")
+    if mask.dim() != 2:
+        raise ValueError(f"mask must have shape (rows, time), got {tuple(mask.shape)}")
     mask = mask.to(torch.bool)
     held = torch.zeros_like(mask)
-    xs, ys = [], []
     for r in range(mask.shape[0]):
         idx = mask[r].nonzero().flatten()
         if idx.numel() < 2 * k:
@@ -395,12 +402,8 @@ def block_split(x: Tensor, y: Tensor, mask: Tensor, k: int, fold: int, *,
                 f"model.select_cv={k}: training row {r} of {source} holds {idx.numel()} "
                 f"scored samples, at least {2 * k} are needed; lower select_cv"
             )
-        block = torch.tensor_split(idx, k)[fold]
-        a, b, end = int(block[0]), int(block[-1]) + 1, int(idx[-1]) + 1
-        held[r, block] = True  # the scored samples of the block (a mask may have gaps)
-        xs += [x[r, :a], x[r, b:end]]
-        ys += [y[r, :a], y[r, b:end]]
-    return held, torch.cat(xs).unsqueeze(0), torch.cat(ys).unsqueeze(0)
+        held[r, torch.tensor_split(idx, k)[fold]] = True  # a mask may have gaps
+    return held
 
 
 class RecordingFold(_Fold):
@@ -417,8 +420,8 @@ class RecordingFold(_Fold):
         train    scored   -        scored      (fold 1)
         val      -        scored   -
 
-    :meth:`train_tensors` are the training rows as the datamodule gives its own
-    (:func:`~torchhys.training.data.join_sequences`).
+    :meth:`train_tensors` are the other training rows, each from its own initial state
+    (:func:`~torchhys.training.data.fit_tensors`).
 
     Args:
         data: the datamodule (set up here).
@@ -453,9 +456,9 @@ class RecordingFold(_Fold):
         self._train = (x[keep], y[keep], warmup[keep], mask[keep])
         self._val = (x[fold:fold + 1], y[fold:fold + 1], warmup[fold:fold + 1],
                      mask[fold:fold + 1])
-        ends = [int(mask[r].nonzero().max()) + 1 for r in keep]
-        self._fit = join_sequences([(x[r, :e], y[r, :e], int(warmup[r]))
-                                    for r, e in zip(keep, ends, strict=True)])
+        ends = _ends(mask[keep])
+        T = int(ends.max())  # the other rows' padding to the held-out one's length goes
+        self._fit = fit_tensors(x[keep, :T], y[keep, :T], warmup[keep], ends)
 
 
 def _squared_errors(module: L.LightningModule, datamodule: L.LightningDataModule) -> Tensor:
