@@ -8,6 +8,7 @@ the whole sequence, the states running through the left-out samples."""
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 
 import numpy as np
@@ -248,3 +249,20 @@ def test_bad_masks_are_named():
     with pytest.raises(ValueError, match="mask"):
         InverseHysteresisNet([Backlash(WIDTHS)], 4).double().fit_normalization(
             x, y, mask=torch.ones(3, dtype=torch.bool))
+
+
+def test_the_grid_warning_counts_the_masked_samples_only():
+    """Samples outside the Preisach grid that the mask leaves out (a held-out block beyond
+    the training range) saturate their relays silently; masked ones still warn."""
+    x, y = data()
+    mask = block_mask()
+    lo, hi = float(x[mask].min()), float(x[mask].max())
+    assert float(x.min()) < lo or float(x.max()) > hi
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit_preisach(x, y, lo=lo, hi=hi, n=6, mask=mask)
+    with pytest.warns(RuntimeWarning, match="of the samples of x lie outside"):
+        fit_preisach(x, y, lo=lo, hi=hi, n=6)
+    inner = 0.5 * (lo + hi)
+    with pytest.warns(RuntimeWarning, match="of the masked samples of x lie outside"):
+        fit_preisach(x, y, lo=inner, hi=hi, n=6, mask=mask)

@@ -24,6 +24,7 @@ from torchhys._checks import (
     check_bool,
     check_nonnegative_weights,
     check_warmup,
+    fitted_samples,
 )
 from torchhys._nnls import (
     Moments,
@@ -288,7 +289,7 @@ def fit_preisach(
     Args:
         x, y: input and output, (time,) or (batch, time) (each row starts demagnetised).
         lo, hi: grid range; default the range of x. Samples outside saturate the relays
-            (one warning gives their share).
+            (one warning gives their share; with a ``mask``, of the masked samples).
         n: levels per axis; ridge, smoothness: penalties (>= 0); linear: fit the linear term.
         warmup: samples at the start of each row left out of the fit (their relays still
             run), to forget the assumed initial state.
@@ -373,11 +374,14 @@ def _prepare(x: Tensor, y: Tensor, lo: float | None, hi: float | None, n: int, l
     lo = float(xb.min()) if lo is None else _real(lo, "lo")
     hi = float(xb.max()) if hi is None else _real(hi, "hi")
     model = Preisach(lo, hi, n, linear=linear, scale=scale).to(xb.dtype)
-    outside = float(((xb < lo) | (xb > hi)).double().mean())
+    samples = fit_segments(tuple(xb.shape), warmup, mask, validation)
+    xs = xb if mask is None else xb[fitted_samples(mask, tuple(xb.shape), 0).to(xb.device)]
+    outside = float(((xs < lo) | (xs > hi)).double().mean())
     if outside > 0:
-        warnings.warn(f"{outside:.2%} of the samples of x lie outside [lo, hi] = [{lo:.6g}, "
+        where = "samples" if mask is None else "masked samples"
+        warnings.warn(f"{outside:.2%} of the {where} of x lie outside [lo, hi] = [{lo:.6g}, "
                       f"{hi:.6g}]: the relays saturate there", RuntimeWarning, stacklevel=3)
-    return xb, yb, model, fit_segments(tuple(xb.shape), warmup, mask, validation)
+    return xb, yb, model, samples
 
 
 def _normal_equations(x: Tensor, y: Tensor, model: Preisach,
