@@ -564,12 +564,13 @@ def test_the_default_follows_the_sma_records_drift(bench):
 
 
 @pytest.mark.slow
-def test_the_default_inverts_a_preisach_model_on_the_steel_loops(bench):
-    """m130_steel (trained on its smallest and largest loops, the middle one held out): the
-    default's cross-validation chooses the 40 stops beside the inverse of a graded Preisach
-    model, which predict the held-out loop below half the error of the better memoryless
-    baseline (measured: 0.398; the 40 stops alone 0.557)."""
-    split = bench.DATASETS["m130_steel"][1](bench.Files(FERRITE))
+def test_the_default_inverts_a_preisach_model_on_the_ferrite_loops(bench):
+    """mnzn_ferrite (trained on its smallest and largest loops, the middle ones held out):
+    the default's cross-validation chooses the 40 stops beside the inverse of a graded
+    Preisach model, which predict the held-out loops below half the error of the better
+    memoryless baseline (measured: 0.352; on m130_steel it chooses the inverse generalized
+    PI, 0.382)."""
+    split = bench.DATASETS["mnzn_ferrite"][1](bench.Files(FERRITE))
     fitted = bench.default(split, bench.QUICK)
     assert "stop_pi+preisach(inverse)" in fitted.choice, fitted.choice
     rmse = bench.test_rmse(fitted.predict, split)[0]
