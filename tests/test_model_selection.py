@@ -503,3 +503,43 @@ def test_select_rule_on_the_command_line(monkeypatch, capsys, tmp_path) -> None:
                               "\n": "  select_rule: 1se\n"})
     with pytest.raises(ValueError, match=r"model.select_rule='1se' needs model.select"):
         cli(monkeypatch, "fit", "--config", str(bad), f"--trainer.default_root_dir={tmp_path}")
+
+
+@pytest.mark.parametrize("fold", [0, 2])
+def test_a_block_folds_fits_ignore_its_held_out_targets(tmp_path: Path, fold: int) -> None:
+    """Through the datamodule and the module's set-up: a fold of blocked cross-validation
+    fits the family operators and the normalization on the whole training rows, so targets
+    spoiled inside its held-out block change none of them, while the block's inputs still
+    run the states (spoiling the inputs there does change the fit)."""
+    rows = list(csv.DictReader((ROOT / "examples/data/bouc_wen.csv").open()))[:600]
+    kw = {"input_column": "response", "target_column": "command", "time_column": "time",
+          "split": [0.8, 0.2, 0.0], "warmup": 50}
+
+    def fitted(table: list[dict]) -> tuple[dict, torch.Tensor]:
+        path = tmp_path / f"rec{len(list(tmp_path.iterdir()))}.csv"
+        with path.open("w", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=list(table[0]))
+            writer.writeheader()
+            writer.writerows(table)
+        block = BlockFold(HysteresisDataModule(path=str(path), **kw), 4, fold)
+        torch.manual_seed(0)
+        module = InverseHysteresisModule(
+            operator=[{"name": "stop_pi", "n_widths": 8}, {"name": "drift"}], hidden=1,
+            activation="identity")
+        x, y = block.train_tensors()
+        module.fit_normalization(x, y, warmup=block.train_warmup, mask=block.train_mask)
+        (_, _, _, vmask), = list(block.val_dataloader())
+        return {k: v.clone() for k, v in module.net.state_dict().items()}, vmask[0]
+
+    clean, held = fitted(rows)
+    assert 0 < int(held.sum()) < len(rows)
+    inside = [i < held.numel() and bool(held[i]) for i in range(len(rows))]
+    spoiled = [dict(r, command=str(float(r["command"]) + 5.0)) if inside[i] else r
+               for i, r in enumerate(rows)]
+    other, _ = fitted(spoiled)
+    for key, value in clean.items():
+        assert torch.equal(other[key], value), key
+    moved = [dict(r, response=str(-float(r["response"]))) if inside[i] else r
+             for i, r in enumerate(rows)]
+    states, _ = fitted(moved)
+    assert any(not torch.equal(states[k], v) for k, v in clean.items())
