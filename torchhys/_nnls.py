@@ -94,28 +94,24 @@ def fit_segments(shape: tuple[int, int], warmup: int, mask: Tensor | None,
     """The samples of each segment of a fit, (rows, time) bool each: ``[fitted]``, or
     ``[training, hold-out]`` with ``validation`` in (0, 1).
 
-    Without a mask the segments are :func:`holdout_cuts`' (the last ``validation`` share of
-    every row's T samples held out). With one (:func:`~torchhys._checks.fitted_samples`),
-    the last ``validation`` share of each row's masked samples (at least one, where it has
-    any) is held out.
+    The fitted samples are :func:`~torchhys._checks.fitted_samples`'. Without a mask the
+    hold-out is :func:`holdout_cuts`' (the last ``validation`` share of every row's T
+    samples); with one, the last ``validation`` share of each row's masked samples (at least
+    one, where it has any).
 
     Raises:
         TypeError, ValueError: a bad mask, ``validation`` not in (0, 1), no training sample
             before the hold-out.
     """
-    rows, T = shape
-    if mask is None:
-        cuts = holdout_cuts(T, warmup, validation)
-        out = []
-        for a, b in zip(cuts[:-1], cuts[1:], strict=True):
-            m = torch.zeros(rows, T, dtype=torch.bool)
-            m[:, a:b] = True
-            out.append(m)
-        return out
     fitted = fitted_samples(mask, shape, warmup)
     if validation is None:
         return [fitted]
     validation = check_validation(validation)
+    if mask is None:
+        _, split, _ = holdout_cuts(shape[1], warmup, validation)
+        held = torch.zeros_like(fitted)
+        held[:, split:] = True
+        return [fitted & ~held, held]
     count = fitted.sum(1, keepdim=True)
     held = torch.where(count > 0, (validation * count).round().clamp_min(1), 0)
     valid = fitted & (fitted.cumsum(1) > count - held)

@@ -22,8 +22,9 @@ from torchhys._checks import (
     check_nonnegative,
     check_real,
     check_warmup,
+    fitted_samples,
 )
-from torchhys._nnls import fit_segments, nnls_gram
+from torchhys._nnls import nnls_gram
 from torchhys.functional.drift import (
     accumulated_variation,
     check_scales,
@@ -179,8 +180,7 @@ def fit_drift(x: Tensor, y: Tensor, scales: Tensor | Sequence[float], *,
     check_bool(linear, "linear")
     c = torch.as_tensor(scales, dtype=torch.float64)
     check_scales(c)
-    (fitted,) = fit_segments(tuple(xb.shape), warmup, mask, None)
-    fitted = fitted.to(xb.device)
+    fitted = fitted_samples(mask, tuple(xb.shape), warmup).to(xb.device)
     v, _ = accumulated_variation(xb)
     g = drift_features(v[fitted], c)  # (n, K)
     floor = float(v[fitted].min())

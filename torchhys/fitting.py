@@ -265,7 +265,7 @@ def fit_prandtl_ishlinskii(
     ub, yb = _check_pi_data(u, y, widths, warmup)
     ridge = check_nonnegative(ridge, "ridge")
     check_bool(nonnegative, "nonnegative")
-    (A, target), = _pi_segments(ub, yb, widths, fit_segments(ub.shape, warmup, mask, None))
+    (A, target), = _pi_segments(ub, yb, widths, [fitted_samples(mask, ub.shape, warmup)])
     if nonnegative:
         m = moments(A, target)
         floor = _linear_floor(A[:, 0], target)

@@ -48,8 +48,9 @@ from torchhys._checks import (
     check_int,
     check_same_shape,
     check_tensor,
+    fitted_samples,
 )
-from torchhys._nnls import check_penalty, fit_segments
+from torchhys._nnls import check_penalty
 from torchhys.backlash import _inverse_softplus, _Widths
 from torchhys.fitting import fit_full_batch, fit_prandtl_ishlinskii
 from torchhys.functional.backlash import backlash, check_play_state, play_step
@@ -336,8 +337,7 @@ def fit_generalized_pi(
     check_same_shape(yb, xb, "y", "x")
     pi = fit_prandtl_ishlinskii(xb, yb, widths, ridge=ridge, nonnegative=True, warmup=warmup,
                                 mask=mask)
-    (scored,) = fit_segments(tuple(xb.shape), warmup, mask, None)
-    scored = scored.to(xb.device)
+    scored = fitted_samples(mask, tuple(xb.shape), warmup).to(xb.device)
     sy = float(yb[scored].std())
     if not sy > 0:
         raise ValueError("y must vary over the scored samples (after warmup)")

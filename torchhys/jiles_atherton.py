@@ -26,7 +26,6 @@ from torchhys._checks import (
     check_warmup,
     fitted_samples,
 )
-from torchhys._nnls import fit_segments
 from torchhys.functional.jiles_atherton import MU0, jiles_atherton, jiles_atherton_step
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
 
@@ -220,8 +219,7 @@ def fit_jiles_atherton(x: Tensor, y: Tensor, *, warmup: int = 0, mu0: float = MU
     starts = check_int(starts, "starts", minimum=1)
     iterations = check_int(iterations, "iterations", minimum=1)
     xb, yb = xb.to(torch.float64), yb.to(torch.float64)
-    (fitted,) = fit_segments((xb.shape[0], T), warmup, mask, None)
-    fitted = fitted.to(xb.device)
+    fitted = fitted_samples(mask, (xb.shape[0], T), warmup).to(xb.device)
     known = fitted_samples(mask, (xb.shape[0], T), 0).to(xb.device)  # the warm-up's too
     bmax, hmax = float(xb.abs().max()), float(yb[known].abs().max())
     xs, ys = xb[fitted], yb[fitted]  # the fitted samples

@@ -30,6 +30,7 @@ from torchhys._checks import (
     check_real,
     check_same_shape,
     check_warmup,
+    fitted_samples,
 )
 from torchhys._nnls import (
     Moments,
@@ -382,7 +383,7 @@ def fit_stop_pi(
     ridge = check_penalty(ridge, "ridge")
     nonnegative = check_bool(nonnegative, "nonnegative")
     bound = _min_linear_weight(min_linear_weight)
-    (fitted,) = fit_segments(xb.shape, warmup, mask, None)
+    fitted = fitted_samples(mask, xb.shape, warmup)
     c = _center(xb, fitted, center)
     ((mom, varying),) = _moments(xb, yb, thresholds, segments, c, [fitted])
     theta = _solve(mom.gram / mom.count, mom.moment / mom.count, ridge, nonnegative, varying,
