@@ -112,6 +112,7 @@ from torchhys.training.selection import (
     CandidateScore,
     best,
     block_split,
+    rolling_split,
     standard_error,
 )
 
@@ -868,13 +869,15 @@ def _describe(m: dict) -> str:
 
 
 def _score(config: Path, overrides: dict, x: Tensor, y: Tensor, w: int, budget: Budget,
-           cv: int | str | None) -> tuple[float, float, bool]:
+           cv: int | str | None, mode: str | None = None) -> tuple[float, float, bool]:
     """A candidate's validation MSE and its standard error, as ``torchhys fit`` scores it
     with ``model.select_cv`` = ``cv``: None, on the last quarter of the scored samples of
     every training row, fitted before it; ``k``, by blocked cross-validation inside the
     training rows (:func:`~torchhys.training.selection.block_split`: each fold fitted on
     the whole rows without its block's targets, the states running through it);
-    ``"recording"``, each training row held out once, fitted on the others. Returns the MSE
+    ``"recording"``, each training row held out once, fitted on the others; with ``mode``
+    ``"rolling"``, each block (row) after the first scored by a fit of those before it
+    (:func:`~torchhys.training.selection.rolling_split`). Returns the MSE
     and its standard error, NaN (never chosen, as ``torchhys fit`` scores it) when a fit
     fails (``FitError``) or the MSE is not finite, and whether a training stopped at the
     budget's time cap."""
@@ -885,16 +888,23 @@ def _score(config: Path, overrides: dict, x: Tensor, y: Tensor, w: int, budget: 
         if x.shape[0] < 2:
             raise ValueError(f"model.select_cv={RECORDING!r} holds each training recording out "
                              f"once, but the protocol has {x.shape[0]} training row")
-        rest = [[j for j in range(len(x)) if j != r] for r in range(len(x))]
-        folds = [(x[rest[r]], y[rest[r]], (slice(r, r + 1), slice(w, None)), None)
-                 for r in range(len(x))]
+        if mode == "rolling":
+            fits = [(list(range(r)), r) for r in range(1, len(x))]
+        else:
+            fits = [([j for j in range(len(x)) if j != r], r) for r in range(len(x))]
+        folds = [(x[rest], y[rest], (slice(r, r + 1), slice(w, None)), None)
+                 for rest, r in fits]
     else:
         mask = torch.zeros_like(x, dtype=torch.bool)
         mask[:, w:] = True
         folds = []
-        for f in range(cv):
-            held = block_split(mask, cv, f)
-            folds.append((x, y, held, held))
+        for f in range(cv - 1 if mode == "rolling" else cv):
+            if mode == "rolling":
+                fitted, held = rolling_split(mask, cv, f)
+                folds.append((x, y, held, mask & ~fitted))
+            else:
+                held = block_split(mask, cv, f)
+                folds.append((x, y, held, held))
     errors, capped = [], False
     for fx, fy, scored, held in folds:
         try:
@@ -928,10 +938,11 @@ def default(split: Split, budget: Budget, config: Path = CONFIG) -> Fitted:
     m = _config_model(config)[0]
     candidates = m.pop("select", None) or [{}]
     cv = m.pop("select_cv", None)
+    mode = m.pop("select_cv_mode", None)
     rule = m.pop("select_rule", None) or "min"
     scores, capped_cv = [], False
     for i, overrides in enumerate(candidates):
-        mse, se, capped = _score(config, overrides, x, y, w, budget, cv)
+        mse, se, capped = _score(config, overrides, x, y, w, budget, cv, mode)
         scores.append(CandidateScore(i, overrides, mse, val_se=se))  # NaN: never chosen
         capped_cv |= capped
     if all(math.isnan(s.val_mse) for s in scores):
@@ -952,7 +963,8 @@ def default(split: Split, budget: Budget, config: Path = CONFIG) -> Fitted:
     net, done, epochs = refit
     validation, score = "", math.sqrt(s.val_mse)
     if cv is not None:  # the row's hold-out RMSE, as the other rows'
-        validation = f", select_cv {cv} RMSE {score:.4g}"
+        how = f"{cv} rolling" if mode == "rolling" else f"{cv}"
+        validation = f", select_cv {how} RMSE {score:.4g}"
         held = _score(config, candidates[i], x, y, w, budget, None)[0]
         score = math.sqrt(held) if math.isfinite(held) else math.inf
     dtype = next(net.parameters()).dtype

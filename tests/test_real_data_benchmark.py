@@ -171,18 +171,23 @@ def test_the_default_row_follows_the_configs_selection_rule(bench, tmp_path, cho
         assert fitted.predict(split.test[0][0][None]).isfinite().all()
 
 
-@pytest.mark.parametrize("cv", [3, "recording"])
-def test_the_default_row_cross_validates_as_its_config_says(bench, tmp_path, choices, cv):
+@pytest.mark.parametrize(("cv", "mode"), [(3, None), ("recording", None), (3, "rolling"),
+                                         ("recording", "rolling")])
+def test_the_default_row_cross_validates_as_its_config_says(bench, tmp_path, choices, cv,
+                                                            mode):
     """With model.select_cv, the default row scores every candidate by cross-validation
     inside the training rows, as torchhys fit does: blocked (each row's scored samples cut
     into k contiguous blocks, each held out once, the rows run whole) or one training row
-    held out at a time. The straight line's score against numpy least squares per fold."""
+    held out at a time; with select_cv_mode rolling, each block (row) after the first
+    scored by a fit of those before it only. The straight line's score against numpy least
+    squares per fold."""
     split = bench.DATASETS["mnzn_ferrite"][1](bench.Files(FERRITE))
     path = tmp_path / "cv.yaml"
     path.write_text(_measured_with(f"""  select:
     - operator: null
     - operator: [{{name: stop_pi, n_widths: 5, segments: 2}}]
   select_cv: {cv}
+  select_cv_mode: {mode or "blocked"}
   select_rule: min
 """))
     fitted = bench.default(split, bench.QUICK, path)
@@ -192,20 +197,26 @@ def test_the_default_row_cross_validates_as_its_config_says(bench, tmp_path, cho
     rows, T = x.shape
     if cv == "recording":
         folds = []
-        for r in range(rows):
+        for r in range(1 if mode == "rolling" else 0, rows):
             held = np.zeros_like(x, dtype=bool)
             held[r, w:] = True
             train = np.zeros_like(held)
-            train[[j for j in range(rows) if j != r], w:] = True
+            fitted_rows = range(r) if mode == "rolling" else [j for j in range(rows) if j != r]
+            train[list(fitted_rows), w:] = True
             folds.append((train, held))
     else:
         folds = []
-        for f in range(cv):
+        blocks = np.array_split(np.arange(w, T), cv)
+        for f in range(1 if mode == "rolling" else 0, cv):
             held = np.zeros_like(x, dtype=bool)
-            held[:, np.array_split(np.arange(w, T), cv)[f]] = True
-            scored = np.zeros_like(held)
-            scored[:, w:] = True
-            folds.append((scored & ~held, held))
+            held[:, blocks[f]] = True
+            train = np.zeros_like(held)
+            if mode == "rolling":
+                train[:, np.concatenate(blocks[:f])] = True
+            else:
+                train[:, w:] = True
+                train &= ~held
+            folds.append((train, held))
     errors = []
     for train, held in folds:
         design = np.stack([np.ones(train.sum()), x[train]], axis=1)
@@ -215,21 +226,24 @@ def test_the_default_row_cross_validates_as_its_config_says(bench, tmp_path, cho
     assert scores[0].val_mse == pytest.approx(reference, rel=1e-6)
     chosen = best(scores, "min")
     assert f"candidate {chosen.index}" in fitted.choice
-    assert f"select_cv {cv} RMSE {math.sqrt(chosen.val_mse):.4g}" in fitted.choice
+    how = f"{cv} rolling" if mode == "rolling" else f"{cv}"
+    assert f"select_cv {how} RMSE {math.sqrt(chosen.val_mse):.4g}" in fitted.choice
     assert math.isfinite(fitted.holdout) and fitted.holdout != pytest.approx(
         math.sqrt(chosen.val_mse))  # the row's hold-out RMSE, not the cross-validation's
 
 
+@pytest.mark.parametrize("mode", ["blocked", "rolling"])
 def test_the_default_rows_cross_validation_scores_as_torchhys_fit_does(bench, tmp_path,
-                                                                       monkeypatch):
-    """The default row's blocked cross-validation gives the scores of ``torchhys fit
-    --model.select_cv 3`` (its selection.csv) on the same training loops: a fitted family
-    operator (the stop-type model, refitted in every fold on the fold's training samples
-    only) and the line."""
-    select = """  select:
+                                                                       monkeypatch, mode):
+    """The default row's blocked (or rolling-origin) cross-validation gives the scores of
+    ``torchhys fit --model.select_cv 3`` (its selection.csv) on the same training loops: a
+    fitted family operator (the stop-type model, refitted in every fold on the fold's
+    training samples only) and the line."""
+    select = f"""  select:
     - operator: null
-    - operator: [{name: stop_pi, n_widths: 5, segments: 2}]
+    - operator: [{{name: stop_pi, n_widths: 5, segments: 2}}]
   select_cv: 3
+  select_cv_mode: {mode}
   select_rule: min
 """
     path = tmp_path / "cv.yaml"
@@ -249,7 +263,7 @@ def test_the_default_rows_cross_validation_scores_as_torchhys_fit_does(bench, tm
                                                      "segments": 2}]}]
     for candidate, (mse, se) in zip(candidates, expected, strict=True):
         got, got_se, capped = bench._score(path, candidate, split.x, split.y, split.warmup,
-                                           bench.QUICK, 3)
+                                           bench.QUICK, 3, mode)
         # the CLI logs each fold's MSE in float32
         assert got == pytest.approx(mse, rel=1e-6) and got_se == pytest.approx(se, rel=1e-6)
         assert not capped

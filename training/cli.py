@@ -22,6 +22,8 @@ before the module is built)::
         - {operator: null}                      # the plain network
       select_cv: null                           # k: blocked cross-validation instead,
                                                 # recording: leave one recording out
+      select_cv_mode: null                      # "rolling": validate each block (recording)
+                                                # on a fit of those before it only
       select_rule: null                         # "1se": the first unless beaten by > 1 s.e.
 
 Every candidate is trained from the same seed with the same trainer settings (CSV logs
@@ -30,8 +32,11 @@ summary or informational Lightning messages: one line per candidate) and scored 
 validation MSE at the end of training: on the validation split (which must not overlap the
 training split), or with ``model.select_cv: k`` by blocked cross-validation inside the
 training part (``k`` trainings per candidate), or with ``model.select_cv: recording`` by
-holding each training recording out once (one training per training recording); the
-validation split is then not used for the choice (:mod:`torchhys.training.selection`).
+holding each training recording out once (one training per training recording); with
+``model.select_cv_mode: rolling`` each block (or recording) after the first is scored by a
+fit of those before it only (``k - 1`` trainings per candidate; for a device that drifts as
+it is used). The validation split is then not used for the choice
+(:mod:`torchhys.training.selection`).
 The lowest validation MSE wins, or with ``model.select_rule: 1se`` the first candidate (a
 baseline such as the straight line) when it is within one standard error of the lowest.
 The test split is not read. The table is printed and written to
@@ -107,6 +112,11 @@ class TorchhysCLI(LightningCLI):
                  "with this many contiguous blocks of the training part, or 'recording': "
                  "hold each training recording out once (default: on the validation split)")
         parser.add_argument(
+            "--model.select_cv_mode", type=Literal["blocked", "rolling"] | None, default=None,
+            help="fit with model.select_cv: 'blocked' (default) holds each block (recording) "
+                 "out once, fitted on all the others; 'rolling' validates each block "
+                 "(recording) after the first on a fit of those before it only")
+        parser.add_argument(
             "--model.select_rule", type=Literal["min", "1se"] | None, default=None,
             help="fit with model.select: 'min' (default) chooses the lowest validation MSE, "
                  "'1se' the first candidate (the baseline) when within one standard error of it")
@@ -131,14 +141,16 @@ class TorchhysCLI(LightningCLI):
 
     # --- model selection ------------------------------------------------------------------
     def _select(self) -> None:
-        """Take ``model.select``/``select_cv`` out of the config; in ``fit``, score the
+        """Take ``model.select``/``select_cv``/``select_cv_mode``/``select_rule`` out of the
+        config; in ``fit``, score the
         candidates and put the chosen one's model section in their place."""
         self._selected = False  # set once run_selection has run (and warned, before_fit)
         sub = self.subcommand
         cfg = self.config[sub] if sub else self.config
-        select, cv, rule = _pop_select(cfg)
+        select, cv, mode, rule = _pop_select(cfg)
         if select is None:
-            for key, value in (("select_cv", cv), ("select_rule", rule)):
+            for key, value in (("select_cv", cv), ("select_cv_mode", mode),
+                               ("select_rule", rule)):
                 if value is not None:
                     raise ValueError(f"model.{key}={value!r} needs model.select (the candidates)")
             return
@@ -154,7 +166,7 @@ class TorchhysCLI(LightningCLI):
             raise ValueError("model.select builds each candidate's network from the model "
                              "arguments, but model.net gives a ready network: remove it")
         candidates = selection.check_candidates(
-            select, selection.model_arguments(self._model_class), cv=cv)
+            select, selection.model_arguments(self._model_class), cv=cv, mode=mode)
         configs = [self._candidate_config(i, c) for i, c in enumerate(candidates)]
         seed = cfg.get("seed_everything")
         if isinstance(seed, bool) or seed is None:  # unseeded: still one seed for all
@@ -165,11 +177,12 @@ class TorchhysCLI(LightningCLI):
             return self._instantiate_run(configs[i], seed, root / "selection", i, fold)
 
         with _quiet_lightning():
-            scores = selection.run_selection(candidates, build, cv=cv,
+            scores = selection.run_selection(candidates, build, cv=cv, mode=mode,
                                              report=_progress(len(candidates)))
         self._selected = True
         chosen = selection.best(scores, rule or "min")
-        _report(scores, chosen, root / "selection.csv", cv, rule or "min")
+        _report(scores, chosen, root / "selection.csv", selection.describe_cv(cv, mode),
+                rule or "min")
         self.config = configs[chosen.index]
         self.__dict__.pop("config_dump", None)  # the module's hyperparameters: the choice
         seed_everything(seed, workers=True)  # the fit starts as the candidate's run did
@@ -221,15 +234,15 @@ class TorchhysCLI(LightningCLI):
         return self.model, self._get(self.config_init, "data"), self.trainer_class(**kwargs)
 
 
-def _pop_select(cfg: Namespace) -> tuple[Any, Any, Any]:
-    """Remove ``model.select``, ``model.select_cv`` and ``model.select_rule`` from a
-    (subcommand's) config; their values."""
+def _pop_select(cfg: Namespace) -> tuple[Any, Any, Any, Any]:
+    """Remove ``model.select``, ``model.select_cv``, ``model.select_cv_mode`` and
+    ``model.select_rule`` from a (subcommand's) config; their values."""
     values = []
-    for key in ("model.select", "model.select_cv", "model.select_rule"):
+    for key in ("model.select", "model.select_cv", "model.select_cv_mode", "model.select_rule"):
         values.append(cfg.get(key))
         if key in cfg:
             del cfg[key]
-    return values[0], values[1], values[2]
+    return values[0], values[1], values[2], values[3]
 
 
 @contextlib.contextmanager
@@ -266,11 +279,8 @@ def _progress(n: int) -> Callable[[selection.CandidateScore], None]:
 
 @rank_zero_only
 def _report(scores: list[selection.CandidateScore], chosen: selection.CandidateScore,
-            path: Path, cv: int | str | None, rule: str) -> None:
+            path: Path, how: str, rule: str) -> None:
     selection.write_table(scores, chosen, path)
-    how = ("the validation split" if cv is None else
-           "leave-one-recording-out cross-validation" if cv == selection.RECORDING else
-           f"{cv}-fold blocked cross-validation")
     if rule == "1se":
         how += " (one-standard-error rule)"
     print(f"model selection on {how}:\n{selection.format_table(scores, chosen)}\n"

@@ -18,6 +18,14 @@ MSE at the end of training, either
   amplitudes, another operating point), this scores what a hold-out inside one recording
   cannot: how a candidate carries over to a recording it never saw.
 
+Either cross-validation may instead roll its origin forward (``select_cv_mode="rolling"``,
+:class:`RollingFold`, :func:`rolling_split`): each block (or recording) is validated on a
+fit of the blocks (recordings) before it only, never of later ones, as the model will be
+used: fitted on the past, run on what comes next. Blocked folds ask a model of a device
+that drifts as it is used (a shape-memory alloy's ratcheting, a piezo's creep) to predict
+earlier blocks from later ones; rolling folds do not, at the price of fitting on less data
+(fold ``j`` of ``k - 1`` on the first ``j`` of ``k`` blocks).
+
 A candidate whose family operator cannot be fitted to the data (no inverse, a diverged fit)
 scores NaN and is never chosen. The test split is never read. :func:`run_selection` returns
 one :class:`CandidateScore` per candidate (validation MSE and its standard error),
@@ -55,12 +63,16 @@ from torchhys.training.families import FitError
 
 RECORDING = "recording"
 """``select_cv`` of leave-one-recording-out cross-validation (:class:`RecordingFold`)."""
+CV_MODES = ("blocked", "rolling")
+"""``select_cv_mode``: every block held out once and fitted on all the others
+(``"blocked"``), or each block after the first validated on a fit of those before it
+(``"rolling"``, a rolling origin)."""
 
 __all__ = [
-    "RECORDING", "RULES", "BlockFold", "Build", "CandidateScore", "RecordingFold", "best",
-    "block_split", "check_candidates", "check_holdout", "config_json", "coverage_warning",
-    "format_table", "model_arguments", "run_selection", "standard_error", "warn_coverage",
-    "write_table",
+    "CV_MODES", "RECORDING", "RULES", "BlockFold", "Build", "CandidateScore", "RecordingFold",
+    "RollingFold", "best", "block_split", "check_candidates", "check_holdout", "config_json",
+    "coverage_warning", "cv_fold", "describe_cv", "format_table", "model_arguments",
+    "rolling_split", "run_selection", "standard_error", "warn_coverage", "write_table",
 ]
 
 Build = Callable[[int, int | None], tuple[L.LightningModule, L.LightningDataModule, L.Trainer]]
@@ -94,12 +106,14 @@ def model_arguments(model_class: type) -> list[str]:
 
 
 def check_candidates(select: object, valid: Sequence[str], *,
-                     cv: object = None) -> list[dict[str, Any]]:
+                     cv: object = None, mode: object = None) -> list[dict[str, Any]]:
     """The candidates as dicts, checked.
 
     Raises:
         ValueError: an empty list, a key that is not a model argument (the message names
-            it and lists ``valid``), ``cv`` neither an int >= 2 nor ``"recording"``.
+            it and lists ``valid``), ``cv`` neither an int >= 2 nor ``"recording"``,
+            ``mode`` not one of :data:`CV_MODES` (None: ``"blocked"``) or given without
+            ``cv``.
         TypeError: ``select`` not a list, a candidate not a dict.
     """
     if isinstance(select, (str, bytes, Mapping)) or not isinstance(select, Sequence):
@@ -133,6 +147,11 @@ def check_candidates(select: object, valid: Sequence[str], *,
             raise ValueError(f"model.select_cv must be an int >= 2 (blocked cross-validation) "
                              f"or {RECORDING!r} (leave one recording out), got {cv!r}")
         check_int(cv, "model.select_cv", minimum=2)
+    if mode is not None:
+        check_choice(mode, "model.select_cv_mode", CV_MODES)
+        if cv is None:
+            raise ValueError(f"model.select_cv_mode={mode!r} needs model.select_cv (k blocks, "
+                             f"or {RECORDING!r})")
     return candidates
 
 
@@ -369,6 +388,25 @@ def _ends(mask: Tensor) -> Tensor:
     return (mask.to(torch.bool) * t).amax(-1)
 
 
+def _blocks(mask: Tensor, k: int, source: str) -> list[tuple[Tensor, ...]]:
+    """The scored samples (``mask``, (rows, time)) of each row cut into ``k`` contiguous
+    blocks of indices (sizes differ by at most one); a row with fewer than ``2 k`` scored
+    samples is an error naming ``model.select_cv``."""
+    check_int(k, "model.select_cv", minimum=2)
+    if mask.dim() != 2:
+        raise ValueError(f"mask must have shape (rows, time), got {tuple(mask.shape)}")
+    blocks = []
+    for r in range(mask.shape[0]):
+        idx = mask[r].to(torch.bool).nonzero().flatten()
+        if idx.numel() < 2 * k:
+            raise ValueError(
+                f"model.select_cv={k}: training row {r} of {source} holds {idx.numel()} "
+                f"scored samples, at least {2 * k} are needed; lower select_cv"
+            )
+        blocks.append(torch.tensor_split(idx, k))  # a mask may have gaps
+    return blocks
+
+
 def block_split(mask: Tensor, k: int, fold: int, *, source: str = "the data") -> Tensor:
     """Fold ``fold`` of ``k`` of blocked cross-validation (:class:`BlockFold`'s cut, on
     tensors): the scored samples (``mask``) of each row cut into ``k`` contiguous blocks
@@ -391,19 +429,89 @@ def block_split(mask: Tensor, k: int, fold: int, *, source: str = "the data") ->
     check_int(k, "model.select_cv", minimum=2)
     if not 0 <= fold < k:
         raise ValueError(f"fold must be in [0, {k}), got {fold}")
-    if mask.dim() != 2:
-        raise ValueError(f"mask must have shape (rows, time), got {tuple(mask.shape)}")
-    mask = mask.to(torch.bool)
-    held = torch.zeros_like(mask)
-    for r in range(mask.shape[0]):
-        idx = mask[r].nonzero().flatten()
-        if idx.numel() < 2 * k:
-            raise ValueError(
-                f"model.select_cv={k}: training row {r} of {source} holds {idx.numel()} "
-                f"scored samples, at least {2 * k} are needed; lower select_cv"
-            )
-        held[r, torch.tensor_split(idx, k)[fold]] = True  # a mask may have gaps
+    held = torch.zeros(mask.shape, dtype=torch.bool)
+    for r, blocks in enumerate(_blocks(mask, k, source)):
+        held[r, blocks[fold]] = True
     return held
+
+
+def rolling_split(mask: Tensor, k: int, fold: int, *,
+                  source: str = "the data") -> tuple[Tensor, Tensor]:
+    """Fold ``fold`` of the ``k - 1`` folds of rolling-origin cross-validation
+    (:class:`RollingFold`'s cut, on tensors): the scored samples (``mask``) of each row cut
+    into ``k`` contiguous blocks as :func:`block_split` cuts them; blocks ``0 .. fold``
+    are fitted, block ``fold + 1`` is held out, the later blocks are not used.
+
+    Args:
+        mask: the scored samples, (rows, time), bool or 0/1.
+        k: number of blocks, >= 2 (``k - 1`` folds).
+        fold: ``0 <= fold < k - 1``.
+        source: the data's name, for the error message.
+
+    Returns:
+        ``(fitted, held)``, each (rows, time) bool: the samples the candidate is fitted on,
+        and those it is scored on. Every fitted sample comes before every held-out one in
+        its row; the states run from the row's start.
+
+    Raises:
+        ValueError: ``k`` or ``fold`` out of range, a mask that is not (rows, time), a row
+            with fewer than ``2 k`` scored samples.
+    """
+    check_int(k, "model.select_cv", minimum=2)
+    if not 0 <= fold < k - 1:
+        raise ValueError(f"fold must be in [0, {k - 1}) (k - 1 rolling folds of k={k} "
+                         f"blocks), got {fold}")
+    fitted = torch.zeros(mask.shape, dtype=torch.bool)
+    held = torch.zeros(mask.shape, dtype=torch.bool)
+    for r, blocks in enumerate(_blocks(mask, k, source)):
+        fitted[r, torch.cat(blocks[:fold + 1])] = True
+        held[r, blocks[fold + 1]] = True
+    return fitted, held
+
+
+class RollingFold(_Fold):
+    """Fold ``fold`` of rolling-origin cross-validation inside a datamodule's training part:
+    the scored samples of each row cut into ``k`` contiguous blocks as :class:`BlockFold`
+    cuts them, blocks ``0 .. fold`` fitted, block ``fold + 1`` validated, the later blocks
+    not used (``k - 1`` folds)::
+
+        row      |-- warm-up --|-- block 0 --|-- block 1 --|-- block 2 --| ... |-- block k-1 --|
+        train    not scored      scored        scored        -                 -       (fold 1)
+        val      not scored      -             -             scored            -
+
+    Each block after the first is predicted by a model fitted on the samples before it
+    only, as the model will be used (:func:`rolling_split`). The states run from each
+    row's start; :meth:`train_tensors` are the whole rows and :attr:`train_mask` their
+    fitted samples.
+
+    Args:
+        data: the datamodule (set up here).
+        k: number of blocks, >= 2.
+        fold: ``0 <= fold < k - 1``.
+
+    Raises:
+        ValueError: ``k`` or ``fold`` out of range, a training row with fewer than ``2 k``
+            scored samples, or no training data.
+    """
+
+    def __init__(self, data: L.LightningDataModule, k: int, fold: int) -> None:
+        super().__init__()
+        check_int(k, "model.select_cv", minimum=2)
+        self.k = k - 1
+        """Number of folds (one fewer than the blocks)."""
+        data.setup("fit")
+        batches = data.batches("train")
+        source = getattr(data, "source", "the data")
+        if not batches:
+            raise ValueError(f"{source}: no training data")
+        x, y, warmup, mask = batches[0]
+        mask = mask.to(torch.bool)
+        fitted, held = rolling_split(mask, k, fold, source=source)
+        self.n_val = int(held.sum())
+        """Number of held-out (validation) samples."""
+        self._train = (x, y, warmup, fitted)
+        self._val = (x, y, warmup, held)
+        self._fit = fit_tensors(x, y, warmup, _ends(mask), mask & ~fitted)
 
 
 class RecordingFold(_Fold):
@@ -420,45 +528,75 @@ class RecordingFold(_Fold):
         train    scored   -        scored      (fold 1)
         val      -        scored   -
 
-    :meth:`train_tensors` are the other training rows, each from its own initial state
+    With ``rolling=True`` the origin rolls forward through the recordings in their order:
+    fold ``j`` trains on rows ``0 .. j`` and validates on row ``j + 1`` (one fold fewer than
+    the recordings; for recordings taken one after another on a device that changes).
+
+    :meth:`train_tensors` are the training rows, each from its own initial state
     (:func:`~torchhys.training.data.fit_tensors`).
 
     Args:
         data: the datamodule (set up here).
-        fold: the held-out recording, ``0 <= fold < k``, ``k`` the number of training
-            recordings.
+        fold: the fold, ``0 <= fold < k``: ``k`` the number of training recordings, or one
+            fewer with ``rolling``.
+        rolling: validate each recording on a fit of those before it only.
 
     Raises:
         ValueError: fewer than two training recordings, ``fold`` out of range.
     """
 
-    def __init__(self, data: L.LightningDataModule, fold: int) -> None:
+    def __init__(self, data: L.LightningDataModule, fold: int, *, rolling: bool = False) -> None:
         super().__init__()
         data.setup("fit")
         batches = data.batches("train")
         source = getattr(data, "source", "the data")
         x, y, warmup, mask = batches[0] if batches else (None,) * 4
-        self.k = 0 if x is None else x.shape[0]
-        """Number of folds: the training recordings."""
-        if self.k < 2:
+        n = 0 if x is None else x.shape[0]
+        if n < 2:
             raise ValueError(
                 f"model.select_cv={RECORDING!r} holds each training recording out once, but "
-                f"the training split of {source} holds {self.k}: give several (data.split_by: "
+                f"the training split of {source} holds {n}: give several (data.split_by: "
                 "recording with data.train_recordings, or several data.path files), or use "
                 "blocked cross-validation inside the record (model.select_cv: k)"
             )
+        self.k = n - 1 if rolling else n
+        """Number of folds: the training recordings (one fewer with ``rolling``)."""
         if not 0 <= fold < self.k:
             raise ValueError(f"fold must be in [0, {self.k}), got {fold}")
         mask = mask.to(torch.bool)
-        keep = [r for r in range(self.k) if r != fold]
-        self.n_val = int(mask[fold].sum())
+        if rolling:
+            keep, val = list(range(fold + 1)), fold + 1
+        else:
+            keep, val = [r for r in range(n) if r != fold], fold
+        self.n_val = int(mask[val].sum())
         """Number of held-out (validation) samples."""
         self._train = (x[keep], y[keep], warmup[keep], mask[keep])
-        self._val = (x[fold:fold + 1], y[fold:fold + 1], warmup[fold:fold + 1],
-                     mask[fold:fold + 1])
+        self._val = (x[val:val + 1], y[val:val + 1], warmup[val:val + 1], mask[val:val + 1])
         ends = _ends(mask[keep])
         T = int(ends.max())  # the other rows' padding to the held-out one's length goes
         self._fit = fit_tensors(x[keep, :T], y[keep, :T], warmup[keep], ends)
+
+
+def cv_fold(data: L.LightningDataModule, cv: int | str, fold: int,
+            mode: str | None = None) -> _Fold:
+    """Fold ``fold`` of the cross-validation ``select_cv=cv``, ``select_cv_mode=mode`` (None:
+    ``"blocked"``): a :class:`BlockFold`, :class:`RollingFold` or :class:`RecordingFold`
+    (its ``k`` the number of folds)."""
+    rolling = check_choice(mode or "blocked", "model.select_cv_mode", CV_MODES) == "rolling"
+    if cv == RECORDING:
+        return RecordingFold(data, fold, rolling=rolling)
+    return RollingFold(data, cv, fold) if rolling else BlockFold(data, cv, fold)
+
+
+def describe_cv(cv: int | str | None, mode: str | None = None) -> str:
+    """How the candidates are scored, in words (the CLI's report)."""
+    if cv is None:
+        return "the validation split"
+    if mode == "rolling":
+        return ("rolling-origin cross-validation over the training recordings" if cv == RECORDING
+                else f"rolling-origin cross-validation on {cv} blocks ({cv - 1} folds)")
+    return ("leave-one-recording-out cross-validation" if cv == RECORDING else
+            f"{cv}-fold blocked cross-validation")
 
 
 def _squared_errors(module: L.LightningModule, datamodule: L.LightningDataModule) -> Tensor:
@@ -511,7 +649,7 @@ def standard_error(squared_errors: Tensor) -> float:
 
 
 def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
-                  cv: int | str | None = None,
+                  cv: int | str | None = None, mode: str | None = None,
                   report: Callable[[CandidateScore], None] | None = None
                   ) -> list[CandidateScore]:
     """Train and score every candidate.
@@ -522,6 +660,7 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
         cv: ``k`` for blocked cross-validation inside the training part,
             ``"recording"`` to hold out each training recording once, None for the
             datamodule's validation split (checked by :func:`check_holdout`).
+        mode: with ``cv``, ``"blocked"`` (None) or ``"rolling"`` (:func:`cv_fold`).
         report: called with each candidate's score as soon as it is known (progress).
 
     Returns:
@@ -529,6 +668,9 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
         NaN (it cannot be fitted to that fold's data, or its training diverged) scores NaN
         without training on the remaining folds (NaN there too).
     """
+    if mode is not None and cv is None:
+        raise ValueError(f"model.select_cv_mode={mode!r} needs model.select_cv (k blocks, or "
+                         f"{RECORDING!r})")
     scores = []
     for i, overrides in enumerate(candidates):
         if cv is None:
@@ -545,7 +687,7 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
         j, k = 0, None
         while k is None or j < k:
             module, data, trainer = build(i, j)
-            fold = RecordingFold(data, j) if cv == RECORDING else BlockFold(data, cv, j)
+            fold = cv_fold(data, cv, j, mode)
             if i == 0 and j == 0:
                 warn_coverage(data)
             k = fold.k
