@@ -368,18 +368,25 @@ class BlockFold(_Fold):
             raise ValueError(f"fold must be in [0, {k}), got {fold}")
         self.k = k
         """Number of folds."""
-        data.setup("fit")
-        batches = data.batches("train")
-        if not batches:
-            raise ValueError(f"{getattr(data, 'source', 'the data')}: no training data")
-        x, y, warmup, mask = batches[0]
-        mask = mask.to(torch.bool)
-        held = block_split(mask, k, fold, source=getattr(data, "source", "the data"))
+        x, y, warmup, mask, source = _train_batch(data)
+        held = block_split(mask, k, fold, source=source)
         self.n_val = int(held.sum())
         """Number of held-out (validation) samples."""
         self._train = (x, y, warmup, mask & ~held)
         self._val = (x, y, warmup, held)
         self._fit = fit_tensors(x, y, warmup, _ends(mask), held)
+
+
+def _train_batch(data: L.LightningDataModule) -> tuple[Tensor, Tensor, Tensor, Tensor, str]:
+    """The training batch ``(x, y, warmup, mask)`` of a datamodule (set up here), the mask
+    as bool, and the data's name; an error when it has no training data."""
+    data.setup("fit")
+    batches = data.batches("train")
+    source = getattr(data, "source", "the data")
+    if not batches:
+        raise ValueError(f"{source}: no training data")
+    x, y, warmup, mask = batches[0]
+    return x, y, warmup, mask.to(torch.bool), source
 
 
 def _ends(mask: Tensor) -> Tensor:
@@ -499,13 +506,7 @@ class RollingFold(_Fold):
         check_int(k, "model.select_cv", minimum=2)
         self.k = k - 1
         """Number of folds (one fewer than the blocks)."""
-        data.setup("fit")
-        batches = data.batches("train")
-        source = getattr(data, "source", "the data")
-        if not batches:
-            raise ValueError(f"{source}: no training data")
-        x, y, warmup, mask = batches[0]
-        mask = mask.to(torch.bool)
+        x, y, warmup, mask, source = _train_batch(data)
         fitted, held = rolling_split(mask, k, fold, source=source)
         self.n_val = int(held.sum())
         """Number of held-out (validation) samples."""
