@@ -194,3 +194,17 @@ def test_normalization_is_fit_on_the_training_part_only() -> None:
     whole = float(dm.y.mean())
     assert not math.isclose(float(net.out_mean), whole, rel_tol=1e-3)
     assert bool(module.normalization_fitted)
+
+
+def test_the_training_rows_are_padded_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``train_tensors``, ``train_warmup`` and ``train_mask`` read one stacking of the
+    training sequences (the module's set-up reads all three)."""
+    import torchhys.training.data as data
+
+    calls = []
+    stack = data.stack_sequences
+    monkeypatch.setattr(data, "stack_sequences", lambda seqs: calls.append(1) or stack(seqs))
+    dm = HysteresisDataModule(t_end=6.3, split=[0.8, 0.2, 0.0], warmup=7)
+    x, y = dm.train_tensors()
+    assert dm.train_warmup == 7 and dm.train_mask is None and len(calls) == 1
+    assert dm.train_tensors()[0] is x and x.shape == (1, dm.batches("train")[0][0].shape[1])

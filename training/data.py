@@ -225,6 +225,7 @@ class HysteresisDataModule(L.LightningDataModule):
         self.y: Tensor | None = None
         self.bounds: dict[str, tuple[int, int]] = {}
         """Rows ``[a, b)`` of each stage of a single recording split in time."""
+        self._fit: FitTensors | None = None  # the training rows, padded once (_train_fit)
 
     def _check_inputs(self) -> None:
         hp = self.hparams
@@ -375,7 +376,10 @@ class HysteresisDataModule(L.LightningDataModule):
         return [self._batch(windows)] if windows else []
 
     def _train_fit(self) -> FitTensors:
-        return stack_sequences([self._sequence(w) for w in self._stage_windows("train")])
+        """The training rows as the fits read them (:func:`stack_sequences`), built once."""
+        if self._fit is None:
+            self._fit = stack_sequences([self._sequence(w) for w in self._stage_windows("train")])
+        return self._fit
 
     def train_tensors(self) -> tuple[Tensor, Tensor]:
         """The training sequences ``(x, y)``, float64, (recordings, time), to fit
