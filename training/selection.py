@@ -24,7 +24,7 @@ fit of the blocks (recordings) before it only, never of later ones, as the model
 used: fitted on the past, run on what comes next. Blocked folds ask a model of a device
 that drifts as it is used (a shape-memory alloy's ratcheting, a piezo's creep) to predict
 earlier blocks from later ones; rolling folds do not, at the price of fitting on less data
-(fold ``j`` of ``k - 1`` on the first ``j`` of ``k`` blocks).
+(``k - 1`` folds, the first fitted on one block of ``k``).
 
 A candidate whose family operator cannot be fitted to the data (no inverse, a diverged fit)
 scores NaN and is never chosen. The test split is never read. :func:`run_selection` returns
@@ -436,7 +436,7 @@ def block_split(mask: Tensor, k: int, fold: int, *, source: str = "the data") ->
     check_int(k, "model.select_cv", minimum=2)
     if not 0 <= fold < k:
         raise ValueError(f"fold must be in [0, {k}), got {fold}")
-    held = torch.zeros(mask.shape, dtype=torch.bool)
+    held = torch.zeros_like(mask, dtype=torch.bool)
     for r, blocks in enumerate(_blocks(mask, k, source)):
         held[r, blocks[fold]] = True
     return held
@@ -468,8 +468,8 @@ def rolling_split(mask: Tensor, k: int, fold: int, *,
     if not 0 <= fold < k - 1:
         raise ValueError(f"fold must be in [0, {k - 1}) (k - 1 rolling folds of k={k} "
                          f"blocks), got {fold}")
-    fitted = torch.zeros(mask.shape, dtype=torch.bool)
-    held = torch.zeros(mask.shape, dtype=torch.bool)
+    fitted = torch.zeros_like(mask, dtype=torch.bool)
+    held = torch.zeros_like(mask, dtype=torch.bool)
     for r, blocks in enumerate(_blocks(mask, k, source)):
         fitted[r, torch.cat(blocks[:fold + 1])] = True
         held[r, blocks[fold + 1]] = True
