@@ -111,8 +111,7 @@ from torchhys.training.selection import (
     RECORDING,
     CandidateScore,
     best,
-    block_split,
-    rolling_split,
+    fold_masks,
     standard_error,
 )
 
@@ -873,11 +872,11 @@ def _score(config: Path, overrides: dict, x: Tensor, y: Tensor, w: int, budget: 
     """A candidate's validation MSE and its standard error, as ``torchhys fit`` scores it
     with ``model.select_cv`` = ``cv``: None, on the last quarter of the scored samples of
     every training row, fitted before it; ``k``, by blocked cross-validation inside the
-    training rows (:func:`~torchhys.training.selection.block_split`: each fold fitted on
+    training rows (:func:`~torchhys.training.selection.fold_masks`: each fold fitted on
     the whole rows without its block's targets, the states running through it);
     ``"recording"``, each training row held out once, fitted on the others; with ``mode``
     ``"rolling"``, each block (row) after the first scored by a fit of those before it
-    (:func:`~torchhys.training.selection.rolling_split`). Returns the MSE
+    (for blocks, ``fold_masks(..., rolling=True)``). Returns the MSE
     and its standard error, NaN (never chosen, as ``torchhys fit`` scores it) when a fit
     fails (``FitError``) or the MSE is not finite, and whether a training stopped at the
     budget's time cap."""
@@ -898,13 +897,10 @@ def _score(config: Path, overrides: dict, x: Tensor, y: Tensor, w: int, budget: 
         mask = torch.zeros_like(x, dtype=torch.bool)
         mask[:, w:] = True
         folds = []
-        for f in range(cv - 1 if mode == "rolling" else cv):
-            if mode == "rolling":
-                fitted, held = rolling_split(mask, cv, f)
-                folds.append((x, y, held, mask & ~fitted))
-            else:
-                held = block_split(mask, cv, f)
-                folds.append((x, y, held, held))
+        rolling = mode == "rolling"
+        for f in range(cv - 1 if rolling else cv):
+            fitted, held = fold_masks(mask, cv, f, rolling=rolling)
+            folds.append((x, y, held, mask & ~fitted))
     errors, capped = [], False
     for fx, fy, scored, held in folds:
         try:

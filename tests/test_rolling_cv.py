@@ -19,6 +19,7 @@ from torchhys.training.selection import (
     block_split,
     check_candidates,
     cv_fold,
+    fold_masks,
     model_arguments,
     rolling_split,
     run_selection,
@@ -57,6 +58,12 @@ def test_rolling_split_against_a_plain_loop(k: int) -> None:
         np.testing.assert_array_equal(fitted.numpy(), ref_fitted)
         np.testing.assert_array_equal(held.numpy(), ref_held)
         assert torch.equal(held, block_split(mask, k, fold + 1))
+        for got, want in zip(fold_masks(mask, k, fold, rolling=True), (fitted, held),
+                             strict=True):
+            assert torch.equal(got, want)
+        blocked_fit, blocked_held = fold_masks(mask, k, fold)
+        assert torch.equal(blocked_held, block_split(mask, k, fold))
+        assert torch.equal(blocked_fit, mask & ~blocked_held)
         for r in range(3):
             assert int(fitted[r].nonzero().max()) < int(held[r].nonzero().min())
         assert not (covered & held).any()

@@ -71,7 +71,8 @@ CV_MODES = ("blocked", "rolling")
 __all__ = [
     "CV_MODES", "RECORDING", "RULES", "BlockFold", "Build", "CandidateScore", "RecordingFold",
     "RollingFold", "best", "block_split", "check_candidates", "check_holdout", "config_json",
-    "coverage_warning", "cv_fold", "describe_cv", "format_table", "model_arguments",
+    "coverage_warning", "cv_fold", "describe_cv", "fold_masks", "format_table",
+    "model_arguments",
     "rolling_split", "run_selection", "standard_error", "warn_coverage", "write_table",
 ]
 
@@ -361,20 +362,21 @@ class BlockFold(_Fold):
             scored samples, or no training data.
     """
 
+    rolling = False
+    """Whether the folds roll their origin forward (:class:`RollingFold`)."""
+
     def __init__(self, data: L.LightningDataModule, k: int, fold: int) -> None:
         super().__init__()
         check_int(k, "model.select_cv", minimum=2)
-        if not 0 <= fold < k:
-            raise ValueError(f"fold must be in [0, {k}), got {fold}")
-        self.k = k
+        self.k = k - 1 if self.rolling else k
         """Number of folds."""
         x, y, warmup, mask, source = _train_batch(data)
-        held = block_split(mask, k, fold, source=source)
+        fitted, held = fold_masks(mask, k, fold, rolling=self.rolling, source=source)
         self.n_val = int(held.sum())
         """Number of held-out (validation) samples."""
-        self._train = (x, y, warmup, mask & ~held)
+        self._train = (x, y, warmup, fitted)
         self._val = (x, y, warmup, held)
-        self._fit = fit_tensors(x, y, warmup, _ends(mask), held)
+        self._fit = fit_tensors(x, y, warmup, _ends(mask), mask & ~fitted)
 
 
 def _train_batch(data: L.LightningDataModule) -> tuple[Tensor, Tensor, Tensor, Tensor, str]:
@@ -476,7 +478,19 @@ def rolling_split(mask: Tensor, k: int, fold: int, *,
     return fitted, held
 
 
-class RollingFold(_Fold):
+def fold_masks(mask: Tensor, k: int, fold: int, *, rolling: bool = False,
+               source: str = "the data") -> tuple[Tensor, Tensor]:
+    """``(fitted, held)`` of fold ``fold`` of blocked cross-validation on ``k`` blocks (the
+    scored samples outside :func:`block_split`'s block, and the block), or with ``rolling``
+    of rolling-origin cross-validation (:func:`rolling_split`); (rows, time) bool each.
+    :class:`BlockFold` and :class:`RollingFold` cut their folds so."""
+    if rolling:
+        return rolling_split(mask, k, fold, source=source)
+    held = block_split(mask, k, fold, source=source)
+    return mask.to(torch.bool) & ~held, held
+
+
+class RollingFold(BlockFold):
     """Fold ``fold`` of rolling-origin cross-validation inside a datamodule's training part:
     the scored samples of each row cut into ``k`` contiguous blocks as :class:`BlockFold`
     cuts them, blocks ``0 .. fold`` fitted, block ``fold + 1`` validated, the later blocks
@@ -501,18 +515,7 @@ class RollingFold(_Fold):
             scored samples, or no training data.
     """
 
-    def __init__(self, data: L.LightningDataModule, k: int, fold: int) -> None:
-        super().__init__()
-        check_int(k, "model.select_cv", minimum=2)
-        self.k = k - 1
-        """Number of folds (one fewer than the blocks)."""
-        x, y, warmup, mask, source = _train_batch(data)
-        fitted, held = rolling_split(mask, k, fold, source=source)
-        self.n_val = int(held.sum())
-        """Number of held-out (validation) samples."""
-        self._train = (x, y, warmup, fitted)
-        self._val = (x, y, warmup, held)
-        self._fit = fit_tensors(x, y, warmup, _ends(mask), mask & ~fitted)
+    rolling = True
 
 
 class RecordingFold(_Fold):
