@@ -271,6 +271,22 @@ def sma() -> Split:
     return Split(_t(temp[:cut])[None], _t(ext[:cut])[None], w, [(_t(temp), _t(ext), cut)])
 
 
+def micromanipulator(*, compensator: bool) -> Split:
+    """A piezoelectric micromanipulator (drive voltage -> capacitive displacement sensor, 200
+    Hz): the identification record (40 periods of a 1 Hz sine over the full 0-3.6 V range)
+    trains, the test record (a smaller 1 Hz sine that decays to rest, then two drives whose
+    amplitude grows and shrinks, shaped by the source's own compensator) is held out. Each is
+    run from its start, its first period (200 samples) only running the states.
+    ``compensator``: displacement -> voltage (the inverse model); else voltage ->
+    displacement."""
+    d = read_csv(REAL / "piezo_micromanipulator.csv")
+    x, y = ("displacement_um", "voltage_V") if compensator else ("voltage_V", "displacement_um")
+    recs = _recordings(d, "recording", x, y)
+    w = int(np.searchsorted(d["t_s"][d["recording"] == 0], 1.0 - 1e-9))  # 1 s: one period
+    return Split(_t(recs[0][0])[None], _t(recs[0][1])[None], w,
+                 [(_t(recs[1][0]), _t(recs[1][1]), w)])
+
+
 def read_piezo(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Time (s), voltage (V) and displacement (um) of the SmartHysteresis piezo record, as
     published: no header, columns (empty index, time, displacement, voltage).
@@ -425,6 +441,10 @@ DATASETS: dict[str, tuple[str, Callable[[Files], Split]]] = {
                                lambda f: piezo(f.piezo, compensator=False)),
     "piezo_actuator_short": ("piezo_actuator, the training part sampled every 370th: 50 samples",
                              lambda f: shortened(piezo(f.piezo, compensator=True), stride=True)),
+    "piezo_manipulator": ("displacement -> voltage, identification record / test record",
+                          lambda f: micromanipulator(compensator=True)),
+    "piezo_manipulator_forward": ("voltage -> displacement, as piezo_manipulator",
+                                  lambda f: micromanipulator(compensator=False)),
     "quad_magnet": ("integrated gradient -> current, major loop / minor loops (--quad)",
                     lambda f: quad(f.quad, compensator=True)),
     "quad_magnet_forward": ("current -> integrated gradient, as quad_magnet",
@@ -433,7 +453,7 @@ DATASETS: dict[str, tuple[str, Callable[[Files], Split]]] = {
 """Data sets by name: (protocol, builder of the split from the optional files)."""
 
 NEEDS = {name: "ferrite" if name.startswith("mnzn_ferrite") else
-         "piezo" if name.startswith("piezo") else
+         "piezo" if name.startswith("piezo_actuator") else
          "quad" if name.startswith("quad") else None for name in DATASETS}
 """The option (a :class:`Files` field) whose file each data set reads, if any."""
 
