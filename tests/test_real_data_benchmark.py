@@ -591,3 +591,39 @@ def test_the_default_inverts_a_preisach_model_on_the_ferrite_loops(bench):
     baseline = min(bench.test_rmse(bench.line(split, bench.QUICK).predict, split)[0],
                    bench.test_rmse(bench.poly(split, bench.QUICK).predict, split)[0])
     assert rmse < 0.45 * baseline, (rmse, baseline)
+
+
+def test_micromanipulator_records_train_and_test(bench):
+    """The piezo micromanipulator: the identification record (a 1 Hz sine over the full
+    voltage range, 200 Hz) trains, the test record (loops of many amplitudes inside it) is held
+    out, each whole and from its start, its first period only running the states; the
+    compensator swaps input and target."""
+    d = bench.read_csv(bench.REAL / "piezo_micromanipulator.csv")
+    rec, t = d["recording"], d["t_s"]
+    volt, disp = d["voltage_V"], d["displacement_um"]
+    assert np.isfinite(volt).all() and np.isfinite(disp).all()
+    assert [int((rec == r).sum()) for r in (0, 1)] == [8027, 14155]
+    for r in (0, 1):
+        np.testing.assert_allclose(np.diff(t[rec == r]), 0.005, atol=1e-9)  # 200 Hz
+    v0, v1 = volt[rec == 0], volt[rec == 1]
+    np.testing.assert_array_equal(v0[200:], v0[:-200])  # one period: 1 s
+    assert v0.min() == 0.0 and v0.max() == 3.6
+    assert v0.min() < v1.min() and v1.max() < v0.max()  # the test loops lie inside
+
+    fwd = bench.DATASETS["piezo_manipulator_forward"][1](bench.Files())
+    inv = bench.DATASETS["piezo_manipulator"][1](bench.Files())
+    assert fwd.warmup == inv.warmup == 200 and not fwd.magnetic
+    np.testing.assert_array_equal(fwd.x.numpy(), v0[None])
+    np.testing.assert_array_equal(fwd.y.numpy(), disp[rec == 0][None])
+    np.testing.assert_array_equal(inv.x.numpy(), fwd.y.numpy())
+    np.testing.assert_array_equal(inv.y.numpy(), fwd.x.numpy())
+    (x, y, w), = fwd.test
+    np.testing.assert_array_equal(x.numpy(), v1)
+    np.testing.assert_array_equal(y.numpy(), disp[rec == 1])
+    assert w == 200
+    (xi, yi, wi), = inv.test
+    np.testing.assert_array_equal(xi.numpy(), disp[rec == 1])
+    np.testing.assert_array_equal(yi.numpy(), v1)
+    assert wi == 200
+    assert bench.NEEDS["piezo_manipulator"] is None  # shipped: no option
+    assert bench.NEEDS["piezo_actuator_short"] == "piezo"
