@@ -374,11 +374,18 @@ def quad(folder: Path, *, compensator: bool) -> Split:
     return Split(_t(x)[None], _t(y)[None], w, test)
 
 
-def shortened(split: Split, n: int = 50, *, stride: bool = False) -> Split:
+def shortened(split: Split, n: int = 50, *, stride: bool = False,
+              every: int | None = None) -> Split:
     """A short record of about ``n`` scored training samples: the first training row, its
     warm-up and the ``n`` samples after it (a short log of the device), or with ``stride``
-    every k-th sample of every training row (a closed loop sampled coarsely: its shape kept).
-    The held-out recordings are unchanged."""
+    every k-th sample of every training row (a closed loop sampled coarsely: its shape kept),
+    or with ``every = k`` every k-th sample of each training row's warm-up and of the ``n k``
+    samples after it (a short log at 1/k of the rate: where k-th samples of the whole row
+    would skip most of each period). The held-out recordings are unchanged."""
+    if every is not None:
+        cut = split.warmup + n * every
+        return split._replace(x=split.x[:, :cut:every], y=split.y[:, :cut:every],
+                              warmup=-(-split.warmup // every))
     if not stride:
         return split._replace(x=split.x[:1, :split.warmup + n],
                               y=split.y[:1, :split.warmup + n])
@@ -445,6 +452,9 @@ DATASETS: dict[str, tuple[str, Callable[[Files], Split]]] = {
                           lambda f: micromanipulator(compensator=True)),
     "piezo_manipulator_forward": ("voltage -> displacement, as piezo_manipulator",
                                   lambda f: micromanipulator(compensator=False)),
+    "piezo_manipulator_short": ("piezo_manipulator, one period of the training record at 50 Hz: "
+                                "50 samples",
+                                lambda f: shortened(micromanipulator(compensator=True), every=4)),
     "quad_magnet": ("integrated gradient -> current, major loop / minor loops (--quad)",
                     lambda f: quad(f.quad, compensator=True)),
     "quad_magnet_forward": ("current -> integrated gradient, as quad_magnet",

@@ -140,6 +140,11 @@ def test_short_and_long_records_keep_the_held_out_part(bench):
     assert coarse.y[:, coarse.warmup:].numel() == 52
     np.testing.assert_array_equal(coarse.x.numpy(), split.x[:, ::5].numpy())
     assert coarse.test is split.test
+    slow = bench.shortened(split, n=20, every=3)  # warm-up and 60 samples, every 3rd
+    assert slow.warmup == -(-split.warmup // 3) and slow.test is split.test
+    np.testing.assert_array_equal(slow.y.numpy(),
+                                  split.y[:, :split.warmup + 60:3].numpy())
+    assert split.warmup % 3 == 0 and slow.y[:, slow.warmup:].shape[1] == 20
     log = bench.shortened(split)  # the first row, its warm-up and 50 samples
     assert log.x.shape == (1, split.warmup + 50) and log.warmup == split.warmup
     np.testing.assert_array_equal(log.y.numpy(), split.y[:1, :split.warmup + 50].numpy())
@@ -625,5 +630,13 @@ def test_micromanipulator_records_train_and_test(bench):
     np.testing.assert_array_equal(xi.numpy(), disp[rec == 1])
     np.testing.assert_array_equal(yi.numpy(), v1)
     assert wi == 200
+    short = bench.DATASETS["piezo_manipulator_short"][1](bench.Files())
+    # one period of warm-up and one scored, at 50 Hz (every 4th sample): 50 scored samples
+    assert short.warmup == 50 and short.y[:, short.warmup:].numel() == 50
+    np.testing.assert_array_equal(short.x.numpy(), disp[rec == 0][None, :400:4])
+    np.testing.assert_array_equal(short.y.numpy(), v0[None, :400:4])
+    assert len(short.test) == 1
+    np.testing.assert_array_equal(short.test[0][0].numpy(), disp[rec == 1])
+    assert short.test[0][2] == 200  # the held-out record stays at 200 Hz
     assert bench.NEEDS["piezo_manipulator"] is None  # shipped: no option
     assert bench.NEEDS["piezo_actuator_short"] == "piezo"
