@@ -159,3 +159,18 @@ def test_paper_protocol_benchmark_ranks_the_operators() -> None:
     assert len(part2) == 8
     for r in part2:
         assert all(math.isfinite(float(c)) for c in r[5:]), r
+
+
+def test_micromanipulator_figure_is_drawn_and_finds_the_lag(tmp_path: Path) -> None:
+    """The micromanipulator's identification loop closes when the sensor is shifted back by
+    its lag (a memoryless polynomial then fits it to a fraction of the unshifted error), and
+    the default compensator beats the line on the test record."""
+    out = run("micromanipulator_figure.py", "--out", str(tmp_path / "fig.png"))
+    assert (tmp_path / "fig.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    found = re.search(r"polynomial RMSE: ([\d.]+) um unshifted, ([\d.]+) um with the sensor "
+                      r"(\d+) samples earlier; RMSE on the test record: default ([\d.]+) V, "
+                      r"line ([\d.]+) V", out)
+    assert found, out
+    raw, shifted, lag, model, line = (float(g) for g in found.groups())
+    assert 4 <= lag <= 10 and shifted < 0.2 * raw, out
+    assert 0 < model < 0.5 * line, out
