@@ -383,6 +383,9 @@ def shortened(split: Split, n: int = 50, *, stride: bool = False,
     samples after it (a short log at 1/k of the rate: where k-th samples of the whole row
     would skip most of each period). The held-out recordings are unchanged."""
     if every is not None:
+        if stride or every < 1:
+            raise ValueError(f"shortened: every must be a positive int without stride, got "
+                             f"every={every}, stride={stride}")
         cut = split.warmup + n * every
         return split._replace(x=split.x[:, :cut:every], y=split.y[:, :cut:every],
                               warmup=-(-split.warmup // every))

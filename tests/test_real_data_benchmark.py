@@ -145,6 +145,9 @@ def test_short_and_long_records_keep_the_held_out_part(bench):
     np.testing.assert_array_equal(slow.y.numpy(),
                                   split.y[:, :split.warmup + 60:3].numpy())
     assert split.warmup % 3 == 0 and slow.y[:, slow.warmup:].shape[1] == 20
+    for bad in ({"every": 0}, {"every": 2, "stride": True}):
+        with pytest.raises(ValueError, match="every must be a positive int"):
+            bench.shortened(split, **bad)
     log = bench.shortened(split)  # the first row, its warm-up and 50 samples
     assert log.x.shape == (1, split.warmup + 50) and log.warmup == split.warmup
     np.testing.assert_array_equal(log.y.numpy(), split.y[:1, :split.warmup + 50].numpy())
