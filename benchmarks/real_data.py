@@ -246,16 +246,32 @@ def friction_damper(train: Sequence[int] = range(10),
     return Split(x, y, 0, [(_t(recs[i][0]), _t(recs[i][1]), 0) for i in test])
 
 
-def pneumatic() -> Split:
+SEALS = {"napn": "NAPN", "nap310": "NAP310", "pk": "PK", "kdn": "KDN",
+         "oring257": "O-ring257", "xring257": "X-ring257"}
+"""The seals of ``pneumatic_cylinder_seals_friction.csv`` by protocol suffix: name in the file."""
+
+
+def pneumatic(seal: str | None = None) -> Split:
     """Position -> seal friction (pressure x piston area - rod force): 1 and 7 bar train (7 bar
-    cut to the length of the 1 bar record, one row each), 3 and 5 bar held out, from rest."""
-    d = read_csv(REAL / "pneumatic_cylinder_oring_friction.csv")
-    friction = d["pressure_bar"] * 1e5 * math.pi * 0.0125**2 - d["force_N"]
-    recs = _recordings(d, "recording", "position_mm", friction)
-    T = min(len(recs[0][0]), len(recs[3][0]))
-    x = torch.stack([_t(recs[i][0][:T]) for i in (0, 3)])
-    y = torch.stack([_t(recs[i][1][:T]) for i in (0, 3)])
-    return Split(x, y, 0, [(_t(recs[i][0]), _t(recs[i][1]), 0) for i in (1, 2)])
+    cut to the length of the 1 bar record, one row each), 3 and 5 bar held out, from rest.
+
+    ``seal``: None for the O-ring of ``pneumatic_cylinder_oring_friction.csv`` (25 mm bore), or
+    a key of :data:`SEALS` for one of the six seals of ``pneumatic_cylinder_seals_friction.csv``
+    (bore 25.7 mm for the two "257" seals, 25 mm for the others)."""
+    if seal is None:
+        d = read_csv(REAL / "pneumatic_cylinder_oring_friction.csv")
+        bore_m = 0.025
+    else:
+        d = read_csv(REAL / "pneumatic_cylinder_seals_friction.csv")
+        rows = d["seal"] == SEALS[seal]
+        d = {k: v[rows] for k, v in d.items()}
+        bore_m = 0.0257 if SEALS[seal].endswith("257") else 0.025
+    friction = d["pressure_bar"] * 1e5 * math.pi * (bore_m / 2) ** 2 - d["force_N"]
+    recs = _recordings(d, "pressure_setpoint_bar", "position_mm", friction)
+    T = min(len(recs[1][0]), len(recs[7][0]))
+    x = torch.stack([_t(recs[b][0][:T]) for b in (1, 7)])
+    y = torch.stack([_t(recs[b][1][:T]) for b in (1, 7)])
+    return Split(x, y, 0, [(_t(recs[b][0]), _t(recs[b][1]), 0) for b in (3, 5)])
 
 
 def sma() -> Split:
@@ -436,6 +452,8 @@ DATASETS: dict[str, tuple[str, Callable[[Files], Split]]] = {
     "friction_damper_sines": ("displacement -> force, 1 in sines / 0.5 and 1.5 in sines",
                               lambda f: friction_damper((1, 4, 7), (0, 2, 3, 5, 6, 8, 9))),
     "pneumatic_oring": ("position -> friction, 1+7 / 3+5 bar", lambda f: pneumatic()),
+    **{f"pneumatic_{k}": (f"position -> friction of the {v} seal, 1+7 / 3+5 bar",
+                          lambda f, k=k: pneumatic(k)) for k, v in SEALS.items()},
     "sma_actuator": ("temperature -> extension, cycles 1-4 / 5-7", lambda f: sma()),
     "mnzn_ferrite_short": ("mnzn_ferrite, training loops sampled every 5th: 52 samples",
                            lambda f: shortened(ferrite(f.ferrite, [0, 3], [1, 2]), stride=True)),

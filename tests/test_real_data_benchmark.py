@@ -643,3 +643,54 @@ def test_micromanipulator_records_train_and_test(bench):
     assert short.test[0][2] == 200  # the held-out record stays at 200 Hz
     assert bench.NEEDS["piezo_manipulator"] is None  # shipped: no option
     assert bench.NEEDS["piezo_actuator_short"] == "piezo"
+
+
+def test_seal_records_train_and_test(bench):
+    """The six seals of the pneumatic cylinder: per seal, the 1 and 7 bar records train (cut
+    to a common length), the 3 and 5 bar ones are held out, all from rest; the friction is
+    the chamber pressure on the piston (its bore per seal) less the rod force. Checked against
+    the columns read with the csv module and a friction computed here."""
+    with open(bench.REAL / "pneumatic_cylinder_seals_friction.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    seals = list(dict.fromkeys(r["seal"] for r in rows))
+    assert seals == list(bench.SEALS.values())
+    recs: dict[tuple[str, int], list[dict]] = {}
+    for r in rows:
+        recs.setdefault((r["seal"], int(r["pressure_setpoint_bar"])), []).append(r)
+    assert sorted({bar for _, bar in recs}) == [1, 3, 5, 7] and len(recs) == 24
+    ids = [int(r["recording"]) for r in rows]
+    assert ids == sorted(ids) and len(set(ids)) == 24  # one recording per seal and pressure
+
+    for key, name in bench.SEALS.items():
+        bore = 25.7e-3 if "257" in name else 25e-3
+        rec = {bar: recs[(name, bar)] for bar in (1, 3, 5, 7)}
+        col = {bar: {c: np.array([float(r[c]) for r in rec[bar]])
+                     for c in ("t_ms", "position_mm", "pressure_bar", "force_N")}
+               for bar in rec}
+        for bar, c in col.items():
+            assert np.all(np.diff(c["t_ms"]) > 0), (name, bar)
+            assert abs(np.median(c["pressure_bar"]) - bar) < 0.1, (name, bar)
+            assert c["position_mm"].min() < 0 and c["position_mm"].max() > 35  # full strokes
+
+        friction = {bar: c["pressure_bar"] * 1e5 * math.pi * bore**2 / 4 - c["force_N"]
+                    for bar, c in col.items()}
+        split = bench.DATASETS[f"pneumatic_{key}"][1](bench.Files())
+        T = min(len(rec[1]), len(rec[7]))
+        assert split.warmup == 0 and not split.magnetic and split.x.shape == (2, T)
+        for i, bar in enumerate((1, 7)):
+            np.testing.assert_array_equal(split.x[i].numpy(), col[bar]["position_mm"][:T])
+            np.testing.assert_allclose(split.y[i].numpy(), friction[bar][:T], rtol=0,
+                                       atol=1e-9)
+        assert [len(x) for x, _, _ in split.test] == [len(rec[3]), len(rec[5])]
+        for (x, y, w), bar in zip(split.test, (3, 5), strict=True):
+            assert w == 0
+            np.testing.assert_array_equal(x.numpy(), col[bar]["position_mm"])
+            np.testing.assert_allclose(y.numpy(), friction[bar], rtol=0, atol=1e-9)
+        assert bench.NEEDS[f"pneumatic_{key}"] is None  # shipped: no option
+    # the O-ring file's protocol is the same, its bore 25 mm
+    oring = bench.DATASETS["pneumatic_oring"][1](bench.Files())
+    d = bench.read_csv(bench.REAL / "pneumatic_cylinder_oring_friction.csv")
+    one = d["recording"] == 0
+    np.testing.assert_allclose(
+        oring.y[0].numpy(), d["pressure_bar"][one] * 1e5 * math.pi * 0.0125**2
+        - d["force_N"][one], rtol=0, atol=1e-9)
