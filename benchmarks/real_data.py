@@ -233,13 +233,16 @@ def mr_damper(voltage: float) -> Split:
 
 
 def friction_damper(train: Sequence[int] = range(10),
-                    test: Sequence[int] = range(10, 14)) -> Split:
+                    test: Sequence[int] = range(10, 14), *,
+                    file: str = "friction_damper_backlash_brfd.csv") -> Split:
     """Displacement -> force: the ``train`` recordings one after the other (one training row,
     as the device ran them), the ``test`` ones held out, all from rest. By default the sine
     tests 0-9 train and the earthquake histories 10-13 are held out; the README's
     alternative trains on the 1 in sines (1, 4, 7: 0.25, 0.5 and 1 Hz) and holds out the
-    0.5 in and 1.5 in ones (0, 2, 3, 5, 6, 8, 9)."""
-    d = read_csv(REAL / "friction_damper_backlash_brfd.csv")
+    0.5 in and 1.5 in ones (0, 2, 3, 5, 6, 8, 9). ``file``: the 30 lb band tension's record
+    (sines and earthquakes), or ``friction_damper_backlash_brfd_36lb.csv`` (the sines 0-9 at
+    36 lb)."""
+    d = read_csv(REAL / file)
     recs = _recordings(d, "recording", "displacement_in", "force_kip")
     x = _t(np.concatenate([recs[i][0] for i in train]))[None]
     y = _t(np.concatenate([recs[i][1] for i in train]))[None]
@@ -451,6 +454,10 @@ DATASETS: dict[str, tuple[str, Callable[[Files], Split]]] = {
                         lambda f: friction_damper()),
     "friction_damper_sines": ("displacement -> force, 1 in sines / 0.5 and 1.5 in sines",
                               lambda f: friction_damper((1, 4, 7), (0, 2, 3, 5, 6, 8, 9))),
+    "friction_damper_36lb_sines": ("as friction_damper_sines, at a band tension of 36 lb",
+                                   lambda f: friction_damper(
+                                       (1, 4, 7), (0, 2, 3, 5, 6, 8, 9),
+                                       file="friction_damper_backlash_brfd_36lb.csv")),
     "pneumatic_oring": ("position -> friction, 1+7 / 3+5 bar", lambda f: pneumatic()),
     **{f"pneumatic_{k}": (f"position -> friction of the {v} seal, 1+7 / 3+5 bar",
                           lambda f, k=k: pneumatic(k)) for k, v in SEALS.items()},

@@ -404,11 +404,14 @@ def test_jiles_atherton_row_on_b_h_records_only(bench):
                              bench.QUICK)
 
 
-def test_friction_damper_sines_protocol(bench):
+@pytest.mark.parametrize("dataset, file", [
+    ("friction_damper_sines", "friction_damper_backlash_brfd.csv"),
+    ("friction_damper_36lb_sines", "friction_damper_backlash_brfd_36lb.csv")])
+def test_friction_damper_sines_protocol(bench, dataset, file):
     """The 1 in sine tests train (one row, in order), the 0.5 in and 1.5 in ones are held
     out from rest: the file's rows, and the 1.5 in tests reach beyond the training range."""
-    split = bench.DATASETS["friction_damper_sines"][1](bench.Files(FERRITE))
-    d = bench.read_csv(ROOT / "examples/data/real/friction_damper_backlash_brfd.csv")
+    split = bench.DATASETS[dataset][1](bench.Files(FERRITE))
+    d = bench.read_csv(ROOT / "examples/data/real" / file)
     rec = d["recording"].astype(int)
     train = np.isin(rec, [1, 4, 7])
     assert split.x.shape == (1, int(train.sum())) and split.warmup == 0
@@ -418,6 +421,23 @@ def test_friction_damper_sines_protocol(bench):
                                                   for i in (0, 2, 3, 5, 6, 8, 9)]
     reach = [float(x.abs().max()) / float(split.x.abs().max()) for x, _, _ in split.test]
     assert [round(r * 2) / 2 for r in reach] == [0.5, 1.5, 0.5, 1.5, 0.5, 1.5, 0.5]
+    assert sorted(set(rec)) == list(range(10 if "36lb" in file else 14))
+
+
+def test_the_two_band_tensions_are_two_records():
+    """The 36 lb sine tests are measurements of their own: the same drive as the 30 lb ones
+    (amplitudes, frequencies, lengths), with a higher friction force."""
+    a = np.genfromtxt(ROOT / "examples/data/real/friction_damper_backlash_brfd.csv",
+                      delimiter=",", names=True)
+    b = np.genfromtxt(ROOT / "examples/data/real/friction_damper_backlash_brfd_36lb.csv",
+                      delimiter=",", names=True)
+    for r in range(10):
+        x, y = a[a["recording"] == r], b[b["recording"] == r]
+        assert len(x) == len(y)
+        np.testing.assert_allclose(np.abs(y["displacement_in"]).max(),
+                                   np.abs(x["displacement_in"]).max(), rtol=0.05)
+        assert np.percentile(np.abs(y["force_kip"]), 95) > 1.2 * np.percentile(
+            np.abs(x["force_kip"]), 95)
 
 
 @pytest.mark.parametrize("dataset, bound", [("friction_damper", 0.6), ("friction_damper_sines",
