@@ -438,10 +438,23 @@ class Files(NamedTuple):
         return [p for p in paths if not p.is_file()]
 
 
-DATASETS: dict[str, tuple[str, Callable[[Files], Split]]] = {
-    "mnzn_ferrite": ("B -> H, loops 0+3 / 1+2", lambda f: ferrite(f.ferrite, [0, 3], [1, 2])),
+class Protocol(NamedTuple):
+    """A data set's protocol."""
+
+    about: str
+    """What is fitted to what, and what is held out."""
+    build: Callable[[Files], Split]
+    """The builder of its split from the optional files."""
+    needs: str | None = None
+    """The option (a :class:`Files` field) whose file it reads; None: shipped files only."""
+
+
+DATASETS: dict[str, Protocol] = {name: Protocol(*entry) for name, entry in {
+    # name: (about, build[, the option whose file it reads])
+    "mnzn_ferrite": ("B -> H, loops 0+3 / 1+2", lambda f: ferrite(f.ferrite, [0, 3], [1, 2]),
+                     "ferrite"),
     "mnzn_ferrite_largest": ("B -> H, loop 3 / 0+1+2",
-                             lambda f: ferrite(f.ferrite, [3], [0, 1, 2])),
+                             lambda f: ferrite(f.ferrite, [3], [0, 1, 2]), "ferrite"),
     "m130_steel": ("B -> H, loops 0+2 / 1", lambda f: jamodel([0, 2], [1])),
     "m130_steel_largest": ("B -> H, loop 2 / 0+1", lambda f: jamodel([2], [0, 1])),
     "mnzn_hp_ferrite": ("B -> H, loops 4+7 / 5+6", lambda f: jamodel([4, 7], [5, 6])),
@@ -463,7 +476,8 @@ DATASETS: dict[str, tuple[str, Callable[[Files], Split]]] = {
                           lambda f, k=k: pneumatic(k)) for k, v in SEALS.items()},
     "sma_actuator": ("temperature -> extension, cycles 1-4 / 5-7", lambda f: sma()),
     "mnzn_ferrite_short": ("mnzn_ferrite, training loops sampled every 5th: 52 samples",
-                           lambda f: shortened(ferrite(f.ferrite, [0, 3], [1, 2]), stride=True)),
+                           lambda f: shortened(ferrite(f.ferrite, [0, 3], [1, 2]), stride=True),
+                           "ferrite"),
     "mr_damper_0V_short": ("mr_damper_0V, the first 50 scored samples of one training row",
                            lambda f: shortened(mr_damper(0.0))),
     "pneumatic_oring_short": ("pneumatic_oring, the first 50 samples of the 1 bar record",
@@ -471,11 +485,12 @@ DATASETS: dict[str, tuple[str, Callable[[Files], Split]]] = {
     "pneumatic_oring_long": ("pneumatic_oring, training rows tiled to 1e5 samples",
                              lambda f: tiled(pneumatic())),
     "piezo_actuator": ("displacement -> voltage, t < 7 s / t >= 7 s (one record, --piezo)",
-                       lambda f: piezo(f.piezo, compensator=True)),
+                       lambda f: piezo(f.piezo, compensator=True), "piezo"),
     "piezo_actuator_forward": ("voltage -> displacement, as piezo_actuator",
-                               lambda f: piezo(f.piezo, compensator=False)),
+                               lambda f: piezo(f.piezo, compensator=False), "piezo"),
     "piezo_actuator_short": ("piezo_actuator, the training part sampled every 370th: 50 samples",
-                             lambda f: shortened(piezo(f.piezo, compensator=True), stride=True)),
+                             lambda f: shortened(piezo(f.piezo, compensator=True), stride=True),
+                             "piezo"),
     "piezo_manipulator": ("displacement -> voltage, identification record / test record",
                           lambda f: micromanipulator(compensator=True)),
     "piezo_manipulator_forward": ("voltage -> displacement, as piezo_manipulator",
@@ -484,15 +499,13 @@ DATASETS: dict[str, tuple[str, Callable[[Files], Split]]] = {
                                 "50 samples",
                                 lambda f: shortened(micromanipulator(compensator=True), every=4)),
     "quad_magnet": ("integrated gradient -> current, major loop / minor loops (--quad)",
-                    lambda f: quad(f.quad, compensator=True)),
+                    lambda f: quad(f.quad, compensator=True), "quad"),
     "quad_magnet_forward": ("current -> integrated gradient, as quad_magnet",
-                            lambda f: quad(f.quad, compensator=False)),
-}
-"""Data sets by name: (protocol, builder of the split from the optional files)."""
+                            lambda f: quad(f.quad, compensator=False), "quad"),
+}.items()}
+"""Data sets by name: their protocol, the builder of its split and the option it reads."""
 
-NEEDS = {name: "ferrite" if name.startswith("mnzn_ferrite") else
-         "piezo" if name.startswith("piezo_actuator") else
-         "quad" if name.startswith("quad") else None for name in DATASETS}
+NEEDS = {name: p.needs for name, p in DATASETS.items()}
 """The option (a :class:`Files` field) whose file each data set reads, if any."""
 
 
@@ -1116,8 +1129,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     start = time.perf_counter()
     files = Files(args.ferrite, args.piezo, args.quad)
     for name in args.data:
-        protocol, build = DATASETS[name]
-        need = NEEDS[name]
+        protocol, build, need = DATASETS[name]
         missing = [] if need is None else files.missing(need)
         if missing:
             print(f"skipping {name}: {missing[0]} not found (--{need})")

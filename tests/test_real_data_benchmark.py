@@ -134,6 +134,24 @@ def test_missing_optional_file_is_skipped(bench, tmp_path, capsys, option, datas
     assert f"skipping {dataset}" in capsys.readouterr().out
 
 
+def test_each_protocol_declares_the_file_it_reads(bench, tmp_path):
+    """A protocol that declares no option builds from the shipped files alone (every option
+    pointing nowhere); one that declares an option fails without that file and builds with
+    the others absent (the ferrite loops: the copy in examples/data)."""
+    nowhere = bench.Files(*(tmp_path / name for name in bench.Files._fields))
+    assert set(bench.NEEDS.values()) == {None, *bench.Files._fields}
+    for name, protocol in bench.DATASETS.items():
+        assert bench.NEEDS[name] == protocol.needs
+        if protocol.needs is None:
+            split = protocol.build(nowhere)
+            assert split.y[:, split.warmup:].numel() > 0 and split.test, name
+            continue
+        with pytest.raises((OSError, ValueError)):
+            protocol.build(nowhere)
+        if protocol.needs == "ferrite":
+            assert protocol.build(nowhere._replace(ferrite=FERRITE)).test, name
+
+
 def test_short_and_long_records_keep_the_held_out_part(bench):
     split = bench.DATASETS["mnzn_ferrite"][1](bench.Files(FERRITE))
     coarse = bench.shortened(split, stride=True)  # every 5th sample of the two loops
