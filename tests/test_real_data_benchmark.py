@@ -87,6 +87,46 @@ def test_table_columns_and_rows(bench, table):
         assert r["choice"] and not r["choice"].startswith("failed")
 
 
+def _row(dataset: str, model: str, rmse: float, base: float) -> dict:
+    return {"dataset": dataset, "model": model, "rmse": rmse, "ratio": rmse / base,
+            "n_train": 1, "n_test": 1, "choice": ""}
+
+
+def test_targets_tally_counts_and_names_the_misses(bench):
+    """Two protocols: on ``a`` the default meets the ratio and the best family (an n/a row
+    skipped) does not; on ``b`` the default misses and is worse than the line, the best
+    family meets it."""
+    rows = [_row("a", "line", 2.0, 1.0), _row("a", "poly", 1.0, 1.0),
+            _row("a", "stop_pi", 0.8, 1.0), _row("a", "jiles_atherton", math.nan, 1.0),
+            _row("a", "default", 0.4, 1.0), _row("a", "selected", 0.8, 1.0),
+            _row("b", "line", 1.0, 1.0), _row("b", "poly", 3.0, 1.0),
+            _row("b", "preisach", 0.3, 1.0), _row("b", "eiho_net", 0.45, 1.0),
+            _row("b", "default", 1.5, 1.0)]
+    text = bench.targets(rows)
+    assert "over 2 protocols" in text
+    assert "default: ratio <= 0.5 on 1 of 2; misses: b 1.50" in text
+    assert "no worse than the line on 1 of 2; worse: b" in text
+    assert "best family: ratio <= 0.5 on 1 of 2; misses: a 0.80 (stop_pi)" in text
+    # without default rows only the families are tallied
+    text = bench.targets([r for r in rows if r["model"] != "default"])
+    assert "default" not in text.split(":", 1)[1] and "on 1 of 2" in text
+
+
+def test_saved_tables_are_tallied_as_the_run(bench, table, tmp_path, capsys):
+    rows, out = table
+    read = bench.main(["--tables", str(out)])
+    assert [(r["dataset"], r["model"]) for r in read] == [(r["dataset"], r["model"])
+                                                         for r in rows]
+    for r, w in zip(rows, read, strict=True):
+        assert w["rmse"] == pytest.approx(r["rmse"], rel=1e-12)
+    assert bench.targets(read) == bench.targets(rows)
+    assert bench.targets(rows) in capsys.readouterr().out
+    bad = tmp_path / "other.csv"
+    bad.write_text("dataset,model,rmse\nx,line,1\n")
+    with pytest.raises(ValueError, match="--tables .*other.csv"):
+        bench.read_tables([bad])
+
+
 def test_models_option_fits_those_rows_beside_the_baselines(bench, table):
     rows = bench.main(["--quick", "--data", "mnzn_ferrite", "--ferrite", str(FERRITE),
                        "--models", "stop_pi"])
