@@ -13,6 +13,8 @@ hold-out selected and the hold-out RMSE.
 
     python benchmarks/real_data.py [--data NAME ...] [--out table.csv] [--quick]
         [--ferrite PATH] [--piezo PATH] [--quad DIR] [--config configs/measured.yaml]
+        [--models MODEL ...] [--jobs N]
+    python benchmarks/real_data.py --tables table.csv ...
 
 Models (all causal; a row starts from a zero state, its first ``warmup`` samples only run
 the states and are neither fitted nor scored):
@@ -74,9 +76,13 @@ import argparse
 import csv
 import inspect
 import math
+import subprocess
+import sys
+import tempfile
 import time
 import warnings
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import NamedTuple
 
@@ -1163,6 +1169,36 @@ def read_tables(paths: Sequence[Path]) -> list[dict]:
     return rows
 
 
+def run_in_processes(args: argparse.Namespace, jobs: int) -> tuple[list[dict], list[str]]:
+    """Each protocol of ``args.data`` in a process of its own (this script with the same
+    options and ``--data NAME``), ``jobs`` at a time; their tables read back in the order of
+    ``args.data``, and their logs.
+
+    Raises:
+        RuntimeError: a protocol's process failed (its name and the end of its output).
+    """
+    common = ["--ferrite", str(args.ferrite), "--piezo", str(args.piezo), "--quad",
+              str(args.quad), "--config", str(args.config), "--models", *args.models]
+    if args.quick:
+        common.append("--quick")
+    with tempfile.TemporaryDirectory() as tmp:
+        def one(name: str) -> tuple[str, str]:
+            out = Path(tmp) / f"{name}.csv"
+            done = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--data",
+                                   name, "--out", str(out), *common],
+                                  capture_output=True, text=True)
+            if done.returncode != 0:
+                raise RuntimeError(f"{name}: its process failed ({done.returncode}):\n"
+                                   + (done.stdout + done.stderr)[-2000:])
+            return str(out), done.stdout
+
+        with ThreadPoolExecutor(max_workers=jobs) as pool:
+            results = list(pool.map(one, args.data))
+        rows = read_tables([Path(out) for out, _ in results])
+    logs = [text.split("\ntotal ", 1)[0].strip() for _, text in results]
+    return rows, logs
+
+
 def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", nargs="+", choices=list(DATASETS), default=list(DATASETS),
@@ -1179,6 +1215,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
                         "(not shipped; default: examples/data/external/slac_quad_4194)")
     parser.add_argument("--config", type=Path, default=CONFIG,
                         help="torchhys fit config of the 'default' row")
+    parser.add_argument("--jobs", type=int, default=1,
+                        help="protocols run at a time, each in a process of its own with one "
+                        "thread (default 1: all in this process)")
     parser.add_argument("--tables", type=Path, nargs="+", default=None, metavar="CSV",
                         help="fit nothing: print the table and the targets' tally of tables "
                         "saved with --out (e.g. one per protocol)")
@@ -1190,21 +1229,26 @@ def main(argv: list[str] | None = None) -> list[dict]:
         rows = read_tables(args.tables)
         print(markdown(rows) + "\n\n" + targets(rows))
         return rows
+    if args.jobs < 1:
+        parser.error(f"--jobs must be at least 1, got {args.jobs}")
     torch.set_num_threads(1)
     budget = QUICK if args.quick else FULL
     rows: list[dict] = []
     log: list[str] = []
     start = time.perf_counter()
     files = Files(args.ferrite, args.piezo, args.quad)
-    for name in args.data:
-        protocol, build, need = DATASETS[name]
-        missing = [] if need is None else files.missing(need)
-        if missing:
-            print(f"skipping {name}: {missing[0]} not found (--{need})")
-            continue
-        log.append(f"{name}: {protocol}")
-        rows += evaluate(name, build(files), budget, log, config=args.config,
-                         models=args.models)
+    if args.jobs > 1 and len(args.data) > 1:
+        rows, log = run_in_processes(args, args.jobs)
+    else:
+        for name in args.data:
+            protocol, build, need = DATASETS[name]
+            missing = [] if need is None else files.missing(need)
+            if missing:
+                print(f"skipping {name}: {missing[0]} not found (--{need})")
+                continue
+            log.append(f"{name}: {protocol}")
+            rows += evaluate(name, build(files), budget, log, config=args.config,
+                             models=args.models)
     print("\n".join(log))
     print(f"\ntotal {time.perf_counter() - start:.0f} s\n")
     print(markdown(rows))

@@ -127,6 +127,31 @@ def test_saved_tables_are_tallied_as_the_run(bench, table, tmp_path, capsys):
         bench.read_tables([bad])
 
 
+def test_jobs_run_each_protocol_in_a_process_of_its_own(bench, tmp_path, capsys):
+    """``--jobs 2``: the same rows as one process, in the order of ``--data``, a missing
+    optional file still skipped with its message; a failing protocol names itself."""
+    args = ["--quick", "--models", "stop_pi", "--ferrite", str(FERRITE),
+            "--piezo", str(tmp_path / "absent.csv"),
+            "--data", "pneumatic_kdn", "piezo_actuator", "mnzn_ferrite"]
+    serial = bench.main(args)
+    capsys.readouterr()
+    parallel = bench.main([*args, "--jobs", "2", "--out", str(tmp_path / "t.csv")])
+    out = capsys.readouterr().out
+    assert "skipping piezo_actuator" in out and "targets over 2 protocols" in out
+    assert [(r["dataset"], r["model"], r["choice"]) for r in parallel] == [
+        (r["dataset"], r["model"], r["choice"]) for r in serial]
+    for a, b in zip(serial, parallel, strict=True):
+        assert b["rmse"] == pytest.approx(a["rmse"], rel=1e-12)
+    assert len(bench.read_tables([tmp_path / "t.csv"])) == len(serial)
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("model:\n  select: 3\n")
+    with pytest.raises(RuntimeError, match="pneumatic_kdn: its process failed"):
+        bench.main(["--quick", "--models", "default", "--config", str(broken), "--jobs", "2",
+                    "--data", "pneumatic_kdn", "pneumatic_pk"])
+    with pytest.raises(SystemExit):
+        bench.main([*args, "--jobs", "0"])
+
+
 def test_models_option_fits_those_rows_beside_the_baselines(bench, table):
     rows = bench.main(["--quick", "--data", "mnzn_ferrite", "--ferrite", str(FERRITE),
                        "--models", "stop_pi"])
