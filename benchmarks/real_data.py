@@ -296,6 +296,22 @@ def sma() -> Split:
     return Split(_t(temp[:cut])[None], _t(ext[:cut])[None], w, [(_t(temp), _t(ext), cut)])
 
 
+def forc() -> Split:
+    """Applied field (Oe) -> moment (emu) of a FeCo nanowire array, first-order reversal
+    curves (VSM). Each curve starts from positive saturation (15 kOe, not recorded) at its
+    calibration point (6.81 kOe: the curve's first row), goes to its reversal field and sweeps
+    up to 4.1-6.8 kOe. The curves 0, 2, 4, ... (in measurement order) train, one after the
+    other in one row as the instrument ran them, the first calibration point only running the
+    states; the curves 1, 3, 5, ... are held out, each from a zero state, its calibration
+    point only running the states."""
+    d = read_csv(REAL / "feco_nanowires_forc.csv")
+    recs = _recordings(d, "curve", "field_Oe", "moment_emu")
+    train, test = sorted(recs)[0::2], sorted(recs)[1::2]
+    x = _t(np.concatenate([recs[c][0] for c in train]))[None]
+    y = _t(np.concatenate([recs[c][1] for c in train]))[None]
+    return Split(x, y, 1, [(_t(recs[c][0]), _t(recs[c][1]), 1) for c in test])
+
+
 def micromanipulator(*, compensator: bool) -> Split:
     """A piezoelectric micromanipulator (drive voltage -> capacitive displacement sensor, 200
     Hz): the identification record (40 periods of a 1 Hz sine over the full 0-3.6 V range)
@@ -481,6 +497,8 @@ DATASETS: dict[str, Protocol] = {name: Protocol(*entry) for name, entry in {
     **{f"pneumatic_{k}": (f"position -> friction of the {v} seal, 1+7 / 3+5 bar",
                           lambda f, k=k: pneumatic(k)) for k, v in SEALS.items()},
     "sma_actuator": ("temperature -> extension, cycles 1-4 / 5-7", lambda f: sma()),
+    "feco_forc": ("field -> moment, reversal curves 0, 2, 4, ... / 1, 3, 5, ...",
+                  lambda f: forc()),
     "mnzn_ferrite_short": ("mnzn_ferrite, training loops sampled every 5th: 52 samples",
                            lambda f: shortened(ferrite(f.ferrite, [0, 3], [1, 2]), stride=True),
                            "ferrite"),

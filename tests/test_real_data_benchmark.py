@@ -812,3 +812,37 @@ def test_seal_records_train_and_test(bench):
     np.testing.assert_allclose(
         oring.y[0].numpy(), d["pressure_bar"][one] * 1e5 * math.pi * 0.0125**2
         - d["force_N"][one], rtol=0, atol=1e-9)
+
+
+def test_reversal_curves_train_and_test(bench):
+    """The FeCo nanowire FORCs: 152 curves, each a calibration point near positive saturation
+    then a sweep up from its reversal field; the even-numbered curves train in one row in
+    measurement order, the odd ones are held out from their calibration point. Checked against
+    the file read with the csv module."""
+    with open(bench.REAL / "feco_nanowires_forc.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    curves: dict[int, list[tuple[float, float]]] = {}
+    for r in rows:
+        curves.setdefault(int(r["curve"]), []).append((float(r["field_Oe"]),
+                                                       float(r["moment_emu"])))
+    assert sorted(curves) == list(range(152))
+    assert sum(len(c) - 1 for c in curves.values()) == 30476
+    reversal = [c[1][0] for c in curves.values()]
+    assert all(np.diff(reversal) < 0)  # each curve reverses lower than the one before
+    for c in curves.values():
+        h = np.array(c)[:, 0]
+        assert h[0] > 6800 and np.all(np.diff(h[1:]) > 0) and 4000 < h[-1] < h[0] + 1
+    # the loop saturates: the lowest reversal's moment is near minus the calibration moment
+    assert curves[151][1][1] == pytest.approx(-curves[151][0][1], rel=0.05)
+
+    split = bench.DATASETS["feco_forc"][1](bench.Files())
+    train = [p for i in range(0, 152, 2) for p in curves[i]]
+    assert split.warmup == 1 and not split.magnetic
+    np.testing.assert_array_equal(split.x[0].numpy(), [h for h, _ in train])
+    np.testing.assert_array_equal(split.y[0].numpy(), [m for _, m in train])
+    assert len(split.test) == 76
+    for (x, y, w), i in zip(split.test, range(1, 152, 2), strict=True):
+        assert w == 1
+        np.testing.assert_array_equal(x.numpy(), [h for h, _ in curves[i]])
+        np.testing.assert_array_equal(y.numpy(), [m for _, m in curves[i]])
+    assert bench.NEEDS["feco_forc"] is None
