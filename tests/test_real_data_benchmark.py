@@ -846,3 +846,18 @@ def test_reversal_curves_train_and_test(bench):
         np.testing.assert_array_equal(x.numpy(), [h for h, _ in curves[i]])
         np.testing.assert_array_equal(y.numpy(), [m for _, m in curves[i]])
     assert bench.NEEDS["feco_forc"] is None
+
+
+def test_preisach_and_generalized_pi_rows_predict_held_out_reversal_curves(bench):
+    """On the FORCs (each curve from saturation) a Preisach model fitted on the even curves
+    predicts the odd ones better the finer its grid (measured: 0.66 of the better memoryless
+    baseline with 8 levels, 0.19 with 30), and the generalized PI row with the quick budget is
+    below half the baseline (measured 0.26); settings from the training part only."""
+    split = bench.DATASETS["feco_forc"][1](bench.Files())
+    baseline = min(bench.test_rmse(bench.line(split, bench.QUICK).predict, split)[0],
+                   bench.test_rmse(bench.poly(split, bench.QUICK).predict, split)[0])
+    coarse, fine = (bench.test_rmse(bench.preisach(split, bench.QUICK._replace(
+        preisach_n=(n,))).predict, split)[0] / baseline for n in (8, 30))
+    assert fine < 0.3 and fine < 0.5 * coarse, (coarse, fine)
+    gpi = bench.generalized_pi(split, bench.QUICK)
+    assert bench.test_rmse(gpi.predict, split)[0] < 0.4 * baseline, gpi.choice
