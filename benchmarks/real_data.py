@@ -1155,7 +1155,8 @@ def targets(rows: Sequence[dict]) -> str:
             best[d] = min(scores)
     fam_misses = [f"{d} {v:.2f} ({f})" for d, (v, f) in best.items() if not v <= TARGET]
     k = len(with_default)
-    lines = [f"targets over {n} protocols (ratio <= {TARGET}; the default no worse than the line):"]
+    lines = [f"targets over {n} protocol{'s' * (n != 1)} (ratio <= {TARGET}; the default no "
+             "worse than the line):"]
     if k:
         lines.append(f"  default: ratio <= {TARGET} on {k - len(misses)} of {k}"
                      + (f"; misses: {', '.join(misses)}" if misses else ""))
