@@ -174,3 +174,17 @@ def test_micromanipulator_figure_is_drawn_and_finds_the_lag(tmp_path: Path) -> N
     raw, shifted, lag, model, line = (float(g) for g in found.groups())
     assert 4 <= lag <= 10 and shifted < 0.2 * raw, out
     assert 0 < model < 0.5 * line, out
+
+
+def test_forc_figure_is_drawn_and_the_density_finds_the_coercive_field(tmp_path: Path) -> None:
+    """The Preisach model fitted on the even reversal curves predicts the odd ones well
+    below the memoryless baseline, and its density is centred at the half-width of the
+    loop's coercive field, measured from the data independently of the fit."""
+    out = run("forc_figure.py", "--out", str(tmp_path / "fig.png"))
+    assert (tmp_path / "fig.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    found = re.search(r"held-out RMSE: Preisach ([\d.e+-]+) emu, baseline ([\d.e+-]+) emu; "
+                      r"relays' weighted mean half-width (\d+) Oe, coercive field (\d+) Oe", out)
+    assert found, out
+    rmse, baseline, half_width, coercive = (float(g) for g in found.groups())
+    assert 0 < rmse < 0.3 * baseline, out
+    assert 500 < coercive < 2000 and abs(half_width - coercive) < 0.2 * coercive, out
