@@ -55,12 +55,12 @@ def main(argv: list[str] | None = None) -> None:
     for (x, y, w), color in zip(shown, colors, strict=True):
         a.plot(x[w:], 1e3 * y[w:], "k", lw=0.8)
         a.plot(x[w:], 1e3 * predict(x[None])[0, w:], "--", color=color, lw=1.0)
-    a.plot([], [], "k", lw=0.8, label="measured (held-out curves)")
-    a.plot([], [], "--", color=colors[0], label=f"Preisach, {LEVELS} levels (RMSE "
-           f"{rmse:.2e} emu, {rmse / baseline:.2f} of the baseline)")
+    a.plot([], [], "k", lw=0.8, label="measured (held out)")
+    a.plot([], [], "--", color=colors[0],
+           label=f"Preisach, {LEVELS} levels\n({rmse / baseline:.2f} of the baseline's RMSE)")
     a.set(xlabel="applied field (Oe)", ylabel="moment (1e-3 emu)",
           title="every 8th held-out reversal curve")
-    a.legend(fontsize=7, loc="center right")
+    a.legend(fontsize=7, loc="lower right")
 
     levels = torch.unique(model.alpha)
     density = torch.full((LEVELS, LEVELS), float("nan"), dtype=torch.float64)
