@@ -529,9 +529,6 @@ DATASETS: dict[str, Protocol] = {name: Protocol(*entry) for name, entry in {
 }.items()}
 """Data sets by name: their protocol, the builder of its split and the option it reads."""
 
-NEEDS = {name: p.needs for name, p in DATASETS.items()}
-"""The option (a :class:`Files` field) whose file each data set reads, if any."""
-
 
 # --- scoring ------------------------------------------------------------------------------
 Predict = Callable[[Tensor], Tensor]

@@ -204,9 +204,8 @@ def test_each_protocol_declares_the_file_it_reads(bench, tmp_path):
     pointing nowhere); one that declares an option fails without that file and builds with
     the others absent (the ferrite loops: the copy in examples/data)."""
     nowhere = bench.Files(*(tmp_path / name for name in bench.Files._fields))
-    assert set(bench.NEEDS.values()) == {None, *bench.Files._fields}
+    assert {p.needs for p in bench.DATASETS.values()} == {None, *bench.Files._fields}
     for name, protocol in bench.DATASETS.items():
-        assert bench.NEEDS[name] == protocol.needs
         if protocol.needs is None:
             split = protocol.build(nowhere)
             assert split.y[:, split.warmup:].numel() > 0 and split.test, name
@@ -759,8 +758,8 @@ def test_micromanipulator_records_train_and_test(bench):
     assert len(short.test) == 1
     np.testing.assert_array_equal(short.test[0][0].numpy(), disp[rec == 1])
     assert short.test[0][2] == 200  # the held-out record stays at 200 Hz
-    assert bench.NEEDS["piezo_manipulator"] is None  # shipped: no option
-    assert bench.NEEDS["piezo_actuator_short"] == "piezo"
+    assert bench.DATASETS["piezo_manipulator"].needs is None  # shipped: no option
+    assert bench.DATASETS["piezo_actuator_short"].needs == "piezo"
 
 
 def test_seal_records_train_and_test(bench):
@@ -804,7 +803,7 @@ def test_seal_records_train_and_test(bench):
             assert w == 0
             np.testing.assert_array_equal(x.numpy(), col[bar]["position_mm"])
             np.testing.assert_allclose(y.numpy(), friction[bar], rtol=0, atol=1e-9)
-        assert bench.NEEDS[f"pneumatic_{key}"] is None  # shipped: no option
+        assert bench.DATASETS[f"pneumatic_{key}"].needs is None  # shipped: no option
     # the O-ring file's protocol is the same, its bore 25 mm
     oring = bench.DATASETS["pneumatic_oring"][1](bench.Files())
     d = bench.read_csv(bench.REAL / "pneumatic_cylinder_oring_friction.csv")
@@ -845,7 +844,7 @@ def test_reversal_curves_train_and_test(bench):
         assert w == 1
         np.testing.assert_array_equal(x.numpy(), [h for h, _ in curves[i]])
         np.testing.assert_array_equal(y.numpy(), [m for _, m in curves[i]])
-    assert bench.NEEDS["feco_forc"] is None
+    assert bench.DATASETS["feco_forc"].needs is None
 
 
 def test_preisach_and_generalized_pi_rows_predict_held_out_reversal_curves(bench):
