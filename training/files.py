@@ -1,14 +1,30 @@
 """Reading recorded (command, response) data from CSV and NPZ files, with checks.
 
+CSV files are read as spreadsheets and loggers write them:
+
+* text in UTF-8, with or without a byte-order mark (Excel's "CSV UTF-8"), or in the
+  ``encoding`` given (``"latin-1"``, ``"cp1252"``, ...);
+* fields separated by ``,``, ``;`` or a tab, found from the first lines (the one that gives
+  every line the same number of fields, more than one; ``,`` first), or by the ``delimiter``
+  given;
+* numbers with a decimal point, or with a decimal comma (``decimal=","``: ``1,5`` is 1.5;
+  the fields are then separated by ``;`` or a tab);
+* an optional header row, ``#`` comment lines before the data, and blank lines (or lines of
+  empty fields) anywhere, which are skipped.
+
 Every problem is reported as a :class:`DataFileError` (a ``ValueError``) that names the
 file, the column and, where it applies, the row (0-based data row; for CSV files also the
-1-based line of the file) or the recording.
+1-based line of the file) or the recording: a row with more or fewer fields than the
+header, text that is not in the file's encoding, a value that is not a finite number.
 """
 
 from __future__ import annotations
 
+import codecs
 import csv
+import io
 import math
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
@@ -16,9 +32,15 @@ from typing import NamedTuple
 import numpy as np
 
 __all__ = [
-    "Column", "DataFileError", "Record", "Recording", "RecordingId", "read_record",
-    "read_recordings", "recording_id",
+    "DECIMALS", "DELIMITERS", "Column", "DataFileError", "Record", "Recording", "RecordingId",
+    "check_text_options", "read_record", "read_recordings", "recording_id",
 ]
+
+DELIMITERS = (",", ";", "\t")
+"""The delimiters a CSV file is sniffed for, in order of preference."""
+DECIMALS = (".", ",")
+"""The decimal marks of numbers in a CSV file."""
+_DELIMITER_NAMES = {"tab": "\t", "\\t": "\t", "comma": ",", "semicolon": ";"}
 
 Column = str | int
 """A column by header name (CSV) / array key (NPZ), or by 0-based index."""
@@ -75,24 +97,153 @@ def recording_id(value: object) -> RecordingId:
     return int(number) if number.is_integer() else text
 
 
-def _read_csv(path: Path) -> tuple[list[str], list[list[str]], int]:
-    """Header names (``str(index)`` without a header), data rows, line of the first row."""
-    with path.open(newline="") as fh:
-        rows = [r for r in csv.reader(fh)]
-    first = 0
-    while first < len(rows) and (not rows[first] or rows[first][0].lstrip().startswith("#")):
-        first += 1
-    if first == len(rows):
-        raise DataFileError(f"{path}: the file holds no data rows")
-    head = [c.strip() for c in rows[first]]
+def check_text_options(encoding: object, delimiter: object, decimal: object, *,
+                       prefix: str = "") -> str | None:
+    """Check the CSV options ``encoding``, ``delimiter`` and ``decimal`` (see
+    :func:`read_recordings`) and return the delimiter as a character (``"tab"`` and the two
+    characters ``\\t`` are a tab) or None (sniffed).
+
+    Raises:
+        ValueError: a bad value; the message names the option as ``prefix + name`` (e.g.
+            ``data.decimal``).
+    """
+    if decimal not in DECIMALS:
+        raise ValueError(f"{prefix}decimal must be '.' or ',', got {decimal!r}")
+    if encoding is not None:
+        if not isinstance(encoding, str):
+            raise ValueError(f"{prefix}encoding must be the name of a text encoding "
+                             f"(utf-8, latin-1, cp1252, ...) or null, got {encoding!r}")
+        try:
+            codecs.lookup(encoding)
+        except LookupError:
+            raise ValueError(f"{prefix}encoding {encoding!r} is not a known text encoding; "
+                             "use e.g. utf-8, latin-1 or cp1252") from None
+    if delimiter is None:
+        return None
+    if isinstance(delimiter, str):
+        delimiter = _DELIMITER_NAMES.get(delimiter.lower(), delimiter)
+    if (not isinstance(delimiter, str) or len(delimiter) != 1 or delimiter.isalnum()
+            or delimiter in '"\r\n.+-#'):
+        raise ValueError(f"{prefix}delimiter must be one character such as ',', ';' or a tab "
+                         f"('\\t' or 'tab'), or null to sniff it, got {delimiter!r}")
+    if delimiter == decimal:
+        raise ValueError(f"{prefix}delimiter {delimiter!r} cannot also be the decimal mark "
+                         f"({prefix}decimal {decimal!r}): files with decimal commas separate "
+                         "their fields with ';' or a tab")
+    return delimiter
+
+
+def _decode(path: Path, encoding: str | None) -> str:
+    """The text of a file: UTF-8 with an optional byte-order mark, or ``encoding``."""
+    data = path.read_bytes()
+    skip = 0
+    if encoding is None and data.startswith(codecs.BOM_UTF8):
+        skip = len(codecs.BOM_UTF8)
     try:
-        [float(c) for c in head]
-        has_header = False
-    except ValueError:
-        has_header = True
+        text = data[skip:].decode(encoding or "utf-8")
+    except UnicodeDecodeError as exc:
+        start = exc.start + skip
+        line = data.count(b"\n", 0, start) + 1
+        if data.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
+            fix = "it starts with a UTF-16 byte-order mark: set encoding='utf-16'"
+        elif encoding is None or codecs.lookup(encoding).name == "utf-8":
+            fix = ("the file is not UTF-8; give its encoding: encoding='latin-1' "
+                   "(data.encoding: latin-1), or 'cp1252' for a file from Windows")
+        else:
+            fix = ("give the file's encoding: encoding='latin-1' (data.encoding: latin-1) "
+                   "reads any bytes")
+        raise DataFileError(
+            f"{path}: byte {start} (line {line}) is {data[start:exc.end]!r}, which is not "
+            f"{encoding or 'utf-8'} text ({exc.reason}); {fix}"
+        ) from None
+    return text[1:] if text.startswith("\ufeff") else text
+
+
+def _blank(row: list[str]) -> bool:
+    """A row of only empty (or whitespace) fields."""
+    return all(not f.strip() for f in row)
+
+
+def _sniff(lines: list[str], decimal: str) -> tuple[str, bool]:
+    """The delimiter of the first data lines (comments and blank lines left out), and whether
+    it gives them all the same number of fields, more than one."""
+    candidates = [d for d in DELIMITERS if d != decimal]
+    counts = {}
+    for d in candidates:
+        rows = [r for r in csv.reader(lines, delimiter=d) if not _blank(r)]
+        counts[d] = [len(r) for r in rows]
+    for d in candidates:
+        if counts[d] and len(set(counts[d])) == 1 and counts[d][0] > 1:
+            return d, True
+    # none consistent: the one that splits the first line (the header) most
+    best = max(candidates, key=lambda d: counts[d][0] if counts[d] else 0)
+    return best, False
+
+
+def _looks_decimal_comma(fields: list[str], expected: int) -> bool:
+    """More fields than expected, all of them whole numbers: ``1,5`` read as ``1`` and
+    ``5``."""
+    return len(fields) > expected and all(
+        re.fullmatch(r"[+-]?\d+([eE][+-]?\d+)?", f.strip()) for f in fields if f.strip())
+
+
+_DECIMAL_OPTION = "set decimal=',' (data.decimal: ',')"
+_DECIMAL_HINT = (f"{_DECIMAL_OPTION} and separate the fields with ';' (the delimiter such "
+                 "files normally use)")
+
+
+def _read_csv(path: Path, encoding: str | None, delimiter: str | None,
+              decimal: str) -> tuple[list[str], list[list[str]], list[int]]:
+    """Header names (``str(index)`` without a header), data rows (each with the header's
+    number of fields) and the 1-based line of each data row."""
+    text = _decode(path, encoding)
+    if delimiter is None:
+        sample = []
+        for raw in io.StringIO(text, newline=""):
+            if raw.strip() and not raw.lstrip().startswith("#"):
+                sample.append(raw)
+                if len(sample) == 50:
+                    break
+        delimiter, consistent = _sniff(sample, decimal)
+        commas = [len(r) for r in csv.reader(sample) if not _blank(r)]
+        if decimal == "," and not consistent and commas and commas[0] > 1:
+            fix = ("leave decimal '.' for a file with decimal points" if len(set(commas)) == 1
+                   else "save the file with ';' between the fields")
+            raise DataFileError(
+                f"{path}: the fields are separated by ',', which decimal=',' (data.decimal) "
+                f"makes the decimal mark; {fix}"
+            )
+    reader = csv.reader(io.StringIO(text, newline=""), delimiter=delimiter)
+    rows, lines = [], []
+    last = 0
+    try:
+        for row in reader:
+            line, last = last + 1, reader.line_num
+            if rows or (row and not row[0].lstrip().startswith("#")):
+                if not _blank(row):
+                    rows.append(row)
+                    lines.append(line)
+    except csv.Error as exc:
+        raise DataFileError(f"{path}: line {reader.line_num}: {exc}") from None
+    if not rows:
+        raise DataFileError(f"{path}: the file holds no data rows")
+    head = [c.strip() for c in rows[0]]
+    has_header = not all(_is_number(c, decimal) for c in head)
     names = head if has_header else [str(i) for i in range(len(head))]
-    data_start = first + 1 if has_header else first
-    return names, rows[data_start:], data_start + 1
+    what = "the header" if has_header else "the first row"
+    for row, line in zip(rows, lines, strict=True):
+        if len(row) != len(names):
+            hint = ""
+            if decimal == "." and delimiter == "," and _looks_decimal_comma(row, len(names)):
+                hint = (f"; the file looks like it uses decimal commas ('1,5' split into '1' "
+                        f"and '5'): {_DECIMAL_HINT}")
+            raise DataFileError(
+                f"{path}: line {line}: expected {len(names)} fields as {what}, got "
+                f"{len(row)} (delimiter {delimiter!r}){hint}"
+            )
+    if has_header:
+        rows, lines = rows[1:], lines[1:]
+    return names, rows, lines
 
 
 def _index(path: Path, names: list[str], column: Column, role: str) -> int:
@@ -111,15 +262,18 @@ def _index(path: Path, names: list[str], column: Column, role: str) -> int:
 
 
 class _Table:
-    """The columns of one CSV or NPZ file, by name or index."""
+    """The columns of one CSV or NPZ file, by name or index (CSV: read with ``encoding``,
+    ``delimiter`` (None: sniffed) and ``decimal``, see :func:`read_recordings`)."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, encoding: str | None = None, delimiter: str | None = None,
+                 decimal: str = ".") -> None:
         if not path.is_file():
             raise DataFileError(f"{path}: no such file")
         self.path = path
+        self.decimal = decimal
         suffix = path.suffix.lower()
         if suffix == ".csv":
-            self.names, self._rows, self._line0 = _read_csv(path)
+            self.names, self._rows, self._lines = _read_csv(path, encoding, delimiter, decimal)
             self._arrays: dict[str, np.ndarray] | None = None
         elif suffix == ".npz":
             with np.load(path, allow_pickle=False) as data:
@@ -130,14 +284,14 @@ class _Table:
 
     def line(self, row: int) -> str:
         """`` (line N)`` of a data row in a CSV file, ``""`` in an NPZ file."""
-        return "" if self._arrays is not None else f" (line {self._line0 + row})"
+        return "" if self._arrays is not None else f" (line {self._lines[row]})"
 
     def _raw(self, column: Column, role: str) -> tuple[str, list[str] | np.ndarray]:
         """The column's name and its values (CSV: the stripped texts)."""
         path = self.path
         if self._arrays is None:
             idx = _index(path, self.names, column, role)
-            return self.names[idx], [r[idx].strip() if idx < len(r) else "" for r in self._rows]
+            return self.names[idx], [r[idx].strip() for r in self._rows]
         keys = self.names
         if isinstance(column, str) and column in keys:
             arr = self._arrays[column]
@@ -163,7 +317,7 @@ class _Table:
         """A column of finite numbers, float64, (rows,)."""
         name, raw = self._raw(column, role)
         if self._arrays is None:
-            out = np.array([_number(v) for v in raw], dtype=np.float64)
+            out = np.array([_number(v, self.decimal) for v in raw], dtype=np.float64)
         else:
             if not (np.issubdtype(raw.dtype, np.floating) or np.issubdtype(raw.dtype, np.integer)):
                 raise DataFileError(f"{self.path}: column {name!r} ({role}) must hold real "
@@ -180,6 +334,9 @@ class _Table:
             value = repr(raw[i] or "empty value") if self._arrays is None else raw[i]
             more = f" ({bad.size} such rows)" if self._arrays is not None else ""
             fix = "remove or fill the row" if self._arrays is None else "remove or fill them"
+            if (self._arrays is None and self.decimal == "."
+                    and re.fullmatch(r"[+-]?\d*,\d+([eE][+-]?\d+)?", raw[i])):
+                fix = f"the file looks like it uses decimal commas: {_DECIMAL_OPTION}"
             raise DataFileError(
                 f"{self.path}: column {name!r} ({role}), row {i}{self.line(i)}: {value} is "
                 f"not a finite number{more}; {fix}"
@@ -195,12 +352,23 @@ class _Table:
                     f"{self.path}: column {name!r} ({role}), row {i}{self.line(i)}: empty "
                     "value; every row needs its recording id"
                 )
+        if self._arrays is None and self.decimal == ",":
+            raw = [v.replace(",", ".") if _is_number(v, ",") else v for v in raw]
         return [recording_id(v) for v in raw]
 
 
-def _number(text: str) -> float:
+def _is_number(text: str, decimal: str) -> bool:
     try:
-        return float(text)
+        float(text.replace(",", ".") if decimal == "," else text)
+    except ValueError:
+        return False
+    return True
+
+
+def _number(text: str, decimal: str = ".") -> float:
+    """The number a CSV field holds (``decimal=","``: ``1,5`` is 1.5), NaN if none."""
+    try:
+        return float(text.replace(",", ".") if decimal == "," else text)
     except ValueError:
         return math.nan
 
@@ -278,6 +446,7 @@ def _file_recordings(
 def read_recordings(
     path: str | Path | Sequence[str | Path], *, input_column: Column, target_column: Column,
     time_column: Column | None = None, run_column: Column | None = None, min_samples: int = 2,
+    encoding: str | None = None, delimiter: str | None = None, decimal: str = ".",
 ) -> list[Recording]:
     """Read and check recorded experiments: one file or several, each whole or split into
     recordings by a run column.
@@ -293,18 +462,30 @@ def read_recordings(
             consecutive rows with the same id form one recording. Ids must be unique across
             the files. Without it each file is one recording, with id its index in ``path``.
         min_samples: fewest rows of a recording.
+        encoding: the text encoding of CSV files (``"latin-1"``, ``"cp1252"``, ...); None:
+            UTF-8, with or without a byte-order mark.
+        delimiter: the character between the fields of CSV files (``","``, ``";"``, a tab,
+            also written ``"tab"`` or ``"\\t"``); None: sniffed from the first lines among
+            ``,``, ``;`` and tab (the one that gives every line the same number of fields,
+            more than one; ``,`` first, never the decimal mark).
+        decimal: the decimal mark of numbers in CSV files, ``"."`` or ``","`` (``1,5`` is
+            1.5; the delimiter is then ``;`` or a tab).
 
     Returns:
         The recordings in the order of the files and of their rows, each with float64 arrays
         of shape (time,).
 
     Raises:
-        ValueError: an empty list of files.
-        DataFileError: a missing file or column, files with different columns, a
-            non-finite or empty value, non-increasing time, a recording whose rows are not
-            contiguous or whose id another file also uses, too few rows; the message names
-            the file, the column and the row or the recording.
+        ValueError: an empty list of files; a bad ``encoding``, ``delimiter`` or
+            ``decimal``.
+        DataFileError: a missing file or column, files with different columns, text that
+            is not in the encoding, a row with more or fewer fields than the header (with
+            a hint when the numbers look like they have decimal commas), a non-finite or
+            empty value, non-increasing time, a recording whose rows are not contiguous or
+            whose id another file also uses, too few rows; the message names the file, the
+            column and the row (and the line) or the recording.
     """
+    delimiter = check_text_options(encoding, delimiter, decimal)
     paths = [path] if isinstance(path, (str, Path)) else list(path)
     if not paths:
         raise ValueError("path must name a file or a non-empty list of files, got []")
@@ -315,7 +496,7 @@ def read_recordings(
     first: _Table | None = None
     owner: dict[RecordingId, Path] = {}
     for k, p in enumerate(paths):
-        table = _Table(Path(p))
+        table = _Table(Path(p), encoding, delimiter, decimal)
         if first is None:
             first = table
         elif table.names != first.names:
@@ -338,27 +519,37 @@ def read_recordings(
 
 def read_record(
     path: str | Path, *, input_column: Column, target_column: Column,
-    time_column: Column | None = None, min_samples: int = 2,
+    time_column: Column | None = None, min_samples: int = 2, encoding: str | None = None,
+    delimiter: str | None = None, decimal: str = ".",
 ) -> Record:
     """Read and check a recorded experiment.
 
     Args:
-        path: a ``.csv`` file (comma separated; an optional header row; lines starting with
-            ``#`` before the data are skipped) or a ``.npz`` file (one 1-D array per column,
-            or a single 2-D array addressed by column index).
+        path: a ``.csv`` file (fields separated by ``,``, ``;`` or a tab; an optional
+            header row; lines starting with ``#`` before the data, and blank lines, are
+            skipped; see the module docstring) or a ``.npz`` file (one 1-D array per
+            column, or a single 2-D array addressed by column index).
         input_column: column of the inverse model's input (the plant's response).
         target_column: column of the inverse model's target (the command).
         time_column: optional column of sample times, which must strictly increase.
         min_samples: fewest rows accepted.
+        encoding: the text encoding of a CSV file; None: UTF-8, with or without a
+            byte-order mark (as :func:`read_recordings`).
+        delimiter: the character between a CSV file's fields; None: sniffed among ``,``,
+            ``;`` and tab (as :func:`read_recordings`).
+        decimal: the decimal mark of a CSV file's numbers, ``"."`` or ``","``.
 
     Returns:
         :class:`Record` of float64 arrays, shape (time,).
 
     Raises:
-        DataFileError: missing file or column, a non-finite or empty value, non-increasing
+        ValueError: a bad ``encoding``, ``delimiter`` or ``decimal``.
+        DataFileError: missing file or column, text not in the encoding, a row with more
+            or fewer fields than the header, a non-finite or empty value, non-increasing
             time, too few rows; the message names the file, the column and the row.
     """
     (rec,) = read_recordings(Path(path), input_column=input_column,
                              target_column=target_column, time_column=time_column,
-                             min_samples=min_samples)
+                             min_samples=min_samples, encoding=encoding, delimiter=delimiter,
+                             decimal=decimal)
     return Record(rec.x, rec.y, rec.t)
