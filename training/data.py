@@ -28,7 +28,14 @@ from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
 from torchhys._checks import check_choice, check_int
-from torchhys.training.files import Column, DataFileError, Recording, RecordingId, read_recordings
+from torchhys.training.files import (
+    Column,
+    DataFileError,
+    Recording,
+    RecordingId,
+    check_text_options,
+    read_recordings,
+)
 from torchhys.training.splits import STAGES, Window, assign_recordings, check_split
 
 __all__ = [
@@ -195,13 +202,23 @@ class HysteresisDataModule(L.LightningDataModule):
             ``split_by="recording"`` also of the metrics): the model's operators start from
             a zero state, a recorded plant from its own, so the first samples after the
             start disagree (states still run through them).
+        encoding: the text encoding of CSV files (``"latin-1"``, ``"cp1252"``, ...); None:
+            UTF-8, with or without a byte-order mark.
+        delimiter: the character between the fields of CSV files (``","``, ``";"``, a tab,
+            also ``"tab"``); None: sniffed among ``,``, ``;`` and tab.
+        decimal: the decimal mark of numbers in CSV files, ``"."`` or ``","`` (the
+            delimiter is then ``;`` or a tab). The three are those of
+            :func:`torchhys.training.files.read_recordings`; NPZ files ignore them.
 
     Raises:
-        ValueError: a bad split, ``split_by``, ``repeat`` or ``warmup``; recording lists
-            with ``split_by="time"``; ``run_column`` without ``path``; at :meth:`setup`,
-            an empty split, an unknown recording id, too few samples in a split.
+        ValueError: a bad split, ``split_by``, ``repeat``, ``warmup``, ``encoding``,
+            ``delimiter`` or ``decimal`` (named ``data.<option>``); recording lists with
+            ``split_by="time"``; ``run_column`` without ``path``; at :meth:`setup`, an
+            empty split, an unknown recording id, too few samples in a split.
         torchhys.training.files.DataFileError: problems in a file (names file, column and
-            row or recording), a recording not longer than its warm-up.
+            row or recording), a recording not longer than its warm-up; at
+            :meth:`train_tensors`, a constant input or target column over the training
+            split (names the files and the column option).
     """
 
     def __init__(
@@ -212,7 +229,8 @@ class HysteresisDataModule(L.LightningDataModule):
         split_by: str = "time", train_recordings: list[RecordingId] | None = None,
         val_recordings: list[RecordingId] | None = None,
         test_recordings: list[RecordingId] | None = None, repeat: int = 1,
-        min_samples: int = 16, warmup: int = 0,
+        min_samples: int = 16, warmup: int = 0, encoding: str | None = None,
+        delimiter: str | None = None, decimal: str = ".",
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
@@ -233,6 +251,7 @@ class HysteresisDataModule(L.LightningDataModule):
         check_int(hp.min_samples, "min_samples", minimum=1)
         check_int(hp.repeat, "repeat", minimum=1)
         check_choice(hp.split_by, "split_by", SPLIT_BY)
+        check_text_options(hp.encoding, hp.delimiter, hp.decimal, prefix="data.")
         if hp.path is None:
             check_choice(hp.simulation, "simulation", SIMULATIONS)
             if hp.run_column is not None:
@@ -269,7 +288,8 @@ class HysteresisDataModule(L.LightningDataModule):
             self.recordings = read_recordings(
                 hp.path, input_column=hp.input_column, target_column=hp.target_column,
                 time_column=hp.time_column, run_column=hp.run_column,
-                min_samples=hp.min_samples)
+                min_samples=hp.min_samples, encoding=hp.encoding, delimiter=hp.delimiter,
+                decimal=hp.decimal)
         recs = self.recordings
         self.x = torch.from_numpy(np.concatenate([r.x for r in recs]))
         self.y = torch.from_numpy(np.concatenate([r.y for r in recs]))
@@ -331,6 +351,31 @@ class HysteresisDataModule(L.LightningDataModule):
                         f"{hp.warmup}; lower warmup, or leave the recording out of {stage}"
                     )
 
+    def _check_varies(self) -> None:
+        """The input and the target must vary over the training split: the normalization
+        fitted on :meth:`train_tensors` divides by their standard deviations."""
+        hp = self.hparams
+        windows = self._stage_windows("train")
+        if not windows:
+            return
+        recs = [self.recordings[w.index] for w in windows]
+        where = (recs[0].label if len(recs) == 1
+                 else f"{self.source} (training recordings {[r.id for r in recs]})")
+        for option, role in (("input_column", "x"), ("target_column", "y")):
+            values = np.concatenate([getattr(self.recordings[w.index], role)[: w.end]
+                                     for w in windows])
+            if np.all(values == values[0]):
+                if hp.path is None:
+                    err, what = ValueError, f"the simulated {option.split('_')[0]}"
+                else:
+                    err, what = DataFileError, f"data.{option} {hp[option]!r}"
+                raise err(
+                    f"{where}: {what} is constant over the training split ({values.size} "
+                    f"samples, all {float(values[0]):.10g}); the normalization needs a "
+                    "varying input and target: check the column (is it the right one?) and "
+                    "the split"
+                )
+
     def prepare_data(self) -> None:
         """Nothing to download: data are simulated or read in :meth:`setup`."""
 
@@ -378,6 +423,7 @@ class HysteresisDataModule(L.LightningDataModule):
     def _train_fit(self) -> FitTensors:
         """The training rows as the fits read them (:func:`stack_sequences`), built once."""
         if self._fit is None:
+            self._check_varies()
             self._fit = stack_sequences([self._sequence(w) for w in self._stage_windows("train")])
         return self._fit
 
@@ -385,7 +431,13 @@ class HysteresisDataModule(L.LightningDataModule):
         """The training sequences ``(x, y)``, float64, (recordings, time), to fit
         normalizations and data-dependent operators on: each recording from its own initial
         state, right-padded with its last sample to the longest (the padding, and a longer
-        warm-up than :attr:`train_warmup`, outside :attr:`train_mask`)."""
+        warm-up than :attr:`train_warmup`, outside :attr:`train_mask`).
+
+        Raises:
+            DataFileError: the input or the target column is constant over the training
+                split (ValueError for a simulation); the message names the file(s) and the
+                column option (``data.input_column``, ``data.target_column``).
+        """
         fit = self._train_fit()
         return fit.x, fit.y
 
