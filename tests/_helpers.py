@@ -20,6 +20,12 @@ if TYPE_CHECKING:  # the streaming module is not imported by tests that do not s
 # --- inputs -----------------------------------------------------------------------------------
 
 
+RAW = {"direction": "none", "input_margin": None}
+"""Options of a compensator without its direction guard and input clamp: the model's own
+streaming path, compared with its sequence path (tests of the guard and the clamp: in
+tests/test_streaming_direction.py)."""
+
+
 def random_walk(seed: int, T: int = 300, quantize: bool = True) -> torch.Tensor:
     """A float64 random walk (time,) with flat stretches; quantized: exact threshold ties."""
     g = torch.Generator().manual_seed(seed)
@@ -108,7 +114,7 @@ def assert_streams_as_eager(net: InverseHysteresisNet, x: torch.Tensor, atol: fl
 
     with torch.no_grad():
         y, _ = net(x)
-        u = StreamingCompensator(net, limits=limits)(x)
+        u = StreamingCompensator(net, limits=limits, **RAW)(x)
     torch.testing.assert_close(u, y, rtol=0, atol=atol)
 
 
@@ -124,14 +130,14 @@ def assert_torchscript_as_eager(net: InverseHysteresisNet, x: torch.Tensor, path
     from torchhys.export import to_torchscript
     from torchhys.streaming import StreamingCompensator
 
-    to_torchscript(net, path, limits=limits)
+    to_torchscript(net, path, limits=limits, **RAW)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=r"`torch\.jit\.load` is deprecated",
                                 category=DeprecationWarning)
         loaded = torch.jit.load(str(path))
     with torch.no_grad():
         ref, _ = net(x)
-        eager = StreamingCompensator(net, limits=limits)(x)
+        eager = StreamingCompensator(net, limits=limits, **RAW)(x)
     seq = loaded(x)
     assert seq.shape == x.shape and seq.dtype == x.dtype
     tol = atol * max(1.0, float(ref.abs().max()))
@@ -148,7 +154,7 @@ def assert_aoti_as_eager(net: InverseHysteresisNet, x: torch.Tensor, path: Path,
     the sequence ``x`` (time,) equals the network's sequence path within ``atol``."""
     from torchhys.export import load_aoti, to_aoti
 
-    to_aoti(net, path, limits=(-1e6, 1e6))
+    to_aoti(net, path, limits=(-1e6, 1e6), **RAW)
     stepper = load_aoti(path)
     with torch.no_grad():
         expected = net(x)[0]

@@ -9,7 +9,7 @@ import warnings
 
 import pytest
 import torch
-from _helpers import run_split
+from _helpers import RAW, run_split
 
 from torchhys import EIHO, Backlash, Cascade, InverseHysteresisNet, PrandtlIshlinskii
 from torchhys.dynamics import StateSpace, TransferFunction
@@ -155,7 +155,7 @@ def test_network_streams_through_the_compensator_equal_to_eager():
     x = _signal(seed=6)
     with torch.no_grad():
         y, _ = net(x)
-        comp = StreamingCompensator(net, limits=(-100.0, 100.0))
+        comp = StreamingCompensator(net, limits=(-100.0, 100.0), **RAW)
         u = comp(x)
         comp.reset()
         stepped = torch.stack([comp.step(xt) for xt in x.unbind(1)], 1)
@@ -172,7 +172,7 @@ def test_torchscript_export_equals_eager(tmp_path):
     x = _signal(seed=7)
     with torch.no_grad():
         y, _ = net(x)
-    scripted = to_torchscript(net, tmp_path / "cascade.pt", limits=(-100.0, 100.0))
+    scripted = to_torchscript(net, tmp_path / "cascade.pt", limits=(-100.0, 100.0), **RAW)
     loaded = load_torchscript(tmp_path / "cascade.pt")
     torch.testing.assert_close(scripted(x), y, rtol=0, atol=1e-10)
     torch.testing.assert_close(loaded(x), y, rtol=0, atol=1e-10)

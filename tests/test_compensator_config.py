@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
+from _helpers import RAW
 from _training_helpers import trainer
 from torch import nn
 
@@ -59,7 +60,7 @@ def test_fit_and_export(config: dict, tmp_path: Path) -> None:
 
     net = module.net.eval()
     limits = (-1e3, 1e3)  # wide: compare the network itself, not the saturation
-    scripted = to_torchscript(net, tmp_path / "compensator.pt", limits=limits)
+    scripted = to_torchscript(net, tmp_path / "compensator.pt", limits=limits, **RAW)
     loaded = load_torchscript(tmp_path / "compensator.pt")
     x = dm.x.to(net.hidden.weight.dtype)
     with torch.no_grad():

@@ -9,7 +9,7 @@ import warnings
 import pytest
 import torch
 from _dynamics_helpers import BACKENDS, signal, use_backend
-from _helpers import run_split, step_loop
+from _helpers import RAW, run_split, step_loop
 
 from torchhys import Backlash, InverseHysteresisNet
 from torchhys.dynamics import StateSpace, TransferFunction
@@ -111,7 +111,7 @@ def test_network_streams_through_the_compensator(backend):
     net.fit_normalization(x, 0.5 * x)
     with use_backend(backend), torch.no_grad():
         y, _ = net(x)
-        comp = StreamingCompensator(net, limits=(-100.0, 100.0))
+        comp = StreamingCompensator(net, limits=(-100.0, 100.0), **RAW)
         u = comp(x)
     torch.testing.assert_close(u, y, rtol=0, atol=1e-10)
     blocks = [row[2].split(": ")[-1] for row in comp.layout()]
@@ -127,7 +127,7 @@ def test_network_exports_to_torchscript(tmp_path):
     net.fit_normalization(x, 0.5 * x)
     with warnings.catch_warnings():  # TorchScript is deprecated in torch 2.13; asked for here
         warnings.simplefilter("ignore", DeprecationWarning)
-        to_torchscript(net, tmp_path / "comp.pt", limits=(-100.0, 100.0))
+        to_torchscript(net, tmp_path / "comp.pt", limits=(-100.0, 100.0), **RAW)
         loaded = load_torchscript(tmp_path / "comp.pt")
     with torch.no_grad():
         y, _ = net(x)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from _helpers import inputs, net_of
+from _helpers import RAW, inputs, net_of
 
 from torchhys import EIHO, Backlash
 from torchhys.export import load_aoti, state_spec_string, to_aoti
@@ -26,7 +26,7 @@ def package(tmp_path_factory: pytest.TempPathFactory) -> tuple:
            EIHO(a="learnable", rule="recent"), Backlash([0.0, 0.4, 1.5])]
     net = net_of(ops, torch.float32, x)
     path = tmp_path_factory.mktemp("aoti") / "comp.pt2"
-    to_aoti(net, path, limits=LIMITS)
+    to_aoti(net, path, limits=LIMITS, **RAW)
     return net, str(path)
 
 
@@ -34,7 +34,7 @@ def package(tmp_path_factory: pytest.TempPathFactory) -> tuple:
 def test_aoti_equals_eager_step_by_step(package: tuple) -> None:
     net, path = package
     x = inputs(300).float()
-    eager = StreamingCompensator(net, limits=LIMITS)
+    eager = StreamingCompensator(net, limits=LIMITS, **RAW)
     with torch.no_grad():
         ref, _ = net(x)
     runner = load_aoti(path)
@@ -49,7 +49,7 @@ def test_aoti_equals_eager_step_by_step(package: tuple) -> None:
 def test_aoti_metadata_and_nan_hold(package: tuple) -> None:
     net, path = package
     runner = load_aoti(path)
-    assert runner.spec == state_spec_string(StreamingCompensator(net, limits=LIMITS))
+    assert runner.spec == state_spec_string(StreamingCompensator(net, limits=LIMITS, **RAW))
     assert (runner.low, runner.high) == LIMITS
     x = inputs(60).float()[0]
     u1 = [runner.step(x[t:t + 1]) for t in range(30)]
@@ -89,7 +89,7 @@ def test_aoti_bad_arguments(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="batch"):
         to_aoti(net, tmp_path / "m.pt2", limits=LIMITS, batch=0)
     with pytest.raises(ValueError, match="directory"):
-        to_aoti(net, tmp_path / "no" / "m.pt2", limits=LIMITS)
+        to_aoti(net, tmp_path / "no" / "m.pt2", limits=LIMITS, **RAW)
 
 
 @pytest.mark.slow
@@ -109,7 +109,7 @@ def test_aoti_batch_rows_equal_eager(dtype: torch.dtype, tmp_path: Path) -> None
     with torch.no_grad():
         ref, _ = net(x)
     for row in range(x.shape[0]):  # each row alone through eager, batch 1
-        alone = StreamingCompensator(net, limits=LIMITS)(x[row])
+        alone = StreamingCompensator(net, limits=LIMITS, **RAW)(x[row])
         torch.testing.assert_close(u[row], alone, rtol=0, atol=atol)
         torch.testing.assert_close(u[row], ref[row], rtol=0, atol=atol)
     with pytest.raises(ValueError, match="compiled batch"):

@@ -10,7 +10,7 @@ import warnings
 
 import pytest
 import torch
-from _helpers import inputs, net_of
+from _helpers import RAW, inputs, net_of
 
 from torchhys import EIHO, Backlash, PrandtlIshlinskii, ZhaoTanOperator
 from torchhys.export import load_torchscript, to_torchscript
@@ -32,7 +32,7 @@ def exported(tmp_path_factory: pytest.TempPathFactory) -> dict:
     for name, make in CONFIGS.items():
         net = net_of(make(), torch.float32, x)
         path = tmp_path_factory.mktemp(name) / "comp.pt"
-        to_torchscript(net, path, limits=(-50.0, 50.0))
+        to_torchscript(net, path, limits=(-50.0, 50.0), **RAW)
         out[name] = (net, str(path))
     return out
 
@@ -43,7 +43,7 @@ def test_scripted_equals_eager(exported: dict, name: str) -> None:
     x = inputs(300).float()
     with torch.no_grad():
         ref, _ = net(x)
-    eager = StreamingCompensator(net, limits=(-50.0, 50.0))
+    eager = StreamingCompensator(net, limits=(-50.0, 50.0), **RAW)
     loaded = load_torchscript(path)
     seq = loaded(x)
     torch.testing.assert_close(seq, ref, rtol=0, atol=1e-6)
@@ -76,7 +76,7 @@ def test_pi_inverse_exports(tmp_path) -> None:
     pi = PrandtlIshlinskii(torch.linspace(0.2, 2.0, 6), linear_weight=0.5)
     inv = pi.inverse()
     y = 3 * torch.sin(torch.linspace(0, 12, 400))
-    m = to_torchscript(inv, tmp_path / "pi.pt", limits=(-100.0, 100.0))
+    m = to_torchscript(inv, tmp_path / "pi.pt", limits=(-100.0, 100.0), **RAW)
     torch.testing.assert_close(m(y), inv(y)[0], rtol=0, atol=1e-6)
 
 
@@ -86,7 +86,7 @@ def test_only_the_deprecation_warning_is_caught(tmp_path) -> None:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         before = list(warnings.filters)
-        to_torchscript(net, tmp_path / "m.pt", limits=(-1.0, 1.0))
+        to_torchscript(net, tmp_path / "m.pt", limits=(-1.0, 1.0), **RAW)
         load_torchscript(tmp_path / "m.pt")
         assert list(warnings.filters) == before  # nothing silenced globally
     messages = [str(w.message) for w in caught]
@@ -103,7 +103,7 @@ def test_bad_path_and_model(tmp_path) -> None:
     with pytest.raises(TypeError, match="InverseHysteresisNet"):
         to_torchscript(torch.nn.Linear(1, 1), tmp_path / "m.pt", limits=(-1.0, 1.0))
     with pytest.raises(ValueError, match="limits"):
-        to_torchscript(net, tmp_path / "m.pt", limits=(1.0, -1.0))
+        to_torchscript(net, tmp_path / "m.pt", limits=(1.0, -1.0), **RAW)
 
 
 def test_loads_in_a_fresh_process_without_torchhys(exported: dict, tmp_path) -> None:
@@ -146,12 +146,12 @@ def test_scripted_batch_rows_equal_eager(tmp_path) -> None:
     x = inputs(200)
     net = net_of([EIHO(a=0.9, rule="recent", output="branch"), Backlash([0.0, 0.4, 1.5])],
                  torch.float64, x)
-    to_torchscript(net, tmp_path / "comp.pt", limits=(-50.0, 50.0))
+    to_torchscript(net, tmp_path / "comp.pt", limits=(-50.0, 50.0), **RAW)
     loaded = load_torchscript(tmp_path / "comp.pt")
     u = torch.stack([loaded.step(x[:, t]) for t in range(x.shape[1])], 1)
     with torch.no_grad():
         ref, _ = net(x)
     for row in range(x.shape[0]):
-        alone = StreamingCompensator(net, limits=(-50.0, 50.0))(x[row])
+        alone = StreamingCompensator(net, limits=(-50.0, 50.0), **RAW)(x[row])
         torch.testing.assert_close(u[row], alone, rtol=0, atol=1e-12)
         torch.testing.assert_close(u[row], ref[row], rtol=0, atol=1e-12)

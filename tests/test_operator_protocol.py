@@ -12,6 +12,7 @@ import math
 import pytest
 import torch
 import torch.nn.functional as F
+from _helpers import RAW
 from torch import Tensor, nn
 
 from torchhys import InverseHysteresisNet
@@ -177,9 +178,9 @@ def test_streams_and_exports_to_torchscript(tmp_path) -> None:
     x, _ = data()
     with torch.no_grad():
         ref, _ = net(x)
-    comp = StreamingCompensator(net, limits=(-1e3, 1e3))
+    comp = StreamingCompensator(net, limits=(-1e3, 1e3), **RAW)
     torch.testing.assert_close(comp(x), ref, rtol=0, atol=1e-12)
-    to_torchscript(net, tmp_path / "toy.pt", limits=(-1e3, 1e3))
+    to_torchscript(net, tmp_path / "toy.pt", limits=(-1e3, 1e3), **RAW)
     ts = load_torchscript(tmp_path / "toy.pt")
     torch.testing.assert_close(ts(x), ref, rtol=0, atol=1e-12)
     assert ts.torchhys_metadata["counter"] == "1:0"
@@ -191,7 +192,7 @@ def test_exports_to_aoti_and_runs(tmp_path) -> None:
     x, _ = data(T=120)
     with torch.no_grad():
         ref, _ = net(x)
-    path = to_aoti(net, tmp_path / "toy.pt2", limits=(-1e3, 1e3))
+    path = to_aoti(net, tmp_path / "toy.pt2", limits=(-1e3, 1e3), **RAW)
     stepper = load_aoti(path)
     got = torch.stack([stepper.step(xt) for xt in x.unbind(1)], 1)
     torch.testing.assert_close(got, ref, rtol=0, atol=1e-12)

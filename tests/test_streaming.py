@@ -6,7 +6,7 @@ import math
 
 import pytest
 import torch
-from _helpers import inputs, net_of, per_op_features, steps_of
+from _helpers import RAW, inputs, net_of, per_op_features, steps_of
 
 from torchhys import (
     EIHO,
@@ -32,7 +32,7 @@ def test_eiho_network_step_equals_sequence(rule: str, threshold: float, a: objec
     net = net_of([op], torch.float64, x)
     with torch.no_grad():
         ref, _ = net(x)
-    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6), **RAW)
     torch.testing.assert_close(comp(x), ref, rtol=0, atol=1e-12)
     torch.testing.assert_close(steps_of(comp, x), ref, rtol=0, atol=1e-12)
 
@@ -48,7 +48,7 @@ def test_operator_features_step_equal_sequence_float32(rule: str, threshold: flo
     net = net_of(ops, torch.float32, x)
     with torch.no_grad():
         feats, _ = net.features(x)
-    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6), **RAW)
     got = per_op_features(comp, x)
     # bit-exact: the step repeats the sequence arithmetic operation by operation
     torch.testing.assert_close(got, feats[..., 1:], rtol=0, atol=0)
@@ -63,7 +63,7 @@ def test_zhao_tan_and_plays_network(rule: str) -> None:
     net = net_of(ops, torch.float64, x)
     with torch.no_grad():
         ref, _ = net(x)
-    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6), **RAW)
     torch.testing.assert_close(comp(x), ref, rtol=0, atol=1e-12)
 
 
@@ -74,7 +74,7 @@ def test_dominant_stack_overflow_matches() -> None:
     net = net_of([EIHO(a=1.0, rule="dominant", max_depth=3)], torch.float64, x)
     with torch.no_grad():
         ref, _ = net(x)
-    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6), **RAW)
     torch.testing.assert_close(comp(x), ref, rtol=0, atol=1e-12)
 
 
@@ -84,7 +84,7 @@ def test_float32_network_to_1e6() -> None:
     net = net_of(ops, torch.float32, x)
     with torch.no_grad():
         ref, _ = net(x)
-    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6), **RAW)
     torch.testing.assert_close(comp(x), ref, rtol=0, atol=1e-6)
     torch.testing.assert_close(steps_of(comp, x), comp(x), rtol=0, atol=0)
 
@@ -94,7 +94,7 @@ def test_pi_inverse_compensator() -> None:
     inv = pi.inverse()
     y = 3 * torch.sin(torch.linspace(0, 12, 500, dtype=torch.float64))[None]
     ref, _ = inv(y)
-    comp = StreamingCompensator(inv, limits=(-100, 100))
+    comp = StreamingCompensator(inv, limits=(-100, 100), **RAW)
     torch.testing.assert_close(comp(y), ref, rtol=0, atol=1e-12)
     # and it inverts the plant
     h, _ = pi(comp(y))
@@ -104,7 +104,7 @@ def test_pi_inverse_compensator() -> None:
 def test_batch_consistency_and_shapes() -> None:
     x = inputs(200)
     net = net_of([EIHO(a=1.0, rule="dominant", threshold=0.5)], torch.float64, x)
-    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6), **RAW)
     whole = comp(x)
     assert whole.shape == x.shape
     for b in range(x.shape[0]):
@@ -117,7 +117,7 @@ def test_batch_consistency_and_shapes() -> None:
 def test_forward_leaves_stored_state_alone() -> None:
     x = inputs(50)
     net = net_of([EIHO(a=1.0, rule="recent")], torch.float64, x)
-    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6), **RAW)
     first = [comp.step(xt) for xt in x[:, :10].unbind(-1)]
     comp(x)
     rest = [comp.step(xt) for xt in x[:, 10:].unbind(-1)]
@@ -132,7 +132,7 @@ def test_pi_operator_in_a_network() -> None:
     net = net_of([pi, EIHO(a=1.0, rule="recent", threshold=0.5)], torch.float64, x)
     with torch.no_grad():
         ref, _ = net(x)
-    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6), **RAW)
     torch.testing.assert_close(comp(x), ref, rtol=0, atol=1e-12)
 
 
@@ -154,12 +154,12 @@ def test_anchored_eiho_step_equals_sequence(rule: str, threshold: float) -> None
                  torch.float64, x)
     with torch.no_grad():
         ref, _ = net(x)
-    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6), **RAW)
     torch.testing.assert_close(comp(x), ref, rtol=0, atol=1e-12)
     torch.testing.assert_close(steps_of(comp, x), ref, rtol=0, atol=1e-12)
     x32 = x.float()
     net32 = net_of([anchored_eiho(rule, threshold, torch.float32)], torch.float32, x32)
     with torch.no_grad():
         feats, _ = net32.features(x32)
-    comp32 = StreamingCompensator(net32, limits=(-1e6, 1e6))
+    comp32 = StreamingCompensator(net32, limits=(-1e6, 1e6), **RAW)
     torch.testing.assert_close(per_op_features(comp32, x32), feats[..., 1:], rtol=0, atol=0)

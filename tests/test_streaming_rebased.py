@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from _helpers import inputs, net_of, per_op_features, steps_of
+from _helpers import RAW, inputs, net_of, per_op_features, steps_of
 
 from torchhys import EIHO, Backlash, ZhaoTanOperator
 from torchhys.branch_steps import RebasedStep
@@ -24,11 +24,11 @@ def test_branch_eiho_network_step_equals_sequence(rule: str, threshold: float, a
         ref, _ = net(x)
         level = net_of([EIHO(a=a, rule=rule, threshold=threshold, max_depth=6, **opts),
                         Backlash([0.0, 0.5, 2.0])], torch.float64, x)
-    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6), **RAW)
     torch.testing.assert_close(comp(x), ref, rtol=0, atol=1e-12)
     torch.testing.assert_close(steps_of(comp, x), ref, rtol=0, atol=1e-12)
     # the option reaches the step: the level network streams differently
-    assert not torch.allclose(StreamingCompensator(level, limits=(-1e6, 1e6))(x), ref)
+    assert not torch.allclose(StreamingCompensator(level, limits=(-1e6, 1e6), **RAW)(x), ref)
 
 
 @pytest.mark.parametrize("rule", ["recent", "dominant"])
@@ -41,7 +41,7 @@ def test_branch_operator_features_bit_for_bit_float32(rule: str, threshold: floa
     net = net_of(ops, torch.float32, x)
     with torch.no_grad():
         feats, _ = net.features(x)
-    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6), **RAW)
     torch.testing.assert_close(per_op_features(comp, x), feats[..., 1:], rtol=0, atol=0)
 
 
@@ -55,7 +55,7 @@ def test_deployed_branch_eiho_step_float32(a: object) -> None:
     net = net_of(ops, torch.float32, x)
     with torch.no_grad():
         feats, _ = net.features(x)
-    comp = StreamingCompensator(net, limits=(-1e6, 1e6))
+    comp = StreamingCompensator(net, limits=(-1e6, 1e6), **RAW)
     assert isinstance(comp.slots[0].step, RebasedStep)
     torch.testing.assert_close(per_op_features(comp, x), feats[..., 1:], rtol=0, atol=0)
     torch.testing.assert_close(steps_of(comp, x), comp(x), rtol=0, atol=0)
@@ -69,6 +69,6 @@ def test_branch_network_torchscript_equals_eager(tmp_path) -> None:
     net = net_of(ops, torch.float64, x)
     with torch.no_grad():
         ref, _ = net(x)
-    to_torchscript(net, tmp_path / "comp.pt", limits=(-1e6, 1e6))
+    to_torchscript(net, tmp_path / "comp.pt", limits=(-1e6, 1e6), **RAW)
     ts = load_torchscript(tmp_path / "comp.pt")
     torch.testing.assert_close(ts(x), ref, rtol=0, atol=1e-12)

@@ -7,6 +7,7 @@ import warnings
 import numpy as np
 import pytest
 import torch
+from _helpers import RAW
 
 from torchhys import EIHO, Backlash, InverseHysteresisNet, PrandtlIshlinskii, ZhaoTanOperator
 from torchhys.functional import NonCausalWarning
@@ -26,9 +27,9 @@ def make_net(dtype: torch.dtype = torch.float64) -> tuple[InverseHysteresisNet, 
 
 def test_saturation_to_limits() -> None:
     net, x = make_net()
-    free = StreamingCompensator(net, limits=(-1e6, 1e6))(x)
+    free = StreamingCompensator(net, limits=(-1e6, 1e6), **RAW)(x)
     lo, hi = float(free.quantile(0.2)), float(free.quantile(0.8))
-    comp = StreamingCompensator(net, limits=(lo, hi))
+    comp = StreamingCompensator(net, limits=(lo, hi), **RAW)
     u = comp(x)
     assert float(u.min()) >= lo and float(u.max()) <= hi
     torch.testing.assert_close(u, free.clamp(lo, hi), rtol=0, atol=0)
@@ -58,7 +59,7 @@ def test_default_limits_of_a_state_dict_without_the_range() -> None:
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
 def test_nonfinite_input_holds_command_and_counts(bad: float) -> None:
     net, x = make_net()
-    comp = StreamingCompensator(net, limits=(-1e3, 1e3))
+    comp = StreamingCompensator(net, limits=(-1e3, 1e3), **RAW)
     clean = comp(x)
     comp.reset()
     out = []
@@ -79,7 +80,7 @@ def test_nonfinite_input_holds_command_and_counts(bad: float) -> None:
 
 def test_nonfinite_first_samples_hold_initial_command() -> None:
     net, x = make_net()
-    comp = StreamingCompensator(net, limits=(-1e3, 1e3), initial_command=0.25)
+    comp = StreamingCompensator(net, limits=(-1e3, 1e3), initial_command=0.25, **RAW)
     xs = torch.cat([torch.tensor([float("nan"), float("inf")], dtype=x.dtype), x])
     u = comp(xs)
     assert u[:2].tolist() == [0.25, 0.25]
@@ -91,15 +92,15 @@ def test_bad_initial_command(bad: object) -> None:
     net, _ = make_net()
     with pytest.raises(ValueError, match=f"initial_command must be a finite real number, got "
                        f"{bad!r}"):
-        StreamingCompensator(net, limits=(-1.0, 1.0), initial_command=bad)
+        StreamingCompensator(net, limits=(-1.0, 1.0), initial_command=bad, **RAW)
     for good in (torch.tensor(0.25), np.float32(0.25), np.int64(0)):  # numbers of any kind
-        comp = StreamingCompensator(net, limits=(-1.0, 1.0), initial_command=good)
+        comp = StreamingCompensator(net, limits=(-1.0, 1.0), initial_command=good, **RAW)
         assert float(comp.u0) == float(good)
 
 
 def test_batch_rows_are_independent_under_nan() -> None:
     net, x = make_net()
-    comp = StreamingCompensator(net, limits=(-1e3, 1e3))
+    comp = StreamingCompensator(net, limits=(-1e3, 1e3), **RAW)
     xb = torch.stack([x, x.flip(0)])
     xb_bad = xb.clone()
     xb_bad[0, 30] = float("nan")
@@ -119,8 +120,8 @@ def test_overflowing_input_never_reaches_the_plant() -> None:
         net.hidden.weight[:2, 0] = 1.0
         net.hidden.bias[:2] = -1e3
         net.output.weight[0, :2] = 2e38 / float(net.out_std)
-    clean = StreamingCompensator(net, limits=(-1e3, 1e3))
-    comp = StreamingCompensator(net, limits=(-1e3, 1e3))
+    clean = StreamingCompensator(net, limits=(-1e3, 1e3), **RAW)
+    comp = StreamingCompensator(net, limits=(-1e3, 1e3), **RAW)
     for xt in x[:20].unbind(-1):
         clean.step(xt[None])
         comp.step(xt[None])
@@ -145,20 +146,20 @@ def test_non_causal_eiho_is_rejected() -> None:
         warnings.simplefilter("ignore", NonCausalWarning)
         net = InverseHysteresisNet(EIHO(a="segment"), hidden=4)
     with pytest.raises(ValueError, match="cannot be deployed"):
-        StreamingCompensator(net, limits=(-1, 1))
+        StreamingCompensator(net, limits=(-1, 1), **RAW)
 
 
 def test_uncalibrated_auto_threshold_is_rejected() -> None:
     net = InverseHysteresisNet(ZhaoTanOperator(threshold="auto"), hidden=4)
     with pytest.raises(ValueError, match="calibrate"):
-        StreamingCompensator(net, limits=(-1, 1))
+        StreamingCompensator(net, limits=(-1, 1), **RAW)
 
 
 @pytest.mark.parametrize("limits", [(1.0, 1.0), (2.0, -2.0), (0.0, float("nan")), (1.0,), "ab"])
 def test_bad_limits(limits: object) -> None:
     net, _ = make_net()
     with pytest.raises(ValueError, match="limits"):
-        StreamingCompensator(net, limits=limits)
+        StreamingCompensator(net, limits=limits, **RAW)
 
 
 def test_missing_limits_are_explained() -> None:
@@ -183,7 +184,7 @@ def test_unsupported_models_and_operators() -> None:
 
 def test_wrong_shapes() -> None:
     net, x = make_net()
-    comp = StreamingCompensator(net, limits=(-10, 10))
+    comp = StreamingCompensator(net, limits=(-10, 10), **RAW)
     with pytest.raises(ValueError, match=r"\(batch,\)"):
         comp.step(torch.zeros(2, 3, dtype=x.dtype))
     with pytest.raises(ValueError, match=r"\(time,\) or \(batch, time\)"):
@@ -210,7 +211,7 @@ def test_deployed_network_every_activation_equals_eager_and_holds(
                                 Backlash([0.0, 0.5, 1.5])], hidden=6,
                                activation=activation).double()
     net.fit_normalization(x, 2 * x + 1)
-    comp = StreamingCompensator(net, limits=(-1e3, 1e3))
+    comp = StreamingCompensator(net, limits=(-1e3, 1e3), **RAW)
     with torch.no_grad():
         ref, _ = net(x)
     torch.testing.assert_close(comp(x), ref, rtol=0, atol=1e-12)
@@ -237,7 +238,7 @@ def test_layout_with_two_float64_operators_and_two_rebased_eihos() -> None:
     torch.manual_seed(0)
     net = InverseHysteresisNet(ops, hidden=8).double()
     net.fit_normalization(x, torch.tanh(x))
-    comp = StreamingCompensator(net, limits=(-1e3, 1e3))
+    comp = StreamingCompensator(net, limits=(-1e3, 1e3), **RAW)
     kinds = [t.dtype for t in comp.initial_state(2)]
     assert kinds == [torch.float64, torch.long, torch.bool, torch.float64]
     f64 = [row for row in comp.layout() if row[1] == "float64"]
@@ -250,7 +251,7 @@ def test_layout_with_two_float64_operators_and_two_rebased_eihos() -> None:
 def test_rows_whose_first_finite_sample_comes_at_different_steps() -> None:
     """Each row starts (anchors its operators) at its own first finite sample."""
     net, x = make_net()
-    comp = StreamingCompensator(net, limits=(-1e3, 1e3), initial_command=0.25)
+    comp = StreamingCompensator(net, limits=(-1e3, 1e3), initial_command=0.25, **RAW)
     lead = [0, 3, 17]
     rows = torch.stack([torch.cat([torch.full((k,), float("nan"), dtype=x.dtype), x[: 200 - k]])
                         for k in lead])

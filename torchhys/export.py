@@ -5,7 +5,8 @@ takes the desired output in physical units and returns the saturated command, wi
 inputs held and counted. Neither needs torchhys to load.
 
 * :func:`to_torchscript`: a ``torch.jit`` module with ``forward(x)`` (whole sequence from a
-  fresh state), ``step(x_t)`` (state kept inside), ``reset()`` and ``nonfinite_count()``;
+  fresh state), ``step(x_t)`` (state kept inside), ``reset()``, ``nonfinite_count()`` and
+  ``out_of_range_count()``;
   loads with ``torch.jit.load`` (Python) or ``torch::jit::load`` (C++).
 * :func:`to_aoti`: an AOTInductor package (``.pt2``) of the explicit-state step
   ``(x_t, *state) -> (u_t, *state)``; load it with :func:`load_aoti` or
@@ -20,6 +21,12 @@ file's extra files of the same names), all strings:
     counter     ``"tensor:column"`` of the counter of held non-finite samples
     held        ``"tensor:column"`` of the last valid command
     low, high   the command's saturation limits
+    input_low, input_high
+                the bounds the input is clamped to (``-inf``/``inf``: no clamp)
+    out_of_range
+                ``"tensor:column"`` of the counter of clamped inputs (``""``: no clamp)
+    direction   ``1`` (the command never falls while the input rises), ``-1`` (never rises),
+                ``0`` (no direction guard)
     dtype       the sample's and the command's dtype
     batch       the batch the state_spec is written for (static in an AOTI package)
 """
@@ -34,7 +41,7 @@ import torch
 from torch import Tensor, nn
 
 from torchhys._checks import check_int
-from torchhys.streaming import COUNTER, HELD, StreamingCompensator
+from torchhys.streaming import COUNTER, HELD, STATE_I, StreamingCompensator
 
 __all__ = [
     "AOTIStepper", "load_aoti", "load_torchscript", "metadata", "state_spec_string", "to_aoti",
@@ -46,14 +53,23 @@ _DTYPE_NAMES = {torch.bool: "bool", torch.long: "int64", torch.float32: "float32
 _NAME_DTYPES = {v: k for k, v in _DTYPE_NAMES.items()}
 
 
+#: defaults of the options that build a compensator (those of StreamingCompensator)
+_DEFAULTS: dict[str, Any] = {"limits": None, "input_range": None, "input_margin": 0.05,
+                             "direction": "auto"}
+
+
 def _compensator(
-    model: nn.Module, limits: tuple[float, float] | None, initial_command: float
+    model: nn.Module, limits: tuple[float, float] | None, initial_command: float,
+    options: dict[str, Any],
 ) -> StreamingCompensator:
     if isinstance(model, StreamingCompensator):
-        if limits is not None:
-            raise ValueError("limits are fixed when the StreamingCompensator is built")
+        given = [k for k, v in {"limits": limits, **options}.items() if v != _DEFAULTS[k]]
+        if given:
+            raise ValueError(f"{', '.join(given)}: fixed when the StreamingCompensator is "
+                             "built; pass the model instead")
         return model
-    return StreamingCompensator(model, limits=limits, initial_command=initial_command)
+    return StreamingCompensator(model, limits=limits, initial_command=initial_command,
+                                **options)
 
 
 def _check_path(path: str | os.PathLike) -> str:
@@ -68,7 +84,8 @@ def _check_path(path: str | os.PathLike) -> str:
 
 def to_torchscript(
     model: nn.Module, path: str | os.PathLike, *, limits: tuple[float, float] | None = None,
-    initial_command: float = 0.0,
+    initial_command: float = 0.0, input_range: tuple[float, float] | None = None,
+    input_margin: float | None = 0.05, direction: str = "auto",
 ) -> torch.jit.ScriptModule:
     """Script the streaming compensator of ``model`` and save it to ``path``.
 
@@ -85,18 +102,24 @@ def to_torchscript(
         limits: ``(low, high)`` command saturation; default: the training output range
             (:func:`~torchhys.streaming.default_limits`).
         initial_command: command held until the first finite input.
+        input_range, input_margin, direction: the input clamp and the direction guard, as
+            :class:`~torchhys.streaming.StreamingCompensator` (defaults: its defaults, the
+            model's recorded training input range with a 5 % margin and its direction).
 
     Returns:
         The scripted module (also saved). Its methods: ``forward(x)`` x (time,) or
         (batch, time) -> same shape; ``step(x_t)`` (batch,) -> (batch,); ``reset()``;
-        ``nonfinite_count()`` (batch,); ``step_explicit(x_t, state)``; ``initial_state(b)``.
+        ``nonfinite_count()`` (batch,); ``out_of_range_count()`` (batch,);
+        ``step_explicit(x_t, state)``; ``initial_state(b)``.
 
     Raises:
         ValueError, TypeError: see :class:`~torchhys.streaming.StreamingCompensator`; a
             missing output directory.
     """
     path = _check_path(path)
-    comp = _compensator(model, limits, initial_command).eval()
+    comp = _compensator(model, limits, initial_command,
+                        {"input_range": input_range, "input_margin": input_margin,
+                         "direction": direction}).eval()
     with warnings.catch_warnings():
         warnings.filterwarnings(
             "ignore", message=r"`torch\.jit\.script` is deprecated", category=DeprecationWarning
@@ -133,16 +156,20 @@ def state_spec_string(comp: StreamingCompensator, batch: int = 1) -> str:
     return ";".join(parts)
 
 
-_METADATA_KEYS = ("state_spec", "n_state", "counter", "held", "low", "high", "dtype", "batch")
+_METADATA_KEYS = ("state_spec", "n_state", "counter", "held", "low", "high", "input_low",
+                  "input_high", "out_of_range", "direction", "dtype", "batch")
 
 
 def metadata(comp: StreamingCompensator, batch: int = 1) -> dict[str, str]:
     """The exported metadata of a compensator (see the module docstring), all strings."""
     state = comp.initial_state(batch)
+    oor = (f"{STATE_I}:{state[STATE_I].shape[1] - 1}" if comp.clamp_input else "")
     return {
         "state_spec": state_spec_string(comp, batch), "n_state": str(len(state)),
         "counter": f"{COUNTER[0]}:{COUNTER[1]}", "held": f"{HELD[0]}:{HELD[1]}",
         "low": repr(float(comp.low)), "high": repr(float(comp.high)),
+        "input_low": repr(float(comp.in_low)), "input_high": repr(float(comp.in_high)),
+        "out_of_range": oor, "direction": str(int(comp.direction)),
         "dtype": _DTYPE_NAMES[comp.low.dtype], "batch": str(batch),
     }
 
@@ -183,7 +210,9 @@ class _ExplicitStep(nn.Module):
 
 def to_aoti(
     model: nn.Module, path: str | os.PathLike, *, limits: tuple[float, float] | None = None,
-    initial_command: float = 0.0, batch: int = 1, inductor_configs: dict[str, Any] | None = None,
+    initial_command: float = 0.0, input_range: tuple[float, float] | None = None,
+    input_margin: float | None = 0.05, direction: str = "auto",
+    batch: int = 1, inductor_configs: dict[str, Any] | None = None,
 ) -> str:
     """Compile the explicit-state step with ``torch.export`` + AOTInductor into a package.
 
@@ -192,7 +221,8 @@ def to_aoti(
     package metadata (:func:`metadata`). Compiling takes a minute or more on a small CPU.
 
     Args:
-        model, limits, initial_command: as :func:`to_torchscript`.
+        model, limits, initial_command, input_range, input_margin, direction: as
+            :func:`to_torchscript`.
         path: output package (``.pt2``).
         batch: batch size the package is compiled for (static).
         inductor_configs: extra AOTInductor options; they override the defaults
@@ -204,7 +234,9 @@ def to_aoti(
     """
     path = _check_path(path)
     check_int(batch, "batch", minimum=1)
-    comp = _compensator(model, limits, initial_command).eval()
+    comp = _compensator(model, limits, initial_command,
+                        {"input_range": input_range, "input_margin": input_margin,
+                         "direction": direction}).eval()
     state = comp.initial_state(batch)
     x = torch.zeros(batch, dtype=comp.low.dtype)
     with torch.no_grad():
@@ -229,6 +261,8 @@ class AOTIStepper:
         self.metadata = {k: meta[k] for k in _METADATA_KEYS if k in meta}
         self.spec = meta["state_spec"]
         self.counter = _position(meta["counter"])
+        oor = meta.get("out_of_range", "")
+        self.out_of_range = _position(oor) if oor else None
         self.low, self.high = float(meta["low"]), float(meta["high"])
         self.reset()
         self.batch = int(self.state[0].shape[0])
@@ -260,6 +294,13 @@ class AOTIStepper:
         """Samples held because the input was NaN or inf, per row (the metadata's
         ``counter`` position)."""
         return self.state[self.counter[0]][:, self.counter[1]]
+
+    def out_of_range_count(self) -> Tensor:
+        """Finite samples clamped to the training input range, per row (the metadata's
+        ``out_of_range`` position; zeros for a package without a clamp)."""
+        if self.out_of_range is None:
+            return torch.zeros_like(self.nonfinite_count())
+        return self.state[self.out_of_range[0]][:, self.out_of_range[1]]
 
 
 def load_aoti(path: str | os.PathLike) -> AOTIStepper:

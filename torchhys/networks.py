@@ -83,6 +83,12 @@ class InverseHysteresisNet(AtomicLoad, nn.Module):
         # an exported compensator
         self.register_buffer("out_min", torch.full((), float("nan")))
         self.register_buffer("out_max", torch.full((), float("nan")))
+        # range of the training input and the sign of the target's trend in it (NaN until
+        # fitted): an exported compensator clamps its input to that range (widened by a
+        # margin) and never moves its command against that direction
+        self.register_buffer("in_min", torch.full((), float("nan")))
+        self.register_buffer("in_max", torch.full((), float("nan")))
+        self.register_buffer("direction", torch.full((), float("nan")))
         self.hidden = nn.Linear(n_features, hidden)
         self.activation = _ACTIVATIONS[activation]()
         self.output = nn.Linear(hidden, 1)
@@ -128,8 +134,8 @@ class InverseHysteresisNet(AtomicLoad, nn.Module):
     def _load_from_state_dict(
         self, state_dict: dict, prefix: str, *args: object, **kwargs: object
     ) -> None:
-        # state dicts saved before the target range was recorded: keep it unknown (NaN)
-        for name in ("out_min", "out_max"):
+        # state dicts saved before the ranges were recorded: keep them unknown (NaN)
+        for name in ("out_min", "out_max", "in_min", "in_max", "direction"):
             state_dict.setdefault(prefix + name, torch.full((), float("nan")))
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
@@ -176,6 +182,11 @@ class InverseHysteresisNet(AtomicLoad, nn.Module):
         self.out_std.copy_(ys.std())
         self.out_min.copy_(ys.min())
         self.out_max.copy_(ys.max())
+        self.in_min.copy_(xs.min())
+        self.in_max.copy_(xs.max())
+        # the sign of the least-squares line's slope of y in x: +1 rising, -1 falling
+        slope = float(((xs - xs.mean()) * (ys - ys.mean())).sum())
+        self.direction.fill_(1.0 if slope >= 0 else -1.0)
 
     def streaming_steps(self, dtype: torch.dtype) -> list[OperatorStep]:
         """The operators' per-sample steps in ``dtype`` (for

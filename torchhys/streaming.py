@@ -11,18 +11,31 @@ state, no data-dependent Python control flow): see :mod:`torchhys.export`.
 
 Safety: the command is saturated to ``[low, high]``; a NaN or inf input sample (or a
 command that would not be finite) holds the last valid command, leaves the whole state as it
-was and is counted (:meth:`StreamingCompensator.nonfinite_count`).
+was and is counted (:meth:`StreamingCompensator.nonfinite_count`). A finite input is clamped
+to the training input range widened by a margin (``input_margin``, 5 % of the range by
+default) before the model sees it, and counted when it lay outside
+(:meth:`StreamingCompensator.out_of_range_count`): the model never extrapolates past what it
+was trained on. The command never moves against the model's direction (``direction``: the
+sign of the target's trend in the input, recorded when the network's normalization was
+fitted): while the (clamped) input rises, the command of a rising compensator does not fall,
+while it falls the command does not rise, and while it stays the command stays. On a model
+that is monotone in its current input this guard changes nothing; on one that is not, it
+holds the command where the model would turn the wrong way.
 
 The state (a published contract: the exported metadata ``state_spec`` repeats it) is a list
 of tensors, all zeros when fresh; the steps' blocks are packed by kind, in the order of the
 steps and of their ``state_spec``::
 
-    index  name      dtype               shape            columns
-    -----  --------  ------------------  ---------------  -------------------------------------
-    0      F         compensator dtype   (batch, 1 + nF)  [held command | float blocks ...]
-    1      I         int64               (batch, 1 + nI)  [held-sample counter | int64 blocks]
-    2      started   bool                (batch, 1)       a finite sample has arrived
-    3      F64       float64             (batch, nG)      [float64 blocks ...] (only if nG > 0)
+    index  name      dtype               shape             columns
+    -----  --------  ------------------  ----------------  ------------------------------------
+    0      F         compensator dtype   (batch, 1+nF+g)   [held command | float blocks ... |
+                                                           last clamped input (guard only)]
+    1      I         int64               (batch, 1+nI+c)   [held-sample counter | int64 blocks
+                                                           | out-of-range counter (clamp only)]
+    2      started   bool                (batch, 1)        a finite sample has arrived
+    3      F64       float64             (batch, nG)       [float64 blocks ...] (only if nG > 0)
+
+(``g`` is 1 with the direction guard, ``c`` is 1 with the input clamp, else 0.)
 
 At a row's first finite sample every block column is set to ``start + from_sample * x``
 (its :class:`~torchhys.operator.StateBlock`) before the steps run.
@@ -39,9 +52,12 @@ from torchhys._checks import check_real
 from torchhys.operator import STATE_KINDS, OperatorStep, StateBlock
 
 __all__ = [
-    "COUNTER", "HELD", "STARTED", "STATE_F", "STATE_F64", "STATE_I", "StreamingCompensator",
-    "default_limits",
+    "COUNTER", "DIRECTIONS", "HELD", "STARTED", "STATE_F", "STATE_F64", "STATE_I",
+    "StreamingCompensator", "default_direction", "default_input_range", "default_limits",
 ]
+
+#: values of ``StreamingCompensator(direction=...)``
+DIRECTIONS = ("auto", "increasing", "decreasing", "none")
 
 #: index of each state tensor in the state list
 STATE_F, STATE_I, STATE_STARTED, STATE_F64 = 0, 1, 2, 3
@@ -118,13 +134,63 @@ def default_limits(model: nn.Module) -> tuple[float, float]:
     )
 
 
-def _check_limits(limits: Sequence[float]) -> tuple[float, float]:
+def _recorded(model: nn.Module, name: str) -> float:
+    """A scalar buffer the model records (``nan`` when it has none or it is not fitted)."""
+    value = getattr(model, name, None)
+    if isinstance(value, Tensor) and value.numel() == 1:
+        return float(value)
+    return math.nan
+
+
+def default_input_range(model: nn.Module) -> tuple[float, float] | None:
+    """The training input's range recorded by the model (``in_min``, ``in_max``, set by
+    :meth:`~torchhys.InverseHysteresisNet.fit_normalization`), or None when it records none
+    (then a compensator does not clamp its input unless given ``input_range``)."""
+    lo, hi = _recorded(model, "in_min"), _recorded(model, "in_max")
+    if math.isfinite(lo) and math.isfinite(hi) and lo < hi:
+        return lo, hi
+    return None
+
+
+def default_direction(model: nn.Module) -> int:
+    """The sign of the target's trend in the input recorded by the model (``direction``:
+    +1 rising, -1 falling), or 0 when it records none."""
+    d = _recorded(model, "direction")
+    return int(math.copysign(1.0, d)) if math.isfinite(d) and d != 0 else 0
+
+
+def _check_limits(limits: Sequence[float], name: str = "limits") -> tuple[float, float]:
     if isinstance(limits, (str, bytes)) or len(limits) != 2:
-        raise ValueError(f"limits must be a pair (low, high), got {limits!r}")
+        raise ValueError(f"{name} must be a pair (low, high), got {limits!r}")
     low, high = (float(v) for v in limits)
     if not (math.isfinite(low) and math.isfinite(high) and low < high):
-        raise ValueError(f"limits must be finite with low < high, got ({low}, {high})")
+        raise ValueError(f"{name} must be finite with low < high, got ({low}, {high})")
     return low, high
+
+
+def _direction(model: nn.Module, direction: str) -> int:
+    if direction not in DIRECTIONS:
+        raise ValueError(f"direction must be one of {list(DIRECTIONS)}, got {direction!r}")
+    if direction == "auto":
+        return default_direction(model)
+    return {"increasing": 1, "decreasing": -1, "none": 0}[direction]
+
+
+def _input_bounds(model: nn.Module, input_range: Sequence[float] | None,
+                  input_margin: float | None) -> tuple[float, float] | None:
+    """The clamp's bounds: the range widened by the margin on each side, or None."""
+    if input_margin is None:
+        return None
+    margin = check_real(input_margin, "input_margin")
+    if margin < 0:
+        raise ValueError(f"input_margin must be >= 0 (a share of the input range) or None, "
+                         f"got {margin}")
+    rng = (default_input_range(model) if input_range is None
+           else _check_limits(input_range, "input_range"))
+    if rng is None:
+        return None
+    lo, hi = rng
+    return lo - margin * (hi - lo), hi + margin * (hi - lo)
 
 
 def _model_dtype(model: nn.Module) -> torch.dtype:
@@ -143,17 +209,28 @@ class StreamingCompensator(nn.Module):
             ``streaming_steps(dtype)`` and ``streaming_head(dtype)``. Parameters are copied.
         limits: ``(low, high)`` saturation of the command; default :func:`default_limits`.
         initial_command: command held before the first finite input (saturated).
+        input_range: ``(low, high)`` of the training input; default: the model's recorded
+            range (:func:`default_input_range`; none recorded: no clamp).
+        input_margin: the input is clamped to ``input_range`` widened by this share of its
+            width on each side (default 0.05); None: no clamp.
+        direction: ``"auto"`` (default: the model's recorded direction,
+            :func:`default_direction`; none recorded: no guard), ``"increasing"``,
+            ``"decreasing"`` (the command never moves against the input's direction, resp.
+            with it), or ``"none"`` (no guard).
 
     Methods (all exported):
         ``forward(x)``: x (time,) or (batch, time) -> u of the same shape, from a fresh state
         (does not touch the stored state). ``step(x_t)``: x_t (batch,) -> u_t (batch,),
         advancing the stored state. ``reset()``. ``nonfinite_count()``: (batch,) long.
+        ``out_of_range_count()``: finite inputs clamped, (batch,) long (zeros without a
+        clamp).
         ``step_explicit(x_t, state) -> (u_t, state)`` and ``initial_state(batch)``: the same
         step with the state passed explicitly (see the module docstring for its layout).
 
     Raises:
         ValueError: a non-causal operator (``EIHO(a="segment")``), an uncalibrated
-            ``threshold="auto"``, bad ``limits``, a non-finite ``initial_command``.
+            ``threshold="auto"``, bad ``limits``, ``input_range``, ``input_margin`` or
+            ``direction``, a non-finite ``initial_command``.
         TypeError: a model without streaming steps, or a step outside the protocol.
     """
 
@@ -169,10 +246,13 @@ class StreamingCompensator(nn.Module):
     STATE_F64: Final[int] = STATE_F64
     HELD_COLUMN: Final[int] = HELD[1]
     COUNTER_COLUMN: Final[int] = COUNTER[1]
+    clamp_input: bool
+    guard: bool
 
     def __init__(
         self, model: nn.Module, *, limits: Sequence[float] | None = None,
-        initial_command: float = 0.0,
+        initial_command: float = 0.0, input_range: Sequence[float] | None = None,
+        input_margin: float | None = 0.05, direction: str = "auto",
     ) -> None:
         super().__init__()
         if not (hasattr(model, "streaming_steps") and hasattr(model, "streaming_head")):
@@ -192,6 +272,14 @@ class StreamingCompensator(nn.Module):
         self.register_buffer("zero", torch.zeros((), dtype=dtype))  # the hold test's 0
         # with u0 = +0.0 the fresh state's held column (zeros) already holds the initial command
         self.u0_zero: bool = u0 == 0.0 and math.copysign(1.0, u0) > 0
+        bounds = _input_bounds(model, input_range, input_margin)
+        self.clamp_input = bounds is not None
+        lo_in, hi_in = (-math.inf, math.inf) if bounds is None else bounds
+        self.register_buffer("in_low", torch.tensor(lo_in, dtype=dtype))
+        self.register_buffer("in_high", torch.tensor(hi_in, dtype=dtype))
+        sign = _direction(model, direction)
+        self.guard = sign != 0
+        self.register_buffer("direction", torch.tensor(float(sign), dtype=dtype))
         self._layout(steps, dtype)
         self.state = self.initial_state(1)
         self.n_steps = 0
@@ -214,9 +302,20 @@ class StreamingCompensator(nn.Module):
                 sample[k] += block.columns("from_sample")
             slots.append(_Slot(step, kinds, pieces))
         self.slots = nn.ModuleList(slots)
-        self.sizes = sizes
         self.has_f64: bool = len(sizes[1]) > 0
         self.has_int: bool = len(sizes[2]) > 1  # int64 blocks besides the counter
+        self.n_int: int = sum(sizes[2]) - 1
+        # the compensator's own columns after the steps': the last clamped input (guard) and
+        # the out-of-range counter (clamp); not anchored (set at a row's first step)
+        if self.guard:
+            sizes[0].append(1)
+            start[0].append(0.0)
+            sample[0].append(0.0)
+        if self.clamp_input:
+            sizes[2].append(1)
+            start[2].append(0.0)
+            sample[2].append(0.0)
+        self.sizes = sizes
         dtypes = (dtype, torch.float64, torch.long)
         # anchoring at the first finite sample: start + from_sample * x, where not all zero
         self.anchor = [any(v != 0.0 for v in start[k] + sample[k]) for k in range(3)]
@@ -250,14 +349,16 @@ class StreamingCompensator(nn.Module):
         """One sample with an explicit state: x (batch,) -> (u (batch,), new state)."""
         F, I, started = state[self.STATE_F], state[self.STATE_I], state[self.STATE_STARTED]
         G = state[self.STATE_F64] if self.has_f64 else F
-        xc = x.unsqueeze(1)
+        xr = x.unsqueeze(1)
+        xc = torch.clamp(xr, self.in_low, self.in_high) if self.clamp_input else xr
+        split_int = self.has_int or self.clamp_input
         parts = [
             self._anchored(F, started, xc, 0, self.start_f, self.sample_f).split_with_sizes(
                 self.sizes[0], 1),
             self._anchored(G, started, xc.double(), 1, self.start_g, self.sample_g
                            ).split_with_sizes(self.sizes[1], 1) if self.has_f64 else [F],
             self._anchored(I, started, xc, 2, self.start_i, self.sample_i).split_with_sizes(
-                self.sizes[2], 1) if self.has_int else [I],
+                self.sizes[2], 1) if split_int else [I],
         ]
         new: list[list[Tensor]] = [[], [], []]
         features = [xc]
@@ -269,18 +370,35 @@ class StreamingCompensator(nn.Module):
         # t - t is 0 exactly where t is finite (NaN for NaN and +/-inf): cheaper than isfinite.
         # (TorchScript: compared with a Python 0 the interpreter would wrap the 0 into a new
         # tensor at every step; self.zero is a constant of the frozen module.)
-        bad = (xc - xc) + (u - u) != self.zero
+        bad = (xr - xr) + (u - u) != self.zero
         u = torch.clamp(u, self.low, self.high)
-        F_new = torch.where(bad, F, torch.cat([u] + new[0], 1))
+        if self.guard:
+            # the command may not move against the input's direction: d (u - held) has the
+            # sign of d (x - previous x), and is 0 while the input stays (the first sample
+            # of a row is free)
+            d = self.direction
+            held_u = F.narrow(1, self.HELD_COLUMN, 1)
+            s = (xc - F.narrow(1, F.shape[1] - 1, 1)) * d
+            v, vp = u * d, held_u * d
+            g = torch.where(s > self.zero, torch.maximum(v, vp),
+                            torch.where(s < self.zero, torch.minimum(v, vp), vp)) * d
+            u = torch.where(started, g, u)
+            F_new = torch.where(bad, F, torch.cat([u] + new[0] + [xc], 1))
+        else:
+            F_new = torch.where(bad, F, torch.cat([u] + new[0], 1))
         if self.u0_zero:  # the held column, zero when fresh, is the command to send
             u_out = F_new.select(1, self.HELD_COLUMN)
         else:
             held = F.narrow(1, self.HELD_COLUMN, 1)
             u_out = torch.where(bad, torch.where(started, held, self.u0), u).squeeze(1)
-        if self.has_int:
-            count = I.narrow(1, self.COUNTER_COLUMN, 1) + bad
-            I_new = torch.cat([count, torch.where(bad, I.narrow(1, 1, I.shape[1] - 1),
-                                                  torch.cat(new[2], 1))], 1)
+        if split_int:
+            pieces = [I.narrow(1, self.COUNTER_COLUMN, 1) + bad]
+            if self.has_int:
+                pieces.append(torch.where(bad, I.narrow(1, 1, self.n_int), torch.cat(new[2], 1)))
+            if self.clamp_input:  # finite samples outside the clamp's bounds
+                outside = torch.ne(xr, xc) & torch.eq(xr - xr, self.zero)
+                pieces.append(I.narrow(1, I.shape[1] - 1, 1) + outside)
+            I_new = torch.cat(pieces, 1)
         else:  # the counter is all of I
             I_new = I + bad
         started_new = torch.ge(started, bad)  # started or not bad (for bools a >= b is a | ~b)
@@ -319,6 +437,15 @@ class StreamingCompensator(nn.Module):
         """Samples held because the input (or the command) was NaN or inf, per row (batch,)."""
         return self.state[self.STATE_I][:, self.COUNTER_COLUMN]
 
+    @torch.jit.export
+    def out_of_range_count(self) -> Tensor:
+        """Finite input samples outside the clamp's bounds (clamped before the model saw
+        them), per row (batch,); zeros without a clamp."""
+        I = self.state[self.STATE_I]
+        if self.clamp_input:
+            return I[:, I.shape[1] - 1]
+        return torch.zeros_like(I[:, self.COUNTER_COLUMN])
+
     def forward(self, x: Tensor) -> Tensor:
         """Commands for a whole sequence from a fresh state: (time,) or (batch, time)."""
         if x.dim() not in (1, 2):
@@ -352,4 +479,9 @@ class StreamingCompensator(nn.Module):
                              f"step {i} ({type(slot.step).__name__}): {block.name}",
                              col[block.kind], block.size))
                 col[block.kind] += block.size
+        if self.guard:
+            rows.append((STATE_F, "float", "last clamped input (direction guard)",
+                         col["float"], 1))
+        if self.clamp_input:
+            rows.append((STATE_I, "int64", "out-of-range counter", col["int64"], 1))
         return rows

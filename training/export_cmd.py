@@ -1,6 +1,12 @@
 """``torchhys export``: a trained checkpoint to a deployable compensator file.
 
     torchhys export --ckpt CKPT --format torchscript|aoti --out FILE [--limits LOW HIGH]
+        [--input-margin M | --input-margin none] [--direction auto|increasing|decreasing|none]
+
+The compensator clamps its input to the training input range widened by ``--input-margin``
+(a share of the range, default 0.05) and counts the samples it clamped; its command never
+moves against the direction of the target's trend in the training data (``--direction``):
+see :class:`torchhys.streaming.StreamingCompensator`.
 
 CKPT is a checkpoint of :class:`torchhys.training.InverseHysteresisModule` (Lightning's
 ``{"state_dict": {"net.*": ...}, "hyper_parameters": {...}}``; the network is rebuilt from
@@ -21,7 +27,7 @@ import torch
 
 from torchhys import InverseHysteresisNet
 from torchhys.export import to_aoti, to_torchscript
-from torchhys.streaming import StreamingCompensator
+from torchhys.streaming import DIRECTIONS, StreamingCompensator
 from torchhys.training.operators import build_operators
 
 __all__ = ["build_net", "main"]
@@ -38,6 +44,12 @@ def _parser() -> argparse.ArgumentParser:
                    help="command saturation (default: the training output range)")
     p.add_argument("--initial-command", type=float, default=0.0,
                    help="command held until the first finite input (default 0)")
+    p.add_argument("--input-margin", type=_margin, default=0.05, metavar="M",
+                   help="clamp the input to the training input range widened by this share "
+                        "of it on each side (default 0.05); 'none': no clamp")
+    p.add_argument("--direction", choices=DIRECTIONS, default="auto",
+                   help="the command never moves against this direction of the input "
+                        "(default auto: the training data's; none: no guard)")
     arch = p.add_argument_group("architecture of a plain state dict")
     arch.add_argument("--operator", help='e.g. eiho, zhao_tan, none, or a JSON list of names '
                       'and specs such as {"name": "pi_ls", "n_widths": 30}')
@@ -45,6 +57,20 @@ def _parser() -> argparse.ArgumentParser:
     arch.add_argument("--activation")
     arch.add_argument("--operator-kwargs", help="JSON object, e.g. '{\"rule\": \"dominant\"}'")
     return p
+
+
+def _margin(text: str) -> float | None:
+    if text.strip().lower() == "none":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a share of the input range (a number >= 0) or 'none', got {text!r}"
+        ) from None
+    if not value >= 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0 or 'none', got {text!r}")
+    return value
 
 
 def _plain_arch(args: argparse.Namespace) -> dict:
@@ -102,14 +128,18 @@ def main(argv: list[str]) -> int:
                              f"{type(ckpt).__name__}")
         net = build_net(ckpt, None if "state_dict" in ckpt else _plain_arch(args))
         comp = StreamingCompensator(net, limits=args.limits,
-                                    initial_command=args.initial_command)
+                                    initial_command=args.initial_command,
+                                    input_margin=args.input_margin, direction=args.direction)
         export = to_torchscript if args.format == "torchscript" else to_aoti
         export(comp, args.out)
     except (ValueError, TypeError, RuntimeError, KeyError, json.JSONDecodeError) as e:
         print(f"torchhys export: error: {e}", file=sys.stderr)
         return 2
+    clamp = (f"input clamped to [{float(comp.in_low):.6g}, {float(comp.in_high):.6g}]"
+             if comp.clamp_input else "input not clamped")
+    guard = {1: "increasing", -1: "decreasing", 0: "none"}[int(comp.direction)]
     print(f"wrote {args.out} ({args.format}); command limits [{float(comp.low):.6g}, "
-          f"{float(comp.high):.6g}]")
+          f"{float(comp.high):.6g}], {clamp}, direction {guard}")
     return 0
 
 
