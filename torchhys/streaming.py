@@ -374,11 +374,11 @@ class StreamingCompensator(nn.Module):
         u = torch.clamp(u, self.low, self.high)
         if self.guard:
             # the command may not move against the input's direction: d (u - held) has the
-            # sign of d (x - previous x), and is 0 while the input stays (the first sample
-            # of a row is free)
+            # sign of x - previous x (d = +1 rising, -1 falling), and is 0 while the input
+            # stays (the first sample of a row is free)
             d = self.direction
             held_u = F.narrow(1, self.HELD_COLUMN, 1)
-            s = (xc - F.narrow(1, F.shape[1] - 1, 1)) * d
+            s = xc - F.narrow(1, F.shape[1] - 1, 1)
             v, vp = u * d, held_u * d
             g = torch.where(s > self.zero, torch.maximum(v, vp),
                             torch.where(s < self.zero, torch.minimum(v, vp), vp)) * d
