@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -9,6 +10,7 @@ import lightning as L
 import torch
 import torch.nn.functional as F
 from lightning.pytorch.trainer.states import TrainerFn
+from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor, nn
 from torchmetrics import MeanSquaredError
 
@@ -163,6 +165,7 @@ class InverseHysteresisModule(L.LightningModule):
         self.register_buffer("normalization_fitted", torch.tensor(False))
         self.val_mse, self.test_mse = MeanSquaredError(), MeanSquaredError()
         self._feature_cache: dict[str, tuple[Tensor, Tensor, Tensor]] = {}
+        self._outside = (0, 0)  # (outside, total) input samples of a test or predict run
 
     # --- checks -------------------------------------------------------------------------
     @property
@@ -296,15 +299,55 @@ class InverseHysteresisModule(L.LightningModule):
     def validation_step(self, batch: Batch, batch_idx: int) -> None:
         self._evaluate(batch, "val")
 
+    # --- inputs outside the training range (test, predict) ------------------------------
+    def _count_outside(self, x: Tensor) -> None:
+        """Add the samples of ``x`` (the scored ones, flat) outside the training input
+        range to the running count (:meth:`_warn_outside`)."""
+        lo, hi = float(self.net.in_min), float(self.net.in_max)
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            return  # a network saved before the range was recorded
+        outside = int(((x < lo) | (x > hi)).sum())
+        self._outside = (self._outside[0] + outside, self._outside[1] + int(x.numel()))
+
+    def _warn_outside(self, stage: str) -> None:
+        """Warn once when some inputs of the stage lie outside the training input range:
+        the model extrapolates there (an exported compensator clamps them)."""
+        outside, total = self._outside
+        self._outside = (0, 0)
+        if outside:
+            lo, hi = float(self.net.in_min), float(self.net.in_max)
+            rank_zero_warn(
+                f"{stage}: {outside} of {total} input samples ({100.0 * outside / total:.3g} %) "
+                f"lie outside the training input range [{lo:.6g}, {hi:.6g}]: the model "
+                "extrapolates there (an exported compensator clamps its input to that range "
+                "widened by --input-margin and holds its direction)")
+
+    def on_test_epoch_start(self) -> None:
+        self._outside = (0, 0)
+
+    def on_predict_epoch_start(self) -> None:
+        self._outside = (0, 0)
+
+    def on_test_epoch_end(self) -> None:
+        self._warn_outside("test")
+
+    def on_predict_epoch_end(self) -> None:
+        self._warn_outside("predict")
+
     def test_step(self, batch: Batch, batch_idx: int) -> dict[str, Tensor]:
         """Log ``test_mse``; return the batch's scored samples, each flat: ``input``,
         ``target`` and ``prediction`` (for
-        :class:`~torchhys.training.callbacks.BaselineComparison`)."""
-        return self._evaluate(batch, "test")
+        :class:`~torchhys.training.callbacks.BaselineComparison`). Inputs outside the
+        training range are counted: a warning at the end says their share."""
+        out = self._evaluate(batch, "test")
+        self._count_outside(out["input"])
+        return out
 
     def predict_step(self, batch: Batch, batch_idx: int) -> Tensor:
-        """The model output over the whole batch, (batch, time)."""
-        x, y, _ = _unpack(batch)
+        """The model output over the whole batch, (batch, time). Inputs outside the
+        training range are counted: a warning at the end says their share."""
+        x, y, scored = _unpack(batch)
+        self._count_outside(scored(x).reshape(-1))
         with torch.no_grad():
             return self._predict(x, y, "predict")()
 
