@@ -22,7 +22,10 @@ def trainer(max_epochs: int = 4, **kwargs) -> L.Trainer:
 
 
 def cli(monkeypatch: pytest.MonkeyPatch, *args: str) -> None:
-    """Run the ``torchhys`` command line with ``args`` (one torch thread)."""
+    """Run the ``torchhys`` command line with ``args`` (one torch thread). Errors in the
+    user's files and options are raised as they are (``TORCHHYS_TRACEBACK=1``), for
+    ``pytest.raises``; tests/test_cli_errors.py runs the command as users see it."""
     monkeypatch.setattr(sys, "argv", ["torchhys"])  # no stray pytest arguments
+    monkeypatch.setenv("TORCHHYS_TRACEBACK", "1")
     torch.set_num_threads(1)
     main(list(args))

@@ -5,8 +5,15 @@ A :class:`lightning.pytorch.cli.LightningCLI` over
 :class:`torchhys.training.HysteresisDataModule`: every option can be set in the YAML config or
 overridden on the command line (``--data.path``, ``--trainer.max_epochs``,
 ``--trainer.default_root_dir``, ``--model.optimizer`` ...); ``--ckpt_path`` resumes a fit or
-picks the weights to evaluate. Logs (CSV) and checkpoints go under the run's
-``trainer.default_root_dir``; ``predict`` also writes ``predictions.csv`` there.
+picks the weights to evaluate (read and checked before anything is written). Logs (CSV) and
+checkpoints go under ``<default_root_dir>/logs/version_<N>`` (``trainer.default_root_dir``);
+``predict`` also writes ``predictions.csv`` in ``default_root_dir``.
+
+An error in the user's files, options or data (a missing or malformed data file, a bad
+config value, a damaged checkpoint ...) is printed as one line, ``torchhys fit: error:
+<message>``, and the command exits with status 2; ``--traceback`` (or
+``TORCHHYS_TRACEBACK=1``) shows its traceback. Any other exception is a bug in torchhys and
+keeps its traceback (:mod:`torchhys.training.errors`).
 
 Model selection (``fit`` only): ``model.select`` lists candidates, each a dict of model
 arguments that replace the ``model`` section's (an argument of the command, not of
@@ -54,6 +61,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
 import sys
 import time
 import warnings
@@ -70,6 +78,14 @@ from lightning.pytorch.utilities import rank_zero_only, rank_zero_warn
 from torchhys.training import selection
 from torchhys.training.callbacks import BaselineComparison, PredictionWriter
 from torchhys.training.data import HysteresisDataModule
+from torchhys.training.errors import (
+    TRACEBACK_ENV,
+    TRACEBACK_FLAG,
+    config_errors,
+    read_checkpoint,
+    report_user_error,
+    split_traceback_flag,
+)
 from torchhys.training.module import InverseHysteresisModule
 from torchhys.training.operators import build_operators
 
@@ -121,6 +137,15 @@ class TorchhysCLI(LightningCLI):
             help="fit with model.select: 'min' (default) chooses the lowest validation MSE, "
                  "'1se' the first candidate (the baseline) when within one standard error of it")
 
+    def parse_arguments(self, parser, args) -> None:  # noqa: ANN001 (LightningCLI's)
+        """Parse, then read and check ``--ckpt_path`` (a file) before anything is written:
+        a missing or damaged checkpoint is a one-line error, with no run folder left."""
+        super().parse_arguments(parser, args)
+        sub = self.config.get("subcommand")
+        path = self.config[sub].get("ckpt_path") if sub else None
+        if isinstance(path, str | os.PathLike) and not _special_ckpt_path(str(path)):
+            read_checkpoint(path, "--ckpt_path")
+
     def before_instantiate_classes(self) -> None:
         self._select()
         cfg = self.config[self.subcommand] if self.subcommand else self.config
@@ -131,6 +156,11 @@ class TorchhysCLI(LightningCLI):
                 "class_path": "lightning.pytorch.loggers.CSVLogger",
                 "init_args": {"save_dir": root, "name": "logs"},
             }
+
+    def instantiate_classes(self) -> None:
+        """LightningCLI's, a TypeError while building the classes being a user error."""
+        with config_errors():
+            super().instantiate_classes()
 
     def before_fit(self) -> None:
         """A plain fit warns as model selection does (once) when the training record holds
@@ -165,9 +195,10 @@ class TorchhysCLI(LightningCLI):
         if cfg["model"].get("net") is not None:
             raise ValueError("model.select builds each candidate's network from the model "
                              "arguments, but model.net gives a ready network: remove it")
-        candidates = selection.check_candidates(
-            select, selection.model_arguments(self._model_class), cv=cv, mode=mode)
-        configs = [self._candidate_config(i, c) for i, c in enumerate(candidates)]
+        with config_errors():  # a TypeError here is in the candidates, not in training
+            candidates = selection.check_candidates(
+                select, selection.model_arguments(self._model_class), cv=cv, mode=mode)
+            configs = [self._candidate_config(i, c) for i, c in enumerate(candidates)]
         seed = cfg.get("seed_everything")
         if isinstance(seed, bool) or seed is None:  # unseeded: still one seed for all
             seed = seed_everything(workers=True)
@@ -232,6 +263,13 @@ class TorchhysCLI(LightningCLI):
         kwargs["callbacks"] = [c for c in kwargs.get("callbacks") or []
                                if not isinstance(c, ModelCheckpoint)]
         return self.model, self._get(self.config_init, "data"), self.trainer_class(**kwargs)
+
+
+def _special_ckpt_path(path: str) -> bool:
+    """Lightning's ``ckpt_path`` values that are not a local file ('last', 'best', 'hpc',
+    'registry[:...]') and remote URLs: Lightning resolves them."""
+    return (path in ("last", "best", "hpc") or path.lower().startswith("registry")
+            or "://" in path)
 
 
 def _pop_select(cfg: Namespace) -> tuple[Any, Any, Any, Any]:
@@ -309,25 +347,44 @@ def read_config(path: str | Path) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> None:
     """Entry point of the ``torchhys`` console script.
 
+    An error caused by the user's files, options or data is printed as one line,
+    ``torchhys fit: error: <message>``, and exits with status 2; a bug keeps its traceback;
+    ``--traceback`` (anywhere in ``argv``) or ``TORCHHYS_TRACEBACK=1`` shows the traceback
+    of user errors too (:mod:`torchhys.training.errors`).
+
     Args:
         argv: command-line arguments without the program name (``sys.argv[1:]`` if None).
+
+    Raises:
+        SystemExit: 2 on a user error (and as LightningCLI exits: usage errors, ``--help``).
     """
-    args = sys.argv[1:] if argv is None else list(argv)
+    args, traceback = split_traceback_flag(sys.argv[1:] if argv is None else argv)
     if args and args[0] == "export":
         from torchhys.training.export_cmd import main as export_main
 
-        raise SystemExit(export_main(args[1:]))
+        raise SystemExit(export_main(args[1:] + [TRACEBACK_FLAG] * traceback))
+    if argv is None:  # LightningCLI reads sys.argv (DDP relaunches each rank with it)
+        sys.argv[1:] = args
+        if traceback:
+            os.environ[TRACEBACK_ENV] = "1"  # for the ranks' processes
+    sub = next((a for a in args if a in TorchhysCLI.subcommands()), None)
+    prog = f"torchhys {sub}" if sub else "torchhys"
     # Full-batch training: one sequence per step, so loader workers would only add start-up.
     warnings.filterwarnings("ignore", ".*does not have many workers.*")
-    TorchhysCLI(
-        InverseHysteresisModule,
-        HysteresisDataModule,
-        args=argv,
-        seed_everything_default=0,
-        save_config_kwargs={"overwrite": True},
-        trainer_defaults={"log_every_n_steps": 1},
-        parser_kwargs={"description": _DESCRIPTION},
-    )
+    try:
+        TorchhysCLI(
+            InverseHysteresisModule,
+            HysteresisDataModule,
+            args=None if argv is None else args,
+            seed_everything_default=0,
+            save_config_kwargs={"overwrite": True},
+            trainer_defaults={"log_every_n_steps": 1},
+            parser_kwargs={"description": _DESCRIPTION},
+        )
+    except Exception as exc:
+        if not report_user_error(prog, exc, traceback):
+            raise
+        raise SystemExit(2) from None
 
 
 if __name__ == "__main__":

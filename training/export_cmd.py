@@ -28,6 +28,7 @@ import torch
 from torchhys import InverseHysteresisNet
 from torchhys.export import to_aoti, to_torchscript
 from torchhys.streaming import DIRECTIONS, StreamingCompensator
+from torchhys.training.errors import config_errors, read_checkpoint, report_user_error
 from torchhys.training.operators import build_operators
 
 __all__ = ["build_net", "main"]
@@ -50,6 +51,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--direction", choices=DIRECTIONS, default="auto",
                    help="the command never moves against this direction of the input "
                         "(default auto: the training data's; none: no guard)")
+    p.add_argument("--traceback", action="store_true",
+                   help="on an error in the checkpoint or options, show the traceback "
+                        "(also TORCHHYS_TRACEBACK=1)")
     arch = p.add_argument_group("architecture of a plain state dict")
     arch.add_argument("--operator", help='e.g. eiho, zhao_tan, none, or a JSON list of names '
                       'and specs such as {"name": "pi_ls", "n_widths": 30}')
@@ -112,28 +116,36 @@ def build_net(ckpt: dict, arch: dict | None = None) -> InverseHysteresisNet:
     ref = next(iter(state.values()), None)
     if isinstance(ref, torch.Tensor) and ref.is_floating_point():
         net = net.to(ref.dtype)  # before loading: float64 weights are not rounded to float32
-    net.load_state_dict(state)
+    try:
+        net.load_state_dict(state)
+    except RuntimeError as err:  # missing, unexpected or mis-shaped weights
+        raise ValueError(f"the weights do not fit the network {arch}: {err}") from None
     return net
 
 
 def main(argv: list[str]) -> int:
-    """Run ``torchhys export``; returns the exit status (0 ok, 2 usage or input error)."""
+    """Run ``torchhys export``; returns the exit status (0 ok, 2 usage or input error).
+
+    An error in the user's checkpoint or options is printed as one line,
+    ``torchhys export: error: <message>`` (``--traceback``: raised instead); any other
+    exception is a bug and propagates (:mod:`torchhys.training.errors`).
+    """
     args = _parser().parse_args(argv)
     try:
-        if not args.ckpt.is_file():
-            raise ValueError(f"--ckpt {args.ckpt} does not exist")
-        ckpt = torch.load(args.ckpt, map_location="cpu", weights_only=True)
-        if not isinstance(ckpt, dict):
-            raise ValueError(f"--ckpt must hold a dict (checkpoint or state dict), got "
-                             f"{type(ckpt).__name__}")
-        net = build_net(ckpt, None if "state_dict" in ckpt else _plain_arch(args))
-        comp = StreamingCompensator(net, limits=args.limits,
-                                    initial_command=args.initial_command,
-                                    input_margin=args.input_margin, direction=args.direction)
+        if not args.out.parent.is_dir():
+            raise ValueError(f"--out {args.out}: the folder {args.out.parent} does not exist")
+        ckpt = read_checkpoint(args.ckpt, "--ckpt", lightning=False)
+        with config_errors():  # a TypeError here is in the options or the checkpoint
+            net = build_net(ckpt, None if "state_dict" in ckpt else _plain_arch(args))
+            comp = StreamingCompensator(net, limits=args.limits,
+                                        initial_command=args.initial_command,
+                                        input_margin=args.input_margin,
+                                        direction=args.direction)
         export = to_torchscript if args.format == "torchscript" else to_aoti
         export(comp, args.out)
-    except (ValueError, TypeError, RuntimeError, KeyError, json.JSONDecodeError) as e:
-        print(f"torchhys export: error: {e}", file=sys.stderr)
+    except Exception as e:
+        if not report_user_error("torchhys export", e, args.traceback):
+            raise
         return 2
     clamp = (f"input clamped to [{float(comp.in_low):.6g}, {float(comp.in_high):.6g}]"
              if comp.clamp_input else "input not clamped")
