@@ -301,7 +301,7 @@ def test_measured_config_on_the_ferrite_loops(monkeypatch, tmp_path: Path) -> No
             "--data.test_recordings", "[1, 2]", "--data.repeat", "3",
             f"--trainer.default_root_dir={root}", "--trainer.enable_progress_bar=false"]
     cli(monkeypatch, "fit", "--config", "configs/measured.yaml", *data)
-    with (root / "selection.csv").open() as fh:
+    with (root / "logs/version_0/selection.csv").open() as fh:
         rows = list(csv.DictReader(fh))
     select = yaml.safe_load((CONFIGS / "measured.yaml").read_text())["model"]["select"]
     assert len(rows) == len(select) and sum(int(r["selected"]) for r in rows) == 1
@@ -357,7 +357,7 @@ def test_magnetic_config_runs_on_the_ferrite_loops(monkeypatch, tmp_path: Path) 
     root = tmp_path / "magnetic"
     common = [f"--trainer.default_root_dir={root}", "--trainer.enable_progress_bar=false"]
     cli(monkeypatch, "fit", "--config", "configs/magnetic.yaml", *common)
-    with (root / "selection.csv").open() as fh:
+    with (root / "logs/version_0/selection.csv").open() as fh:
         rows = list(csv.DictReader(fh))
     select = yaml.safe_load((CONFIGS / "magnetic.yaml").read_text())["model"]["select"]
     assert len(rows) == len(select) and sum(int(r["selected"]) for r in rows) == 1

@@ -74,7 +74,7 @@ def config(tmp_path: Path, text: str = SELECT, **replace: str) -> Path:
 
 
 def table(root: Path) -> list[dict]:
-    with (root / "selection.csv").open() as fh:
+    with (root / "logs/version_0/selection.csv").open() as fh:
         return list(csv.DictReader(fh))
 
 
@@ -118,7 +118,7 @@ def test_fit_selects_the_best_candidate_and_fits_it(monkeypatch, capsys, tmp_pat
     assert "test" not in stages and {"train", "val"} <= set(stages)
     for log in root.rglob("metrics.csv"):
         assert "test_mse" not in log.read_text()
-    assert len(list((root / "selection").rglob("metrics.csv"))) == 3
+    assert len(list((root / "logs/version_0/selection").rglob("metrics.csv"))) == 3
 
     # the chosen configuration is the one fitted and saved, from the same seed
     ckpt = root / "logs/version_0/checkpoints/last.ckpt"
@@ -156,12 +156,12 @@ def test_select_on_the_command_line(monkeypatch, tmp_path) -> None:
                     weights_only=True)["hyper_parameters"]
     assert hp["operator"] == PI and hp["hidden"] == 2 and hp["optimizer"] == "cg"
     # resuming fits the checkpoint's model: no second selection
-    before = (root / "selection.csv").stat().st_mtime_ns
+    before = (root / "logs/version_0/selection.csv").stat().st_mtime_ns
     with pytest.warns(UserWarning, match="resumes the checkpoint's model: model.select is"):
         cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={root}",
             "--trainer.max_epochs=21", "--model.select", json.dumps([{"hidden": 3}]),
             f"--ckpt_path={root / 'logs/version_0/checkpoints/last.ckpt'}")
-    assert (root / "selection.csv").stat().st_mtime_ns == before
+    assert (root / "logs/version_0/selection.csv").stat().st_mtime_ns == before
     assert torch.load(root / "logs/version_1/checkpoints/last.ckpt",
                       weights_only=True)["hyper_parameters"]["hidden"] == 2
 
@@ -218,7 +218,7 @@ def test_blocked_cross_validation_inside_the_training_part(monkeypatch, tmp_path
         folds = [float(r[f"fold_{j}"]) for j in (1, 2, 3)]
         pooled = sum(f * n for f, n in zip(folds, counts, strict=True)) / sum(counts)
         assert float(r["val_mse"]) == pytest.approx(pooled, rel=1e-12)
-    assert len(list((root / "selection").rglob("metrics.csv"))) == 9
+    assert len(list((root / "logs/version_0/selection").rglob("metrics.csv"))) == 9
     assert "test" not in stages
 
 
@@ -345,7 +345,7 @@ def test_leave_one_recording_out_of_one_recording(monkeypatch, tmp_path) -> None
     with pytest.raises(ValueError, match=r"select_cv='recording' holds each training recording "
                                          r"out once, but the training split of paper holds 1"):
         cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={tmp_path}")
-    assert not list(tmp_path.rglob("metrics.csv")) and not (tmp_path / "selection.csv").exists()
+    assert not list(tmp_path.rglob("metrics.csv")) and not list(tmp_path.rglob("selection.csv"))
 
 
 def test_recording_folds_need_two_training_recordings() -> None:
@@ -393,7 +393,7 @@ def test_leave_one_recording_out_on_the_command_line(monkeypatch, capsys, tmp_pa
     assert [float(line[f"fold_{j + 1}"]) for j in range(3)] == pytest.approx(folds, rel=1e-6)
     assert float(line["val_mse"]) == pytest.approx(np.dot(folds, counts) / sum(counts),
                                                    rel=1e-6)
-    assert len(list((root / "selection").rglob("metrics.csv"))) == 6
+    assert len(list((root / "logs/version_0/selection").rglob("metrics.csv"))) == 6
     assert "test" not in stages
 
 
@@ -427,7 +427,7 @@ def test_errors(monkeypatch, tmp_path, stages, change, error, match) -> None:
     with pytest.raises(error, match=match):
         cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={tmp_path}")
     assert "train" not in stages  # raised before any training
-    assert not (tmp_path / "selection.csv").exists()
+    assert not list(tmp_path.rglob("selection.csv"))
 
 
 def test_check_candidates() -> None:

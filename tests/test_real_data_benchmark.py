@@ -346,7 +346,7 @@ def test_the_default_rows_cross_validation_scores_as_torchhys_fit_does(bench, tm
         "--data.val_recordings", "[]", "--data.test_recordings", "[1, 2]",
         "--data.repeat", "3", "--trainer.max_epochs", "10", f"--trainer.default_root_dir={root}",
         "--trainer.enable_progress_bar=false")
-    with (root / "selection.csv").open() as fh:
+    with (root / "logs/version_0/selection.csv").open() as fh:
         expected = [(float(r["val_mse"]), float(r["val_se"])) for r in csv.DictReader(fh)]
     split = bench.DATASETS["mnzn_ferrite"][1](bench.Files(FERRITE))
     candidates = [{"operator": None}, {"operator": [{"name": "stop_pi", "n_widths": 5,

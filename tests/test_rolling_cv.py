@@ -220,7 +220,7 @@ def test_rolling_cross_validation_on_the_command_line(monkeypatch, capsys, tmp_p
     cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={root}")
     out = capsys.readouterr().out
     assert "rolling-origin cross-validation on 3 blocks (2 folds)" in out
-    with (root / "selection.csv").open() as fh:
+    with (root / "logs/version_0/selection.csv").open() as fh:
         rows = list(csv.DictReader(fh))
     assert len(rows) == 2 and "fold_3" not in rows[0]
     assert rows[1]["selected"] == "1"  # the PI inverts the paper's PI plant
@@ -236,7 +236,7 @@ def test_rolling_cross_validation_on_the_command_line(monkeypatch, capsys, tmp_p
     assert [float(line[f"fold_{j + 1}"]) for j in range(2)] == pytest.approx(folds, rel=1e-5)
     assert float(line["val_mse"]) == pytest.approx(np.dot(folds, counts) / sum(counts),
                                                    rel=1e-5)
-    assert len(list((root / "selection").rglob("metrics.csv"))) == 4
+    assert len(list((root / "logs/version_0/selection").rglob("metrics.csv"))) == 4
 
 
 def test_rolling_mode_errors(monkeypatch, tmp_path) -> None:

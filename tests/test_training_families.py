@@ -277,7 +277,7 @@ def test_selection_skips_a_candidate_that_cannot_be_fitted(monkeypatch, tmp_path
     text = capsys.readouterr().out
     assert "nan" in text and "selected candidate 0" in text
     assert "candidate 1 (2 of 2): val_mse nan (skipped)" in text  # the progress line
-    assert (Path(tmp_path) / "run" / "selection.csv").exists()
+    assert (Path(tmp_path) / "run/logs/version_0/selection.csv").exists()
 
 
 def test_a_candidate_that_fails_a_fold_is_not_trained_on_the_others(monkeypatch, tmp_path,
@@ -306,7 +306,7 @@ def test_a_candidate_that_fails_a_fold_is_not_trained_on_the_others(monkeypatch,
     assert len(skipped) == 1 and "candidate 1, fold 1 of 3 skipped: gpi" in skipped[0]
     assert runs == [f"candidate 0, fold {j} of 3" for j in (1, 2, 3)] + [
         "candidate 1, fold 1 of 3"]
-    with (tmp_path / "run" / "selection.csv").open() as fh:
+    with (tmp_path / "run/logs/version_0/selection.csv").open() as fh:
         rows = list(csv.DictReader(fh))
     folds = [[float(r[f"fold_{j}"]) for j in (1, 2, 3)] for r in rows]
     assert all(math.isfinite(v) for v in folds[0])

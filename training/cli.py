@@ -34,7 +34,7 @@ before the module is built)::
       select_rule: null                         # "1se": the first unless beaten by > 1 s.e.
 
 Every candidate is trained from the same seed with the same trainer settings (CSV logs
-under ``<default_root_dir>/selection/candidate_<i>``, no checkpoints; no progress bar, model
+under ``selection/candidate_<i>`` in the run's folder, no checkpoints; no progress bar, model
 summary or informational Lightning messages: one line per candidate) and scored by its
 validation MSE at the end of training: on the validation split (which must not overlap the
 training split), or with ``model.select_cv: k`` by blocked cross-validation inside the
@@ -46,11 +46,14 @@ it is used). The validation split is then not used for the choice
 (:mod:`torchhys.training.selection`).
 The lowest validation MSE wins, or with ``model.select_rule: 1se`` the first candidate (a
 baseline such as the straight line) when it is within one standard error of the lowest.
-The test split is not read. The table is printed and written to
-``<default_root_dir>/selection.csv``; the chosen candidate's
-configuration then replaces the model section and is fitted once more as a plain ``fit``
-would be (same seed: on a deterministic device the same weights as scored; ``config.yaml``
-without ``select``, ``last.ckpt`` as usual), ready for ``torchhys test --ckpt_path`` and
+The test split is not read. The table is printed and written to ``selection.csv`` in the
+run's own folder, ``<default_root_dir>/logs/version_<N>/`` (the path is printed): the folder
+is reserved before the candidates train (the next free ``version_<N>``, created atomically),
+so that runs into the same ``default_root_dir``, concurrent ones included, keep their tables
+apart. The chosen candidate's configuration then replaces the model section and is fitted
+once more as a plain ``fit`` would be, logging in that same folder (same seed: on a
+deterministic device the same weights as scored; ``config.yaml`` without ``select``,
+``checkpoints/last.ckpt`` as usual), ready for ``torchhys test --ckpt_path`` and
 ``torchhys export --ckpt``. ``validate``, ``test`` and ``predict`` ignore ``model.select``
 (with ``--ckpt_path`` the checkpoint's hyperparameters give the model), and so does a
 ``fit --ckpt_path`` that resumes.
@@ -62,6 +65,7 @@ import contextlib
 import logging
 import math
 import os
+import re
 import sys
 import time
 import warnings
@@ -121,7 +125,7 @@ class TorchhysCLI(LightningCLI):
             "--model.select", type=list[dict[str, Any]] | None, default=None,
             help="fit: candidate model configurations, each a dict of model arguments that "
                  "replace the model section's; the one of lowest validation MSE is fitted "
-                 "(table in <default_root_dir>/selection.csv)")
+                 "(table in <default_root_dir>/logs/version_<N>/selection.csv)")
         parser.add_argument(
             "--model.select_cv", type=int | Literal["recording"] | None, default=None,
             help="fit with model.select: score the candidates by blocked cross-validation "
@@ -147,6 +151,7 @@ class TorchhysCLI(LightningCLI):
             read_checkpoint(path, "--ckpt_path")
 
     def before_instantiate_classes(self) -> None:
+        self._run_dir: tuple[Path, int | str | None] | None = None
         self._select()
         cfg = self.config[self.subcommand] if self.subcommand else self.config
         trainer = cfg["trainer"]
@@ -156,6 +161,9 @@ class TorchhysCLI(LightningCLI):
                 "class_path": "lightning.pytorch.loggers.CSVLogger",
                 "init_args": {"save_dir": root, "name": "logs"},
             }
+        if self._run_dir is not None and self._run_dir[1] is not None:
+            # the final fit logs (and checkpoints) in the folder model selection reserved
+            trainer["logger"]["init_args"]["version"] = self._run_dir[1]
 
     def instantiate_classes(self) -> None:
         """LightningCLI's, a TypeError while building the classes being a user error."""
@@ -202,17 +210,25 @@ class TorchhysCLI(LightningCLI):
         seed = cfg.get("seed_everything")
         if isinstance(seed, bool) or seed is None:  # unseeded: still one seed for all
             seed = seed_everything(workers=True)
-        root = Path(cfg["trainer"].get("default_root_dir") or ".")
+        # the run's own version folder, reserved now: concurrent runs into the same
+        # default_root_dir keep their tables apart; the final fit logs there too
+        folder, version = _reserve_run_dir(cfg["trainer"])
+        self._run_dir = (folder, version)
 
         def build(i: int, fold: int | None) -> tuple[Any, Any, Trainer]:
-            return self._instantiate_run(configs[i], seed, root / "selection", i, fold)
+            return self._instantiate_run(configs[i], seed, folder / "selection", i, fold)
 
-        with _quiet_lightning():
-            scores = selection.run_selection(candidates, build, cv=cv, mode=mode,
-                                             report=_progress(len(candidates)))
+        try:
+            with _quiet_lightning():
+                scores = selection.run_selection(candidates, build, cv=cv, mode=mode,
+                                                 report=_progress(len(candidates)))
+        except BaseException:
+            with contextlib.suppress(OSError):  # stopped before any candidate logged
+                folder.rmdir()
+            raise
         self._selected = True
         chosen = selection.best(scores, rule or "min")
-        _report(scores, chosen, root / "selection.csv", selection.describe_cv(cv, mode),
+        _report(scores, chosen, folder / "selection.csv", selection.describe_cv(cv, mode),
                 rule or "min")
         self.config = configs[chosen.index]
         self.__dict__.pop("config_dump", None)  # the module's hyperparameters: the choice
@@ -265,11 +281,71 @@ class TorchhysCLI(LightningCLI):
         return self.model, self._get(self.config_init, "data"), self.trainer_class(**kwargs)
 
 
+_RUN_DIR_ENV = "TORCHHYS_RUN_DIR"
+"""The version folder model selection reserved, passed to the processes of other ranks that
+the run launches (DDP): they use it instead of reserving their own."""
+
+
 def _special_ckpt_path(path: str) -> bool:
     """Lightning's ``ckpt_path`` values that are not a local file ('last', 'best', 'hpc',
     'registry[:...]') and remote URLs: Lightning resolves them."""
     return (path in ("last", "best", "hpc") or path.lower().startswith("registry")
             or "://" in path)
+
+
+def _log_folder(trainer: Namespace) -> tuple[Path, int | str | None, bool]:
+    """Where the run's logger puts its version folders: the parent folder, the version
+    its config pins (or None), and whether the logger is one whose version can be pinned
+    (the default CSV logger, or a configured CSVLogger or TensorBoardLogger)."""
+    root = Path(trainer.get("default_root_dir") or ".")
+    logger = trainer.get("logger")
+    if logger in (None, True):
+        return root / "logs", None, True
+    if isinstance(logger, dict | Namespace):
+        init = logger.get("init_args") or {}
+        if str(logger.get("class_path", "")).endswith(("CSVLogger", "TensorBoardLogger")) \
+                and init.get("save_dir"):
+            return Path(init["save_dir"]) / (init.get("name") or ""), init.get("version"), True
+    return root / "logs", None, False  # no logger or another kind: a folder of its own
+
+
+def _next_version(parent: Path) -> int:
+    """One more than the highest ``version_N`` under ``parent`` (0 if none), as Lightning's
+    loggers count."""
+    found = [int(p.name[8:]) for p in parent.glob("version_*")
+             if p.name[8:].isdigit() and p.is_dir()] if parent.is_dir() else []
+    return max(found, default=-1) + 1
+
+
+def _reserve_run_dir(trainer: Namespace) -> tuple[Path, int | str | None]:
+    """The run's version folder, created now (``os.mkdir`` of the next free ``version_N``,
+    the next one on ``FileExistsError``: concurrent runs get different folders), and the
+    version to pin the logger to (None: the logger's own, or no logger to pin)."""
+    parent, version, pinnable = _log_folder(trainer)
+    if version is not None:  # the config pins it: that folder, as the logger would
+        folder = parent / (f"version_{version}" if isinstance(version, int) else str(version))
+        folder.mkdir(parents=True, exist_ok=True)
+    elif rank_zero_only.rank != 0:  # launched by rank 0 (DDP): its folder, none of our own
+        inherited = os.environ.get(_RUN_DIR_ENV)
+        folder = Path(inherited) if inherited else parent / f"version_{_next_version(parent)}"
+    else:
+        parent.mkdir(parents=True, exist_ok=True)
+        n = _next_version(parent)
+        while True:
+            folder = parent / f"version_{n}"
+            try:
+                os.mkdir(folder)
+                break
+            except FileExistsError:
+                n += 1
+        os.environ[_RUN_DIR_ENV] = str(folder)
+    if not pinnable:
+        return folder, None
+    # the final fit's CSV logger finds the folder holding the table: not a previous run's
+    warnings.filterwarnings("ignore", "Experiment logs directory .*"
+                            f"{re.escape(os.path.join(parent.name, folder.name))} exists")
+    suffix = folder.name[8:]
+    return folder, int(suffix) if version is None and suffix.isdigit() else None
 
 
 def _pop_select(cfg: Namespace) -> tuple[Any, Any, Any, Any]:
@@ -385,6 +461,8 @@ def main(argv: list[str] | None = None) -> None:
         if not report_user_error(prog, exc, traceback):
             raise
         raise SystemExit(2) from None
+    finally:
+        os.environ.pop(_RUN_DIR_ENV, None)
 
 
 if __name__ == "__main__":
