@@ -217,8 +217,10 @@ def test_data_dependent_operators_resume_and_export(monkeypatch, tmp_path: Path)
     for k, v in ca["state_dict"].items():
         torch.testing.assert_close(cb["state_dict"][k], v, rtol=0, atol=1e-12)
     out = tmp_path / "comp.pt"
+    # the model's own streaming path: no input clamp, no direction guard
     assert export_main(["--ckpt", str(full), "--format", "torchscript", "--out", str(out),
-                        "--limits", "-100", "100"]) == 0
+                        "--limits", "-100", "100", "--input-margin", "none",
+                        "--direction", "none"]) == 0
     module = InverseHysteresisModule.load_from_checkpoint(full)
     dm = HysteresisDataModule(t_end=6.3)
     dm.setup()
