@@ -122,6 +122,21 @@ def test_registered_by_one_line_and_built_by_name() -> None:
         make_operator("dead_zone", widht=0.2)
     with pytest.raises(ValueError, match="registered already"):
         register_operator("dead_zone", Sticky)
+    register_operator("dead_zone", DeadZone)  # the same class again: a no-op
+    assert OPERATORS["dead_zone"] is DeadZone
+
+
+def test_a_redefinition_of_the_same_class_replaces_it(monkeypatch) -> None:
+    # a notebook cell that defines and registers an operator, run twice: two class objects
+    # of the same module and qualified name
+    monkeypatch.setitem(OPERATORS, "dead_zone", DeadZone)
+    again = type("DeadZone", (DeadZone,), {"__module__": DeadZone.__module__,
+                                           "__qualname__": DeadZone.__qualname__})
+    register_operator("dead_zone", again)
+    assert OPERATORS["dead_zone"] is again
+    other = type("DeadZone", (DeadZone,), {"__module__": "elsewhere"})
+    with pytest.raises(ValueError, match="registered already"):
+        register_operator("dead_zone", other)
 
 
 def test_a_module_outside_the_protocol_is_a_type_error_naming_what_is_missing() -> None:

@@ -31,6 +31,20 @@ def test_time_grid_paper_length_and_dtype() -> None:
     assert torch.allclose(t2, torch.tensor([0.5, 0.6, 0.7, 0.8, 0.9], dtype=torch.float64))
 
 
+def test_time_grid_follows_the_default_dtype() -> None:
+    old = torch.get_default_dtype()
+    try:
+        torch.set_default_dtype(torch.float64)
+        t = signals.time_grid(dt=0.01, t_end=60.0)
+        assert t.dtype == torch.float64
+        assert float(t[-1]) == 59.99  # 0.01 * 5999 in float64, not a float32 rounding
+    finally:
+        torch.set_default_dtype(old)
+    assert signals.time_grid(dt=0.01, t_end=1.0).dtype == old
+    with pytest.raises(TypeError, match="floating torch.dtype"):
+        signals.time_grid(dt=0.01, t_end=1.0, dtype=torch.int64)
+
+
 def test_sum_of_sines_analytic(t: torch.Tensor) -> None:
     x = signals.sum_of_sines(t)
     expected = 4 * np.sin(0.5 * t.numpy()) + 2 * np.sin(3 * t.numpy())

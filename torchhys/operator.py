@@ -221,14 +221,27 @@ OPERATORS: dict[str, Callable[..., HysteresisOperator]] = {}
 def register_operator(name: str, factory: Callable[..., HysteresisOperator]) -> None:
     """Register an operator class (or factory) under ``name``, for specs by name.
 
+    Registering the same factory under the same name again is a no-op; so is registering a
+    new definition of the same class (the same module and qualified name, as when a notebook
+    cell that defines and registers it runs again), which then replaces the old one.
+
     Raises:
         ValueError: ``name`` is taken by another factory.
     """
     if not isinstance(name, str) or not name:
         raise ValueError(f"name must be a non-empty str, got {name!r}")
-    if OPERATORS.get(name, factory) is not factory:
+    old = OPERATORS.get(name, factory)
+    if old is not factory and _qualified(old) != _qualified(factory):
         raise ValueError(f"operator name {name!r} is registered already ({OPERATORS[name]})")
     OPERATORS[name] = factory
+
+
+def _qualified(factory: object) -> tuple[str, str] | None:
+    """``(module, qualified name)`` of a class or function, None for other callables."""
+    module, qualname = getattr(factory, "__module__", None), getattr(factory, "__qualname__", None)
+    if module is None or qualname is None or "<locals>" in qualname:
+        return None
+    return module, qualname
 
 
 def make_operator(name: str, **options: Any) -> HysteresisOperator:

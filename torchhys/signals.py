@@ -72,7 +72,7 @@ def time_grid(
     dt: float,
     t_end: float,
     t_start: float = 0.0,
-    dtype: torch.dtype = torch.float32,
+    dtype: torch.dtype | None = None,
     device: torch.device | str | None = None,
 ) -> Tensor:
     """Uniform time vector ``t_start, t_start + dt, ...`` on the half-open ``[t_start, t_end)``.
@@ -83,7 +83,7 @@ def time_grid(
         dt: Sampling step in s, > 0.
         t_end: End time in s (excluded), > t_start.
         t_start: Start time in s.
-        dtype: Floating dtype of the result.
+        dtype: Floating dtype of the result; None: ``torch.get_default_dtype()``.
         device: Device of the result.
 
     Returns:
@@ -98,8 +98,10 @@ def time_grid(
         raise ValueError(f"dt must be > 0, got {dt}")
     if t_end <= t_start:
         raise ValueError(f"t_end must be > t_start = {t_start}, got {t_end}")
-    if not dtype.is_floating_point:
-        raise TypeError(f"dtype must be a floating dtype, got {dtype}")
+    if dtype is None:
+        dtype = torch.get_default_dtype()
+    if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
+        raise TypeError(f"dtype must be a floating torch.dtype, got {dtype}")
     count = math.ceil(round((t_end - t_start) / dt, 9))
     steps = torch.arange(count, dtype=torch.float64, device=device)
     return (t_start + dt * steps).to(dtype)
