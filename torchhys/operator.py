@@ -50,12 +50,14 @@ from torch import Tensor, nn
 from torchhys._checks import check_choice, check_int
 
 __all__ = [
+    "ENTRY_POINT_GROUP",
     "OPERATORS",
     "AtomicLoad",
     "HysteresisOperator",
     "OperatorStep",
     "StateBlock",
     "check_operator",
+    "load_entry_points",
     "make_operator",
     "register_operator",
 ]
@@ -244,6 +246,47 @@ def _qualified(factory: object) -> tuple[str, str] | None:
     return module, qualname
 
 
+ENTRY_POINT_GROUP = "torchhys.operators"
+"""The entry-point group of operators that other packages provide: the entry's name is the
+operator's registered name, its value ``module:Class``."""
+_entry_points_loaded = False
+
+
+def load_entry_points() -> list[str]:
+    """Register the operators of the installed packages' ``torchhys.operators`` entry points
+    (once per process: later calls return ``[]``); called by :func:`make_operator` and by the
+    training side before a name is looked up.
+
+    A package declares one in its ``pyproject.toml``::
+
+        [project.entry-points."torchhys.operators"]
+        my_operator = "my_package.operators:MyOperator"
+
+    Returns:
+        The names registered by this call.
+
+    Raises:
+        ValueError: an entry point that cannot be loaded (naming it and the reason), or a
+            name registered already for another class.
+    """
+    global _entry_points_loaded
+    if _entry_points_loaded:
+        return []
+    _entry_points_loaded = True
+    from importlib.metadata import entry_points
+
+    names = []
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        try:
+            factory = ep.load()
+        except Exception as exc:  # noqa: BLE001 (whatever importing another package raises)
+            raise ValueError(f"entry point {ep.name!r} = {ep.value!r} of group "
+                             f"{ENTRY_POINT_GROUP!r} cannot be loaded: {exc}") from exc
+        register_operator(ep.name, factory)
+        names.append(ep.name)
+    return names
+
+
 def make_operator(name: str, **options: Any) -> HysteresisOperator:
     """Build the operator registered as ``name`` with keyword ``options``.
 
@@ -251,6 +294,7 @@ def make_operator(name: str, **options: Any) -> HysteresisOperator:
         ValueError: an unknown name (the message lists the registered ones), or options the
             operator does not take.
     """
+    load_entry_points()
     check_choice(name, "operator name", sorted(OPERATORS))
     try:
         op = OPERATORS[name](**options)

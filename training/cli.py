@@ -92,6 +92,7 @@ from torchhys.training.errors import (
 )
 from torchhys.training.module import InverseHysteresisModule
 from torchhys.training.operators import build_operators
+from torchhys.training.plugins import IMPORT_ENV, import_modules, split_import_flags
 
 __all__ = ["TorchhysCLI", "main", "read_config"]
 
@@ -428,6 +429,10 @@ def main(argv: list[str] | None = None) -> None:
     ``--traceback`` (anywhere in ``argv``) or ``TORCHHYS_TRACEBACK=1`` shows the traceback
     of user errors too (:mod:`torchhys.training.errors`).
 
+    ``--import MODULE`` (repeatable, any subcommand) imports a module before the config is
+    read: an operator it registers can be named in ``model.operator``
+    (:func:`import_modules`).
+
     Args:
         argv: command-line arguments without the program name (``sys.argv[1:]`` if None).
 
@@ -435,6 +440,17 @@ def main(argv: list[str] | None = None) -> None:
         SystemExit: 2 on a user error (and as LightningCLI exits: usage errors, ``--help``).
     """
     args, traceback = split_traceback_flag(sys.argv[1:] if argv is None else argv)
+    try:
+        args, modules = split_import_flags(args)
+        modules = modules or [m for m in os.environ.get(IMPORT_ENV, "").split(",") if m]
+        import_modules(modules)
+    except Exception as exc:
+        if not report_user_error(f"torchhys {args[0] if args else ''}".strip(), exc,
+                                 traceback):
+            raise
+        raise SystemExit(2) from None
+    if modules:
+        os.environ[IMPORT_ENV] = ",".join(modules)  # for the ranks of a multi-process run
     if args and args[0] == "export":
         from torchhys.training.export_cmd import main as export_main
 

@@ -30,6 +30,7 @@ from torchhys.export import to_aoti, to_torchscript
 from torchhys.streaming import DIRECTIONS, StreamingCompensator
 from torchhys.training.errors import config_errors, read_checkpoint, report_user_error
 from torchhys.training.operators import build_operators
+from torchhys.training.plugins import import_modules
 
 __all__ = ["build_net", "main"]
 
@@ -51,6 +52,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--direction", choices=DIRECTIONS, default="auto",
                    help="the command never moves against this direction of the input "
                         "(default auto: the training data's; none: no guard)")
+    p.add_argument("--import", dest="imports", action="append", default=[], metavar="MODULE",
+                   help="import this module first (repeatable): the operators it registers "
+                        "can be named in the checkpoint's config")
     p.add_argument("--traceback", action="store_true",
                    help="on an error in the checkpoint or options, show the traceback "
                         "(also TORCHHYS_TRACEBACK=1)")
@@ -134,6 +138,7 @@ def main(argv: list[str]) -> int:
     try:
         if not args.out.parent.is_dir():
             raise ValueError(f"--out {args.out}: the folder {args.out.parent} does not exist")
+        import_modules(args.imports)
         ckpt = read_checkpoint(args.ckpt, "--ckpt", lightning=False)
         with config_errors():  # a TypeError here is in the options or the checkpoint
             net = build_net(ckpt, None if "state_dict" in ckpt else _plain_arch(args))

@@ -43,7 +43,7 @@ from torchhys._checks import (
     fitted_samples,
 )
 from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid
-from torchhys.operator import OPERATORS, make_operator
+from torchhys.operator import OPERATORS, load_entry_points, make_operator
 from torchhys.training.families import FAMILIES
 
 __all__ = [
@@ -130,7 +130,8 @@ FITTED_OPERATORS: dict[str, Callable[[Mapping[str, Any]], tuple[nn.Module, Fitte
 
 
 def operator_names() -> list[str]:
-    """Every operator name a spec may use."""
+    """Every operator name a spec may use (the installed packages' entry points loaded)."""
+    load_entry_points()
     return sorted(set(FITTED_OPERATORS) | set(OPERATORS))
 
 
@@ -155,6 +156,7 @@ def build_operators(
     """
     if operator is None:
         return [], {}
+    load_entry_points()
     specs = list(operator) if isinstance(operator, (list, tuple)) else [operator]
     modules, fitters = [], {}
     for i, spec in enumerate(specs):
