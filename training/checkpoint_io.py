@@ -1,0 +1,101 @@
+"""Checkpoint files that are replaced whole or not at all.
+
+Lightning's :class:`~lightning.fabric.plugins.io.TorchCheckpointIO` writes a checkpoint into
+a temporary file of the system's temporary folder (``TMPDIR``) and moves it over the old one
+with :func:`shutil.move`. When that folder is on another filesystem than the checkpoints (a
+``tmpfs`` ``/tmp``, a scratch or network disk for the runs), the move is a copy that first
+truncates the old file: a full disk, a quota or a killed process in the middle of the copy
+leaves ``last.ckpt`` damaged, and the run cannot be resumed. Nothing is flushed to the disk
+before the rename either, so a power cut may leave an empty file.
+
+:class:`AtomicCheckpointIO` writes the new checkpoint to a temporary file in the checkpoint's
+own folder, flushes it to the disk (``fsync``), and :func:`os.replace`\\ s it over the old
+file (then ``fsync``\\ s the folder): a reader sees the old checkpoint or the new one, never a
+part. On any error the temporary file is removed and the old checkpoint is left as it was.
+Remote paths (``s3://``, ...) are saved as Lightning saves them.
+
+Use it as a trainer plugin: ``Trainer(plugins=[AtomicCheckpointIO()])``, or on the command
+line ``--trainer.plugins=torchhys.training.checkpoint_io.AtomicCheckpointIO``.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import uuid
+from typing import Any
+
+import torch
+from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
+from lightning.fabric.utilities.cloud_io import _is_local_file_protocol
+
+__all__ = ["AtomicCheckpointIO", "atomic_write_bytes"]
+
+_PARTIAL = ".partial"
+"""Suffix of the temporary files (their names never hold "last": Lightning's
+``ckpt_path="last"`` looks for files with "last" in the name)."""
+
+
+def _fsync_dir(folder: str) -> None:
+    """Flush a folder's entries (the rename) to the disk, where the system allows it."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:  # a system without directory handles (Windows)
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
+    """Replace the file ``path`` by ``data``, whole or not at all.
+
+    The bytes go to a new file ``.ckpt-<random>.partial`` in the same folder, which is
+    flushed (``fsync``) and renamed over ``path`` (:func:`os.replace`, atomic within a
+    filesystem). On any error (a full disk, no permission) the temporary file is removed and
+    ``path`` keeps its old contents. The new file gets the permissions of a newly created
+    file (``0o666`` less the umask).
+    """
+    path = os.fspath(path)
+    folder = os.path.dirname(os.path.abspath(path))
+    temp = os.path.join(folder, f".ckpt-{uuid.uuid4().hex}{_PARTIAL}")
+    try:
+        with open(temp, "xb") as fh:  # a new file: O_EXCL, 0o666 less the umask
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(temp, path)
+    except BaseException:
+        try:
+            os.remove(temp)
+        except OSError:
+            pass
+        raise
+    _fsync_dir(folder)
+
+
+class AtomicCheckpointIO(TorchCheckpointIO):
+    """:class:`~lightning.fabric.plugins.io.TorchCheckpointIO` whose local checkpoint files
+    are replaced atomically (:func:`atomic_write_bytes`): the previous checkpoint survives a
+    full disk or a killed process during the save. Loading and removing are Lightning's."""
+
+    def save_checkpoint(self, checkpoint: dict[str, Any], path: Any,
+                        storage_options: Any | None = None) -> None:
+        if not _is_local_file_protocol(path):
+            super().save_checkpoint(checkpoint, path, storage_options)
+            return
+        if storage_options is not None:
+            raise TypeError(
+                "`Trainer.save_checkpoint(..., storage_options=...)` is not supported by "
+                f"{type(self).__name__}"
+            )
+        local = os.fspath(path)
+        if local.startswith("file://"):
+            local = local[len("file://"):]
+        os.makedirs(os.path.dirname(os.path.abspath(local)), exist_ok=True)
+        buffer = io.BytesIO()
+        torch.save(checkpoint, buffer)
+        atomic_write_bytes(local, buffer.getvalue())
