@@ -101,7 +101,7 @@ def _problem_csv(tmp_path: Path, kind: str) -> tuple[Path, dict]:
     "kind, column, row",
     [("missing column", "voltage", None), ("nan", "response", "row 17 (line 19)"),
      ("empty", "command", "row 17 (line 19)"), ("time", "time", "row 12 (line 14)"),
-     ("few", "response", "row 5")],
+     ("few", "response", "holds 5 data rows")],
 )
 def test_csv_problems_name_file_column_row(tmp_path: Path, kind: str, column: str,
                                             row: str | None) -> None:

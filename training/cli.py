@@ -103,6 +103,9 @@ _DESCRIPTION = (
 )
 
 
+_ATOMIC_IO = "torchhys.training.checkpoint_io.AtomicCheckpointIO"
+
+
 class TorchhysCLI(LightningCLI):
     """LightningCLI with a CSV logger under ``default_root_dir`` (unless one is configured),
     a :class:`~torchhys.training.callbacks.PredictionWriter` (``--predictions.filename``), a
@@ -118,8 +121,11 @@ class TorchhysCLI(LightningCLI):
         parser.add_lightning_class_args(BaselineComparison, "baselines")
         # Full-batch runs often validate rarely: save at the end of every training epoch.
         parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
+        # checkpoints written to a temporary file beside them and renamed: a full disk or a
+        # kill while saving leaves the previous last.ckpt whole (training/checkpoint_io.py)
         parser.set_defaults({"checkpoint.save_on_train_epoch_end": True,
-                             "checkpoint.save_last": True})
+                             "checkpoint.save_last": True,
+                             "trainer.plugins": [{"class_path": _ATOMIC_IO}]})
         # Arguments of the command kept in the model section, removed before the module is
         # built (see _select).
         parser.add_argument(

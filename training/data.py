@@ -339,7 +339,7 @@ class HysteresisDataModule(L.LightningDataModule):
                 scored = x.numel() - first
                 if hp.split_by == "time" and stage == "train" and scored < hp.min_samples:
                     raise ValueError(
-                        f"{rec.label}: warmup={hp.warmup} leaves {scored} of the "
+                        f"{rec.label}: warmup={hp.warmup} leaves {max(scored, 0)} of the "
                         f"{w.end - w.start} training samples, at least {hp.min_samples} are "
                         "needed; lower warmup"
                     )

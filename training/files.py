@@ -331,7 +331,8 @@ class _Table:
         bad = np.flatnonzero(~np.isfinite(out))
         if bad.size:
             i = int(bad[0])
-            value = repr(raw[i] or "empty value") if self._arrays is None else raw[i]
+            value = (repr(raw[i]) if raw[i] else "an empty cell") if self._arrays is None \
+                else raw[i]
             more = f" ({bad.size} such rows)" if self._arrays is not None else ""
             fix = "remove or fill the row" if self._arrays is None else "remove or fill them"
             if (self._arrays is None and self.decimal == "."
@@ -432,9 +433,8 @@ def _file_recordings(
         if b - a < min_samples:
             where = (f"{label} (rows {a}..{b - 1}) holds {b - a} samples" if ids is not None
                      else f"{path}: column {roles['input_column']!r} (input_column) holds "
-                          f"{b - a} rows")
-            missing = "" if ids is not None else f" (row {b} is missing)"
-            raise DataFileError(f"{where}, at least {min_samples} are needed{missing}")
+                          f"{b - a} data row{'s' * (b - a != 1)}")
+            raise DataFileError(f"{where}, at least {min_samples} are needed")
         t = cols.get("time_column")
         if t is not None:
             _check_time(table, t[a:b], a, roles["time_column"])
