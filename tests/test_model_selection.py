@@ -543,3 +543,20 @@ def test_a_block_folds_fits_ignore_its_held_out_targets(tmp_path: Path, fold: in
              for i, r in enumerate(rows)]
     states, _ = fitted(moved)
     assert any(not torch.equal(states[k], v) for k, v in clean.items())
+
+
+def test_a_diverged_training_scores_nan_with_its_reason() -> None:
+    from torchhys.training import selection
+
+    class Trainer:  # a run whose training diverged: validation logs a NaN MSE
+        def fit(self, module, datamodule) -> None:  # noqa: ANN001
+            pass
+
+        def validate(self, module, datamodule, verbose) -> list[dict]:  # noqa: ANN001
+            return [{"val_mse": math.nan}]
+
+    with pytest.warns(RuntimeWarning, match="candidate 3: validation MSE nan: the training "
+                                            "diverged"):
+        mse, errors, why = selection._validation(None, None, Trainer(), "candidate 3")
+    assert math.isnan(mse) and errors.numel() == 0
+    assert why == "validation MSE nan: the training diverged"

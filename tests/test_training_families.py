@@ -276,8 +276,13 @@ def test_selection_skips_a_candidate_that_cannot_be_fitted(monkeypatch, tmp_path
         main(["fit", "--config", str(cfg)])
     text = capsys.readouterr().out
     assert "nan" in text and "selected candidate 0" in text
-    assert "candidate 1 (2 of 2): val_mse nan (skipped)" in text  # the progress line
-    assert (Path(tmp_path) / "run/logs/version_0/selection.csv").exists()
+    # the progress line, the table and selection.csv say why
+    why = "FitError: gpi (direct): ridge 0.1: gpi: refused for the test; ridge 0.01: "
+    assert f"candidate 1 (2 of 2): val_mse nan (failed: {why}" in text
+    assert f"error: {why}" in text
+    with (Path(tmp_path) / "run/logs/version_0/selection.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert rows[0]["error"] == "" and rows[1]["error"].startswith(why)
 
 
 def test_a_candidate_that_fails_a_fold_is_not_trained_on_the_others(monkeypatch, tmp_path,
@@ -293,7 +298,7 @@ def test_a_candidate_that_fails_a_fold_is_not_trained_on_the_others(monkeypatch,
     runs = []
     validation = selection._validation
 
-    def watched(module, data, trainer, run):
+    def watched(module, data, trainer, run):  # noqa: ANN001
         runs.append(run)
         return validation(module, data, trainer, run)
 
@@ -311,7 +316,11 @@ def test_a_candidate_that_fails_a_fold_is_not_trained_on_the_others(monkeypatch,
     folds = [[float(r[f"fold_{j}"]) for j in (1, 2, 3)] for r in rows]
     assert all(math.isfinite(v) for v in folds[0])
     assert all(math.isnan(v) for v in folds[1]) and math.isnan(float(rows[1]["val_mse"]))
-    assert "candidate 1 (2 of 2): val_mse nan (skipped), 3 folds" in capsys.readouterr().out
+    assert rows[0]["error"] == ""
+    assert rows[1]["error"].startswith("fold 1 of 3: FitError: gpi (direct): ridge")
+    assert rows[1]["error"].endswith("refused for the test (folds 2-3 not run)")
+    assert f"candidate 1 (2 of 2): val_mse nan (failed: {rows[1]['error']}), 3 folds" in (
+        capsys.readouterr().out)
 
 
 def test_identity_readout_is_affine():

@@ -389,7 +389,8 @@ def _progress(n: int) -> Callable[[selection.CandidateScore], None]:
     def report(score: selection.CandidateScore) -> None:
         now = time.perf_counter()
         folds = f", {len(score.folds)} folds" if score.folds else ""
-        skipped = " (skipped)" if math.isnan(score.val_mse) else ""
+        skipped = (f" (failed: {score.error})" if score.error else " (failed)") if math.isnan(
+            score.val_mse) else ""
         print(f"candidate {score.index} ({score.index + 1} of {n}): val_mse "
               f"{score.val_mse:.6g}{skipped}{folds}, {now - start[0]:.1f} s: "
               f"{selection.config_json(score.overrides)}", flush=True)

@@ -96,6 +96,9 @@ class CandidateScore:
     val_se: float = math.nan
     """Standard error of ``val_mse`` (:func:`standard_error`, batch means over the held-out
     squared errors; NaN where it could not be computed)."""
+    error: str = ""
+    """Why the candidate scored NaN (the fold and the reason: a family that cannot be fitted,
+    a diverged training); empty when it scored."""
 
 
 def model_arguments(model_class: type) -> list[str]:
@@ -618,21 +621,27 @@ def _squared_errors(module: L.LightningModule, datamodule: L.LightningDataModule
 
 
 def _validation(module: L.LightningModule, datamodule: L.LightningDataModule,
-                trainer: L.Trainer, run: str) -> tuple[float, Tensor]:
-    """Train, then the validation MSE of the trained module and its squared errors (NaN and
-    none, with a warning naming the ``run``, when a family operator cannot be fitted to the
-    data: :class:`~torchhys.training.families.FitError`)."""
+                trainer: L.Trainer, run: str) -> tuple[float, Tensor, str]:
+    """Train, then the validation MSE of the trained module, its squared errors and why it
+    failed: NaN, none and the reason (with a warning naming the ``run``) when a family
+    operator cannot be fitted to the data (:class:`~torchhys.training.families.FitError`)
+    or the validation MSE is not finite (a diverged training); else ``""``."""
     try:
         trainer.fit(module, datamodule=datamodule)
     except FitError as err:
         warnings.warn(f"model.select: {run} skipped: {err}", RuntimeWarning, stacklevel=3)
-        return math.nan, torch.zeros(0, dtype=torch.float64)
+        return math.nan, torch.zeros(0, dtype=torch.float64), f"FitError: {err}"
     results = trainer.validate(module, datamodule=datamodule, verbose=False)
     if not results or "val_mse" not in results[0]:
         raise ValueError(
             "model.select: validation logged no val_mse (is trainer.limit_val_batches 0?)"
         )
-    return float(results[0]["val_mse"]), _squared_errors(module, datamodule)
+    mse = float(results[0]["val_mse"])
+    if not math.isfinite(mse):
+        reason = f"validation MSE {mse}: the training diverged"
+        warnings.warn(f"model.select: {run}: {reason}", RuntimeWarning, stacklevel=3)
+        return math.nan, torch.zeros(0, dtype=torch.float64), reason
+    return mse, _squared_errors(module, datamodule), ""
 
 
 def standard_error(squared_errors: Tensor) -> float:
@@ -682,12 +691,13 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
             check_holdout(data)
             if i == 0:
                 warn_coverage(data)
-            mse, errors = _validation(module, data, trainer, f"candidate {i}")
-            scores.append(CandidateScore(i, overrides, mse, val_se=standard_error(errors)))
+            mse, errors, reason = _validation(module, data, trainer, f"candidate {i}")
+            scores.append(CandidateScore(i, overrides, mse, val_se=standard_error(errors),
+                                         error=reason))
             if report is not None:
                 report(scores[-1])
             continue
-        folds, counts, errors = [], [], []
+        folds, counts, errors, reason = [], [], [], ""
         j, k = 0, None
         while k is None or j < k:
             module, data, trainer = build(i, j)
@@ -695,18 +705,21 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
             if i == 0 and j == 0:
                 warn_coverage(data)
             k = fold.k
-            mse, e = _validation(module, fold, trainer, f"candidate {i}, fold {j + 1} of {k}")
+            mse, e, why = _validation(module, fold, trainer,
+                                      f"candidate {i}, fold {j + 1} of {k}")
             folds.append(mse)
             counts.append(fold.n_val)
             errors.append(e)
             j += 1
             if math.isnan(mse):  # the pooled MSE is NaN whatever the other folds give
+                reason = f"fold {j} of {k}: {why}" + (
+                    f" (folds {j + 1}-{k} not run)" if j < k else "")
                 folds += [math.nan] * (k - j)
                 counts += [1] * (k - j)
                 break
         pooled = sum(m * n for m, n in zip(folds, counts, strict=True)) / sum(counts)
         se = standard_error(torch.cat(errors)) if math.isfinite(pooled) else math.nan
-        scores.append(CandidateScore(i, overrides, pooled, tuple(folds), se))
+        scores.append(CandidateScore(i, overrides, pooled, tuple(folds), se, reason))
         if report is not None:
             report(scores[-1])
     return scores
@@ -755,23 +768,25 @@ def format_table(scores: Sequence[CandidateScore], chosen: CandidateScore) -> st
     lines = [f"  {'candidate':>9}  {'val_mse':>{width}}  {'val_se':>{se}}  config"]
     for s in scores:
         mark = "*" if s.index == chosen.index else " "
+        error = f"  error: {s.error}" if s.error else ""
         lines.append(f"{mark} {s.index:>9}  {s.val_mse:>{width}.6g}  {s.val_se:>{se}.3g}  "
-                     f"{config_json(s.overrides)}")
+                     f"{config_json(s.overrides)}{error}")
     return "\n".join(lines)
 
 
 def write_table(scores: Sequence[CandidateScore], chosen: CandidateScore,
                 path: str | Path) -> Path:
-    """Write ``candidate, val_mse, val_se, selected, config`` (and ``fold_1 .. fold_k`` after
-    cross-validation) as CSV, one row per candidate; ``config`` is the candidate's JSON."""
+    """Write ``candidate, val_mse, val_se, selected, config, error`` (and ``fold_1 ..
+    fold_k`` after cross-validation) as CSV, one row per candidate; ``config`` is the
+    candidate's JSON, ``error`` why it scored NaN (empty when it scored)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     n_folds = max(len(s.folds) for s in scores)
     with path.open("w", newline="") as fh:
         out = csv.writer(fh)
-        out.writerow(["candidate", "val_mse", "val_se", "selected", "config",
+        out.writerow(["candidate", "val_mse", "val_se", "selected", "config", "error",
                       *(f"fold_{j + 1}" for j in range(n_folds))])
         for s in scores:
             out.writerow([s.index, repr(s.val_mse), repr(s.val_se), int(s.index == chosen.index),
-                          config_json(s.overrides), *(repr(f) for f in s.folds)])
+                          config_json(s.overrides), s.error, *(repr(f) for f in s.folds)])
     return path
