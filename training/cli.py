@@ -93,6 +93,7 @@ from torchhys.training.errors import (
 from torchhys.training.module import InverseHysteresisModule
 from torchhys.training.operators import build_operators
 from torchhys.training.plugins import IMPORT_ENV, import_modules, split_import_flags
+from torchhys.training.threads import THREADS_ENV, choose_threads, split_threads_flag
 
 __all__ = ["TorchhysCLI", "main", "read_config"]
 
@@ -438,7 +439,9 @@ def main(argv: list[str] | None = None) -> None:
 
     ``--import MODULE`` (repeatable, any subcommand) imports a module before the config is
     read: an operator it registers can be named in ``model.operator``
-    (:func:`import_modules`).
+    (:func:`~torchhys.training.plugins.import_modules`). ``--threads N`` (or
+    ``TORCHHYS_THREADS``) sets torch's threads, one by default
+    (:mod:`torchhys.training.threads`).
 
     Args:
         argv: command-line arguments without the program name (``sys.argv[1:]`` if None).
@@ -449,6 +452,13 @@ def main(argv: list[str] | None = None) -> None:
     args, traceback = split_traceback_flag(sys.argv[1:] if argv is None else argv)
     try:
         args, modules = split_import_flags(args)
+        args, threads = split_threads_flag(args)
+        sub = next((a for a in args if a in (*TorchhysCLI.subcommands(), "export")), None)
+        # an explicit choice is passed to the ranks of a multi-process run as the variable
+        if threads is not None:
+            os.environ[THREADS_ENV] = str(threads)
+        choose_threads(threads, f"torchhys {sub}" if sub else "torchhys",
+                       say=sub is not None and "--help" not in args and "-h" not in args)
         modules = modules or [m for m in os.environ.get(IMPORT_ENV, "").split(",") if m]
         import_modules(modules)
     except Exception as exc:
