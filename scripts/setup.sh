@@ -4,7 +4,9 @@
 #   - installs the CPU wheel torch==2.13.0 first when torch is missing
 #     (an unpinned torch would pull several GB of CUDA packages);
 #     a torch that is already installed is kept
-#   - installs the project (editable) with its dev extra
+#   - installs the project (editable) with its train extra (Lightning, jsonargparse,
+#     torchmetrics, matplotlib: the `torchhys` command and `make reproduce`) and its dev
+#     extra (what `make test` needs)
 # A stamp file makes a second run start in well under a second.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -42,7 +44,7 @@ if ! "$PY" -c "import torch" 2>/dev/null; then
     # shellcheck disable=SC2086
     "$PY" -m pip install --quiet "$TORCH_PIN" ${TORCH_PIP_ARGS:-}
 fi
-echo "[setup] installing torchhys with its dev extra"
-"$PY" -m pip install --quiet -e ".[dev]"
+echo "[setup] installing torchhys with its train and dev extras"
+"$PY" -m pip install --quiet -e ".[train,dev]"
 touch "$STAMP"
 echo "[setup] done: $("$PY" -c 'import torch; print("torch", torch.__version__)')"

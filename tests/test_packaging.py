@@ -1,4 +1,6 @@
-"""Packaging: the wheel installs the Lightning side as ``torchhys.training`` only."""
+"""Packaging: the wheel installs the Lightning side as ``torchhys.training`` only, with the
+training packages in the ``train`` extra (tests/test_packaging_extras.py: torchhys without
+them)."""
 
 from __future__ import annotations
 
@@ -43,7 +45,19 @@ def test_every_subpackage_is_in_the_wheel(wheel: zipfile.ZipFile) -> None:
 def test_console_script_points_into_the_namespace(wheel: zipfile.ZipFile) -> None:
     (entry,) = [n for n in wheel.namelist() if n.endswith("entry_points.txt")]
     text = wheel.read(entry).decode()
-    assert "torchhys = torchhys.training.cli:main" in text
+    # torchhys._command checks for the train extra, then runs torchhys.training.cli:main
+    assert "torchhys = torchhys._command:main" in text
+
+
+def test_the_training_packages_are_in_the_train_extra_only(wheel: zipfile.ZipFile) -> None:
+    (meta,) = [n for n in wheel.namelist() if n.endswith(".dist-info/METADATA")]
+    requires = [line.removeprefix("Requires-Dist:").strip()
+                for line in wheel.read(meta).decode().splitlines()
+                if line.startswith("Requires-Dist:")]
+    for name in ("lightning", "jsonargparse", "torchmetrics", "matplotlib"):
+        (req,) = [r for r in requires if r.startswith(name)]
+        assert 'extra == "train"' in req, req
+    assert "Provides-Extra: train" in wheel.read(meta).decode()
 
 
 def test_import_torchhys_imports_no_lightning_and_no_training_package() -> None:
