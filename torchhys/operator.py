@@ -40,8 +40,9 @@ fixed when it is built.
 
 import abc
 import copy
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from dataclasses import field as dataclass_field
 from typing import Any
 
 import torch
@@ -51,12 +52,15 @@ from torchhys._checks import check_choice, check_int
 
 __all__ = [
     "ENTRY_POINT_GROUP",
+    "EXAMPLES",
     "OPERATORS",
     "AtomicLoad",
+    "Example",
     "HysteresisOperator",
     "OperatorStep",
     "StateBlock",
     "check_operator",
+    "example_of",
     "load_entry_points",
     "make_operator",
     "register_operator",
@@ -220,22 +224,81 @@ OPERATORS: dict[str, Callable[..., HysteresisOperator]] = {}
 """Operators by name: ``OPERATORS[name](**options)`` builds one (see :func:`make_operator`)."""
 
 
-def register_operator(name: str, factory: Callable[..., HysteresisOperator]) -> None:
+@dataclass(frozen=True)
+class Example:
+    """A small instance of a registered operator and what the conformance tests
+    (``tests/test_conformance.py``) may expect of it.
+
+    Args:
+        build: returns a new instance: a few widths or levels, for inputs in about
+            ``[-1, 1]``; the tests run it in float64.
+        atol: float64 tolerance between the paths that compute the same output (chunked
+            calls and one call, the step and ``forward``, the exported compensator and the
+            eager one), relative to the output's scale (at least 1); 0: bit for bit.
+        no_gradcheck: why ``torch.autograd.gradcheck`` of ``forward`` with respect to the
+            input does not apply (e.g. an output piecewise constant in it), or None.
+        bad_values: state-dict keys, each with a value that breaks a constraint that
+            ``load_state_dict`` checks (the whole tensor filled with it), e.g.
+            ``{"weights": -1.0}`` for a non-negative density; empty where none is checked.
+    """
+
+    build: Callable[[], HysteresisOperator]
+    atol: float = 0.0
+    no_gradcheck: str | None = None
+    bad_values: Mapping[str, float] = dataclass_field(default_factory=dict)
+
+
+EXAMPLES: dict[str, Example] = {}
+"""The examples given to :func:`register_operator`, by name (see :func:`example_of`)."""
+
+
+def register_operator(name: str, factory: Callable[..., HysteresisOperator], *,
+                      example: Example | Callable[[], HysteresisOperator] | None = None
+                      ) -> None:
     """Register an operator class (or factory) under ``name``, for specs by name.
 
-    Registering the same factory under the same name again is a no-op; so is registering a
-    new definition of the same class (the same module and qualified name, as when a notebook
-    cell that defines and registers it runs again), which then replaces the old one.
+    Registering the same factory under the same name again is a no-op (it keeps the example
+    given before, unless a new one is given); so is registering a new definition of the same
+    class (the same module and qualified name, as when a notebook cell that defines and
+    registers it runs again), which then replaces the old one.
+
+    Args:
+        name: the name in specs and configs.
+        factory: the class (or a function) that builds the operator from keyword options.
+        example: a small instance for the conformance tests: an :class:`Example`, or a
+            function that builds the instance (an ``Example`` with the default settings);
+            None: ``factory()`` (the default options).
 
     Raises:
         ValueError: ``name`` is taken by another factory.
     """
     if not isinstance(name, str) or not name:
         raise ValueError(f"name must be a non-empty str, got {name!r}")
+    if example is not None and not isinstance(example, Example):
+        if not callable(example):
+            raise TypeError(f"example must be an Example or a function that builds the "
+                            f"operator, got {type(example).__name__}")
+        example = Example(example)
     old = OPERATORS.get(name, factory)
     if old is not factory and _qualified(old) != _qualified(factory):
         raise ValueError(f"operator name {name!r} is registered already ({OPERATORS[name]})")
     OPERATORS[name] = factory
+    if example is not None:
+        EXAMPLES[name] = example
+    elif old is not factory:  # a new definition: the old example built the old class
+        EXAMPLES.pop(name, None)
+
+
+def example_of(name: str) -> Example:
+    """The :class:`Example` of the operator registered as ``name``: the one given to
+    :func:`register_operator`, else ``Example(OPERATORS[name])`` (its default options).
+
+    Raises:
+        KeyError: an unknown name.
+    """
+    if name not in OPERATORS:
+        raise KeyError(f"no operator is registered as {name!r}")
+    return EXAMPLES.get(name) or Example(OPERATORS[name])
 
 
 def _qualified(factory: object) -> tuple[str, str] | None:
