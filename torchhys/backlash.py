@@ -12,7 +12,13 @@ from torchhys._checks import (
     check_widths,
 )
 from torchhys.functional.backlash import backlash, check_play_state, play_step
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
+from torchhys.operator import (
+    Example,
+    HysteresisOperator,
+    OperatorStep,
+    StateBlock,
+    register_operator,
+)
 
 __all__ = ["Backlash", "BacklashCell", "PlayStep"]
 
@@ -146,4 +152,6 @@ class Backlash(_Widths, HysteresisOperator):
         return PlayStep(self.get_widths().detach().to(dtype))
 
 
-register_operator("backlash", Backlash)
+register_operator("backlash", Backlash, example=Example(
+    lambda: Backlash(torch.tensor([0.0, 0.3, 0.8], dtype=torch.float64)),
+    bad_values={"fixed_widths": -1.0}))

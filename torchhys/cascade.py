@@ -30,6 +30,7 @@ from torch import Tensor
 
 from torchhys._checks import as_batched_sequence
 from torchhys.operator import (
+    Example,
     HysteresisOperator,
     OperatorStep,
     StateBlock,
@@ -197,4 +198,10 @@ class Cascade(HysteresisOperator):
         return step
 
 
-register_operator("cascade", Cascade)
+register_operator("cascade", Cascade, example=Example(
+    # a filter, then an operator whose state starts at its own first input (an anchor); the
+    # filter's scan (kernel off) rounds otherwise than its step
+    lambda: Cascade({"name": "transfer_function", "order": 1},
+                    {"name": "eiho", "a": [1.5, 0.8], "rule": "dominant", "threshold": 0.1,
+                     "max_depth": 6}),
+    atol=1e-12))

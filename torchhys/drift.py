@@ -32,7 +32,13 @@ from torchhys.functional.drift import (
     drift_features,
     drift_step,
 )
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
+from torchhys.operator import (
+    Example,
+    HysteresisOperator,
+    OperatorStep,
+    StateBlock,
+    register_operator,
+)
 
 __all__ = ["Drift", "DriftStep", "fit_drift"]
 
@@ -204,4 +210,6 @@ def fit_drift(x: Tensor, y: Tensor, scales: Tensor | Sequence[float], *,
                  min_variation=floor)
 
 
-register_operator("drift", Drift)
+register_operator("drift", Drift, example=Example(
+    lambda: Drift(torch.tensor([0.5, 2.0], dtype=torch.float64), [0.3, -0.1], offset=0.1),
+    bad_values={"scales": 0.0, "min_variation": -1.0}))

@@ -13,7 +13,7 @@ from torchhys.branch_steps import branch_step
 from torchhys.functional._branch import BranchState
 from torchhys.functional.eiho import NonCausalWarning, eiho, segment_coefficients, zhao_tan
 from torchhys.functional.turning_points import estimate_threshold
-from torchhys.operator import HysteresisOperator, OperatorStep, register_operator
+from torchhys.operator import Example, HysteresisOperator, OperatorStep, register_operator
 
 __all__ = ["EIHO", "ZhaoTanOperator"]
 
@@ -292,5 +292,10 @@ class ZhaoTanOperator(_TurningPointOperator):
         )
 
 
-register_operator("eiho", EIHO)
-register_operator("zhao_tan", ZhaoTanOperator)
+register_operator("eiho", EIHO, example=Example(
+    lambda: EIHO(a=(1.5, 0.8), rule="dominant", threshold=0.1, max_depth=6),
+    bad_values={"threshold": -1.0}))
+register_operator("zhao_tan", ZhaoTanOperator, example=Example(
+    # chunked calls round the level f(x_p) differently (to about 1e-16)
+    lambda: ZhaoTanOperator(threshold=0.05, scale=0.5), atol=1e-12,
+    bad_values={"threshold": -1.0}))

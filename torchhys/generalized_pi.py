@@ -55,7 +55,13 @@ from torchhys.backlash import _inverse_softplus, _Widths
 from torchhys.fitting import fit_full_batch, fit_prandtl_ishlinskii
 from torchhys.functional.backlash import backlash, check_play_state, play_step
 from torchhys.functional.prandtl_ishlinskii import pi_output
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
+from torchhys.operator import (
+    Example,
+    HysteresisOperator,
+    OperatorStep,
+    StateBlock,
+    register_operator,
+)
 from torchhys.prandtl_ishlinskii import PrandtlIshlinskii
 
 if TYPE_CHECKING:
@@ -376,4 +382,10 @@ def fit_generalized_pi(
     return model
 
 
-register_operator("generalized_pi", GeneralizedPrandtlIshlinskii)
+register_operator("generalized_pi", GeneralizedPrandtlIshlinskii, example=Example(
+    # every value of the parameters is a valid model (logarithms and softplus); fixed widths
+    # must be >= 0
+    lambda: GeneralizedPrandtlIshlinskii(
+        torch.tensor([0.0, 0.3, 0.8], dtype=torch.float64), [0.5, 0.3, 0.2],
+        linear_weight=0.5, centers=[-0.5, 0.5], slopes=[2.0, 1.0], unit_weights=[0.2, 0.1]),
+    bad_values={"fixed_widths": -1.0}))

@@ -32,7 +32,7 @@ from torchhys.functional.prandtl_ishlinskii import (
     prandtl_ishlinskii_inverse_parameters,
 )
 from torchhys.generalized_pi import GeneralizedPIStep, GeneralizedPrandtlIshlinskii, monotone_output
-from torchhys.operator import HysteresisOperator, register_operator
+from torchhys.operator import Example, HysteresisOperator, register_operator
 
 __all__ = ["GeneralizedPIInverse", "GeneralizedPIInverseStep", "monotone_inverse",
            "monotone_slope"]
@@ -236,4 +236,9 @@ class GeneralizedPIInverse(HysteresisOperator):
                 f"lower={float(self.lower):.6g}, upper={float(self.upper):.6g}")
 
 
-register_operator("generalized_pi_inverse", GeneralizedPIInverse)
+register_operator("generalized_pi_inverse", GeneralizedPIInverse, example=Example(
+    lambda: GeneralizedPrandtlIshlinskii(
+        torch.tensor([0.0, 0.3, 0.8], dtype=torch.float64), [0.5, 0.3, 0.2],
+        linear_weight=0.5, centers=[-0.5, 0.5], slopes=[2.0, 1.0], unit_weights=[0.2, 0.1],
+    ).inverse(lower=-3.0, upper=3.0),
+    bad_values={"gain": 0.0, "slopes": -1.0}))

@@ -27,7 +27,13 @@ from torchhys._checks import (
     fitted_samples,
 )
 from torchhys.functional.jiles_atherton import MU0, jiles_atherton, jiles_atherton_step
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
+from torchhys.operator import (
+    Example,
+    HysteresisOperator,
+    OperatorStep,
+    StateBlock,
+    register_operator,
+)
 
 __all__ = ["JilesAtherton", "JilesAthertonStep", "fit_jiles_atherton", "substeps_for"]
 
@@ -165,7 +171,8 @@ class JilesAtherton(HysteresisOperator):
         return JilesAthertonStep(*p, self.mu0, self.substeps)
 
 
-register_operator("jiles_atherton", JilesAtherton)
+register_operator("jiles_atherton", JilesAtherton, example=Example(
+    JilesAtherton, bad_values={"raw": float("nan"), "saved_substeps": 0}))
 
 
 def substeps_for(x: Tensor, resolution: int = 32, quantile: float = 1.0) -> int:

@@ -18,7 +18,13 @@ from torchhys.functional.prandtl_ishlinskii import (
     pi_output,
     prandtl_ishlinskii_inverse_parameters,
 )
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
+from torchhys.operator import (
+    Example,
+    HysteresisOperator,
+    OperatorStep,
+    StateBlock,
+    register_operator,
+)
 
 __all__ = ["PIStep", "PrandtlIshlinskii", "PrandtlIshlinskiiInverse"]
 
@@ -253,4 +259,8 @@ class FeatureColumn(nn.Module):
         return features.narrow(1, self.index, 1)
 
 
-register_operator("prandtl_ishlinskii", PrandtlIshlinskii)
+register_operator("prandtl_ishlinskii", PrandtlIshlinskii, example=Example(
+    lambda: PrandtlIshlinskii(torch.tensor([0.0, 0.3, 0.8], dtype=torch.float64),
+                              torch.tensor([0.5, 0.3, 0.2], dtype=torch.float64),
+                              linear_weight=0.4, nonnegative=True),
+    bad_values={"weights": -1.0, "fixed_widths": -1.0}))

@@ -48,7 +48,13 @@ from torchhys.functional.preisach import (
     relay_output,
     relay_update,
 )
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
+from torchhys.operator import (
+    Example,
+    HysteresisOperator,
+    OperatorStep,
+    StateBlock,
+    register_operator,
+)
 
 if TYPE_CHECKING:
     from torchhys.preisach_inverse import PreisachInverse
@@ -448,4 +454,16 @@ def _set(model: Preisach, theta: Tensor) -> Preisach:
     return model
 
 
-register_operator("preisach", Preisach)
+def _example() -> Preisach:
+    """Hard relays on [-1, 1] (10 relays), an uneven density and a linear term."""
+    model = Preisach(-1.0, 1.0, 4).double()
+    with torch.no_grad():
+        model.weights.copy_(torch.linspace(0.05, 0.2, model.n_relays))
+        model.linear.fill_(0.3)
+        model.offset.fill_(0.1)
+    return model
+
+
+register_operator("preisach", Preisach, example=Example(
+    # the step sums the relays in another order than the sequence path
+    _example, atol=1e-13, bad_values={"weights": -1.0, "initial_relays": 0.0}))

@@ -30,7 +30,13 @@ from torchhys.functional.preisach import (
     preisach_inverse_constants,
     preisach_inverse_step,
 )
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
+from torchhys.operator import (
+    Example,
+    HysteresisOperator,
+    OperatorStep,
+    StateBlock,
+    register_operator,
+)
 from torchhys.preisach import Preisach, check_saved_grid
 
 __all__ = ["PreisachInverse", "PreisachInverseStep"]
@@ -170,4 +176,17 @@ class PreisachInverse(HysteresisOperator):
         return f"n={self.n}, relays={self.alpha.numel()}{graded}"
 
 
-register_operator("preisach_inverse", PreisachInverse)
+def _example() -> PreisachInverse:
+    """The inverse of a hard-relay model on a graded grid over [-1, 1] (10 relays) with a
+    linear term."""
+    model = Preisach(-1.0, 1.0, 4, scale=0.5).double()
+    with torch.no_grad():
+        model.weights.copy_(torch.linspace(0.05, 0.2, model.n_relays))
+        model.linear.fill_(0.3)
+        model.offset.fill_(0.1)
+    return model.inverse()
+
+
+register_operator("preisach_inverse", PreisachInverse, example=Example(
+    # the graded map's sinh rounds differently in the step and in the sequence path's windows
+    _example, atol=1e-12, bad_values={"linear": 0.0, "initial_relays": 0.0}))

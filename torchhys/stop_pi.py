@@ -48,7 +48,13 @@ from torchhys.functional.stop_pi import (
     stop_pi,
     stop_segments,
 )
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
+from torchhys.operator import (
+    Example,
+    HysteresisOperator,
+    OperatorStep,
+    StateBlock,
+    register_operator,
+)
 
 if TYPE_CHECKING:
     from torchhys.stop_pi_inverse import StopPIInverse
@@ -436,4 +442,8 @@ def select_stop_pi_ridge(
     return select_on_holdout(train, valid, ridges, solve, name="ridges")
 
 
-register_operator("stop_pi", StopPrandtlIshlinskii)
+register_operator("stop_pi", StopPrandtlIshlinskii, example=Example(
+    lambda: StopPrandtlIshlinskii(torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64),
+                                  [[0.5, 0.2], [0.3, 0.4], [0.2, 0.1]], center=0.1,
+                                  linear_weight=0.5, offset=-0.2),
+    bad_values={"thresholds": 0.0, "weights": float("inf")}))

@@ -30,7 +30,13 @@ from torchhys.functional.stop_pi import (
     stop_pi_inverse,
     stop_pi_inverse_step,
 )
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
+from torchhys.operator import (
+    Example,
+    HysteresisOperator,
+    OperatorStep,
+    StateBlock,
+    register_operator,
+)
 from torchhys.stop_pi import StopPrandtlIshlinskii
 
 __all__ = ["StopPIInverse", "StopPIInverseStep"]
@@ -157,4 +163,8 @@ class StopPIInverse(HysteresisOperator):
                 f"center={float(self.center):.4g}")
 
 
-register_operator("stop_pi_inverse", StopPIInverse)
+register_operator("stop_pi_inverse", StopPIInverse, example=Example(
+    lambda: StopPrandtlIshlinskii(torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64),
+                                  [[0.5, 0.2], [0.3, 0.4], [0.2, 0.1]], center=0.1,
+                                  linear_weight=0.5, offset=-0.2).inverse(),
+    bad_values={"thresholds": 0.0, "linear_weight": 0.0}))

@@ -20,7 +20,13 @@ from torchhys.dynamics._common import (
     start,
 )
 from torchhys.functional.linear_filter import df2t_step, lfilter
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
+from torchhys.operator import (
+    Example,
+    HysteresisOperator,
+    OperatorStep,
+    StateBlock,
+    register_operator,
+)
 
 __all__ = ["TransferFunction", "TransferFunctionStep"]
 
@@ -152,4 +158,6 @@ class TransferFunction(HysteresisOperator):
         return block
 
 
-register_operator("transfer_function", TransferFunction)
+register_operator("transfer_function", TransferFunction, example=Example(
+    # the scan of the sequence path (kernel off) rounds otherwise than the DF2T step
+    lambda: TransferFunction.from_coefficients([0.2, 0.3, 0.1], [1.0, -0.5, 0.2]), atol=1e-12))

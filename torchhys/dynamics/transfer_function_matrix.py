@@ -21,7 +21,13 @@ from torchhys.dynamics._common import (
     start,
 )
 from torchhys.functional.linear_filter import df2t_step, lfilter
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
+from torchhys.operator import (
+    Example,
+    HysteresisOperator,
+    OperatorStep,
+    StateBlock,
+    register_operator,
+)
 
 __all__ = ["TransferFunctionMatrix", "TransferFunctionMatrixStep"]
 
@@ -224,4 +230,9 @@ def _entries(coefficients: object) -> list[list[tuple[object, object]]]:
     return rows
 
 
-register_operator("transfer_function_matrix", TransferFunctionMatrix)
+register_operator("transfer_function_matrix", TransferFunctionMatrix, example=Example(
+    # one input (an operator), two outputs of their own poles; the scan of the sequence path
+    # (kernel off) rounds otherwise than the DF2T step
+    lambda: TransferFunctionMatrix.from_coefficients(
+        [[([0.2, 0.3], [1.0, -0.5])], [([0.0, 0.4, 0.1], [1.0, 0.3, 0.2])]]),
+    atol=1e-12))
