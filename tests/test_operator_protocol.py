@@ -16,6 +16,7 @@ from _helpers import RAW
 from torch import Tensor, nn
 
 from torchhys import InverseHysteresisNet
+from torchhys._checks import as_batched_sequence
 from torchhys.export import load_aoti, load_torchscript, to_aoti, to_torchscript
 from torchhys.operator import (
     OPERATORS,
@@ -53,6 +54,7 @@ class DeadZone(HysteresisOperator):
         self.raw = nn.Parameter(torch.tensor(math.log(math.expm1(width))))
 
     def forward(self, x: Tensor, state: object = None) -> tuple[Tensor, None]:
+        as_batched_sequence(x, "x")  # bad input: TypeError or ValueError naming x
         return dead_zone(x, F.softplus(self.raw).to(x.dtype)), None
 
     def streaming_step(self, dtype: torch.dtype) -> OperatorStep:

@@ -5,7 +5,9 @@ Networks (:class:`~torchhys.InverseHysteresisNet`), the streaming compensator
 compose operators through this protocol only. An operator is one file: a subclass of
 :class:`HysteresisOperator` with its sequence path, and a subclass of :class:`OperatorStep`
 beside it with its per-sample step; both call the same maths. One line registers it by name
-(:func:`register_operator`). See ``docs/adding-an-operator.md`` for a worked example.
+(:func:`register_operator`), with a small :class:`Example` that ``tests/test_conformance.py``
+runs through the checks every operator must pass. See ``docs/adding-an-operator.md`` for a
+worked example.
 
 ``HysteresisOperator`` (an ``nn.Module``)::
 
