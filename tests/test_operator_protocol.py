@@ -15,6 +15,7 @@ import torch.nn.functional as F
 from _helpers import RAW
 from torch import Tensor, nn
 
+import torchhys.operator as registry
 from torchhys import InverseHysteresisNet
 from torchhys._checks import as_batched_sequence
 from torchhys.export import load_aoti, load_torchscript, to_aoti, to_torchscript
@@ -130,12 +131,19 @@ def test_registered_by_one_line_and_built_by_name() -> None:
 
 def test_a_redefinition_of_the_same_class_replaces_it(monkeypatch) -> None:
     # a notebook cell that defines and registers an operator, run twice: two class objects
-    # of the same module and qualified name
+    # of the same module and qualified name; the example stays with its class
     monkeypatch.setitem(OPERATORS, "dead_zone", DeadZone)
+    monkeypatch.setattr(registry, "EXAMPLES", {})
+    assert isinstance(registry.example_of("dead_zone").build(), DeadZone)  # DeadZone()
+    register_operator("dead_zone", DeadZone, example=lambda: DeadZone(0.2))
+    register_operator("dead_zone", DeadZone)  # again without one: the example is kept
+    width = F.softplus(registry.example_of("dead_zone").build().raw.detach())
+    assert float(width) == pytest.approx(0.2)
     again = type("DeadZone", (DeadZone,), {"__module__": DeadZone.__module__,
                                            "__qualname__": DeadZone.__qualname__})
     register_operator("dead_zone", again)
     assert OPERATORS["dead_zone"] is again
+    assert type(registry.example_of("dead_zone").build()) is again
     other = type("DeadZone", (DeadZone,), {"__module__": "elsewhere"})
     with pytest.raises(ValueError, match="registered already"):
         register_operator("dead_zone", other)
