@@ -1,0 +1,221 @@
+"""Pointwise C templates of :mod:`torchhys.export_c` (see :mod:`torchhys._c_templates`).
+
+Each reproduces torch's CPU kernel, NaN included: ``maximum``, ``minimum`` and ``clamp``
+propagate NaN (unlike C's ``fmax``), ``sign(NaN)`` is 0, ``pow`` takes torch's special
+exponents (2, 3, -2, 0.5, -0.5, -1), ``sigmoid`` is ``1 / (1 + exp(-x))``. Operands are cast
+to the op's compute dtype first (torch's type promotion), as torch's kernels do.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import torch
+
+from torchhys._c_writer import CTensor, Writer
+
+__all__ = ["POINTWISE", "pointwise", "promoted"]
+
+Emitter = Callable[..., Any]
+Operand = CTensor | float | int | bool
+
+
+def promoted(*xs: Operand) -> torch.dtype:
+    """torch's result type of the operands (0-dim tensors and numbers rank lower)."""
+    from torch._prims_common import ELEMENTWISE_TYPE_PROMOTION_KIND, elementwise_dtypes
+
+    dummies = [torch.empty((1,) * len(x.shape), dtype=x.dtype) if isinstance(x, CTensor)
+               else x for x in xs]
+    return elementwise_dtypes(
+        *dummies, type_promotion_kind=ELEMENTWISE_TYPE_PROMOTION_KIND.DEFAULT)[1]
+
+
+def pointwise(w: Writer, spec: CTensor, fmt: str | dict[str, str], operands: Sequence[Operand],
+              compute: torch.dtype | None = None, raw: Sequence[int] = ()) -> CTensor:
+    """``spec``'s elements from ``fmt`` (``{0}``, ``{1}``: the operands, broadcast and cast
+    to ``compute`` (default: the output dtype) except those in ``raw``; ``{T}``: the compute
+    C type; ``{f}``: the math functions' suffix). A dict ``fmt`` is chosen by the compute
+    dtype's kind: ``float``, ``int`` or ``bool`` (a missing ``bool`` falls back on ``int``)."""
+    compute = compute or spec.dtype
+    if isinstance(fmt, dict):
+        kind = ("float" if compute.is_floating_point else
+                "bool" if compute == torch.bool and "bool" in fmt else "int")
+        if kind not in fmt:
+            raise ValueError(f"no template for dtype {compute}")
+        fmt = fmt[kind]
+    t, f = w.ctype(compute), "f" if compute == torch.float32 else ""
+    out = w.local(spec.dtype, spec.shape)
+
+    def element(idx: list[str]) -> str:
+        args = [w.read_broadcast(x, idx, x.dtype if (i in raw and isinstance(x, CTensor))
+                                 else compute) for i, x in enumerate(operands)]
+        expr = fmt.format(*args, T=t, f=f)
+        return expr if spec.dtype == torch.bool else w.cast(expr, compute, spec.dtype)
+
+    w.assign(out, element)
+    return out
+
+
+def _op(fmt: str | dict[str, str], n: int = 1, promote: bool = False) -> Emitter:
+    """A template of the first ``n`` operands; ``promote``: computed in their result type
+    (comparisons), else in the output's dtype."""
+    def emit(w: Writer, spec: CTensor, *args: Operand) -> CTensor:
+        ops = args[:n]
+        return pointwise(w, spec, fmt, ops, promoted(*ops) if promote else None)
+    return emit
+
+
+def _helper(kind: str, n: int = 2) -> Emitter:
+    def emit(w: Writer, spec: CTensor, *args: Operand) -> CTensor:
+        name = w.helper(kind, spec.dtype)
+        return pointwise(w, spec, f"{name}(" + ", ".join(f"{{{i}}}" for i in range(n)) + ")",
+                         args[:n])
+    return emit
+
+
+def _alpha(sign: str, swap: bool = False) -> Emitter:
+    """add / sub / rsub with torch's ``alpha``: ``a + alpha * b``."""
+    def emit(w: Writer, spec: CTensor, a: Operand, b: Operand, alpha: float = 1) -> CTensor:
+        if swap:
+            a, b = b, a
+        if alpha == 1:
+            return pointwise(w, spec, f"({{0}} {sign} {{1}})", [a, b])
+        return pointwise(w, spec, f"({{0}} {sign} {{2}} * {{1}})", [a, b, alpha])
+    return emit
+
+
+def _addc(sign: str) -> Emitter:
+    """addcmul / addcdiv: ``self + value * t1 * t2`` (resp. ``/ t2``), torch's order."""
+    def emit(w: Writer, spec: CTensor, x: Operand, t1: Operand, t2: Operand, *,
+             value: float = 1) -> CTensor:
+        if value == 1:
+            return pointwise(w, spec, f"({{0}} + {{1}} {sign} {{2}})", [x, t1, t2])
+        return pointwise(w, spec, f"({{0}} + {{3}} * {{1}} {sign} {{2}})", [x, t1, t2, value])
+    return emit
+
+
+def _pow_scalar(w: Writer, spec: CTensor, x: CTensor, exponent: float) -> CTensor:
+    special = {0: "(({T})1)", 1: "{0}", 2: "({0} * {0})", 3: "({0} * {0} * {0})",
+               -2: "(({T})1 / ({0} * {0}))", 0.5: "sqrt{f}({0})",
+               -0.5: "(({T})1 / sqrt{f}({0}))", -1: "(({T})1 / {0})"}
+    if not spec.dtype.is_floating_point:
+        raise ValueError("pow of integers has no template")
+    return pointwise(w, spec, special.get(exponent, "pow{f}({0}, {1})"), [x, exponent])
+
+
+def _clamp(w: Writer, spec: CTensor, x: CTensor, min: Operand | None = None,
+           max: Operand | None = None) -> CTensor:
+    if min is not None and max is not None:
+        return pointwise(w, spec, w.helper("clamp", spec.dtype) + "({0}, {1}, {2})",
+                         [x, min, max])
+    if min is None and max is None:
+        return x
+    # one bound: std::max(a, lo) = a < lo ? lo : a (NaN a stays), resp. std::min
+    return pointwise(w, spec, "(({0} < {1}) ? {1} : {0})" if max is None
+                     else "(({1} < {0}) ? {1} : {0})", [x, max if min is None else min])
+
+
+def _div_mode(w: Writer, spec: CTensor, a: Operand, b: Operand, *,
+              rounding_mode: str | None = None) -> CTensor:
+    if rounding_mode is None:
+        return pointwise(w, spec, "({0} / {1})", [a, b])
+    if rounding_mode == "trunc":
+        return pointwise(w, spec, {"float": "trunc{f}({0} / {1})", "int": "({0} / {1})"}, [a, b])
+    return pointwise(w, spec, w.helper("floordiv", spec.dtype) + "({0}, {1})", [a, b])
+
+
+def _where(w: Writer, spec: CTensor, cond: CTensor, a: Operand, b: Operand) -> CTensor:
+    return pointwise(w, spec, "({0} ? {1} : {2})", [cond, a, b], raw=[0])
+
+
+def _masked_fill(w: Writer, spec: CTensor, x: CTensor, mask: CTensor, value: Operand
+                 ) -> CTensor:
+    return pointwise(w, spec, "({1} ? {2} : {0})", [x, mask, value], raw=[1])
+
+
+def _to(w: Writer, spec: CTensor, x: CTensor, *args: Any, **kwargs: Any) -> CTensor:
+    """A cast to the output's dtype (a float NaN or out-of-range cast to an integer is
+    undefined in C, as it is in torch's kernel)."""
+    return x if spec.dtype == x.dtype else pointwise(w, spec, "{0}", [x], x.dtype)
+
+
+def _gelu(w: Writer, spec: CTensor, x: CTensor, *, approximate: str = "none") -> CTensor:
+    if approximate != "none":
+        raise ValueError(f"gelu(approximate={approximate!r}) has no template")
+    return pointwise(w, spec, "({0} * ({T})0.5 * (({T})1 + erf{f}({0} * "
+                     "({T})0.70710678118654757)))", [x])
+
+
+def _unary_float(name: str) -> Emitter:
+    return _op(name + "{f}({0})")
+
+
+def _test(fmt: str, integer: str) -> Emitter:
+    """isnan / isinf / isfinite: computed in the input's dtype, a bool out (``integer``: the
+    answer for an integer input)."""
+    def emit(w: Writer, spec: CTensor, x: CTensor) -> CTensor:
+        return pointwise(w, spec, {"float": fmt, "int": integer}, [x], x.dtype)
+    return emit
+
+
+_COMPARE = {"eq": "==", "ne": "!=", "lt": "<", "le": "<=", "gt": ">", "ge": ">="}
+_LOGICAL = {"logical_and": "({0} && {1})", "logical_or": "({0} || {1})",
+            "logical_xor": "(!{0} != !{1})"}
+_BITWISE = {"and": "&", "or": "|", "xor": "^"}
+
+POINTWISE: dict[str, Emitter] = {
+    **{f"{k}.{v}": _alpha("+") for k in ("add",) for v in ("Tensor", "Scalar")},
+    **{f"sub.{v}": _alpha("-") for v in ("Tensor", "Scalar")},
+    **{f"rsub.{v}": _alpha("-", swap=True) for v in ("Tensor", "Scalar")},
+    "mul.Tensor": _op("({0} * {1})", 2), "mul.Scalar": _op("({0} * {1})", 2),
+    "div.Tensor": _op("({0} / {1})", 2), "div.Scalar": _op("({0} / {1})", 2),
+    "div.Tensor_mode": _div_mode, "div.Scalar_mode": _div_mode,
+    "addcmul.default": _addc("*"), "addcdiv.default": _addc("/"),
+    "neg.default": _op("(-{0})"),
+    "abs.default": _op({"float": "fabs{f}({0})", "int": "(({0} < 0) ? -{0} : {0})"}),
+    "sign.default": _op({"float": "(({T})((0 < {0}) - ({0} < 0)))",
+                         "int": "(({T})((0 < {0}) - ({0} < 0)))"}),
+    "reciprocal.default": _op("(({T})1 / {0})"),
+    "rsqrt.default": _op("(({T})1 / sqrt{f}({0}))"),
+    "sigmoid.default": _op("(({T})1 / (({T})1 + exp{f}(-{0})))"),
+    "relu.default": _op("(({0} < 0) ? ({T})0 : {0})"),
+    "gelu.default": _gelu,
+    **{f"{n}.default": _unary_float(n) for n in (
+        "sqrt", "exp", "expm1", "log", "log1p", "log2", "sin", "cos", "tan", "atan", "tanh",
+        "erf")},
+    **{f"{n}.default": _op({"float": n + "{f}({0})", "int": "{0}"})
+       for n in ("floor", "ceil", "trunc")},
+    "round.default": _op({"float": "rint{f}({0})", "int": "{0}"}),
+    "copysign.Tensor": _op("copysign{f}({0}, {1})", 2),
+    "copysign.Scalar": _op("copysign{f}({0}, {1})", 2),
+    "atan2.default": _op("atan2{f}({0}, {1})", 2),
+    "pow.Tensor_Tensor": _op("pow{f}({0}, {1})", 2),
+    "pow.Tensor_Scalar": _pow_scalar,
+    "maximum.default": _helper("max"), "minimum.default": _helper("min"),
+    "fmax.default": _helper("fmax"), "fmin.default": _helper("fmin"),
+    "remainder.Tensor": _helper("remainder"), "remainder.Scalar": _helper("remainder"),
+    "fmod.Tensor": _op({"float": "fmod{f}({0}, {1})", "int": "({0} % {1})"}, 2),
+    "fmod.Scalar": _op({"float": "fmod{f}({0}, {1})", "int": "({0} % {1})"}, 2),
+    "clamp.default": _clamp, "clamp.Tensor": _clamp,
+    "clamp_min.default": lambda w, s, x, v: _clamp(w, s, x, min=v),
+    "clamp_min.Tensor": lambda w, s, x, v: _clamp(w, s, x, min=v),
+    "clamp_max.default": lambda w, s, x, v: _clamp(w, s, x, max=v),
+    "clamp_max.Tensor": lambda w, s, x, v: _clamp(w, s, x, max=v),
+    **{f"{k}.{v}": _op(f"({{0}} {c} {{1}})", 2, promote=True)
+       for k, c in _COMPARE.items() for v in ("Tensor", "Scalar")},
+    **{f"{k}.default": _op(f, 2, promote=True) for k, f in _LOGICAL.items()},
+    "logical_not.default": _op("(!{0})", 1, promote=True),
+    **{f"{p}.Tensor": _op(f"({{0}} {c} {{1}})", 2)
+       for k, c in _BITWISE.items() for p in (f"bitwise_{k}", f"__{k}__")},
+    "bitwise_not.default": _op({"bool": "(!{0})", "int": "(~{0})"}),
+    "where.self": _where, "where.ScalarOther": _where, "where.ScalarSelf": _where,
+    "where.Scalar": _where, "masked_fill.Scalar": _masked_fill,
+    "masked_fill.Tensor": _masked_fill,
+    "isnan.default": _test("({0} != {0})", "0"),
+    "isinf.default": _test("(fabs{f}({0}) == INFINITY)", "0"),
+    "isfinite.default": _test("({0} - {0} == 0)", "1"),
+    "to.dtype": _to, "_to_copy.default": _to, "to.dtype_layout": _to,
+}
+
+

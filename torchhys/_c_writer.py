@@ -1,0 +1,254 @@
+"""The C99 primitives of :mod:`torchhys.export_c`: static-shape tensors as arrays, loops,
+literals, constants and the small helper functions the op templates share.
+
+Every tensor of the step has a static shape. A :class:`CTensor` is either a constant (its
+value is known when the C is written: a parameter, a buffer, or a folded node) or a view of a
+C array (``base``) read at ``offset`` with ``strides``: a view (``narrow``, ``select``,
+``unsqueeze`` ...) costs no code, and a broadcast is a stride of 0. Arrays written by the step
+are contiguous locals. Written for clarity over speed: loops have constant bounds and the
+compiler unrolls or vectorizes them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+__all__ = ["CTYPES", "CTensor", "Writer", "contiguous_strides"]
+
+#: C type of each tensor dtype (a bool is a uint8_t holding 0 or 1)
+CTYPES = {torch.float64: "double", torch.float32: "float", torch.int64: "int64_t",
+          torch.int32: "int32_t", torch.bool: "uint8_t"}
+
+
+def contiguous_strides(shape: Sequence[int]) -> tuple[int, ...]:
+    """Row-major strides of ``shape``."""
+    strides, step = [], 1
+    for d in reversed(shape):
+        strides.append(step)
+        step *= max(int(d), 1)
+    return tuple(reversed(strides))
+
+
+@dataclass(frozen=True)
+class CTensor:
+    """A tensor of the generated step: a constant (``value``) or a view of the C array
+    ``base``: element ``idx`` is ``base[offset + sum(idx[d] * strides[d])]``."""
+
+    dtype: torch.dtype
+    shape: tuple[int, ...]
+    strides: tuple[int, ...] = ()
+    base: str = ""
+    offset: int = 0
+    value: Tensor | None = None
+
+    @property
+    def numel(self) -> int:
+        return math.prod(self.shape)
+
+    def is_contiguous(self) -> bool:
+        """Whether the elements are consecutive in the array from ``offset``, row-major
+        (size-1 dims ignored)."""
+        kept = [(n, s) for n, s in zip(self.shape, self.strides, strict=True) if n != 1]
+        return all(s == c for (_, s), c in zip(kept, contiguous_strides([n for n, _ in kept]),
+                                                strict=True))
+
+    def view(self, shape: Sequence[int], strides: Sequence[int], offset: int) -> CTensor:
+        return CTensor(self.dtype, tuple(shape), tuple(strides), self.base, offset)
+
+
+def constant(value: Tensor) -> CTensor:
+    value = value.detach().cpu().contiguous()
+    return CTensor(value.dtype, tuple(value.shape), contiguous_strides(value.shape),
+                   value=value)
+
+
+def _index(offset: int, idx: Sequence[str], strides: Sequence[int]) -> str:
+    """``offset + sum(idx * strides)`` as C, constants folded."""
+    const, terms = offset, []
+    for i, s in zip(idx, strides, strict=True):
+        if s == 0 or i == "0":
+            continue
+        if i.isdigit():
+            const += int(i) * s
+            continue
+        if not i.isidentifier():
+            i = f"({i})"
+        terms.append(i if s == 1 else f"{i} * {s}")
+    if const or not terms:
+        terms.append(str(const))
+    return " + ".join(terms)
+
+
+_FLOAT_HELPERS = {
+    # torch.maximum / minimum: NaN propagates; otherwise std::max(a, b) = a < b ? b : a
+    "max": "return (a != a) ? a : ((b != b) ? b : ((a < b) ? b : a));",
+    "min": "return (a != a) ? a : ((b != b) ? b : ((b < a) ? b : a));",
+    # torch.clamp with tensor bounds: a NaN bound gives NaN, else min(max(a, lo), hi)
+    "clamp": "T m;\n    if (lo != lo || hi != hi) return lo + hi;\n"
+             "    m = (a < lo) ? lo : a;\n    return (hi < m) ? hi : m;",
+    # torch.fmax / fmin: a NaN operand is ignored (C99 fmax)
+    "fmax": "return (a != a) ? b : ((b != b) ? a : ((a < b) ? b : a));",
+    "fmin": "return (a != a) ? b : ((b != b) ? a : ((b < a) ? b : a));",
+    # torch's floor division of floats (div_floor_floating)
+    "floordiv": "T mod, div, fl;\n    if (b == 0) return a / b;\n    mod = FMOD(a, b);\n"
+                "    div = (a - mod) / b;\n    if (mod != 0 && (b < 0) != (mod < 0)) div -= 1;\n"
+                "    if (div == 0) return COPYSIGN((T)0, a / b);\n    fl = FLOOR(div);\n"
+                "    return (div - fl > (T)0.5) ? fl + 1 : fl;",
+    # torch.remainder of floats: the sign of the divisor
+    "remainder": "T mod = FMOD(a, b);\n    if (mod != 0 && (b < 0) != (mod < 0)) mod += b;\n"
+                 "    return mod;",
+}
+_INT_HELPERS = {
+    "max": "return (a < b) ? b : a;",
+    "min": "return (b < a) ? b : a;",
+    "clamp": "T m = (a < lo) ? lo : a;\n    return (hi < m) ? hi : m;",
+    "floordiv": "T q = a / b;\n    if (a % b != 0 && ((a < 0) != (b < 0))) q -= 1;\n    return q;",
+    "remainder": "T m = a % b;\n    if (m != 0 && ((b < 0) != (m < 0))) m += b;\n    return m;",
+}
+_ARGS = {"clamp": "T a, T lo, T hi"}
+
+
+class Writer:
+    """Collects the C of one step function: locals, constants, helpers and statements.
+
+    Args:
+        prefix: the C prefix of every global name.
+    """
+
+    def __init__(self, prefix: str) -> None:
+        self.prefix = prefix
+        self.lines: list[str] = []
+        self.locals: list[tuple[str, str, int]] = []  # (name, C type, elements)
+        self.constants: list[str] = []  # definitions, in order of first use
+        self.helpers: dict[str, str] = {}
+        self._const_names: dict[int, str] = {}
+        self.scalars = {"x"}  # the step's argument: a one-element tensor that is a C scalar
+        self._depth = 1
+        self._loops = 0
+
+    # --- types and values ---------------------------------------------------------------
+    @staticmethod
+    def ctype(dtype: torch.dtype) -> str:
+        if dtype not in CTYPES:
+            raise ValueError(f"dtype {dtype} has no C type here (supported: "
+                             f"{', '.join(str(d) for d in CTYPES)})")
+        return CTYPES[dtype]
+
+    def literal(self, value: float | int | bool, dtype: torch.dtype) -> str:
+        """``value`` as a C constant of ``dtype`` (cast: float literals are double in C)."""
+        t = self.ctype(dtype)
+        if dtype.is_floating_point:
+            v = float(value)
+            text = ("NAN" if math.isnan(v) else ("INFINITY" if v > 0 else "-INFINITY")
+                    if math.isinf(v) else repr(v))
+            return f"(({t}){text})"
+        if dtype == torch.bool:
+            return "1" if bool(value) else "0"
+        if isinstance(value, float) and not value.is_integer():
+            raise ValueError(f"{value!r} is not an integer of {dtype}")
+        v = int(value)
+        return f"INT64_C({v})" if dtype == torch.int64 else f"(({t}){v})"
+
+    def local(self, dtype: torch.dtype, shape: Sequence[int]) -> CTensor:
+        """A new contiguous local array (none is declared for a tensor without elements)."""
+        shape = tuple(int(d) for d in shape)
+        name = f"t{len(self.locals)}"
+        self.locals.append((name, self.ctype(dtype), math.prod(shape)))
+        return CTensor(dtype, shape, contiguous_strides(shape), name)
+
+    def array(self, t: CTensor) -> str:
+        """The C array of ``t``; a constant is defined at its first use."""
+        if t.value is None:
+            return t.base
+        key = id(t.value)
+        if key not in self._const_names:
+            name = f"{self.prefix}_k{len(self._const_names)}"
+            self._const_names[key] = name
+            values = [self.literal(v, t.dtype) for v in t.value.reshape(-1).tolist()]
+            rows = [", ".join(values[i:i + 4]) for i in range(0, len(values), 4)]
+            body = ",\n    ".join(rows)
+            self.constants.append(
+                f"static const {self.ctype(t.dtype)} {name}[{len(values)}] = {{\n    {body}\n}};")
+        return self._const_names[key]
+
+    def read(self, t: CTensor, idx: Sequence[str]) -> str:
+        """The C expression of ``t``'s element at ``idx`` (one C index expression a dim)."""
+        if t.value is not None and t.numel == 1:
+            return self.literal(t.value.reshape(()).item(), t.dtype)
+        if t.base in self.scalars:
+            return t.base
+        return f"{self.array(t)}[{_index(t.offset, idx, t.strides)}]"
+
+    def read_broadcast(self, t: CTensor | float | int | bool, idx: Sequence[str],
+                       dtype: torch.dtype) -> str:
+        """``t`` (or a Python number) broadcast to an output indexed by ``idx``, as C of
+        ``dtype`` (cast where the types differ)."""
+        if not isinstance(t, CTensor):
+            return self.literal(t, dtype)
+        lead = len(idx) - len(t.shape)
+        own = ["0" if n == 1 else idx[lead + d] for d, n in enumerate(t.shape)]
+        return self.cast(self.read(t, own), t.dtype, dtype)
+
+    def cast(self, expr: str, src: torch.dtype, dst: torch.dtype) -> str:
+        if src == dst:
+            return expr
+        if dst == torch.bool:
+            return f"(({expr}) != 0)"
+        return f"(({self.ctype(dst)})({expr}))"
+
+    # --- statements ---------------------------------------------------------------------
+    def emit(self, line: str) -> None:
+        self.lines.append("    " * self._depth + line)
+
+    @contextlib.contextmanager
+    def loop(self, shape: Sequence[int]) -> Iterator[list[str]]:
+        """Nested loops over ``shape``: yields one C index expression a dim (``"0"`` for a
+        dim of size 1, which gets no loop)."""
+        idx, opened = [], 0
+        for n in shape:
+            if n == 1:
+                idx.append("0")
+                continue
+            var = f"i{self._loops}"
+            self._loops += 1
+            self.emit(f"for (int {var} = 0; {var} < {n}; ++{var}) {{")
+            self._depth += 1
+            idx.append(var)
+            opened += 1
+        try:
+            yield idx
+        finally:
+            for _ in range(opened):
+                self._depth -= 1
+                self.emit("}")
+            self._loops -= opened
+
+    def assign(self, dst: CTensor, element: Callable[[list[str]], str]) -> None:
+        """``dst[idx] = element(idx)`` for every index of ``dst`` (nothing when empty)."""
+        if dst.numel == 0:
+            return
+        with self.loop(dst.shape) as idx:
+            self.emit(f"{self.read(dst, idx)} = {element(idx)};")
+
+    def helper(self, kind: str, dtype: torch.dtype) -> str:
+        """The name of a shared helper function (``max``, ``min``, ``clamp``, ``fmax``,
+        ``fmin``, ``floordiv``, ``remainder``) for ``dtype``, defined on first use."""
+        t = self.ctype(dtype)
+        name = f"{self.prefix}_{kind}_{t.split('_')[0]}"
+        if name not in self.helpers:
+            table = _FLOAT_HELPERS if dtype.is_floating_point else _INT_HELPERS
+            if kind not in table:
+                raise ValueError(f"no {kind} for {dtype}")
+            suffix = "f" if dtype == torch.float32 else ""
+            body = (table[kind].replace("T ", f"{t} ").replace("(T)", f"({t})")
+                    .replace("FMOD", f"fmod{suffix}").replace("FLOOR", f"floor{suffix}")
+                    .replace("COPYSIGN", f"copysign{suffix}"))
+            args = _ARGS.get(kind, "T a, T b").replace("T ", f"{t} ")
+            self.helpers[name] = f"static {t} {name}({args})\n{{\n    {body}\n}}"
+        return name
