@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import re
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
@@ -128,6 +129,11 @@ class Writer:
         self.constants: list[str] = []  # definitions, in order of first use
         self.helpers: dict[str, str] = {}
         self._const_names: dict[int, str] = {}
+        # liveness of the locals, in node numbers (``node`` is set by the caller), for
+        # sharing arrays between locals whose lifetimes do not overlap
+        self.node = 0
+        self._born: dict[str, int] = {}
+        self._last: dict[str, float] = {}
         self.scalars = {"x"}  # the step's argument: a one-element tensor that is a C scalar
         self._depth = 1
         self._loops = 0
@@ -160,11 +166,14 @@ class Writer:
         shape = tuple(int(d) for d in shape)
         name = f"t{len(self.locals)}"
         self.locals.append((name, self.ctype(dtype), math.prod(shape)))
+        self._born[name] = self._last[name] = self.node
         return CTensor(dtype, shape, contiguous_strides(shape), name)
 
     def array(self, t: CTensor) -> str:
         """The C array of ``t``; a constant is defined at its first use."""
         if t.value is None:
+            if t.base in self._last:
+                self._last[t.base] = max(self._last[t.base], self.node)
             return t.base
         key = id(t.value)
         if key not in self._const_names:
@@ -201,6 +210,33 @@ class Writer:
         if dst == torch.bool:
             return f"(({expr}) != 0)"
         return f"(({self.ctype(dst)})({expr}))"
+
+    def keep(self, base: str) -> None:
+        """Keep the local ``base`` to the end of the step (it is read after the last node)."""
+        self._last[base] = math.inf
+
+    def shared_locals(self) -> tuple[list[str], list[str]]:
+        """The locals' declarations and the statements, with one array shared by locals of
+        the same C type whose lifetimes do not overlap (a greedy interval allocation)."""
+        slots: list[list] = []  # [C type, elements, busy until]
+        where: dict[str, str] = {}
+        for name, ctype, n in sorted(self.locals, key=lambda r: self._born[r[0]]):
+            born = self._born[name]
+            free = [i for i, (c, _, until) in enumerate(slots) if c == ctype and until < born]
+            fit = [i for i in free if slots[i][1] >= n]
+            if fit or free:
+                i = min(fit, key=lambda i: slots[i][1]) if fit else max(
+                    free, key=lambda i: slots[i][1])
+                slots[i][1], slots[i][2] = max(slots[i][1], n), self._last[name]
+            else:
+                i = len(slots)
+                slots.append([ctype, n, self._last[name]])
+            where[name] = f"a{i}"
+        decls = [f"{c} a{i}[{max(n, 1)}];" for i, (c, n, _) in enumerate(slots)]
+        pattern = re.compile(r"\bt(\d+)\b")
+        lines = [pattern.sub(lambda m: where.get(m.group(0), m.group(0)), line)
+                 for line in self.lines]
+        return decls, lines
 
     # --- statements ---------------------------------------------------------------------
     def emit(self, line: str) -> None:
