@@ -18,6 +18,7 @@ from collections.abc import Iterator
 import pytest
 import torch
 from _helpers import RAW
+from torch.utils._pytree import tree_flatten
 
 from torchhys import InverseHysteresisNet, signals
 from torchhys.export import load_aoti, to_aoti, to_torchscript
@@ -166,23 +167,45 @@ def test_the_example_is_an_operator_of_its_name(name: str) -> None:
     assert not isinstance(factory, type) or isinstance(op, factory)
 
 
-@pytest.mark.parametrize("name", names("chunked"))
-def test_chunked_calls_equal_one_call(name: str, kernels: None) -> None:
-    example, op = build(name)
-    x = signal()
-    whole = features(op, x)
+def run_chunked(op: torch.nn.Module, x: torch.Tensor) -> tuple[torch.Tensor, object]:
+    """``op`` over x (batch, time) or (time,) in chunks of 1, 1, 2, 27 and the rest samples,
+    the state carried: the outputs joined along time and the last state."""
     parts, state = [], None
     with torch.no_grad():
-        for chunk in x.split([1, 30, x.shape[1] - 31], dim=1):
+        for chunk in x.split([1, 1, 2, 27, x.shape[-1] - 31], dim=-1):
             f, state = op(chunk, state)
-            parts.append(f.reshape(x.shape[0], -1, op.n_outputs))
-    assert_close(torch.cat(parts, 1), whole, example.atol)
-    # one row as (time,)
+            parts.append(f)
+    return torch.cat(parts, x.dim() - 1), state
+
+
+def assert_same_states(got: object, ref: object, atol: float) -> None:
+    """Equal states (tensors, or tuples and lists of them), leaf by leaf."""
+    leaves, spec = tree_flatten(got)
+    ref_leaves, ref_spec = tree_flatten(ref)
+    assert spec == ref_spec
+    for a, b in zip(leaves, ref_leaves, strict=True):
+        assert_close(a, b, atol if a.is_floating_point() else 0.0)
+
+
+@pytest.mark.parametrize("name", names("chunked"))
+def test_chunked_calls_equal_one_call(name: str, kernels: None) -> None:
+    """In chunks with the state carried: a batch, and one row as (time,), whose output and
+    state equal its row of the batch."""
+    example, op = build(name)
+    x = signal()
     with torch.no_grad():
-        row, _ = op(x[1:])
-        unbatched, _ = op(x[1])
+        whole, last = op(x)
+        row, row_last = op(x[1:])
+        unbatched, unbatched_last = op(x[1])
+    for xs, ref, ref_last in ((x, whole, last), (x[1], unbatched, unbatched_last)):
+        got, got_last = run_chunked(op, xs)
+        assert_close(got, ref, example.atol)
+        assert_same_states(got_last, ref_last, example.atol)
     assert unbatched.shape == row.shape[1:]
     assert_close(unbatched, row[0], example.atol)
+    flat = [t.reshape(-1) for t in tree_flatten(unbatched_last)[0]]
+    assert_same_states(flat, [t.reshape(-1) for t in tree_flatten(row_last)[0]],
+                       example.atol)
 
 
 @pytest.mark.parametrize("name", names("step"))
@@ -209,7 +232,7 @@ def test_gradcheck_of_forward_in_the_input(name: str, kernels: None) -> None:
 @pytest.mark.parametrize("name", names("torchscript"))
 def test_torchscript_equals_the_streaming_compensator(name: str, tmp_path) -> None:
     """The eager compensator equals the network's sequence path (kernels on and off), and
-    the scripted one the eager one."""
+    the scripted one both."""
     _, op = build(name)
     causal(op)
     x = signal()
@@ -220,6 +243,8 @@ def test_torchscript_equals_the_streaming_compensator(name: str, tmp_path) -> No
             assert_close(eager, net(x)[0], EXPORT_ATOL)
     scripted = to_torchscript(net, tmp_path / "comp.pt", limits=LIMITS, **RAW)
     assert_close(scripted(x), eager, EXPORT_ATOL)
+    with torch.no_grad():
+        assert_close(scripted(x), net(x)[0], EXPORT_ATOL)
 
 
 @pytest.mark.slow
