@@ -58,8 +58,9 @@ the states and are neither fitted nor scored):
   it), the config's ``select_rule`` picks one, which is built through ``build_operators`` +
   ``fit_data_dependent``, trained as the config says (its optimizer, one full-batch step per
   epoch, ``trainer.max_epochs``, the last epoch kept, capped in time) on the whole training
-  part, and scored as ``torchhys export`` deploys it: its output saturated to the training
-  target range (:func:`~torchhys.streaming.default_limits`, the exported command limits);
+  part, and scored by its output saturated to the training target range
+  (:func:`~torchhys.streaming.default_limits`, the exported command limits; the exported
+  compensator's input clamp and direction guard on top of it: ``benchmarks/deploy_safety.py``);
 - ``selected``: the row above with the least hold-out RMSE (for ``default``: its chosen
   candidate's, fitted before the hold-out; a model-family choice made on the training part
   only).
@@ -1011,17 +1012,10 @@ def _score(config: Path, overrides: dict, x: Tensor, y: Tensor, w: int, budget: 
     return mse, standard_error(e2), capped
 
 
-def default(split: Split, budget: Budget, config: Path = CONFIG) -> Fitted:
-    """The model section of a ``torchhys fit`` config, trained as its trainer section says
-    on the whole training part. With ``model.select``, every candidate is scored as
-    ``torchhys fit`` scores it (:func:`_score`: on the hold-out, or by the cross-validation
-    of the config's ``select_cv``), the config's ``select_rule`` chooses one (a candidate
-    that cannot be fitted is skipped), and it is refitted on the whole training part;
-    without, the hold-out RMSE comes from a second fit before it. The row's hold-out RMSE
-    is that of the chosen candidate fitted before the hold-out (as every row's, for
-    ``selected``). Its prediction is what ``torchhys export`` deploys: the network's output
-    saturated to the training target range (the default command limits); the candidates are
-    scored without it, as ``torchhys fit`` scores them."""
+def default_net(split: Split, budget: Budget, config: Path = CONFIG
+                ) -> tuple[InverseHysteresisNet, str, float]:
+    """The network of :func:`default` (trained as it says), its description and its
+    hold-out RMSE."""
     x, y, w = split.x, split.y, split.warmup
     m = _config_model(config)[0]
     candidates = m.pop("select", None) or [{}]
@@ -1055,8 +1049,6 @@ def default(split: Split, budget: Budget, config: Path = CONFIG) -> Fitted:
         validation = f", select_cv {how} RMSE {score:.4g}"
         held = _score(config, candidates[i], x, y, w, budget, None)[0]
         score = math.sqrt(held) if math.isfinite(held) else math.inf
-    dtype = next(net.parameters()).dtype
-    low, high = default_limits(net)  # as torchhys export deploys it
     capped = f" (capped at {budget.seconds:g} s)" if done < epochs else ""
     if capped_cv:
         capped += f" (a validation training capped at {budget.seconds:g} s)"
@@ -1064,6 +1056,25 @@ def default(split: Split, budget: Budget, config: Path = CONFIG) -> Fitted:
     label = f"candidate {i}{note}: " if len(candidates) > 1 else ""
     choice = (f"{config.name}: {label}{_describe({**m, **candidates[i]})}, {m['optimizer']} "
               f"{done} epochs{capped}{validation}")
+    return net, choice, score
+
+
+def default(split: Split, budget: Budget, config: Path = CONFIG) -> Fitted:
+    """The model section of a ``torchhys fit`` config, trained as its trainer section says
+    on the whole training part. With ``model.select``, every candidate is scored as
+    ``torchhys fit`` scores it (:func:`_score`: on the hold-out, or by the cross-validation
+    of the config's ``select_cv``), the config's ``select_rule`` chooses one (a candidate
+    that cannot be fitted is skipped), and it is refitted on the whole training part;
+    without, the hold-out RMSE comes from a second fit before it. The row's hold-out RMSE
+    is that of the chosen candidate fitted before the hold-out (as every row's, for
+    ``selected``). Its prediction is the network's output saturated to the training target
+    range (the exported command limits; :func:`default_net` gives the network, as
+    ``benchmarks/deploy_safety.py`` scores it through the exported compensator's input clamp
+    and direction guard); the candidates are scored without it, as ``torchhys fit`` scores
+    them."""
+    net, choice, score = default_net(split, budget, config)
+    dtype = next(net.parameters()).dtype
+    low, high = default_limits(net)  # the exported command limits
     return Fitted(lambda v: net(v.to(dtype))[0].to(F64).clamp(low, high), choice, score)
 
 

@@ -12,7 +12,12 @@ from _helpers import RAW
 
 from torchhys import InverseHysteresisNet
 from torchhys.export import load_torchscript, metadata, to_torchscript
-from torchhys.streaming import StreamingCompensator, default_direction, default_input_range
+from torchhys.streaming import (
+    MIN_TREND,
+    StreamingCompensator,
+    default_direction,
+    default_input_range,
+)
 
 
 def loop(sign: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -53,6 +58,24 @@ def test_fit_normalization_records_the_input_range_and_direction() -> None:
     assert default_direction(untrained(-1.0)) == -1
     fresh = InverseHysteresisNet("eiho", 3)
     assert default_input_range(fresh) is None and default_direction(fresh) == 0
+
+
+def test_no_direction_where_the_training_data_have_no_clear_trend() -> None:
+    # a friction force against position: +F while the position rises, -F while it falls,
+    # uncorrelated with the position (r = 0): no direction to keep, no guard
+    t = torch.linspace(0, 12 * math.pi, 1200, dtype=torch.float64)
+    x = torch.sin(t)
+    y = torch.tanh(20 * torch.cos(t))
+    net = InverseHysteresisNet("eiho", 4).double()
+    net.fit_normalization(x, y)
+    r = float(net.trend)
+    assert abs(r - float(torch.corrcoef(torch.stack([x, y]))[0, 1])) < 1e-12
+    assert abs(r) < MIN_TREND and default_direction(net) == 0
+    assert not StreamingCompensator(net).guard
+    assert StreamingCompensator(net, direction="increasing").guard
+    # the same record with a clear trend added: a direction
+    net.fit_normalization(x, y + 3 * x)
+    assert float(net.trend) >= MIN_TREND and default_direction(net) == 1
 
 
 @pytest.mark.parametrize("sign", [1.0, -1.0])
@@ -129,7 +152,7 @@ def test_torchscript_keeps_guard_clamp_and_metadata(tmp_path) -> None:
 def test_state_dict_without_ranges_gets_no_clamp_or_guard() -> None:
     net = untrained()
     state = {k: v for k, v in net.state_dict().items()
-             if k not in ("in_min", "in_max", "direction")}
+             if k not in ("in_min", "in_max", "trend")}
     old = InverseHysteresisNet("eiho", 8).double()
     old.load_state_dict(state)
     comp = StreamingCompensator(old)

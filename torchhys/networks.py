@@ -83,12 +83,13 @@ class InverseHysteresisNet(AtomicLoad, nn.Module):
         # an exported compensator
         self.register_buffer("out_min", torch.full((), float("nan")))
         self.register_buffer("out_max", torch.full((), float("nan")))
-        # range of the training input and the sign of the target's trend in it (NaN until
-        # fitted): an exported compensator clamps its input to that range (widened by a
-        # margin) and never moves its command against that direction
+        # range of the training input and the target's trend in it, their correlation
+        # coefficient (NaN until fitted): an exported compensator clamps its input to that
+        # range (widened by a margin) and, where the trend is clear, never moves its command
+        # against it (torchhys.streaming)
         self.register_buffer("in_min", torch.full((), float("nan")))
         self.register_buffer("in_max", torch.full((), float("nan")))
-        self.register_buffer("direction", torch.full((), float("nan")))
+        self.register_buffer("trend", torch.full((), float("nan")))
         self.hidden = nn.Linear(n_features, hidden)
         self.activation = _ACTIVATIONS[activation]()
         self.output = nn.Linear(hidden, 1)
@@ -135,7 +136,7 @@ class InverseHysteresisNet(AtomicLoad, nn.Module):
         self, state_dict: dict, prefix: str, *args: object, **kwargs: object
     ) -> None:
         # state dicts saved before the ranges were recorded: keep them unknown (NaN)
-        for name in ("out_min", "out_max", "in_min", "in_max", "direction"):
+        for name in ("out_min", "out_max", "in_min", "in_max", "trend"):
             state_dict.setdefault(prefix + name, torch.full((), float("nan")))
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
@@ -184,9 +185,9 @@ class InverseHysteresisNet(AtomicLoad, nn.Module):
         self.out_max.copy_(ys.max())
         self.in_min.copy_(xs.min())
         self.in_max.copy_(xs.max())
-        # the sign of the least-squares line's slope of y in x: +1 rising, -1 falling
-        slope = float(((xs - xs.mean()) * (ys - ys.mean())).sum())
-        self.direction.fill_(1.0 if slope >= 0 else -1.0)
+        # the correlation coefficient of x and y: its sign is the target's direction in x
+        xc, yc = xs - xs.mean(), ys - ys.mean()
+        self.trend.fill_(float((xc * yc).sum() / (xc.square().sum() * yc.square().sum()).sqrt()))
 
     def streaming_steps(self, dtype: torch.dtype) -> list[OperatorStep]:
         """The operators' per-sample steps in ``dtype`` (for

@@ -15,12 +15,13 @@ was and is counted (:meth:`StreamingCompensator.nonfinite_count`). A finite inpu
 to the training input range widened by a margin (``input_margin``, 5 % of the range by
 default) before the model sees it, and counted when it lay outside
 (:meth:`StreamingCompensator.out_of_range_count`): the model never extrapolates past what it
-was trained on. The command never moves against the model's direction (``direction``: the
-sign of the target's trend in the input, recorded when the network's normalization was
-fitted): while the (clamped) input rises, the command of a rising compensator does not fall,
-while it falls the command does not rise, and while it stays the command stays. On a model
-that is monotone in its current input this guard changes nothing; on one that is not, it
-holds the command where the model would turn the wrong way.
+was trained on. The command never moves against the model's direction (``direction``: by
+default the sign of the target's trend in the input, recorded when the network's
+normalization was fitted, where that trend is clear: :func:`default_direction`): while the
+(clamped) input rises, the command of a rising compensator does not fall, while it falls the
+command does not rise, and while it stays the command stays. On a model that is monotone in
+its current input this guard changes nothing; on one that is not, it holds the command where
+the model would turn the wrong way.
 
 The state (a published contract: the exported metadata ``state_spec`` repeats it) is a list
 of tensors, all zeros when fresh; the steps' blocks are packed by kind, in the order of the
@@ -52,7 +53,7 @@ from torchhys._checks import check_real
 from torchhys.operator import STATE_KINDS, OperatorStep, StateBlock
 
 __all__ = [
-    "COUNTER", "DIRECTIONS", "HELD", "STARTED", "STATE_F", "STATE_F64", "STATE_I",
+    "COUNTER", "DIRECTIONS", "HELD", "MIN_TREND", "STARTED", "STATE_F", "STATE_F64", "STATE_I",
     "StreamingCompensator", "default_direction", "default_input_range", "default_limits",
 ]
 
@@ -152,11 +153,21 @@ def default_input_range(model: nn.Module) -> tuple[float, float] | None:
     return None
 
 
+MIN_TREND = 0.5
+"""The least absolute correlation of the training input and target (the model's recorded
+``trend``) that gives a compensator a direction by default: a device whose command rises or
+falls with its response. Below it (the friction force of a seal against its position,
+r = 0.00; a damper's force against its position, r = 0.1-0.5) the data have no direction to
+keep, and ``direction="auto"`` sets no guard."""
+
+
 def default_direction(model: nn.Module) -> int:
-    """The sign of the target's trend in the input recorded by the model (``direction``:
-    +1 rising, -1 falling), or 0 when it records none."""
-    d = _recorded(model, "direction")
-    return int(math.copysign(1.0, d)) if math.isfinite(d) and d != 0 else 0
+    """The direction of the target's trend in the input recorded by the model: the sign of
+    its ``trend`` (the training input's and target's correlation coefficient, recorded by
+    :meth:`~torchhys.InverseHysteresisNet.fit_normalization`) when ``|trend| >=``
+    :data:`MIN_TREND`, else 0 (no clear direction, or none recorded)."""
+    r = _recorded(model, "trend")
+    return int(math.copysign(1.0, r)) if math.isfinite(r) and abs(r) >= MIN_TREND else 0
 
 
 def _check_limits(limits: Sequence[float], name: str = "limits") -> tuple[float, float]:
@@ -213,8 +224,8 @@ class StreamingCompensator(nn.Module):
             range (:func:`default_input_range`; none recorded: no clamp).
         input_margin: the input is clamped to ``input_range`` widened by this share of its
             width on each side (default 0.05); None: no clamp.
-        direction: ``"auto"`` (default: the model's recorded direction,
-            :func:`default_direction`; none recorded: no guard), ``"increasing"``,
+        direction: ``"auto"`` (default: the model's recorded direction where the training
+            data have a clear one, :func:`default_direction`; else no guard), ``"increasing"``,
             ``"decreasing"`` (the command never moves against the input's direction, resp.
             with it), or ``"none"`` (no guard).
 
