@@ -1,6 +1,6 @@
-"""A bad initial state passed to an operator's ``forward(x, state)`` is a clear error that
-names ``state`` (the argument the caller wrote), not the name of a function inside; the
-functional stop-type model names its ``p0``."""
+"""A bad initial state is a clear error that names ``state`` (the argument the caller
+wrote), not the name of a function inside: the Preisach relays, the PI inverse (not a
+registered operator); the functional stop-type model names its ``p0``."""
 
 from __future__ import annotations
 
@@ -11,42 +11,8 @@ import torchhys
 from torchhys.functional import stop_pi
 
 W = torch.tensor([0.2, 0.5], dtype=torch.float64)
-OPERATORS = {
-    "backlash": lambda: torchhys.Backlash(W),
-    "prandtl_ishlinskii": lambda: torchhys.PrandtlIshlinskii(W),
-    "prandtl_ishlinskii_inverse": lambda: torchhys.PrandtlIshlinskii(
-        W, linear_weight=1.0).inverse(),
-    "generalized_pi": lambda: torchhys.GeneralizedPrandtlIshlinskii(W),
-    "generalized_pi_inverse": lambda: torchhys.GeneralizedPrandtlIshlinskii(W).inverse(),
-    "stop_pi": lambda: torchhys.StopPrandtlIshlinskii(W, torch.ones(2, 3, dtype=torch.float64)),
-    "preisach": lambda: torchhys.Preisach(-1.0, 1.0, 4),
-    "jiles_atherton": lambda: torchhys.JilesAtherton(),
-}
 X = torch.linspace(0.0, 0.5, 12, dtype=torch.float64)
-
-
-@pytest.mark.parametrize("name", list(OPERATORS))
-def test_a_state_of_the_wrong_shape_names_state(name: str) -> None:
-    op = OPERATORS[name]().double()
-    _, good = op(X)
-    with pytest.raises(ValueError, match=r"^state must have shape"):
-        op(X, torch.zeros(good.numel() + 5, dtype=torch.float64))
-    with pytest.raises(ValueError, match=r"^state must have shape"):
-        op(X[None].expand(3, -1), torch.zeros(2, *good.shape, dtype=torch.float64))
-    # the state it returned is accepted, and continues the sequence where it stopped
-    y_whole, _ = op(torch.cat([X, X.flip(0)]))
-    y_first, state = op(X)
-    y_rest, _ = op(X.flip(0), state)
-    torch.testing.assert_close(torch.cat([y_first, y_rest]), y_whole, rtol=0, atol=1e-12)
-
-
-@pytest.mark.parametrize("name", [n for n in OPERATORS if n not in ("preisach",
-                                                                     "jiles_atherton")])
-def test_a_nonfinite_play_state_names_state(name: str) -> None:
-    op = OPERATORS[name]().double()
-    _, good = op(X)
-    with pytest.raises(ValueError, match=r"^state must be finite"):
-        op(X, torch.full_like(good, float("nan")))
+# every registered operator: tests/test_conformance.py (a state from another batch, a NaN)
 
 
 def test_a_preisach_state_that_is_not_plus_or_minus_one_names_state() -> None:
@@ -68,6 +34,11 @@ def test_the_pi_inverse_names_its_input_y_and_checks_a_linear_models_state() -> 
     inverse = torchhys.PrandtlIshlinskii(W, linear_weight=1.0).inverse()
     with pytest.raises(ValueError, match=r"^y must be finite"):
         inverse(torch.tensor([0.0, float("nan")], dtype=torch.float64))
+    _, good = inverse(X)
+    with pytest.raises(ValueError, match=r"^state must have shape"):
+        inverse(X, torch.zeros(good.numel() + 5, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"^state must be finite"):
+        inverse(X, torch.full_like(good, float("nan")))
     # a zero-width play is linear: the inverse of 0.5 x + 0.5 x has no play
     linear = torchhys.PrandtlIshlinskii(torch.tensor([0.0], dtype=torch.float64),
                                         torch.tensor([0.5], dtype=torch.float64),
