@@ -54,19 +54,6 @@ def test_operator_features_step_equal_sequence_float32(rule: str, threshold: flo
     torch.testing.assert_close(got, feats[..., 1:], rtol=0, atol=0)
 
 
-
-
-@pytest.mark.parametrize("rule", RULES)
-def test_zhao_tan_and_plays_network(rule: str) -> None:
-    x = inputs()
-    ops = [ZhaoTanOperator(rule=rule, threshold=0.5, scale=3.0), Backlash([0.2, 1.0, 2.0])]
-    net = net_of(ops, torch.float64, x)
-    with torch.no_grad():
-        ref, _ = net(x)
-    comp = StreamingCompensator(net, limits=(-1e6, 1e6), **RAW)
-    torch.testing.assert_close(comp(x), ref, rtol=0, atol=1e-12)
-
-
 def test_dominant_stack_overflow_matches() -> None:
     """Deeply nested loops overflow a small stack: the oldest entries are forgotten alike."""
     t = torch.linspace(0.0, 1.0, 3000, dtype=torch.float64)
@@ -123,17 +110,6 @@ def test_forward_leaves_stored_state_alone() -> None:
     rest = [comp.step(xt) for xt in x[:, 10:].unbind(-1)]
     torch.testing.assert_close(torch.stack(first + rest, -1), comp(x), rtol=0, atol=0)
     assert math.isfinite(float(comp(x).sum()))
-
-
-def test_pi_operator_in_a_network() -> None:
-    x = inputs(300)
-    pi = PrandtlIshlinskii(torch.tensor([0.3, 1.0, 2.0]), torch.tensor([0.5, 1.0, -0.2]),
-                           linear_weight=0.7)
-    net = net_of([pi, EIHO(a=1.0, rule="recent", threshold=0.5)], torch.float64, x)
-    with torch.no_grad():
-        ref, _ = net(x)
-    comp = StreamingCompensator(net, limits=(-1e6, 1e6), **RAW)
-    torch.testing.assert_close(comp(x), ref, rtol=0, atol=1e-12)
 
 
 def anchored_eiho(rule: str, threshold: float, dtype: torch.dtype) -> EIHO:
