@@ -1,11 +1,12 @@
-"""Cell loop == sequence module == chunked sequence calls with the carried state."""
+"""Cell loop == sequence module; unbatched shapes; learnable widths (chunked calls of Backlash
+and PrandtlIshlinskii: tests/test_conformance.py)."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from torchhys import Backlash, BacklashCell, PrandtlIshlinskii
+from torchhys import Backlash, BacklashCell
 
 WIDTHS = torch.tensor([0.0, 0.3, 1.0, 2.2], dtype=torch.float64)
 
@@ -30,19 +31,6 @@ def test_cell_loop_equals_sequence(backend, learnable):
     torch.testing.assert_close(final, s, rtol=0, atol=0)
 
 
-@pytest.mark.parametrize("splits", [[1] * 20, [5, 100, 152], [256, 1], [100, 157]])
-def test_chunked_equals_whole(backend, splits):
-    x = _signal()[:, : sum(splits)]
-    seq = Backlash(WIDTHS)
-    whole, final_whole = seq(x)
-    parts, state = [], None
-    for chunk in x.split(splits, dim=1):
-        y, state = seq(chunk, state)
-        parts.append(y)
-    torch.testing.assert_close(torch.cat(parts, 1), whole, rtol=0, atol=0)
-    torch.testing.assert_close(state, final_whole, rtol=0, atol=0)
-
-
 def test_unbatched_state_shapes(backend):
     seq = Backlash(WIDTHS)
     x = _signal(1, 40)[0]
@@ -50,17 +38,6 @@ def test_unbatched_state_shapes(backend):
     assert y.shape == (40, 4) and state.shape == (4,)
     y2, _ = seq(x[20:], seq(x[:20])[1])
     torch.testing.assert_close(y2, y[20:], rtol=0, atol=0)
-
-
-def test_prandtl_ishlinskii_chunked(backend):
-    pi = PrandtlIshlinskii(WIDTHS, torch.tensor([0.5, 1.0, -0.2, 0.7]), linear_weight=0.3)
-    pi = pi.double()
-    x = _signal()
-    whole, final = pi(x)
-    a, s = pi(x[:, :100])
-    b, s = pi(x[:, 100:], s)
-    torch.testing.assert_close(torch.cat([a, b], 1), whole, rtol=0, atol=0)
-    torch.testing.assert_close(s, final, rtol=0, atol=0)
 
 
 def test_learnable_widths_stay_nonnegative_and_train():
