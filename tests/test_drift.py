@@ -1,6 +1,6 @@
 """The drift of the accumulated input variation: against a plain float64 loop, chunked calls,
-the per-sample step (eager, TorchScript, inside an exported network), gradients, its
-least-squares fit against scipy's NNLS, bad input."""
+the per-sample step (eager, TorchScript, torch.export), gradients, its least-squares fit
+against scipy's NNLS, bad input (inside an exported network: tests/test_conformance.py)."""
 
 from __future__ import annotations
 
@@ -9,18 +9,10 @@ import math
 import numpy as np
 import pytest
 import torch
-from _helpers import (
-    assert_aoti_as_eager,
-    assert_streams_as_eager,
-    assert_torchscript_as_eager,
-    net_of,
-    run_split,
-    scripted_run,
-    step_loop,
-)
+from _helpers import run_split, scripted_run, step_loop
 from scipy.optimize import nnls
 
-from torchhys import Backlash, Drift, fit_drift
+from torchhys import Drift, fit_drift
 from torchhys.functional.drift import accumulated_variation, drift
 from torchhys.operator import OPERATORS, make_operator
 
@@ -116,24 +108,6 @@ def test_step_through_torch_export_equals_the_sequence_path():
     with torch.no_grad():
         got, state = step_loop(exported, x, state)
     assert torch.equal(got[..., 0], seq) and torch.equal(torch.cat(state, 1), last)
-
-
-def test_streams_and_exports_inside_a_network(tmp_path):
-    x = signal(1, 200, seed=4)
-    net = net_of([Drift(SCALES, [0.7, -0.3, 1.5], offset=0.25, min_variation=1.0),
-                  Backlash([0.1, 0.3])], F64, x)
-    assert_streams_as_eager(net, x, atol=1e-12)
-    assert_torchscript_as_eager(net, x, tmp_path / "drift.pt", atol=1e-12)
-
-
-@pytest.mark.slow
-def test_exports_to_aoti_inside_a_network(tmp_path):
-    """An AOTInductor compile (about 10 s): the float64 accumulator blocks step as the
-    sequence path does."""
-    x = signal(1, 150, seed=4)
-    net = net_of([Drift(SCALES, [0.7, -0.3, 1.5], offset=0.25), Backlash([0.1, 0.3])], F64,
-                 x)
-    assert_aoti_as_eager(net, x[0], tmp_path / "drift.pt2")
 
 
 def test_gradients():
