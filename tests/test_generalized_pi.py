@@ -1,6 +1,6 @@
-"""Generalized Prandtl-Ishlinskii model: reference loop, reduction to the PI model, chunking,
-the per-sample step (eager, TorchScript), autograd, fitting an asymmetric saturating loop,
-streaming inside a network, bad input."""
+"""Generalized Prandtl-Ishlinskii model: reference loop, reduction to the PI model, the
+per-sample step (eager, TorchScript, float32), autograd, fitting an asymmetric saturating
+loop, bad input (chunked calls, streaming inside a network: tests/test_conformance.py)."""
 
 from __future__ import annotations
 
@@ -12,10 +12,7 @@ import pytest
 import torch
 from _gpi_helpers import F64, WIDTHS, model, walks
 from _helpers import (
-    assert_streams_as_eager,
-    net_of,
     play_reference,
-    run_chunked,
     scripted_run,
     smooth_input,
     step_loop,
@@ -55,18 +52,6 @@ def test_identity_g_is_the_pi_model():
     assert float(pi_part.linear_weight) == pytest.approx(0.4, rel=1e-15)
     ref = prandtl_ishlinskii(x, torch.tensor(WIDTHS, dtype=F64), weights, linear_weight=0.4)
     torch.testing.assert_close(y, ref, rtol=1e-15, atol=1e-14)
-
-
-@pytest.mark.parametrize("sizes", [[1], [7, 1, 30], [64]])
-def test_chunked_calls_equal_one_call(sizes):
-    m = model()
-    x = walks()
-    whole, final = m(x)
-    torch.testing.assert_close(run_chunked(m, x, sizes), whole, rtol=0, atol=0)
-    y1, s1 = m(x[0])
-    assert y1.shape == (200,) and s1.shape == (5,)
-    torch.testing.assert_close(y1, whole[0], rtol=0, atol=0)
-    torch.testing.assert_close(s1, final[0], rtol=0, atol=0)
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
@@ -204,12 +189,6 @@ def test_fit_full_batch_trains_an_operator_with_adam():
         fit_full_batch(Backlash([0.5, 1.0]).double(), x, y, adam_epochs=1)
     with pytest.raises(ValueError, match="no trainable parameters"):
         fit_full_batch(PrandtlIshlinskii([0.5]).double(), x, y, adam_epochs=1)
-
-
-def test_network_streams_equal_to_eager():
-    x = 1.5 * torch.sin(torch.linspace(0, 12, 200, dtype=F64)) + 0.1 * walks()
-    net = net_of([model(), model(centers=[0.0], slopes=[1.5], unit_weights=[1.0])], F64, x)
-    assert_streams_as_eager(net, x, atol=1e-10)
 
 
 def test_registered_by_name():

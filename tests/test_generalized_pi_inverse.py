@@ -1,6 +1,7 @@
 """The inverse generalized Prandtl-Ishlinskii operator: exact inverse of the forward model,
-the bisection against a float64 numpy reference, bounds, chunking, the per-sample step
-(eager, TorchScript), the implicit-function gradient, streaming inside a network, bad input."""
+the bisection against a float64 numpy reference, bounds, the per-sample step (eager,
+TorchScript, float32), the implicit-function gradient, bad input (chunked calls, streaming and
+export inside a network: tests/test_conformance.py)."""
 
 from __future__ import annotations
 
@@ -10,9 +11,8 @@ import numpy as np
 import pytest
 import torch
 from _gpi_helpers import F64, WIDTHS, model, walks
-from _helpers import assert_aoti_as_eager, assert_streams_as_eager, net_of
 
-from torchhys import GeneralizedPIInverse, InverseHysteresisNet
+from torchhys import GeneralizedPIInverse
 from torchhys.generalized_pi import monotone_output
 from torchhys.generalized_pi_inverse import monotone_inverse
 from torchhys.operator import OPERATORS
@@ -92,20 +92,6 @@ def test_bounded_inverse_checks_the_given_pi_output():
         m.bounded_inverse(torch.zeros_like(x))
 
 
-@pytest.mark.parametrize("sizes", [(1, 299), (100, 200), (7, 93, 200)])
-def test_chunked_calls_equal_one_call(sizes):
-    inv = model().inverse()
-    y = walks(300)
-    whole, final = inv(y)
-    parts, state, start = [], None, 0
-    for n in sizes:
-        out, state = inv(y[:, start:start + n], state)
-        parts.append(out)
-        start += n
-    torch.testing.assert_close(torch.cat(parts, 1), whole, rtol=0, atol=0)
-    torch.testing.assert_close(state, final, rtol=0, atol=0)
-
-
 @pytest.mark.parametrize("dtype", [F64, torch.float32])
 def test_step_eager_and_scripted_equal_sequence(dtype):
     inv = model(dtype).inverse()
@@ -137,11 +123,6 @@ def test_gradient_is_the_implicit_function_one():
     torch.testing.assert_close(grad, 1 / slope, rtol=1e-7, atol=0)
 
 
-def test_streams_inside_a_network_equal_to_eager():
-    y = 1.5 * torch.sin(torch.linspace(0, 12, 300, dtype=F64)) + 0.1 * walks(300)
-    assert_streams_as_eager(net_of([model().inverse()], F64, y), y, atol=1e-10)
-
-
 def test_placeholder_loads_a_fitted_state_and_is_registered():
     inv = model().inverse(lower=-4.0, upper=4.0)
     placeholder = GeneralizedPIInverse(len(WIDTHS), 3).double()
@@ -161,17 +142,6 @@ def test_bad_input():
         model().inverse(lower=1.0, upper=1.0)
     with pytest.raises(ValueError, match="margin must be >= 0"):
         model().bounded_inverse(walks(50), margin=-0.1)
-
-
-@pytest.mark.slow
-def test_exports_to_aoti_and_runs(tmp_path):
-    """The bisection loop compiles into the AOTI package (unrolled); the compiled step
-    equals the eager network in float64."""
-    y = 1.5 * torch.sin(torch.linspace(0, 12, 120, dtype=F64))
-    net = InverseHysteresisNet([model().inverse(lower=-10.0, upper=10.0)], 1,
-                               activation="identity").double()
-    net.fit_normalization(y, torch.tanh(y))
-    assert_aoti_as_eager(net, y, tmp_path / "inv.pt2")
 
 
 @pytest.mark.parametrize("bad, error, match", [
