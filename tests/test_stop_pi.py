@@ -365,7 +365,7 @@ def test_gradcheck_forward():
 # --- 5. export ---------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("dtype, atol", [(torch.float32, 1e-5), (F64, 1e-12)])
+@pytest.mark.parametrize("dtype, atol", [(torch.float32, 1e-5)])  # float64: the conformance suite
 def test_torchscript_export_of_a_network(tmp_path, dtype, atol):
     x = walks(3, 200).to(dtype)
     op = StopPrandtlIshlinskii(torch.tensor(R), weights_of(3, 2, seed=2).float(),
