@@ -1,7 +1,7 @@
 """MIMO linear dynamics: StateSpace(n_inputs=m) against scipy.signal.dlsim, TransferFunctionMatrix
 against sums of scipy.signal.lfilter, lfilter with several filters, gradcheck, chunked == whole,
 step == sequence (eager, TorchScript, torch.export), batches, bad input, one-input blocks in
-the operator protocol."""
+the operator protocol (a one-input matrix inside a network: tests/test_conformance.py)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 from _dynamics_helpers import BACKENDS, signal, stable_denominator, use_backend
-from _helpers import RAW, run_split
+from _helpers import run_split
 from torch.autograd import gradcheck, gradgradcheck
 from torch.func import functional_call
 
@@ -27,7 +27,6 @@ from torchhys.dynamics import (  # noqa: E402
 )
 from torchhys.functional.linear_filter import lfilter, state_space, state_space_step  # noqa: E402
 from torchhys.operator import check_operator, make_operator  # noqa: E402
-from torchhys.streaming import StreamingCompensator  # noqa: E402
 
 # a 3 x 2 matrix: mixed orders (common order 2), a[0] != 1, a pure delay, a static gain
 ENTRIES = [
@@ -320,20 +319,6 @@ def test_one_input_state_space_keeps_its_shapes():
                                     [[1.0, 0.0]])
     assert mimo.n_inputs == 3 and mimo.B.shape == (2, 3) and mimo.D.shape == (1, 3)
     assert not mimo.D.any()
-
-
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_one_input_matrix_streams_through_the_compensator(backend):
-    tfm = TransferFunctionMatrix.from_coefficients([[([0.3, 0.1], [1.0, -0.5])],
-                                                    [([0.2, 0.1, 0.3], [1.0, -1.2, 0.5])]])
-    net = InverseHysteresisNet([tfm, StateSpace(2, 1).double()], hidden=8).double()
-    x = 1.2 * torch.sin(torch.linspace(0, 20, 300, dtype=torch.float64))[None].repeat(2, 1)
-    x[1] += 0.1 * signal((300,), seed=14)
-    net.fit_normalization(x, 0.5 * x)
-    with use_backend(backend), torch.no_grad():
-        y, _ = net(x)
-        u = StreamingCompensator(net, limits=(-100.0, 100.0), **RAW)(x)
-    torch.testing.assert_close(u, y, rtol=0, atol=1e-10)
 
 
 @pytest.mark.parametrize("make", [

@@ -1,6 +1,6 @@
 """Streaming of the linear dynamics: chunked calls equal one call; the per-sample step (eager,
 TorchScript, torch.export) equals the sequence path; a network with the blocks streams through
-the StreamingCompensator equal to the network."""
+the StreamingCompensator equal to the network (exported: tests/test_conformance.py)."""
 
 from __future__ import annotations
 
@@ -116,19 +116,3 @@ def test_network_streams_through_the_compensator(backend):
     torch.testing.assert_close(u, y, rtol=0, atol=1e-10)
     blocks = [row[2].split(": ")[-1] for row in comp.layout()]
     assert blocks.count("filter") == 2 and blocks.count("state") == 1
-
-
-def test_network_exports_to_torchscript(tmp_path):
-    from torchhys.export import load_torchscript, to_torchscript
-
-    blocks = _blocks()
-    net = InverseHysteresisNet([blocks["tf"], blocks["ss"]], hidden=8).double()
-    x = torch.sin(torch.linspace(0, 10, 200, dtype=torch.float64))[None]
-    net.fit_normalization(x, 0.5 * x)
-    with warnings.catch_warnings():  # TorchScript is deprecated in torch 2.13; asked for here
-        warnings.simplefilter("ignore", DeprecationWarning)
-        to_torchscript(net, tmp_path / "comp.pt", limits=(-100.0, 100.0), **RAW)
-        loaded = load_torchscript(tmp_path / "comp.pt")
-    with torch.no_grad():
-        y, _ = net(x)
-    torch.testing.assert_close(loaded(x), y, rtol=0, atol=1e-10)

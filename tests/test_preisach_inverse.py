@@ -2,8 +2,9 @@
 linear term against plain formulas and a float64 relay loop, the inverse against a plain loop
 that solves each sample by bisection, round trips both ways, chunked calls, the sequence
 path's windows against a loop of the per-sample step, the step (eager and scripted),
-gradcheck, TorchScript export inside a network, fitting a graded model, the ``preisach``
-family in the inverse direction, bad input and all-or-nothing loading."""
+gradcheck, fitting a graded model, the ``preisach`` family in the inverse direction, bad
+input and all-or-nothing loading (export inside a network: tests/test_conformance.py, whose
+example is graded)."""
 
 from __future__ import annotations
 
@@ -12,10 +13,9 @@ import math
 import numpy as np
 import pytest
 import torch
-from _helpers import assert_torchscript_as_eager, random_walk, run_split, scripted_run
+from _helpers import random_walk, run_split, scripted_run
 from _helpers import step_loop as run_steps
 
-import torchhys
 from torchhys import Preisach, PreisachInverse, fit_preisach
 from torchhys.functional.preisach import (
     _inverse_windows,
@@ -298,15 +298,6 @@ def test_gradcheck():
                                 centre=m.centre, scale=m.scale)[0]
 
     assert torch.autograd.gradcheck(f, (yy, w, lin, off))
-
-
-def test_torchscript_export_of_a_network(tmp_path):
-    y = walks(2, 120)
-    inv = model(seed=9).inverse()
-    torch.manual_seed(0)
-    net = torchhys.InverseHysteresisNet([inv], hidden=4).double()
-    net.fit_normalization(y, torch.tanh(y))
-    assert_torchscript_as_eager(net, y, tmp_path / "comp.pt", 1e-10)
 
 
 # --- 3. fitting a graded model, and the family ------------------------------------------------
