@@ -7,6 +7,7 @@ import csv
 import json
 import logging
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -187,7 +188,15 @@ def test_candidate_runs_print_one_line_each(monkeypatch, capsys, tmp_path) -> No
         for log in loggers:
             log.removeHandler(handler)
     out, err = capsys.readouterr()
-    lines = [line for line in out.splitlines() if line.startswith("candidate ")]
+    # before each candidate: what runs and the time left (estimated once a training ran)
+    starts = [line for line in out.splitlines() if " starts, " in line]
+    assert [line.split(",")[0] for line in starts] == [
+        "candidate 0 (1 of 3) starts", "candidate 1 (2 of 3) starts",
+        "candidate 2 (3 of 3) starts"]
+    assert "2 trainings, time left: estimated after the first training" in starts[0]
+    assert all(re.search(r"2 trainings, about \d+ s left: ", line) for line in starts[1:])
+    lines = [line for line in out.splitlines() if line.startswith("candidate ")
+             and " starts, " not in line]
     assert [line.split(":")[0] for line in lines] == [
         "candidate 0 (1 of 3)", "candidate 1 (2 of 3)", "candidate 2 (3 of 3)"]
     rows = table(tmp_path / "run")
@@ -560,3 +569,15 @@ def test_a_diverged_training_scores_nan_with_its_reason() -> None:
         mse, errors, why = selection._validation(None, None, Trainer(), "candidate 3")
     assert math.isnan(mse) and errors.numel() == 0
     assert why == "validation MSE nan: the training diverged"
+
+
+def test_quiet_prints_no_progress(monkeypatch, capsys, tmp_path) -> None:
+    cfg = config(tmp_path)
+    monkeypatch.delenv("TORCHHYS_QUIET", raising=False)
+    cli(monkeypatch, "fit", "--quiet", "--config", str(cfg),
+        f"--trainer.default_root_dir={tmp_path / 'run'}")
+    monkeypatch.delenv("TORCHHYS_QUIET", raising=False)
+    out, err = capsys.readouterr()
+    assert not [line for line in out.splitlines() if line.startswith("candidate ")]
+    assert "torch threads" not in err
+    assert "selected candidate" in out  # the result is still printed

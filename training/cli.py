@@ -63,13 +63,11 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import math
 import os
 import re
 import sys
-import time
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Literal
 
@@ -93,6 +91,7 @@ from torchhys.training.errors import (
 from torchhys.training.module import InverseHysteresisModule
 from torchhys.training.operators import build_operators
 from torchhys.training.plugins import IMPORT_ENV, import_modules, split_import_flags
+from torchhys.training.progress import QUIET_ENV, SelectionProgress, quiet_requested
 from torchhys.training.threads import THREADS_ENV, choose_threads, split_threads_flag
 
 __all__ = ["TorchhysCLI", "main", "read_config"]
@@ -223,17 +222,23 @@ class TorchhysCLI(LightningCLI):
         folder, version = _reserve_run_dir(cfg["trainer"])
         self._run_dir = (folder, version)
 
+        progress = SelectionProgress(candidates, cv if isinstance(cv, int) else None,
+                                     quiet=quiet_requested())
+
         def build(i: int, fold: int | None) -> tuple[Any, Any, Trainer]:
+            progress.starts(i, fold)
             return self._instantiate_run(configs[i], seed, folder / "selection", i, fold)
 
         try:
             with _quiet_lightning():
                 scores = selection.run_selection(candidates, build, cv=cv, mode=mode,
-                                                 report=_progress(len(candidates)))
+                                                 report=progress.scored)
         except BaseException:
+            progress.close()
             with contextlib.suppress(OSError):  # stopped before any candidate logged
                 folder.rmdir()
             raise
+        progress.close()
         self._selected = True
         chosen = selection.best(scores, rule or "min")
         _report(scores, chosen, folder / "selection.csv", selection.describe_cv(cv, mode),
@@ -382,24 +387,6 @@ def _quiet_lightning() -> Iterator[None]:
             log.setLevel(level)
 
 
-def _progress(n: int) -> Callable[[selection.CandidateScore], None]:
-    """Print one line per scored candidate: its validation MSE and the seconds it took."""
-    start = [time.perf_counter()]
-
-    @rank_zero_only
-    def report(score: selection.CandidateScore) -> None:
-        now = time.perf_counter()
-        folds = f", {len(score.folds)} folds" if score.folds else ""
-        skipped = (f" (failed: {score.error})" if score.error else " (failed)") if math.isnan(
-            score.val_mse) else ""
-        print(f"candidate {score.index} ({score.index + 1} of {n}): val_mse "
-              f"{score.val_mse:.6g}{skipped}{folds}, {now - start[0]:.1f} s: "
-              f"{selection.config_json(score.overrides)}", flush=True)
-        start[0] = now
-
-    return report
-
-
 @rank_zero_only
 def _report(scores: list[selection.CandidateScore], chosen: selection.CandidateScore,
             path: Path, how: str, rule: str) -> None:
@@ -453,12 +440,16 @@ def main(argv: list[str] | None = None) -> None:
     try:
         args, modules = split_import_flags(args)
         args, threads = split_threads_flag(args)
+        if "--quiet" in args:  # no progress lines (the ranks of a multi-process run too)
+            args = [a for a in args if a != "--quiet"]
+            os.environ[QUIET_ENV] = "1"
         sub = next((a for a in args if a in (*TorchhysCLI.subcommands(), "export")), None)
         # an explicit choice is passed to the ranks of a multi-process run as the variable
         if threads is not None:
             os.environ[THREADS_ENV] = str(threads)
         choose_threads(threads, f"torchhys {sub}" if sub else "torchhys",
-                       say=sub is not None and "--help" not in args and "-h" not in args)
+                       say=sub is not None and "--help" not in args and "-h" not in args
+                       and not quiet_requested())
         modules = modules or [m for m in os.environ.get(IMPORT_ENV, "").split(",") if m]
         import_modules(modules)
     except Exception as exc:

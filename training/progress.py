@@ -1,0 +1,125 @@
+"""Progress of model selection: what runs next and about how long the rest takes.
+
+Before each candidate a line says what it is, how many trainings it takes and an estimate of
+the time left (the mean seconds per training so far times the trainings left); after it,
+its validation MSE (or why it failed) and the seconds it took. When standard error is a
+terminal a progress bar over all the trainings is drawn under the lines (``tqdm``, as
+Lightning's bar), else the lines are plain. ``--quiet`` (or ``TORCHHYS_QUIET=1``) prints none
+of it; the table of the candidates and the choice are still printed at the end.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+from collections.abc import Sequence
+from typing import Any
+
+from lightning.pytorch.utilities import rank_zero_only
+
+from torchhys.training import selection
+
+__all__ = ["QUIET_ENV", "SelectionProgress", "quiet_requested"]
+
+QUIET_ENV = "TORCHHYS_QUIET"
+
+
+def quiet_requested() -> bool:
+    """Whether progress output is off (``--quiet`` sets ``TORCHHYS_QUIET``)."""
+    return os.environ.get(QUIET_ENV, "").strip().lower() not in ("", "0", "false", "no")
+
+
+def _seconds(s: float) -> str:
+    return f"{s:.0f} s" if s < 120 else f"{s / 60:.1f} min"
+
+
+class SelectionProgress:
+    """Lines (and, on a terminal, a bar) around the candidates' trainings.
+
+    Args:
+        candidates: the candidates' model arguments.
+        folds: trainings per candidate (the blocked cross-validation's k; None: one, or
+            unknown until the first candidate has run, as with leave-one-recording-out).
+        quiet: print nothing.
+    """
+
+    def __init__(self, candidates: Sequence[dict[str, Any]], folds: int | None, *,
+                 quiet: bool = False) -> None:
+        self.n = len(candidates)
+        self.candidates = list(candidates)
+        self.folds = folds
+        self.quiet = quiet
+        self.start = self.last = time.perf_counter()
+        self.runs_done = 0
+        self.started = False
+        self.bar = None
+        if not quiet and sys.stderr.isatty():
+            try:
+                from tqdm import tqdm
+            except ImportError:  # plain lines only
+                tqdm = None
+            if tqdm is not None:
+                total = self.n * folds if folds else None
+                self.bar = tqdm(total=total, desc="model selection", unit="training",
+                                file=sys.stderr, leave=False, dynamic_ncols=True)
+
+    def _print(self, text: str) -> None:
+        if self.bar is not None:
+            self.bar.write(text, file=sys.stdout)
+        else:
+            print(text, flush=True)
+
+    def left(self, index: int) -> str:
+        """The estimate of the time left before candidate ``index`` starts."""
+        if self.runs_done == 0:
+            return "time left: estimated after the first training"
+        per_run = (time.perf_counter() - self.start) / self.runs_done
+        per_candidate = self.folds or max(1, round(self.runs_done / max(index, 1)))
+        runs_left = (self.n - index) * per_candidate
+        return f"about {_seconds(per_run * runs_left)} left"
+
+    @rank_zero_only
+    def starts(self, index: int, fold: int | None) -> None:
+        """Before each training (each one that starts ends the one before): a line before a
+        candidate's first training; the bar moves."""
+        if self.started:
+            self._advance()
+        self.started = True
+        if fold not in (None, 0) or self.quiet:
+            return
+        runs = (f"{self.folds} trainings" if self.folds else "1 training" if fold is None
+                else "one training per training recording")
+        self._print(f"candidate {index} ({index + 1} of {self.n}) starts, {runs}, "
+                    f"{self.left(index)}: {selection.config_json(self.candidates[index])}")
+
+    def _advance(self) -> None:
+        self.runs_done += 1
+        if self.bar is not None:
+            self.bar.update(1)
+
+    @rank_zero_only
+    def scored(self, score: selection.CandidateScore) -> None:
+        """After each candidate: its validation MSE (or why it failed) and its seconds."""
+        now = time.perf_counter()
+        if self.quiet:
+            self.last = now
+            return
+        folds = f", {len(score.folds)} folds" if score.folds else ""
+        failed = ""
+        if math.isnan(score.val_mse):
+            failed = f" (failed: {score.error})" if score.error else " (failed)"
+        self._print(f"candidate {score.index} ({score.index + 1} of {self.n}): val_mse "
+                    f"{score.val_mse:.6g}{failed}{folds}, {now - self.last:.1f} s: "
+                    f"{selection.config_json(score.overrides)}")
+        self.last = now
+
+    def close(self) -> None:
+        """The last training ended: remove the bar (the lines stay)."""
+        if self.started:
+            self._advance()
+            self.started = False
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
