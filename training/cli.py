@@ -33,30 +33,19 @@ before the module is built)::
                                                 # on a fit of those before it only
       select_rule: null                         # "1se": the first unless beaten by > 1 s.e.
 
-Every candidate is trained from the same seed with the same trainer settings (CSV logs
-under ``selection/candidate_<i>`` in the run's folder, no checkpoints; no progress bar, model
-summary or informational Lightning messages: one line per candidate) and scored by its
-validation MSE at the end of training: on the validation split (which must not overlap the
-training split), or with ``model.select_cv: k`` by blocked cross-validation inside the
-training part (``k`` trainings per candidate), or with ``model.select_cv: recording`` by
-holding each training recording out once (one training per training recording); with
-``model.select_cv_mode: rolling`` each block (or recording) after the first is scored by a
-fit of those before it only (``k - 1`` trainings per candidate; for a device that drifts as
-it is used). The validation split is then not used for the choice
-(:mod:`torchhys.training.selection`).
-The lowest validation MSE wins, or with ``model.select_rule: 1se`` the first candidate (a
-baseline such as the straight line) when it is within one standard error of the lowest.
-The test split is not read. The table is printed and written to ``selection.csv`` in the
-run's own folder, ``<default_root_dir>/logs/version_<N>/`` (the path is printed): the folder
-is reserved before the candidates train (the next free ``version_<N>``, created atomically),
-so that runs into the same ``default_root_dir``, concurrent ones included, keep their tables
-apart. The chosen candidate's configuration then replaces the model section and is fitted
-once more as a plain ``fit`` would be, logging in that same folder (same seed: on a
-deterministic device the same weights as scored; ``config.yaml`` without ``select``,
-``checkpoints/last.ckpt`` as usual), ready for ``torchhys test --ckpt_path`` and
-``torchhys export --ckpt``. ``validate``, ``test`` and ``predict`` ignore ``model.select``
-(with ``--ckpt_path`` the checkpoint's hyperparameters give the model), and so does a
-``fit --ckpt_path`` that resumes.
+Every candidate is trained from the same seed with the same trainer settings (one progress
+line before and after each: :mod:`torchhys.training.progress`) and scored by its validation
+MSE; the table goes to ``selection.csv`` in the run's own ``logs/version_<N>`` folder
+(reserved atomically: concurrent runs keep theirs), and the chosen candidate is fitted once
+more as a plain ``fit`` in that folder. The rules (validation split, blocked, rolling and
+leave-one-recording-out cross-validation, the one-standard-error rule) are stated once, in
+docs/training.md ("Model selection on validation data"); the code is in
+:mod:`torchhys.training.selection`. ``validate``, ``test`` and ``predict`` ignore
+``model.select``, and so does a ``fit --ckpt_path`` that resumes.
+
+Options of the command itself, taken out before LightningCLI reads the rest: ``--import
+MODULE`` (:mod:`torchhys.training.plugins`), ``--threads N``
+(:mod:`torchhys.training.threads`), ``--quiet``, ``--traceback``.
 """
 
 from __future__ import annotations
