@@ -31,15 +31,6 @@ def test_cell_loop_equals_sequence(backend, learnable):
     torch.testing.assert_close(final, s, rtol=0, atol=0)
 
 
-def test_unbatched_state_shapes(backend):
-    seq = Backlash(WIDTHS)
-    x = _signal(1, 40)[0]
-    y, state = seq(x)
-    assert y.shape == (40, 4) and state.shape == (4,)
-    y2, _ = seq(x[20:], seq(x[:20])[1])
-    torch.testing.assert_close(y2, y[20:], rtol=0, atol=0)
-
-
 def test_learnable_widths_stay_nonnegative_and_train():
     torch.manual_seed(0)
     seq = Backlash(torch.tensor([0.0, 0.5, 1.5]), learnable=True)

@@ -47,12 +47,6 @@ def test_errors_name_the_argument(call, error: type, match: str) -> None:
             call()
 
 
-def test_state_from_another_batch_is_rejected() -> None:
-    _, state = eiho(torch.zeros(2, 5), rule="dominant")
-    with pytest.raises(ValueError, match="state must come from the same operator and batch"):
-        eiho(torch.zeros(3, 5), rule="dominant", state=state)
-
-
 def test_per_segment_needs_targets_and_warns() -> None:
     with pytest.warns(NonCausalWarning, match="not causal"):
         op = EIHO(a="segment")

@@ -6,7 +6,7 @@ import warnings
 
 import pytest
 import torch
-from _helpers import batch, random_walk, run_chunked
+from _helpers import batch, run_chunked
 
 from torchhys import EIHO, InverseHysteresisNet, ZhaoTanOperator
 from torchhys.functional import NonCausalWarning
@@ -65,11 +65,3 @@ def test_expanded_network_chunked_equals_whole() -> None:
     net.fit_normalization(x, torch.tanh(x))
     whole, _ = net(x)
     torch.testing.assert_close(run_chunked(net, x, [3, 1]), whole, rtol=1e-12, atol=1e-12)
-
-
-def test_one_dimensional_input_streams() -> None:
-    op = EIHO(a=1.0, rule="dominant").double()
-    x = random_walk(7, T=60)
-    whole, _ = op(x)
-    assert whole.shape == x.shape
-    torch.testing.assert_close(run_chunked(op, x, [1]), whole, rtol=1e-12, atol=1e-12)

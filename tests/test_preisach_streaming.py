@@ -10,7 +10,6 @@ import torch
 from _helpers import assert_streams_as_eager, run_split, step_loop
 from _preisach_helpers import model, signal
 
-from torchhys.operator import OPERATORS, make_operator
 from torchhys.preisach import Preisach
 
 
@@ -45,17 +44,6 @@ def test_step_eager_and_scripted_equal_sequence(smooth, initial, dtype):
         torch.testing.assert_close(f[..., 0], y.detach(), rtol=0, atol=tol)
         torch.testing.assert_close(state[0], final, rtol=0, atol=0)
     torch.testing.assert_close(step.run(x)[..., 0], y.detach(), rtol=0, atol=tol)
-
-
-def test_registered_and_one_dimensional():
-    assert OPERATORS["preisach"] is Preisach
-    m = make_operator("preisach", lo=-1.0, hi=1.0, n=5)
-    x = signal(1, 40, 5, seed=7).float()
-    y, s = m(x[0])
-    assert y.shape == (40,) and s.shape == (15,)
-    torch.testing.assert_close(y, m(x)[0][0])
-
-
 
 
 @pytest.mark.parametrize("smooth", [None, 0.05])
