@@ -17,12 +17,10 @@ W = torch.tensor([0.5, 1.0])
 @pytest.mark.parametrize(
     "x, widths, y0, err, match",
     [
-        (torch.tensor([0.0, float("nan")]), W, None, ValueError, "x must be finite"),
+        # NaN, 3-D, integer x: tests/test_conformance.py
         (torch.tensor([0.0, float("inf")]), W, None, ValueError, "x must be finite"),
-        (torch.zeros(2, 3, 4), W, None, ValueError, r"x must have shape \(time,\)"),
         (torch.zeros(()), W, None, ValueError, "x must have shape"),
         (torch.zeros(2, 0), W, None, ValueError, "at least one sample"),
-        (torch.arange(5), W, None, TypeError, "x must have a floating-point dtype"),
         ([0.0, 1.0], W, None, TypeError, "x must be a torch.Tensor"),
         (torch.zeros(5), torch.tensor([0.5, -1.0]), None, ValueError, "widths must be non-neg"),
         (torch.zeros(5), torch.tensor([[0.5]]), None, ValueError, r"widths must have shape"),

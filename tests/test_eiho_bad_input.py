@@ -16,10 +16,8 @@ X = torch.linspace(0, 1, 10)
 @pytest.mark.parametrize(
     "call, error, match",
     [
-        (lambda: eiho(torch.tensor([0.0, float("nan")])), ValueError, "x must be finite"),
+        # NaN, 3-D, integer x: tests/test_conformance.py
         (lambda: eiho(torch.tensor([float("inf")])), ValueError, "x must be finite"),
-        (lambda: eiho(torch.zeros(1, 2, 3)), ValueError, r"x must have shape .*\(1, 2, 3\)"),
-        (lambda: eiho(torch.arange(3)), TypeError, "x must have a floating-point dtype"),
         (lambda: eiho(X, -1.0), ValueError, "a must be positive"),
         (lambda: eiho(X, torch.ones(3)), ValueError, r"a must be a scalar .* \(3,\)"),
         (lambda: eiho(X, torch.tensor(float("nan"))), ValueError, "a must be finite"),
