@@ -182,8 +182,9 @@ POINTWISE: dict[str, Emitter] = {
     "relu.default": _op("(({0} < 0) ? ({T})0 : {0})"),
     "gelu.default": _gelu,
     **{f"{n}.default": _unary_float(n) for n in (
-        "sqrt", "exp", "expm1", "log", "log1p", "log2", "sin", "cos", "tan", "atan", "tanh",
-        "erf")},
+        "sqrt", "exp", "exp2", "expm1", "log", "log1p", "log2", "log10", "sin", "cos", "tan",
+        "asin", "acos", "atan", "sinh", "cosh", "tanh", "asinh", "acosh", "atanh", "erf",
+        "erfc")},
     **{f"{n}.default": _op({"float": n + "{f}({0})", "int": "{0}"})
        for n in ("floor", "ceil", "trunc")},
     "round.default": _op({"float": "rint{f}({0})", "int": "{0}"}),

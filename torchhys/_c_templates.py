@@ -180,9 +180,11 @@ def _block(w: Writer, lines: Callable[[], None]) -> None:
 
 
 def _reduce(w: Writer, spec: CTensor, x: CTensor, dims: Sequence[int] | None, keepdim: bool,
-            init: str, step: str, finish: str = "acc") -> CTensor:
-    """Reduce ``x`` over ``dims`` (None or []: all) in index order: ``acc = init``, then
-    ``acc = step`` (``{acc}``, ``{x}``) per element, then ``finish``."""
+            init: str | Callable[[list[str]], str], step: str, finish: str = "acc"
+            ) -> CTensor:
+    """Reduce ``x`` over ``dims`` (None or []: all) in index order: ``acc = init`` (or
+    ``init(index of the slice's first element)``), then ``acc = step`` (``{acc}``, ``{x}``)
+    per element, then ``finish``."""
     n = len(x.shape)
     red = sorted({_dim(d, n) for d in dims}) if dims else list(range(n))
     kept = [d for d in range(n) if d not in red]
@@ -192,15 +194,17 @@ def _reduce(w: Writer, spec: CTensor, x: CTensor, dims: Sequence[int] | None, ke
                         if keepdim else out.strides, 0)
     t = w.ctype(spec.dtype)
     with w.loop([x.shape[d] for d in kept]) as kidx:
+        def full(ridx: Sequence[str]) -> list[str]:
+            at = [""] * n
+            for d, i in (*zip(kept, kidx, strict=True), *zip(red, ridx, strict=True)):
+                at[d] = i
+            return at
+
         def body() -> None:
-            w.emit(f"{t} acc = {init};")
+            first = init(full(["0"] * len(red))) if callable(init) else init
+            w.emit(f"{t} acc = {first};")
             with w.loop([x.shape[d] for d in red]) as ridx:
-                full = [""] * n
-                for d, i in zip(kept, kidx, strict=True):
-                    full[d] = i
-                for d, i in zip(red, ridx, strict=True):
-                    full[d] = i
-                value = w.cast(w.read(x, full), x.dtype, spec.dtype)
+                value = w.cast(w.read(x, full(ridx)), x.dtype, spec.dtype)
                 w.emit("acc = " + step.format(acc="acc", x=value) + ";")
             w.emit(f"{w.read(out_kept, kidx)} = {finish};")
         _block(w, body)
@@ -224,8 +228,8 @@ def _extremum(kind: str) -> Emitter:
     def emit(w: Writer, spec: CTensor, x: CTensor, dim: Sequence[int] = (),
              keepdim: bool = False) -> CTensor:
         f = w.helper(kind, spec.dtype)
-        first = w.read(x, ["0"] * len(x.shape))  # any element: max(a, a) = a
-        return _reduce(w, spec, x, dim, keepdim, first, f + "({acc}, {x})")
+        return _reduce(w, spec, x, dim, keepdim, lambda at: w.read(x, at),  # max(a, a) = a
+                       f + "({acc}, {x})")
     return emit
 
 
@@ -364,6 +368,39 @@ def _gather(w: Writer, spec: CTensor, x: CTensor, dim: int, index: CTensor, *,
     return out
 
 
+def _index_select(w: Writer, spec: CTensor, x: CTensor, dim: int, index: CTensor
+                  ) -> CTensor:
+    d = _dim(dim, len(x.shape))
+    index = index if index.shape else _unsqueeze(w, spec, index, 0)
+    out = w.local(spec.dtype, spec.shape)
+
+    def element(idx: list[str]) -> str:
+        at = list(idx)
+        at[d] = _bounded(w, w.read(index, [idx[d]]), x.shape[d], wrap=False)
+        return w.read(x, at)
+
+    w.assign(out, element)
+    return out
+
+
+def _scatter(w: Writer, spec: CTensor, x: CTensor, dim: int, index: CTensor, src: Operand, *,
+             reduce: str | None = None) -> CTensor:
+    """scatter.src / scatter.value: ``x`` with ``out[..., index[i], ...] = src[i]``, in index
+    order (a repeated index: the last write stays, as on torch's CPU)."""
+    if reduce is not None:
+        raise ValueError(f"scatter(reduce={reduce!r}) has no template")
+    d = _dim(dim, len(x.shape))
+    out = copy(w, x)
+    if index.numel:
+        with w.loop(index.shape) as idx:
+            at = list(idx)
+            at[d] = _bounded(w, w.read(index, idx), x.shape[d], wrap=False)
+            value = (w.cast(w.read(src, idx), src.dtype, spec.dtype)
+                     if isinstance(src, CTensor) else w.literal(src, spec.dtype))
+            w.emit(f"{w.read(out, at)} = {value};")
+    return out
+
+
 def _index(w: Writer, spec: CTensor, x: CTensor, indices: Sequence[CTensor | None]
            ) -> CTensor:
     given = [i for i, t in enumerate(indices) if t is not None]
@@ -394,7 +431,8 @@ OTHERS: dict[str, Emitter] = {
     "matmul.default": _matmul_core, "mv.default": _matmul_core, "dot.default": _matmul_core,
     "linear.default": _linear, "cumsum.default": _cumsum,
     "sort.default": _sort, "sort.stable": _sort, "searchsorted.Tensor": _searchsorted,
-    "gather.default": _gather, "index.Tensor": _index,
+    "gather.default": _gather, "index.Tensor": _index, "index_select.default": _index_select,
+    "scatter.src": _scatter, "scatter.value": _scatter,
 }
 
 
