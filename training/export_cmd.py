@@ -1,7 +1,12 @@
 """``torchhys export``: a trained checkpoint to a deployable compensator file.
 
-    torchhys export --ckpt CKPT --format torchscript|aoti --out FILE [--limits LOW HIGH]
+    torchhys export --ckpt CKPT --format torchscript|aoti|c --out FILE|DIR [--limits LOW HIGH]
         [--input-margin M | --input-margin none] [--direction auto|increasing|decreasing|none]
+        [--dtype float64|float32] [--prefix NAME]
+
+``--format c`` writes ``DIR/NAME.h`` and ``DIR/NAME.c`` (``--prefix``, default
+``torchhys_comp``), dependency-free C99 (:func:`torchhys.export_c.to_c`); ``--dtype`` sets
+the exported step's real type (default: the checkpoint's).
 
 The compensator clamps its input to the training input range widened by ``--input-margin``
 (a share of the range, default 0.05) and counts the samples it clamped; its command never
@@ -27,6 +32,7 @@ import torch
 
 from torchhys import InverseHysteresisNet
 from torchhys.export import to_aoti, to_torchscript
+from torchhys.export_c import DEFAULT_PREFIX, check_prefix, to_c
 from torchhys.streaming import DIRECTIONS, StreamingCompensator
 from torchhys.training.errors import config_errors, read_checkpoint, report_user_error
 from torchhys.training.operators import build_operators
@@ -40,8 +46,14 @@ _ARCH_KEYS = ("operator", "hidden", "activation", "operator_kwargs")
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="torchhys export", description=__doc__.splitlines()[0])
     p.add_argument("--ckpt", type=Path, required=True, help="checkpoint or state dict file")
-    p.add_argument("--format", choices=("torchscript", "aoti"), required=True)
-    p.add_argument("--out", type=Path, required=True, help="output file (.pt or .pt2)")
+    p.add_argument("--format", choices=("torchscript", "aoti", "c"), required=True)
+    p.add_argument("--out", type=Path, required=True,
+                   help="output file (.pt or .pt2), or with --format c an existing folder")
+    p.add_argument("--dtype", choices=tuple(_DTYPES), default=None,
+                   help="the exported step's real type (default: the checkpoint's)")
+    p.add_argument("--prefix", type=_prefix, default=None,
+                   help=f"--format c: the files' name and the C names' prefix (default "
+                        f"{DEFAULT_PREFIX})")
     p.add_argument("--limits", type=float, nargs=2, metavar=("LOW", "HIGH"),
                    help="command saturation (default: the training output range)")
     p.add_argument("--initial-command", type=float, default=0.0,
@@ -65,6 +77,16 @@ def _parser() -> argparse.ArgumentParser:
     arch.add_argument("--activation")
     arch.add_argument("--operator-kwargs", help="JSON object, e.g. '{\"rule\": \"dominant\"}'")
     return p
+
+
+_DTYPES = {"float64": torch.float64, "float32": torch.float32}
+
+
+def _prefix(text: str) -> str:
+    try:
+        return check_prefix(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def _margin(text: str) -> float | None:
@@ -136,18 +158,29 @@ def main(argv: list[str]) -> int:
     """
     args = _parser().parse_args(argv)
     try:
+        if args.format == "c" and not args.out.is_dir():
+            raise ValueError(f"--out {args.out}: the folder does not exist (--format c writes "
+                             "two files into an existing folder)")
         if not args.out.parent.is_dir():
             raise ValueError(f"--out {args.out}: the folder {args.out.parent} does not exist")
+        if args.prefix is not None and args.format != "c":
+            raise ValueError(f"--prefix applies to --format c only, not {args.format}")
         import_modules(args.imports)
         ckpt = read_checkpoint(args.ckpt, "--ckpt", lightning=False)
+        options = {"limits": args.limits, "initial_command": args.initial_command,
+                   "input_margin": args.input_margin, "direction": args.direction}
         with config_errors():  # a TypeError here is in the options or the checkpoint
             net = build_net(ckpt, None if "state_dict" in ckpt else _plain_arch(args))
-            comp = StreamingCompensator(net, limits=args.limits,
-                                        initial_command=args.initial_command,
-                                        input_margin=args.input_margin,
-                                        direction=args.direction)
-        export = to_torchscript if args.format == "torchscript" else to_aoti
-        export(comp, args.out)
+            if args.dtype is not None:
+                net = net.to(_DTYPES[args.dtype])
+            comp = StreamingCompensator(net, **options)
+        if args.format == "c":
+            written = to_c(net, args.out, prefix=args.prefix or DEFAULT_PREFIX,
+                           dtype=comp.low.dtype, **options)
+            args.out = " and ".join(str(p) for p in written)
+        else:
+            export = to_torchscript if args.format == "torchscript" else to_aoti
+            export(comp, args.out)
     except Exception as e:
         if not report_user_error("torchhys export", e, args.traceback):
             raise
@@ -155,7 +188,8 @@ def main(argv: list[str]) -> int:
     clamp = (f"input clamped to [{float(comp.in_low):.6g}, {float(comp.in_high):.6g}]"
              if comp.clamp_input else "input not clamped")
     guard = {1: "increasing", -1: "decreasing", 0: "none"}[int(comp.direction)]
-    print(f"wrote {args.out} ({args.format}); command limits [{float(comp.low):.6g}, "
+    dtype = str(comp.low.dtype).replace("torch.", "")
+    print(f"wrote {args.out} ({args.format}, {dtype}); command limits [{float(comp.low):.6g}, "
           f"{float(comp.high):.6g}], {clamp}, direction {guard}")
     return 0
 
