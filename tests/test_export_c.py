@@ -1,0 +1,525 @@
+"""torchhys.export_c: the generated C99 step, compiled, against the TorchScript compensator.
+
+The two files are compiled with ``cc -std=c99 -O2 -Wall -Wextra -Werror -pedantic`` into a
+harness that uses only the contract's names (``NAME_real``, ``NAME_state``, ``NAME_init``,
+``NAME_step``, the two counters, ``NAME_LOW``, ``NAME_HIGH``, ``NAME_STATE_BYTES``) and run
+over a record (nested turning points, ties, samples outside the training range, NaN and inf)
+beside the TorchScript file's ``step``: every registered operator's example network, the
+recommended compensator's network under several export options, an analytic inverse, and a
+checkpoint of the ``torchhys`` command.
+
+float64 (1e4 samples): the commands within 1e-12 of their scale, the counters equal
+(measured with gcc 12 and glibc on x86-64: at most 9e-14; 0 for half of the operators).
+float32 (3000 samples): within FLOAT32_RTOL = 1e-4 of their scale, the counters equal
+(measured: at most 4.7e-5, the EIHO network; 0 for half of the operators). That is the
+size of float32's own error on these networks (the float32 TorchScript file against the
+float64 one: 6e-6 to 8e-5, and 1.3 for the cascade example, whose turning-point threshold
+float32 rounding crosses at other samples: there both float32 files agree within 4.7e-5
+and both differ from float64). The differences come from the order of the sums (BLAS) and
+from ``exp`` and ``tanh`` (torch's vectorized kernels against glibc), scaled up by the
+networks' output weights. Skipped without a C compiler.
+"""
+
+from __future__ import annotations
+
+import copy
+import importlib
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import torchhys
+from torchhys import EIHO, Backlash, InverseHysteresisNet
+from torchhys.export import to_torchscript
+from torchhys.export_c import to_c
+from torchhys.operator import EXAMPLES, OPERATORS, example_of, load_entry_points
+
+load_entry_points()
+NAMES = sorted(OPERATORS)
+CC = shutil.which("cc") or shutil.which("gcc")
+needs_cc = pytest.mark.skipif(CC is None, reason="no C compiler (cc or gcc) on PATH")
+FLAGS = ["-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic"]
+FLOAT64_RTOL = 1e-12
+FLOAT32_RTOL = 1e-4
+N, N32 = 10_000, 3_000
+
+HARNESS = r"""
+#include <stdio.h>
+#include "NAME.h"
+
+/* Runs the input (binary doubles) twice, NAME_init before each pass: writes the commands of
+   both passes and the two counters after the first; prints LOW HIGH STATE_BYTES. */
+int main(int argc, char **argv)
+{
+    NAME_state s;
+    double x, u;
+    int64_t counts[2];
+    long n = 0, i, pass;
+    FILE *in, *out;
+    if (argc != 3 || !(in = fopen(argv[1], "rb")) || !(out = fopen(argv[2], "wb")))
+        return 2;
+    if (sizeof(NAME_state) != NAME_STATE_BYTES)
+        return 3;
+    for (pass = 0; pass < 2; ++pass) {
+        NAME_init(&s);
+        rewind(in);
+        for (i = 0; fread(&x, sizeof x, 1, in) == 1; ++i) {
+            u = (double)NAME_step(&s, (NAME_real)x);
+            fwrite(&u, sizeof u, 1, out);
+        }
+        if (pass == 0) {
+            n = i;
+            counts[0] = NAME_nonfinite_count(&s);
+            counts[1] = NAME_out_of_range_count(&s);
+        }
+    }
+    fwrite(counts, sizeof counts[0], 2, out);
+    printf("%.17g %.17g %ld %ld\n", (double)NAME_LOW, (double)NAME_HIGH,
+           (long)NAME_STATE_BYTES, n);
+    fclose(in);
+    fclose(out);
+    return 0;
+}
+"""
+
+
+# --- models and records -----------------------------------------------------------------------
+
+
+def loop_data(T: int = 600) -> tuple[torch.Tensor, torch.Tensor]:
+    """The training loop: x = sin(t) (1 + 0.1 t), y = x + 0.2 cos t, t in [0, 2 pi]."""
+    t = torch.linspace(0.0, 2 * torch.pi, T, dtype=torch.float64)
+    x = torch.sin(t) * (1 + 0.1 * t)
+    return x[None], (x + 0.2 * torch.cos(t))[None]
+
+
+def net_of(operators: list, hidden: int = 8, activation: str = "sigmoid"
+           ) -> InverseHysteresisNet:
+    """A float64 network on ``loop_data`` (normalization, ranges and direction recorded) whose
+    output layer is the ridge least-squares fit of the target: a model that follows it."""
+    torch.manual_seed(0)
+    net = InverseHysteresisNet(operators, hidden=hidden, activation=activation).double()
+    x, y = loop_data()
+    net.fit_normalization(x, y)
+    with torch.no_grad():
+        f, _ = net.features(x)
+        h = net.activation(net.hidden((f[0] - net.in_mean) / net.in_std))
+        a = torch.cat([h, torch.ones(h.shape[0], 1, dtype=h.dtype)], 1)
+        target = (y[0] - net.out_mean) / net.out_std
+        w = torch.linalg.solve(a.T @ a + 1e-6 * torch.eye(a.shape[1], dtype=a.dtype),
+                               a.T @ target)
+        net.output.weight.copy_(w[:-1][None])
+        net.output.bias.copy_(w[-1:])
+    return net
+
+
+def record(low: float, high: float, n: int = N, seed: int = 0) -> np.ndarray:
+    """``n`` samples around ``[low, high]``: nested turning points with noise, runs of repeated
+    samples (ties), excursions 30 % beyond the range, NaN, +inf and -inf (the first sample
+    NaN: the initial command is held)."""
+    g = np.random.default_rng(seed)
+    c, h = (low + high) / 2, (high - low) / 2
+    t = np.arange(n)
+    x = c + h * 0.95 * np.sin(2 * np.pi * t / 700) * (0.55 + 0.45 * np.cos(2 * np.pi * t / 2300))
+    x += 0.01 * h * g.standard_normal(n)
+    for k in range(800, n, 1500):  # excursions out of the range, both ways
+        x[k:k + 60] = c + np.sign(np.sin(k)) * 1.3 * h * np.sin(np.linspace(0, np.pi, 60))
+    for k in g.choice(n, 120, replace=False):  # ties: runs of one repeated sample
+        x[k:k + 8] = x[k]
+    x[g.choice(n, 40, replace=False)] = np.nan
+    x[g.choice(n, 15, replace=False)] = np.inf
+    x[g.choice(n, 15, replace=False)] = -np.inf
+    x[0] = np.nan
+    return x
+
+
+def training_range(net: InverseHysteresisNet) -> tuple[float, float]:
+    return float(net.in_min), float(net.in_max)
+
+
+# --- running both files -----------------------------------------------------------------------
+
+
+def compile_harness(folder: Path, prefix: str = "torchhys_comp") -> Path:
+    (folder / "harness.c").write_text(HARNESS.replace("NAME", prefix))
+    exe = folder / "harness"
+    done = subprocess.run([CC, *FLAGS, "-I", str(folder), "-o", str(exe),
+                           str(folder / "harness.c"), str(folder / f"{prefix}.c"), "-lm"],
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    return exe
+
+
+def run_c(exe: Path, x: np.ndarray) -> dict:
+    """The harness on ``x``: commands, the counters, LOW, HIGH, STATE_BYTES."""
+    src, dst = exe.parent / "x.bin", exe.parent / "u.bin"
+    x.astype(np.float64).tofile(src)
+    done = subprocess.run([str(exe), str(src), str(dst)], capture_output=True, text=True)
+    assert done.returncode == 0, (done.returncode, done.stderr)
+    raw = dst.read_bytes()
+    u = np.frombuffer(raw[:-16], dtype=np.float64)
+    counts = np.frombuffer(raw[-16:], dtype=np.int64)
+    low, high, n_bytes, n = done.stdout.split()
+    assert int(n) == len(x)
+    assert np.array_equal(u[:len(x)], u[len(x):], equal_nan=True)  # NAME_init resets
+    return {"u": u[:len(x)], "nonfinite": int(counts[0]), "out_of_range": int(counts[1]),
+            "low": float(low), "high": float(high), "state_bytes": int(n_bytes)}
+
+
+def run_torchscript(model: torch.nn.Module, x: np.ndarray, path: Path, **options) -> dict:
+    scripted = to_torchscript(model, path, **options)
+    xt = torch.tensor(x, dtype=scripted.low.dtype)
+    u = np.array([float(scripted.step(xt[i:i + 1])) for i in range(len(x))])
+    return {"u": u, "nonfinite": int(scripted.nonfinite_count()),
+            "out_of_range": int(scripted.out_of_range_count())}
+
+
+def both(model: torch.nn.Module, folder: Path, x: np.ndarray, dtype: torch.dtype = torch.float64,
+         **options) -> tuple[dict, dict]:
+    """The C and the TorchScript compensators of ``model`` in ``dtype`` on ``x``."""
+    to_c(model, folder, dtype=dtype, **options)
+    c = run_c(compile_harness(folder), x)
+    ts = run_torchscript(copy.deepcopy(model).to(dtype), x, folder / "comp.pt", **options)
+    return c, ts
+
+
+def gap(c: dict, ts: dict) -> float:
+    """The largest difference of the commands relative to their scale (at least 1)."""
+    assert np.isfinite(c["u"]).all() and np.isfinite(ts["u"]).all()
+    return float(np.max(np.abs(c["u"] - ts["u"])) / max(1.0, np.max(np.abs(ts["u"]))))
+
+
+def assert_equal_runs(c: dict, ts: dict, rtol: float) -> None:
+    assert gap(c, ts) <= rtol, gap(c, ts)
+    assert (c["nonfinite"], c["out_of_range"]) == (ts["nonfinite"], ts["out_of_range"])
+
+
+# --- every operator ---------------------------------------------------------------------------
+
+
+UNSUPPORTED: dict[str, str] = {}
+"""Registered operators whose step uses an operation without a C template: name -> the
+operation the error must name (none today)."""
+
+
+@needs_cc
+@pytest.mark.parametrize("name", NAMES)
+def test_every_operator_in_c_equals_torchscript_float64(name: str, tmp_path: Path) -> None:
+    net = net_of([example_of(name).build().double()])
+    x = record(*training_range(net))
+    if name in UNSUPPORTED:
+        with pytest.raises(ValueError, match=re.escape(UNSUPPORTED[name])):
+            to_c(net, tmp_path)
+        return
+    c, ts = both(net, tmp_path, x)
+    assert_equal_runs(c, ts, FLOAT64_RTOL)
+    assert c["nonfinite"] == int((~np.isfinite(x)).sum()) and c["out_of_range"] > 0
+
+
+@needs_cc
+@pytest.mark.parametrize("name", [n for n in NAMES if n not in UNSUPPORTED])
+def test_every_operator_in_c_float32(name: str, tmp_path: Path) -> None:
+    net = net_of([example_of(name).build().double()])
+    x = record(*training_range(net), n=N32)
+    c, ts = both(net, tmp_path, x, torch.float32)
+    assert_equal_runs(c, ts, FLOAT32_RTOL)
+
+
+# --- the recommended compensator, options -----------------------------------------------------
+
+
+def recommended() -> InverseHysteresisNet:
+    """The network of configs/compensator.yaml: a re-based EIHO and 16 plays, 64 sigmoids."""
+    x, _ = loop_data()
+    span = float(x.max() - x.min())
+    plays = Backlash(0.4 * span * torch.arange(1, 17, dtype=torch.float64) / 16)
+    return net_of([EIHO(a=1.0, rule="recent", output="branch", threshold=0.0), plays],
+                  hidden=64)
+
+
+@needs_cc
+@pytest.mark.parametrize("options", [
+    {},
+    {"initial_command": 0.3, "direction": "decreasing", "input_margin": 0.2},
+    {"limits": (-0.5, 0.7), "input_margin": None, "direction": "none", "initial_command": -2.0},
+])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_recommended_compensator_with_options(options: dict, dtype: torch.dtype,
+                                              tmp_path: Path) -> None:
+    net = recommended()
+    x = record(*training_range(net), n=N if dtype == torch.float64 else N32, seed=1)
+    c, ts = both(net, tmp_path, x, dtype, **options)
+    assert_equal_runs(c, ts, FLOAT64_RTOL if dtype == torch.float64 else FLOAT32_RTOL)
+    low, high = options.get("limits", (float(net.out_min), float(net.out_max)))
+    assert c["low"] == pytest.approx(low, rel=1e-6) and c["high"] == pytest.approx(high, rel=1e-6)
+    assert c["u"].min() >= c["low"] and c["u"].max() <= c["high"]
+    assert c["u"][0] == pytest.approx(min(max(options.get("initial_command", 0.0), low), high),
+                                      rel=1e-6)  # the first sample is NaN
+
+
+@needs_cc
+def test_a_prandtl_ishlinskii_inverse_model(tmp_path: Path) -> None:
+    """A model with streaming steps that is not a network (an analytic inverse: no recorded
+    range, so limits are given and the input is not clamped)."""
+    pi = torchhys.PrandtlIshlinskii(torch.tensor([0.2, 0.6, 1.2], dtype=torch.float64),
+                                    torch.tensor([0.5, 0.3, 0.2], dtype=torch.float64),
+                                    linear_weight=1.0)
+    model = torchhys.PrandtlIshlinskiiInverse(pi)
+    x = record(-1.5, 1.5)
+    c, ts = both(model, tmp_path, x, limits=(-3.0, 3.0))
+    assert_equal_runs(c, ts, FLOAT64_RTOL)
+
+
+# --- the contract -----------------------------------------------------------------------------
+
+
+def test_the_files_keep_the_contract(tmp_path: Path) -> None:
+    net = recommended()
+    h, c = to_c(net, tmp_path, prefix="comp_a", dtype=torch.float32, input_margin=0.1)
+    assert (h, c) == (tmp_path / "comp_a.h", tmp_path / "comp_a.c")
+    header, source = h.read_text(), c.read_text()
+    includes = set(re.findall(r"#include\s*[<\"]([^>\"]+)", header + source))
+    assert includes == {"stdint.h", "math.h", "string.h", "comp_a.h"}
+    for name in ("typedef float comp_a_real;", "} comp_a_state;",
+                 "void comp_a_init(comp_a_state *s);",
+                 "comp_a_real comp_a_step(comp_a_state *s, comp_a_real x);",
+                 "int64_t comp_a_nonfinite_count(const comp_a_state *s);",
+                 "int64_t comp_a_out_of_range_count(const comp_a_state *s);",
+                 "#define comp_a_LOW", "#define comp_a_HIGH", "#define comp_a_STATE_BYTES"):
+        assert name in header
+    assert f"torchhys {torchhys.__version__}" in header
+    assert "InverseHysteresisNet: operators [EIHO, Backlash], hidden 64, sigmoid" in header
+    assert "input_margin=0.1" in header and "training range: input [" in header
+    # no allocation, no mutable global (file-scope data is static const), no recursion
+    assert not re.search(r"\b(malloc|calloc|realloc|free|alloca)\s*\(", source)
+    data = re.findall(r"^(?!typedef)\w[\w ]*?\w+(?:\[\d*\])?\s*(?:=|;)", source, re.M)
+    assert data and all(d.startswith("static const ") for d in data), data
+    step = source[source.index("comp_a_step(comp_a_state *s"):]
+    assert "comp_a_step(" not in step[step.index("{"):]
+
+
+@needs_cc
+def test_the_state_is_the_callers(tmp_path: Path) -> None:
+    """Two states of one compensator run independently, and a copied state continues as the
+    original (no hidden state in the C file)."""
+    net = recommended()
+    to_c(net, tmp_path, prefix="two")
+    main = tmp_path / "main.c"
+    main.write_text(r"""
+#include <stdio.h>
+#include "two.h"
+int main(void)
+{
+    two_state a, b, c;
+    int i;
+    two_real ua = 0, ub = 0, uc = 0, ref = 0;
+    two_init(&a);
+    two_init(&b);
+    for (i = 0; i < 200; ++i) {
+        ua = two_step(&a, (two_real)(0.01 * i));
+        if (i == 99)
+            c = a;
+        if (i >= 100)
+            uc = two_step(&c, (two_real)(0.01 * i));
+    }
+    for (i = 0; i < 200; ++i)
+        ub = two_step(&b, (two_real)(0.01 * i));
+    two_init(&c);
+    for (i = 0; i < 200; ++i)
+        ref = two_step(&c, (two_real)(0.01 * i));
+    printf("%d\n", ua == ub && ua == uc && ua == ref);
+    return 0;
+}
+""")
+    exe = tmp_path / "main"
+    subprocess.run([CC, *FLAGS, "-o", str(exe), str(main), str(tmp_path / "two.c"), "-lm"],
+                   check=True)
+    assert subprocess.run([str(exe)], capture_output=True, text=True).stdout.strip() == "1"
+
+
+# --- errors -----------------------------------------------------------------------------------
+
+
+ERFINV_OPERATOR = '''
+import torch
+from torchhys.operator import HysteresisOperator, OperatorStep, register_operator
+
+
+class ErfinvStep(OperatorStep):
+    def __init__(self):
+        super().__init__()
+        self.n_outputs = 1
+        self.state_spec = []
+
+    def forward(self, x, state):
+        return torch.erfinv(torch.tanh(x)), state
+
+
+class ErfinvZone(HysteresisOperator):
+    """A memoryless toy whose step uses an operation without a C template (erfinv)."""
+
+    def forward(self, x, state=None):
+        return torch.erfinv(torch.tanh(x)), None
+
+    def streaming_step(self, dtype):
+        return ErfinvStep()
+
+
+register_operator("erfinv_zone", ErfinvZone)
+'''
+
+
+@pytest.fixture
+def erfinv_module(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    """A module in a temporary folder that registers ``erfinv_zone`` (removed afterwards)."""
+    folder = tmp_path / "plugin"
+    folder.mkdir()
+    (folder / "erfinv_plugin.py").write_text(ERFINV_OPERATOR)
+    monkeypatch.syspath_prepend(str(folder))
+    yield importlib.import_module("erfinv_plugin")
+    OPERATORS.pop("erfinv_zone", None)
+    EXAMPLES.pop("erfinv_zone", None)
+    sys.modules.pop("erfinv_plugin", None)
+
+
+def test_an_operation_without_template_is_named_with_its_step(erfinv_module, tmp_path: Path
+                                                              ) -> None:
+    net = net_of([erfinv_module.ErfinvZone(), Backlash([0.4])])
+    out = tmp_path / "out"
+    out.mkdir()
+    with pytest.raises(ValueError, match=r"no C template for aten\.erfinv\.default \(from "
+                       r"comp\.slots\.0\.step \(erfinv_plugin\.ErfinvStep\) at "
+                       r"erfinv_plugin\.py:\d+ in forward\)") as err:
+        to_c(net, out)
+    assert "\n" not in str(err.value)
+    assert not list(out.iterdir())  # nothing written
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"prefix": "1comp"}, "prefix must be a C identifier"),
+    ({"prefix": "my-comp"}, "prefix must be a C identifier"),
+    ({"prefix": "double"}, "prefix must be a C identifier"),
+    ({"dtype": torch.float16}, "dtype must be torch.float32 or torch.float64"),
+])
+def test_bad_arguments(kwargs: dict, message: str, tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match=message):
+        to_c(net_of([Backlash([0.4])], hidden=2), tmp_path, **kwargs)
+
+
+def test_a_missing_folder_and_a_compensator_of_another_dtype(tmp_path: Path) -> None:
+    from torchhys.streaming import StreamingCompensator
+
+    net = net_of([Backlash([0.4])], hidden=2)
+    with pytest.raises(ValueError, match="is not an existing folder"):
+        to_c(net, tmp_path / "missing")
+    with pytest.raises(ValueError, match="differs from the StreamingCompensator's"):
+        to_c(StreamingCompensator(net), tmp_path, dtype=torch.float32)
+    with pytest.raises(ValueError, match="limits: fixed when the StreamingCompensator"):
+        to_c(StreamingCompensator(net), tmp_path, limits=(-1.0, 1.0))
+
+
+# --- the command line -------------------------------------------------------------------------
+
+
+TINY = """\
+seed_everything: 0
+trainer:
+  accelerator: cpu
+  devices: 1
+  precision: 64-true
+  max_epochs: 3
+  check_val_every_n_epoch: 1000
+  enable_progress_bar: false
+  enable_model_summary: false
+model:
+  operator:
+    - {name: eiho, a: 1.0, rule: recent, output: branch}
+    - {name: plays, n: 4, span_fraction: 0.4}
+  hidden: 8
+  optimizer: lbfgs
+  optimizer_kwargs: {max_iter: 5}
+data:
+  simulation: paper
+  t_end: 6.3
+  split: [0.6, 0.2, 0.2]
+"""
+
+
+@needs_cc
+def test_fit_then_export_c_from_the_command_line(monkeypatch: pytest.MonkeyPatch,
+                                                 tmp_path: Path, capsys) -> None:
+    pytest.importorskip("lightning")
+    from _training_helpers import cli
+
+    from torchhys.training.export_cmd import main as export_main
+
+    config = tmp_path / "tiny.yaml"
+    config.write_text(TINY)
+    cli(monkeypatch, "fit", "--config", str(config), f"--trainer.default_root_dir={tmp_path}")
+    ckpt = tmp_path / "logs/version_0/checkpoints/last.ckpt"
+    out = tmp_path / "c"
+    out.mkdir()
+    for dtype in ("float64", "float32"):
+        assert export_main(["--ckpt", str(ckpt), "--format", "c", "--out", str(out),
+                            "--dtype", dtype, "--prefix", "comp_" + dtype]) == 0
+        assert f"comp_{dtype}.c (c, {dtype})" in capsys.readouterr().out
+        assert export_main(["--ckpt", str(ckpt), "--format", "torchscript", "--out",
+                            str(out / f"{dtype}.pt"), "--dtype", dtype]) == 0
+        scripted = torchhys.export.load_torchscript(out / f"{dtype}.pt")
+        x = record(float(scripted.in_low), float(scripted.in_high), n=3000, seed=2)
+        c = run_c(compile_harness(out, "comp_" + dtype), x)
+        xt = torch.tensor(x, dtype=scripted.low.dtype)
+        u = np.array([float(scripted.step(xt[i:i + 1])) for i in range(len(x))])
+        ts = {"u": u, "nonfinite": int(scripted.nonfinite_count()),
+              "out_of_range": int(scripted.out_of_range_count())}
+        assert_equal_runs(c, ts, FLOAT64_RTOL if dtype == "float64" else FLOAT32_RTOL)
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--format", "cc"], "argument --format: invalid choice: 'cc'"),
+    (["--format", "c", "--dtype", "float16"], "argument --dtype: invalid choice: 'float16'"),
+    (["--format", "c", "--prefix", "9lives"], "argument --prefix: prefix must be a C "
+                                               "identifier"),
+])
+def test_bad_options_of_the_command_name_the_argument(argv: list, message: str,
+                                                      tmp_path: Path, capsys) -> None:
+    pytest.importorskip("lightning")
+    from torchhys.training.export_cmd import main as export_main
+
+    with pytest.raises(SystemExit) as exit_:
+        export_main(["--ckpt", str(tmp_path / "x.ckpt"), "--out", str(tmp_path), *argv])
+    assert exit_.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_bad_inputs_of_the_command_are_one_line(erfinv_module, tmp_path: Path,
+                                                monkeypatch: pytest.MonkeyPatch, capsys) -> None:
+    pytest.importorskip("lightning")
+    from torchhys.training.export_cmd import main as export_main
+
+    monkeypatch.delenv("TORCHHYS_TRACEBACK", raising=False)
+    net = net_of(["erfinv_zone"], hidden=2)
+    weights = tmp_path / "net.pt"
+    torch.save(net.state_dict(), weights)
+    plain = ["--ckpt", str(weights), "--operator", "erfinv_zone", "--hidden", "2",
+             "--import", "erfinv_plugin", "--format"]
+    cases = [
+        (plain + ["c", "--out", str(tmp_path / "missing")],
+         f"--out {tmp_path / 'missing'}: the folder does not exist"),
+        (plain + ["torchscript", "--out", str(tmp_path / "a.pt"), "--prefix", "p"],
+         "--prefix applies to --format c only"),
+        (plain + ["c", "--out", str(tmp_path)],
+         "no C template for aten.erfinv.default (from comp.slots.0.step "
+         "(erfinv_plugin.ErfinvStep)"),
+    ]
+    for argv, message in cases:
+        assert export_main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("torchhys export: error: ") and message in err, err
+        assert err.count("\n") == 1
