@@ -210,14 +210,13 @@ def test_gradient_on_held_samples_is_one_sided(y):
 # --- 5. export ---------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("dtype, atol", [(torch.float32, 1e-5)])  # float64: the conformance suite
-def test_torchscript_export_of_a_network(tmp_path, dtype, atol):
-    y = walks(3, 150).to(dtype)
+def test_float32_torchscript_export_of_a_network(tmp_path):  # float64: test_conformance.py
+    y = walks(3, 150).float()
     inv = model(2, seed=8).inverse()
     torch.manual_seed(0)
-    net = torchhys.InverseHysteresisNet([inv], hidden=4).to(dtype)
+    net = torchhys.InverseHysteresisNet([inv], hidden=4).float()
     net.fit_normalization(y, torch.tanh(y))
-    assert_torchscript_as_eager(net, y, tmp_path / "comp.pt", atol)
+    assert_torchscript_as_eager(net, y, tmp_path / "comp.pt", 1e-5)
 
 
 # --- 6. a fitted model as a compensator -----------------------------------------------------------
