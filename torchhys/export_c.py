@@ -47,7 +47,7 @@ from torchhys._c_writer import CTensor, Writer, constant, contiguous_strides
 from torchhys.export import _compensator, _ExplicitStep, metadata
 from torchhys.streaming import STATE_F, STATE_F64, STATE_I, STATE_STARTED, StreamingCompensator
 
-__all__ = ["to_c"]
+__all__ = ["DEFAULT_PREFIX", "check_prefix", "to_c"]
 
 #: the state tensors' struct members (torchhys.streaming's layout)
 _MEMBERS = {STATE_F: "F", STATE_I: "I", STATE_STARTED: "started", STATE_F64: "F64"}
@@ -57,7 +57,11 @@ _C_KEYWORDS = frozenset(
     "typedef union unsigned void volatile while _Bool _Complex _Imaginary".split())
 
 
-def _check_prefix(prefix: object) -> str:
+DEFAULT_PREFIX = "torchhys_comp"
+
+
+def check_prefix(prefix: object) -> str:
+    """``prefix`` if it is a C identifier fit for the generated names, else ValueError."""
     if not (isinstance(prefix, str) and re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", prefix)
             and prefix not in _C_KEYWORDS and not prefix.startswith("__")):
         raise ValueError(f"prefix must be a C identifier (letters, digits, '_', not starting "
@@ -89,7 +93,7 @@ def _build(model: nn.Module, dtype: torch.dtype, limits: Any, initial_command: f
 
 
 def to_c(
-    model: nn.Module, out_dir: str | os.PathLike, *, prefix: str = "torchhys_comp",
+    model: nn.Module, out_dir: str | os.PathLike, *, prefix: str = DEFAULT_PREFIX,
     dtype: torch.dtype = torch.float64, limits: tuple[float, float] | None = None,
     initial_command: float = 0.0, input_range: tuple[float, float] | None = None,
     input_margin: float | None = 0.05, direction: str = "auto",
@@ -116,7 +120,7 @@ def to_c(
             :class:`~torchhys.streaming.StreamingCompensator` for the other options.
         TypeError: see :class:`~torchhys.streaming.StreamingCompensator`.
     """
-    prefix, folder = _check_prefix(prefix), _check_out_dir(out_dir)
+    prefix, folder = check_prefix(prefix), _check_out_dir(out_dir)
     comp = _build(model, dtype, limits, initial_command,
                   {"input_range": input_range, "input_margin": input_margin,
                    "direction": direction})
