@@ -235,31 +235,33 @@ def _extremum(kind: str) -> Emitter:
 
 def _matmul_core(w: Writer, spec: CTensor, a: CTensor, b: CTensor,
                  bias: Operand | None = None, beta: float = 1, alpha: float = 1) -> CTensor:
-    """``alpha * (a @ b) + beta * bias`` (torch.matmul's shapes; a dot product in index
-    order, then the bias)."""
+    """``alpha * (a @ b) + beta * bias`` (torch.matmul's shapes). Each dot product adds in
+    index order from 0, then the bias; the loops run over the output's columns innermost
+    (contiguous rows of ``b``, which the compiler vectorizes without reordering a sum)."""
     a2 = a if len(a.shape) >= 2 else _unsqueeze(w, spec, a, 0)
     b2 = b if len(b.shape) >= 2 else _unsqueeze(w, spec, b, -1)
     batch = list(torch.broadcast_shapes(a2.shape[:-2], b2.shape[:-2]))
     full = [*batch, a2.shape[-2], b2.shape[-1]]
     out = w.local(spec.dtype, full)
-    t, k = w.ctype(spec.dtype), a2.shape[-1]
-    with w.loop(full) as idx:
-        def body() -> None:
-            w.emit(f"{t} acc = {w.literal(0, spec.dtype)};")
-            with w.loop([k]) as (p,):
-                lhs = _read_aligned(w, a2, [*idx[:-1], p], len(full), spec.dtype)
-                rhs = _read_aligned(w, b2, [*idx[:-2], p, idx[-1]], len(full), spec.dtype)
-                w.emit(f"acc += {lhs} * {rhs};")
-            value = "acc" if alpha == 1 else f"{w.literal(alpha, spec.dtype)} * acc"
+    w.assign(out, lambda idx: w.literal(0, spec.dtype))
+    with w.loop(full[:-1]) as rows, w.loop([a2.shape[-1]]) as (p,), w.loop(full[-1:]) as (j,):
+        lhs = _read_aligned(w, a2, [*rows, p], spec.dtype)
+        rhs = _read_aligned(w, b2, [*rows[:-1], p, j], spec.dtype)
+        w.emit(f"{w.read(out, [*rows, j])} += {lhs} * {rhs};")
+    if alpha != 1 or (bias is not None and beta != 0):
+        def element(idx: list[str]) -> str:
+            value = w.read(out, idx)
+            if alpha != 1:
+                value = f"{w.literal(alpha, spec.dtype)} * {value}"
             if bias is not None and beta != 0:
                 c = w.read_broadcast(bias, idx, spec.dtype)
                 value += f" + {c}" if beta == 1 else f" + {w.literal(beta, spec.dtype)} * {c}"
-            w.emit(f"{w.read(out, idx)} = {value};")
-        _block(w, body)
+            return value
+        w.assign(out, element)
     return out.view(spec.shape, contiguous_strides(spec.shape), 0)
 
 
-def _read_aligned(w: Writer, x: CTensor, idx: list[str], n: int, dtype: torch.dtype) -> str:
+def _read_aligned(w: Writer, x: CTensor, idx: list[str], dtype: torch.dtype) -> str:
     """``x`` at ``idx`` (the last dims of an n-dim index; a batch dim of size 1 broadcast)."""
     lead = len(idx) - len(x.shape)
     own = ["0" if x.shape[d] == 1 else idx[lead + d] for d in range(len(x.shape))]
