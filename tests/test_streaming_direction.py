@@ -180,3 +180,20 @@ def test_explicit_direction_and_range_override_the_recorded_ones() -> None:
     x = sweep(-1.0, 1.0, scale=3.0)
     with torch.no_grad():
         assert against(comp(x), x, -1) == 0
+
+
+@pytest.mark.slow
+def test_aoti_keeps_guard_and_clamp(tmp_path) -> None:
+    from torchhys.export import load_aoti, to_aoti
+
+    net = untrained()
+    comp = StreamingCompensator(net)
+    x = sweep(*default_input_range(net), scale=10.0)[::8]
+    stepper = load_aoti(to_aoti(net, tmp_path / "c.pt2"))
+    with torch.no_grad():
+        u = torch.stack([stepper.step(v.reshape(1))[0] for v in x])
+        torch.testing.assert_close(u, comp(x), rtol=0, atol=1e-12)
+    assert against(u, x, 1) == 0
+    outside = int(((x < comp.in_low) | (x > comp.in_high)).sum())
+    assert outside > 0 and int(stepper.out_of_range_count()) == outside
+    assert stepper.metadata["direction"] == "1"
