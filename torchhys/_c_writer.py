@@ -17,6 +17,7 @@ import re
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -147,13 +148,16 @@ class Writer:
         return CTYPES[dtype]
 
     def literal(self, value: float | int | bool, dtype: torch.dtype) -> str:
-        """``value`` as a C constant of ``dtype`` (cast: float literals are double in C)."""
+        """``value`` as a C constant of ``dtype``: the shortest decimal that reads back as
+        that value (``f`` suffix in float32), in parentheses when negative."""
         t = self.ctype(dtype)
         if dtype.is_floating_point:
             v = float(value)
-            text = ("NAN" if math.isnan(v) else ("INFINITY" if v > 0 else "-INFINITY")
-                    if math.isinf(v) else repr(v))
-            return f"(({t}){text})"
+            if not math.isfinite(v):
+                text = "NAN" if math.isnan(v) else "INFINITY" if v > 0 else "-INFINITY"
+                return f"(({t}){text})"
+            text = repr(v) if dtype == torch.float64 else str(np.float32(v)) + "f"
+            return text if math.copysign(1.0, v) > 0 else f"({text})"
         if dtype == torch.bool:
             return "1" if bool(value) else "0"
         if isinstance(value, float) and not value.is_integer():
