@@ -50,6 +50,7 @@ FLOAT32_RTOL = 1e-4
 N, N32 = 10_000, 3_000
 
 HARNESS = r"""
+#include <complex.h> /* a macro I: the header must not use the name */
 #include <stdio.h>
 #include "NAME.h"
 

@@ -49,8 +49,9 @@ from torchhys.streaming import STATE_F, STATE_F64, STATE_I, STATE_STARTED, Strea
 
 __all__ = ["DEFAULT_PREFIX", "check_prefix", "to_c"]
 
-#: the state tensors' struct members (torchhys.streaming's layout)
-_MEMBERS = {STATE_F: "F", STATE_I: "I", STATE_STARTED: "started", STATE_F64: "F64"}
+#: the state tensors' struct members (torchhys.streaming's F, I, started, F64; not I: a macro of
+#: <complex.h>)
+_MEMBERS = {STATE_F: "F", STATE_I: "I64", STATE_STARTED: "started", STATE_F64: "F64"}
 _C_KEYWORDS = frozenset(
     "auto break case char const continue default do double else enum extern float for goto "
     "if inline int long register restrict return short signed sizeof static struct switch "
