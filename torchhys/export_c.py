@@ -31,7 +31,6 @@ held and counted, the input clamp and the direction guard. Compile it without
 from __future__ import annotations
 
 import copy
-import math
 import os
 import re
 from pathlib import Path
@@ -41,17 +40,14 @@ import torch
 from torch import fx, nn
 from torch.export.graph_signature import InputKind
 
+from torchhys._c_files import MEMBERS, files
 from torchhys._c_templates import SHAPE_ONLY, TEMPLATES
-from torchhys._c_templates import copy as copy_to_local
 from torchhys._c_writer import CTensor, Writer, constant, contiguous_strides
-from torchhys.export import _compensator, _ExplicitStep, metadata
-from torchhys.streaming import STATE_F, STATE_F64, STATE_I, STATE_STARTED, StreamingCompensator
+from torchhys.export import _compensator, _ExplicitStep
+from torchhys.streaming import StreamingCompensator
 
 __all__ = ["DEFAULT_PREFIX", "check_prefix", "to_c"]
 
-#: the state tensors' struct members (torchhys.streaming's F, I, started, F64; not I: a macro of
-#: <complex.h>)
-_MEMBERS = {STATE_F: "F", STATE_I: "I64", STATE_STARTED: "started", STATE_F64: "F64"}
 _C_KEYWORDS = frozenset(
     "auto break case char const continue default do double else enum extern float for goto "
     "if inline int long register restrict return short signed sizeof static struct switch "
@@ -115,6 +111,10 @@ def to_c(
     Returns:
         ``(header_path, source_path)``.
 
+    Shapes:
+        The C step: ``x`` (one sample, the desired output in physical units) -> the command
+        (one sample); batch 1, the state in the caller's ``PREFIX_state``.
+
     Raises:
         ValueError: a bad ``prefix``, ``dtype`` or ``out_dir``; an operation in the step
             without a C template (the message names it and the step it came from); see
@@ -129,15 +129,12 @@ def to_c(
     with torch.no_grad():
         ep = torch.export.export(_ExplicitStep(comp), (torch.zeros(1, dtype=dtype), *state),
                                  strict=False)
-    members = [_MEMBERS.get(k, f"s{k}") for k in range(len(state))]
     w = Writer(prefix)
-    u, outputs = _translate(ep, w, members)
+    u, outputs = _translate(ep, w, [MEMBERS.get(k, f"s{k}") for k in range(len(state))])
     options = {"dtype": str(dtype).replace("torch.", ""), "limits": limits,
                "initial_command": initial_command, "input_range": input_range,
                "input_margin": input_margin, "direction": direction}
-    fields, n_bytes = _struct(w, state, members)
-    header = _header(prefix, model, comp, options, fields, n_bytes)
-    source = _source(prefix, w, comp, members, u, outputs)
+    header, source = files(prefix, w, model, comp, state, u, outputs, options)
     h_path, c_path = folder / f"{prefix}.h", folder / f"{prefix}.c"
     h_path.write_text(header)
     c_path.write_text(source)
@@ -273,178 +270,3 @@ def _emit(w: Writer, node: fx.Node, env: dict, missing: dict[str, str]) -> Any:
     else:
         missing.setdefault(str(node.target), _origin(node))
     return spec  # a stand-in, so that every missing operation is named at once
-
-
-# --- the files ------------------------------------------------------------------------------
-
-
-def _struct(w: Writer, state: list[torch.Tensor], members: list[str]
-            ) -> tuple[list[str], int]:
-    """The state struct's fields (widest first: no padding inside) and its size in bytes
-    (a multiple of 8)."""
-    rows = [(t.element_size(), m, w.ctype(t.dtype), max(t.numel(), 1))
-            for t, m in zip(state, members, strict=True)]
-    rows.sort(key=lambda r: -r[0])
-    fields = [f"{'REAL' if m == 'F' else c} {m}[{n}];" for _, m, c, n in rows]
-    n_bytes = sum(size * n for size, _, _, n in rows)
-    if n_bytes % 8:
-        fields.append(f"uint8_t pad_[{8 - n_bytes % 8}];")
-        n_bytes += 8 - n_bytes % 8
-    return fields, n_bytes
-
-
-def _describe(model: nn.Module) -> list[str]:
-    if isinstance(model, StreamingCompensator):
-        steps = ", ".join(type(s.step).__name__ for s in model.slots)
-        return [f"a StreamingCompensator of the steps [{steps}]"]
-    text = type(model).__name__
-    ops = getattr(model, "operators", None)
-    if isinstance(ops, nn.ModuleList):
-        text += ": operators [" + ", ".join(type(op).__name__ for op in ops) + "]"
-    hidden, act = getattr(model, "hidden", None), getattr(model, "activation", None)
-    if isinstance(hidden, nn.Linear):
-        text += f", hidden {hidden.out_features}, {type(act).__name__.lower()}"
-    lines = [text]
-    rng = [getattr(model, k, None) for k in ("in_min", "in_max", "out_min", "out_max")]
-    if all(isinstance(v, torch.Tensor) and math.isfinite(float(v)) for v in rng):
-        a, b, c, d = (float(v) for v in rng)
-        lines.append(f"training range: input [{a:.9g}, {b:.9g}], output [{c:.9g}, {d:.9g}]")
-    return lines
-
-
-def _header(prefix: str, model: nn.Module, comp: StreamingCompensator, options: dict,
-            fields: list[str], n_bytes: int) -> str:
-    import torchhys
-
-    real = Writer.ctype(comp.low.dtype)
-    guard = {1: "increasing", -1: "decreasing", 0: "none"}[int(comp.direction)]
-    clamp = (f"[{float(comp.in_low)!r}, {float(comp.in_high)!r}]" if comp.clamp_input
-             else "none")
-    opts = ", ".join(f"{k}={v!r}" for k, v in options.items())
-    layout = [f" *   {m}[{col}:{col + n}]  {name}" for k, _, name, col, n in comp.layout()
-              for m in [_MEMBERS.get(k, f"s{k}")]]
-    g = prefix.upper() + "_H"
-    lines = [
-        f"/* {prefix}.h: a torchhys compensator as dependency-free C99.",
-        f" * Generated by torchhys {torchhys.__version__} (torchhys.export_c.to_c): do not "
-        "edit.",
-        " *",
-        *[f" * model: {t}" for t in _describe(model)],
-        f" * export options: {opts}",
-        f" * command limits [{float(comp.low)!r}, {float(comp.high)!r}], input clamp {clamp}, "
-        f"direction guard {guard}",
-        " *",
-        f" * Use: {prefix}_state s; {prefix}_init(&s); then u = {prefix}_step(&s, x) once a "
-        "sample.",
-        " * x is the desired output in physical units, u the saturated command. A NaN or inf "
-        "sample",
-        " * holds the last command (the initial command before the first finite sample) and is",
-        " * counted; a finite sample outside the training input range (widened by the margin) "
-        "is",
-        " * clamped and counted. Compile without -ffast-math.",
-        " *",
-        " * State layout (torchhys.streaming; batch 1):",
-        *layout,
-        " */",
-        f"#ifndef {g}",
-        f"#define {g}",
-        "",
-        "#include <stdint.h>",
-        "",
-        "#ifdef __cplusplus",
-        'extern "C" {',
-        "#endif",
-        "",
-        f"typedef {real} {prefix}_real;",
-        "",
-        f"#define {prefix}_LOW (({prefix}_real){float(comp.low)!r})",
-        f"#define {prefix}_HIGH (({prefix}_real){float(comp.high)!r})",
-        f"#define {prefix}_STATE_BYTES {n_bytes}",
-        "",
-        "typedef struct {",
-        *[f"    {f.replace('REAL', prefix + '_real')}" for f in fields],
-        f"}} {prefix}_state;",
-        "",
-        f"void {prefix}_init({prefix}_state *s);",
-        f"{prefix}_real {prefix}_step({prefix}_state *s, {prefix}_real x);",
-        f"int64_t {prefix}_nonfinite_count(const {prefix}_state *s);",
-        f"int64_t {prefix}_out_of_range_count(const {prefix}_state *s);",
-        "",
-        "#ifdef __cplusplus",
-        "}",
-        "#endif",
-        "",
-        f"#endif /* {g} */",
-        "",
-    ]
-    return "\n".join(lines)
-
-
-def _whole(t: CTensor, member: str, numel: int) -> bool:
-    return (t.base == member and t.offset == 0 and t.is_contiguous() and t.numel == numel)
-
-
-def _source(prefix: str, w: Writer, comp: StreamingCompensator, members: list[str],
-            u: CTensor, outputs: list[CTensor]) -> str:
-    # the new state: copied into the struct after every statement has read the old one
-    local_sizes = {name: n for name, _, n in w.locals}
-    stores = []
-    for k, t in enumerate(outputs):
-        member = f"s->{members[k]}"
-        if _whole(t, member, t.numel):
-            continue  # unchanged
-        if not (t.base in local_sizes and _whole(t, t.base, local_sizes[t.base])):
-            w.node += 1
-            t = copy_to_local(w, t)
-        w.keep(t.base)
-        stores.append(f"memcpy({member}, {t.base}, sizeof {member});")
-    if u.base in local_sizes:
-        w.keep(u.base)
-    w.emit(f"u = {w.read(u, ['0'] * len(u.shape))};")
-    for line in stores:
-        w.emit(line)
-    meta = metadata(comp)
-    counter = int(meta["counter"].split(":")[1])
-    oor = meta["out_of_range"]
-    decls, body = w.shared_locals()
-    real = f"{prefix}_real"
-    lines = [
-        f"/* {prefix}.c: generated by torchhys (torchhys.export_c.to_c); see {prefix}.h. */",
-        f'#include "{prefix}.h"',
-        "",
-        "#include <math.h>",
-        "#include <stdint.h>",
-        "#include <string.h>",
-        "",
-        f"typedef char {prefix}_state_bytes_check[(sizeof({prefix}_state) == "
-        f"{prefix}_STATE_BYTES) ? 1 : -1];",
-        "",
-        *[h + "\n" for h in w.helpers.values()],
-        *w.constants,
-        "",
-        f"void {prefix}_init({prefix}_state *s)",
-        "{",
-        "    memset(s, 0, sizeof *s);",
-        "}",
-        "",
-        f"{real} {prefix}_step({prefix}_state *s, {real} x)",
-        "{",
-        *[f"    {d}" for d in decls],
-        f"    {real} u;",
-        *body,
-        "    return u;",
-        "}",
-        "",
-        f"int64_t {prefix}_nonfinite_count(const {prefix}_state *s)",
-        "{",
-        f"    return s->{members[STATE_I]}[{counter}];",
-        "}",
-        "",
-        f"int64_t {prefix}_out_of_range_count(const {prefix}_state *s)",
-        "{",
-        f"    return s->{members[STATE_I]}[{oor.split(':')[1]}];" if oor else
-        "    (void)s;\n    return 0;",
-        "}",
-        "",
-    ]
-    return "\n".join(lines)
