@@ -33,12 +33,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
+from torch import Tensor
 
 import torchhys
 from torchhys import EIHO, Backlash, InverseHysteresisNet
 from torchhys.export import to_torchscript
 from torchhys.export_c import to_c
-from torchhys.operator import EXAMPLES, OPERATORS, example_of, load_entry_points
+from torchhys.operator import (
+    EXAMPLES,
+    OPERATORS,
+    HysteresisOperator,
+    OperatorStep,
+    StateBlock,
+    example_of,
+    load_entry_points,
+)
 
 load_entry_points()
 NAMES = sorted(OPERATORS)
@@ -274,6 +284,75 @@ def test_a_prandtl_ishlinskii_inverse_model(tmp_path: Path) -> None:
     model = torchhys.PrandtlIshlinskiiInverse(pi)
     x = record(-1.5, 1.5)
     c, ts = both(model, tmp_path, x, limits=(-3.0, 3.0))
+    assert_equal_runs(c, ts, FLOAT64_RTOL)
+
+
+class ZooStep(OperatorStep):
+    """A step that runs many aten operations (their templates against TorchScript): a state
+    s that follows x, and features of z = x - s."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.n_outputs = 8
+        self.state_spec = [StateBlock("s", 4, from_sample=[1.0, 0.5, 0.0, -1.0])]
+        self.register_buffer("grid", torch.linspace(-1.0, 1.0, 9, dtype=torch.float64))
+        self.register_buffer("table", torch.arange(40, dtype=torch.float64).reshape(10, 4) / 7)
+
+    def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
+        s = state[0]
+        z = x - s
+        a = torch.relu(z) + F.gelu(z) * 0.5 + torch.tanh(z).abs() + torch.sinh(z) / 9
+        b = torch.floor(z * 3.0) + torch.round(z * 2.0) - torch.trunc(z) + torch.ceil(z)
+        c = torch.remainder(z, 0.7) + torch.fmod(z, 0.3) + torch.div(z, 0.4, rounding_mode="floor")
+        d = (torch.cumsum(z, 1) - z.sum(1, keepdim=True) / 4 + z.mean(1, keepdim=True)
+             - z.amax(1, keepdim=True) + z.amin(1, keepdim=True))
+        srt, order = torch.sort(z, 1)
+        g = torch.gather(z, 1, order) - srt + srt.flip(1) * 0.1
+        pos = torch.searchsorted(self.grid, x.squeeze(1).contiguous(), right=True)
+        h = self.table.index_select(0, pos.clamp(0, 9)).to(z.dtype)
+        t = z.reshape(-1, 2, 2).transpose(1, 2).reshape(z.shape[0], 4)
+        e = torch.stack([z, t], 2).sum(2) + z.unsqueeze(2).expand(-1, 4, 3).sum(2)
+        m = (torch.where(z > 0, z, 0.5) + torch.clamp(z, min=-0.2) + torch.clamp(z, max=0.3)
+             + torch.pow(z, 2) + torch.pow(z.abs() + 1, 0.5) + torch.pow(z.abs() + 1, 1.7)
+             + torch.atan2(z, x + 2) + torch.pow(z.abs() + 1, -1) + torch.pow(z, 3))
+        k = ((z > 0) & (z < 1)) | ~(z > -1)
+        p = torch.sigmoid(z) * k.to(z.dtype) + torch.isfinite(z).to(z.dtype) - torch.isnan(z).to(
+            z.dtype)
+        q = torch.expm1(-z.abs()) + torch.log1p(z.abs()) + torch.sign(z) + torch.exp2(-z.abs())
+        new = torch.clamp(s + 0.3 * (x - s), -5.0, 5.0)
+        out = a + b + c + d + g + h + e + m + p + q + t
+        return torch.cat([out, new], 1), [new]
+
+
+class Zoo(HysteresisOperator):
+    """The operator of :class:`ZooStep` (its forward runs the step)."""
+
+    n_outputs = 8
+
+    def forward(self, x: Tensor, state: object = None) -> tuple[Tensor, None]:
+        xb = x if x.dim() == 2 else x[None]
+        f = ZooStep().to(xb.dtype).run(xb)
+        return (f if x.dim() == 2 else f[0]), None
+
+    def streaming_step(self, dtype: torch.dtype) -> OperatorStep:
+        return ZooStep().to(dtype)
+
+
+@needs_cc
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_many_operations_in_one_step(dtype: torch.dtype, tmp_path: Path) -> None:
+    net = net_of([Zoo(), Backlash([0.4])])
+    x = record(*training_range(net), n=N32)
+    c, ts = both(net, tmp_path, x, dtype)
+    assert_equal_runs(c, ts, FLOAT64_RTOL if dtype == torch.float64 else FLOAT32_RTOL)
+
+
+@needs_cc
+@pytest.mark.parametrize("activation", ["tanh", "relu", "gelu", "identity"])
+def test_the_network_activations(activation: str, tmp_path: Path) -> None:
+    net = net_of([Backlash([0.3, 0.9])], hidden=6, activation=activation)
+    x = record(*training_range(net), n=N32)
+    c, ts = both(net, tmp_path, x)
     assert_equal_runs(c, ts, FLOAT64_RTOL)
 
 

@@ -122,6 +122,14 @@ def _expand(w: Writer, spec: CTensor, x: CTensor, size: Sequence[int], *, implic
     return x.view(shape, strides, x.offset)
 
 
+def _flip(w: Writer, spec: CTensor, x: CTensor, dims: Sequence[int]) -> CTensor:
+    strides, offset = list(x.strides), x.offset
+    for d in {_dim(d, len(x.shape)) for d in dims}:
+        offset += (x.shape[d] - 1) * strides[d]
+        strides[d] = -strides[d]
+    return x.view(x.shape, strides, offset)
+
+
 def copy(w: Writer, x: CTensor) -> CTensor:
     """``x`` into a new contiguous local."""
     out = w.local(x.dtype, x.shape)
@@ -146,7 +154,8 @@ VIEWS: dict[str, Emitter] = {
         w, s, x, list(range(len(x.shape)))[::-1]),
     "mT.default": lambda w, s, x: _transpose(w, s, x, -2, -1),
     "numpy_T.default": lambda w, s, x: _permute(w, s, x, list(range(len(x.shape)))[::-1]),
-    "expand.default": _expand, "view.default": _reshape, "reshape.default": _reshape,
+    "expand.default": _expand, "flip.default": _flip, "view.default": _reshape,
+    "reshape.default": _reshape,
     "_unsafe_view.default": _reshape, "flatten.using_ints": _reshape,
 }
 
