@@ -374,7 +374,7 @@ def test_the_files_keep_the_contract(tmp_path: Path) -> None:
                  "#define comp_a_LOW", "#define comp_a_HIGH", "#define comp_a_STATE_BYTES"):
         assert name in header
     assert f"torchhys {torchhys.__version__}" in header
-    assert "InverseHysteresisNet: operators [EIHO, Backlash], hidden 64, sigmoid" in header
+    assert "model: InverseHysteresisNet, operators [EIHO, Backlash], hidden 64, sigmoid" in header
     assert "input_margin=0.1" in header and "training range: input [" in header
     # no allocation, no mutable global (file-scope data is static const), no recursion
     assert not re.search(r"\b(malloc|calloc|realloc|free|alloca)\s*\(", source)
