@@ -342,7 +342,7 @@ class Zoo(HysteresisOperator):
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_many_operations_in_one_step(dtype: torch.dtype, tmp_path: Path) -> None:
     net = net_of([Zoo(), Backlash([0.4])])
-    x = record(*training_range(net), n=N32)
+    x = record(*training_range(net), n=1000)
     c, ts = both(net, tmp_path, x, dtype)
     assert_equal_runs(c, ts, FLOAT64_RTOL if dtype == torch.float64 else FLOAT32_RTOL)
 
