@@ -2,7 +2,8 @@
 
 Each reproduces torch's CPU kernel, NaN included: ``maximum``, ``minimum`` and ``clamp``
 propagate NaN (unlike C's ``fmax``), ``sign(NaN)`` is 0, ``pow`` takes torch's special
-exponents (2, 3, -2, 0.5, -0.5, -1), ``sigmoid`` is ``1 / (1 + exp(-x))``. Operands are cast
+exponents (2, 3, -2, 0.5, -0.5, -1), ``sigmoid`` is ``1 / (1 + exp(-x))``; ``exp`` of a
+double is the writer's vectorizable one (within 1 ulp of libm's). Operands are cast
 to the op's compute dtype first (torch's type promotion), as torch's kernels do.
 """
 
@@ -147,6 +148,15 @@ def _gelu(w: Writer, spec: CTensor, x: CTensor, *, approximate: str = "none") ->
                      "({T})0.70710678118654757)))", [x])
 
 
+def _exp(fmt: str) -> Emitter:
+    """``fmt`` with ``EXP`` the exp of the compute dtype: in float64 the writer's
+    vectorizable ``exp`` (within 1 ulp of libm's; a loop of libm calls does not vectorize),
+    else libm's ``expf``."""
+    def emit(w: Writer, spec: CTensor, x: CTensor) -> CTensor:
+        return pointwise(w, spec, fmt.replace("EXP", w.helper("exp", spec.dtype)), [x])
+    return emit
+
+
 def _unary_float(name: str) -> Emitter:
     return _op(name + "{f}({0})")
 
@@ -178,11 +188,12 @@ POINTWISE: dict[str, Emitter] = {
                          "int": "(({T})((0 < {0}) - ({0} < 0)))"}),
     "reciprocal.default": _op("(({T})1 / {0})"),
     "rsqrt.default": _op("(({T})1 / sqrt{f}({0}))"),
-    "sigmoid.default": _op("(({T})1 / (({T})1 + exp{f}(-{0})))"),
+    "sigmoid.default": _exp("(({T})1 / (({T})1 + EXP(-{0})))"),
+    "exp.default": _exp("EXP({0})"),
     "relu.default": _op("(({0} < 0) ? ({T})0 : {0})"),
     "gelu.default": _gelu,
     **{f"{n}.default": _unary_float(n) for n in (
-        "sqrt", "exp", "exp2", "expm1", "log", "log1p", "log2", "log10", "sin", "cos", "tan",
+        "sqrt", "exp2", "expm1", "log", "log1p", "log2", "log10", "sin", "cos", "tan",
         "asin", "acos", "atan", "sinh", "cosh", "tanh", "asinh", "acosh", "atanh", "erf",
         "erfc")},
     **{f"{n}.default": _op({"float": n + "{f}({0})", "int": "{0}"})

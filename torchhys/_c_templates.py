@@ -242,16 +242,40 @@ def _extremum(kind: str) -> Emitter:
     return emit
 
 
+#: matrix products whose inner dimension is at most this are written out, one statement an
+#: output element
+UNROLL = 32
+
+
 def _matmul_core(w: Writer, spec: CTensor, a: CTensor, b: CTensor,
                  bias: Operand | None = None, beta: float = 1, alpha: float = 1) -> CTensor:
     """``alpha * (a @ b) + beta * bias`` (torch.matmul's shapes). Each dot product adds in
     index order from 0, then the bias; the loops run over the output's columns innermost
-    (contiguous rows of ``b``, which the compiler vectorizes without reordering a sum)."""
+    (contiguous rows of ``b``, which the compiler vectorizes without reordering a sum). An
+    inner dimension of at most :data:`UNROLL` is written out (the sum in a register)."""
     a2 = a if len(a.shape) >= 2 else _unsqueeze(w, spec, a, 0)
     b2 = b if len(b.shape) >= 2 else _unsqueeze(w, spec, b, -1)
     batch = list(torch.broadcast_shapes(a2.shape[:-2], b2.shape[:-2]))
     full = [*batch, a2.shape[-2], b2.shape[-1]]
     out = w.local(spec.dtype, full)
+    if 0 < a2.shape[-1] <= UNROLL:
+        # one statement an element, the products written out in index order: the compiler
+        # keeps the sum in a register and vectorizes over the columns
+        def element(idx: list[str]) -> str:
+            rows, j = idx[:-1], idx[-1]
+            value = " + ".join([w.literal(0, spec.dtype)] + [
+                f"{_read_aligned(w, a2, [*rows, str(p)], spec.dtype)} * "
+                f"{_read_aligned(w, b2, [*rows[:-1], str(p), j], spec.dtype)}"
+                for p in range(a2.shape[-1])])
+            if alpha != 1:
+                value = f"{w.literal(alpha, spec.dtype)} * ({value})"
+            if bias is not None and beta != 0:
+                c = w.read_broadcast(bias, idx, spec.dtype)
+                value = f"({value}) + " + (c if beta == 1 else
+                                          f"{w.literal(beta, spec.dtype)} * {c}")
+            return value
+        w.assign(out, element)
+        return out.view(spec.shape, contiguous_strides(spec.shape), 0)
     w.assign(out, lambda idx: w.literal(0, spec.dtype))
     with w.loop(full[:-1]) as rows, w.loop([a2.shape[-1]]) as (p,), w.loop(full[-1:]) as (j,):
         lhs = _read_aligned(w, a2, [*rows, p], spec.dtype)

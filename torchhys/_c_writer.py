@@ -113,7 +113,38 @@ _INT_HELPERS = {
     "floordiv": "T q = a / b;\n    if (a % b != 0 && ((a < 0) != (b < 0))) q -= 1;\n    return q;",
     "remainder": "T m = a % b;\n    if (m != 0 && ((b < 0) != (m < 0))) m += b;\n    return m;",
 }
-_ARGS = {"clamp": "T a, T lo, T hi"}
+_ARGS = {"clamp": "T a, T lo, T hi", "exp": "double x"}
+
+# exp of a double without libm, branch-free so that a loop of it vectorizes (a libm call in
+# a loop does not): x = k ln2 + r, |r| <= ln2 / 2, with a two-constant Cody-Waite split
+# (fdlibm's ln2 hi and lo; k ln2hi exact for |k| < 2^21); exp(r) fdlibm's rational form
+# 1 + r + r c / (2 - c), c = r - r^2 P(r^2) (P of degree 4: error < 2^-59 on the interval); times
+# 2^k as two exact factors 2^floor(k/2) and 2^ceil(k/2) built in the exponent bits, so that
+# a subnormal result is rounded once. k is read from the bits of x log2e + 1.5 2^52 (no
+# conversion of a float to an integer: none is undefined for NaN). |x| > 746 is replaced by
+# +-746 (exp: inf, resp. 0, as libm); a NaN goes through as NaN; the select uses fabs and
+# copysign (GCC does not if-convert a clamp to two constants under -ftrapping-math).
+# Within 1 ulp of glibc's exp (tests/test_exp_c.py); no -ffast-math needed.
+_EXP_DOUBLE = """double kd, hi, lo, r, t, c, p, s1, s2;
+    uint64_t bits, kb;
+    x = (fabs(x) > 746.0) ? copysign(746.0, x) : x;
+    kd = x * 1.4426950408889634 + 6755399441055744.0;
+    memcpy(&bits, &kd, sizeof bits);
+    kd -= 6755399441055744.0;
+    hi = x - kd * 6.93147180369123816490e-01;
+    lo = kd * 1.90821492927058770002e-10;
+    r = hi - lo;
+    t = r * r;
+    c = r - t * (1.66666666666666019037e-01 + t * (-2.77777777770155933842e-03
+        + t * (6.61375632143793436117e-05 + t * (-1.65339022054652515390e-06
+        + t * 4.13813679705723846039e-08))));
+    p = 1.0 - ((lo - (r * c) / (2.0 - c)) - hi);
+    kb = bits & UINT64_C(0xFFFFFFFFFFFFF); /* k + 2^51 */
+    bits = ((kb >> 1) - (UINT64_C(1) << 50) + 1023) << 52;
+    memcpy(&s1, &bits, sizeof s1);
+    bits = ((kb - (kb >> 1)) - (UINT64_C(1) << 50) + 1023) << 52;
+    memcpy(&s2, &bits, sizeof s2);
+    return p * s1 * s2;"""
 
 
 class Writer:
@@ -278,9 +309,14 @@ class Writer:
 
     def helper(self, kind: str, dtype: torch.dtype) -> str:
         """The name of a shared helper function (``max``, ``min``, ``clamp``, ``fmax``,
-        ``fmin``, ``floordiv``, ``remainder``) for ``dtype``, defined on first use."""
+        ``fmin``, ``floordiv``, ``remainder``, ``exp``: the vectorizable exp of a double, and
+        libm's ``expf`` for a float) for ``dtype``, defined on first use."""
         t = self.ctype(dtype)
+        if kind == "exp" and dtype != torch.float64:
+            return "expf" if dtype == torch.float32 else "exp"
         name = f"{self.prefix}_{kind}_{t.split('_')[0]}"
+        if kind == "exp" and name not in self.helpers:
+            self.helpers[name] = f"static inline double {name}(double x)\n{{\n    {_EXP_DOUBLE}\n}}"
         if name not in self.helpers:
             table = _FLOAT_HELPERS if dtype.is_floating_point else _INT_HELPERS
             if kind not in table:
