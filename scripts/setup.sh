@@ -5,8 +5,9 @@
 #     (an unpinned torch would pull several GB of CUDA packages);
 #     a torch that is already installed is kept
 #   - installs the project (editable) with its train extra (Lightning, jsonargparse,
-#     torchmetrics, matplotlib: the `torchhys` command and `make reproduce`) and its dev
-#     extra (what `make test` needs)
+#     torchmetrics, matplotlib: the `torchhys` command and `make reproduce`), its onnx extra
+#     (onnx, onnxscript, onnxruntime: the ONNX export and its checks) and its dev extra (what
+#     `make test` needs)
 # A stamp file makes a second run start in well under a second.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -44,7 +45,7 @@ if ! "$PY" -c "import torch" 2>/dev/null; then
     # shellcheck disable=SC2086
     "$PY" -m pip install --quiet "$TORCH_PIN" ${TORCH_PIP_ARGS:-}
 fi
-echo "[setup] installing torchhys with its train and dev extras"
-"$PY" -m pip install --quiet -e ".[train,dev]"
+echo "[setup] installing torchhys with its train, onnx and dev extras"
+"$PY" -m pip install --quiet -e ".[train,onnx,dev]"
 touch "$STAMP"
 echo "[setup] done: $("$PY" -c 'import torch; print("torch", torch.__version__)')"
