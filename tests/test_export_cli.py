@@ -43,6 +43,23 @@ def test_lightning_checkpoint_to_torchscript(tmp_path, capsys) -> None:
     torch.testing.assert_close(load_torchscript(out)(y), expected, rtol=0, atol=1e-6)
 
 
+def test_lightning_checkpoint_to_onnx(tmp_path, capsys) -> None:
+    pytest.importorskip("onnxruntime", reason="the onnx extra (pip install 'torchhys[onnx]')")
+    from torchhys.export_onnx import load_onnx
+
+    net = trained().double()
+    torch.save(lightning_ckpt(net), tmp_path / "m.ckpt")
+    out = tmp_path / "m.onnx"
+    rc = main(["--ckpt", str(tmp_path / "m.ckpt"), "--format", "onnx", "--out", str(out),
+               "--limits", "-2", "2"])
+    assert rc == 0 and "wrote" in capsys.readouterr().out
+    y = 2 * torch.sin(torch.linspace(0, 30, 300, dtype=torch.float64))
+    expected = StreamingCompensator(net, limits=(-2.0, 2.0))(y)
+    stepper = load_onnx(out)
+    got = torch.stack([torch.as_tensor(stepper.step(v.reshape(1)))[0] for v in y])
+    torch.testing.assert_close(got.double(), expected, rtol=0, atol=1e-12)
+
+
 def test_plain_state_dict_with_architecture(tmp_path) -> None:
     net = trained()
     torch.save(net.state_dict(), tmp_path / "sd.pt")

@@ -1,6 +1,6 @@
 """``torchhys export``: a trained checkpoint to a deployable compensator file.
 
-    torchhys export --ckpt CKPT --format torchscript|aoti|c --out FILE|DIR [--limits LOW HIGH]
+    torchhys export --ckpt CKPT --format torchscript|aoti|c|onnx --out FILE|DIR [--limits LOW HIGH]
         [--input-margin M | --input-margin none] [--direction auto|increasing|decreasing|none]
         [--dtype float64|float32] [--prefix NAME]
 
@@ -33,6 +33,7 @@ import torch
 from torchhys import InverseHysteresisNet
 from torchhys.export import to_aoti, to_torchscript
 from torchhys.export_c import DEFAULT_PREFIX, check_prefix, to_c
+from torchhys.export_onnx import to_onnx
 from torchhys.streaming import DIRECTIONS, StreamingCompensator
 from torchhys.training.errors import config_errors, read_checkpoint, report_user_error
 from torchhys.training.operators import build_operators
@@ -46,9 +47,9 @@ _ARCH_KEYS = ("operator", "hidden", "activation", "operator_kwargs")
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="torchhys export", description=__doc__.splitlines()[0])
     p.add_argument("--ckpt", type=Path, required=True, help="checkpoint or state dict file")
-    p.add_argument("--format", choices=("torchscript", "aoti", "c"), required=True)
+    p.add_argument("--format", choices=("torchscript", "aoti", "c", "onnx"), required=True)
     p.add_argument("--out", type=Path, required=True,
-                   help="output file (.pt or .pt2), or with --format c an existing folder")
+                   help="output file (.pt, .pt2 or .onnx), or with --format c an existing folder")
     p.add_argument("--dtype", choices=tuple(_DTYPES), default=None,
                    help="the exported step's real type (default: the checkpoint's)")
     p.add_argument("--prefix", type=_prefix, default=None,
@@ -178,6 +179,11 @@ def main(argv: list[str]) -> int:
             written = to_c(net, args.out, prefix=args.prefix or DEFAULT_PREFIX,
                            dtype=comp.low.dtype, **options)
             args.out = " and ".join(str(p) for p in written)
+        elif args.format == "onnx":
+            try:
+                to_onnx(comp, args.out)
+            except ImportError as err:  # the onnx extra is missing: one line, a user error
+                raise ValueError(str(err)) from None
         else:
             export = to_torchscript if args.format == "torchscript" else to_aoti
             export(comp, args.out)
