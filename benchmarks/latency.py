@@ -1,6 +1,6 @@
-"""Per-sample step latency of the deployed compensator: Python, TorchScript, C++, AOTI.
+"""Per-sample step latency of the deployed compensator: Python, TorchScript, C++, AOTI, C, ONNX.
 
-    python benchmarks/latency.py [--samples 5000] [--rounds 5] [--skip-aoti]
+    python benchmarks/latency.py [--samples 5000] [--rounds 5] [--skip-aoti] [--c-only]
 
 Four compensators (weights do not matter for latency): the compensation benchmark's
 deployed EIHO network (``EIHO(a, rule="recent", output="branch")`` + 16 play operators of the
@@ -12,7 +12,13 @@ some).
 Each path runs ``step`` on a batch of one, one thread;
 the C++ rows use deploy/cpp/controller (built on first use, ``--rate 0``), which times each
 step with a steady clock (TorchScript: the module frozen, ``step_explicit`` with the state
-held by the program; AOTI: ``boxed_run``, single-threaded runner). Every row runs
+held by the program; AOTI: ``boxed_run``, single-threaded runner). The C rows: the C99
+step of :func:`torchhys.export_c.to_c` in a C harness compiled here (``cc -std=c99 -O2``, the
+compiler's default target, and ``-O3 -march=native``), which times each step with
+``clock_gettime(CLOCK_MONOTONIC)`` after a warm-up pass; ``--c-only`` runs these alone (no
+libtorch, no AOTI compile of minutes). ONNX Runtime (through ``torchhys.export_onnx``'s
+stepper, from Python, one thread) where that module and onnxruntime are installed. Every
+model is in ``--dtype`` (default float64, the C step's). Every row runs
 ``--rounds`` times, the rows interleaved, so that a change of load on a shared CPU touches
 all of them; the table gives the median of the round medians with their range, and the
 median of the round p99s, in microseconds.
@@ -55,6 +61,101 @@ def controller() -> Path:
         subprocess.run(["bash", str(src[1]), str(out)], check=True,
                        env=dict(os.environ, PYTHON=sys.executable))
     return out / "controller"
+
+
+C_TIMER = r"""
+#define _POSIX_C_SOURCE 199309L
+#include <stdio.h>
+#include <stdlib.h>
+#include <time.h>
+#include "comp.h"
+
+static int cmp(const void *a, const void *b)
+{
+    double x = *(const double *)a, y = *(const double *)b;
+    return (x > y) - (x < y);
+}
+
+static double now_ns(void)
+{
+    struct timespec t;
+    clock_gettime(CLOCK_MONOTONIC, &t);
+    return (double)t.tv_sec * 1e9 + (double)t.tv_nsec;
+}
+
+/* timer REF.bin: steps the compensator over the reference (binary doubles) once untimed,
+   then, from a fresh state, once timing every step; prints median_us and p99_us */
+int main(int argc, char **argv)
+{
+    FILE *in;
+    long n, i;
+    double *x, *t, t0, sink = 0;
+    comp_state s;
+    if (argc != 2 || !(in = fopen(argv[1], "rb")))
+        return 2;
+    fseek(in, 0, SEEK_END);
+    n = ftell(in) / (long)sizeof(double);
+    rewind(in);
+    x = malloc((size_t)n * sizeof *x);
+    t = malloc((size_t)n * sizeof *t);
+    if (!x || !t || fread(x, sizeof *x, (size_t)n, in) != (size_t)n)
+        return 3;
+    comp_init(&s);
+    for (i = 0; i < n; ++i)
+        sink += (double)comp_step(&s, (comp_real)x[i]);
+    comp_init(&s);
+    for (i = 0; i < n; ++i) {
+        t0 = now_ns();
+        sink += (double)comp_step(&s, (comp_real)x[i]);
+        t[i] = now_ns() - t0;
+    }
+    qsort(t, (size_t)n, sizeof *t, cmp);
+    printf("median_us %.4f p99_us %.4f sink %g\n", t[n / 2] / 1e3, t[(long)(0.99 * n)] / 1e3,
+           sink);
+    return 0;
+}
+"""
+
+#: the C rows' compiler flags
+C_FLAGS = {"C, cc -O2": ["-O2"], "C, cc -O3 -march=native": ["-O3", "-march=native"]}
+
+
+def c_timer(comp: StreamingCompensator, folder: Path, flags: list[str]) -> Path:
+    """The compensator's C step (``to_c``, prefix ``comp``) in the timing harness, compiled
+    with ``cc -std=c99 FLAGS`` into ``folder``."""
+    from torchhys.export_c import to_c
+
+    folder.mkdir(parents=True, exist_ok=True)
+    if not (folder / "comp.c").exists():
+        to_c(comp, folder, prefix="comp", dtype=comp.low.dtype)
+        (folder / "timer.c").write_text(C_TIMER)
+    exe = folder / ("timer" + "".join(flags).replace("=", "_").replace("-", "_"))
+    subprocess.run([os.environ.get("CC", "cc"), "-std=c99", *flags, "-I", str(folder), "-o",
+                    str(exe), str(folder / "timer.c"), str(folder / "comp.c"), "-lm"],
+                   check=True)
+    return exe
+
+
+def time_c(exe: Path, x: torch.Tensor, tmp: Path) -> tuple[float, float]:
+    ref = tmp / "ref.bin"
+    ref.write_bytes(x.to(torch.float64).numpy().tobytes())
+    res = subprocess.run([str(exe), str(ref)], capture_output=True, text=True, check=True)
+    fields = res.stdout.split()
+    values = dict(zip(fields[::2], fields[1::2], strict=False))
+    return float(values["median_us"]), float(values["p99_us"])
+
+
+def onnx_stepper(comp: StreamingCompensator, path: Path):
+    """ONNX Runtime's stepper of the compensator (one thread), or None where
+    ``torchhys.export_onnx`` or onnxruntime is missing."""
+    try:
+        import onnxruntime  # noqa: F401
+
+        from torchhys.export_onnx import load_onnx, to_onnx
+    except ImportError:
+        return None
+    to_onnx(comp, path)
+    return load_onnx(path, threads=1)
 
 
 def preisach_inverse() -> PreisachInverse:
@@ -124,21 +225,40 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--skip-python", action="store_true", help="C++ rows only")
     parser.add_argument("--nets", type=int, nargs="*", default=None,
                         help="indices of the compensators to time (default: all)")
+    parser.add_argument("--c-only", action="store_true",
+                        help="the C rows only (no libtorch, no AOTI compile)")
+    parser.add_argument("--skip-onnx", action="store_true", help="no ONNX Runtime row")
+    parser.add_argument("--dtype", choices=["float64", "float32"], default="float64",
+                        help="the compensators' dtype (default float64)")
     args = parser.parse_args(argv)
     if args.samples < 200 or args.rounds < 1:
         parser.error("--samples must be at least 200 and --rounds at least 1")
     torch.set_num_threads(1)
-    x = reference(args.samples)
-    binary = controller()
+    dtype = getattr(torch, args.dtype)
+    x = reference(args.samples).to(dtype)
+    binary = None if args.c_only else controller()
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
         runs: list[tuple[str, str, object]] = []  # (compensator, path, () -> (median, p99))
         for k, (name, net) in enumerate(models().items()):
             if args.nets is not None and k not in args.nets:
                 continue
-            comp = StreamingCompensator(net, limits=(-10.0, 10.0))
+            comp = StreamingCompensator(net.to(dtype), limits=(-10.0, 10.0))
+            for path, flags in C_FLAGS.items():
+                exe = c_timer(comp, tmp / f"c{k}", flags)
+                runs.append((name, path, lambda e=exe: time_c(e, x, tmp)))
+            if args.c_only:
+                continue
             ts_path = tmp / f"comp{k}.pt"
             to_torchscript(comp, ts_path)
+            if not args.skip_onnx:
+                ort = onnx_stepper(comp, tmp / f"comp{k}.onnx")
+                if ort is not None:
+                    def run_onnx(r=ort) -> tuple[float, float]:
+                        r.reset()
+                        return time_python(r.step, x)
+
+                    runs.append((name, "ONNX Runtime, Python", run_onnx))
             if not args.skip_python:
                 runs.append((name, "eager Python", lambda c=comp: time_python(c.step, x)))
                 ts = load_torchscript(ts_path)
@@ -163,15 +283,19 @@ def main(argv: list[str] | None = None) -> None:
         for _ in range(args.rounds):
             for j, (_, _, run) in enumerate(runs):
                 results[j].append(run())
-    print(f"\n{args.samples} steps, batch 1, one thread; {args.rounds} interleaved rounds: median "
-          "of the round medians (range), median of the round p99s\n")
+    print(f"\n{args.samples} steps, batch 1, one thread, {args.dtype}; {args.rounds} interleaved "
+          "rounds: median of the round medians (range), median of the round p99s; load "
+          f"average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs\n")
     print("| compensator | path | median (us) | p99 (us) |")
     print("|---|---|---|---|")
     for (name, path, _), res in zip(runs, results, strict=True):
         meds = sorted(r[0] for r in res)
         p99 = sorted(r[1] for r in res)[len(res) // 2]
-        spread = f" ({meds[0]:.1f} to {meds[-1]:.1f})" if len(meds) > 1 else ""
-        print(f"| {name} | {path} | {meds[len(meds) // 2]:.1f}{spread} | {p99:.1f} |")
+        digits = 2 if meds[-1] < 10 else 1
+        spread = (f" ({meds[0]:.{digits}f} to {meds[-1]:.{digits}f})" if len(meds) > 1
+                  else "")
+        print(f"| {name} | {path} | {meds[len(meds) // 2]:.{digits}f}{spread} | "
+              f"{p99:.{digits}f} |")
 
 
 if __name__ == "__main__":

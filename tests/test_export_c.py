@@ -287,6 +287,36 @@ def test_a_prandtl_ishlinskii_inverse_model(tmp_path: Path) -> None:
     assert_equal_runs(c, ts, FLOAT64_RTOL)
 
 
+def bh_compensator(n: int = 40) -> InverseHysteresisNet:
+    """The B-H compensator that configs/measured.yaml chooses on two-loop B-H records (as
+    benchmarks/latency.py builds it): 40 stops through 4-segment characteristics beside the
+    exact inverse of an ``n``-level graded Preisach model, one affine readout."""
+    model = torchhys.Preisach(-70.0, 70.0, n, scale=7.0)
+    with torch.no_grad():
+        model.linear.fill_(1.0)
+    stops = torchhys.StopPrandtlIshlinskii(torch.linspace(1.75, 70.0, 40),
+                                           torch.full((40, 4), 0.01))
+    net = InverseHysteresisNet([stops, model.inverse()], hidden=1,
+                               activation="identity").double()
+    t = torch.linspace(0, 60, 2000, dtype=torch.float64)
+    y = 70 * torch.sin(t) * torch.exp(-t / 60)
+    net.fit_normalization(y, y / 12)
+    return net
+
+
+@needs_cc
+@pytest.mark.parametrize(("n", "code"), [(40, "acc += 0.0 + "), (80, "bins[")])
+def test_the_bh_compensator(n: int, code: str, tmp_path: Path) -> None:
+    """The Preisach inverse's jumps (a constant 820 x 41 table for 40 levels, 3240 x 81 for
+    80) multiplied through their column differences: written out (40 levels), or through
+    index tables (80 levels); the relays' update in one fused loop."""
+    net = bh_compensator(n)
+    x = record(*training_range(net), n=N if n == 40 else 3000, seed=3)
+    c, ts = both(net, tmp_path, x)
+    assert_equal_runs(c, ts, FLOAT64_RTOL)
+    assert code in (tmp_path / "torchhys_comp.c").read_text()
+
+
 class ZooStep(OperatorStep):
     """A step that runs many aten operations (their templates against TorchScript): a state
     s that follows x, and features of z = x - s."""

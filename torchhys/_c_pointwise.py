@@ -14,7 +14,7 @@ from typing import Any
 
 import torch
 
-from torchhys._c_writer import CTensor, Writer
+from torchhys._c_writer import CTensor, Writer, contiguous_strides
 
 __all__ = ["POINTWISE", "pointwise", "promoted"]
 
@@ -46,7 +46,9 @@ def pointwise(w: Writer, spec: CTensor, fmt: str | dict[str, str], operands: Seq
             raise ValueError(f"no template for dtype {compute}")
         fmt = fmt[kind]
     t, f = w.ctype(compute), "f" if compute == torch.float32 else ""
-    out = w.local(spec.dtype, spec.shape)
+    # an operand read more than once by the expression is computed once, into a local
+    operands = [w.materialize(x) if isinstance(x, CTensor) and fmt.count(f"{{{i}}}") > 1
+                else x for i, x in enumerate(operands)]
 
     def element(idx: list[str]) -> str:
         args = [w.read_broadcast(x, idx, x.dtype if (i in raw and isinstance(x, CTensor))
@@ -54,6 +56,10 @@ def pointwise(w: Writer, spec: CTensor, fmt: str | dict[str, str], operands: Seq
         expr = fmt.format(*args, T=t, f=f)
         return expr if spec.dtype == torch.bool else w.cast(expr, compute, spec.dtype)
 
+    if w.defer and spec.numel > 0:
+        return CTensor(spec.dtype, spec.shape, contiguous_strides(spec.shape),
+                       element=element)
+    out = w.local(spec.dtype, spec.shape)
     w.assign(out, element)
     return out
 
@@ -127,7 +133,20 @@ def _div_mode(w: Writer, spec: CTensor, a: Operand, b: Operand, *,
 
 
 def _where(w: Writer, spec: CTensor, cond: CTensor, a: Operand, b: Operand) -> CTensor:
-    return pointwise(w, spec, "({0} ? {1} : {2})", [cond, a, b], raw=[0])
+    if not (isinstance(cond, CTensor) and cond.numel == 1 and spec.numel > 1):
+        return pointwise(w, spec, "({0} ? {1} : {2})", [cond, a, b], raw=[0])
+    # one condition for all: two copy loops (which vectorize) under an if; a deferred
+    # operand is computed in its branch only
+    out = w.local(spec.dtype, spec.shape)
+    w.emit(f"if ({w.read(cond, ['0'] * len(cond.shape))}) {{")
+    for k, x in enumerate((a, b)):
+        if k:
+            w.emit("} else {")
+        w._depth += 1
+        w.assign(out, lambda idx, x=x: w.read_broadcast(x, idx, spec.dtype))
+        w._depth -= 1
+    w.emit("}")
+    return out
 
 
 def _masked_fill(w: Writer, spec: CTensor, x: CTensor, mask: CTensor, value: Operand

@@ -9,8 +9,10 @@ The pointwise ones are in :mod:`torchhys._c_pointwise`; here: views (no code), j
 reductions, matrix products, sorting and indexing.
 
 Reductions and matrix products add in index order (BLAS may not: rounding-level
-differences). Integer indices out of range (where torch raises) are clamped to the tensor,
-so the C never reads outside an array.
+differences), except a large constant matrix whose rows are piecewise constant (a cumulative
+table), multiplied through its column differences (:func:`_column_differences`). Integer
+indices out of range (where torch raises) are clamped to the tensor, so the C never reads
+outside an array.
 """
 
 from __future__ import annotations
@@ -23,9 +25,9 @@ from typing import Any
 import torch
 
 from torchhys._c_pointwise import POINTWISE, promoted
-from torchhys._c_writer import CTensor, Writer, contiguous_strides
+from torchhys._c_writer import CTensor, Writer, constant, contiguous_strides
 
-__all__ = ["SHAPE_ONLY", "TEMPLATES", "copy"]
+__all__ = ["POINTWISE_OPS", "SHAPE_ONLY", "TEMPLATES", "copy"]
 
 Emitter = Callable[..., Any]
 Operand = CTensor | float | int | bool
@@ -276,11 +278,16 @@ def _matmul_core(w: Writer, spec: CTensor, a: CTensor, b: CTensor,
             return value
         w.assign(out, element)
         return out.view(spec.shape, contiguous_strides(spec.shape), 0)
-    w.assign(out, lambda idx: w.literal(0, spec.dtype))
-    with w.loop(full[:-1]) as rows, w.loop([a2.shape[-1]]) as (p,), w.loop(full[-1:]) as (j,):
-        lhs = _read_aligned(w, a2, [*rows, p], spec.dtype)
-        rhs = _read_aligned(w, b2, [*rows[:-1], p, j], spec.dtype)
-        w.emit(f"{w.read(out, [*rows, j])} += {lhs} * {rhs};")
+    diff = _column_differences(b2, spec.dtype) if all(n == 1 for n in full[:-1]) else None
+    if diff is not None:
+        _sparse_cumsum(w, spec, out, a2, *diff)
+    else:
+        w.assign(out, lambda idx: w.literal(0, spec.dtype))
+        with (w.loop(full[:-1]) as rows, w.loop([a2.shape[-1]]) as (p,),
+              w.loop(full[-1:]) as (j,)):
+            lhs = _read_aligned(w, a2, [*rows, p], spec.dtype)
+            rhs = _read_aligned(w, b2, [*rows[:-1], p, j], spec.dtype)
+            w.emit(f"{w.read(out, [*rows, j])} += {lhs} * {rhs};")
     if alpha != 1 or (bias is not None and beta != 0):
         def element(idx: list[str]) -> str:
             value = w.read(out, idx)
@@ -292,6 +299,81 @@ def _matmul_core(w: Writer, spec: CTensor, a: CTensor, b: CTensor,
             return value
         w.assign(out, element)
     return out.view(spec.shape, contiguous_strides(spec.shape), 0)
+
+
+#: a constant matrix of at least this many elements is multiplied through its column
+#: differences where they have at most a quarter of its nonzeros
+SPARSE_MIN = 4096
+#: ... and written out, one statement a column, up to this many nonzeros
+SPARSE_UNROLL = 4096
+
+
+def _column_differences(b: CTensor, dtype: torch.dtype
+                        ) -> tuple[list[int], list[int], torch.Tensor] | None:
+    """For a constant matrix ``b`` (K, N) whose rows are piecewise constant (a cumulative
+    table, such as the Preisach inverse's jumps summed level by level): the nonzeros of
+    its column differences ``d`` (``b[:, j] = d[:, 0] + ... + d[:, j]`` exactly in
+    ``dtype``), as rows, columns and values, interleaved so that consecutive entries add to
+    different columns; None where that does not hold or saves little."""
+    if (b.value is None or len(b.shape) != 2 or not dtype.is_floating_point
+            or b.numel < SPARSE_MIN):
+        return None
+    m = b.value.to(dtype)
+    d = torch.diff(m, dim=1, prepend=torch.zeros_like(m[:, :1]))
+    rebuilt = d.clone()
+    for j in range(1, m.shape[1]):  # the C's order: a running sum over the columns
+        rebuilt[:, j] = rebuilt[:, j - 1] + d[:, j]
+    nnz = int((d != 0).sum())
+    if not torch.equal(rebuilt, m) or 4 * nnz > int((m != 0).sum()):
+        return None
+    rows, cols = (d != 0).nonzero(as_tuple=True)
+    rank = torch.zeros_like(rows)
+    for j in range(m.shape[1]):
+        at = (cols == j).nonzero(as_tuple=True)[0]
+        rank[at] = torch.arange(at.numel())
+    order = sorted(range(nnz), key=lambda e: (int(rank[e]), int(cols[e])))
+    rows, cols = rows[order], cols[order]
+    return rows.tolist(), cols.tolist(), d[rows, cols]
+
+
+def _sparse_cumsum(w: Writer, spec: CTensor, out: CTensor, a: CTensor, rows: list[int],
+                   cols: list[int], values: torch.Tensor) -> None:
+    """``out = a @ b`` (a one row) as the running sum over the columns of ``a @ d``, ``d``
+    the column differences of ``b`` (:func:`_column_differences`), added entry by entry:
+    3 operations a nonzero of ``d`` where the dense product takes one a element of ``b``.
+    The rounding differs from the dense sum's (as BLAS's does); a non-finite element of
+    ``a`` spreads to the columns of its row's runs only."""
+    t, n = w.ctype(spec.dtype), out.shape[-1]
+    v = w.array(constant(values.to(spec.dtype)))
+    lead = ["0"] * (len(a.shape) - 1)
+    at_out = ["0"] * (len(out.shape) - 1)
+    if len(rows) <= SPARSE_UNROLL:
+        # written out, one sum a column (the entries' indices constant: no index tables)
+        def unrolled() -> None:
+            w.emit(f"{t} acc = {w.literal(0, spec.dtype)};")
+            for j in range(n):
+                terms = [f"{w.cast(w.read(a, [*lead, str(rows[e])]), a.dtype, spec.dtype)} * "
+                         f"{v}[{e}]" for e in sorted(range(len(rows)),
+                                                    key=lambda e: rows[e]) if cols[e] == j]
+                if terms:
+                    w.emit(f"acc += {w.literal(0, spec.dtype)} + " + " + ".join(terms) + ";")
+                w.emit(f"{w.read(out, [*at_out, str(j)])} = acc;")
+        _block(w, unrolled)
+        return
+    r = w.array(constant(torch.tensor(rows, dtype=torch.int32)))
+    c = w.array(constant(torch.tensor(cols, dtype=torch.int32)))
+
+    def body() -> None:
+        w.emit(f"{t} bins[{n}];")
+        w.emit(f"{t} acc = {w.literal(0, spec.dtype)};")
+        w.emit(f"for (int j = 0; j < {n}; ++j) bins[j] = {w.literal(0, spec.dtype)};")
+        lhs = w.cast(w.read(a, [*lead, f"{r}[e]"]), a.dtype, spec.dtype)
+        w.emit(f"for (int e = 0; e < {len(rows)}; ++e) bins[{c}[e]] += {lhs} * {v}[e];")
+        w.emit(f"for (int j = 0; j < {n}; ++j) {{")
+        w.emit("    acc += bins[j];")
+        w.emit(f"    {w.read(out, [*at_out, 'j'])} = acc;")
+        w.emit("}")
+    _block(w, body)
 
 
 def _read_aligned(w: Writer, x: CTensor, idx: list[str], dtype: torch.dtype) -> str:
@@ -481,6 +563,9 @@ def _resolve(table: dict[str, Emitter]) -> dict[Any, Emitter]:
             out[op] = emit
     return out
 
+
+#: the pointwise ops (their results may be deferred into the loop of their reader)
+POINTWISE_OPS = frozenset(_resolve(POINTWISE))
 
 #: the op templates: op overload -> emitter
 TEMPLATES: dict[Any, Emitter] = {

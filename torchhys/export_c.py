@@ -41,7 +41,7 @@ from torch import fx, nn
 from torch.export.graph_signature import InputKind
 
 from torchhys._c_files import MEMBERS, files
-from torchhys._c_templates import SHAPE_ONLY, TEMPLATES
+from torchhys._c_templates import POINTWISE_OPS, SHAPE_ONLY, TEMPLATES
 from torchhys._c_writer import CTensor, Writer, constant, contiguous_strides
 from torchhys.export import _compensator, _ExplicitStep
 from torchhys.streaming import StreamingCompensator
@@ -239,12 +239,18 @@ def _translate(ep: torch.export.ExportedProgram, w: Writer, members: list[str]
             w.node += 1
             env[node] = _emit(w, node, env, missing)
         elif node.op == "output":
-            outs = [env[a] for a in node.args[0]]
+            w.node += 1
+            outs = [w.materialize(env[a]) for a in node.args[0]]
     if missing:
         raise ValueError("to_c: no C template for " + "; ".join(
             f"{op} (from {where})" for op, where in missing.items())
             + " (templates: torchhys._c_templates.TEMPLATES)")
     return outs[0], outs[1:]
+
+
+def _numel(node: fx.Node) -> int | None:
+    val = node.meta.get("val")
+    return val.numel() if isinstance(val, torch.Tensor) else None
 
 
 def _emit(w: Writer, node: fx.Node, env: dict, missing: dict[str, str]) -> Any:
@@ -256,6 +262,14 @@ def _emit(w: Writer, node: fx.Node, env: dict, missing: dict[str, str]) -> Any:
     emit = TEMPLATES.get(node.target)
     if emit is not None:
         start = len(w.lines)
+        if node.target in POINTWISE_OPS:
+            users = list(node.users)
+            w.defer = (len(users) == 1 and users[0].target in POINTWISE_OPS
+                       and _numel(users[0]) == _numel(node) is not None)
+        else:  # a deferred operand is written into a local first
+            w.defer = False
+            args, kwargs = fx.node.map_aggregate(
+                (args, kwargs), lambda x: w.materialize(x) if isinstance(x, CTensor) else x)
         try:
             out = emit(w, spec, *args, **kwargs)
         except ValueError as e:
