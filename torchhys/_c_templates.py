@@ -344,22 +344,29 @@ def _sparse_cumsum(w: Writer, spec: CTensor, out: CTensor, a: CTensor, rows: lis
     The rounding differs from the dense sum's (as BLAS's does); a non-finite element of
     ``a`` spreads to the columns of its row's runs only."""
     t, n = w.ctype(spec.dtype), out.shape[-1]
-    v = w.array(constant(values.to(spec.dtype)))
+    values = values.to(spec.dtype)
     lead = ["0"] * (len(a.shape) - 1)
     at_out = ["0"] * (len(out.shape) - 1)
     if len(rows) <= SPARSE_UNROLL:
-        # written out, one sum a column (the entries' indices constant: no index tables)
+        # written out, one sum a column, the entries of one value summed before their one
+        # product (no index tables; a table of relays' +-1 times one weight each: the sums
+        # are exact)
         def unrolled() -> None:
             w.emit(f"{t} acc = {w.literal(0, spec.dtype)};")
             for j in range(n):
-                terms = [f"{w.cast(w.read(a, [*lead, str(rows[e])]), a.dtype, spec.dtype)} * "
-                         f"{v}[{e}]" for e in sorted(range(len(rows)),
-                                                    key=lambda e: rows[e]) if cols[e] == j]
+                groups: dict[float, list[str]] = {}
+                for e in sorted(range(len(rows)), key=lambda e: rows[e]):
+                    if cols[e] == j:
+                        groups.setdefault(float(values[e]), []).append(
+                            w.cast(w.read(a, [*lead, str(rows[e])]), a.dtype, spec.dtype))
+                terms = [f"{w.literal(value, spec.dtype)} * ({' + '.join(reads)})"
+                         for value, reads in groups.items()]
                 if terms:
                     w.emit(f"acc += {w.literal(0, spec.dtype)} + " + " + ".join(terms) + ";")
                 w.emit(f"{w.read(out, [*at_out, str(j)])} = acc;")
         _block(w, unrolled)
         return
+    v = w.array(constant(values))
     r = w.array(constant(torch.tensor(rows, dtype=torch.int32)))
     c = w.array(constant(torch.tensor(cols, dtype=torch.int32)))
 

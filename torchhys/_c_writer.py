@@ -167,7 +167,8 @@ class Writer:
         self.constants: list[str] = []  # definitions, in order of first use
         self.helpers: dict[str, str] = {}
         self._const_names: dict[int, str] = {}
-        self._pinned: list[Tensor] = []  # the constants written (their ids stay theirs)
+        self._pinned: list[Tensor] = []  # the constants seen (their ids stay theirs)
+        self._uniform: dict[int, bool] = {}
         # liveness of the locals, in node numbers (``node`` is set by the caller), for
         # sharing arrays between locals whose lifetimes do not overlap
         self.node = 0
@@ -232,12 +233,24 @@ class Writer:
                 f"static const {self.ctype(t.dtype)} {name}[{len(values)}] = {{\n    {body}\n}};")
         return self._const_names[key]
 
+    def uniform(self, t: CTensor) -> bool:
+        """Whether the constant ``t`` holds one value (bit for bit) in every element: it is
+        read as a literal, not from an array."""
+        key = id(t.value)
+        if key not in self._uniform:
+            v = t.value.reshape(-1)
+            if v.is_floating_point():
+                v = v.view({8: torch.int64, 4: torch.int32, 2: torch.int16}[v.element_size()])
+            self._uniform[key] = bool(v.numel() > 0 and (v == v[0]).all())
+            self._pinned.append(t.value)
+        return self._uniform[key]
+
     def read(self, t: CTensor, idx: Sequence[str]) -> str:
         """The C expression of ``t``'s element at ``idx`` (one C index expression a dim)."""
         if t.element is not None:
             return f"({t.element(list(idx))})"
-        if t.value is not None and t.numel == 1:
-            return self.literal(t.value.reshape(()).item(), t.dtype)
+        if t.value is not None and (t.numel == 1 or self.uniform(t)):
+            return self.literal(t.value.reshape(-1)[0].item(), t.dtype)
         if t.base in self.scalars:
             return t.base
         return f"{self.array(t)}[{_index(t.offset, idx, t.strides)}]"

@@ -248,6 +248,9 @@ def _translate(ep: torch.export.ExportedProgram, w: Writer, members: list[str]
     return outs[0], outs[1:]
 
 
+_CAT = torch.ops.aten.cat.default
+
+
 def _numel(node: fx.Node) -> int | None:
     val = node.meta.get("val")
     return val.numel() if isinstance(val, torch.Tensor) else None
@@ -264,8 +267,11 @@ def _emit(w: Writer, node: fx.Node, env: dict, missing: dict[str, str]) -> Any:
         start = len(w.lines)
         if node.target in POINTWISE_OPS:
             users = list(node.users)
-            w.defer = (len(users) == 1 and users[0].target in POINTWISE_OPS
-                       and _numel(users[0]) == _numel(node) is not None)
+            w.defer = len(users) == 1 and (users[0].target == _CAT or (
+                users[0].target in POINTWISE_OPS and _numel(users[0]) == _numel(node)
+                is not None))
+        elif node.target == _CAT:  # reads each element of its operands once
+            w.defer = False
         else:  # a deferred operand is written into a local first
             w.defer = False
             args, kwargs = fx.node.map_aggregate(
