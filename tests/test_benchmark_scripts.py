@@ -4,6 +4,7 @@ results that cannot depend on the machine hold: a method that must beat another 
 
 from __future__ import annotations
 
+import importlib.util
 import math
 import os
 import re
@@ -130,7 +131,11 @@ def test_latency_benchmark_times_every_path() -> None:
         pytest.skip("no C++ compiler found (set CXX or install g++): the C++ rows need it")
     rows = table(run("latency.py", "--samples", "200", "--rounds", "1", "--skip-aoti"),
                  "compensator")
-    paths = ("eager Python", "TorchScript, Python", "TorchScript, C++")
+    onnx = (importlib.util.find_spec("onnxruntime") is not None
+            and importlib.util.find_spec("torchhys.export_onnx") is not None)
+    paths = ("C, cc -O2", "C, cc -O3 -march=native", *(("ONNX Runtime, Python",) if onnx
+                                                      else ()),
+             "eager Python", "TorchScript, Python", "TorchScript, C++")
     assert [r[1] for r in rows] == list(paths) * 4
     for r in rows:
         assert all(math.isfinite(number(c)) and number(c) > 0 for c in r[2:]), r
