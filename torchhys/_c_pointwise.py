@@ -2,9 +2,10 @@
 
 Each reproduces torch's CPU kernel, NaN included: ``maximum``, ``minimum`` and ``clamp``
 propagate NaN (unlike C's ``fmax``), ``sign(NaN)`` is 0, ``pow`` takes torch's special
-exponents (2, 3, -2, 0.5, -0.5, -1), ``sigmoid`` is ``1 / (1 + exp(-x))``; ``exp`` of a
-double is the writer's vectorizable one (within 1 ulp of libm's). Operands are cast
-to the op's compute dtype first (torch's type promotion), as torch's kernels do.
+exponents (2, 3, -2, 0.5, -0.5, -1), ``sigmoid`` is ``1 / (1 + exp(-x))``; ``exp`` and
+``sigmoid`` of a double are the writer's vectorizable ones (within 1 and 4 ulp of libm's).
+Operands are cast to the op's compute dtype first (torch's type promotion), as torch's
+kernels do.
 """
 
 from __future__ import annotations
@@ -167,11 +168,15 @@ def _gelu(w: Writer, spec: CTensor, x: CTensor, *, approximate: str = "none") ->
                      "({T})0.70710678118654757)))", [x])
 
 
-def _exp(fmt: str) -> Emitter:
-    """``fmt`` with ``EXP`` the exp of the compute dtype: in float64 the writer's
-    vectorizable ``exp`` (within 1 ulp of libm's; a loop of libm calls does not vectorize),
-    else libm's ``expf``."""
+def _exp(fmt: str, helper: str | None = None) -> Emitter:
+    """``fmt`` with ``EXP`` libm's ``expf`` in float32; in float64 the writer's vectorizable
+    ``exp`` (within 1 ulp of libm's; a loop of libm calls does not vectorize), or its
+    ``helper`` of the whole expression (``sigmoid``: one division, within 4 ulp)."""
     def emit(w: Writer, spec: CTensor, x: CTensor) -> CTensor:
+        if spec.dtype != torch.float64:
+            return pointwise(w, spec, fmt.replace("EXP", "exp{f}"), [x])
+        if helper is not None:
+            return pointwise(w, spec, w.helper(helper, spec.dtype) + "({0})", [x])
         return pointwise(w, spec, fmt.replace("EXP", w.helper("exp", spec.dtype)), [x])
     return emit
 
@@ -207,7 +212,7 @@ POINTWISE: dict[str, Emitter] = {
                          "int": "(({T})((0 < {0}) - ({0} < 0)))"}),
     "reciprocal.default": _op("(({T})1 / {0})"),
     "rsqrt.default": _op("(({T})1 / sqrt{f}({0}))"),
-    "sigmoid.default": _exp("(({T})1 / (({T})1 + EXP(-{0})))"),
+    "sigmoid.default": _exp("(({T})1 / (({T})1 + EXP(-{0})))", "sigmoid"),
     "exp.default": _exp("EXP({0})"),
     "relu.default": _op("(({0} < 0) ? ({T})0 : {0})"),
     "gelu.default": _gelu,

@@ -94,15 +94,17 @@ def _index(offset: int, idx: Sequence[str], strides: Sequence[int]) -> str:
 
 
 _FLOAT_HELPERS = {
-    # torch.maximum / minimum: NaN propagates; otherwise std::max(a, b) = a < b ? b : a
-    "max": "return (a != a) ? a : ((b != b) ? b : ((a < b) ? b : a));",
-    "min": "return (a != a) ? a : ((b != b) ? b : ((b < a) ? b : a));",
+    # torch.maximum / minimum: NaN propagates; otherwise std::max(a, b) = a < b ? b : a. The
+    # comparisons quiet (isless, !=: no exception on NaN), so that GCC if-converts a loop of
+    # them and vectorizes it (an ordered < under -ftrapping-math it would not speculate)
+    "max": "return isless(a, b) ? b : ((b != b) ? b : a);",
+    "min": "return isless(b, a) ? b : ((b != b) ? b : a);",
     # torch.clamp with tensor bounds: a NaN bound gives NaN, else min(max(a, lo), hi)
-    "clamp": "T m;\n    if (lo != lo || hi != hi) return lo + hi;\n"
-             "    m = (a < lo) ? lo : a;\n    return (hi < m) ? hi : m;",
+    "clamp": "T m = isless(a, lo) ? lo : a;\n    m = isless(hi, m) ? hi : m;\n"
+             "    return (lo != lo) ? lo : ((hi != hi) ? hi : m);",
     # torch.fmax / fmin: a NaN operand is ignored (C99 fmax)
-    "fmax": "return (a != a) ? b : ((b != b) ? a : ((a < b) ? b : a));",
-    "fmin": "return (a != a) ? b : ((b != b) ? a : ((b < a) ? b : a));",
+    "fmax": "return isless(a, b) ? b : ((a != a) ? b : a);",
+    "fmin": "return isless(b, a) ? b : ((a != a) ? b : a);",
     # torch's floor division of floats (div_floor_floating)
     "floordiv": "T mod, div, fl;\n    if (b == 0) return a / b;\n    mod = FMOD(a, b);\n"
                 "    div = (a - mod) / b;\n    if (mod != 0 && (b < 0) != (mod < 0)) div -= 1;\n"
@@ -151,6 +153,18 @@ _EXP_DOUBLE = """double kd, hi, lo, r, t, c, p, s1, s2;
     bits = ((kb - (kb >> 1)) - (UINT64_C(1) << 50) + 1023) << 52;
     memcpy(&s2, &bits, sizeof s2);
     return p * s1 * s2;"""
+
+# sigmoid(x) = 1 / (1 + exp(-x)) with one division: exp(-x)'s reduction as above, and
+# exp(r) = 1 + r + r c / (2 - c) = (2 + 2r - c) / (2 - c) (halved, so that 2^k times the
+# numerator stays finite where exp does), sigmoid = d / (d + 2^k n). Within 4 ulp of
+# 1 / (1 + exp(-x)) with libm's exp; 0, 1 and NaN where that gives them.
+_SIGMOID_DOUBLE = (
+    _EXP_DOUBLE.replace("double kd, hi, lo, r, t, c, p, s1, s2;",
+                        "double kd, hi, lo, r, t, c, d, n, s1, s2;")
+    .replace("    x = (fabs(x) > 746.0)", "    x = -x;\n    x = (fabs(x) > 746.0)")
+    .replace("    p = 1.0 - ((lo - (r * c) / (2.0 - c)) - hi);",
+             "    d = 1.0 - 0.5 * c;\n    n = (1.0 + r) - 0.5 * c;")
+    .replace("    return p * s1 * s2;", "    return d / (d + n * s1 * s2);"))
 
 
 class Writer:
@@ -343,14 +357,15 @@ class Writer:
 
     def helper(self, kind: str, dtype: torch.dtype) -> str:
         """The name of a shared helper function (``max``, ``min``, ``clamp``, ``fmax``,
-        ``fmin``, ``floordiv``, ``remainder``, ``exp``: the vectorizable exp of a double, and
-        libm's ``expf`` for a float) for ``dtype``, defined on first use."""
+        ``fmin``, ``floordiv``, ``remainder``; ``exp`` and ``sigmoid``: vectorizable ones of
+        a double) for ``dtype``, defined on first use."""
         t = self.ctype(dtype)
-        if kind == "exp" and dtype != torch.float64:
-            return "expf" if dtype == torch.float32 else "exp"
+        if kind in ("exp", "sigmoid") and dtype != torch.float64:
+            raise ValueError(f"no {kind} helper for {dtype} (libm's expf is used)")
         name = f"{self.prefix}_{kind}_{t.split('_')[0]}"
-        if kind == "exp" and name not in self.helpers:
-            self.helpers[name] = f"static inline double {name}(double x)\n{{\n    {_EXP_DOUBLE}\n}}"
+        if kind in ("exp", "sigmoid") and name not in self.helpers:
+            body = _EXP_DOUBLE if kind == "exp" else _SIGMOID_DOUBLE
+            self.helpers[name] = f"static inline double {name}(double x)\n{{\n    {body}\n}}"
         if name not in self.helpers:
             table = _FLOAT_HELPERS if dtype.is_floating_point else _INT_HELPERS
             if kind not in table:
