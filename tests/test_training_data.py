@@ -133,7 +133,7 @@ def test_npz_problems_name_file_column_row(tmp_path: Path, kind: str) -> None:
     msg = str(err.value)
     assert str(path) in msg
     expected = {"missing": ("'current'", None), "nan": ("'response'", "row 23"),
-                "time": ("'time'", "row 30"), "few": ("'response'", "row 3")}[kind]
+                "time": ("'time'", "row 30"), "few": ("'response'", "holds 3 data rows")}[kind]
     assert expected[0] in msg
     if expected[1]:
         assert expected[1] in msg

@@ -276,13 +276,15 @@ def test_selection_skips_a_candidate_that_cannot_be_fitted(monkeypatch, tmp_path
         main(["fit", "--config", str(cfg)])
     text = capsys.readouterr().out
     assert "nan" in text and "selected candidate 0" in text
-    # the progress line, the table and selection.csv say why
-    why = "FitError: gpi (direct): ridge 0.1: gpi: refused for the test; ridge 0.01: "
-    assert f"candidate 1 (2 of 2): val_mse nan (failed: {why}" in text
-    assert f"error: {why}" in text
+    # the progress line, the table and selection.csv say why (each ridge tried: the
+    # order of the ridges is that of their hold-out scores)
     with (Path(tmp_path) / "run/logs/version_0/selection.csv").open() as fh:
         rows = list(csv.DictReader(fh))
-    assert rows[0]["error"] == "" and rows[1]["error"].startswith(why)
+    why = rows[1]["error"]
+    assert rows[0]["error"] == "" and why.startswith("FitError: gpi (direct): ridge ")
+    assert why.count("gpi: refused for the test") == 3
+    assert f"candidate 1 (2 of 2): val_mse nan (failed: {why})" in text
+    assert f"error: {why}" in text
 
 
 def test_a_candidate_that_fails_a_fold_is_not_trained_on_the_others(monkeypatch, tmp_path,

@@ -422,9 +422,25 @@ def main(argv: list[str] | None = None) -> None:
     Args:
         argv: command-line arguments without the program name (``sys.argv[1:]`` if None).
 
+    The environment variables it sets for the processes of a multi-process run
+    (``TORCHHYS_QUIET``, ``TORCHHYS_THREADS``, ``TORCHHYS_IMPORT``, ``TORCHHYS_TRACEBACK``) are
+    restored when it returns.
+
     Raises:
         SystemExit: 2 on a user error (and as LightningCLI exits: usage errors, ``--help``).
     """
+    saved = {k: os.environ.get(k) for k in (QUIET_ENV, THREADS_ENV, IMPORT_ENV, TRACEBACK_ENV)}
+    try:
+        _main(argv)
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
+def _main(argv: list[str] | None) -> None:
     args, traceback = split_traceback_flag(sys.argv[1:] if argv is None else argv)
     try:
         args, modules = split_import_flags(args)
