@@ -92,4 +92,4 @@ def test_missing_file_and_bad_format(tmp_path, capsys) -> None:
                  "--out", str(tmp_path / "m.pt")]) == 2
     assert "does not exist" in capsys.readouterr().err
     with pytest.raises(SystemExit):
-        main(["--ckpt", "x", "--format", "onnx", "--out", "y"])
+        main(["--ckpt", "x", "--format", "tflite", "--out", "y"])
