@@ -198,6 +198,7 @@ def test_every_operator_in_onnx_equals_torchscript_float64(name: str, tmp_path: 
 
 
 @needs_onnx
+@pytest.mark.slow  # float64 covers every operator in the default run
 @pytest.mark.parametrize("name", NAMES)
 def test_every_operator_in_onnx_float32(name: str, tmp_path: Path) -> None:
     net = net_of([example_of(name).build().double()])
