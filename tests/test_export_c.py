@@ -23,11 +23,9 @@ networks' output weights. Skipped without a C compiler.
 from __future__ import annotations
 
 import copy
-import importlib
 import re
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -41,7 +39,6 @@ from torchhys import EIHO, Backlash, InverseHysteresisNet
 from torchhys.export import to_torchscript
 from torchhys.export_c import to_c
 from torchhys.operator import (
-    EXAMPLES,
     OPERATORS,
     HysteresisOperator,
     OperatorStep,
@@ -456,46 +453,6 @@ int main(void)
 # --- errors -----------------------------------------------------------------------------------
 
 
-ERFINV_OPERATOR = '''
-import torch
-from torchhys.operator import HysteresisOperator, OperatorStep, register_operator
-
-
-class ErfinvStep(OperatorStep):
-    def __init__(self):
-        super().__init__()
-        self.n_outputs = 1
-        self.state_spec = []
-
-    def forward(self, x, state):
-        return torch.erfinv(torch.tanh(x)), state
-
-
-class ErfinvZone(HysteresisOperator):
-    """A memoryless toy whose step uses an operation without a C template (erfinv)."""
-
-    def forward(self, x, state=None):
-        return torch.erfinv(torch.tanh(x)), None
-
-    def streaming_step(self, dtype):
-        return ErfinvStep()
-
-
-register_operator("erfinv_zone", ErfinvZone)
-'''
-
-
-@pytest.fixture
-def erfinv_module(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
-    """A module in a temporary folder that registers ``erfinv_zone`` (removed afterwards)."""
-    folder = tmp_path / "plugin"
-    folder.mkdir()
-    (folder / "erfinv_plugin.py").write_text(ERFINV_OPERATOR)
-    monkeypatch.syspath_prepend(str(folder))
-    yield importlib.import_module("erfinv_plugin")
-    OPERATORS.pop("erfinv_zone", None)
-    EXAMPLES.pop("erfinv_zone", None)
-    sys.modules.pop("erfinv_plugin", None)
 
 
 def test_an_operation_without_template_is_named_with_its_step(erfinv_module, tmp_path: Path

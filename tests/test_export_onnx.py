@@ -21,7 +21,6 @@ Skipped without onnxruntime (and onnx, onnxscript): ``pip install "torchhys[onnx
 from __future__ import annotations
 
 import copy
-import importlib
 import json
 import math
 import sys
@@ -41,7 +40,7 @@ from torchhys import (
     Preisach,
 )
 from torchhys.export import to_torchscript
-from torchhys.operator import EXAMPLES, OPERATORS, example_of, load_entry_points
+from torchhys.operator import OPERATORS, example_of, load_entry_points
 from torchhys.streaming import StreamingCompensator
 
 try:
@@ -435,46 +434,6 @@ def test_bad_arguments(tmp_path: Path) -> None:
         load_onnx(other)
 
 
-ERFINV_OPERATOR = '''
-import torch
-from torchhys.operator import HysteresisOperator, OperatorStep, register_operator
-
-
-class ErfinvStep(OperatorStep):
-    def __init__(self):
-        super().__init__()
-        self.n_outputs = 1
-        self.state_spec = []
-
-    def forward(self, x, state):
-        return torch.erfinv(torch.tanh(x)), state
-
-
-class ErfinvZone(HysteresisOperator):
-    """A memoryless toy whose step uses an operation without an ONNX translation."""
-
-    def forward(self, x, state=None):
-        return torch.erfinv(torch.tanh(x)), None
-
-    def streaming_step(self, dtype):
-        return ErfinvStep()
-
-
-register_operator("erfinv_zone_onnx", ErfinvZone)
-'''
-
-
-@pytest.fixture
-def erfinv_module(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
-    """A module in a temporary folder that registers ``erfinv_zone_onnx`` (removed after)."""
-    folder = tmp_path / "plugin"
-    folder.mkdir()
-    (folder / "erfinv_onnx_plugin.py").write_text(ERFINV_OPERATOR)
-    monkeypatch.syspath_prepend(str(folder))
-    yield importlib.import_module("erfinv_onnx_plugin")
-    OPERATORS.pop("erfinv_zone_onnx", None)
-    EXAMPLES.pop("erfinv_zone_onnx", None)
-    sys.modules.pop("erfinv_onnx_plugin", None)
 
 
 @needs_onnx
@@ -482,8 +441,8 @@ def test_an_operation_without_translation_is_named_with_its_step(erfinv_module, 
                                                                 ) -> None:
     net = net_of([erfinv_module.ErfinvZone(), Backlash([0.4])])
     with pytest.raises(ValueError, match=r"no ONNX translation for prims\.erf_inv\.default "
-                       r"\(from comp\.slots\.0\.step \(erfinv_onnx_plugin\.ErfinvStep\) at "
-                       r"erfinv_onnx_plugin\.py:\d+ in forward\)") as err:
+                       r"\(from comp\.slots\.0\.step \(erfinv_plugin\.ErfinvStep\) at "
+                       r"erfinv_plugin\.py:\d+ in forward\)") as err:
         to_onnx(net, tmp_path / "e.onnx")
     assert "\n" not in str(err.value)
     assert not (tmp_path / "e.onnx").exists()
