@@ -32,6 +32,8 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from _helpers import loop_data
+from _helpers import loop_net as net_of
 from torch import Tensor
 
 import torchhys
@@ -98,33 +100,6 @@ int main(int argc, char **argv)
 
 
 # --- models and records -----------------------------------------------------------------------
-
-
-def loop_data(T: int = 600) -> tuple[torch.Tensor, torch.Tensor]:
-    """The training loop: x = sin(t) (1 + 0.1 t), y = x + 0.2 cos t, t in [0, 2 pi]."""
-    t = torch.linspace(0.0, 2 * torch.pi, T, dtype=torch.float64)
-    x = torch.sin(t) * (1 + 0.1 * t)
-    return x[None], (x + 0.2 * torch.cos(t))[None]
-
-
-def net_of(operators: list, hidden: int = 8, activation: str = "sigmoid"
-           ) -> InverseHysteresisNet:
-    """A float64 network on ``loop_data`` (normalization, ranges and direction recorded) whose
-    output layer is the ridge least-squares fit of the target: a model that follows it."""
-    torch.manual_seed(0)
-    net = InverseHysteresisNet(operators, hidden=hidden, activation=activation).double()
-    x, y = loop_data()
-    net.fit_normalization(x, y)
-    with torch.no_grad():
-        f, _ = net.features(x)
-        h = net.activation(net.hidden((f[0] - net.in_mean) / net.in_std))
-        a = torch.cat([h, torch.ones(h.shape[0], 1, dtype=h.dtype)], 1)
-        target = (y[0] - net.out_mean) / net.out_std
-        w = torch.linalg.solve(a.T @ a + 1e-6 * torch.eye(a.shape[1], dtype=a.dtype),
-                               a.T @ target)
-        net.output.weight.copy_(w[:-1][None])
-        net.output.bias.copy_(w[-1:])
-    return net
 
 
 def record(low: float, high: float, n: int = N, seed: int = 0) -> np.ndarray:

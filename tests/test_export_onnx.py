@@ -29,6 +29,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from _helpers import loop_data
+from _helpers import loop_net as net_of
 
 import torchhys
 from torchhys import (
@@ -72,32 +74,6 @@ N, N32 = 10_000, 3_000
 
 
 # --- models and records -----------------------------------------------------------------------
-
-
-def loop_data(T: int = 600) -> tuple[torch.Tensor, torch.Tensor]:
-    """The training loop: x = sin(t) (1 + 0.1 t), y = x + 0.2 cos t, t in [0, 2 pi]."""
-    t = torch.linspace(0.0, 2 * torch.pi, T, dtype=torch.float64)
-    x = torch.sin(t) * (1 + 0.1 * t)
-    return x[None], (x + 0.2 * torch.cos(t))[None]
-
-
-def net_of(operators: list, hidden: int = 8) -> InverseHysteresisNet:
-    """A float64 network on ``loop_data`` (normalization, ranges and direction recorded by
-    ``fit_normalization``) whose output layer is a ridge fit of the target."""
-    torch.manual_seed(0)
-    net = InverseHysteresisNet(operators, hidden=hidden).double()
-    x, y = loop_data()
-    net.fit_normalization(x, y)
-    with torch.no_grad():
-        f, _ = net.features(x)
-        h = net.activation(net.hidden((f[0] - net.in_mean) / net.in_std))
-        a = torch.cat([h, torch.ones(h.shape[0], 1, dtype=h.dtype)], 1)
-        target = (y[0] - net.out_mean) / net.out_std
-        w = torch.linalg.solve(a.T @ a + 1e-6 * torch.eye(a.shape[1], dtype=a.dtype),
-                               a.T @ target)
-        net.output.weight.copy_(w[:-1][None])
-        net.output.bias.copy_(w[-1:])
-    return net
 
 
 def recommended() -> InverseHysteresisNet:
