@@ -65,10 +65,10 @@ from torchhys import (
     PrandtlIshlinskii,
     ZhaoTanOperator,
 )
+from torchhys.deploy.export import load_torchscript, to_torchscript
 from torchhys.dynamics import TransferFunction
-from torchhys.export import load_torchscript, to_torchscript
-from torchhys.fitting import FitResult, fit_full_batch
 from torchhys.functional import backlash
+from torchhys.identification.fitting import FitResult, fit_full_batch
 from torchhys.plants import PiezoStage, bouc_wen, paper_plant_widths
 from torchhys.signals import chirp, decaying_sine, multisine, to_range
 from torchhys.training.cli import read_config

@@ -6,11 +6,11 @@ is scored on the held-out recordings four ways:
 
 - ``saturated``: the network's output saturated to the training target range (the
   ``default`` row of the real-data table);
-- ``clamp``: through :class:`~torchhys.streaming.StreamingCompensator` with the input clamp
+- ``clamp``: through :class:`~torchhys.deploy.streaming.StreamingCompensator` with the input clamp
   only (``direction="none"``: the input clamped to the training input range widened by 5 %);
 - ``guard``: with the direction guard only (``input_margin=None``);
 - ``both``: as ``torchhys export`` deploys it by default (the clamp, and the guard where the
-  training data have a clear trend, :data:`~torchhys.streaming.MIN_TREND`);
+  training data have a clear trend, :data:`~torchhys.deploy.streaming.MIN_TREND`);
 - ``forced guard``: the guard alone forced on in the direction of the trend's sign, however
   weak the trend (``--direction increasing`` or ``decreasing``).
 
@@ -36,7 +36,7 @@ from pathlib import Path
 import real_data as rd  # benchmarks/ (the script's folder) is on sys.path
 import torch
 
-from torchhys.streaming import StreamingCompensator, default_limits
+from torchhys.deploy.streaming import StreamingCompensator, default_limits
 
 VARIANTS = {"clamp": {"direction": "none"}, "guard": {"input_margin": None}, "both": {}}
 """The compensator's options of each scored variant beside ``saturated``."""

@@ -13,10 +13,10 @@ Each path runs ``step`` on a batch of one, one thread;
 the C++ rows use deploy/cpp/controller (built on first use, ``--rate 0``), which times each
 step with a steady clock (TorchScript: the module frozen, ``step_explicit`` with the state
 held by the program; AOTI: ``boxed_run``, single-threaded runner). The C rows: the C99
-step of :func:`torchhys.export_c.to_c` in a C harness compiled here (``cc -std=c99 -O2``, the
+step of :func:`torchhys.deploy.export_c.to_c` in a C harness compiled here (``cc -std=c99 -O2``, the
 compiler's default target, and ``-O3 -march=native``), which times each step with
 ``clock_gettime(CLOCK_MONOTONIC)`` after a warm-up pass; ``--c-only`` runs these alone (no
-libtorch, no AOTI compile of minutes). ONNX Runtime (through ``torchhys.export_onnx``'s
+libtorch, no AOTI compile of minutes). ONNX Runtime (through ``torchhys.deploy.export_onnx``'s
 stepper, from Python, one thread) where that module and onnxruntime are installed. Every
 model is in ``--dtype`` (default float64, the C step's). Every row runs
 ``--rounds`` times, the rows interleaved, so that a change of load on a shared CPU touches
@@ -45,8 +45,8 @@ from torchhys import (
     PreisachInverse,
     StopPrandtlIshlinskii,
 )
-from torchhys.export import load_aoti, load_torchscript, to_aoti, to_torchscript
-from torchhys.streaming import StreamingCompensator
+from torchhys.deploy.export import load_aoti, load_torchscript, to_aoti, to_torchscript
+from torchhys.deploy.streaming import StreamingCompensator
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -123,7 +123,7 @@ C_FLAGS = {"C, cc -O2": ["-O2"], "C, cc -O3 -march=native": ["-O3", "-march=nati
 def c_timer(comp: StreamingCompensator, folder: Path, flags: list[str]) -> Path:
     """The compensator's C step (``to_c``, prefix ``comp``) in the timing harness, compiled
     with ``cc -std=c99 FLAGS`` into ``folder``."""
-    from torchhys.export_c import to_c
+    from torchhys.deploy.export_c import to_c
 
     folder.mkdir(parents=True, exist_ok=True)
     if not (folder / "comp.c").exists():
@@ -147,11 +147,11 @@ def time_c(exe: Path, x: torch.Tensor, tmp: Path) -> tuple[float, float]:
 
 def onnx_stepper(comp: StreamingCompensator, path: Path):
     """ONNX Runtime's stepper of the compensator (one thread), or None where
-    ``torchhys.export_onnx`` or onnxruntime is missing."""
+    ``torchhys.deploy.export_onnx`` or onnxruntime is missing."""
     try:
         import onnxruntime  # noqa: F401
 
-        from torchhys.export_onnx import load_onnx, to_onnx
+        from torchhys.deploy.export_onnx import load_onnx, to_onnx
     except ImportError:
         return None
     to_onnx(comp, path)

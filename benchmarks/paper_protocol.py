@@ -9,7 +9,8 @@ signal, as in the paper (1.737e-3 for EIHO-NN, 3.867e-3 for Ref. [8]).
 Part 2 (causal): configurations that need no targets at run time, trained on the paper's
 signal and tested on two signals of the same range through the same plant: a decaying
 multisine (nested minor loops) and a steady multisine. The least-squares Prandtl-Ishlinskii
-model of h (:func:`torchhys.fitting.fit_prandtl_ishlinskii`, linear in the outputs of 30 play
+model of h (:func:`torchhys.identification.fitting.fit_prandtl_ishlinskii`, linear in the outputs
+of 30 play
 operators of h on a cubic width grid) is the causal inverse, alone or as the network's
 operator.
 
@@ -25,8 +26,8 @@ import warnings
 import torch
 
 from torchhys import EIHO, Backlash, InverseHysteresisNet
-from torchhys.fitting import fit_full_batch, fit_prandtl_ishlinskii, play_width_grid
 from torchhys.functional import NonCausalWarning, prandtl_ishlinskii, segment_coefficients
+from torchhys.identification.fitting import fit_full_batch, fit_prandtl_ishlinskii, play_width_grid
 from torchhys.plants import paper_plant_widths, paper_simulation
 from torchhys.signals import exponential_decay, multisine, to_range
 

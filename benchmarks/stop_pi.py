@@ -32,9 +32,9 @@ LOOP = 10_000
 
 def run_one(method: str, T: int, repeats: int) -> dict:
     from torchhys import StopPrandtlIshlinskii, fit_stop_pi
-    from torchhys.fitting import play_width_grid
     from torchhys.functional import play_step
     from torchhys.functional.stop_pi import stop_characteristic
+    from torchhys.identification.fitting import play_width_grid
 
     x = walk_signal(T)
     r = play_width_grid(x, N, power=2.0)

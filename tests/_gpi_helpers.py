@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from _helpers import random_walk
 
-from torchhys.generalized_pi import GeneralizedPrandtlIshlinskii
+from torchhys.operators.generalized_pi import GeneralizedPrandtlIshlinskii
 
 F64 = torch.float64
 WIDTHS = [0.0, 0.4, 1.0, 1.7, 2.5]

@@ -15,7 +15,7 @@ import torch
 from torchhys import InverseHysteresisNet, signals
 
 if TYPE_CHECKING:  # the streaming module is not imported by tests that do not stream
-    from torchhys.streaming import StreamingCompensator
+    from torchhys.deploy.streaming import StreamingCompensator
 
 # --- inputs -----------------------------------------------------------------------------------
 
@@ -110,7 +110,7 @@ def assert_streams_as_eager(net: InverseHysteresisNet, x: torch.Tensor, atol: fl
                             limits: tuple[float, float] = (-100.0, 100.0)) -> None:
     """A :class:`StreamingCompensator` of ``net`` (command limits wide enough not to act)
     equals the network's sequence path on ``x`` within ``atol``."""
-    from torchhys.streaming import StreamingCompensator
+    from torchhys.deploy.streaming import StreamingCompensator
 
     with torch.no_grad():
         y, _ = net(x)
@@ -127,8 +127,8 @@ def assert_torchscript_as_eager(net: InverseHysteresisNet, x: torch.Tensor, path
     its sequence call exactly."""
     import warnings
 
-    from torchhys.export import to_torchscript
-    from torchhys.streaming import StreamingCompensator
+    from torchhys.deploy.export import to_torchscript
+    from torchhys.deploy.streaming import StreamingCompensator
 
     to_torchscript(net, path, limits=limits, **RAW)
     with warnings.catch_warnings():
@@ -152,7 +152,7 @@ def assert_aoti_as_eager(net: InverseHysteresisNet, x: torch.Tensor, path: Path,
                          atol: float = 1e-12) -> None:
     """``to_aoti(net, path)`` (batch 1, command limits wide enough not to act) stepped over
     the sequence ``x`` (time,) equals the network's sequence path within ``atol``."""
-    from torchhys.export import load_aoti, to_aoti
+    from torchhys.deploy.export import load_aoti, to_aoti
 
     to_aoti(net, path, limits=(-1e6, 1e6), **RAW)
     stepper = load_aoti(path)

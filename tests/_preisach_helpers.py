@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from torchhys.preisach import Preisach
+from torchhys.operators.preisach import Preisach
 
 F64 = torch.float64
 

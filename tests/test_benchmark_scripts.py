@@ -133,7 +133,7 @@ def test_latency_benchmark_times_every_path() -> None:
     rows = table(run("latency.py", "--samples", "200", "--rounds", "1", "--skip-aoti"),
                  "compensator")
     onnx = (importlib.util.find_spec("onnxruntime") is not None
-            and importlib.util.find_spec("torchhys.export_onnx") is not None)
+            and importlib.util.find_spec("torchhys.deploy.export_onnx") is not None)
     paths = ("C, cc -O2", "C, cc -O3 -march=native", *(("ONNX Runtime, Python",) if onnx
                                                       else ()),
              "eager Python", "TorchScript, Python", "TorchScript, C++")

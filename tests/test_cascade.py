@@ -12,10 +12,10 @@ import torch
 from _helpers import RAW, run_split
 
 from torchhys import EIHO, Backlash, Cascade, InverseHysteresisNet, PrandtlIshlinskii
+from torchhys.deploy.export import load_torchscript, to_torchscript
+from torchhys.deploy.streaming import StreamingCompensator
 from torchhys.dynamics import StateSpace, TransferFunction
-from torchhys.export import load_torchscript, to_torchscript
 from torchhys.operator import make_operator
-from torchhys.streaming import StreamingCompensator
 
 
 def _tf() -> TransferFunction:

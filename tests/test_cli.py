@@ -15,7 +15,7 @@ import torch
 import yaml
 from _training_helpers import cli
 
-from torchhys.export import load_torchscript
+from torchhys.deploy.export import load_torchscript
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 from torchhys.training.export_cmd import main as export_main
 from torchhys.training.operators import build_operators

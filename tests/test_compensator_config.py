@@ -15,7 +15,7 @@ from _training_helpers import trainer
 from torch import nn
 
 from torchhys import EIHO, Backlash
-from torchhys.export import load_torchscript, to_torchscript
+from torchhys.deploy.export import load_torchscript, to_torchscript
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 from torchhys.training.cli import main
 from torchhys.training.export_cmd import main as export_main

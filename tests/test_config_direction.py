@@ -7,7 +7,7 @@ configs) with few epochs: what is tested is the exported command's direction far
 the training range, whatever the fit. The exported file (``torchhys export``, TorchScript)
 is swept from the top of the training range to 100 times it, down to -100 times the range's
 largest magnitude and back: the command never moves against the input's direction
-(``torchhys.streaming``: the input clamp and the direction guard) and each ramp ends on its
+(``torchhys.deploy.streaming``: the input clamp and the direction guard) and each ramp ends on its
 side of the command range (a rising compensator at the top of what it commanded on the
 ramp up, the bottom on the ramp down). ``preisach_forward.yaml`` is a forward model (field
 to flux density), exported all the same; ``paper_simulation_eiho.yaml`` reproduces the
@@ -26,7 +26,7 @@ import pytest
 import torch
 import yaml
 
-from torchhys.export import load_torchscript
+from torchhys.deploy.export import load_torchscript
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = sorted((ROOT / "configs").glob("*.yaml"))

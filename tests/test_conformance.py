@@ -20,10 +20,10 @@ from _helpers import RAW
 from torch.utils._pytree import tree_flatten
 
 from torchhys import InverseHysteresisNet, signals
-from torchhys.export import load_aoti, to_aoti, to_torchscript
+from torchhys.deploy.export import load_aoti, to_aoti, to_torchscript
+from torchhys.deploy.streaming import StreamingCompensator
 from torchhys.functional import _filter_kernel, _kernel
 from torchhys.operator import OPERATORS, check_operator, example_of, load_entry_points
-from torchhys.streaming import StreamingCompensator
 
 load_entry_points()
 NAMES = sorted(OPERATORS)

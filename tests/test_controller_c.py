@@ -4,7 +4,7 @@ deploy/c/build.sh builds it with the float64 C files of the example compensator
 (deploy/c/example_comp.py: the network of configs/compensator.yaml, normalization and output
 layer fitted on a loop); it runs 1000 samples unpaced and 200 at --rate 1000 (sleeping, and
 spinning), and its CSV (``y_ref,u``) equals the Python compensator
-(``torchhys.streaming.StreamingCompensator``) within 1e-12 of the commands' scale, the
+(``torchhys.deploy.streaming.StreamingCompensator``) within 1e-12 of the commands' scale, the
 counters equal; the latency (and, paced, the jitter) lines are printed. Skipped without a C
 compiler.
 """
@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchhys.streaming import StreamingCompensator
+from torchhys.deploy.streaming import StreamingCompensator
 
 ROOT = Path(__file__).resolve().parents[1]
 DEPLOY = ROOT / "deploy" / "c"
@@ -41,7 +41,7 @@ def example_comp():
 @pytest.fixture(scope="module")
 def built(tmp_path_factory: pytest.TempPathFactory):
     """(the controller, the example network), the C files float64 with the prefix ``comp``."""
-    from torchhys.export_c import to_c
+    from torchhys.deploy.export_c import to_c
 
     folder = tmp_path_factory.mktemp("controller_c")
     net = example_comp().example_network()

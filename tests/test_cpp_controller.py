@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from torchhys import EIHO, Backlash, InverseHysteresisNet
-from torchhys.export import load_torchscript, to_aoti, to_torchscript
+from torchhys.deploy.export import load_torchscript, to_aoti, to_torchscript
 
 ROOT = Path(__file__).resolve().parents[1]
 SOURCES = [ROOT / "deploy" / "cpp" / "controller.cpp", ROOT / "deploy" / "cpp" / "build.sh"]

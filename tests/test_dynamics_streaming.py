@@ -12,8 +12,8 @@ from _dynamics_helpers import BACKENDS, signal, use_backend
 from _helpers import RAW, run_split, step_loop
 
 from torchhys import Backlash, InverseHysteresisNet
+from torchhys.deploy.streaming import StreamingCompensator
 from torchhys.dynamics import StateSpace, TransferFunction
-from torchhys.streaming import StreamingCompensator
 
 
 def _blocks() -> dict[str, torch.nn.Module]:

@@ -10,8 +10,8 @@ from _branch_reference import ref_branch
 from _helpers import batch, random_walk, run_chunked, smooth_input
 
 from torchhys import EIHO, InverseHysteresisNet
-from torchhys.fitting import fit_full_batch
 from torchhys.functional import eiho
+from torchhys.identification.fitting import fit_full_batch
 
 A = (1.3, 0.7)
 K = (0.4, -0.25)

@@ -13,8 +13,8 @@ import torch
 from _helpers import RAW, inputs, net_of
 
 from torchhys import EIHO, Backlash
-from torchhys.export import load_aoti, state_spec_string, to_aoti
-from torchhys.streaming import StreamingCompensator
+from torchhys.deploy.export import load_aoti, state_spec_string, to_aoti
+from torchhys.deploy.streaming import StreamingCompensator
 
 LIMITS = (-50.0, 50.0)
 

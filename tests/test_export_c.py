@@ -1,4 +1,4 @@
-"""torchhys.export_c: the generated C99 step, compiled, against the TorchScript compensator.
+"""torchhys.deploy.export_c: the generated C99 step, compiled, against the TorchScript compensator.
 
 The two files are compiled with ``cc -std=c99 -O2 -Wall -Wextra -Werror -pedantic`` into a
 harness that uses only the contract's names (``NAME_real``, ``NAME_state``, ``NAME_init``,
@@ -38,8 +38,8 @@ from torch import Tensor
 
 import torchhys
 from torchhys import EIHO, Backlash, InverseHysteresisNet
-from torchhys.export import to_torchscript
-from torchhys.export_c import to_c
+from torchhys.deploy.export import to_torchscript
+from torchhys.deploy.export_c import to_c
 from torchhys.operator import (
     OPERATORS,
     HysteresisOperator,
@@ -455,7 +455,7 @@ def test_bad_arguments(kwargs: dict, message: str, tmp_path: Path) -> None:
 
 
 def test_a_missing_folder_and_a_compensator_of_another_dtype(tmp_path: Path) -> None:
-    from torchhys.streaming import StreamingCompensator
+    from torchhys.deploy.streaming import StreamingCompensator
 
     net = net_of([Backlash([0.4])], hidden=2)
     with pytest.raises(ValueError, match="is not an existing folder"):
@@ -513,7 +513,7 @@ def test_fit_then_export_c_from_the_command_line(monkeypatch: pytest.MonkeyPatch
         assert f"comp_{dtype}.c (c, {dtype})" in capsys.readouterr().out
         assert export_main(["--ckpt", str(ckpt), "--format", "torchscript", "--out",
                             str(out / f"{dtype}.pt"), "--dtype", dtype]) == 0
-        scripted = torchhys.export.load_torchscript(out / f"{dtype}.pt")
+        scripted = torchhys.deploy.export.load_torchscript(out / f"{dtype}.pt")
         x = record(float(scripted.in_low), float(scripted.in_high), n=3000, seed=2)
         c = run_c(compile_harness(out, "comp_" + dtype), x)
         xt = torch.tensor(x, dtype=scripted.low.dtype)

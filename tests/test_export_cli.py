@@ -1,4 +1,4 @@
-"""``torchhys export`` (training/export_cmd.py): checkpoints to compensator files."""
+"""``torchhys export`` (torchhys/training/export_cmd.py): checkpoints to compensator files."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from torchhys import InverseHysteresisNet
-from torchhys.export import load_torchscript
-from torchhys.streaming import StreamingCompensator
+from torchhys.deploy.export import load_torchscript
+from torchhys.deploy.streaming import StreamingCompensator
 from torchhys.training.export_cmd import main
 
 OPERATOR_KWARGS = {"a": 1.3, "rule": "dominant", "threshold": 0.1}
@@ -45,7 +45,7 @@ def test_lightning_checkpoint_to_torchscript(tmp_path, capsys) -> None:
 
 def test_lightning_checkpoint_to_onnx(tmp_path, capsys) -> None:
     pytest.importorskip("onnxruntime", reason="the onnx extra (pip install 'torchhys[onnx]')")
-    from torchhys.export_onnx import load_onnx
+    from torchhys.deploy.export_onnx import load_onnx
 
     net = trained().double()
     torch.save(lightning_ckpt(net), tmp_path / "m.ckpt")

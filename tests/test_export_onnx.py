@@ -1,6 +1,7 @@
-"""torchhys.export_onnx: the ONNX step under ONNX Runtime against the TorchScript compensator.
+"""torchhys.deploy.export_onnx: the ONNX step under ONNX Runtime against the TorchScript
+compensator.
 
-The ONNX file's step (:func:`~torchhys.export_onnx.load_onnx`, ONNX Runtime on the CPU) and
+The ONNX file's step (:func:`~torchhys.deploy.export_onnx.load_onnx`, ONNX Runtime on the CPU) and
 the TorchScript file's ``step`` run side by side over a record with nested turning points,
 ties, runs of -0.0 and +0.0, samples outside the training range, NaN and inf: every
 registered operator's example network, the recommended compensator's network under several
@@ -41,9 +42,9 @@ from torchhys import (
     PrandtlIshlinskiiInverse,
     Preisach,
 )
-from torchhys.export import to_torchscript
+from torchhys.deploy.export import to_torchscript
+from torchhys.deploy.streaming import StreamingCompensator
 from torchhys.operator import OPERATORS, example_of, load_entry_points
-from torchhys.streaming import StreamingCompensator
 
 try:
     import onnx
@@ -54,7 +55,7 @@ except ImportError:
 else:
     HAVE_ONNX = True
 
-from torchhys.export_onnx import (
+from torchhys.deploy.export_onnx import (
     ONNX_METADATA_KEYS,
     _quiet_exporter,
     load_onnx,
@@ -340,7 +341,7 @@ def test_the_state_is_the_callers(tmp_path: Path) -> None:
 def test_signed_zeros_and_special_values_in_the_translations(tmp_path: Path) -> None:
     """The operations written here against torch: sinh and asinh within a few ulp over a
     wide range, copysign, signbit and searchsorted exactly (the sign of zero included)."""
-    from torchhys.export_onnx import _translations
+    from torchhys.deploy.export_onnx import _translations
 
     class Ops(torch.nn.Module):
         def forward(self, z, a, seq):
@@ -429,7 +430,7 @@ def test_an_operation_onnx_runtime_cannot_run_is_refused_at_export(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Without its translation here, sinh (the Preisach inverse's graded map) exports as
     ONNX's Sinh, which ONNX Runtime runs in float32 only: refused when the file is written."""
-    import torchhys.export_onnx as export_onnx
+    import torchhys.deploy.export_onnx as export_onnx
 
     full = export_onnx._translations
 

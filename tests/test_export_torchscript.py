@@ -13,8 +13,8 @@ import torch
 from _helpers import RAW, inputs, net_of
 
 from torchhys import EIHO, Backlash, PrandtlIshlinskii, ZhaoTanOperator
-from torchhys.export import load_torchscript, to_torchscript
-from torchhys.streaming import StreamingCompensator
+from torchhys.deploy.export import load_torchscript, to_torchscript
+from torchhys.deploy.streaming import StreamingCompensator
 
 CONFIGS = {
     "eiho_dominant_plays": lambda: [EIHO(a=(1.2, 0.8), rule="dominant", threshold=0.25,

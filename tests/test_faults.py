@@ -28,8 +28,8 @@ from _training_helpers import cli, trainer
 from lightning.pytorch.callbacks import ModelCheckpoint
 
 from torchhys import InverseHysteresisNet
-from torchhys.export import load_torchscript, to_torchscript
-from torchhys.streaming import StreamingCompensator
+from torchhys.deploy.export import load_torchscript, to_torchscript
+from torchhys.deploy.streaming import StreamingCompensator
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 from torchhys.training.checkpoint_io import AtomicCheckpointIO
 from torchhys.training.files import DataFileError, read_recordings
@@ -237,7 +237,7 @@ def test_fit_killed_at_random_points_resumes_to_the_same_weights(reference: Refe
 def test_fit_killed_at_more_random_points(reference: Reference, tmp_path: Path, seed: int,
                                           plugin: bool) -> None:
     """Five kills (one during start-up, four during training) per seed; the second with
-    the checkpoints written by training/checkpoint_io.AtomicCheckpointIO."""
+    the checkpoints written by torchhys/training/checkpoint_io.AtomicCheckpointIO."""
     more = ["--trainer.plugins=torchhys.training.checkpoint_io.AtomicCheckpointIO"] * plugin
     outcomes = run_killed_and_resumed(reference, tmp_path, kill_points(seed, n_training=4),
                                       *more)
@@ -335,7 +335,7 @@ def fit_tiny(ckpt_dir: Path, epochs: int, *, atomic: bool, ckpt_path: Path | Non
 CROSS_DEVICE_REASON = (
     "Lightning's TorchCheckpointIO writes the checkpoint to TMPDIR and shutil.moves it: "
     "across filesystems that is a copy that truncates last.ckpt first "
-    "(training/checkpoint_io.AtomicCheckpointIO writes next to it and os.replaces it)")
+    "(torchhys/training/checkpoint_io.AtomicCheckpointIO writes next to it and os.replaces it)")
 
 
 @pytest.mark.parametrize("io, temp_elsewhere", [

@@ -27,16 +27,16 @@ from torchhys import (
     fit_stop_pi,
     select_penalty,
 )
-from torchhys._nnls import fit_segments, holdout_cuts
-from torchhys.backlash import Backlash
-from torchhys.fitting import (
+from torchhys.functional.drift import accumulated_variation, drift_features
+from torchhys.identification._nnls import fit_segments, holdout_cuts
+from torchhys.identification.fitting import (
     fit_full_batch,
     fit_prandtl_ishlinskii,
     play_width_grid,
     select_pi_ridge,
 )
-from torchhys.functional.drift import accumulated_variation, drift_features
-from torchhys.stop_pi import select_stop_pi_ridge
+from torchhys.operators.backlash import Backlash
+from torchhys.operators.stop_pi import select_stop_pi_ridge
 
 F64 = torch.float64
 T = 240

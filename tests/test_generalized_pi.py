@@ -19,10 +19,10 @@ from _helpers import (
 )
 
 from torchhys import Backlash, InverseHysteresisNet, PrandtlIshlinskii
-from torchhys.fitting import fit_full_batch, fit_prandtl_ishlinskii, play_width_grid
 from torchhys.functional import prandtl_ishlinskii
-from torchhys.generalized_pi import GeneralizedPrandtlIshlinskii, fit_generalized_pi
+from torchhys.identification.fitting import fit_full_batch, fit_prandtl_ishlinskii, play_width_grid
 from torchhys.operator import OPERATORS, make_operator
+from torchhys.operators.generalized_pi import GeneralizedPrandtlIshlinskii, fit_generalized_pi
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -13,9 +13,9 @@ import torch
 from _gpi_helpers import F64, WIDTHS, model, walks
 
 from torchhys import GeneralizedPIInverse
-from torchhys.generalized_pi import monotone_output
-from torchhys.generalized_pi_inverse import monotone_inverse
 from torchhys.operator import OPERATORS
+from torchhys.operators.generalized_pi import monotone_output
+from torchhys.operators.generalized_pi_inverse import monotone_inverse
 
 
 def test_inverts_the_forward_model_exactly():

@@ -17,7 +17,7 @@ import torch
 import yaml
 from _training_helpers import cli, trainer
 
-from torchhys.export import load_torchscript
+from torchhys.deploy.export import load_torchscript
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 from torchhys.training.export_cmd import main as export_main
 from torchhys.training.selection import (

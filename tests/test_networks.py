@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torchhys import EIHO, Backlash, InverseHysteresisNet
-from torchhys.fitting import fit_full_batch
+from torchhys.identification.fitting import fit_full_batch
 
 
 def data() -> tuple[torch.Tensor, torch.Tensor]:

@@ -1,4 +1,5 @@
-"""The active-set solver shared by the least-squares fits (torchhys._nnls.nnls_gram), cold
+"""The active-set solver shared by the least-squares fits
+(torchhys.identification._nnls.nnls_gram), cold
 and warm-started, against scipy's bounded least squares in float64."""
 from __future__ import annotations
 
@@ -11,8 +12,8 @@ import pytest
 import torch
 
 from torchhys import fit_stop_pi
-from torchhys._nnls import nnls_gram
-from torchhys.fitting import play_width_grid
+from torchhys.identification._nnls import nnls_gram
+from torchhys.identification.fitting import play_width_grid
 
 SMA = (Path(__file__).resolve().parents[1] / "examples" / "data" / "real"
        / "sma_isobaric_thermal_cycles.csv")
@@ -73,7 +74,7 @@ def test_warm_start_gives_the_same_solution(start: str) -> None:
 def test_warm_start_from_a_near_solution_takes_fewer_solves(monkeypatch) -> None:
     """Started from the solution of a slightly different penalty, the active set method
     solves the passive set's equations fewer times than from the free variables alone."""
-    import torchhys._nnls as nnls
+    import torchhys.identification._nnls as nnls
 
     A, y, free = _problem(3, rows=200, m=80)
     G, h = A.T @ A, A.T @ y

@@ -18,7 +18,8 @@ from torch import Tensor, nn
 import torchhys.operator as registry
 from torchhys import InverseHysteresisNet
 from torchhys._checks import as_batched_sequence
-from torchhys.export import load_aoti, load_torchscript, to_aoti, to_torchscript
+from torchhys.deploy.export import load_aoti, load_torchscript, to_aoti, to_torchscript
+from torchhys.deploy.streaming import StreamingCompensator
 from torchhys.operator import (
     OPERATORS,
     HysteresisOperator,
@@ -28,7 +29,6 @@ from torchhys.operator import (
     make_operator,
     register_operator,
 )
-from torchhys.streaming import StreamingCompensator
 
 
 def dead_zone(x: Tensor, width: Tensor) -> Tensor:
@@ -248,7 +248,7 @@ def test_a_module_that_cannot_be_copied_still_loads() -> None:
 def test_fit_full_batch_calls_a_predictor_method_only() -> None:
     """A submodule named ``predictor`` is not the fitting hook."""
     from torchhys import PrandtlIshlinskii
-    from torchhys.fitting import fit_full_batch
+    from torchhys.identification.fitting import fit_full_batch
 
     class Scaled(PrandtlIshlinskii):
         def __init__(self) -> None:

@@ -38,7 +38,7 @@ def test_every_subpackage_is_in_the_wheel(wheel: zipfile.ZipFile) -> None:
     for init in (ROOT / "torchhys").rglob("__init__.py"):
         rel = init.relative_to(ROOT).as_posix()
         assert rel in names, f"{rel} is missing from the wheel (pyproject's package list)"
-    for module in (ROOT / "training").glob("*.py"):
+    for module in (ROOT / "torchhys" / "training").glob("*.py"):
         assert f"torchhys/training/{module.name}" in names
 
 

@@ -100,8 +100,8 @@ def test_every_module_but_training_imports_without_the_training_packages(site) -
 
         walk(torchhys)
         assert len(imported) > 30, imported
-        for name in ("torchhys.export", "torchhys.streaming", "torchhys.functional.backlash",
-                     "torchhys._command", "torchhys.__main__"):
+        for name in ("torchhys.deploy.export", "torchhys.deploy.streaming",
+                     "torchhys.functional.backlash", "torchhys._command", "torchhys.__main__"):
             assert name in imported, name
         print(len(imported), "modules")
     """)
@@ -115,7 +115,7 @@ def test_to_torchscript_works_without_the_training_packages(site, tmp_path) -> N
         import sys
         import torch
         from torchhys import Backlash, InverseHysteresisNet
-        from torchhys.export import load_torchscript, to_torchscript
+        from torchhys.deploy.export import load_torchscript, to_torchscript
 
         torch.manual_seed(0)
         net = InverseHysteresisNet([Backlash([0.2, 0.7])], hidden=4)

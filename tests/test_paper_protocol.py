@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from torchhys import InverseHysteresisNet
-from torchhys.fitting import fit_full_batch
 from torchhys.functional import NonCausalWarning
+from torchhys.identification.fitting import fit_full_batch
 from torchhys.plants import paper_simulation
 
 PAPER_EIHO_MSE = 1.737e-3

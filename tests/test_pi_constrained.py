@@ -12,8 +12,13 @@ import torch
 from scipy.optimize import nnls
 
 from torchhys import PrandtlIshlinskii
-from torchhys.fitting import LINEAR_FLOOR, fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
 from torchhys.functional import backlash, prandtl_ishlinskii
+from torchhys.identification.fitting import (
+    LINEAR_FLOOR,
+    fit_prandtl_ishlinskii,
+    play_width_grid,
+    select_pi_ridge,
+)
 from torchhys.plants import paper_simulation
 
 F64 = torch.float64

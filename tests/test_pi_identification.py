@@ -7,13 +7,13 @@ import torch
 from _helpers import random_walk, run_chunked
 
 from torchhys import InverseHysteresisNet, PrandtlIshlinskii
-from torchhys.fitting import (
+from torchhys.functional import prandtl_ishlinskii, prandtl_ishlinskii_inverse_parameters
+from torchhys.identification.fitting import (
     fit_full_batch,
     fit_prandtl_ishlinskii,
     play_width_grid,
     select_pi_ridge,
 )
-from torchhys.functional import prandtl_ishlinskii, prandtl_ishlinskii_inverse_parameters
 from torchhys.plants import paper_plant_widths, paper_simulation
 from torchhys.signals import exponential_decay, multisine, to_range
 

@@ -16,7 +16,7 @@ from torchhys.functional.preisach import (
     preisach_grid,
     relay_states,
 )
-from torchhys.preisach import Preisach
+from torchhys.operators.preisach import Preisach
 
 F64 = torch.float64
 

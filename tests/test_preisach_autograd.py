@@ -9,7 +9,7 @@ import torch
 from _preisach_helpers import model, signal
 
 from torchhys.functional.preisach import preisach, preisach_grid, relay_states
-from torchhys.preisach import Preisach
+from torchhys.operators.preisach import Preisach
 
 F64 = torch.float64
 

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from torchhys.functional.preisach import preisach, preisach_grid, relay_states
-from torchhys.preisach import Preisach, fit_preisach, select_penalty
+from torchhys.operators.preisach import Preisach, fit_preisach, select_penalty
 
 A, B = preisach_grid(-1.0, 1.0, 3)
 X = torch.linspace(-1.0, 1.0, 20)

@@ -12,7 +12,7 @@ import torch
 from scipy.optimize import nnls
 
 from torchhys.functional.preisach import relay_states
-from torchhys.preisach import Preisach, fit_preisach, select_penalty
+from torchhys.operators.preisach import Preisach, fit_preisach, select_penalty
 
 F64 = torch.float64
 

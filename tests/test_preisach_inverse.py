@@ -27,7 +27,7 @@ from torchhys.functional.preisach import (
     preisach_inverse_step,
 )
 from torchhys.operator import OPERATORS, make_operator
-from torchhys.preisach_inverse import PreisachInverseStep
+from torchhys.operators.preisach_inverse import PreisachInverseStep
 
 F64 = torch.float64
 

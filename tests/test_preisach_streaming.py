@@ -10,7 +10,7 @@ import torch
 from _helpers import assert_streams_as_eager, run_split, step_loop
 from _preisach_helpers import model, signal
 
-from torchhys.preisach import Preisach
+from torchhys.operators.preisach import Preisach
 
 
 @pytest.mark.parametrize("smooth", [None, 0.05])

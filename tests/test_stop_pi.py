@@ -19,7 +19,7 @@ from scipy.optimize import nnls
 import torchhys
 from torchhys.functional.stop_pi import stop_characteristic, stop_pi, stop_segments
 from torchhys.operator import OPERATORS, make_operator
-from torchhys.stop_pi import (
+from torchhys.operators.stop_pi import (
     StopPIStep,
     StopPrandtlIshlinskii,
     fit_stop_pi,
@@ -512,7 +512,7 @@ def test_min_linear_weight_on_collinear_stops_keeps_the_optimum(bound):
     their features and u are collinear and the Gram matrix is singular. A bound on w0 then
     costs nothing: with free slopes the bounded fit reaches the unbounded fit's error (the
     never-slipping stops take up the slope), deterministically."""
-    from torchhys.fitting import play_width_grid
+    from torchhys.identification.fitting import play_width_grid
 
     t = torch.linspace(0, 1, 1500, dtype=F64)
     x = 1.5 * torch.sin(12 * math.pi * t) * (0.3 + 0.7 * t)
@@ -937,6 +937,6 @@ def test_every_penalty_selection_names_a_bad_validation_share(select, validation
         if select == "stop_pi":
             select_stop_pi_ridge(x, y, T3, [0.0], validation=validation)
         elif select == "pi":
-            torchhys.fitting.select_pi_ridge(x, y, T3, [0.0], validation=validation)
+            torchhys.identification.fitting.select_pi_ridge(x, y, T3, [0.0], validation=validation)
         else:
             torchhys.select_penalty(x, y, [0.0], validation=validation, n=4)

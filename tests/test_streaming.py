@@ -15,7 +15,7 @@ from torchhys import (
     ZhaoTanOperator,
     signals,
 )
-from torchhys.streaming import StreamingCompensator
+from torchhys.deploy.streaming import StreamingCompensator
 
 RULES = ["recent", "dominant"]
 THRESHOLDS = [0.0, 0.5, 1.0]

@@ -11,8 +11,8 @@ import torch
 from _helpers import RAW
 
 from torchhys import InverseHysteresisNet
-from torchhys.export import load_torchscript, metadata, to_torchscript
-from torchhys.streaming import (
+from torchhys.deploy.export import load_torchscript, metadata, to_torchscript
+from torchhys.deploy.streaming import (
     MIN_TREND,
     StreamingCompensator,
     default_direction,
@@ -184,7 +184,7 @@ def test_explicit_direction_and_range_override_the_recorded_ones() -> None:
 
 @pytest.mark.slow
 def test_aoti_keeps_guard_and_clamp(tmp_path) -> None:
-    from torchhys.export import load_aoti, to_aoti
+    from torchhys.deploy.export import load_aoti, to_aoti
 
     net = untrained()
     comp = StreamingCompensator(net)

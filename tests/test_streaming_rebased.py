@@ -7,9 +7,9 @@ import torch
 from _helpers import RAW, inputs, net_of, per_op_features, steps_of
 
 from torchhys import EIHO, Backlash, ZhaoTanOperator
-from torchhys.branch_steps import RebasedStep
-from torchhys.export import load_torchscript, to_torchscript
-from torchhys.streaming import StreamingCompensator
+from torchhys.deploy.export import load_torchscript, to_torchscript
+from torchhys.deploy.streaming import StreamingCompensator
+from torchhys.operators.branch_steps import RebasedStep
 
 
 @pytest.mark.parametrize("rule", ["recent", "dominant"])

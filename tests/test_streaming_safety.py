@@ -10,8 +10,8 @@ import torch
 from _helpers import RAW
 
 from torchhys import EIHO, Backlash, InverseHysteresisNet, PrandtlIshlinskii, ZhaoTanOperator
+from torchhys.deploy.streaming import StreamingCompensator, default_limits
 from torchhys.functional import NonCausalWarning
-from torchhys.streaming import StreamingCompensator, default_limits
 
 
 def make_net(dtype: torch.dtype = torch.float64) -> tuple[InverseHysteresisNet, torch.Tensor]:

@@ -27,7 +27,7 @@ from torchhys import (
     Preisach,
     StopPrandtlIshlinskii,
 )
-from torchhys.export import load_torchscript, to_torchscript
+from torchhys.deploy.export import load_torchscript, to_torchscript
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule, selection
 from torchhys.training.cli import main
 from torchhys.training.families import FitError, _substeps

@@ -13,8 +13,8 @@ from _helpers import play_reference
 from _training_helpers import trainer
 
 from torchhys import EIHO, Backlash, PrandtlIshlinskii, ZhaoTanOperator
-from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid
 from torchhys.functional import NonCausalWarning, backlash
+from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 from torchhys.training.operators import build_operators, operator_names
 

@@ -86,7 +86,7 @@ class InverseHysteresisNet(AtomicLoad, nn.Module):
         # range of the training input and the target's trend in it, their correlation
         # coefficient (NaN until fitted): an exported compensator clamps its input to that
         # range (widened by a margin) and, where the trend is clear, never moves its command
-        # against it (torchhys.streaming)
+        # against it (torchhys.deploy.streaming)
         self.register_buffer("in_min", torch.full((), float("nan")))
         self.register_buffer("in_max", torch.full((), float("nan")))
         self.register_buffer("trend", torch.full((), float("nan")))
@@ -191,7 +191,7 @@ class InverseHysteresisNet(AtomicLoad, nn.Module):
 
     def streaming_steps(self, dtype: torch.dtype) -> list[OperatorStep]:
         """The operators' per-sample steps in ``dtype`` (for
-        :class:`~torchhys.streaming.StreamingCompensator`)."""
+        :class:`~torchhys.deploy.streaming.StreamingCompensator`)."""
         return [op.streaming_step(dtype) for op in self.operators]
 
     def streaming_head(self, dtype: torch.dtype) -> nn.Module:

@@ -1,7 +1,7 @@
 """The operator protocol: what every hysteresis operator of torchhys implements.
 
 Networks (:class:`~torchhys.InverseHysteresisNet`), the streaming compensator
-(:mod:`torchhys.streaming`), export (:mod:`torchhys.export`) and the training registry
+(:mod:`torchhys.deploy.streaming`), export (:mod:`torchhys.deploy.export`) and the training registry
 compose operators through this protocol only. An operator is one file: a subclass of
 :class:`HysteresisOperator` with its sequence path, and a subclass of :class:`OperatorStep`
 beside it with its per-sample step; both call the same maths. One line registers it by name

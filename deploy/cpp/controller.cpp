@@ -2,9 +2,9 @@
 //
 //   controller MODEL REF.csv OUT.csv [--rate HZ] [--format torchscript|aoti]
 //
-// MODEL is a TorchScript file from torchhys.export.to_torchscript (frozen here and run by
+// MODEL is a TorchScript file from torchhys.deploy.export.to_torchscript (frozen here and run by
 // its method step_explicit, the state kept in this program) or an AOTInductor package
-// (.pt2) from torchhys.export.to_aoti (explicit state). Both carry the same metadata (the
+// (.pt2) from torchhys.deploy.export.to_aoti (explicit state). Both carry the same metadata (the
 // package's metadata, the TorchScript file's extra files): "state_spec" (the fresh state's
 // dtypes and shapes, all zeros) and "counter" ("tensor:column" of the counter of held
 // non-finite samples), read here. REF.csv holds the reference trajectory (desired displacement), one value

@@ -8,7 +8,7 @@
 
 With one input they are operators of the protocol (:mod:`torchhys.operator`): they train
 inside an :class:`~torchhys.InverseHysteresisNet`, stream through the
-:class:`~torchhys.streaming.StreamingCompensator` and export, with a per-sample step that
+:class:`~torchhys.deploy.streaming.StreamingCompensator` and export, with a per-sample step that
 calls the same maths as the sequence path (:mod:`torchhys.functional.linear_filter`). With
 several inputs (``n_inputs > 1``) the sequence path takes x (..., time, m) and the step
 (``streaming_step(dtype)``) x (batch, m); such a block is not an operator of the protocol

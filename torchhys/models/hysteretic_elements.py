@@ -30,8 +30,8 @@ import torch
 from torch import Tensor, nn
 
 from torchhys._checks import check_int
-from torchhys.backlash import Backlash
 from torchhys.functional.backlash import play_step
+from torchhys.operators.backlash import Backlash
 
 __all__ = ["DuhemHysteresis", "PlayHysteresis"]
 

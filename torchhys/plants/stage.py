@@ -45,8 +45,8 @@ from torch import Tensor, nn
 from torchhys._checks import as_batched_sequence, check_floating, check_tensor
 from torchhys.functional.linear_filter import state_space
 from torchhys.operator import check_operator
+from torchhys.operators.prandtl_ishlinskii import PrandtlIshlinskii
 from torchhys.plants.bouc_wen import BoucWen
-from torchhys.prandtl_ishlinskii import PrandtlIshlinskii
 
 __all__ = ["PiezoStage", "default_stage_hysteresis", "second_order_zoh"]
 

@@ -5,13 +5,13 @@
         [--dtype float64|float32] [--prefix NAME]
 
 ``--format c`` writes ``DIR/NAME.h`` and ``DIR/NAME.c`` (``--prefix``, default
-``torchhys_comp``), dependency-free C99 (:func:`torchhys.export_c.to_c`); ``--dtype`` sets
+``torchhys_comp``), dependency-free C99 (:func:`torchhys.deploy.export_c.to_c`); ``--dtype`` sets
 the exported step's real type (default: the checkpoint's).
 
 The compensator clamps its input to the training input range widened by ``--input-margin``
 (a share of the range, default 0.05) and counts the samples it clamped; its command never
 moves against the direction of the target's trend in the training data (``--direction``):
-see :class:`torchhys.streaming.StreamingCompensator`.
+see :class:`torchhys.deploy.streaming.StreamingCompensator`.
 
 CKPT is a checkpoint of :class:`torchhys.training.InverseHysteresisModule` (Lightning's
 ``{"state_dict": {"net.*": ...}, "hyper_parameters": {...}}``; the network is rebuilt from
@@ -31,10 +31,10 @@ from pathlib import Path
 import torch
 
 from torchhys import InverseHysteresisNet
-from torchhys.export import to_aoti, to_torchscript
-from torchhys.export_c import DEFAULT_PREFIX, check_prefix, to_c
-from torchhys.export_onnx import to_onnx
-from torchhys.streaming import DIRECTIONS, StreamingCompensator
+from torchhys.deploy.export import to_aoti, to_torchscript
+from torchhys.deploy.export_c import DEFAULT_PREFIX, check_prefix, to_c
+from torchhys.deploy.export_onnx import to_onnx
+from torchhys.deploy.streaming import DIRECTIONS, StreamingCompensator
 from torchhys.training.errors import config_errors, read_checkpoint, report_user_error
 from torchhys.training.operators import build_operators
 from torchhys.training.plugins import import_modules
@@ -126,7 +126,7 @@ def build_net(ckpt: dict, arch: dict | None = None) -> InverseHysteresisNet:
         if missing:
             raise ValueError(
                 f"the checkpoint's hyper_parameters lack {missing}: the network was passed in "
-                "ready-made; export it from Python with torchhys.export instead"
+                "ready-made; export it from Python with torchhys.deploy.export instead"
             )
         arch = {k: hp.get(k) for k in _ARCH_KEYS}
         state = {k[4:]: v for k, v in ckpt["state_dict"].items() if k.startswith("net.")}

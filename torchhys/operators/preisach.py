@@ -26,14 +26,6 @@ from torchhys._checks import (
     check_warmup,
     fitted_samples,
 )
-from torchhys._nnls import (
-    Moments,
-    check_penalty,
-    check_validation,
-    fit_segments,
-    nnls_gram,
-    select_on_holdout,
-)
 from torchhys.functional.preisach import (
     _check_smooth,
     _real,
@@ -48,6 +40,14 @@ from torchhys.functional.preisach import (
     relay_output,
     relay_update,
 )
+from torchhys.identification._nnls import (
+    Moments,
+    check_penalty,
+    check_validation,
+    fit_segments,
+    nnls_gram,
+    select_on_holdout,
+)
 from torchhys.operator import (
     Example,
     HysteresisOperator,
@@ -57,7 +57,7 @@ from torchhys.operator import (
 )
 
 if TYPE_CHECKING:
-    from torchhys.preisach_inverse import PreisachInverse
+    from torchhys.operators.preisach_inverse import PreisachInverse
 
 __all__ = ["Preisach", "PreisachStep", "fit_preisach", "select_penalty"]
 
@@ -182,14 +182,15 @@ class Preisach(HysteresisOperator):
 
     def inverse(self) -> PreisachInverse:
         """The exact inverse ``x = F^-1[y]`` as an operator (:class:`~torchhys.PreisachInverse`,
-        detached parameters; see :mod:`torchhys.preisach_inverse`): the compensator of this
+        detached parameters; see :mod:`torchhys.operators.preisach_inverse`): the compensator of
+        this
         model. It shares the model's state (the relays).
 
         Raises:
             ValueError: smooth relays, or an output that does not rise strictly with the
                 input (``linear`` not > 0).
         """
-        from torchhys.preisach_inverse import PreisachInverse
+        from torchhys.operators.preisach_inverse import PreisachInverse
 
         return PreisachInverse.from_model(self)
 
@@ -366,7 +367,7 @@ def _prepare(x: Tensor, y: Tensor, lo: float | None, hi: float | None, n: int, l
              warmup: int, validation: float | None, scale: float | None,
              mask: Tensor | None) -> tuple[Tensor, Tensor, Preisach, list[Tensor]]:
     """Check the data, warn about samples outside [lo, hi]; the model and the samples of
-    each segment (:func:`~torchhys._nnls.fit_segments`)."""
+    each segment (:func:`~torchhys.identification._nnls.fit_segments`)."""
     xb, _ = as_batched_sequence(x, "x")
     yb, _ = as_batched_sequence(y, "y")
     if xb.shape != yb.shape:
@@ -392,7 +393,8 @@ def _prepare(x: Tensor, y: Tensor, lo: float | None, hi: float | None, n: int, l
 
 def _normal_equations(x: Tensor, y: Tensor, model: Preisach,
                       samples: list[Tensor]) -> list[Moments]:
-    """The :class:`~torchhys._nnls.Moments` ``(A'A, A'y, y'y, rows)`` in float64 of the
+    """The :class:`~torchhys.identification._nnls.Moments` ``(A'A, A'y, y'y, rows)`` in float64 of
+    the
     design ``A = [relays, x, 1]`` over the samples of each segment (a (rows, time) bool
     mask)."""
     K, m = model.n_relays, model.n_relays + 1 + isinstance(model.linear, nn.Parameter)
@@ -436,7 +438,7 @@ def _difference_gram(n: int) -> Tensor:
 def _solve(G: Tensor, h: Tensor, model: Preisach, ridge: float, smoothness: float,
            init: Tensor | None = None) -> Tensor:
     """The penalised NNLS solution: density (K,), then the free linear term and offset
-    (``init``: a warm start, :func:`~torchhys._nnls.nnls_gram`)."""
+    (``init``: a warm start, :func:`~torchhys.identification._nnls.nnls_gram`)."""
     K, m = model.n_relays, G.shape[0]
     P = G.clone()
     P[:K, :K] += ridge * torch.eye(K, dtype=torch.float64) + smoothness * _difference_gram(model.n)

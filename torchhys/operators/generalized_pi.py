@@ -50,11 +50,10 @@ from torchhys._checks import (
     check_tensor,
     fitted_samples,
 )
-from torchhys._nnls import check_penalty
-from torchhys.backlash import _inverse_softplus, _Widths
-from torchhys.fitting import fit_full_batch, fit_prandtl_ishlinskii
 from torchhys.functional.backlash import backlash, check_play_state, play_step
 from torchhys.functional.prandtl_ishlinskii import pi_output
+from torchhys.identification._nnls import check_penalty
+from torchhys.identification.fitting import fit_full_batch, fit_prandtl_ishlinskii
 from torchhys.operator import (
     Example,
     HysteresisOperator,
@@ -62,10 +61,11 @@ from torchhys.operator import (
     StateBlock,
     register_operator,
 )
-from torchhys.prandtl_ishlinskii import PrandtlIshlinskii
+from torchhys.operators.backlash import _inverse_softplus, _Widths
+from torchhys.operators.prandtl_ishlinskii import PrandtlIshlinskii
 
 if TYPE_CHECKING:
-    from torchhys.generalized_pi_inverse import GeneralizedPIInverse
+    from torchhys.operators.generalized_pi_inverse import GeneralizedPIInverse
 
 __all__ = ["GeneralizedPIStep", "GeneralizedPrandtlIshlinskii", "fit_generalized_pi",
            "monotone_output"]
@@ -208,7 +208,8 @@ class GeneralizedPrandtlIshlinskii(_Widths, HysteresisOperator):
 
     def predictor(self, x: Tensor) -> Callable[[], Tensor]:
         """The output on a fixed input x (batch, time), zero initial state, as a closure of
-        the parameters, for fitting (:func:`~torchhys.fitting.fit_full_batch` calls it at
+        the parameters, for fitting (:func:`~torchhys.identification.fitting.fit_full_batch` calls
+        it at
         every step). With fixed widths the plays are computed once and ``p`` and ``g`` are
         matrix products: about half the time of :meth:`forward` per call on 1e5 samples,
         equal to it up to rounding (forward sums in a fixed order, so that chunked calls
@@ -242,12 +243,12 @@ class GeneralizedPrandtlIshlinskii(_Widths, HysteresisOperator):
                 upper: float = math.inf) -> GeneralizedPIInverse:
         """The exact inverse ``x = p^-1[g^-1(y)]`` as an operator
         (:class:`~torchhys.GeneralizedPIInverse`, detached parameters), ``g^-1`` bounded to
-        ``[lower, upper]`` (see :mod:`torchhys.generalized_pi_inverse`).
+        ``[lower, upper]`` (see :mod:`torchhys.operators.generalized_pi_inverse`).
 
         Raises:
             ValueError: the PI part's loading curve is not strictly increasing.
         """
-        from torchhys.generalized_pi_inverse import GeneralizedPIInverse
+        from torchhys.operators.generalized_pi_inverse import GeneralizedPIInverse
 
         return GeneralizedPIInverse.from_model(self, lower=lower, upper=upper)
 
@@ -299,7 +300,8 @@ def fit_generalized_pi(
     and weights ``0.1 spacing`` (spacing: the output's span / units), gain 1, offset 0. Then
     full-batch training of every parameter but the widths and ``w0`` on the mean squared
     error plus ``anchor * (|log a - log a_init|^2 + |log s - log s_init|^2)``
-    (:func:`~torchhys.fitting.fit_full_batch`: Adam, then L-BFGS). The fit sees y divided by
+    (:func:`~torchhys.identification.fitting.fit_full_batch`: Adam, then L-BFGS). The fit sees y
+    divided by
     its standard deviation over the scored samples (then ``a``, ``c_k`` and the offset are
     scaled back), so that the fit, its tolerances and the anchor mean the same in any units
     of y.
@@ -317,8 +319,9 @@ def fit_generalized_pi(
         widths: full dead-band widths, (N,).
         units: tanh units of g, >= 0.
         ridge: ridge weight of the initial PI fit (e.g. from
-            :func:`~torchhys.fitting.select_pi_ridge`).
-        adam_epochs, lbfgs_epochs, lr: as in :func:`~torchhys.fitting.fit_full_batch`.
+            :func:`~torchhys.identification.fitting.select_pi_ridge`).
+        adam_epochs, lbfgs_epochs, lr: as in
+        :func:`~torchhys.identification.fitting.fit_full_batch`.
         warmup: samples at the start of each row left out of the initial fit, the centres of
             g and the loss (they still run the plays), to forget the zero initial state.
         anchor: weight of the penalty on the log-gain and log-slopes moving from their
@@ -332,7 +335,8 @@ def fit_generalized_pi(
         The model, in x's dtype.
 
     Raises:
-        TypeError, ValueError: bad input (see :func:`~torchhys.fitting.fit_prandtl_ishlinskii`),
+        TypeError, ValueError: bad input (see
+        :func:`~torchhys.identification.fitting.fit_prandtl_ishlinskii`),
             y constant over the scored samples, or y that does not increase with x (the
             initial fit has no positive linear weight).
     """

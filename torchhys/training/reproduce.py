@@ -116,7 +116,7 @@ def first_below(curve: list[tuple[int, float, float]], level: float) -> tuple[in
 
 def pi_alone_mse() -> float:
     """Training MSE of the least-squares PI model of h alone (no network)."""
-    from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid
+    from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid
 
     dm = HysteresisDataModule(simulation="paper", split="paper")
     dm.setup()

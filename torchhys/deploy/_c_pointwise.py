@@ -1,4 +1,5 @@
-"""Pointwise C templates of :mod:`torchhys.export_c` (see :mod:`torchhys._c_templates`).
+"""Pointwise C templates of :mod:`torchhys.deploy.export_c` (see
+:mod:`torchhys.deploy._c_templates`).
 
 Each reproduces torch's CPU kernel, NaN included: ``maximum``, ``minimum`` and ``clamp``
 propagate NaN (unlike C's ``fmax``), ``sign(NaN)`` is 0, ``pow`` takes torch's special
@@ -15,7 +16,7 @@ from typing import Any
 
 import torch
 
-from torchhys._c_writer import CTensor, Writer, contiguous_strides
+from torchhys.deploy._c_writer import CTensor, Writer, contiguous_strides
 
 __all__ = ["POINTWISE", "pointwise", "promoted"]
 

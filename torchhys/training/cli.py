@@ -111,7 +111,7 @@ class TorchhysCLI(LightningCLI):
         # Full-batch runs often validate rarely: save at the end of every training epoch.
         parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
         # checkpoints written to a temporary file beside them and renamed: a full disk or a
-        # kill while saving leaves the previous last.ckpt whole (training/checkpoint_io.py)
+        # kill while saving leaves the previous last.ckpt whole (torchhys/training/checkpoint_io.py)
         parser.set_defaults({"checkpoint.save_on_train_epoch_end": True,
                              "checkpoint.save_last": True,
                              "trainer.plugins": [{"class_path": _ATOMIC_IO}]})

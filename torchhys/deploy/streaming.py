@@ -7,7 +7,7 @@ see :mod:`torchhys.operator`) and ``streaming_head(dtype)``, a module from the f
 ``[x, step features...]`` (batch, n) to the command (batch, 1):
 :class:`~torchhys.InverseHysteresisNet` (any causal operators) and
 :class:`~torchhys.PrandtlIshlinskiiInverse` do. It is written for export (explicit tensor
-state, no data-dependent Python control flow): see :mod:`torchhys.export`.
+state, no data-dependent Python control flow): see :mod:`torchhys.deploy.export`.
 
 Safety: the command is saturated to ``[low, high]``; a NaN or inf input sample (or a
 command that would not be finite) holds the last valid command, leaves the whole state as it

@@ -1,8 +1,8 @@
 """Export a trained compensator as ONNX: the explicit-state step, for ONNX Runtime.
 
 :func:`to_onnx` writes one ``.onnx`` file holding the step of a
-:class:`~torchhys.streaming.StreamingCompensator` with its state passed explicitly, the
-same function as an AOTI package (:func:`torchhys.export.to_aoti`)::
+:class:`~torchhys.deploy.streaming.StreamingCompensator` with its state passed explicitly, the
+same function as an AOTI package (:func:`torchhys.deploy.export.to_aoti`)::
 
     inputs   x (batch,), state_0, ..., state_{k-1}
     outputs  u (batch,), new_state_0, ..., new_state_{k-1}   (the same order, shapes, dtypes)
@@ -10,10 +10,10 @@ same function as an AOTI package (:func:`torchhys.export.to_aoti`)::
 The caller keeps the state: it starts from the metadata's ``initial_state`` (all zeros) and
 feeds each step's new states to the next. The state tensors, their dtypes (the compensator's
 float dtype, ``int64``, ``bool`` and, for some operators, ``float64``) and their layout are
-those of :mod:`torchhys.streaming`; the file's inputs have exactly the dtypes of
+those of :mod:`torchhys.deploy.streaming`; the file's inputs have exactly the dtypes of
 ``state_spec`` (a ``bool`` state is an ONNX ``tensor(bool)``). The batch is static.
 
-The model's ``metadata_props`` hold the keys of :func:`torchhys.export.metadata` (all
+The model's ``metadata_props`` hold the keys of :func:`torchhys.deploy.export.metadata` (all
 strings: ``state_spec``, ``n_state``, ``counter``, ``held``, ``low``, ``high``,
 ``input_low``, ``input_high``, ``out_of_range``, ``direction``, ``dtype``, ``batch``) and
 
@@ -57,7 +57,7 @@ import torch
 from torch import Tensor, nn
 
 from torchhys._checks import check_int
-from torchhys.export import (
+from torchhys.deploy.export import (
     _METADATA_KEYS,
     _check_path,
     _compensator,
@@ -194,8 +194,8 @@ def to_onnx(
 
     Args:
         model, limits, initial_command, input_range, input_margin, direction: as
-            :func:`torchhys.export.to_torchscript` (a model, or a built
-            :class:`~torchhys.streaming.StreamingCompensator` with the defaults here).
+            :func:`torchhys.deploy.export.to_torchscript` (a model, or a built
+            :class:`~torchhys.deploy.streaming.StreamingCompensator` with the defaults here).
         path: output file (conventionally ``.onnx``); the weights are inside it.
         batch: rows per step (static).
         opset: the ONNX opset (default: the exporter's).
@@ -205,7 +205,7 @@ def to_onnx(
 
     Raises:
         ImportError: onnx or onnxscript is missing (``pip install "torchhys[onnx]"``).
-        ValueError, TypeError: see :class:`~torchhys.streaming.StreamingCompensator`; a
+        ValueError, TypeError: see :class:`~torchhys.deploy.streaming.StreamingCompensator`; a
             missing output directory; a bad ``batch`` or ``opset``.
     """
     path = _check_path(path)

@@ -1,6 +1,6 @@
 """Export a trained compensator for deployment: TorchScript, or torch.export + AOTInductor.
 
-Both formats wrap a :class:`~torchhys.streaming.StreamingCompensator`: the saved artefact
+Both formats wrap a :class:`~torchhys.deploy.streaming.StreamingCompensator`: the saved artefact
 takes the desired output in physical units and returns the saturated command, with NaN/inf
 inputs held and counted. Neither needs torchhys to load.
 
@@ -16,7 +16,7 @@ Both carry the same metadata (:func:`metadata`; the package's metadata, or the T
 file's extra files of the same names), all strings:
 
     state_spec  the fresh state, ``"dtype:d0,d1;dtype:d0,d1;..."``, all zeros
-                (:func:`state_spec_string`); its layout: :mod:`torchhys.streaming`
+                (:func:`state_spec_string`); its layout: :mod:`torchhys.deploy.streaming`
     n_state     number of state tensors
     counter     ``"tensor:column"`` of the counter of held non-finite samples
     held        ``"tensor:column"`` of the last valid command
@@ -41,7 +41,7 @@ import torch
 from torch import Tensor, nn
 
 from torchhys._checks import check_int
-from torchhys.streaming import COUNTER, HELD, STATE_I, StreamingCompensator
+from torchhys.deploy.streaming import COUNTER, HELD, STATE_I, StreamingCompensator
 
 __all__ = [
     "AOTIStepper", "load_aoti", "load_torchscript", "metadata", "state_spec_string", "to_aoti",
@@ -97,13 +97,13 @@ def to_torchscript(
     Args:
         model: an :class:`~torchhys.InverseHysteresisNet` with causal operators, a
             :class:`~torchhys.PrandtlIshlinskiiInverse`, or a built
-            :class:`~torchhys.streaming.StreamingCompensator`.
+            :class:`~torchhys.deploy.streaming.StreamingCompensator`.
         path: output file (conventionally ``.pt``).
         limits: ``(low, high)`` command saturation; default: the training output range
-            (:func:`~torchhys.streaming.default_limits`).
+            (:func:`~torchhys.deploy.streaming.default_limits`).
         initial_command: command held until the first finite input.
         input_range, input_margin, direction: the input clamp and the direction guard, as
-            :class:`~torchhys.streaming.StreamingCompensator` (defaults: its defaults, the
+            :class:`~torchhys.deploy.streaming.StreamingCompensator` (defaults: its defaults, the
             model's recorded training input range with a 5 % margin and its direction).
 
     Returns:
@@ -113,7 +113,7 @@ def to_torchscript(
         ``step_explicit(x_t, state)``; ``initial_state(b)``.
 
     Raises:
-        ValueError, TypeError: see :class:`~torchhys.streaming.StreamingCompensator`; a
+        ValueError, TypeError: see :class:`~torchhys.deploy.streaming.StreamingCompensator`; a
             missing output directory.
     """
     path = _check_path(path)

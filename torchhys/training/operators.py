@@ -11,7 +11,8 @@ dict ``{"name": NAME, **kwargs}``:
   ``span_fraction * span(x_train) (k / n)^power``, ``k = 1..n`` (or explicit ``widths``);
 - ``{"name": "pi_ls", "n_widths": 30, "power": 3.0, "ridge": 0.0, "learnable": False}``:
   the least-squares Prandtl-Ishlinskii model of the target from the input
-  (:func:`torchhys.fitting.fit_prandtl_ishlinskii` on :func:`~torchhys.fitting.play_width_grid`);
+  (:func:`torchhys.identification.fitting.fit_prandtl_ishlinskii` on
+  :func:`~torchhys.identification.fitting.play_width_grid`);
 - ``pi_nonneg``, ``gpi``, ``preisach``, ``stop_pi``, ``jiles_atherton``, ``drift``:
   constrained model families identified on the training split
   (:mod:`torchhys.training.families`); their names stand for the family, not for the
@@ -42,7 +43,7 @@ from torchhys._checks import (
     check_warmup,
     fitted_samples,
 )
-from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid
+from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid
 from torchhys.operator import OPERATORS, load_entry_points, make_operator
 from torchhys.training.families import FAMILIES
 

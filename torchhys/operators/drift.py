@@ -24,7 +24,6 @@ from torchhys._checks import (
     check_warmup,
     fitted_samples,
 )
-from torchhys._nnls import nnls_gram
 from torchhys.functional.drift import (
     accumulated_variation,
     check_scales,
@@ -32,6 +31,7 @@ from torchhys.functional.drift import (
     drift_features,
     drift_step,
 )
+from torchhys.identification._nnls import nnls_gram
 from torchhys.operator import (
     Example,
     HysteresisOperator,

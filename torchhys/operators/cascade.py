@@ -3,7 +3,7 @@ of ``first``.
 
 A cascade is an operator of the protocol (:mod:`torchhys.operator`): it trains inside an
 :class:`~torchhys.InverseHysteresisNet`, streams through the
-:class:`~torchhys.streaming.StreamingCompensator` and exports. Its use: hysteresis operators
+:class:`~torchhys.deploy.streaming.StreamingCompensator` and exports. Its use: hysteresis operators
 of a filtered input, e.g. ``Cascade(TransferFunction.from_coefficients(b, a), EIHO(...))``,
 the features of an inverse model of a plant with linear dynamics after its hysteresis
 (``docs/compensation.md``, the stage plant).

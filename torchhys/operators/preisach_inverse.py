@@ -37,7 +37,7 @@ from torchhys.operator import (
     StateBlock,
     register_operator,
 )
-from torchhys.preisach import Preisach, check_saved_grid
+from torchhys.operators.preisach import Preisach, check_saved_grid
 
 __all__ = ["PreisachInverse", "PreisachInverseStep"]
 

@@ -31,8 +31,12 @@ from torchhys.functional.prandtl_ishlinskii import (
     pi_output,
     prandtl_ishlinskii_inverse_parameters,
 )
-from torchhys.generalized_pi import GeneralizedPIStep, GeneralizedPrandtlIshlinskii, monotone_output
 from torchhys.operator import Example, HysteresisOperator, register_operator
+from torchhys.operators.generalized_pi import (
+    GeneralizedPIStep,
+    GeneralizedPrandtlIshlinskii,
+    monotone_output,
+)
 
 __all__ = ["GeneralizedPIInverse", "GeneralizedPIInverseStep", "monotone_inverse",
            "monotone_slope"]
@@ -95,7 +99,7 @@ class GeneralizedPIInverseStep(GeneralizedPIStep):
     :func:`~torchhys.functional.pi_output`.
 
     State: ``plays`` (N columns, 0 at the first sample). Shapes: x (batch, 1) -> features
-    (batch, 1). The buffers of :class:`~torchhys.generalized_pi.GeneralizedPIStep` (the
+    (batch, 1). The buffers of :class:`~torchhys.operators.generalized_pi.GeneralizedPIStep` (the
     model's effective parameters), and the bounds ``lower``, ``upper`` of ``g^-1``.
     """
 

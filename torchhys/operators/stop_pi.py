@@ -32,14 +32,6 @@ from torchhys._checks import (
     check_warmup,
     fitted_samples,
 )
-from torchhys._nnls import (
-    Moments,
-    check_penalty,
-    check_validation,
-    fit_segments,
-    nnls_gram,
-    select_on_holdout,
-)
 from torchhys.functional.backlash import backlash, check_play_state, play_step
 from torchhys.functional.stop_pi import (
     check_stop_parameters,
@@ -47,6 +39,14 @@ from torchhys.functional.stop_pi import (
     stop_characteristic,
     stop_pi,
     stop_segments,
+)
+from torchhys.identification._nnls import (
+    Moments,
+    check_penalty,
+    check_validation,
+    fit_segments,
+    nnls_gram,
+    select_on_holdout,
 )
 from torchhys.operator import (
     Example,
@@ -57,7 +57,7 @@ from torchhys.operator import (
 )
 
 if TYPE_CHECKING:
-    from torchhys.stop_pi_inverse import StopPIInverse
+    from torchhys.operators.stop_pi_inverse import StopPIInverse
 
 __all__ = ["StopPIStep", "StopPrandtlIshlinskii", "fit_stop_pi", "select_stop_pi_ridge"]
 
@@ -182,14 +182,14 @@ class StopPrandtlIshlinskii(HysteresisOperator):
 
     def inverse(self) -> StopPIInverse:
         """The exact inverse ``x = F^-1[y]`` as an operator (:class:`~torchhys.StopPIInverse`,
-        detached parameters; see :mod:`torchhys.stop_pi_inverse`): the compensator of this
+        detached parameters; see :mod:`torchhys.operators.stop_pi_inverse`): the compensator of this
         model. It shares the model's state (the plays of ``x - center``).
 
         Raises:
             ValueError: the output is not strictly monotone in the input (``linear_weight``
                 zero, or a segment slope of the other sign).
         """
-        from torchhys.stop_pi_inverse import StopPIInverse
+        from torchhys.operators.stop_pi_inverse import StopPIInverse
 
         return StopPIInverse.from_model(self)
 
@@ -350,7 +350,8 @@ def fit_stop_pi(
     orientation). Solved in float64 from the normal equations (Lawson-Hanson for the
     constrained fit, the offset and w0 free).
 
-    Thresholds: :func:`~torchhys.fitting.play_width_grid` of the input gives ``span (k/n)^p``,
+    Thresholds: :func:`~torchhys.identification.fitting.play_width_grid` of the input gives ``span
+    (k/n)^p``,
     up to the input's span: with the default centre (the midpoint of the fitted input's range)
     the stops of at least half the span never slip on the fitted samples (nor on the warm-up,
     when it stays inside that range) and make the memoryless (elastic) part of the model, the

@@ -8,7 +8,8 @@ standardizes the operator's output) maps it back. They are the candidates of
 
 - ``{"name": "pi_nonneg", "n_widths": 10, "power": 2.0, "ridge": "auto",
   "direction": "direct"}``: a Prandtl-Ishlinskii model with non-negative weights
-  (:func:`torchhys.fitting.fit_prandtl_ishlinskii` with ``nonnegative=True``) of the target
+  (:func:`torchhys.identification.fitting.fit_prandtl_ishlinskii` with ``nonnegative=True``) of the
+  target
   from the input (``direct``), or of the input from the target, then its exact inverse
   (``inverse``). Such a model draws loops of one orientation only, so the target's sign is
   chosen by the training fit (both signs are fitted).
@@ -25,7 +26,8 @@ standardizes the operator's output) maps it back. They are the candidates of
   that fraction of half the grid's span (:class:`torchhys.Preisach`).
 - ``{"name": "stop_pi", "n_widths": 20, "power": 2.0, "segments": 4, "ridge": "auto",
   "nonnegative": True}``: :func:`torchhys.fit_stop_pi`, stop operators with thresholds on
-  :func:`~torchhys.fitting.play_width_grid` of the input (up to its span: the largest make
+  :func:`~torchhys.identification.fitting.play_width_grid` of the input (up to its span: the
+  largest make
   the memoryless part), each through a piecewise-linear characteristic of ``segments`` equal
   segments (non-negative slopes: a friction element with a nonlinear spring, whose loops run
   clockwise); both signs of the target fitted, the better kept.
@@ -48,7 +50,8 @@ standardizes the operator's output) maps it back. They are the candidates of
 training split (the last quarter of each row's scored samples; :func:`select_pi_ridge`,
 :func:`select_penalty`; for ``gpi``, whose fit can stop at a poor local optimum, the next
 best ridges on that hold-out are tried in turn when the fit fails). Every choice uses the
-training split only. Widths come from :func:`~torchhys.fitting.play_width_grid` of the
+training split only. Widths come from :func:`~torchhys.identification.fitting.play_width_grid` of
+the
 fitted model's input. A fit that cannot
 exist (no inverse, a target that does not rise, a diverged fit) raises :class:`FitError`:
 model selection scores that candidate as failed.
@@ -87,9 +90,9 @@ from torchhys._checks import (
     check_positive,
     fitted_samples,
 )
-from torchhys.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
 from torchhys.functional.jiles_atherton import MU0
-from torchhys.jiles_atherton import substeps_for
+from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
+from torchhys.operators.jiles_atherton import substeps_for
 
 __all__ = ["FAMILIES", "FitError", "PENALTIES"]
 
@@ -419,7 +422,7 @@ def _drift(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
 
 def _substeps(x: Tensor) -> int:
     """Euler steps per sample from the 0.99 quantile of the sample steps
-    (:func:`~torchhys.jiles_atherton.substeps_for`). The largest steps are left out: a few
+    (:func:`~torchhys.operators.jiles_atherton.substeps_for`). The largest steps are left out: a few
     jumps would set the count (and the cost of every fit) for all samples."""
     return substeps_for(x, quantile=0.99)
 

@@ -1,11 +1,11 @@
-"""One small C template per aten operation, for :mod:`torchhys.export_c`.
+"""One small C template per aten operation, for :mod:`torchhys.deploy.export_c`.
 
 :data:`TEMPLATES` maps an op overload (``torch.ops.aten.addmm.default``) to an emitter
-``emit(w, spec, *args, **kwargs)``: ``w`` is the :class:`~torchhys._c_writer.Writer`,
-``spec`` the node's output (a :class:`~torchhys._c_writer.CTensor` of its dtype and shape,
+``emit(w, spec, *args, **kwargs)``: ``w`` is the :class:`~torchhys.deploy._c_writer.Writer`,
+``spec`` the node's output (a :class:`~torchhys.deploy._c_writer.CTensor` of its dtype and shape,
 or a list of them), the arguments are the node's, tensors as
-:class:`~torchhys._c_writer.CTensor`. It writes C and returns the output's CTensor(s).
-The pointwise ones are in :mod:`torchhys._c_pointwise`; here: views (no code), joins,
+:class:`~torchhys.deploy._c_writer.CTensor`. It writes C and returns the output's CTensor(s).
+The pointwise ones are in :mod:`torchhys.deploy._c_pointwise`; here: views (no code), joins,
 reductions, matrix products, sorting and indexing.
 
 Reductions and matrix products add in index order (BLAS may not: rounding-level
@@ -24,8 +24,8 @@ from typing import Any
 
 import torch
 
-from torchhys._c_pointwise import POINTWISE, promoted
-from torchhys._c_writer import CTensor, Writer, constant, contiguous_strides
+from torchhys.deploy._c_pointwise import POINTWISE, promoted
+from torchhys.deploy._c_writer import CTensor, Writer, constant, contiguous_strides
 
 __all__ = ["POINTWISE_OPS", "SHAPE_ONLY", "TEMPLATES", "copy"]
 

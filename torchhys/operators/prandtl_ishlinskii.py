@@ -11,7 +11,6 @@ from torchhys._checks import (
     check_nonnegative_weights,
     check_tensor,
 )
-from torchhys.backlash import _Widths
 from torchhys.functional.backlash import backlash, check_play_state, play_step
 from torchhys.functional.prandtl_ishlinskii import (
     _check_weights,
@@ -25,6 +24,7 @@ from torchhys.operator import (
     StateBlock,
     register_operator,
 )
+from torchhys.operators.backlash import _Widths
 
 __all__ = ["PIStep", "PrandtlIshlinskii", "PrandtlIshlinskiiInverse"]
 
@@ -72,7 +72,7 @@ class PrandtlIshlinskii(_Widths, HysteresisOperator):
             non-negative through softplus).
         nonnegative: a constrained model (``w_i >= 0``, ``w0 >= 0``: monotone, and with
             ``w0 > 0`` or a positive weight at width 0, invertible), as
-            :func:`~torchhys.fitting.fit_prandtl_ishlinskii` fits it with
+            :func:`~torchhys.identification.fitting.fit_prandtl_ishlinskii` fits it with
             ``nonnegative=True``: negative weights are refused here and by
             ``load_state_dict``; :meth:`project_` restores the constraint after an optimizer
             step.
@@ -86,7 +86,8 @@ class PrandtlIshlinskii(_Widths, HysteresisOperator):
           next call on the continuation of the sequence.
 
     Usable as an operator of :class:`~torchhys.InverseHysteresisNet` (one output feature),
-    e.g. a least-squares inverse from :func:`torchhys.fitting.fit_prandtl_ishlinskii`.
+    e.g. a least-squares inverse from
+    :func:`torchhys.identification.fitting.fit_prandtl_ishlinskii`.
     """
 
     #: Number of output features when used as an operator of an InverseHysteresisNet.

@@ -37,7 +37,7 @@ from torchhys.operator import (
     StateBlock,
     register_operator,
 )
-from torchhys.stop_pi import StopPrandtlIshlinskii
+from torchhys.operators.stop_pi import StopPrandtlIshlinskii
 
 __all__ = ["StopPIInverse", "StopPIInverseStep"]
 

@@ -9,11 +9,11 @@ import torch
 from torch import Tensor, nn
 
 from torchhys._checks import check_choice
-from torchhys.branch_steps import branch_step
 from torchhys.functional._branch import BranchState
 from torchhys.functional.eiho import NonCausalWarning, eiho, segment_coefficients, zhao_tan
 from torchhys.functional.turning_points import estimate_threshold
 from torchhys.operator import Example, HysteresisOperator, OperatorStep, register_operator
+from torchhys.operators.branch_steps import branch_step
 
 __all__ = ["EIHO", "ZhaoTanOperator"]
 
@@ -221,7 +221,7 @@ class EIHO(_TurningPointOperator):
         return self.coefficient() * torch.exp(-slope * self.anchor_norm[0]), slope
 
     def streaming_step(self, dtype: torch.dtype) -> OperatorStep:
-        """The per-sample step (see :mod:`torchhys.branch_steps`).
+        """The per-sample step (see :mod:`torchhys.operators.branch_steps`).
 
         Raises:
             ValueError: ``a="segment"`` (not causal) or an uncalibrated ``"auto"`` threshold.
@@ -281,7 +281,7 @@ class ZhaoTanOperator(_TurningPointOperator):
         )
 
     def streaming_step(self, dtype: torch.dtype) -> OperatorStep:
-        """The per-sample step (see :mod:`torchhys.branch_steps`).
+        """The per-sample step (see :mod:`torchhys.operators.branch_steps`).
 
         Raises:
             ValueError: an uncalibrated ``"auto"`` threshold.

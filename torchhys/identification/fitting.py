@@ -23,17 +23,17 @@ from torchhys._checks import (
     check_widths,
     fitted_samples,
 )
-from torchhys._nnls import (
+from torchhys.functional.backlash import backlash
+from torchhys.identification._nnls import (
     check_validation,
     fit_segments,
     moments,
     nnls_gram,
     select_on_holdout,
 )
-from torchhys.functional.backlash import backlash
 from torchhys.networks import InverseHysteresisNet
 from torchhys.operator import HysteresisOperator, check_operator
-from torchhys.prandtl_ishlinskii import PrandtlIshlinskii
+from torchhys.operators.prandtl_ishlinskii import PrandtlIshlinskii
 
 __all__ = [
     "FitResult", "LINEAR_FLOOR", "fit_full_batch", "fit_prandtl_ishlinskii", "play_width_grid",
@@ -62,7 +62,7 @@ def fit_full_batch(
     A network's normalization is fitted first. When its elementary operators have no
     trainable parameters their outputs are computed once and only the network is trained.
     ``y`` is passed as ``target`` (used only by per-segment, non-causal EIHOs). An operator
-    with one output (e.g. :class:`~torchhys.generalized_pi.GeneralizedPrandtlIshlinskii`)
+    with one output (e.g. :class:`~torchhys.operators.generalized_pi.GeneralizedPrandtlIshlinskii`)
     is fitted as a model of ``y`` itself: the loss is ``mean((op(x) - y)^2)``, computed through
     ``op.predictor(x)`` where the operator has one (a faster closure of its output on this
     fixed input, e.g. :meth:`~torchhys.GeneralizedPrandtlIshlinskii.predictor`).

@@ -6,7 +6,8 @@ better of these two, fitted on the same training samples (the ``ratio`` of
 
 The polynomial's degree is chosen on a time-ordered hold-out inside the training part: the
 last ``validation`` share of each row's scored samples (the cut of
-:func:`torchhys.fitting.select_pi_ridge`); the chosen degree is then refitted on all of them.
+:func:`torchhys.identification.fitting.select_pi_ridge`); the chosen degree is then refitted on all
+of them.
 The fits are numpy's :class:`numpy.polynomial.Polynomial` least squares in float64 (on a
 scaled domain, well conditioned up to degree 9).
 """
@@ -23,7 +24,7 @@ import torch
 from torch import Tensor
 
 from torchhys._checks import check_int
-from torchhys._nnls import check_validation, holdout_cuts
+from torchhys.identification._nnls import check_validation, holdout_cuts
 from torchhys.training.families import VALIDATION
 
 __all__ = ["MAX_DEGREE", "Polynomial", "fit_polynomial", "holdout_mask", "max_degree"]
@@ -51,8 +52,9 @@ class Polynomial(NamedTuple):
 
 def holdout_mask(mask: Tensor, validation: float = VALIDATION) -> Tensor:
     """The hold-out of a training part: the last ``validation`` share (at least one sample)
-    of each row's scored samples (:func:`torchhys.fitting.select_pi_ridge`'s cut of a row,
-    :func:`torchhys._nnls.holdout_cuts`, applied to the row's scored samples).
+    of each row's scored samples (:func:`torchhys.identification.fitting.select_pi_ridge`'s cut of
+    a row,
+    :func:`torchhys.identification._nnls.holdout_cuts`, applied to the row's scored samples).
 
     Args:
         mask: the scored samples, (rows, time), bool.

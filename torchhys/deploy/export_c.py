@@ -1,8 +1,8 @@
 """Export a compensator as dependency-free C99, generated from its exported step.
 
-:func:`to_c` builds the :class:`~torchhys.streaming.StreamingCompensator` of a model, exports
+:func:`to_c` builds the :class:`~torchhys.deploy.streaming.StreamingCompensator` of a model, exports
 its explicit-state step with ``torch.export`` at batch 1 (static shapes) and writes C from the
-graph, one small template per aten operation (:mod:`torchhys._c_templates`): every tensor a
+graph, one small template per aten operation (:mod:`torchhys.deploy._c_templates`): every tensor a
 fixed-size array, parameters and buffers ``static const`` arrays, the state a struct the
 caller owns. No operator has C of its own: a new operator whose step exports with
 ``torch.export`` gets C without new code, or :func:`to_c` names the operation without a
@@ -40,11 +40,11 @@ import torch
 from torch import fx, nn
 from torch.export.graph_signature import InputKind
 
-from torchhys._c_files import MEMBERS, files
-from torchhys._c_templates import POINTWISE_OPS, SHAPE_ONLY, TEMPLATES
-from torchhys._c_writer import CTensor, Writer, constant, contiguous_strides
-from torchhys.export import _compensator, _ExplicitStep
-from torchhys.streaming import StreamingCompensator
+from torchhys.deploy._c_files import MEMBERS, files
+from torchhys.deploy._c_templates import POINTWISE_OPS, SHAPE_ONLY, TEMPLATES
+from torchhys.deploy._c_writer import CTensor, Writer, constant, contiguous_strides
+from torchhys.deploy.export import _compensator, _ExplicitStep
+from torchhys.deploy.streaming import StreamingCompensator
 
 __all__ = ["DEFAULT_PREFIX", "check_prefix", "to_c"]
 
@@ -100,13 +100,13 @@ def to_c(
     Args:
         model: an :class:`~torchhys.InverseHysteresisNet` with causal operators, a
             :class:`~torchhys.PrandtlIshlinskiiInverse`, any model with streaming steps, or a
-            built :class:`~torchhys.streaming.StreamingCompensator` (then in ``dtype``).
+            built :class:`~torchhys.deploy.streaming.StreamingCompensator` (then in ``dtype``).
         out_dir: an existing folder.
         prefix: the C prefix of every name (a C identifier).
         dtype: ``torch.float64`` or ``torch.float32``: the C step's real type (a model in
             another dtype is copied and converted, as ``model.to(dtype)``).
         limits, initial_command, input_range, input_margin, direction: as
-            :func:`torchhys.export.to_torchscript`.
+            :func:`torchhys.deploy.export.to_torchscript`.
 
     Returns:
         ``(header_path, source_path)``.
@@ -118,8 +118,8 @@ def to_c(
     Raises:
         ValueError: a bad ``prefix``, ``dtype`` or ``out_dir``; an operation in the step
             without a C template (the message names it and the step it came from); see
-            :class:`~torchhys.streaming.StreamingCompensator` for the other options.
-        TypeError: see :class:`~torchhys.streaming.StreamingCompensator`.
+            :class:`~torchhys.deploy.streaming.StreamingCompensator` for the other options.
+        TypeError: see :class:`~torchhys.deploy.streaming.StreamingCompensator`.
     """
     prefix, folder = check_prefix(prefix), _check_out_dir(out_dir)
     comp = _build(model, dtype, limits, initial_command,
@@ -160,7 +160,7 @@ def _origin(node: fx.Node) -> str:
         path, cls = list(stack.values())[-1]
         cls = cls if isinstance(cls, str) else getattr(cls, "__qualname__", str(cls))
         parts.append(f"{path} ({cls})" if path else
-                     "the compensator's own step (torchhys.streaming.StreamingCompensator)")
+                     "the compensator's own step (torchhys.deploy.streaming.StreamingCompensator)")
     frames = re.findall(r'File "([^"]+)", line (\d+), in (\w+)', node.meta.get("stack_trace")
                         or "")
     if frames:
@@ -244,7 +244,7 @@ def _translate(ep: torch.export.ExportedProgram, w: Writer, members: list[str]
     if missing:
         raise ValueError("to_c: no C template for " + "; ".join(
             f"{op} (from {where})" for op, where in missing.items())
-            + " (templates: torchhys._c_templates.TEMPLATES)")
+            + " (templates: torchhys.deploy._c_templates.TEMPLATES)")
     return outs[0], outs[1:]
 
 

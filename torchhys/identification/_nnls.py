@@ -1,6 +1,6 @@
 """Penalised non-negative least squares from the normal equations, and the choice of a penalty
 on a time-ordered hold-out: shared by the Preisach and Prandtl-Ishlinskii identifications
-(:func:`torchhys.fit_preisach`, :func:`torchhys.fitting.fit_prandtl_ishlinskii`).
+(:func:`torchhys.fit_preisach`, :func:`torchhys.identification.fitting.fit_prandtl_ishlinskii`).
 
 Both fits reduce to a design ``A`` (rows: samples, columns: features) and a target ``y``; a
 :class:`Moments` holds what a solve or a score needs of one segment of the samples

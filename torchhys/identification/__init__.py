@@ -1,0 +1,2 @@
+"""Identification: the ``fit_*`` and ``select_*`` functions and the penalised least squares
+they share."""
