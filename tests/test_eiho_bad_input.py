@@ -33,7 +33,7 @@ X = torch.linspace(0, 1, 10)
         (lambda: EIHO(threshold=-1.0), ValueError, "threshold must be .*-1.0"),
         (lambda: ZhaoTanOperator(scale=0.0), ValueError, "scale must be a positive number"),
         (lambda: InverseHysteresisNet("no_such_operator"), ValueError,
-         "operator name must be one of .*'no_such_operator'"),
+         "operator: no operator is registered as 'no_such_operator'"),
         (lambda: InverseHysteresisNet(hidden=0), ValueError, "hidden must be .* 0"),
         (lambda: InverseHysteresisNet(activation="swish"), ValueError, "activation .*'swish'"),
     ],

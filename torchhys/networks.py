@@ -1,19 +1,14 @@
 """The paper's inverse-hysteresis network (Eq. (17)) on an expanded input space."""
 
 import copy
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import torch
 from torch import Tensor, nn
 
 from torchhys._checks import as_batched_sequence, check_choice, check_int, fitted_samples
-from torchhys.operator import (
-    AtomicLoad,
-    HysteresisOperator,
-    OperatorStep,
-    check_operator,
-    make_operator,
-)
+from torchhys.operator import AtomicLoad, HysteresisOperator, OperatorStep, make_operator
 
 __all__ = ["InverseHysteresisNet"]
 
@@ -22,13 +17,9 @@ _ACTIVATIONS = {
     "identity": nn.Identity,
 }
 
-Operator = str | HysteresisOperator
-
-
-def _make_operator(spec: Operator, kwargs: dict) -> HysteresisOperator:
-    if isinstance(spec, str):
-        return make_operator(spec, **kwargs)
-    return check_operator(spec)
+Operator = str | Mapping[str, Any] | HysteresisOperator
+"""An operator spec of :func:`torchhys.operator.make_operator`: a registered name, a dict
+``{"name": NAME, **options}`` or an operator."""
 
 
 class InverseHysteresisNet(AtomicLoad, nn.Module):
@@ -41,19 +32,23 @@ class InverseHysteresisNet(AtomicLoad, nn.Module):
     plain network of ``x`` alone (multi-valued: the baseline the paper improves on).
 
     Args:
-        operator: a registered operator name (``"eiho"``, ``"zhao_tan"``, ...: see
-            :data:`torchhys.operator.OPERATORS`), a :class:`~torchhys.HysteresisOperator`,
-            a list of those (expanded input space, e.g. EIHOs with several ``a`` and play
-            operators), or None.
+        operator: an operator spec (:func:`torchhys.operator.make_operator`): a registered
+            name (``"eiho"``, ``"zhao_tan"``, ...: see :data:`torchhys.operator.OPERATORS`),
+            a dict ``{"name": NAME, **options}`` or a
+            :class:`~torchhys.HysteresisOperator`; a list of specs (expanded input space,
+            e.g. EIHOs with several ``a`` and play operators); or None.
         hidden: number of hidden units.
         activation: ``"sigmoid"`` (the paper), ``"tanh"``, ``"relu"``, ``"gelu"``, or
             ``"identity"`` (a linear readout of the features: with ``hidden=1``, an affine
             combination of the input and the operators' outputs).
-        operator_kwargs: keyword arguments of operators given by name (e.g. ``a=...``).
+        operator_kwargs: keyword arguments of the operators given by name alone (e.g.
+            ``a=...``).
 
     Raises:
-        ValueError: an unknown operator name, bad ``hidden`` or ``activation``.
-        TypeError: an operator that does not implement the operator protocol.
+        ValueError: an unknown operator name, bad operator options, bad ``hidden`` or
+            ``activation``.
+        TypeError: a spec of another type, an operator that does not implement the
+            operator protocol.
 
     Shapes:
         ``forward(x)``: x (time,) or (batch, time) -> y of the same shape, and the list of
@@ -70,10 +65,12 @@ class InverseHysteresisNet(AtomicLoad, nn.Module):
         super().__init__()
         check_int(hidden, "hidden", minimum=1)
         check_choice(activation, "activation", sorted(_ACTIVATIONS))
-        specs = [] if operator is None else (
-            list(operator) if isinstance(operator, (list, tuple)) else [operator]
-        )
-        self.operators = nn.ModuleList([_make_operator(s, operator_kwargs or {}) for s in specs])
+        several = isinstance(operator, (list, tuple))
+        specs = [] if operator is None else list(operator) if several else [operator]
+        self.operators = nn.ModuleList([
+            make_operator(s, argument=f"operator[{i}]" if several else "operator",
+                          **(operator_kwargs or {}) if isinstance(s, str) else {})
+            for i, s in enumerate(specs)])
         n_features = 1 + sum(op.n_outputs for op in self.operators)
         self.register_buffer("in_mean", torch.zeros(n_features))
         self.register_buffer("in_std", torch.ones(n_features))

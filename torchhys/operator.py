@@ -352,17 +352,61 @@ def load_entry_points() -> list[str]:
     return names
 
 
-def make_operator(name: str, **options: Any) -> HysteresisOperator:
-    """Build the operator registered as ``name`` with keyword ``options``.
+def make_operator(spec: Any, /, *, argument: str = "operator", **options: Any
+                  ) -> HysteresisOperator:
+    """The operator of a spec: the one resolver of networks, cascades and configs.
+
+    A spec is one of:
+
+    - a registered name, ``"eiho"``: ``OPERATORS["eiho"](**options)``;
+    - a dict ``{"name": "eiho", **kwargs}``: ``OPERATORS["eiho"](**kwargs, **options)``
+      (options of an operator may be specs themselves, e.g. a cascade's parts);
+    - an operator (a :class:`HysteresisOperator`): itself, checked (no ``options``).
+
+    The installed packages' entry points are registered first (:func:`load_entry_points`).
+
+    Args:
+        spec: the spec.
+        argument: what the spec is called in error messages (``"operator"``,
+            ``"operator[1]"``, ...).
+        **options: keyword options of the operator given by name (or added to a dict's).
 
     Raises:
-        ValueError: an unknown name (the message lists the registered ones), or options the
-            operator does not take.
+        ValueError: an unknown name (the message lists the registered ones), a dict without
+            a ``name`` or with an option given twice, options the operator does not take
+            (the operator's own checks name the option).
+        TypeError: a spec of another type, an object outside the operator protocol, options
+            given with an operator.
     """
     load_entry_points()
-    check_choice(name, "operator name", sorted(OPERATORS))
+    if isinstance(spec, Mapping):
+        if "name" not in spec:
+            hint = (" ({'fit': ...} is a model family that `torchhys fit` identifies on the "
+                    "training data, not an operator)" if "fit" in spec else "")
+            raise ValueError(f"{argument}: a spec dict needs a 'name' (a registered operator), "
+                             f"got {dict(spec)!r}{hint}")
+        twice = sorted(set(spec) & set(options))
+        if twice:
+            raise ValueError(f"{argument}: option(s) {twice} given in the spec and as "
+                             "keywords")
+        name, options = spec["name"], {**{k: v for k, v in spec.items() if k != "name"},
+                                       **options}
+    elif isinstance(spec, str):
+        name = spec
+    elif isinstance(spec, nn.Module):
+        if options:
+            raise TypeError(f"{argument}: options {sorted(options)} apply to an operator "
+                            f"given by name, not to a {type(spec).__name__} instance")
+        return check_operator(spec, argument)
+    else:
+        raise TypeError(f"{argument} must be a registered operator name, a dict "
+                        f"{{'name': NAME, **options}} or a HysteresisOperator, got "
+                        f"{type(spec).__name__} {spec!r}")
+    if not isinstance(name, str) or name not in OPERATORS:
+        raise ValueError(f"{argument}: no operator is registered as {name!r}; registered "
+                         f"names: {sorted(OPERATORS)}")
     try:
         op = OPERATORS[name](**options)
     except TypeError as e:
-        raise ValueError(f"operator {name!r}: {e}") from e
-    return check_operator(op, f"operator {name!r}")
+        raise ValueError(f"{argument} {name!r}: {e}") from e
+    return check_operator(op, f"{argument} {name!r}")

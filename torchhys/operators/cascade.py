@@ -34,7 +34,6 @@ from torchhys.operator import (
     HysteresisOperator,
     OperatorStep,
     StateBlock,
-    check_operator,
     make_operator,
     register_operator,
 )
@@ -42,7 +41,8 @@ from torchhys.operator import (
 __all__ = ["Cascade", "CascadeStep"]
 
 OperatorSpec = HysteresisOperator | str | Mapping[str, Any]
-"""An operator, a registered name, or ``{"name": NAME, **options}``."""
+"""An operator spec of :func:`~torchhys.operator.make_operator`: an operator, a registered
+name, or ``{"name": NAME, **options}``."""
 
 
 class CascadeStep(OperatorStep):
@@ -104,23 +104,12 @@ class CascadeStep(OperatorStep):
         return f, out
 
 
-def _resolve(spec: OperatorSpec, i: int) -> HysteresisOperator:
-    if isinstance(spec, str):
-        return make_operator(spec)
-    if isinstance(spec, Mapping):
-        if "name" not in spec:
-            raise ValueError(f"operator {i} of the cascade: a spec needs a 'name', got "
-                             f"{dict(spec)!r}")
-        options = {k: v for k, v in spec.items() if k != "name"}
-        return make_operator(spec["name"], **options)
-    return check_operator(spec, f"operator {i} of the cascade")
-
-
 class Cascade(HysteresisOperator):
     """Operators in series: ``Cascade(first, second)(x) = second(first(x))``.
 
     ``Cascade(a, b, c)`` and ``Cascade([a, b, c])`` are ``c(b(a(x)))``. Each operator is a
-    :class:`~torchhys.HysteresisOperator`, a registered name or a spec
+    spec of :func:`~torchhys.operator.make_operator`: a
+    :class:`~torchhys.HysteresisOperator`, a registered name or a dict
     ``{"name": NAME, **options}`` (so configs can write
     ``{name: cascade, first: {name: transfer_function, order: 2}, second: {name: eiho}}``).
 
@@ -136,9 +125,10 @@ class Cascade(HysteresisOperator):
           of the states after the last sample; chunked calls equal one call.
 
     Raises:
-        ValueError: fewer than two operators, an operator other than the last with more than
-            one output, a non-causal operator (it would need the target of its own input).
-        TypeError: an operator outside the protocol.
+        ValueError: fewer than two operators, an unknown name or bad options, an operator
+            other than the last with more than one output, a non-causal operator (it would
+            need the target of its own input).
+        TypeError: a spec of another type, an operator outside the protocol.
     """
 
     def __init__(self, first: OperatorSpec | Sequence[OperatorSpec],
@@ -153,7 +143,8 @@ class Cascade(HysteresisOperator):
             specs = [first, second, *more]
         if len(specs) < 2:
             raise ValueError(f"a cascade needs at least two operators, got {len(specs)}")
-        ops = [_resolve(s, i) for i, s in enumerate(specs)]
+        ops = [make_operator(s, argument=f"operator {i} of the cascade")
+               for i, s in enumerate(specs)]
         for i, op in enumerate(ops):
             if not op.causal:
                 raise ValueError(f"operator {i} of the cascade ({type(op).__name__}) is not "
