@@ -59,7 +59,8 @@ def inverse_loop(inverse, y: torch.Tensor) -> torch.Tensor:  # noqa: ANN001
 
 def run_one(method: str, T: int, repeats: int) -> dict:
     from torchhys.functional.preisach import preisach, preisach_grid, relay_states
-    from torchhys.operators.preisach import Preisach, fit_preisach
+    from torchhys.identification.preisach import fit_preisach
+    from torchhys.operators.preisach import Preisach
 
     x = walk_signal(T)
     alpha, beta = preisach_grid(-1.0, 1.0, N_LEVELS)

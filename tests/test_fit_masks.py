@@ -35,8 +35,8 @@ from torchhys.identification.fitting import (
     play_width_grid,
     select_pi_ridge,
 )
+from torchhys.identification.stop_pi import select_stop_pi_ridge
 from torchhys.operators.backlash import Backlash
-from torchhys.operators.stop_pi import select_stop_pi_ridge
 
 F64 = torch.float64
 T = 240

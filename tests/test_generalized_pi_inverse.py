@@ -13,9 +13,8 @@ import torch
 from _gpi_helpers import F64, WIDTHS, model, walks
 
 from torchhys import GeneralizedPIInverse
+from torchhys.functional.generalized_pi import monotone_inverse, monotone_output
 from torchhys.operator import OPERATORS
-from torchhys.operators.generalized_pi import monotone_output
-from torchhys.operators.generalized_pi_inverse import monotone_inverse
 
 
 def test_inverts_the_forward_model_exactly():

@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from torchhys.functional.preisach import preisach, preisach_grid, relay_states
-from torchhys.operators.preisach import Preisach, fit_preisach, select_penalty
+from torchhys.identification.preisach import fit_preisach, select_penalty
+from torchhys.operators.preisach import Preisach
 
 A, B = preisach_grid(-1.0, 1.0, 3)
 X = torch.linspace(-1.0, 1.0, 20)

@@ -12,7 +12,8 @@ import torch
 from scipy.optimize import nnls
 
 from torchhys.functional.preisach import relay_states
-from torchhys.operators.preisach import Preisach, fit_preisach, select_penalty
+from torchhys.identification.preisach import fit_preisach, select_penalty
+from torchhys.operators.preisach import Preisach
 
 F64 = torch.float64
 

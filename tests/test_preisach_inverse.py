@@ -27,7 +27,7 @@ from torchhys.functional.preisach import (
     preisach_inverse_step,
 )
 from torchhys.operator import OPERATORS, make_operator
-from torchhys.operators.preisach_inverse import PreisachInverseStep
+from torchhys.operators.preisach import PreisachInverseStep
 
 F64 = torch.float64
 
@@ -330,11 +330,11 @@ def test_fit_of_a_graded_plant_is_exact_and_beats_the_even_grid():
 
 
 def test_preisach_family_in_the_inverse_direction():
-    from training.families import FAMILIES
+    from torchhys.training.families import FAMILIES
 
     plant, H, B = magnetic_plant(0.15)  # in the family: grid over H's range, 0.1 of 1.5
     placeholder, fit = FAMILIES["preisach"](
-        {"name": "preisach", "n": 24, "grading": 0.1, "direction": "inverse"})
+        {"fit": "preisach", "n": 24, "grading": 0.1, "direction": "inverse"})
     assert isinstance(placeholder, PreisachInverse)
     op = fit(B, H, 96)  # input B, target H: the compensator
     assert isinstance(op, PreisachInverse)
@@ -348,7 +348,7 @@ def test_preisach_family_in_the_inverse_direction():
     for bad, match in (({"grading": 0}, "grading"), ({"direction": "up"}, "direction"),
                        ({"levels": 3}, "unknown option")):
         with pytest.raises(ValueError, match=match):
-            FAMILIES["preisach"]({"name": "preisach", **bad})
+            FAMILIES["preisach"]({"fit": "preisach", **bad})
 
 
 # --- 4. bad input, loading, the registry --------------------------------------------------------

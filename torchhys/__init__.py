@@ -16,20 +16,22 @@ from torchhys import (
 )
 from torchhys.deploy import export, streaming
 from torchhys.identification import fitting
+from torchhys.identification.drift import fit_drift
+from torchhys.identification.generalized_pi import fit_generalized_pi
+from torchhys.identification.jiles_atherton import fit_jiles_atherton
+from torchhys.identification.preisach import fit_preisach, select_penalty
+from torchhys.identification.stop_pi import fit_stop_pi, select_stop_pi_ridge
 from torchhys.networks import InverseHysteresisNet
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
 from torchhys.operators.backlash import Backlash, BacklashCell
 from torchhys.operators.cascade import Cascade
-from torchhys.operators.drift import Drift, fit_drift
+from torchhys.operators.drift import Drift
 from torchhys.operators.eiho import EIHO, ZhaoTanOperator
-from torchhys.operators.generalized_pi import GeneralizedPrandtlIshlinskii, fit_generalized_pi
-from torchhys.operators.generalized_pi_inverse import GeneralizedPIInverse
-from torchhys.operators.jiles_atherton import JilesAtherton, fit_jiles_atherton
+from torchhys.operators.generalized_pi import GeneralizedPIInverse, GeneralizedPrandtlIshlinskii
+from torchhys.operators.jiles_atherton import JilesAtherton
 from torchhys.operators.prandtl_ishlinskii import PrandtlIshlinskii, PrandtlIshlinskiiInverse
-from torchhys.operators.preisach import Preisach, fit_preisach, select_penalty
-from torchhys.operators.preisach_inverse import PreisachInverse
-from torchhys.operators.stop_pi import StopPrandtlIshlinskii, fit_stop_pi, select_stop_pi_ridge
-from torchhys.operators.stop_pi_inverse import StopPIInverse
+from torchhys.operators.preisach import Preisach, PreisachInverse
+from torchhys.operators.stop_pi import StopPIInverse, StopPrandtlIshlinskii
 
 __version__ = "0.1.0"
 

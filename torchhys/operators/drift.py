@@ -1,5 +1,5 @@
-"""A slow drift driven by the input's accumulated variation, its per-sample step, and its
-identification by non-negative least squares.
+"""A slow drift driven by the input's accumulated variation, and its per-sample step
+(identification: :mod:`torchhys.identification.drift`).
 
 The maths is in :mod:`torchhys.functional.drift`: ``d = offset + sum_k w_k (1 - exp(-v /
 c_k))``, v the input's total variation since the start of the record. Beside a hysteresis
@@ -16,22 +16,16 @@ import torch
 from torch import Tensor, nn
 
 from torchhys._checks import (
-    as_batched_sequence,
     check_bool,
     check_finite,
     check_nonnegative,
     check_real,
-    check_warmup,
-    fitted_samples,
 )
 from torchhys.functional.drift import (
-    accumulated_variation,
     check_scales,
     drift,
-    drift_features,
     drift_step,
 )
-from torchhys.identification._nnls import nnls_gram
 from torchhys.operator import (
     Example,
     HysteresisOperator,
@@ -40,7 +34,7 @@ from torchhys.operator import (
     register_operator,
 )
 
-__all__ = ["Drift", "DriftStep", "fit_drift"]
+__all__ = ["Drift", "DriftStep"]
 
 
 class DriftStep(OperatorStep):
@@ -143,71 +137,6 @@ class Drift(HysteresisOperator):
         if isinstance(v0, Tensor) and not (bool(v0.isfinite().all()) and bool((v0 >= 0).all())):
             raise ValueError(f"{prefix}min_variation must be finite and >= 0, got {v0.tolist()}")
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
-
-
-def fit_drift(x: Tensor, y: Tensor, scales: Tensor | Sequence[float], *,
-              warmup: int = 0, linear: bool = True, mask: Tensor | None = None) -> Drift:
-    """Identify a :class:`Drift` (fresh start of every row) by least squares with weights of
-    one sign, the offset free:
-
-        min  mean_t (y[t] - offset - b x[t] - s sum_k w_k g_k[t])**2   subject to w >= 0,
-
-    ``g_k = 1 - exp(-v / c_k)``, for s = +1 and s = -1; the better fit is kept (+1 on ties).
-    The returned drift's floor (``min_variation``) is the least variation of the fitted
-    samples: on a record whose fitted samples start late (after a held-out block) it is held
-    there rather than extrapolated backwards.
-    With ``linear`` the slope b is free and not part of the returned drift: the drift of a
-    target that also follows the input (a loop beside it), which a drift alone would confuse
-    with the input's own rise and fall; without it b = 0. Solved in float64 from the normal
-    equations (Lawson-Hanson).
-
-    Args:
-        x, y: input and target, (time,) or (batch, time) (rows are independent records).
-        scales: saturation scales c_k > 0, (K,).
-        warmup: samples at the start of each row left out of the fit (their variation still
-            counts).
-        linear: fit a free slope in x beside the drift (left out of the returned model).
-        mask: the samples to fit, bool, the shape of ``x`` (False: left out of the fit,
-            their variation still counts, e.g. a held-out block or a shorter row's padding);
-            None: every sample (after ``warmup`` in both cases).
-
-    Returns:
-        The fitted drift, in x's dtype.
-
-    Raises:
-        ValueError: NaN/inf, shapes differ, bad scales, warmup >= time, a bad mask.
-    """
-    xb, _ = as_batched_sequence(x, "x")
-    yb, _ = as_batched_sequence(y, "y")
-    if xb.shape != yb.shape:
-        raise ValueError(f"x and y must have the same shape, got {tuple(x.shape)} and "
-                         f"{tuple(y.shape)}")
-    check_warmup(warmup, xb.shape[1])
-    check_bool(linear, "linear")
-    c = torch.as_tensor(scales, dtype=torch.float64)
-    check_scales(c)
-    fitted = fitted_samples(mask, tuple(xb.shape), warmup).to(xb.device)
-    v, _ = accumulated_variation(xb)
-    g = drift_features(v[fitted], c)  # (n, K)
-    floor = float(v[fitted].min())
-    t = yb[fitted].to(torch.float64)
-    xs = xb[fitted].unsqueeze(1).to(torch.float64)
-    # the offset at column K (free), then the slope (free)
-    A = torch.cat([g, torch.ones_like(t)[:, None]] + ([xs - xs.mean()] if linear else []), 1)
-    n, K = t.numel(), c.numel()
-    G, h0 = A.T @ A / n, A.T @ t / n
-    free = torch.arange(A.shape[1]) >= K
-    best: tuple[float, float, Tensor] | None = None
-    for sign in (1.0, -1.0):
-        theta = nnls_gram(G, sign * h0, free)
-        theta[:K] = theta[:K].clamp_min(0.0)
-        sse = float(((A @ theta - sign * t) ** 2).sum())
-        if best is None or sse < best[0]:
-            best = (sse, sign, theta)
-    _, sign, theta = best
-    offset = float(theta[K]) - (float(theta[K + 1] * xs.mean()) if linear else 0.0)
-    return Drift(c.to(xb.dtype), sign * theta[:K].to(xb.dtype), offset=sign * offset,
-                 min_variation=floor)
 
 
 register_operator("drift", Drift, example=Example(

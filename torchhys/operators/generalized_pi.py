@@ -29,13 +29,35 @@ References:
     9(4), 2003; M. Al Janaideh, S. Rakheja and C.-Y. Su, "An analytical generalized
     Prandtl-Ishlinskii model inversion for hysteresis compensation in micropositioning
     control", IEEE/ASME Transactions on Mechatronics 16(4), 2011.
+
+**The exact inverse of a generalized Prandtl-Ishlinskii model, as an operator.**
+
+The model is ``y = g(p[x])`` (:class:`~torchhys.GeneralizedPrandtlIshlinskii`): a
+Prandtl-Ishlinskii model ``p`` with non-negative weights and a strictly increasing output
+function ``g``. Its inverse is ``x = p^-1[g^-1(y)]``: the memoryless inverse of ``g``
+(:func:`monotone_inverse`), then the analytic inverse of the PI part, itself a PI model of
+``g^-1(y)`` (:func:`~torchhys.functional.prandtl_ishlinskii_inverse_parameters`). Fitted in
+the direction where a generalized PI model has the right shape (e.g. H -> B of a magnetic
+core, whose loops saturate), it models the other direction (B -> H) exactly.
+
+``g^-1`` has no closed form. Because ``|sum_k c_k tanh(.)| <= sum_k c_k``, the root of
+``g(v) = y`` lies in ``[(y - offset - C) / a, (y - offset + C) / a]`` (``C = sum_k c_k``);
+:func:`monotone_inverse` halves that bracket 20 times, takes two Newton steps kept inside
+the final bracket, and ends with one more Newton step from the (detached) result, so that
+the result is differentiable with the implicit-function gradient ``1 / g'(v)``. The sequence
+path and the per-sample step call the same function.
+
+A fitted ``g`` that saturates has a tiny gain ``a``: its inverse is steep beyond the
+saturation, and its bracket huge. ``lower``/``upper`` bound ``v`` (e.g. the range of the
+PI part's output in the fit, with a margin): the bracket is cut to them and ``v`` clamped,
+so that the inverse holds ``v`` at the bound for an input beyond ``g(upper)`` (or below
+``g(lower)``). Unbounded (the exact inverse) by default.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
@@ -46,14 +68,17 @@ from torchhys._checks import (
     check_bool,
     check_finite,
     check_int,
+    check_real,
     check_same_shape,
     check_tensor,
-    fitted_samples,
 )
 from torchhys.functional.backlash import backlash, check_play_state, play_step
-from torchhys.functional.prandtl_ishlinskii import pi_output
+from torchhys.functional.generalized_pi import monotone_inverse, monotone_output
+from torchhys.functional.prandtl_ishlinskii import (
+    pi_output,
+    prandtl_ishlinskii_inverse_parameters,
+)
 from torchhys.identification._nnls import check_penalty
-from torchhys.identification.fitting import fit_full_batch, fit_prandtl_ishlinskii
 from torchhys.operator import (
     Example,
     HysteresisOperator,
@@ -64,24 +89,8 @@ from torchhys.operator import (
 from torchhys.operators.backlash import _inverse_softplus, _Widths
 from torchhys.operators.prandtl_ishlinskii import PrandtlIshlinskii
 
-if TYPE_CHECKING:
-    from torchhys.operators.generalized_pi_inverse import GeneralizedPIInverse
-
-__all__ = ["GeneralizedPIStep", "GeneralizedPrandtlIshlinskii", "fit_generalized_pi",
-           "monotone_output"]
-
-
-def monotone_output(v: Tensor, gain: Tensor, unit_weights: Tensor, centers: Tensor,
-                    slopes: Tensor, offset: Tensor) -> Tensor:
-    """``g(v) = gain v + sum_k c_k tanh(s_k (v - b_k)) + offset``: v (...) -> (...).
-
-    ``gain``, ``offset``: 0-dim; ``unit_weights`` (c), ``centers`` (b), ``slopes`` (s):
-    (K,), K >= 0. Strictly increasing when ``gain > 0``, ``c >= 0``, ``s > 0``. With
-    ``c = 0`` (or K = 0), ``gain = 1``, ``offset = 0`` it returns v exactly. Scriptable: the
-    sequence path and the step call it.
-    """
-    units = torch.tanh(slopes * (v.unsqueeze(-1) - centers))
-    return gain * v + (units * unit_weights).sum(-1) + offset
+__all__ = ["GeneralizedPIInverse", "GeneralizedPIInverseStep", "GeneralizedPIStep",
+           "GeneralizedPrandtlIshlinskii"]
 
 
 class GeneralizedPIStep(OperatorStep):
@@ -243,12 +252,11 @@ class GeneralizedPrandtlIshlinskii(_Widths, HysteresisOperator):
                 upper: float = math.inf) -> GeneralizedPIInverse:
         """The exact inverse ``x = p^-1[g^-1(y)]`` as an operator
         (:class:`~torchhys.GeneralizedPIInverse`, detached parameters), ``g^-1`` bounded to
-        ``[lower, upper]`` (see :mod:`torchhys.operators.generalized_pi_inverse`).
+        ``[lower, upper]`` (see :class:`GeneralizedPIInverse`).
 
         Raises:
             ValueError: the PI part's loading curve is not strictly increasing.
         """
-        from torchhys.operators.generalized_pi_inverse import GeneralizedPIInverse
 
         return GeneralizedPIInverse.from_model(self, lower=lower, upper=upper)
 
@@ -286,106 +294,6 @@ class GeneralizedPrandtlIshlinskii(_Widths, HysteresisOperator):
         return f"n_plays={self.n_operators}, n_units={self.centers.shape[0]}"
 
 
-def fit_generalized_pi(
-    x: Tensor, y: Tensor, widths: Tensor, *, units: int = 6, ridge: float = 0.0,
-    adam_epochs: int = 0, lbfgs_epochs: int = 1000, lr: float = 1e-2, warmup: int = 0,
-    anchor: float = 1e-6, mask: Tensor | None = None,
-) -> GeneralizedPrandtlIshlinskii:
-    """Fit a :class:`GeneralizedPrandtlIshlinskii` model ``y ~ g(p[x])``.
-
-    Initialisation: ``p`` from the non-negative PI fit
-    (``fit_prandtl_ishlinskii(x, y, widths, ridge=ridge, nonnegative=True)``), its play
-    weights raised to at least 1% of the largest (so that none starts dead); ``g`` with
-    ``units`` tanh units centred on quantiles of that fit's output, slopes ``2 / spacing``
-    and weights ``0.1 spacing`` (spacing: the output's span / units), gain 1, offset 0. Then
-    full-batch training of every parameter but the widths and ``w0`` on the mean squared
-    error plus ``anchor * (|log a - log a_init|^2 + |log s - log s_init|^2)``
-    (:func:`~torchhys.identification.fitting.fit_full_batch`: Adam, then L-BFGS). The fit sees y
-    divided by
-    its standard deviation over the scored samples (then ``a``, ``c_k`` and the offset are
-    scaled back), so that the fit, its tolerances and the anchor mean the same in any units
-    of y.
-
-    Why ``w0`` is held and the logarithms anchored: the model is unchanged when ``p`` is
-    scaled by k and ``g``'s input by 1 / k (``w, w0, b`` times k, ``a, s`` over k), and
-    nearly unchanged when a unit's slope shrinks while its weight grows (it becomes a
-    linear term) or when the gain vanishes and the units carry ``g``. Left free, the fit
-    drifts along these directions until parameters underflow (a gain or slope of 0: no
-    inverse) or the loss turns NaN; holding ``w0`` removes the first, and the anchor (small
-    next to the error of a fit) stops the others.
-
-    Args:
-        x: input, (time,) or (batch, time); y: output, same shape.
-        widths: full dead-band widths, (N,).
-        units: tanh units of g, >= 0.
-        ridge: ridge weight of the initial PI fit (e.g. from
-            :func:`~torchhys.identification.fitting.select_pi_ridge`).
-        adam_epochs, lbfgs_epochs, lr: as in
-        :func:`~torchhys.identification.fitting.fit_full_batch`.
-        warmup: samples at the start of each row left out of the initial fit, the centres of
-            g and the loss (they still run the plays), to forget the zero initial state.
-        anchor: weight of the penalty on the log-gain and log-slopes moving from their
-            initial values (y in units of its standard deviation), >= 0 (0: none).
-        mask: the scored samples, bool, the shape of ``x`` (False: left out of the initial
-            fit, the centres, the scale of y and the loss, as the warm-up; the plays still run
-            through them, e.g. a held-out block or a shorter row's padding); None: every
-            sample (after ``warmup`` in both cases).
-
-    Returns:
-        The model, in x's dtype.
-
-    Raises:
-        TypeError, ValueError: bad input (see
-        :func:`~torchhys.identification.fitting.fit_prandtl_ishlinskii`),
-            y constant over the scored samples, or y that does not increase with x (the
-            initial fit has no positive linear weight).
-    """
-    check_int(units, "units", minimum=0)
-    anchor = check_penalty(anchor, "anchor")
-    xb, _ = as_batched_sequence(x, "x")
-    yb, _ = as_batched_sequence(y, "y")
-    check_same_shape(yb, xb, "y", "x")
-    pi = fit_prandtl_ishlinskii(xb, yb, widths, ridge=ridge, nonnegative=True, warmup=warmup,
-                                mask=mask)
-    scored = fitted_samples(mask, tuple(xb.shape), warmup).to(xb.device)
-    sy = float(yb[scored].std())
-    if not sy > 0:
-        raise ValueError("y must vary over the scored samples (after warmup)")
-    w0 = float(pi.linear_weight) / sy
-    if not w0 > 0:
-        raise ValueError("y does not increase with x (the least-squares static gain is not "
-                         "positive): a generalized PI model of increasing loops does not fit")
-    with torch.no_grad():
-        v = pi(xb)[0][scored] / sy
-        q = (torch.arange(units, dtype=v.dtype, device=v.device) + 0.5) / max(units, 1)
-        centers = torch.quantile(v, q) if units else v.new_zeros(0)
-        spacing = float((v.max() - v.min()).clamp_min(1e-12)) / max(units, 1)
-        weights = pi.weights.clamp_min(0.01 * float(pi.weights.max())) / sy
-    model = GeneralizedPrandtlIshlinskii(
-        pi.get_widths(), weights, linear_weight=w0, centers=centers,
-        slopes=torch.full_like(centers, 2.0 / spacing),
-        unit_weights=torch.full_like(centers, 0.1 * spacing),
-    ).to(xb.device)
-    log_gain, log_slopes = model.log_gain.detach().clone(), model.log_slopes.detach().clone()
-
-    def drift() -> Tensor:
-        return anchor * ((model.log_gain - log_gain).square()
-                         + (model.log_slopes - log_slopes).square().sum())
-
-    model.log_linear_weight.requires_grad_(False)
-    try:
-        fit_full_batch(model, xb, yb / sy, adam_epochs=adam_epochs, lbfgs_epochs=lbfgs_epochs,
-                       lr=lr, warmup=warmup, penalty=drift if anchor > 0 else None,
-                       mask=mask)
-    finally:
-        model.log_linear_weight.requires_grad_(True)
-    with torch.no_grad():  # g's output back to the units of y
-        model.log_gain.add_(math.log(sy))
-        model.raw_unit_weights.copy_(_inverse_softplus(F.softplus(model.raw_unit_weights) * sy))
-        model.offset.mul_(sy)
-    return model
-
-
 register_operator("generalized_pi", GeneralizedPrandtlIshlinskii, example=Example(
     # every value of the parameters is a valid model (logarithms and softplus); fixed widths
     # must be >= 0
@@ -393,3 +301,158 @@ register_operator("generalized_pi", GeneralizedPrandtlIshlinskii, example=Exampl
         torch.tensor([0.0, 0.3, 0.8], dtype=torch.float64), [0.5, 0.3, 0.2],
         linear_weight=0.5, centers=[-0.5, 0.5], slopes=[2.0, 1.0], unit_weights=[0.2, 0.1]),
     bad_values={"fixed_widths": -1.0}))
+
+
+class GeneralizedPIInverseStep(GeneralizedPIStep):
+    """Per-sample step of :class:`GeneralizedPIInverse`: :func:`monotone_inverse`, then N
+    plays (:func:`~torchhys.functional.play_step`) and
+    :func:`~torchhys.functional.pi_output`.
+
+    State: ``plays`` (N columns, 0 at the first sample). Shapes: x (batch, 1) -> features
+    (batch, 1). The buffers of :class:`~torchhys.operators.generalized_pi.GeneralizedPIStep` (the
+    model's effective parameters), and the bounds ``lower``, ``upper`` of ``g^-1``.
+    """
+
+    def __init__(self, widths: Tensor, weights: Tensor, linear_weight: Tensor, gain: Tensor,
+                 unit_weights: Tensor, centers: Tensor, slopes: Tensor, offset: Tensor,
+                 lower: Tensor, upper: Tensor) -> None:
+        super().__init__(widths, weights, linear_weight, gain, unit_weights, centers, slopes,
+                         offset)
+        self.register_buffer("lower", lower.detach().clone())
+        self.register_buffer("upper", upper.detach().clone())
+
+    def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
+        v = monotone_inverse(x, self.gain, self.unit_weights, self.centers, self.slopes,
+                             self.offset, self.lower, self.upper)
+        z = play_step(v, self.r, state[0])
+        return pi_output(v, z.unsqueeze(1), self.weights, self.linear_weight), [z]
+
+
+_LOADED = {
+    "widths": ("finite and >= 0 (play widths)", lambda t: t.isfinite() & (t >= 0)),
+    "weights": ("finite", torch.isfinite),
+    "linear_weight": ("finite", torch.isfinite),
+    "gain": ("finite and > 0 (g increasing)", lambda t: t.isfinite() & (t > 0)),
+    "unit_weights": ("finite and >= 0 (g increasing)", lambda t: t.isfinite() & (t >= 0)),
+    "centers": ("finite", torch.isfinite),
+    "slopes": ("finite and >= 0 (g non-decreasing in each unit)",
+               lambda t: t.isfinite() & (t >= 0)),
+    "offset": ("finite", torch.isfinite),
+    "lower": ("a number or -inf", lambda t: ~t.isnan() & (t < torch.inf)),
+    "upper": ("a number or +inf", lambda t: ~t.isnan() & (t > -torch.inf)),
+}
+"""What :class:`GeneralizedPIInverse` asks of a loaded buffer: ``g^-1`` needs an increasing
+``g`` (:func:`monotone_inverse`'s bracket and bisection): ``gain > 0``, each unit's weight
+and slope ``>= 0`` (a slope that underflowed to 0 makes its unit constant)."""
+
+
+def _check_loaded(state_dict: dict, prefix: str) -> None:
+    """Raise ``ValueError`` naming the key of a buffer that breaks :data:`_LOADED`, or bounds
+    with ``lower >= upper``."""
+    for name, (what, ok) in _LOADED.items():
+        t = state_dict.get(prefix + name)
+        if isinstance(t, Tensor) and t.is_floating_point() and not bool(ok(t).all()):
+            raise ValueError(f"{prefix}{name} must be {what}, got {t.tolist()!r:.80}")
+    lower, upper = state_dict.get(prefix + "lower"), state_dict.get(prefix + "upper")
+    if isinstance(lower, Tensor) and isinstance(upper, Tensor) and not bool(lower < upper):
+        raise ValueError(f"{prefix}lower must be below {prefix}upper, got {float(lower)!r} "
+                         f"and {float(upper)!r}")
+
+
+class GeneralizedPIInverse(HysteresisOperator):
+    """``x = p^-1[g^-1(y)]``, the inverse of a :class:`~torchhys.GeneralizedPrandtlIshlinskii`
+    model (module docstring). Fixed (buffers only): build it with
+    :meth:`from_model` (or ``model.inverse()``); the plain constructor gives a placeholder of
+    the right shape for ``load_state_dict``.
+
+    Args:
+        n_plays: number of play operators N of the inverse PI part (>= 1).
+        n_units: number of tanh units K of ``g`` (>= 0).
+
+    Shape:
+        - y: (time,) or (batch, time)
+        - state: the inverse PI part's play outputs before the first sample, (N,) or
+          (batch, N); zeros if None (the inverse of the model started from zero state)
+        - returns ``(x, state)``: x the shape of y; chunked calls equal one call.
+    """
+
+    n_outputs: int = 1
+
+    def __init__(self, n_plays: int = 1, n_units: int = 0) -> None:
+        super().__init__()
+        check_int(n_plays, "n_plays", minimum=1)
+        check_int(n_units, "n_units", minimum=0)
+        dtype = torch.get_default_dtype()
+        self.register_buffer("widths", torch.arange(1, n_plays + 1, dtype=dtype) / n_plays)
+        self.register_buffer("weights", torch.zeros(n_plays, dtype=dtype))
+        self.register_buffer("linear_weight", torch.ones((), dtype=dtype))
+        self.register_buffer("gain", torch.ones((), dtype=dtype))
+        self.register_buffer("unit_weights", torch.zeros(n_units, dtype=dtype))
+        self.register_buffer("centers", torch.zeros(n_units, dtype=dtype))
+        self.register_buffer("slopes", torch.ones(n_units, dtype=dtype))
+        self.register_buffer("offset", torch.zeros((), dtype=dtype))
+        self.register_buffer("lower", torch.full((), -torch.inf, dtype=dtype))
+        self.register_buffer("upper", torch.full((), torch.inf, dtype=dtype))
+
+    @classmethod
+    @torch.no_grad()
+    def from_model(cls, model: GeneralizedPrandtlIshlinskii, *, lower: float = -float("inf"),
+                   upper: float = float("inf")) -> GeneralizedPIInverse:
+        """The inverse of ``model`` (its current parameters, detached), in its dtype, with
+        ``g^-1`` bounded to ``[lower, upper]`` (module docstring).
+
+        Raises:
+            ValueError: the PI part's loading curve is not strictly increasing (no inverse).
+        """
+        widths, w, w0, a, c, b, s, off = (t.detach() for t in model.parameters_effective())
+        lower = check_real(lower, "lower", allow_inf=True)
+        upper = check_real(upper, "upper", allow_inf=True)
+        if not lower < upper:
+            raise ValueError(f"lower must be below upper, got {lower!r} and {upper!r}")
+        p = prandtl_ishlinskii_inverse_parameters(widths, w, w0)
+        n = int(widths.shape[0])
+        inverse = cls(n, int(c.shape[0])).to(widths.dtype)
+        m = int(p.widths.shape[0])
+        # operators of width 0 fold into the linear weight: pad with idle plays (weight 0)
+        pad = float(p.widths.max()) if m else 1.0
+        inverse.widths.fill_(pad)[:m] = p.widths
+        inverse.weights.zero_()[:m] = p.weights
+        inverse.linear_weight.copy_(p.linear_weight)
+        for name, v in (("gain", a), ("unit_weights", c), ("centers", b), ("slopes", s),
+                        ("offset", off)):
+            getattr(inverse, name).copy_(v)
+        inverse.lower.fill_(float(lower))  # fill_ with a Python float: no float32 rounding
+        inverse.upper.fill_(float(upper))
+        return inverse
+
+    def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        as_batched_sequence(x, "x")  # g^-1 comes first: check x before it
+        check_play_state(state, x, self.widths.shape[0], "state")
+        v = monotone_inverse(x, *(t.to(x.dtype) for t in (
+            self.gain, self.unit_weights, self.centers, self.slopes, self.offset, self.lower,
+            self.upper)))
+        z = backlash(v, self.widths.to(v.dtype), y0=state)
+        out = pi_output(v, z, self.weights.to(z.dtype), self.linear_weight.to(z.dtype))
+        return out, z[..., -1, :]
+
+    def streaming_step(self, dtype: torch.dtype) -> GeneralizedPIInverseStep:
+        """The per-sample step with the current buffers, in ``dtype``."""
+        return GeneralizedPIInverseStep(*(t.to(dtype) for t in (
+            self.widths, self.weights, self.linear_weight, self.gain, self.unit_weights,
+            self.centers, self.slopes, self.offset, self.lower, self.upper)))
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[override]
+        _check_loaded(state_dict, prefix)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def extra_repr(self) -> str:
+        return (f"n_plays={self.widths.shape[0]}, n_units={self.centers.shape[0]}, "
+                f"lower={float(self.lower):.6g}, upper={float(self.upper):.6g}")
+
+
+register_operator("generalized_pi_inverse", GeneralizedPIInverse, example=Example(
+    lambda: GeneralizedPrandtlIshlinskii(
+        torch.tensor([0.0, 0.3, 0.8], dtype=torch.float64), [0.5, 0.3, 0.2],
+        linear_weight=0.5, centers=[-0.5, 0.5], slopes=[2.0, 1.0], unit_weights=[0.2, 0.1],
+    ).inverse(lower=-3.0, upper=3.0),
+    bad_values={"gain": 0.0, "slopes": -1.0}))

@@ -1,5 +1,5 @@
 """The stop-type Prandtl-Ishlinskii model with piecewise-linear characteristics, its
-per-sample step, and its identification by (non-negative) least squares.
+per-sample step (identification: :mod:`torchhys.identification.stop_pi`).
 
 The maths is in :mod:`torchhys.functional.stop_pi`; the module holds the thresholds, the
 segment slopes, the linear term, the offset and the input's centre, and the step runs the
@@ -12,41 +12,46 @@ the characteristic each stop's output goes through. Such elements dissipate ener
 non-negative slopes the loops run clockwise in the (input, output) plane (the output leads),
 the orientation of friction force against displacement and of a magnetic core's field
 against its flux density.
+
+**The exact inverse of a stop-type Prandtl-Ishlinskii model, as an operator.**
+
+A :class:`~torchhys.StopPrandtlIshlinskii` model ``y = F[x]`` whose output is strictly
+monotone in the current input (``linear_weight`` nonzero and every segment slope of its sign:
+:func:`~torchhys.functional.stop_pi.check_invertible`, the case of a fit with non-negative
+slopes and a positive linear weight) has an exact inverse: at each sample the output is a
+piecewise-linear, strictly monotone function of the input given the stops' state, solved in
+closed form on the segment that holds the target
+(:func:`~torchhys.functional.stop_pi.stop_pi_inverse_step`), and the stops then move with the
+solved input. Fitted in the direction where the stop-type model has the right shape (e.g. a
+forward model, command -> response), it is the compensator (response -> command) of that
+model: fed the model's output from the same state, it returns the model's input.
+
+The sequence path loops over time (each sample's state depends on the inputs solved before
+it), so it is much slower than the model's own (a scan); the scripted step costs about
+four of the model's steps (``benchmarks/stop_pi.py``).
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor, nn
 
 from torchhys._checks import (
-    as_batched_sequence,
     check_bool,
     check_int,
     check_real,
-    check_same_shape,
-    check_warmup,
-    fitted_samples,
 )
-from torchhys.functional.backlash import backlash, check_play_state, play_step
+from torchhys.functional.backlash import check_play_state, play_step
 from torchhys.functional.stop_pi import (
+    check_invertible,
     check_stop_parameters,
-    check_thresholds,
+    inverse_constants,
     stop_characteristic,
     stop_pi,
-    stop_segments,
-)
-from torchhys.identification._nnls import (
-    Moments,
-    check_penalty,
-    check_validation,
-    fit_segments,
-    nnls_gram,
-    select_on_holdout,
+    stop_pi_inverse,
+    stop_pi_inverse_step,
 )
 from torchhys.operator import (
     Example,
@@ -56,10 +61,7 @@ from torchhys.operator import (
     register_operator,
 )
 
-if TYPE_CHECKING:
-    from torchhys.operators.stop_pi_inverse import StopPIInverse
-
-__all__ = ["StopPIStep", "StopPrandtlIshlinskii", "fit_stop_pi", "select_stop_pi_ridge"]
+__all__ = ["StopPIInverse", "StopPIInverseStep", "StopPIStep", "StopPrandtlIshlinskii"]
 
 
 def _as_real_tensor(value: object, name: str) -> Tensor:
@@ -182,14 +184,13 @@ class StopPrandtlIshlinskii(HysteresisOperator):
 
     def inverse(self) -> StopPIInverse:
         """The exact inverse ``x = F^-1[y]`` as an operator (:class:`~torchhys.StopPIInverse`,
-        detached parameters; see :mod:`torchhys.operators.stop_pi_inverse`): the compensator of this
+        detached parameters; see :class:`StopPIInverse`): the compensator of this
         model. It shares the model's state (the plays of ``x - center``).
 
         Raises:
             ValueError: the output is not strictly monotone in the input (``linear_weight``
                 zero, or a segment slope of the other sign).
         """
-        from torchhys.operators.stop_pi_inverse import StopPIInverse
 
         return StopPIInverse.from_model(self)
 
@@ -216,235 +217,136 @@ class StopPrandtlIshlinskii(HysteresisOperator):
                 f"center={float(self.center):.4g}")
 
 
-# --- identification -----------------------------------------------------------------------
-def _check_data(x: Tensor, y: Tensor, thresholds: Tensor, segments: int,
-                warmup: int) -> tuple[Tensor, Tensor, int]:
-    xb, _ = as_batched_sequence(x, "x")
-    yb, _ = as_batched_sequence(y, "y")
-    check_same_shape(yb, xb, "y", "x")
-    segments = check_int(segments, "segments", minimum=1)
-    check_thresholds(thresholds)
-    check_warmup(warmup, xb.shape[1])
-    return xb, yb, segments
-
-
-def _center(xb: Tensor, fitted: Tensor, center: float | None) -> float:
-    """The midpoint of the range of the fitted input (the samples of the (rows, time) bool
-    mask ``fitted``), or the given centre."""
-    if center is not None:
-        return check_real(center, "center")
-    xs = xb[fitted.to(xb.device)]
-    return 0.5 * (float(xs.min()) + float(xs.max()))
-
-
-def _min_linear_weight(value: float | None) -> float | None:
-    """None, or a finite number >= 0 as a float; ``ValueError`` naming the argument."""
-    if value is None:
-        return None
-    return check_penalty(value, "min_linear_weight")
-
-
-_CHUNK = 8192
-
-
-def _moments(xb: Tensor, yb: Tensor, thresholds: Tensor, segments: int, center: float,
-             samples: list[Tensor]) -> list[tuple[Moments, Tensor]]:
-    """The normal equations of the design ``[1, u, segment features]`` (2 + N K columns) for
-    the samples of each segment (a (rows, time) bool mask), float64, accumulated in chunks;
-    with each, which columns vary over those samples ((2 + N K,) bool; the first two always
-    True)."""
-    r = thresholds.detach().double().cpu()
-    m = 2 + r.numel() * segments
-    out = []
-    with torch.no_grad():
-        u = xb.detach().double().cpu() - center
-        t = yb.detach().double().cpu()
-        s = u.unsqueeze(-1) - backlash(u, 2.0 * r)  # (B, T, N)
-        for seg in samples:
-            G, h = torch.zeros(m, m, dtype=torch.float64), torch.zeros(m, dtype=torch.float64)
-            yy, count = torch.zeros((), dtype=torch.float64), 0
-            lo = torch.full((m,), math.inf, dtype=torch.float64)
-            hi = torch.full((m,), -math.inf, dtype=torch.float64)
-            for row in range(u.shape[0]):
-                for i in seg[row].nonzero().flatten().split(_CHUNK):
-                    A = torch.cat([torch.ones(i.numel(), 1, dtype=torch.float64), u[row, i, None],
-                                   stop_segments(s[row, i], r, segments).flatten(1)], 1)
-                    G += A.T @ A
-                    h += A.T @ t[row, i]
-                    yy += t[row, i] @ t[row, i]
-                    count += i.numel()
-                    lo = torch.minimum(lo, A.amin(0))
-                    hi = torch.maximum(hi, A.amax(0))
-            varying = hi > lo
-            varying[:2] = True
-            out.append((Moments(G, h, yy, count), varying))
-    return out
-
-
-def _solve(G: Tensor, h: Tensor, ridge: float, nonnegative: bool, varying: Tensor,
-           min_linear_weight: float | None = None) -> Tensor:
-    """``[offset, w0, W.flatten()]`` from the per-sample normal equations plus ``ridge`` on W,
-    with ``w0 >= min_linear_weight`` when it is given.
-
-    A segment the fitted samples never enter (``varying`` False: its feature is constant, a
-    knot beyond the input's range) has no data for its slope: its weight is 0 and it is left
-    out of the solve, which removes its exact collinearity with the offset. The bound on w0:
-    with non-negative slopes, a non-negativity constraint on ``w0 - min_linear_weight`` (the
-    target less ``min_linear_weight * u``); with free slopes, the unbounded solution if its
-    w0 meets the bound, else the best one with w0 at the bound (one bound on one variable of
-    a convex problem: the optimum is on it).
-    """
-    pen = torch.ones_like(h)
-    pen[:2] = 0.0
-    P = G + ridge * torch.diag(pen)
-    theta = torch.zeros_like(h)
-    m = min_linear_weight
-    if not nonnegative:
-        theta[varying] = _lstsq(P[varying][:, varying], h[varying])
-        if m is None or float(theta[1]) >= m:
-            return theta
-        # the bound is active: w0 = m, the rest unconstrained on the target less m u
-        keep = varying.clone()
-        keep[1] = False
-        theta.zero_()
-        theta[keep] = _lstsq(P[keep][:, keep], (h - m * P[:, 1])[keep])
-        theta[1] = m
-        return theta
-    if m is not None:
-        h = h - m * P[:, 1]
-    free = torch.zeros(h.shape, dtype=torch.bool)
-    free[0] = True
-    free[1] = m is None
-    theta[varying] = nnls_gram(P[varying][:, varying], h[varying], free[varying])
-    if m is not None:
-        theta[1] += m
-    return theta
-
-
-def _lstsq(P: Tensor, h: Tensor) -> Tensor:
-    """The minimum-norm solution of ``P theta = h`` (rank-revealing: the Gram matrix is
-    singular when the largest stops never slip, their features then collinear with u)."""
-    return torch.linalg.lstsq(P, h[:, None], driver="gelsd").solution[:, 0]
-
-
-def fit_stop_pi(
-    x: Tensor,
-    y: Tensor,
-    thresholds: Tensor,
-    *,
-    segments: int = 4,
-    ridge: float = 0.0,
-    nonnegative: bool = True,
-    min_linear_weight: float | None = None,
-    center: float | None = None,
-    warmup: int = 0,
-    mask: Tensor | None = None,
-) -> StopPrandtlIshlinskii:
-    """Identify a :class:`StopPrandtlIshlinskii` model by penalised least squares:
-
-        min  mean_t (y[t] - offset - w0 u[t] - a[t] @ W.flatten())**2 + ridge * |W|**2,
-
-    a[t] the segment features of the stops of ``u = x - center`` (each row's plays start at
-    0), subject to ``W >= 0`` when ``nonnegative`` (every characteristic rises: the model's
-    loops run clockwise in the (x, y) plane; fit ``-y`` and negate for the other
-    orientation). Solved in float64 from the normal equations (Lawson-Hanson for the
-    constrained fit, the offset and w0 free).
-
-    Thresholds: :func:`~torchhys.identification.fitting.play_width_grid` of the input gives ``span
-    (k/n)^p``,
-    up to the input's span: with the default centre (the midpoint of the fitted input's range)
-    the stops of at least half the span never slip on the fitted samples (nor on the warm-up,
-    when it stays inside that range) and make the memoryless (elastic) part of the model, the
-    smaller ones the hysteresis. A segment the fitted samples never enter gets slope 0.
-    Train a ``learnable`` copy further with :meth:`StopPrandtlIshlinskii.project_` after each
-    step to keep the slopes non-negative.
-
-    Args:
-        x, y: input and target, (time,) or (batch, time) (rows are independent records).
-        thresholds: stop thresholds r_i > 0, (N,).
-        segments: K, equal segments of each characteristic (1: the classical model).
-        ridge: Tikhonov weight on W (>= 0); choose it with :func:`select_stop_pi_ridge`.
-        nonnegative: constrain W >= 0.
-        min_linear_weight: None (w0 free), or a number >= 0: constrain ``w0 >=`` it. With
-            ``nonnegative`` and a positive bound the output rises with the input at every
-            state, also beyond the fitted range, where every stop slips and w0 is the slope
-            left: the model then has an exact inverse (:meth:`StopPrandtlIshlinskii.inverse`,
-            a compensator). Left free, w0 often comes out negative: the largest stops, which
-            never slip on the fitted samples, carry the memoryless slope, and w0 trades off
-            against them.
-        center: the input value at which the stops start; default the midpoint of the fitted
-            input's range.
-        warmup: leading samples of each row left out of the fit (the stops still run).
-        mask: the samples to fit, bool, the shape of ``x`` (False: left out of the fit and
-            of the default centre, the stops still run through them, e.g. a held-out block
-            or a shorter row's padding); None: every sample (after ``warmup`` in both
-            cases).
-
-    Returns:
-        The model, in the dtype of ``x`` (parameters detached).
-
-    Raises:
-        TypeError, ValueError: bad or mismatched arguments (each named).
-    """
-    xb, yb, segments = _check_data(x, y, thresholds, segments, warmup)
-    ridge = check_penalty(ridge, "ridge")
-    nonnegative = check_bool(nonnegative, "nonnegative")
-    bound = _min_linear_weight(min_linear_weight)
-    fitted = fitted_samples(mask, xb.shape, warmup)
-    c = _center(xb, fitted, center)
-    ((mom, varying),) = _moments(xb, yb, thresholds, segments, c, [fitted])
-    theta = _solve(mom.gram / mom.count, mom.moment / mom.count, ridge, nonnegative, varying,
-                   bound)
-    if not bool(torch.isfinite(theta).all()):
-        raise ValueError("the least-squares solution is not finite (degenerate data?)")
-    n = thresholds.shape[0]
-    dt = xb.dtype
-    return StopPrandtlIshlinskii(
-        thresholds.detach().to(dt), theta[2:].reshape(n, segments).to(dt), center=c,
-        linear_weight=float(theta[1]), offset=float(theta[0])).to(xb.device)
-
-
-def select_stop_pi_ridge(
-    x: Tensor,
-    y: Tensor,
-    thresholds: Tensor,
-    ridges: Sequence[float],
-    *,
-    segments: int = 4,
-    nonnegative: bool = True,
-    min_linear_weight: float | None = None,
-    center: float | None = None,
-    validation: float = 0.25,
-    warmup: int = 0,
-    mask: Tensor | None = None,
-) -> tuple[float, dict[float, float]]:
-    """Choose the ``ridge`` of :func:`fit_stop_pi` on a time-ordered hold-out: each
-    candidate is fitted on the first ``1 - validation`` of every row (after ``warmup``; with
-    a ``mask``, of its masked samples) and scored by the RMS error on the rest (the stops run
-    through the whole sequence; the centre is taken from the fitted part).
-
-    Returns:
-        The ridge with the least hold-out RMS error (the first on ties), and the RMS error of
-        each. Refit on all samples with ``fit_stop_pi(..., ridge=best)``.
-
-    Raises:
-        TypeError, ValueError: bad arguments, or no training sample before the split.
-    """
-    xb, yb, segments = _check_data(x, y, thresholds, segments, warmup)
-    nonnegative = check_bool(nonnegative, "nonnegative")
-    bound = _min_linear_weight(min_linear_weight)
-    fitted, held = fit_segments(xb.shape, warmup, mask, check_validation(validation))
-    c = _center(xb, fitted, center)
-    (train, varying), (valid, _) = _moments(xb, yb, thresholds, segments, c, [fitted, held])
-
-    def solve(G: Tensor, h: Tensor, ridge: float) -> Tensor:
-        return _solve(G, h, ridge, nonnegative, varying, bound)
-
-    return select_on_holdout(train, valid, ridges, solve, name="ridges")
-
-
 register_operator("stop_pi", StopPrandtlIshlinskii, example=Example(
     lambda: StopPrandtlIshlinskii(torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64),
                                   [[0.5, 0.2], [0.3, 0.4], [0.2, 0.1]], center=0.1,
                                   linear_weight=0.5, offset=-0.2),
     bad_values={"thresholds": 0.0, "weights": float("inf")}))
+
+
+class StopPIInverseStep(OperatorStep):
+    """Per-sample step of :class:`StopPIInverse`
+    (:func:`~torchhys.functional.stop_pi.stop_pi_inverse_step`).
+
+    State: ``plays`` (N columns, 0 at the first sample: the model's plays of ``x - center``).
+    Feature: the solved input. Shapes: y (batch, 1) -> features (batch, 1).
+    """
+
+    def __init__(self, thresholds: Tensor, weights: Tensor, center: Tensor,
+                 linear_weight: Tensor, offset: Tensor) -> None:
+        super().__init__()
+        sign, w, w0, knots, jumps, floor = inverse_constants(
+            thresholds.detach(), weights.detach(), linear_weight.detach().reshape(()))
+        for name, v in (("r", thresholds), ("sign", sign), ("w", w), ("w0", w0),
+                        ("knots", knots), ("jumps", jumps), ("floor", floor),
+                        ("center", center.reshape(())), ("offset", offset.reshape(()))):
+            self.register_buffer(name, v.detach().clone())
+        self.n_outputs = 1
+        self.state_spec = [StateBlock("plays", int(thresholds.shape[0]))]
+
+    def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
+        u, p = stop_pi_inverse_step(x, state[0], self.r, self.sign, self.w, self.w0,
+                                    self.knots, self.jumps, self.floor, self.center,
+                                    self.offset)
+        return u, [p]
+
+
+class StopPIInverse(HysteresisOperator):
+    """``x = F^-1[y]``, the exact inverse of a :class:`~torchhys.StopPrandtlIshlinskii`
+    model F (module docstring). Fixed (buffers only): build it with :meth:`from_model` (or
+    ``model.inverse()``); the plain constructor gives a placeholder of the right shape for
+    ``load_state_dict``.
+
+    Args:
+        n_stops: number of stop operators N (>= 1).
+        segments: segments K of each characteristic (>= 1).
+
+    Shape:
+        - y: (time,) or (batch, time)
+        - state: the model's plays before the first sample, (N,) or (batch, N); zeros if
+          None (the inverse of the model started from zero state)
+        - returns ``(x, state)``: x the shape of y; state the model's plays at the last
+          sample (chunked calls with it equal one call).
+    """
+
+    n_outputs: int = 1
+
+    def __init__(self, n_stops: int = 1, segments: int = 1) -> None:
+        super().__init__()
+        check_int(n_stops, "n_stops", minimum=1)
+        check_int(segments, "segments", minimum=1)
+        dtype = torch.get_default_dtype()
+        self.register_buffer("thresholds",
+                             torch.arange(1, n_stops + 1, dtype=dtype) / n_stops)
+        self.register_buffer("weights", torch.zeros(n_stops, segments, dtype=dtype))
+        self.register_buffer("center", torch.zeros((), dtype=dtype))
+        self.register_buffer("linear_weight", torch.ones((), dtype=dtype))
+        self.register_buffer("offset", torch.zeros((), dtype=dtype))
+
+    @classmethod
+    @torch.no_grad()
+    def from_model(cls, model: StopPrandtlIshlinskii) -> StopPIInverse:
+        """The inverse of ``model`` (its current parameters, detached), in its dtype.
+
+        Raises:
+            TypeError: ``model`` is not a :class:`~torchhys.StopPrandtlIshlinskii`.
+            ValueError: the model's output is not strictly monotone in its input (no
+                inverse; :func:`~torchhys.functional.stop_pi.check_invertible`).
+        """
+        if not isinstance(model, StopPrandtlIshlinskii):
+            raise TypeError(f"model must be a StopPrandtlIshlinskii, got "
+                            f"{type(model).__name__}")
+        check_stop_parameters(model.thresholds.detach(), model.weights.detach())
+        check_invertible(model.weights.detach(), model.linear_weight.detach())
+        n, k = model.weights.shape
+        inverse = cls(int(n), int(k)).to(model.thresholds.dtype)
+        for name in ("thresholds", "weights", "center", "linear_weight", "offset"):
+            getattr(inverse, name).copy_(getattr(model, name).detach())
+        return inverse.to(model.thresholds.device)
+
+    @property
+    def segments(self) -> int:
+        """K, the segments of each characteristic."""
+        return int(self.weights.shape[1])
+
+    def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        check_play_state(state, x, self.thresholds.shape[0], "state")
+        return stop_pi_inverse(x, self.thresholds, self.weights, center=self.center,
+                               linear_weight=self.linear_weight, offset=self.offset, p0=state)
+
+    def streaming_step(self, dtype: torch.dtype) -> StopPIInverseStep:
+        """The per-sample step with the current buffers, in ``dtype``."""
+        return StopPIInverseStep(*(t.detach().to(dtype) for t in (
+            self.thresholds, self.weights, self.center, self.linear_weight, self.offset)))
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # noqa: ANN001
+        """Checks the model it would hold before anything is copied (all or nothing, also
+        for a partial state dict, whose missing keys keep their current values): the shapes
+        and values of :func:`~torchhys.functional.stop_pi.check_stop_parameters`, finite
+        scalars, and an invertible model; each error names its key."""
+        def saved(name: str) -> Tensor:  # the saved value, or the current one if not given
+            v = state_dict.get(prefix + name)
+            return v if isinstance(v, Tensor) else getattr(self, name)
+
+        for name in ("center", "linear_weight", "offset"):
+            v = saved(name)
+            if v.numel() != 1 or not bool(v.isfinite().all()):
+                raise ValueError(f"{prefix}{name} must be one finite number, got "
+                                 f"{v.tolist()!r:.80}")
+        try:
+            check_stop_parameters(saved("thresholds"), saved("weights"))
+            check_invertible(saved("weights"), saved("linear_weight"))
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"{prefix}{err}") from None
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def extra_repr(self) -> str:
+        return (f"n_stops={self.thresholds.numel()}, segments={self.segments}, "
+                f"center={float(self.center):.4g}")
+
+
+register_operator("stop_pi_inverse", StopPIInverse, example=Example(
+    lambda: StopPrandtlIshlinskii(torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64),
+                                  [[0.5, 0.2], [0.3, 0.4], [0.2, 0.1]], center=0.1,
+                                  linear_weight=0.5, offset=-0.2).inverse(),
+    bad_values={"thresholds": 0.0, "linear_weight": 0.0}))

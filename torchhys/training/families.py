@@ -92,7 +92,7 @@ from torchhys._checks import (
 )
 from torchhys.functional.jiles_atherton import MU0
 from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
-from torchhys.operators.jiles_atherton import substeps_for
+from torchhys.identification.jiles_atherton import substeps_for
 
 __all__ = ["FAMILIES", "FitError", "PENALTIES"]
 
@@ -422,8 +422,8 @@ def _drift(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
 
 def _substeps(x: Tensor) -> int:
     """Euler steps per sample from the 0.99 quantile of the sample steps
-    (:func:`~torchhys.operators.jiles_atherton.substeps_for`). The largest steps are left out: a few
-    jumps would set the count (and the cost of every fit) for all samples."""
+    (:func:`~torchhys.identification.jiles_atherton.substeps_for`). The largest steps are left
+    out: a few jumps would set the count (and the cost of every fit) for all samples."""
     return substeps_for(x, quantile=0.99)
 
 

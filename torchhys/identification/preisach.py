@@ -1,0 +1,219 @@
+"""Identification of the Preisach operator by penalised non-negative least squares:
+:func:`fit_preisach` and the choice of its penalty on a hold-out, :func:`select_penalty`."""
+
+from __future__ import annotations
+
+import functools
+import warnings
+
+import torch
+from torch import Tensor, nn
+
+from torchhys._checks import (
+    as_batched_sequence,
+    check_warmup,
+    fitted_samples,
+)
+from torchhys.functional.preisach import (
+    _real,
+    _relay_chunks,
+    graded_input,
+)
+from torchhys.identification._nnls import (
+    Moments,
+    check_penalty,
+    check_validation,
+    fit_segments,
+    nnls_gram,
+    select_on_holdout,
+)
+from torchhys.operators.preisach import Preisach
+
+__all__ = ["fit_preisach", "select_penalty"]
+
+
+def fit_preisach(
+    x: Tensor,
+    y: Tensor,
+    *,
+    lo: float | None = None,
+    hi: float | None = None,
+    n: int = 20,
+    ridge: float = 0.0,
+    smoothness: float = 0.0,
+    linear: bool = True,
+    warmup: int = 0,
+    scale: float | None = None,
+    mask: Tensor | None = None,
+) -> Preisach:
+    """Identify a :class:`Preisach` model (demagnetised start, hard relays) by penalised
+    non-negative least squares of the density, with a free offset and linear term:
+
+        min  mean_t (y[t] - offset - linear x[t] - r[t] @ w)**2
+             + ridge * |w|**2 + smoothness * |D w|**2        subject to w >= 0,
+
+    D the differences between neighbouring relays of the grid (alpha or beta one level
+    apart). Solved in float64 from the normal equations (accumulated chunk by chunk) with the
+    Lawson-Hanson active-set method, the free variables always in the passive set.
+
+    Args:
+        x, y: input and output, (time,) or (batch, time) (each row starts demagnetised).
+        lo, hi: grid range; default the range of x. Samples outside saturate the relays
+            (one warning gives their share; with a ``mask``, of the masked samples).
+        n: levels per axis; ridge, smoothness: penalties (>= 0); linear: fit the linear term.
+        warmup: samples at the start of each row left out of the fit (their relays still
+            run), to forget the assumed initial state.
+        scale: None (an even grid), or a graded grid's scale (:class:`Preisach`).
+        mask: the samples to fit, bool, the shape of ``x`` (False: left out of the fit, the
+            relays still run through them, e.g. a held-out block or a shorter row's
+            padding); None: every sample (after ``warmup`` in both cases).
+
+    Returns:
+        The fitted model, in x's dtype.
+
+    Raises:
+        ValueError: NaN/inf in x or y, shapes differ, a bad grid, warmup >= time, a negative
+            penalty.
+
+    Warns:
+        RuntimeWarning: once, with the share of samples of x outside [lo, hi].
+    """
+    xb, yb, model, samples = _prepare(x, y, lo, hi, n, linear, warmup, None, scale, mask)
+    (G, h, _, count), = _normal_equations(xb, yb, model, samples)
+    theta = _solve(G / count, h / count, model, check_penalty(ridge, "ridge"),
+                   check_penalty(smoothness, "smoothness"))
+    return _set(model, theta)
+
+
+def select_penalty(
+    x: Tensor,
+    y: Tensor,
+    penalties: list[float],
+    *,
+    kind: str = "smoothness",
+    validation: float = 0.25,
+    lo: float | None = None,
+    hi: float | None = None,
+    n: int = 20,
+    linear: bool = True,
+    warmup: int = 0,
+    scale: float | None = None,
+    mask: Tensor | None = None,
+) -> tuple[float, dict[float, float]]:
+    """Choose the ``kind`` penalty (``"ridge"`` or ``"smoothness"``, the other 0) of
+    :func:`fit_preisach` on a time-ordered hold-out: fit on the first ``1 - validation`` of
+    each row (after ``warmup``; with a ``mask``, of its masked samples), score the RMS error
+    on the rest (the relays run through the whole sequence).
+
+    Returns:
+        The penalty with the least validation RMS error (the first on ties), and the RMS
+        error of each. Refit on all samples with ``fit_preisach(..., smoothness=best)``
+        (or ``ridge=best``).
+    """
+    if kind not in ("ridge", "smoothness"):
+        raise ValueError(f"kind must be one of ('ridge', 'smoothness'), got {kind!r}")
+    xb, yb, model, samples = _prepare(x, y, lo, hi, n, linear, warmup,
+                                      check_validation(validation), scale, mask)
+    train, valid = _normal_equations(xb, yb, model, samples)
+
+    last: Tensor | None = None  # each penalty's fit starts from the previous one's solution
+
+    def solve(G: Tensor, h: Tensor, p: float) -> Tensor:
+        nonlocal last
+        last = _solve(G, h, model, *((p, 0.0) if kind == "ridge" else (0.0, p)), init=last)
+        return last
+
+    return select_on_holdout(train, valid, penalties, solve)
+
+
+def _prepare(x: Tensor, y: Tensor, lo: float | None, hi: float | None, n: int, linear: bool,
+             warmup: int, validation: float | None, scale: float | None,
+             mask: Tensor | None) -> tuple[Tensor, Tensor, Preisach, list[Tensor]]:
+    """Check the data, warn about samples outside [lo, hi]; the model and the samples of
+    each segment (:func:`~torchhys.identification._nnls.fit_segments`)."""
+    xb, _ = as_batched_sequence(x, "x")
+    yb, _ = as_batched_sequence(y, "y")
+    if xb.shape != yb.shape:
+        raise ValueError(f"x and y must have the same shape, got {tuple(x.shape)} and "
+                         f"{tuple(y.shape)}")
+    T = xb.shape[1]
+    check_warmup(warmup, T)
+    if lo is None and hi is None and not float(xb.max()) > float(xb.min()):
+        raise ValueError(f"x is constant ({float(xb.min()):.6g}): its range gives no grid; "
+                         "give lo and hi")
+    lo = float(xb.min()) if lo is None else _real(lo, "lo")
+    hi = float(xb.max()) if hi is None else _real(hi, "hi")
+    model = Preisach(lo, hi, n, linear=linear, scale=scale).to(xb.dtype)
+    samples = fit_segments(tuple(xb.shape), warmup, mask, validation)
+    xs = xb if mask is None else xb[fitted_samples(mask, tuple(xb.shape), 0).to(xb.device)]
+    outside = float(((xs < lo) | (xs > hi)).double().mean())
+    if outside > 0:
+        where = "samples" if mask is None else "masked samples"
+        warnings.warn(f"{outside:.2%} of the {where} of x lie outside [lo, hi] = [{lo:.6g}, "
+                      f"{hi:.6g}]: the relays saturate there", RuntimeWarning, stacklevel=3)
+    return xb, yb, model, samples
+
+
+def _normal_equations(x: Tensor, y: Tensor, model: Preisach,
+                      samples: list[Tensor]) -> list[Moments]:
+    """The :class:`~torchhys.identification._nnls.Moments` ``(A'A, A'y, y'y, rows)`` in float64 of
+    the
+    design ``A = [relays, x, 1]`` over the samples of each segment (a (rows, time) bool
+    mask)."""
+    K, m = model.n_relays, model.n_relays + 1 + isinstance(model.linear, nn.Parameter)
+    out = [[x.new_zeros(m, m, dtype=torch.float64), x.new_zeros(m, dtype=torch.float64),
+            x.new_zeros((), dtype=torch.float64), 0] for _ in samples]
+    r0 = model.initial_relays.to(torch.float64).expand(x.shape[0], K)
+    for start, stop, r in _relay_chunks(x, model.alpha, model.beta, r0):
+        for seg, mask in zip(out, samples, strict=True):
+            chunk = mask[:, start:stop].to(x.device)
+            if not bool(chunk.any()):
+                continue
+            xs = graded_input(x[:, start:stop][chunk].unsqueeze(0).to(torch.float64),
+                              model.centre, model.scale)
+            cols = [r[:, chunk]]
+            cols += [xs] if m > K + 1 else []
+            A = torch.cat(cols + [torch.ones_like(xs)])
+            ys = y[:, start:stop][chunk].to(torch.float64)
+            seg[0] += A @ A.T
+            seg[1] += A @ ys
+            seg[2] += ys @ ys
+            seg[3] += ys.numel()
+    return [Moments(*seg) for seg in out]
+
+
+@functools.lru_cache(maxsize=8)
+def _difference_gram(n: int) -> Tensor:
+    """``D'D`` (K, K), float64, of the first differences D of the density between
+    neighbouring relays of an n-level grid (along alpha and along beta); read only."""
+    K = n * (n + 1) // 2
+    i, j = torch.tril_indices(n, n)
+    k = torch.arange(K)
+    pairs = [(k[i < n - 1], (i * (i + 1) // 2 + i + 1 + j)[i < n - 1]), (k[j < i], k[j < i] + 1)]
+    first = torch.cat([p[0] for p in pairs])
+    second = torch.cat([p[1] for p in pairs])
+    D = torch.zeros(first.numel(), K, dtype=torch.float64)
+    D[torch.arange(first.numel()), first] = -1.0
+    D[torch.arange(first.numel()), second] = 1.0
+    return D.T @ D
+
+
+def _solve(G: Tensor, h: Tensor, model: Preisach, ridge: float, smoothness: float,
+           init: Tensor | None = None) -> Tensor:
+    """The penalised NNLS solution: density (K,), then the free linear term and offset
+    (``init``: a warm start, :func:`~torchhys.identification._nnls.nnls_gram`)."""
+    K, m = model.n_relays, G.shape[0]
+    P = G.clone()
+    P[:K, :K] += ridge * torch.eye(K, dtype=torch.float64) + smoothness * _difference_gram(model.n)
+    free = torch.arange(m) >= K
+    return nnls_gram(P, h, free, init)
+
+
+def _set(model: Preisach, theta: Tensor) -> Preisach:
+    K = model.n_relays
+    with torch.no_grad():
+        model.weights.copy_(theta[:K].clamp_min(0.0))
+        if isinstance(model.linear, nn.Parameter):
+            model.linear.copy_(theta[K])
+        model.offset.copy_(theta[-1])
+    return model
