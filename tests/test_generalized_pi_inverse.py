@@ -159,7 +159,7 @@ def test_bounds_must_be_real_numbers():
     ("slopes", -1e-3, r"slopes must be finite and >= 0"),
     ("widths", -1.0, r"widths must be finite and >= 0"),
     ("weights", math.inf, r"weights must be finite"),
-    ("lower", math.nan, r"lower must be a number or -inf"),
+    ("lower", math.nan, r"lower must be a number or \+-inf \(not NaN\)"),
     ("upper", -10.0, r"lower must be below .*upper"),
 ])
 def test_loading_a_state_dict_that_breaks_g_is_refused(key, value, match) -> None:

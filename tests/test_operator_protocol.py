@@ -262,3 +262,50 @@ def test_fit_full_batch_calls_a_predictor_method_only() -> None:
     x = torch.sin(torch.linspace(0, 6, 50))[None]
     result = fit_full_batch(Scaled(), x, 2 * x, adam_epochs=3, lbfgs_epochs=0)
     assert result.mse >= 0
+
+
+class _PlayByStep(HysteresisOperator):
+    """A play operator given by its step only: the base class's sequence path runs it."""
+
+    def __init__(self, width: float) -> None:
+        super().__init__()
+        self.width = width
+
+    def streaming_step(self, dtype: torch.dtype) -> OperatorStep:
+        return _PlayOnlyStep(self.width)
+
+
+class _PlayOnlyStep(OperatorStep):
+    def __init__(self, width: float) -> None:
+        super().__init__()
+        self.n_outputs = 1
+        self.state_spec = [StateBlock("play", 1, from_sample=1.0)]
+        self.width = width
+
+    def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
+        z = torch.minimum(torch.maximum(state[0], x - self.width), x + self.width)
+        return z, [z]
+
+
+def test_an_operator_with_only_a_step_gets_a_sequence_forward() -> None:
+    """The default forward runs the step: equal to the library's play started at the first
+    sample, chunked calls equal one call, (time,) in gives (time,) out, gradients reach x."""
+    from torchhys.functional.backlash import backlash
+
+    torch.manual_seed(0)
+    x = torch.randn(3, 40, dtype=torch.float64).cumsum(1) * 0.3
+    op = _PlayByStep(0.25)
+    y, state = op(x)
+    # backlash takes the dead band's full width: 2 x the play's half-width
+    ref = backlash(x, torch.tensor([0.5], dtype=torch.float64), y0=x[:, :1])[..., 0]
+    torch.testing.assert_close(y, ref, rtol=0, atol=0)
+    y1, s1 = op(x[:, :17])
+    y2, _ = op(x[:, 17:], s1)
+    torch.testing.assert_close(torch.cat([y1, y2], 1), y, rtol=0, atol=0)
+    torch.testing.assert_close(op(x[0])[0], y[0], rtol=0, atol=0)
+    xg = x[:1, :12].clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda v: op(v)[0], (xg,))
+    with pytest.raises(ValueError, match="^x must"):
+        op(torch.zeros(2, 3, 4, dtype=torch.float64))
+    with pytest.raises(ValueError, match="^state must be the list of 1 tensor"):
+        op(x, torch.zeros(3, 1, dtype=torch.float64))

@@ -760,11 +760,11 @@ def assert_unchanged(module: torch.nn.Module, before: dict) -> None:
 @pytest.mark.parametrize("learnable", [False, True])
 @pytest.mark.parametrize("key, value, match", [
     ("thresholds", torch.tensor([0.2, 0.0, 1.0], dtype=F64),
-     "thresholds must be finite and positive"),
+     "thresholds must be finite and > 0"),
     ("thresholds", torch.tensor([0.2, -3.0, 1.0], dtype=F64),
-     "thresholds must be finite and positive"),
+     "thresholds must be finite and > 0"),
     ("thresholds", torch.tensor([0.2, NAN, 1.0], dtype=F64),
-     "thresholds must be finite and positive"),
+     "thresholds must be finite and > 0"),
     ("weights", torch.tensor([[1.0, NAN]] * 3, dtype=F64), "weights must be finite"),
     ("weights", torch.tensor([[1.0, math.inf]] * 3, dtype=F64), "weights must be finite"),
 ])
@@ -802,7 +802,7 @@ def test_a_bad_state_dict_leaves_a_network_unchanged():
             sd[k] = sd[k] + 1.0
     name = next(k for k in sd if k.endswith("thresholds"))
     sd[name] = torch.tensor([0.2, -0.5, 1.0])
-    with pytest.raises(ValueError, match=r"0\.thresholds must be finite and positive"):
+    with pytest.raises(ValueError, match=r"0\.thresholds must be finite and > 0"):
         net.load_state_dict(sd)
     assert_unchanged(net, before)
     sd[name] = torch.tensor([0.2, 0.5, 1.0])

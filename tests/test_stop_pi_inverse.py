@@ -275,9 +275,9 @@ def test_a_model_without_an_inverse_is_refused(kw, match):
 
 
 @pytest.mark.parametrize("y, state, err, match", [
-    (torch.tensor([0.0, math.nan]), None, ValueError, "y must be finite"),
-    (torch.zeros(2, 3, 4), None, ValueError, r"y must have shape \(time,\)"),
-    (torch.zeros(0), None, ValueError, "y must hold at least one sample"),
+    (torch.tensor([0.0, math.nan]), None, ValueError, "x must be finite"),
+    (torch.zeros(2, 3, 4), None, ValueError, r"x must have shape \(time,\)"),
+    (torch.zeros(0), None, ValueError, "x must hold at least one sample"),
     (torch.zeros(5, dtype=torch.long), None, TypeError, "y"),
     (torch.zeros(2, 5), torch.zeros(2, 4), ValueError, "state"),
     (torch.zeros(2, 5), torch.tensor([0.0, math.inf, 0.0]), ValueError, "state"),
@@ -310,8 +310,8 @@ def test_from_model_takes_a_stop_model_only():
     ("linear_weight", torch.tensor(0.0, dtype=F64), "linear_weight must be nonzero"),
     ("weights", -weights_of(3, 2, seed=1), "weights must be non-negative"),
     ("weights", torch.full((3, 2), math.nan, dtype=F64), "weights must be finite"),
-    ("thresholds", torch.tensor([0.3, 0.0, 1.0], dtype=F64), "thresholds must be positive"),
-    ("offset", torch.tensor(math.inf, dtype=F64), "offset must be one finite number"),
+    ("thresholds", torch.tensor([0.3, 0.0, 1.0], dtype=F64), "thresholds must be finite and > 0"),
+    ("offset", torch.tensor(math.inf, dtype=F64), "offset must be finite"),
 ])
 def test_a_bad_state_dict_is_rejected_and_leaves_the_module_unchanged(key, value, match):
     inv = model(2, seed=1).inverse()

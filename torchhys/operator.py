@@ -18,6 +18,11 @@ worked example.
         continues the sequence: chunked calls equal one call
     calibrate(x) -> None                 data-dependent settings from the training input,
                                          called before normalization is fitted (default: none)
+    predictor(x) -> () -> features       the output on a fixed input as a closure of the
+                                         parameters, for full-batch fits (default: forward)
+    constraints: {name: kind}            what a loaded parameter or buffer must be (checked
+                                         by load_state_dict; default: none); check_loaded()
+                                         and after_load() for the rest
     streaming_step(dtype) -> OperatorStep
                                          its per-sample step, with the current parameters
                                          (detached) in ``dtype``; raises ValueError where the
@@ -45,12 +50,13 @@ import copy
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from dataclasses import field as dataclass_field
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor, nn
 
-from torchhys._checks import check_choice, check_int
+from torchhys._checks import as_batched_sequence, check_choice, check_int
+from torchhys.constraints import check_constraint
 
 __all__ = [
     "ENTRY_POINT_GROUP",
@@ -178,24 +184,89 @@ class AtomicLoad:
 class HysteresisOperator(AtomicLoad, nn.Module, abc.ABC):
     """Base class of the operators that networks, streaming and export compose.
 
-    Subclasses implement :meth:`forward` and :meth:`streaming_step`, and set ``n_outputs``.
+    Subclasses implement :meth:`streaming_step` and set ``n_outputs``; they override
+    :meth:`forward` with a sequence path (the default steps through the samples).
     """
 
     n_outputs: int = 1
     causal: bool = True
 
-    @abc.abstractmethod
     def forward(self, x: Tensor, state: Any = None) -> tuple[Tensor, Any]:
         """x (time,) or (batch, time) -> features ``x.shape`` or ``x.shape + (n_outputs,)``,
-        and the state at the last sample."""
+        and the state at the last sample.
+
+        Default: the per-sample step (:meth:`streaming_step` in ``x``'s dtype) run over the
+        samples in a Python loop, from its first-sample state (:meth:`OperatorStep.initial_state`)
+        or from ``state`` (the step's list of tensors, as returned). Correct but slow, and
+        the step holds the parameters detached (gradients flow to ``x`` only): an operator
+        that trains its parameters, or runs on long records, overrides it with a sequence
+        path that calls the same maths.
+        """
+        xb, added = as_batched_sequence(x, "x")
+        step = self.streaming_step(xb.dtype)
+        if state is None:
+            state = step.initial_state(xb[:, :1])
+        elif not isinstance(state, list) or len(state) != len(step.state_spec):
+            raise ValueError(f"state must be the list of {len(step.state_spec)} tensor(s) this "
+                             f"operator returns, got {type(state).__name__}")
+        outs = []
+        for xt in xb.unbind(1):
+            f, state = step(xt.unsqueeze(1), state)
+            outs.append(f)
+        out = torch.stack(outs, 1)
+        if self.n_outputs == 1:
+            out = out.squeeze(-1)
+        return (out.squeeze(0) if added else out), state
 
     @abc.abstractmethod
     def streaming_step(self, dtype: torch.dtype) -> OperatorStep:
         """The per-sample step with the current parameters (detached), in ``dtype``."""
 
+    constraints: ClassVar[Mapping[str, str]] = {}
+    """What a loaded value must be: the name of one of this module's own parameters or
+    buffers -> a constraint kind of :data:`torchhys.constraints.CONSTRAINTS`, e.g.
+    ``{"weights": "nonnegative"}``. ``load_state_dict`` checks every entry it is given (of
+    the module's shape) before anything is copied; the error names the key."""
+
     def calibrate(self, x: Tensor) -> None:  # noqa: B027 (optional hook, empty by default)
         """Set data-dependent settings from the training input x (batch, time); default:
         nothing."""
+
+    def predictor(self, x: Tensor) -> Callable[[], Tensor]:
+        """The output on a fixed input x (batch, time), from the zero (fresh) state, as a
+        closure of the parameters: full-batch fitting calls it at every step. Default:
+        ``lambda: self(x)[0]``; an operator overrides it where work that does not depend on
+        the trained parameters can be done once (e.g. plays of fixed widths)."""
+        return lambda: self(x)[0]
+
+    def check_loaded(self, values: Mapping[str, Tensor], prefix: str) -> None:  # noqa: B027
+        """Constraints between the values about to be loaded (``alpha >= beta``, an
+        invertible model), after the declared :attr:`constraints` hold. ``values``: each of
+        the module's own parameters and buffers by name, the given value or else the current
+        one (a partial state dict). Raise ``ValueError`` naming ``prefix + key``; default:
+        nothing."""
+
+    def after_load(self) -> None:  # noqa: B027 (optional hook, empty by default)
+        """Update Python-level settings from the loaded buffers; default: nothing."""
+
+    def _load_from_state_dict(self, state_dict: Mapping[str, Any], prefix: str,
+                              *args: Any, **kwargs: Any) -> None:
+        """The declared :attr:`constraints` and :meth:`check_loaded`, then the copy, then
+        :meth:`after_load` (all or nothing across modules: :class:`AtomicLoad`)."""
+        own = dict(self._parameters)
+        own.update((k, v) for k, v in self._buffers.items()
+                   if k not in self._non_persistent_buffers_set)
+        values = {}
+        for name, current in own.items():
+            given = state_dict.get(prefix + name)
+            usable = isinstance(given, Tensor) and (current is None or given.shape == current.shape)
+            if usable and name in self.constraints:
+                check_constraint(given, self.constraints[name], prefix + name)
+            if isinstance(current, Tensor) or usable:
+                values[name] = given if usable else current
+        self.check_loaded(values, prefix)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+        self.after_load()
 
 
 _REQUIRED = ("forward", "streaming_step", "calibrate", "n_outputs", "causal")

@@ -64,8 +64,9 @@ def fit_full_batch(
     ``y`` is passed as ``target`` (used only by per-segment, non-causal EIHOs). An operator
     with one output (e.g. :class:`~torchhys.operators.generalized_pi.GeneralizedPrandtlIshlinskii`)
     is fitted as a model of ``y`` itself: the loss is ``mean((op(x) - y)^2)``, computed through
-    ``op.predictor(x)`` where the operator has one (a faster closure of its output on this
-    fixed input, e.g. :meth:`~torchhys.GeneralizedPrandtlIshlinskii.predictor`).
+    ``op.predictor(x)`` (:meth:`torchhys.HysteresisOperator.predictor`: a faster closure of
+    its output on this fixed input where the operator has one, e.g.
+    :meth:`~torchhys.GeneralizedPrandtlIshlinskii.predictor`).
 
     Args:
         model: the network, or a causal operator with ``n_outputs == 1``.
@@ -170,9 +171,7 @@ def _operator_loss(op: object, x: Tensor, y: Tensor, warmup: int,
     xb, _ = as_batched_sequence(x, "x")
     yb, _ = as_batched_sequence(y, "y")
     check_same_shape(yb, xb, "y", "x")
-    # an operator may give a faster closure of its output on this fixed input
-    hook = getattr(type(op), "predictor", None)  # a method, not a submodule of that name
-    predict = op.predictor(xb) if callable(hook) else (lambda: op(xb)[0])
+    predict = op.predictor(xb)  # a faster closure of the output where the operator has one
     return lambda: _mse(predict() - yb, warmup, mask)
 
 

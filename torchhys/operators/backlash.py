@@ -136,6 +136,8 @@ class Backlash(_Widths, HysteresisOperator):
           outputs at the last sample, (N,) for x of shape (time,), else (batch, N).
     """
 
+    constraints = {"fixed_widths": "nonnegative", "raw_widths": "finite"}
+
     @property
     def n_outputs(self) -> int:
         """One feature per play operator (N)."""

@@ -125,18 +125,8 @@ class Drift(HysteresisOperator):
         return DriftStep(self.scales, self.weights.detach().to(dtype),
                          self.offset.detach().to(dtype), self.min_variation)
 
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # noqa: ANN001
-        """Checks the saved scales before anything is copied."""
-        c = state_dict.get(prefix + "scales")
-        if isinstance(c, Tensor) and c.numel() and not bool((c.isfinite() & (c > 0)).all()):
-            raise ValueError(f"{prefix}scales must be finite and positive (saturation scales), "
-                             f"got minimum {c.min().item():.6g}")
-        # state dicts saved before the floor existed: none (0)
-        state_dict.setdefault(prefix + "min_variation", torch.zeros((), dtype=torch.float64))
-        v0 = state_dict[prefix + "min_variation"]
-        if isinstance(v0, Tensor) and not (bool(v0.isfinite().all()) and bool((v0 >= 0).all())):
-            raise ValueError(f"{prefix}min_variation must be finite and >= 0, got {v0.tolist()}")
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+    constraints = {"scales": "positive", "weights": "finite", "offset": "finite",
+                   "min_variation": "nonnegative"}
 
 
 register_operator("drift", Drift, example=Example(

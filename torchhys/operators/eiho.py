@@ -8,7 +8,7 @@ import warnings
 import torch
 from torch import Tensor, nn
 
-from torchhys._checks import check_choice
+from torchhys._checks import as_batched_sequence, check_choice
 from torchhys.functional._branch import BranchState
 from torchhys.functional.eiho import NonCausalWarning, eiho, segment_coefficients, zhao_tan
 from torchhys.functional.turning_points import estimate_threshold
@@ -35,6 +35,8 @@ class _TurningPointOperator(HysteresisOperator):
     """Holds the detector threshold (a buffer; NaN until an ``"auto"`` one is calibrated)."""
 
     n_outputs: int = 1
+
+    constraints = {"threshold": "nonnegative_or_nan"}
 
     def __init__(
         self, threshold: float | str, rule: str, max_depth: int, output: str = "level"
@@ -191,6 +193,7 @@ class EIHO(_TurningPointOperator):
         ``target`` (same shape as ``x``, the whole record) or ``segment_a`` (from
         :meth:`segment_coefficients`, for chunked replay) are required with ``a="segment"``.
         """
+        as_batched_sequence(x, "x")
         if self.per_segment:
             if segment_a is None:
                 if target is None:

@@ -57,7 +57,7 @@ so that the inverse holds ``v`` at the bound for an input beyond ``g(upper)`` (o
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -172,6 +172,8 @@ class GeneralizedPrandtlIshlinskii(_Widths, HysteresisOperator):
     """
 
     n_outputs: int = 1
+
+    constraints = {"fixed_widths": "nonnegative", "raw_widths": "finite"}
 
     def __init__(
         self, widths: Tensor | Sequence[float], weights: Tensor | Sequence[float] | None = None,
@@ -328,37 +330,6 @@ class GeneralizedPIInverseStep(GeneralizedPIStep):
         return pi_output(v, z.unsqueeze(1), self.weights, self.linear_weight), [z]
 
 
-_LOADED = {
-    "widths": ("finite and >= 0 (play widths)", lambda t: t.isfinite() & (t >= 0)),
-    "weights": ("finite", torch.isfinite),
-    "linear_weight": ("finite", torch.isfinite),
-    "gain": ("finite and > 0 (g increasing)", lambda t: t.isfinite() & (t > 0)),
-    "unit_weights": ("finite and >= 0 (g increasing)", lambda t: t.isfinite() & (t >= 0)),
-    "centers": ("finite", torch.isfinite),
-    "slopes": ("finite and >= 0 (g non-decreasing in each unit)",
-               lambda t: t.isfinite() & (t >= 0)),
-    "offset": ("finite", torch.isfinite),
-    "lower": ("a number or -inf", lambda t: ~t.isnan() & (t < torch.inf)),
-    "upper": ("a number or +inf", lambda t: ~t.isnan() & (t > -torch.inf)),
-}
-"""What :class:`GeneralizedPIInverse` asks of a loaded buffer: ``g^-1`` needs an increasing
-``g`` (:func:`monotone_inverse`'s bracket and bisection): ``gain > 0``, each unit's weight
-and slope ``>= 0`` (a slope that underflowed to 0 makes its unit constant)."""
-
-
-def _check_loaded(state_dict: dict, prefix: str) -> None:
-    """Raise ``ValueError`` naming the key of a buffer that breaks :data:`_LOADED`, or bounds
-    with ``lower >= upper``."""
-    for name, (what, ok) in _LOADED.items():
-        t = state_dict.get(prefix + name)
-        if isinstance(t, Tensor) and t.is_floating_point() and not bool(ok(t).all()):
-            raise ValueError(f"{prefix}{name} must be {what}, got {t.tolist()!r:.80}")
-    lower, upper = state_dict.get(prefix + "lower"), state_dict.get(prefix + "upper")
-    if isinstance(lower, Tensor) and isinstance(upper, Tensor) and not bool(lower < upper):
-        raise ValueError(f"{prefix}lower must be below {prefix}upper, got {float(lower)!r} "
-                         f"and {float(upper)!r}")
-
-
 class GeneralizedPIInverse(HysteresisOperator):
     """``x = p^-1[g^-1(y)]``, the inverse of a :class:`~torchhys.GeneralizedPrandtlIshlinskii`
     model (module docstring). Fixed (buffers only): build it with
@@ -441,9 +412,19 @@ class GeneralizedPIInverse(HysteresisOperator):
             self.widths, self.weights, self.linear_weight, self.gain, self.unit_weights,
             self.centers, self.slopes, self.offset, self.lower, self.upper)))
 
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[override]
-        _check_loaded(state_dict, prefix)
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+    # g^-1 needs an increasing g (monotone_inverse's bracket and bisection): gain > 0, each
+    # unit's weight and slope >= 0 (a slope that underflowed to 0 makes its unit constant)
+    constraints = {"widths": "nonnegative", "weights": "finite", "linear_weight": "finite",
+                   "gain": "positive", "unit_weights": "nonnegative", "centers": "finite",
+                   "slopes": "nonnegative", "offset": "finite", "lower": "not_nan",
+                   "upper": "not_nan"}
+
+    def check_loaded(self, values: Mapping[str, Tensor], prefix: str) -> None:
+        """Bounds ``lower < upper`` (``lower`` below +inf, ``upper`` above -inf)."""
+        lower, upper = values["lower"], values["upper"]
+        if lower.numel() == 1 and upper.numel() == 1 and not bool(lower < upper):
+            raise ValueError(f"{prefix}lower must be below {prefix}upper, got "
+                             f"{float(lower)!r} and {float(upper)!r}")
 
     def extra_repr(self) -> str:
         return (f"n_plays={self.widths.shape[0]}, n_units={self.centers.shape[0]}, "

@@ -118,22 +118,11 @@ class JilesAtherton(HysteresisOperator):
     def substeps(self, value: int) -> None:
         self.saved_substeps.fill_(check_int(value, "substeps", minimum=1))
 
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[override]
-        # checked before anything is copied (a bad value is an error, the module unchanged)
-        raw = state_dict.get(prefix + "raw")
-        if isinstance(raw, Tensor) and not bool(raw.isfinite().all()):
-            raise ValueError(f"{prefix}raw must be finite, got {raw.tolist()}")
-        mu0 = state_dict.get(prefix + "saved_mu0")
-        if isinstance(mu0, Tensor) and mu0.numel() == 1:
-            mu0 = check_positive(float(mu0), f"{prefix}saved_mu0")
-        steps = state_dict.get(prefix + "saved_substeps")
-        if isinstance(steps, Tensor) and steps.numel() == 1:
-            v = float(steps)
-            if not (math.isfinite(v) and v == round(v) and v >= 1):
-                raise ValueError(f"{prefix}saved_substeps must be an int >= 1, got {v!r}")
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
-        if isinstance(mu0, float):
-            self.mu0 = mu0
+    constraints = {"raw": "finite", "saved_mu0": "positive",
+                   "saved_substeps": "positive_integer"}
+
+    def after_load(self) -> None:
+        self.mu0 = float(self.saved_mu0)
 
     def parameters_effective(self) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """``(ms, a, k, alpha, c)``, each 0-dim (differentiable)."""

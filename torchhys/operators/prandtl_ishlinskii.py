@@ -1,5 +1,7 @@
 """Prandtl-Ishlinskii hysteresis model and its analytic inverse (the classical compensator)."""
 
+from collections.abc import Mapping
+
 import torch
 from torch import Tensor, nn
 
@@ -144,13 +146,14 @@ class PrandtlIshlinskii(_Widths, HysteresisOperator):
     def extra_repr(self) -> str:
         return f"n={self.n_operators}" + (", nonnegative=True" if self.nonnegative else "")
 
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[override]
-        if self.nonnegative:  # each key present (a partial dict under strict=False too)
+    constraints = {"fixed_widths": "nonnegative", "raw_widths": "finite", "weights": "finite",
+                   "linear_weight": "finite"}
+
+    def check_loaded(self, values: Mapping[str, Tensor], prefix: str) -> None:
+        """Non-negative weights where the model is built with ``nonnegative=True``."""
+        if self.nonnegative:
             for name in ("weights", "linear_weight"):
-                w = state_dict.get(prefix + name)
-                if isinstance(w, Tensor):
-                    _check_nonnegative(w, prefix + name)
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+                _check_nonnegative(values[name], prefix + name)
 
     def inverse(self) -> "PrandtlIshlinskiiInverse":
         """The exact inverse model, built from the current parameters (detached).

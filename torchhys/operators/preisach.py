@@ -30,13 +30,14 @@ Still slower than the model's own (a scan) where the relays switch often.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import torch
 from torch import Tensor, nn
 
 from torchhys._checks import (
     check_bool,
     check_int,
-    check_nonnegative_weights,
 )
 from torchhys.functional.preisach import (
     _check_smooth,
@@ -200,19 +201,18 @@ class Preisach(HysteresisOperator):
         graded = "" if self.scale is None else f", scale={self.scale:.6g}"
         return f"lo={self.lo}, hi={self.hi}, n={self.n}, smooth={self.smooth}{graded}"
 
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[override]
-        w = state_dict.get(prefix + "weights")
-        if isinstance(w, Tensor):
-            check_nonnegative_weights(w, prefix + "weights", "non-negative (a Preisach density)")
-        a, b, r, g = (state_dict.get(prefix + k) for k in ("alpha", "beta", "initial_relays",
-                                                             "grading"))
-        check_saved_grid(prefix, *(v if isinstance(v, Tensor) else None for v in (a, b, r, g)))
-        if g is None and isinstance(a, Tensor):  # saved before graded grids: an even grid
-            state_dict[prefix + "grading"] = torch.tensor(
-                [0.5 * float(a.max() + a.min()), 0.0], dtype=self.grading.dtype)
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+    constraints = {"weights": "nonnegative", "alpha": "finite", "beta": "finite",
+                   "initial_relays": "relay"}
+
+    def check_loaded(self, values: Mapping[str, Tensor], prefix: str) -> None:
+        """Thresholds ``alpha >= beta`` and the grading (:func:`check_saved_grid`)."""
+        check_saved_grid(prefix, values["alpha"], values["beta"], None, values["grading"])
+
+    def after_load(self) -> None:
+        """The grading and the grid range from the loaded buffers."""
         self._read_grading()
-        if isinstance(a, Tensor) and a.shape == self.alpha.shape and self.n > 1:
+        a = self.alpha.detach()
+        if self.n > 1:
             # the grid range of the loaded thresholds (cell centres, module docstring),
             # in the graded variable where the cells are equal
             c, s = self.centre, self.scale
@@ -387,32 +387,30 @@ class PreisachInverse(HysteresisOperator):
         return PreisachInverseStep(alpha, beta, weights, linear, offset, initial, self.centre,
                                    self.scale)
 
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # noqa: ANN001
-        """Checks the model it would hold before anything is copied (all or nothing, also
-        for a partial state dict, whose missing keys keep their current values): thresholds
-        ``alpha >= beta`` finite, relays +-1, the grading, and an invertible model; each
-        error names its key."""
-        def saved(name: str) -> Tensor:  # the saved value, or the current one if not given
-            v = state_dict.get(prefix + name)
-            return v if isinstance(v, Tensor) else getattr(self, name)
+    constraints = {"alpha": "finite", "beta": "finite", "initial_relays": "relay",
+                   "linear": "finite", "offset": "finite"}
 
-        a, b, r, g = saved("alpha"), saved("beta"), saved("initial_relays"), saved("grading")
+    def check_loaded(self, values: Mapping[str, Tensor], prefix: str) -> None:
+        """The model it would hold (also for a partial state dict, whose missing keys keep
+        their current values): thresholds ``alpha >= beta`` of one shape, one relay each,
+        the grading, scalars, and an invertible model; each error names its key."""
+        a, b, r = values["alpha"], values["beta"], values["initial_relays"]
         if a.shape != b.shape:
             raise ValueError(f"{prefix}alpha and {prefix}beta must be finite thresholds with "
                              "alpha >= beta (a Preisach grid) of one shape")
         if r.shape != a.shape:
             raise ValueError(f"{prefix}initial_relays must hold one relay value +-1 per relay")
-        check_saved_grid(prefix, a, b, r, g)
+        check_saved_grid(prefix, a, b, None, values["grading"])
         for name in ("linear", "offset"):
-            v = saved(name)
-            if v.numel() != 1 or not bool(v.isfinite().all()):
+            if values[name].numel() != 1:
                 raise ValueError(f"{prefix}{name} must be one finite number, got "
-                                 f"{v.tolist()!r:.80}")
+                                 f"{values[name].tolist()!r:.80}")
         try:
-            check_preisach_invertible(saved("weights"), saved("linear"))
+            check_preisach_invertible(values["weights"], values["linear"])
         except ValueError as err:
             raise ValueError(f"{prefix}{err}") from None
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def after_load(self) -> None:
         Preisach._read_grading(self)  # type: ignore[arg-type]
 
     def extra_repr(self) -> str:

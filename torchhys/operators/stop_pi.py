@@ -33,12 +33,13 @@ four of the model's steps (``benchmarks/stop_pi.py``).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import torch
 from torch import Tensor, nn
 
 from torchhys._checks import (
+    as_batched_sequence,
     check_bool,
     check_int,
     check_real,
@@ -199,18 +200,8 @@ class StopPrandtlIshlinskii(HysteresisOperator):
         return StopPIStep(*(t.detach().to(dtype) for t in (
             self.thresholds, self.weights, self.center, self.linear_weight, self.offset)))
 
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # noqa: ANN001
-        """Checks every saved value it is given before anything is copied (all or nothing,
-        also for a partial state dict)."""
-        r = state_dict.get(prefix + "thresholds")
-        if isinstance(r, Tensor) and r.numel() and not bool((r.isfinite() & (r > 0)).all()):
-            raise ValueError(f"{prefix}thresholds must be finite and positive (stop thresholds), "
-                             f"got minimum {r.min().item():.6g}")
-        for name in ("weights", "center", "linear_weight", "offset"):
-            v = state_dict.get(prefix + name)
-            if isinstance(v, Tensor) and not bool(v.isfinite().all()):
-                raise ValueError(f"{prefix}{name} must be finite, got a non-finite value")
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+    constraints = {"thresholds": "positive", "weights": "finite", "center": "finite",
+                   "linear_weight": "finite", "offset": "finite"}
 
     def extra_repr(self) -> str:
         return (f"thresholds={self.thresholds.numel()}, segments={self.segments}, "
@@ -310,6 +301,7 @@ class StopPIInverse(HysteresisOperator):
         return int(self.weights.shape[1])
 
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        as_batched_sequence(x, "x")  # the maths calls its input y: check x under its name
         check_play_state(state, x, self.thresholds.shape[0], "state")
         return stop_pi_inverse(x, self.thresholds, self.weights, center=self.center,
                                linear_weight=self.linear_weight, offset=self.offset, p0=state)
@@ -319,26 +311,23 @@ class StopPIInverse(HysteresisOperator):
         return StopPIInverseStep(*(t.detach().to(dtype) for t in (
             self.thresholds, self.weights, self.center, self.linear_weight, self.offset)))
 
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # noqa: ANN001
-        """Checks the model it would hold before anything is copied (all or nothing, also
-        for a partial state dict, whose missing keys keep their current values): the shapes
-        and values of :func:`~torchhys.functional.stop_pi.check_stop_parameters`, finite
-        scalars, and an invertible model; each error names its key."""
-        def saved(name: str) -> Tensor:  # the saved value, or the current one if not given
-            v = state_dict.get(prefix + name)
-            return v if isinstance(v, Tensor) else getattr(self, name)
+    constraints = {"thresholds": "positive", "weights": "finite", "center": "finite",
+                   "linear_weight": "finite", "offset": "finite"}
 
+    def check_loaded(self, values: Mapping[str, Tensor], prefix: str) -> None:
+        """The model it would hold (also for a partial state dict, whose missing keys keep
+        their current values): scalars, the shapes and values of
+        :func:`~torchhys.functional.stop_pi.check_stop_parameters`, and an invertible model;
+        each error names its key."""
         for name in ("center", "linear_weight", "offset"):
-            v = saved(name)
-            if v.numel() != 1 or not bool(v.isfinite().all()):
+            if values[name].numel() != 1:
                 raise ValueError(f"{prefix}{name} must be one finite number, got "
-                                 f"{v.tolist()!r:.80}")
+                                 f"{values[name].tolist()!r:.80}")
         try:
-            check_stop_parameters(saved("thresholds"), saved("weights"))
-            check_invertible(saved("weights"), saved("linear_weight"))
+            check_stop_parameters(values["thresholds"], values["weights"])
+            check_invertible(values["weights"], values["linear_weight"])
         except (TypeError, ValueError) as err:
             raise ValueError(f"{prefix}{err}") from None
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def extra_repr(self) -> str:
         return (f"n_stops={self.thresholds.numel()}, segments={self.segments}, "
