@@ -81,7 +81,7 @@ def test_compensation_benchmark_reads_its_config_as_torchhys_fit(tmp_path: Path)
     """``ridge: 1e-8`` is a number (PyYAML's safe loader reads the string '1e-8')."""
     bench = load_benchmark("compensation.py")
     path = tmp_path / "c.yaml"
-    path.write_text("model:\n  operator: [{name: pi_ls, n_widths: 5, ridge: 1e-8}]\n")
+    path.write_text("model:\n  operator: [{fit: pi_ls, n_widths: 5, ridge: 1e-8}]\n")
     assert bench.load_model_config(path)["operator"][0]["ridge"] == 1e-8
     path.write_text("- a list\n")
     with pytest.raises(ValueError, match=re.escape(f"config {path}: expected a mapping")):

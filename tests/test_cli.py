@@ -51,9 +51,9 @@ PI_TINY = TINY.replace("""  operator: zhao_tan
   operator_kwargs:
     scale: 1.8
 """, """  operator:
-    - name: pi_ls
+    - fit: pi_ls
       n_widths: 8
-    - name: plays
+    - fit: plays
       n: 3
 """)
 """TINY with data-dependent operators (fitted on the training split at fit start)."""
@@ -211,8 +211,8 @@ def test_data_dependent_operators_resume_and_export(monkeypatch, tmp_path: Path)
     full, resumed = full_and_resumed(monkeypatch, cfg, tmp_path, epochs=4)
     ca = torch.load(full, weights_only=True)
     cb = torch.load(resumed, weights_only=True)
-    assert ca["hyper_parameters"]["operator"] == [{"name": "pi_ls", "n_widths": 8},
-                                                  {"name": "plays", "n": 3}]
+    assert ca["hyper_parameters"]["operator"] == [{"fit": "pi_ls", "n_widths": 8},
+                                                  {"fit": "plays", "n": 3}]
     assert "net.operators.0.weights" in ca["state_dict"]
     for k, v in ca["state_dict"].items():
         torch.testing.assert_close(cb["state_dict"][k], v, rtol=0, atol=1e-12)
@@ -339,7 +339,7 @@ def test_magnetic_config_parses_with_the_jiles_atherton_candidate(monkeypatch, c
     measured = yaml.safe_load((CONFIGS / "measured.yaml").read_text())["model"]["select"]
     select = config["model"]["select"]
     assert select[:-1] == measured
-    assert select[-1]["operator"][0]["name"] == "jiles_atherton"
+    assert select[-1]["operator"][0]["fit"] == "jiles_atherton"
     for candidate in select:
         build_operators(candidate["operator"])
     data = {k: v for k, v in config["data"].items() if k != "class_path"}

@@ -144,7 +144,7 @@ def test_coverage_warning_errors_constant_input_and_empty_mask() -> None:
 SELECT = """\
   select:
     - {operator: null}
-    - {operator: [{name: pi_nonneg, n_widths: 4}]}
+    - {operator: [{fit: pi_nonneg, n_widths: 4}]}
   select_cv: 2
 """
 CONFIG = """\
@@ -163,7 +163,7 @@ model:
   optimizer: lbfgs
   select:
     - {operator: null}
-    - {operator: [{name: pi_nonneg, n_widths: 4}]}
+    - {operator: [{fit: pi_nonneg, n_widths: 4}]}
   select_cv: 2
 data:
   path: PATH
@@ -189,7 +189,7 @@ def test_fit_warns_on_one_amplitude(monkeypatch, tmp_path: Path, amplitudes: lis
     text = CONFIG.replace("PATH", str(data))
     if not select:
         text = text.replace(SELECT, "").replace(
-            "  operator: null\n", "  operator: [{name: pi_ls, n_widths: 4}]\n")
+            "  operator: null\n", "  operator: [{fit: pi_ls, n_widths: 4}]\n")
     cfg.write_text(text)
     with warnings.catch_warnings(record=True) as record:
         warnings.simplefilter("always")

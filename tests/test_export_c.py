@@ -482,7 +482,7 @@ trainer:
 model:
   operator:
     - {name: eiho, a: 1.0, rule: recent, output: branch}
-    - {name: plays, n: 4, span_fraction: 0.4}
+    - {fit: plays, n: 4, span_fraction: 0.4}
   hidden: 8
   optimizer: lbfgs
   optimizer_kwargs: {max_iter: 5}

@@ -54,8 +54,8 @@ model:
     minstep: 0.0
   select:
     - {operator: null}
-    - {operator: [{name: pi_ls, n_widths: 8}]}
-    - {operator: [{name: plays, n: 4}]}
+    - {operator: [{fit: pi_ls, n_widths: 8}]}
+    - {operator: [{fit: plays, n: 4}]}
 data:
   simulation: paper
   dt: 0.05
@@ -63,7 +63,7 @@ data:
   split: [0.5, 0.25, 0.25]
 """
 DATA = {"dt": 0.05, "t_end": 25.2, "split": [0.5, 0.25, 0.25]}
-PI = [{"name": "pi_ls", "n_widths": 8}]
+PI = [{"fit": "pi_ls", "n_widths": 8}]
 
 
 def config(tmp_path: Path, text: str = SELECT, **replace: str) -> Path:
@@ -109,7 +109,7 @@ def test_fit_selects_the_best_candidate_and_fits_it(monkeypatch, capsys, tmp_pat
     rows = table(root)
     assert [int(r["candidate"]) for r in rows] == [0, 1, 2]
     assert [json.loads(r["config"]) for r in rows] == [
-        {"operator": None}, {"operator": PI}, {"operator": [{"name": "plays", "n": 4}]}]
+        {"operator": None}, {"operator": PI}, {"operator": [{"fit": "plays", "n": 4}]}]
     mse = [float(r["val_mse"]) for r in rows]
     assert mse[1] < 0.2 * min(mse[0], mse[2])  # clearly better
     assert [r["selected"] for r in rows] == ["0", "1", "0"]
@@ -379,7 +379,7 @@ def test_leave_one_recording_out_on_the_command_line(monkeypatch, capsys, tmp_pa
         "optimizer: cg\n  optimizer_kwargs:\n    minstep: 0.0\n",
         "optimizer: lbfgs\n  optimizer_kwargs: {max_iter: 50, tolerance_grad: 1.0e-12, "
         "tolerance_change: 1.0e-15}\n").replace(
-        "    - {operator: [{name: plays, n: 4}]}\n", "  select_cv: recording\n")
+        "    - {operator: [{fit: plays, n: 4}]}\n", "  select_cv: recording\n")
     data = "\n".join(["data:", *(f"  {k}: {v}" for k, v in FERRITE.items()),
                       "  time_column: null", "  train_recordings: [0, 1, 3]",
                       "  val_recordings: []", "  test_recordings: [2]", "  repeat: 2",
@@ -409,8 +409,8 @@ def test_leave_one_recording_out_on_the_command_line(monkeypatch, capsys, tmp_pa
 
 # --- errors ---------------------------------------------------------------------------
 @pytest.mark.parametrize(("change", "error", "match"), [
-    ({"  select:\n    - {operator: null}\n    - {operator: [{name: pi_ls, n_widths: 8}]}\n"
-      "    - {operator: [{name: plays, n: 4}]}\n": "  select: []\n"},
+    ({"  select:\n    - {operator: null}\n    - {operator: [{fit: pi_ls, n_widths: 8}]}\n"
+      "    - {operator: [{fit: plays, n: 4}]}\n": "  select: []\n"},
      ValueError, r"model.select is empty"),
     ({"- {operator: null}": "- {hiden: 3}"},
      ValueError, r"model.select\[0\]: 'hiden' is not a model argument; valid: \['operator', "
@@ -421,15 +421,17 @@ def test_leave_one_recording_out_on_the_command_line(monkeypatch, capsys, tmp_pa
      ValueError, r"validation split is empty \(data: paper\): .*model.select_cv"),
     ({"split: [0.5, 0.25, 0.25]": "split: paper"},
      ValueError, r"validation split is the training data \(split='paper'\)"),
-    ({"- {operator: [{name: plays, n: 4}]}": "- {operator: [{name: playz, n: 4}]}"},
-     ValueError, r"model.select\[2\] .*operator name must be one of .*got 'playz'"),
-    ({"- {operator: [{name: plays, n: 4}]}": "- {operator: [{name: plays, m: 4}]}"},
-     ValueError, r"model.select\[2\] .*operator 'plays': unknown option\(s\) \['m'\]"),
+    ({"- {operator: [{fit: plays, n: 4}]}": "- {operator: [{name: playz, n: 4}]}"},
+     ValueError, r"model.select\[2\] .*operator\[0\]: no operator is registered as 'playz'"),
+    ({"- {operator: [{fit: plays, n: 4}]}": "- {operator: [{fit: playz, n: 4}]}"},
+     ValueError, r"model.select\[2\] .*operator\[0\]: no model family is called 'playz'"),
+    ({"- {operator: [{fit: plays, n: 4}]}": "- {operator: [{fit: plays, m: 4}]}"},
+     ValueError, r"model.select\[2\] .*fit 'plays': unknown option\(s\) \['m'\]"),
     ({"  select:\n": "  select_cv: 1\n  select:\n"},
      ValueError, r"model.select_cv must be an int >= 2, got 1"),
 
-    ({"  select:\n    - {operator: null}\n    - {operator: [{name: pi_ls, n_widths: 8}]}\n"
-      "    - {operator: [{name: plays, n: 4}]}\n": "  select_cv: 3\n"},
+    ({"  select:\n    - {operator: null}\n    - {operator: [{fit: pi_ls, n_widths: 8}]}\n"
+      "    - {operator: [{fit: plays, n: 4}]}\n": "  select_cv: 3\n"},
      ValueError, r"model.select_cv=3 needs model.select"),
 ])
 def test_errors(monkeypatch, tmp_path, stages, change, error, match) -> None:
@@ -508,8 +510,8 @@ def test_select_rule_on_the_command_line(monkeypatch, capsys, tmp_path) -> None:
     expected = 0 if mse[0] <= mse[lowest] + se[lowest] else lowest
     assert [int(r["selected"]) for r in rows] == [int(i == expected) for i in range(3)]
     assert "one-standard-error rule" in capsys.readouterr().out
-    bad = config(tmp_path, **{"  select:\n    - {operator: null}\n    - {operator: [{name: "
-                              "pi_ls, n_widths: 8}]}\n    - {operator: [{name: plays, n: 4}]}"
+    bad = config(tmp_path, **{"  select:\n    - {operator: null}\n    - {operator: [{fit: "
+                              "pi_ls, n_widths: 8}]}\n    - {operator: [{fit: plays, n: 4}]}"
                               "\n": "  select_rule: 1se\n"})
     with pytest.raises(ValueError, match=r"model.select_rule='1se' needs model.select"):
         cli(monkeypatch, "fit", "--config", str(bad), f"--trainer.default_root_dir={tmp_path}")
@@ -534,7 +536,7 @@ def test_a_block_folds_fits_ignore_its_held_out_targets(tmp_path: Path, fold: in
         block = BlockFold(HysteresisDataModule(path=str(path), **kw), 4, fold)
         torch.manual_seed(0)
         module = InverseHysteresisModule(
-            operator=[{"name": "stop_pi", "n_widths": 8}, {"name": "drift"}], hidden=1,
+            operator=[{"fit": "stop_pi", "n_widths": 8}, {"fit": "drift"}], hidden=1,
             activation="identity")
         x, y = block.train_tensors()
         module.fit_normalization(x, y, warmup=block.train_warmup, mask=block.train_mask)

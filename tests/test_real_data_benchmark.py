@@ -245,7 +245,7 @@ def test_the_default_row_follows_the_configs_selection_rule(bench, tmp_path, cho
     split = bench.DATASETS["mnzn_ferrite"][1](bench.Files(FERRITE))
     two = _measured_with("""  select:
     - operator: null
-    - operator: [{name: gpi, n_widths: 5, units: 2, epochs: 40, direction: inverse}]
+    - operator: [{fit: gpi, n_widths: 5, units: 2, epochs: 40, direction: inverse}]
   select_rule: RULE
 """)
     for rule in ("min", "1se"):
@@ -275,7 +275,7 @@ def test_the_default_row_cross_validates_as_its_config_says(bench, tmp_path, cho
     path = tmp_path / "cv.yaml"
     path.write_text(_measured_with(f"""  select:
     - operator: null
-    - operator: [{{name: stop_pi, n_widths: 5, segments: 2}}]
+    - operator: [{{fit: stop_pi, n_widths: 5, segments: 2}}]
   select_cv: {cv}
   select_cv_mode: {mode or "blocked"}
   select_rule: min
@@ -331,7 +331,7 @@ def test_the_default_rows_cross_validation_scores_as_torchhys_fit_does(bench, tm
     training samples only) and the line."""
     select = f"""  select:
     - operator: null
-    - operator: [{{name: stop_pi, n_widths: 5, segments: 2}}]
+    - operator: [{{fit: stop_pi, n_widths: 5, segments: 2}}]
   select_cv: 3
   select_cv_mode: {mode}
   select_rule: min
@@ -349,7 +349,7 @@ def test_the_default_rows_cross_validation_scores_as_torchhys_fit_does(bench, tm
     with (root / "logs/version_0/selection.csv").open() as fh:
         expected = [(float(r["val_mse"]), float(r["val_se"])) for r in csv.DictReader(fh)]
     split = bench.DATASETS["mnzn_ferrite"][1](bench.Files(FERRITE))
-    candidates = [{"operator": None}, {"operator": [{"name": "stop_pi", "n_widths": 5,
+    candidates = [{"operator": None}, {"operator": [{"fit": "stop_pi", "n_widths": 5,
                                                      "segments": 2}]}]
     for candidate, (mse, se) in zip(candidates, expected, strict=True):
         got, got_se, capped = bench._score(path, candidate, split.x, split.y, split.warmup,
@@ -366,8 +366,8 @@ def test_a_candidate_that_cannot_be_fitted_keeps_its_place(bench, tmp_path, choi
     split = bench.DATASETS["mnzn_ferrite"][1](bench.Files(FERRITE))
     path = tmp_path / "nan.yaml"
     path.write_text(_measured_with("""  select:
-    - operator: [{name: pi_nonneg, n_widths: 10, direction: direct}]
-    - operator: [{name: stop_pi, n_widths: 5, segments: 2}]
+    - operator: [{fit: pi_nonneg, n_widths: 10, direction: direct}]
+    - operator: [{fit: stop_pi, n_widths: 5, segments: 2}]
   select_cv: 3
   select_rule: 1se
 """))
@@ -383,7 +383,7 @@ def test_the_config_is_read_as_torchhys_fit_reads_it(bench, tmp_path):
     string)."""
     path = tmp_path / "c.yaml"
     path.write_text(_measured_with(
-        "  select:\n    - operator: [{name: stop_pi, n_widths: 5, ridge: 1e-8}]\n"))
+        "  select:\n    - operator: [{fit: stop_pi, n_widths: 5, ridge: 1e-8}]\n"))
     model = bench._config_model(path)[0]
     assert model["select"][0]["operator"][0]["ridge"] == 1e-8
 

@@ -130,9 +130,9 @@ def test_rolling_recording_folds_train_on_the_recordings_before() -> None:
 
 # The fold's fits through the module's set-up, on part of the Bouc-Wen example record.
 OPERATORS = {
-    "stops and drift": [{"name": "stop_pi", "n_widths": 8}, {"name": "drift"}],
-    "preisach": [{"name": "preisach", "n": 8}],
-    "inverse pi": [{"name": "pi_nonneg", "n_widths": 6, "direction": "inverse"}],
+    "stops and drift": [{"fit": "stop_pi", "n_widths": 8}, {"fit": "drift"}],
+    "preisach": [{"fit": "preisach", "n": 8}],
+    "inverse pi": [{"fit": "pi_nonneg", "n_widths": 6, "direction": "inverse"}],
 }
 
 
@@ -199,7 +199,7 @@ model:
   optimizer_kwargs: {max_iter: 100, tolerance_grad: 1.0e-12, tolerance_change: 1.0e-15}
   select:
     - {operator: null}
-    - {operator: [{name: pi_ls, n_widths: 8}]}
+    - {operator: [{fit: pi_ls, n_widths: 8}]}
   select_cv: 3
   select_cv_mode: rolling
 data:

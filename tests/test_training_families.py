@@ -74,7 +74,7 @@ def affine_rmse(feature: torch.Tensor, y: torch.Tensor) -> float:
 def test_pi_nonneg_direct_recovers_a_pi_plant_of_either_sign(sign):
     x = signal()
     y = 3.0 * sign * pi_plant(x) + 2.0  # scaled, shifted, maybe negated
-    op = fitted({"name": "pi_nonneg", "n_widths": 12, "ridge": 0.0}, x, y)
+    op = fitted({"fit": "pi_nonneg", "n_widths": 12, "ridge": 0.0}, x, y)
     assert isinstance(op, PrandtlIshlinskii) and op.n_operators == 12
     assert affine_rmse(op(x)[0], y) < 0.01 * float(y.std())
 
@@ -83,22 +83,22 @@ def test_pi_nonneg_inverse_recovers_the_inverse_of_a_pi_plant():
     x = signal()
     y = pi_plant(x)
     # the target is the input of the plant: the inverse direction
-    op = fitted({"name": "pi_nonneg", "n_widths": 12, "direction": "inverse"}, y, x)
+    op = fitted({"fit": "pi_nonneg", "n_widths": 12, "direction": "inverse"}, y, x)
     assert affine_rmse(op(y)[0], x) < 0.01 * float(x.std())
     # a non-negative PI model of x from y draws loops of the wrong orientation: no better
     # than a straight line, which the fit reports
     with pytest.raises(FitError, match="no better than a straight line"):
-        fitted({"name": "pi_nonneg", "n_widths": 12, "direction": "direct"}, y, x)
+        fitted({"fit": "pi_nonneg", "n_widths": 12, "direction": "direct"}, y, x)
 
 
 def test_gpi_both_directions_recover_a_generalized_pi_plant():
     x = 1.5 * signal()
     y = gpi_plant(x)
-    op = fitted({"name": "gpi", "n_widths": 10, "units": 4, "epochs": 150}, x, y)
+    op = fitted({"fit": "gpi", "n_widths": 10, "units": 4, "epochs": 150}, x, y)
     assert isinstance(op, GeneralizedPrandtlIshlinskii)
     # well below the straight line (fit_generalized_pi stops at a local optimum here)
     assert affine_rmse(op(x)[0], y) < 0.3 * affine_rmse(x, y)
-    inv = fitted({"name": "gpi", "n_widths": 10, "units": 4, "epochs": 150,
+    inv = fitted({"fit": "gpi", "n_widths": 10, "units": 4, "epochs": 150,
                   "direction": "inverse"}, y, x)
     assert isinstance(inv, GeneralizedPIInverse)
     assert affine_rmse(inv(y)[0], x) < 0.3 * affine_rmse(y, x)
@@ -115,7 +115,7 @@ def test_preisach_recovers_a_preisach_plant():
     y = -plant(x)[0].detach()  # the other orientation: the negated fit wins
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        op = fitted({"name": "preisach", "n": 8, "smoothness": 0.0}, x, y)
+        op = fitted({"fit": "preisach", "n": 8, "smoothness": 0.0}, x, y)
     assert affine_rmse(op(x)[0], y) < 0.1 * float(y.std())
 
 
@@ -130,7 +130,7 @@ def test_stop_pi_recovers_a_stop_plant_of_either_sign(sign):
                                                 [0.1, 0.2, 0.2, 0.5]], dtype=F64),
                                   center=1.0, linear_weight=0.1, offset=2.0)
     y = sign * plant(x)[0].detach()
-    op = fitted({"name": "stop_pi", "n_widths": 10, "segments": 4, "ridge": 0.0}, x, y)
+    op = fitted({"fit": "stop_pi", "n_widths": 10, "segments": 4, "ridge": 0.0}, x, y)
     assert isinstance(op, StopPrandtlIshlinskii)
     assert affine_rmse(op(x)[0], y) < 0.05 * float(y.std())
     # the family's output is a model of the standardized target: a positive multiple
@@ -152,8 +152,8 @@ def test_drift_beside_stop_pi_follows_a_ratcheting_plant():
     x = signal(T=900)
     y = ratcheting_plant(x)
     cut = 600
-    (stop, drift), fitters = build_operators([{"name": "stop_pi", "n_widths": 8},
-                                              {"name": "drift"}])
+    (stop, drift), fitters = build_operators([{"fit": "stop_pi", "n_widths": 8},
+                                              {"fit": "drift"}])
     ops = torch.nn.ModuleList([stop.double(), drift.double()])
     fit_data_dependent(ops, fitters, x[:, :cut], y[:, :cut])
     assert isinstance(ops[1], Drift) and bool((ops[1].weights >= 0).all())
@@ -171,30 +171,30 @@ def test_drift_beside_stop_pi_follows_a_ratcheting_plant():
 def test_a_family_that_cannot_fit_raises_fit_error():
     x = signal()
     with pytest.raises(FitError, match="must vary"):
-        fitted({"name": "gpi"}, x, torch.zeros_like(x))
+        fitted({"fit": "gpi"}, x, torch.zeros_like(x))
     with pytest.raises(FitError, match="no better than a straight line"):
         # noise unrelated to the input: nothing to fit
         noise = torch.randn(x.shape, generator=torch.Generator().manual_seed(1), dtype=F64)
-        fitted({"name": "pi_nonneg", "n_widths": 3, "direction": "inverse", "ridge": 1.0},
+        fitted({"fit": "pi_nonneg", "n_widths": 3, "direction": "inverse", "ridge": 1.0},
                x, noise.cumsum(1))
 
 
 @pytest.mark.parametrize("spec, match", [
-    ({"name": "pi_nonneg", "direction": "sideways"}, "direction must be one of"),
-    ({"name": "pi_nonneg", "ridge": -1.0}, "ridge must be 'auto' or a finite number >= 0"),
-    ({"name": "gpi", "ridge": float("inf")}, "ridge must be 'auto' or a finite number >= 0"),
-    ({"name": "gpi", "unit": 3}, r"unknown option\(s\) \['unit'\]"),
-    ({"name": "gpi", "power": 0}, "power must be a finite number > 0"),
-    ({"name": "pi_nonneg", "power": float("inf")}, "power must be a finite number > 0"),
-    ({"name": "gpi", "power": True}, "power must be a finite number > 0"),
-    ({"name": "preisach", "n": 1}, "n must be"),
-    ({"name": "preisach", "smoothness": "big"}, "smoothness must be 'auto'"),
-    ({"name": "stop_pi", "segments": 0}, "segments must be"),
-    ({"name": "stop_pi", "n": 5}, r"unknown option\(s\) \['n'\]"),
-    ({"name": "stop_pi", "ridge": -1e-3}, "ridge must be 'auto' or a finite number >= 0"),
-    ({"name": "drift", "scales": []}, "scales must be a non-empty list"),
-    ({"name": "drift", "scales": [1.0, -2.0]}, r"scales\[\] must be a finite number > 0"),
-    ({"name": "drift", "n": 3}, r"unknown option\(s\) \['n'\]"),
+    ({"fit": "pi_nonneg", "direction": "sideways"}, "direction must be one of"),
+    ({"fit": "pi_nonneg", "ridge": -1.0}, "ridge must be 'auto' or a finite number >= 0"),
+    ({"fit": "gpi", "ridge": float("inf")}, "ridge must be 'auto' or a finite number >= 0"),
+    ({"fit": "gpi", "unit": 3}, r"unknown option\(s\) \['unit'\]"),
+    ({"fit": "gpi", "power": 0}, "power must be a finite number > 0"),
+    ({"fit": "pi_nonneg", "power": float("inf")}, "power must be a finite number > 0"),
+    ({"fit": "gpi", "power": True}, "power must be a finite number > 0"),
+    ({"fit": "preisach", "n": 1}, "n must be"),
+    ({"fit": "preisach", "smoothness": "big"}, "smoothness must be 'auto'"),
+    ({"fit": "stop_pi", "segments": 0}, "segments must be"),
+    ({"fit": "stop_pi", "n": 5}, r"unknown option\(s\) \['n'\]"),
+    ({"fit": "stop_pi", "ridge": -1e-3}, "ridge must be 'auto' or a finite number >= 0"),
+    ({"fit": "drift", "scales": []}, "scales must be a non-empty list"),
+    ({"fit": "drift", "scales": [1.0, -2.0]}, r"scales\[\] must be a finite number > 0"),
+    ({"fit": "drift", "n": 3}, r"unknown option\(s\) \['n'\]"),
 ])
 def test_bad_options(spec, match):
     with pytest.raises(ValueError, match=match):
@@ -203,15 +203,15 @@ def test_bad_options(spec, match):
 
 def test_stop_pi_flag_must_be_a_bool():
     with pytest.raises(TypeError, match="'stop_pi': nonnegative must be True or False"):
-        build_operators({"name": "stop_pi", "nonnegative": "yes"})
+        build_operators({"fit": "stop_pi", "nonnegative": "yes"})
 
 
 @pytest.mark.parametrize("spec", [
-    {"name": "pi_nonneg", "n_widths": 6, "direction": "inverse"},
-    {"name": "gpi", "n_widths": 6, "units": 2, "epochs": 30, "direction": "inverse"},
-    {"name": "preisach", "n": 6, "smoothness": 1e-4},
-    {"name": "stop_pi", "n_widths": 6, "segments": 3},
-    [{"name": "stop_pi", "n_widths": 6, "segments": 3}, {"name": "drift"}],
+    {"fit": "pi_nonneg", "n_widths": 6, "direction": "inverse"},
+    {"fit": "gpi", "n_widths": 6, "units": 2, "epochs": 30, "direction": "inverse"},
+    {"fit": "preisach", "n": 6, "smoothness": 1e-4},
+    {"fit": "stop_pi", "n_widths": 6, "segments": 3},
+    [{"fit": "stop_pi", "n_widths": 6, "segments": 3}, {"fit": "drift"}],
 ])
 def test_fitted_in_training_saved_and_exported(tmp_path, spec):
     """Through the Lightning module: fitted on the training split, restored from the
@@ -257,7 +257,7 @@ model:
   lr: 1.0
   select:
     - {{operator: null}}
-    - {{operator: [{{name: gpi, n_widths: 4, units: 2, epochs: 5}}]}}
+    - {{operator: [{{fit: gpi, n_widths: 4, units: 2, epochs: 5}}]}}
 {select_cv}data: {{dt: 0.05, t_end: 12.6, split: {split}}}
 """)
     return cfg
@@ -336,7 +336,7 @@ def test_identity_readout_is_affine():
 # --- jiles_atherton -----------------------------------------------------------------------
 CORE = dict(ms=3e5, a=18.0, k=13.0, alpha=1.2e-4, c=0.8)
 """A MnZn ferrite core (B in T, H in A/m)."""
-JA_FAST = {"name": "jiles_atherton", "starts": 2, "iterations": 20}
+JA_FAST = {"fit": "jiles_atherton", "starts": 2, "iterations": 20}
 
 
 def bh_loops(n: int = 64, scale: float = 1.0, mu0: float = 4e-7 * math.pi
@@ -395,13 +395,13 @@ def test_jiles_atherton_that_cannot_fit_raises_fit_error():
 
 
 @pytest.mark.parametrize("spec, match", [
-    ({"name": "jiles_atherton", "mu": 1.0}, r"unknown option\(s\) \['mu'\]"),
-    ({"name": "jiles_atherton", "mu0": 0.0}, "'jiles_atherton': mu0 must be a finite number > 0"),
-    ({"name": "jiles_atherton", "mu0": "4e-7"}, "'jiles_atherton': mu0 must be a finite"),
-    ({"name": "jiles_atherton", "mu0": float("inf")}, "mu0 must be a finite number > 0"),
-    ({"name": "jiles_atherton", "starts": 0}, "'jiles_atherton': starts must be"),
-    ({"name": "jiles_atherton", "iterations": 1.5}, "'jiles_atherton': iterations must be"),
-    ({"name": "jiles_atherton", "substeps": 0}, "'jiles_atherton': substeps must be"),
+    ({"fit": "jiles_atherton", "mu": 1.0}, r"unknown option\(s\) \['mu'\]"),
+    ({"fit": "jiles_atherton", "mu0": 0.0}, "'jiles_atherton': mu0 must be a finite number > 0"),
+    ({"fit": "jiles_atherton", "mu0": "4e-7"}, "'jiles_atherton': mu0 must be a finite"),
+    ({"fit": "jiles_atherton", "mu0": float("inf")}, "mu0 must be a finite number > 0"),
+    ({"fit": "jiles_atherton", "starts": 0}, "'jiles_atherton': starts must be"),
+    ({"fit": "jiles_atherton", "iterations": 1.5}, "'jiles_atherton': iterations must be"),
+    ({"fit": "jiles_atherton", "substeps": 0}, "'jiles_atherton': substeps must be"),
 ])
 def test_jiles_atherton_bad_options(spec, match):
     with pytest.raises(ValueError, match=match):
@@ -440,15 +440,15 @@ def test_jiles_atherton_fitted_in_training_saved_and_exported(tmp_path):
 
 
 DIRECT = [
-    {"name": "pi_nonneg", "n_widths": 8},
-    {"name": "gpi", "n_widths": 8, "units": 2, "epochs": 40},
-    {"name": "preisach", "n": 10},
-    {"name": "stop_pi", "n_widths": 8},
-    {"name": "drift"},
+    {"fit": "pi_nonneg", "n_widths": 8},
+    {"fit": "gpi", "n_widths": 8, "units": 2, "epochs": 40},
+    {"fit": "preisach", "n": 10},
+    {"fit": "stop_pi", "n_widths": 8},
+    {"fit": "drift"},
 ]
 
 
-@pytest.mark.parametrize("spec", DIRECT, ids=lambda s: s["name"])
+@pytest.mark.parametrize("spec", DIRECT, ids=lambda s: s["fit"])
 def test_family_fits_leave_the_warm_up_targets_out(spec):
     """The warm-up samples only run the states: targets spoiled there (the loop's initial
     curve from the zero state, here a jump and a ramp) change nothing in a model fitted in
@@ -462,8 +462,8 @@ def test_family_fits_leave_the_warm_up_targets_out(spec):
     torch.testing.assert_close(outputs[0], outputs[1], rtol=1e-9, atol=1e-9)
 
 
-@pytest.mark.parametrize("spec", [*DIRECT, {"name": "pi_nonneg", "direction": "inverse"}],
-                         ids=lambda s: s["name"] + s.get("direction", ""))
+@pytest.mark.parametrize("spec", [*DIRECT, {"fit": "pi_nonneg", "direction": "inverse"}],
+                         ids=lambda s: s["fit"] + s.get("direction", ""))
 def test_family_fits_leave_the_samples_outside_the_mask_out(spec):
     """A cross-validation fold's block and a shorter row's padding (False in the mask): the
     states run through them, their targets change nothing in the fit, and without the mask

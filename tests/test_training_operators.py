@@ -15,8 +15,10 @@ from _training_helpers import trainer
 from torchhys import EIHO, Backlash, PrandtlIshlinskii, ZhaoTanOperator
 from torchhys.functional import NonCausalWarning, backlash
 from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid
+from torchhys.operator import OPERATORS
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
-from torchhys.training.operators import build_operators, operator_names
+from torchhys.training.families import FAMILIES
+from torchhys.training.operators import FIT_FAMILIES, build_operators
 
 torch.set_num_threads(1)
 
@@ -30,36 +32,64 @@ def test_names_and_dicts_build_the_same_operators() -> None:
     by_dict, fit_b = build_operators([{"name": "eiho", "rule": "dominant"},
                                       {"name": "zhao_tan", "rule": "dominant"}])
     assert [type(m) for m in by_name] == [type(m) for m in by_dict] == [EIHO, ZhaoTanOperator]
+    assert [m.rule for m in by_name] == [m.rule for m in by_dict] == ["dominant"] * 2
     assert fit_a == fit_b == {}
     assert build_operators(None) == ([], {})
-    ops, fitters = build_operators({"name": "pi_ls", "n_widths": 7})
+    ops, fitters = build_operators({"fit": "pi_ls", "n_widths": 7})
     assert isinstance(ops[0], PrandtlIshlinskii) and ops[0].n_operators == 7
     assert list(fitters) == [0]
-    ops, fitters = build_operators([{"name": "plays", "widths": [0.1, 0.5]}, "eiho"])
+    ops, fitters = build_operators([{"fit": "plays", "widths": [0.1, 0.5]}, "eiho"])
     assert isinstance(ops[0], Backlash) and fitters == {}  # explicit widths: nothing to fit
+    given = Backlash(torch.tensor([0.2]))
+    ops, fitters = build_operators([given])
+    assert ops == [given] and fitters == {}
+
+
+def test_a_name_is_the_registered_operator_and_fit_the_family() -> None:
+    """``{"name": "preisach"}`` builds the registered Preisach with its options, nothing
+    fitted; ``{"fit": "preisach"}`` the family identified on the training data."""
+    (op,), fitters = build_operators({"name": "preisach", "n": 5, "lo": -1.0, "hi": 1.0})
+    assert type(op) is OPERATORS["preisach"] and fitters == {}
+    _, fitters = build_operators({"fit": "preisach", "n": 5})
+    assert list(fitters) == [0]
+    assert set(FIT_FAMILIES) == {"plays", "pi_ls", *FAMILIES}
+
+
+NOT_REGISTERED = r"no operator is registered as '{}'; registered names: \[.*'eiho'"
 
 
 @pytest.mark.parametrize("spec, error, match", [
-    ("no_such_op", ValueError, r"one of \[.*'eiho', .*'pi_ls'.*got 'no_such_op'"),
-    ({"name": "pi"}, ValueError, r"operator name must be one of \[.*'eiho'.*got 'pi'"),
-    ({"n": 3}, ValueError, r"has no 'name'; valid names: \[.*'eiho'"),
-    ({"name": "plays", "m": 3}, ValueError, r"unknown option\(s\) \['m'\]"),
-    ({"name": "pi_ls", "n_widths": 0}, ValueError, "n_widths must be an int >= 1, got 0"),
-    ({"name": "plays", "power": -1.0}, ValueError, "'plays': power must be a finite number > 0"),
-    ({"name": "plays", "span_fraction": 0}, ValueError, "span_fraction must be a finite number"),
-    ({"name": "plays", "learnable": "false"}, ValueError, "learnable must be true or false"),
-    ({"name": "pi_ls", "learnable": 1}, ValueError, "learnable must be true or false, got 1"),
-    ({"name": "pi_ls", "power": float("nan")}, ValueError, "'pi_ls': power must be a finite"),
-    ({"name": "pi_ls", "ridge": -1.0}, ValueError, "ridge must be a finite number >= 0"),
-    ({"name": "pi_ls", "ridge": "auto"}, ValueError, "ridge must be a finite number >= 0"),
-    ({"name": "pi_ls", "ridge": float("inf")}, ValueError, "ridge must be a finite number >= 0"),
-    ({"name": "eiho", "b": 1}, ValueError, "operator 'eiho'"),
-    (3, TypeError, "got int 3"),
+    ("no_such_op", ValueError, r"^operator\[0\]: " + NOT_REGISTERED.format("no_such_op")),
+    ({"name": "pi"}, ValueError, "^operator\\[0\\]: " + NOT_REGISTERED.format("pi")),
+    ({"fit": "pi"}, ValueError,
+     r"^operator\[0\]: no model family is called 'pi'; families: \[.*'pi_ls'.*'preisach'"),
+    ({"n": 3}, ValueError, r"^operator\[0\]: a spec dict needs a 'name' .* or a 'fit' "
+                           r"\(a model family: \[.*'pi_ls'"),
+    ({"name": "eiho", "fit": "pi_ls"}, ValueError, "has either 'name' .* or 'fit' .* got both"),
+    # a family's name as a registered name: the error says how to write the family
+    ("pi_ls", ValueError,
+     NOT_REGISTERED.format("pi_ls") + r".*is written \{fit: pi_ls, \.\.\.\}\)$"),
+    ({"name": "stop_pi", "n_widths": 8}, ValueError,
+     r"^operator\[0\] 'stop_pi': .*'n_widths'.*is written \{fit: stop_pi, \.\.\.\}\)$"),
+    ({"fit": "plays", "m": 3}, ValueError, r"^fit 'plays': unknown option\(s\) \['m'\]"),
+    ({"fit": "pi_ls", "n_widths": 0}, ValueError,
+     "^fit 'pi_ls': n_widths must be an int >= 1, got 0"),
+    ({"fit": "plays", "power": -1.0}, ValueError, "'plays': power must be a finite number > 0"),
+    ({"fit": "plays", "span_fraction": 0}, ValueError, "span_fraction must be a finite number"),
+    ({"fit": "plays", "learnable": "false"}, ValueError, "learnable must be true or false"),
+    ({"fit": "pi_ls", "learnable": 1}, ValueError, "learnable must be true or false, got 1"),
+    ({"fit": "pi_ls", "power": float("nan")}, ValueError, "'pi_ls': power must be a finite"),
+    ({"fit": "pi_ls", "ridge": -1.0}, ValueError, "ridge must be a finite number >= 0"),
+    ({"fit": "pi_ls", "ridge": "auto"}, ValueError, "ridge must be a finite number >= 0"),
+    ({"fit": "pi_ls", "ridge": float("inf")}, ValueError, "ridge must be a finite number >= 0"),
+    ({"fit": "stop_pi", "n_widths": 0}, ValueError, "^fit 'stop_pi': n_widths must be an int"),
+    ({"name": "eiho", "b": 1}, ValueError, "^operator\\[0\\] 'eiho': .*'b'"),
+    (3, TypeError, r"^operator\[0\] must be a registered operator name, .* got int 3$"),
 ])
 def test_bad_specs(spec, error, match) -> None:
-    assert {"eiho", "pi_ls", "plays", "zhao_tan", "backlash"} <= set(operator_names())
-    with pytest.raises(error, match=match):
+    with pytest.raises(error, match=match) as raised:
         build_operators([spec])
+    assert "\n" not in str(raised.value)
     with pytest.raises(error, match=match):
         InverseHysteresisModule(operator=[spec])
 
@@ -68,7 +98,7 @@ def test_pi_ls_and_plays_are_fitted_on_the_training_split() -> None:
     torch.manual_seed(0)
     dm = small_data(split=[0.6, 0.2, 0.2])
     module = InverseHysteresisModule(
-        operator=[{"name": "pi_ls", "n_widths": 12}, {"name": "plays", "n": 4, "power": 2.0,
+        operator=[{"fit": "pi_ls", "n_widths": 12}, {"fit": "plays", "n": 4, "power": 2.0,
                                                       "span_fraction": 0.5}],
         hidden=6, optimizer="cg")
     trainer(max_epochs=1).fit(module, dm)
@@ -87,7 +117,7 @@ def test_pi_ls_and_plays_are_fitted_on_the_training_split() -> None:
 def test_fitted_operators_live_in_the_checkpoint(tmp_path) -> None:
     torch.manual_seed(0)
     dm = small_data(split=[0.6, 0.2, 0.2])
-    spec = [{"name": "pi_ls", "n_widths": 10}, {"name": "plays", "n": 3}]
+    spec = [{"fit": "pi_ls", "n_widths": 10}, {"fit": "plays", "n": 3}]
     module = InverseHysteresisModule(operator=spec, hidden=6, optimizer="cg")
     t = trainer(max_epochs=2, enable_checkpointing=True, default_root_dir=tmp_path)
     t.fit(module, dm)
@@ -137,7 +167,7 @@ def test_least_squares_with_warmup_matches_numpy(warmup: int, ridge: float) -> N
 def test_the_training_loss_leaves_out_the_warmup() -> None:
     torch.manual_seed(0)
     dm = small_data(warmup=100)
-    module = InverseHysteresisModule(operator=[{"name": "pi_ls", "n_widths": 8}], hidden=6,
+    module = InverseHysteresisModule(operator=[{"fit": "pi_ls", "n_widths": 8}], hidden=6,
                                      optimizer="cg")
     t = trainer(max_epochs=2)
     t.fit(module, dm)
@@ -165,7 +195,7 @@ def test_segment_eiho_with_the_least_squares_pi() -> None:
         warnings.simplefilter("ignore", NonCausalWarning)
         module = InverseHysteresisModule(
             operator=[{"name": "eiho", "a": "segment", "a_formula": "sqrt"},
-                      {"name": "pi_ls", "n_widths": 30}], hidden=16, optimizer="cg")
+                      {"fit": "pi_ls", "n_widths": 30}], hidden=16, optimizer="cg")
     dm = small_data()
     t = trainer(max_epochs=20)
     t.fit(module, dm)

@@ -25,7 +25,7 @@ pytestmark = pytest.mark.filterwarnings("ignore:You are trying to `self.log\\(\\
 FERRITE = Path(__file__).resolve().parents[1] / "examples/data/mnzn_ferrite_bh_loops.csv"
 LENGTHS = {10: 40, 11: 30, 12: 50, 13: 24}
 """Synthetic recordings: run id -> samples (different lengths)."""
-OPERATORS = ["eiho", {"name": "plays", "widths": [0.2, 0.6]}]
+OPERATORS = ["eiho", {"fit": "plays", "widths": [0.2, 0.6]}]
 """Operators with a state (turning points, play outputs) and no data-dependent fit."""
 
 
@@ -245,7 +245,7 @@ trainer:
   enable_model_summary: false
 model:
   operator:
-    - name: pi_ls
+    - fit: pi_ls
       n_widths: 10
       power: 2.0
   hidden: 8

@@ -21,11 +21,11 @@ arguments that replace the ``model`` section's (an argument of the command, not 
 before the module is built)::
 
     model:
-      operator: [{name: pi_ls, n_widths: 20}]
+      operator: [{fit: pi_ls, n_widths: 20}]
       hidden: 8
       select:                                   # or --model.select '[{...}, ...]'
         - {}                                    # the section as it is
-        - {operator: [{name: plays, n: 8}], hidden: 16}
+        - {operator: [{fit: plays, n: 8}], hidden: 16}
         - {operator: null}                      # the plain network
       select_cv: null                           # k: blocked cross-validation instead,
                                                 # recording: leave one recording out

@@ -73,7 +73,7 @@ def _parser() -> argparse.ArgumentParser:
                         "(also TORCHHYS_TRACEBACK=1)")
     arch = p.add_argument_group("architecture of a plain state dict")
     arch.add_argument("--operator", help='e.g. eiho, zhao_tan, none, or a JSON list of names '
-                      'and specs such as {"name": "pi_ls", "n_widths": 30}')
+                      'and specs such as {"fit": "pi_ls", "n_widths": 30}')
     arch.add_argument("--hidden", type=int)
     arch.add_argument("--activation")
     arch.add_argument("--operator-kwargs", help="JSON object, e.g. '{\"rule\": \"dominant\"}'")
@@ -134,8 +134,8 @@ def build_net(ckpt: dict, arch: dict | None = None) -> InverseHysteresisNet:
         raise ValueError("a plain state dict needs the architecture (see --hidden)")
     else:
         state = ckpt
-    # operator specs as the training module reads them (names or {"name": ...} dicts);
-    # data-dependent ones (plays, pi_ls) get their fitted widths and weights from the state
+    # operator specs as the training module reads them (names, {"name": ...} and
+    # {"fit": ...} dicts); the fitted families get their widths and weights from the state
     operators, _ = build_operators(arch["operator"], arch.get("operator_kwargs") or {})
     net = InverseHysteresisNet(
         operators, arch["hidden"], activation=arch.get("activation") or "sigmoid",

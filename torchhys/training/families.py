@@ -6,42 +6,42 @@ units; ``jiles_atherton`` in the target's physical units); the network that read
 standardizes the operator's output) maps it back. They are the candidates of
 ``configs/measured.yaml`` and ``configs/magnetic.yaml``:
 
-- ``{"name": "pi_nonneg", "n_widths": 10, "power": 2.0, "ridge": "auto",
+- ``{"fit": "pi_nonneg", "n_widths": 10, "power": 2.0, "ridge": "auto",
   "direction": "direct"}``: a Prandtl-Ishlinskii model with non-negative weights
   (:func:`torchhys.identification.fitting.fit_prandtl_ishlinskii` with ``nonnegative=True``) of the
   target
   from the input (``direct``), or of the input from the target, then its exact inverse
   (``inverse``). Such a model draws loops of one orientation only, so the target's sign is
   chosen by the training fit (both signs are fitted).
-- ``{"name": "gpi", "n_widths": 10, "power": 2.0, "ridge": "auto", "units": 4,
+- ``{"fit": "gpi", "n_widths": 10, "power": 2.0, "ridge": "auto", "units": 4,
   "epochs": 1000, "direction": "direct"}``: :func:`torchhys.fit_generalized_pi` of the target
   (times the sign that makes it rise with the input) from the input, or of the input from
   it, then :class:`torchhys.GeneralizedPIInverse`.
-- ``{"name": "preisach", "n": 20, "smoothness": "auto", "grading": None,
+- ``{"fit": "preisach", "n": 20, "smoothness": "auto", "grading": None,
   "direction": "direct"}``: :func:`torchhys.fit_preisach` of the target from the input on a
   grid over the input's training range (``direct``), or of the input from the target, then
   its exact inverse (``inverse``, :class:`torchhys.PreisachInverse`: a magnetic core's flux
   density from its field, inverted into the compensator); both signs of the target fitted,
   the better kept. ``grading``: None for an even grid, or a graded one whose ``scale`` is
   that fraction of half the grid's span (:class:`torchhys.Preisach`).
-- ``{"name": "stop_pi", "n_widths": 20, "power": 2.0, "segments": 4, "ridge": "auto",
+- ``{"fit": "stop_pi", "n_widths": 20, "power": 2.0, "segments": 4, "ridge": "auto",
   "nonnegative": True}``: :func:`torchhys.fit_stop_pi`, stop operators with thresholds on
   :func:`~torchhys.identification.fitting.play_width_grid` of the input (up to its span: the
   largest make
   the memoryless part), each through a piecewise-linear characteristic of ``segments`` equal
   segments (non-negative slopes: a friction element with a nonlinear spring, whose loops run
   clockwise); both signs of the target fitted, the better kept.
-- ``{"name": "jiles_atherton", "mu0": 4e-7 pi, "starts": 8, "iterations": 60,
+- ``{"fit": "jiles_atherton", "mu0": 4e-7 pi, "starts": 8, "iterations": 60,
   "substeps": None}``: :func:`torchhys.fit_jiles_atherton`, the inverse Jiles-Atherton model
   of a magnetic core (the input the flux density B, the target the field H), fitted to the
   target in its physical units (``mu0``: input units per target unit of free space, the
   default for B in T and H in A/m). ``substeps`` (Euler steps per sample; None: enough that
   a sample step of the 0.99 quantile moves the input by at most 1/32 of its range, so that
   a few large jumps do not multiply the cost).
-- ``{"name": "drift", "scales": [0.5, 1, 2, 4, 8, 16, 32]}``: :func:`torchhys.fit_drift`, a
+- ``{"fit": "drift", "scales": [0.5, 1, 2, 4, 8, 16, 32]}``: :func:`torchhys.fit_drift`, a
   monotone, decelerating drift of the target with the input's accumulated variation
   (saturation scales in spans of the scored training input), weights of one sign; beside a
-  hysteresis model in one candidate (``[{name: stop_pi}, {name: drift}]``, one affine
+  hysteresis model in one candidate (``[{fit: stop_pi}, {fit: drift}]``, one affine
   readout of both) it shifts the loop as the device is used (the ratcheting of a
   shape-memory alloy). It is fitted beside a free slope in the input (not part of the
   drift), so that a loop's rise and fall with the input is not taken for a drift.
@@ -110,10 +110,10 @@ class FitError(ValueError):
 
 
 def _keys(spec: Mapping[str, Any], allowed: set[str]) -> None:
-    unknown = sorted(set(spec) - allowed - {"name"})
+    unknown = sorted(set(spec) - allowed - {"fit"})
     if unknown:
         raise ValueError(
-            f"operator {spec['name']!r}: unknown option(s) {unknown}; valid: {sorted(allowed)}"
+            f"fit {spec['fit']!r}: unknown option(s) {unknown}; valid: {sorted(allowed)}"
         )
 
 
@@ -121,16 +121,16 @@ def _penalty(spec: Mapping[str, Any], key: str) -> float | str:
     value = spec.get(key, "auto")
     if value == "auto":
         return value
-    return check_nonnegative(value, f"operator {spec['name']!r}: {key}",
+    return check_nonnegative(value, f"fit {spec['fit']!r}: {key}",
                              alternatives="'auto' or ")
 
 
 def _grid(spec: Mapping[str, Any], n_default: int) -> tuple[int, float, str]:
-    n = check_int(spec.get("n_widths", n_default), f"operator {spec['name']!r}: n_widths",
+    n = check_int(spec.get("n_widths", n_default), f"fit {spec['fit']!r}: n_widths",
                   minimum=1)
-    power = check_positive(spec.get("power", 2.0), f"operator {spec['name']!r}: power")
+    power = check_positive(spec.get("power", 2.0), f"fit {spec['fit']!r}: power")
     direction = check_choice(spec.get("direction", "direct"),
-                             f"operator {spec['name']!r}: direction", ["direct", "inverse"])
+                             f"fit {spec['fit']!r}: direction", ["direct", "inverse"])
     return n, power, direction
 
 
@@ -255,8 +255,8 @@ def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     _keys(spec, {"n_widths", "power", "ridge", "units", "epochs", "direction"})
     n, power, direction = _grid(spec, 10)
     ridge = _penalty(spec, "ridge")
-    units = check_int(spec.get("units", 4), "operator 'gpi': units", minimum=0)
-    epochs = check_int(spec.get("epochs", 1000), "operator 'gpi': epochs", minimum=1)
+    units = check_int(spec.get("units", 4), "fit 'gpi': units", minimum=0)
+    epochs = check_int(spec.get("epochs", 1000), "fit 'gpi': epochs", minimum=1)
 
     def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
         scored, known = _samples(x, warmup, mask)
@@ -313,12 +313,12 @@ def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
 
 def _preisach(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     _keys(spec, {"n", "smoothness", "grading", "direction"})
-    n = check_int(spec.get("n", 20), "operator 'preisach': n", minimum=2)
+    n = check_int(spec.get("n", 20), "fit 'preisach': n", minimum=2)
     smoothness = _penalty(spec, "smoothness")
     grading = spec.get("grading")
     if grading is not None:
-        grading = check_positive(grading, "operator 'preisach': grading (or null)")
-    direction = check_choice(spec.get("direction", "direct"), "operator 'preisach': direction",
+        grading = check_positive(grading, "fit 'preisach': grading (or null)")
+    direction = check_choice(spec.get("direction", "direct"), "fit 'preisach': direction",
                              ["direct", "inverse"])
 
     def one_sign(u: Tensor, out: Tensor, scored: Tensor, known: Tensor) -> Preisach:
@@ -365,10 +365,10 @@ def _preisach(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
 
 def _stop_pi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     _keys(spec, {"n_widths", "power", "segments", "ridge", "nonnegative"})
-    n = check_int(spec.get("n_widths", 20), "operator 'stop_pi': n_widths", minimum=1)
-    power = check_positive(spec.get("power", 2.0), "operator 'stop_pi': power")
-    segments = check_int(spec.get("segments", 4), "operator 'stop_pi': segments", minimum=1)
-    nonnegative = check_bool(spec.get("nonnegative", True), "operator 'stop_pi': nonnegative")
+    n = check_int(spec.get("n_widths", 20), "fit 'stop_pi': n_widths", minimum=1)
+    power = check_positive(spec.get("power", 2.0), "fit 'stop_pi': power")
+    segments = check_int(spec.get("segments", 4), "fit 'stop_pi': segments", minimum=1)
+    nonnegative = check_bool(spec.get("nonnegative", True), "fit 'stop_pi': nonnegative")
     ridge = _penalty(spec, "ridge")
 
     def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
@@ -407,9 +407,9 @@ def _drift(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     scales = spec.get("scales", DRIFT_SCALES)
     if (isinstance(scales, (str, bytes)) or not hasattr(scales, "__len__")
             or len(scales) == 0):
-        raise ValueError(f"operator 'drift': scales must be a non-empty list of positive "
+        raise ValueError(f"fit 'drift': scales must be a non-empty list of positive "
                          f"numbers (spans of the training input), got {scales!r}")
-    mult = [check_positive(c, "operator 'drift': scales[]") for c in scales]
+    mult = [check_positive(c, "fit 'drift': scales[]") for c in scales]
 
     def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
         scored, _ = _samples(x, warmup, mask)
@@ -429,13 +429,13 @@ def _substeps(x: Tensor) -> int:
 
 def _jiles_atherton(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     _keys(spec, {"mu0", "starts", "iterations", "substeps"})
-    mu0 = check_positive(spec.get("mu0", MU0), "operator 'jiles_atherton': mu0")
-    starts = check_int(spec.get("starts", 8), "operator 'jiles_atherton': starts", minimum=1)
-    iterations = check_int(spec.get("iterations", 60), "operator 'jiles_atherton': iterations",
+    mu0 = check_positive(spec.get("mu0", MU0), "fit 'jiles_atherton': mu0")
+    starts = check_int(spec.get("starts", 8), "fit 'jiles_atherton': starts", minimum=1)
+    iterations = check_int(spec.get("iterations", 60), "fit 'jiles_atherton': iterations",
                            minimum=1)
     substeps = spec.get("substeps")
     if substeps is not None:
-        substeps = check_int(substeps, "operator 'jiles_atherton': substeps", minimum=1)
+        substeps = check_int(substeps, "fit 'jiles_atherton': substeps", minimum=1)
 
     def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
         scored, _ = _samples(x, warmup, mask)

@@ -110,11 +110,12 @@ class InverseHysteresisModule(L.LightningModule):
     gradient clipping, accumulation or mixed precision raises ``ValueError`` when the
     module is attached to a ``Trainer`` for fitting.
 
-    Operators are given by name or as specs ``{"name": ..., **options}`` (see
-    :mod:`torchhys.training.operators`): ``eiho``, ``zhao_tan``, ``plays`` (play operators of the
-    input) and ``pi_ls`` (the least-squares Prandtl-Ishlinskii model of the target from the
-    input). Data-dependent operators (``plays`` widths from the input's span, ``pi_ls``) are
-    fitted on the training split with the normalization, once, and saved in checkpoints.
+    Operators are registered operators, given by name or as specs ``{"name": ...,
+    **options}`` (``eiho``, ``zhao_tan``, ...), or model families fitted on the training data,
+    ``{"fit": ..., **options}`` (``plays``: play operators of the input; ``pi_ls``: the
+    least-squares Prandtl-Ishlinskii model of the target from the input; ``preisach``,
+    ``stop_pi``, ...: see :mod:`torchhys.training.operators`). The families are fitted on the
+    training split with the normalization, once, and saved in checkpoints.
     Per-segment EIHOs (``operator_kwargs={"a": "segment"}``, not causal) get the batch's
     targets as ``target``. Operator outputs that depend on no trainable parameter are
     computed once per batch (and cached across epochs), not in every closure call.
@@ -124,9 +125,9 @@ class InverseHysteresisModule(L.LightningModule):
             ``fit_normalization`` like :class:`torchhys.InverseHysteresisNet`); when given,
             ``operator``, ``hidden``, ``activation``, ``operator_kwargs`` are ignored and
             ``load_from_checkpoint`` needs it passed again.
-        operator: ``"eiho"``, ``"zhao_tan"``, a spec dict such as ``{"name": "pi_ls",
-            "n_widths": 30}`` or ``{"name": "plays", "n": 16}``, a list of those, or None
-            (plain network).
+        operator: ``"eiho"``, ``"zhao_tan"``, a spec dict such as ``{"name": "eiho",
+            "rule": "dominant"}``, ``{"fit": "pi_ls", "n_widths": 30}`` or ``{"fit": "plays",
+            "n": 16}``, a list of those, or None (plain network).
         hidden: hidden units.
         activation: hidden activation (``"sigmoid"`` in the paper).
         operator_kwargs: keyword arguments of the operators given by name only (e.g.

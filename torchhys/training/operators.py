@@ -1,28 +1,33 @@
-"""Operators of the expanded input space from config specs (names and keyword dicts).
+"""Operators of the expanded input space from config specs: registered operators and the
+model families fitted on the training data.
 
-A spec is a name (``"eiho"``, ``"zhao_tan"``: the module's ``operator_kwargs`` apply) or a
-dict ``{"name": NAME, **kwargs}``:
+A spec of ``model.operator`` is one of:
 
-- any operator registered in :data:`torchhys.operator.OPERATORS` (``"eiho"``,
-  ``"zhao_tan"``, ``"backlash"``, ``"prandtl_ishlinskii"``, and whatever a user registers
-  with :func:`torchhys.operator.register_operator`): ``{"name": NAME, **its kwargs}``;
-- ``{"name": "plays", "n": 16, "power": 1.0, "span_fraction": 1.0, "learnable": False}``:
-  :class:`torchhys.Backlash` of the input, full widths
-  ``span_fraction * span(x_train) (k / n)^power``, ``k = 1..n`` (or explicit ``widths``);
-- ``{"name": "pi_ls", "n_widths": 30, "power": 3.0, "ridge": 0.0, "learnable": False}``:
-  the least-squares Prandtl-Ishlinskii model of the target from the input
-  (:func:`torchhys.identification.fitting.fit_prandtl_ishlinskii` on
-  :func:`~torchhys.identification.fitting.play_width_grid`);
-- ``pi_nonneg``, ``gpi``, ``preisach``, ``stop_pi``, ``jiles_atherton``, ``drift``:
-  constrained model families identified on the training split
-  (:mod:`torchhys.training.families`); their names stand for the family, not for the
-  registered operator of the same name (build that one in Python, e.g.
-  :func:`torchhys.operator.make_operator`).
+- an operator spec of :func:`torchhys.operator.make_operator`: a registered name (``"eiho"``,
+  ``"zhao_tan"``: the module's ``operator_kwargs`` apply) or a dict ``{"name": NAME,
+  **kwargs}`` of any operator in :data:`torchhys.operator.OPERATORS` (``"eiho"``,
+  ``"backlash"``, ``"preisach"``, ``"cascade"``, whatever a user registers with
+  :func:`torchhys.operator.register_operator`), built as it stands;
+- a model family fitted on the training split when fitting starts, ``{"fit": FAMILY,
+  **options}`` (:data:`FIT_FAMILIES`):
 
-All of them are causal except an EIHO with ``a="segment"``. ``plays`` (without ``widths``)
-and ``pi_ls`` depend on the training data: they are built as placeholders of the right
-shape and fitted by :func:`fit_data_dependent` on the training split when fitting starts;
-their widths and weights are buffers (or parameters) of the network, so checkpoints and
+  - ``{"fit": "plays", "n": 16, "power": 1.0, "span_fraction": 1.0, "learnable": False}``:
+    :class:`torchhys.Backlash` of the input, full widths
+    ``span_fraction * span(x_train) (k / n)^power``, ``k = 1..n`` (or explicit ``widths``:
+    nothing to fit);
+  - ``{"fit": "pi_ls", "n_widths": 30, "power": 3.0, "ridge": 0.0, "learnable": False}``:
+    the least-squares Prandtl-Ishlinskii model of the target from the input
+    (:func:`torchhys.identification.fitting.fit_prandtl_ishlinskii` on
+    :func:`~torchhys.identification.fitting.play_width_grid`);
+  - ``pi_nonneg``, ``gpi``, ``preisach``, ``stop_pi``, ``jiles_atherton``, ``drift``:
+    constrained model families (:mod:`torchhys.training.families`).
+
+  ``{"fit": "preisach"}`` is the Preisach model identified on the data; ``{"name":
+  "preisach"}`` the registered operator with the options given.
+
+All of them are causal except an EIHO with ``a="segment"``. A family is built as a
+placeholder of the right shape and fitted by :func:`fit_data_dependent` on the training
+split; its widths and weights are buffers (or parameters) of the network, so checkpoints and
 exports carry them.
 """
 
@@ -36,7 +41,6 @@ from torch import Tensor, nn
 
 from torchhys import Backlash, PrandtlIshlinskii
 from torchhys._checks import (
-    check_choice,
     check_int,
     check_nonnegative,
     check_positive,
@@ -44,16 +48,14 @@ from torchhys._checks import (
     fitted_samples,
 )
 from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid
-from torchhys.operator import OPERATORS, load_entry_points, make_operator
+from torchhys.operator import HysteresisOperator, make_operator
 from torchhys.training.families import FAMILIES
 
-__all__ = [
-    "FITTED_OPERATORS", "OperatorSpec", "build_operators", "fit_data_dependent",
-    "operator_names",
-]
+__all__ = ["FIT_FAMILIES", "OperatorSpec", "build_operators", "fit_data_dependent"]
 
-OperatorSpec = str | Mapping[str, Any]
-"""``"eiho"``, ``"zhao_tan"`` or ``{"name": NAME, **kwargs}``."""
+OperatorSpec = str | Mapping[str, Any] | HysteresisOperator
+"""``"eiho"``, ``{"name": NAME, **kwargs}``, ``{"fit": FAMILY, **options}`` or an
+operator."""
 
 Fitter = Callable[[Tensor, Tensor, int, Tensor | None], nn.Module]
 """Builds the fitted operator from the training input and target, (batch, time) each, the
@@ -63,21 +65,21 @@ through them; None: all)."""
 
 
 def _positive_int(spec: Mapping[str, Any], key: str, default: int) -> int:
-    return check_int(spec.get(key, default), f"operator {spec.get('name')!r}: {key}", minimum=1)
+    return check_int(spec.get(key, default), f"fit {spec['fit']!r}: {key}", minimum=1)
 
 
 def _check_keys(spec: Mapping[str, Any], allowed: set[str]) -> None:
-    unknown = sorted(set(spec) - allowed - {"name"})
+    unknown = sorted(set(spec) - allowed - {"fit"})
     if unknown:
         raise ValueError(
-            f"operator {spec['name']!r}: unknown option(s) {unknown}; valid: {sorted(allowed)}"
+            f"fit {spec['fit']!r}: unknown option(s) {unknown}; valid: {sorted(allowed)}"
         )
 
 
 def _flag(spec: Mapping[str, Any], key: str) -> bool:
     value = spec.get(key, False)
     if not isinstance(value, bool):
-        raise ValueError(f"operator {spec['name']!r}: {key} must be true or false, got {value!r}")
+        raise ValueError(f"fit {spec['fit']!r}: {key} must be true or false, got {value!r}")
     return value
 
 
@@ -93,8 +95,8 @@ def _plays(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter | None]:
         widths = torch.as_tensor(spec["widths"], dtype=torch.get_default_dtype())
         return Backlash(widths, learnable=learnable), None
     n = _positive_int(spec, "n", 16)
-    power = check_positive(spec.get("power", 1.0), "operator 'plays': power")
-    fraction = check_positive(spec.get("span_fraction", 1.0), "operator 'plays': span_fraction")
+    power = check_positive(spec.get("power", 1.0), "fit 'plays': power")
+    fraction = check_positive(spec.get("span_fraction", 1.0), "fit 'plays': span_fraction")
 
     def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
         return Backlash(fraction * play_width_grid(_known(x, mask), n, power=power),
@@ -106,8 +108,8 @@ def _plays(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter | None]:
 def _pi_ls(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     _check_keys(spec, {"n_widths", "power", "ridge", "learnable"})
     n = _positive_int(spec, "n_widths", 30)
-    power = check_positive(spec.get("power", 3.0), "operator 'pi_ls': power")
-    ridge = check_nonnegative(spec.get("ridge", 0.0), "operator 'pi_ls': ridge")
+    power = check_positive(spec.get("power", 3.0), "fit 'pi_ls': power")
+    ridge = check_nonnegative(spec.get("ridge", 0.0), "fit 'pi_ls': ridge")
     learnable = _flag(spec, "learnable")
 
     def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
@@ -120,67 +122,70 @@ def _pi_ls(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     return placeholder, fit
 
 
-FITTED_OPERATORS: dict[str, Callable[[Mapping[str, Any]], tuple[nn.Module, Fitter | None]]] = {
+FIT_FAMILIES: dict[str, Callable[[Mapping[str, Any]], tuple[nn.Module, Fitter | None]]] = {
     "plays": _plays,
     "pi_ls": _pi_ls,
     **FAMILIES,
 }
-"""Config operators fitted on the training data, by name: each builder returns
-``(module, fitter or None)``. Every other name is built by
-:func:`torchhys.operator.make_operator`."""
+"""The model families of the specs ``{"fit": FAMILY, **options}``, by name: each builder
+takes the spec and returns ``(placeholder module, fitter or None)``."""
 
 
-def operator_names() -> list[str]:
-    """Every operator name a spec may use (the installed packages' entry points loaded)."""
-    load_entry_points()
-    return sorted(set(FITTED_OPERATORS) | set(OPERATORS))
+def _build(spec: object, argument: str, operator_kwargs: Mapping[str, Any]
+           ) -> tuple[nn.Module, Fitter | None]:
+    """One spec's module and fitter (None: nothing to fit)."""
+    if isinstance(spec, Mapping) and "fit" in spec:
+        family = spec["fit"]
+        if "name" in spec:
+            raise ValueError(f"{argument}: a spec has either 'name' (a registered operator) "
+                             f"or 'fit' (a model family), got both: {dict(spec)!r}")
+        if not isinstance(family, str) or family not in FIT_FAMILIES:
+            raise ValueError(f"{argument}: no model family is called {family!r}; families: "
+                             f"{sorted(FIT_FAMILIES)}")
+        return FIT_FAMILIES[family](spec)
+    if isinstance(spec, Mapping) and "name" not in spec:
+        raise ValueError(f"{argument}: a spec dict needs a 'name' (a registered operator) or "
+                         f"a 'fit' (a model family: {sorted(FIT_FAMILIES)}), got {dict(spec)!r}")
+    try:
+        return make_operator(spec, argument=argument,
+                             **operator_kwargs if isinstance(spec, str) else {}), None
+    except (ValueError, TypeError) as err:
+        name = spec if isinstance(spec, str) else (
+            spec.get("name") if isinstance(spec, Mapping) else None)
+        if isinstance(name, str) and name in FIT_FAMILIES:
+            raise type(err)(f"{err} (the model family fitted on the training data is "
+                            f"written {{fit: {name}, ...}})") from None
+        raise
 
 
 def build_operators(
     operator: OperatorSpec | Sequence[OperatorSpec] | None,
     operator_kwargs: Mapping[str, Any] | None = None,
 ) -> tuple[list[nn.Module], dict[int, Fitter]]:
-    """Operator modules of a spec (or list of specs), and fitters of the data-dependent ones.
+    """Operator modules of a spec (or list of specs), and fitters of the model families.
 
     Args:
         operator: a spec, a list of specs, or None (no operator: the plain network).
-        operator_kwargs: keyword arguments of specs given by name only (``"eiho"``).
+        operator_kwargs: keyword arguments of the operators given by name alone
+            (``"eiho"``).
 
     Returns:
         ``(modules, fitters)``: ``fitters[i]`` builds the fitted ``modules[i]`` from training
         data (see :func:`fit_data_dependent`).
 
     Raises:
-        ValueError: an unknown name (the message lists the valid ones), a dict without
-            ``name``, unknown or bad options.
-        TypeError: a spec that is neither a name nor a dict.
+        ValueError: an unknown operator or family name (the message lists the valid ones),
+            a dict with neither or both of ``name`` and ``fit``, unknown or bad options.
+        TypeError: a spec that is neither a name, a dict nor an operator.
     """
     if operator is None:
         return [], {}
-    load_entry_points()
-    specs = list(operator) if isinstance(operator, (list, tuple)) else [operator]
+    several = isinstance(operator, (list, tuple))
+    specs = list(operator) if several else [operator]
     modules, fitters = [], {}
     for i, spec in enumerate(specs):
-        if isinstance(spec, str):
-            spec = {"name": spec, **dict(operator_kwargs or {})}
-        elif isinstance(spec, Mapping):
-            if "name" not in spec:
-                raise ValueError(
-                    f"operator spec {dict(spec)!r} has no 'name'; valid names: {operator_names()}"
-                )
-        else:
-            raise TypeError(
-                f"operator must be a name, a dict with 'name', a list of them or None, got "
-                f"{type(spec).__name__} {spec!r}"
-            )
-        name = spec["name"]
-        if name in FITTED_OPERATORS:
-            module, fitter = FITTED_OPERATORS[name](spec)
-        elif name in OPERATORS:
-            module, fitter = make_operator(name, **{k: v for k, v in spec.items()
-                                                     if k != "name"}), None
-        else:
-            check_choice(name, "operator name", operator_names())
+        module, fitter = _build(spec, f"operator[{i}]" if several else "operator",
+                                operator_kwargs or {})
         modules.append(module)
         if fitter is not None:
             fitters[i] = fitter

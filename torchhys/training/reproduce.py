@@ -51,7 +51,7 @@ def model_kwargs(model: str, h: torch.Tensor) -> dict:
         return {"operator": "eiho", "operator_kwargs": {"a": "segment", "a_formula": "sqrt"}}
     if model == "eiho_pi":  # expanded input space: the EIHO and the least-squares PI of h
         return {"operator": [{"name": "eiho", "a": "segment", "a_formula": "sqrt"},
-                             {"name": "pi_ls", "n_widths": 30}]}
+                             {"fit": "pi_ls", "n_widths": 30}]}
     if model == "zhao_tan":  # input scale near the input's spread (s = 1 leaves f ~ x + c)
         return {"operator": "zhao_tan", "operator_kwargs": {"scale": float(h.std()) / 5}}
     return {"operator": None}  # "mlp"
