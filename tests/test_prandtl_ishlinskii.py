@@ -86,9 +86,9 @@ def test_inverse_state_and_a_linear_inverse_check_their_input():
     linear = PrandtlIshlinskii(torch.tensor([0.0]), torch.tensor([0.5]),
                                linear_weight=0.5).inverse()
     assert linear.widths.numel() == 0
-    with pytest.raises(ValueError, match="y must be finite"):
+    with pytest.raises(ValueError, match="x must be finite"):
         linear(torch.tensor([0.0, math.nan]))
-    with pytest.raises(ValueError, match=r"y must have shape \(time,\)"):
+    with pytest.raises(ValueError, match=r"x must have shape \(time,\)"):
         linear(torch.zeros(2, 3, 4))
 
 

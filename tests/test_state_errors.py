@@ -30,9 +30,9 @@ def test_the_functional_stop_model_names_p0() -> None:
         stop_pi(X, W, weights, p0=torch.tensor([0.0, float("inf")], dtype=torch.float64))
 
 
-def test_the_pi_inverse_names_its_input_y_and_checks_a_linear_models_state() -> None:
+def test_the_pi_inverse_names_its_input_x_and_checks_a_linear_models_state() -> None:
     inverse = torchhys.PrandtlIshlinskii(W, linear_weight=1.0).inverse()
-    with pytest.raises(ValueError, match=r"^y must be finite"):
+    with pytest.raises(ValueError, match=r"^x must be finite"):
         inverse(torch.tensor([0.0, float("nan")], dtype=torch.float64))
     _, good = inverse(X)
     with pytest.raises(ValueError, match=r"^state must have shape"):

@@ -196,13 +196,16 @@ class PrandtlIshlinskii(_Widths, HysteresisOperator):
         return p.cumulative[1:].to(z.dtype) * z + tail
 
 
-class PrandtlIshlinskiiInverse(nn.Module):
-    """The analytic inverse of a :class:`PrandtlIshlinskii` model: a compensator.
+class PrandtlIshlinskiiInverse(HysteresisOperator):
+    """The analytic inverse of a :class:`PrandtlIshlinskii` model, as an operator: a
+    compensator.
 
     The inverse is itself a Prandtl-Ishlinskii model of the *output*, with the
     play thresholds and weights of the classical inversion rule (see
     :func:`torchhys.functional.prandtl_ishlinskii_inverse_parameters`). Feeding a
-    desired output y_d through it gives the command u with ``H[u] = y_d``.
+    desired output y_d through it gives the command u with ``H[u] = y_d``. Fixed (buffers
+    only); with no ``model``, the identity (one play of width 0 and weight 0, linear weight
+    1) of the right kind for ``load_state_dict``.
 
     Args:
         model: the Prandtl-Ishlinskii model to invert (its parameters are copied).
@@ -212,40 +215,56 @@ class PrandtlIshlinskiiInverse(nn.Module):
             (e.g. the paper's plant, which has no linear term).
 
     Shape:
-        - y: desired output, (time,) or (batch, time)
+        - x: the desired output, (time,) or (batch, time)
         - state: inverse play state, (M,) or (batch, M); zeros if None (matching a
           forward model at zero state); see :meth:`PrandtlIshlinskii.inverse_state`
-        - returns ``(u, final_state)``, u the shape of y.
+        - returns ``(u, final_state)``, u the shape of x.
     """
 
-    def __init__(self, model: PrandtlIshlinskii) -> None:
-        super().__init__()
-        p = prandtl_ishlinskii_inverse_parameters(
-            model.get_widths().detach(), model.weights.detach(), model.linear_weight.detach()
-        )
-        self.register_buffer("widths", p.widths.clone())
-        self.register_buffer("weights", p.weights.clone())
-        self.register_buffer("linear_weight", p.linear_weight.clone())
+    n_outputs: int = 1
+    constraints = {"widths": "nonnegative", "weights": "finite", "linear_weight": "finite"}
 
-    def forward(self, y: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        as_batched_sequence(y, "y")  # its input is y (backlash would name it x)
-        check_play_state(state, y, self.widths.shape[0], "state")
+    def __init__(self, model: PrandtlIshlinskii | None = None) -> None:
+        super().__init__()
+        if model is None:
+            dtype = torch.get_default_dtype()
+            widths, weights, w0 = (torch.zeros(1, dtype=dtype), torch.zeros(1, dtype=dtype),
+                                   torch.ones((), dtype=dtype))
+        else:
+            if not isinstance(model, PrandtlIshlinskii):
+                raise TypeError(f"model must be a PrandtlIshlinskii, got "
+                                f"{type(model).__name__}")
+            p = prandtl_ishlinskii_inverse_parameters(
+                model.get_widths().detach(), model.weights.detach(),
+                model.linear_weight.detach())
+            widths, weights, w0 = p.widths, p.weights, p.linear_weight
+        self.register_buffer("widths", widths.clone())
+        self.register_buffer("weights", weights.clone())
+        self.register_buffer("linear_weight", w0.clone())
+
+    def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        as_batched_sequence(x, "x")
+        check_play_state(state, x, self.widths.shape[0], "state")
         if self.widths.numel() == 0:  # purely linear model
-            return self.linear_weight.to(y.dtype) * y, y.new_zeros(y.shape[:-1] + (0,))
-        z = backlash(y, self.widths, y0=state)
-        u = pi_output(y, z, self.weights.to(z.dtype), self.linear_weight.to(z.dtype))
+            return self.linear_weight.to(x.dtype) * x, x.new_zeros(x.shape[:-1] + (0,))
+        z = backlash(x, self.widths.to(x.dtype), y0=state)
+        u = pi_output(x, z, self.weights.to(z.dtype), self.linear_weight.to(z.dtype))
         return u, z[..., -1, :]
 
-    def streaming_steps(self, dtype: torch.dtype) -> list[OperatorStep]:
-        """The compensator's steps: the inverse is one Prandtl-Ishlinskii step of y.
+    def streaming_step(self, dtype: torch.dtype) -> PIStep:
+        """The per-sample step: one Prandtl-Ishlinskii step of the desired output.
 
         Raises:
             ValueError: a purely linear inverse (no play operator) needs no compensator.
         """
         if self.widths.numel() == 0:
             raise ValueError("a purely linear PrandtlIshlinskiiInverse needs no compensator")
-        return [PIStep(self.widths.to(dtype), self.weights.to(dtype),
-                       self.linear_weight.to(dtype))]
+        return PIStep(self.widths.to(dtype), self.weights.to(dtype),
+                      self.linear_weight.to(dtype))
+
+    def streaming_steps(self, dtype: torch.dtype) -> list[OperatorStep]:
+        """The compensator's steps, used as a model on its own: its one step."""
+        return [self.streaming_step(dtype)]
 
     def streaming_head(self, dtype: torch.dtype) -> nn.Module:
         """The command is the step's feature (column 1 after the input's column 0)."""
@@ -268,3 +287,15 @@ register_operator("prandtl_ishlinskii", PrandtlIshlinskii, example=Example(
                               torch.tensor([0.5, 0.3, 0.2], dtype=torch.float64),
                               linear_weight=0.4, nonnegative=True),
     bad_values={"weights": -1.0, "fixed_widths": -1.0}))
+
+
+def _inverse_example() -> PrandtlIshlinskiiInverse:
+    """The inverse of the forward example (three plays, one of width 0)."""
+    return PrandtlIshlinskiiInverse(PrandtlIshlinskii(
+        torch.tensor([0.0, 0.3, 0.8], dtype=torch.float64),
+        torch.tensor([0.5, 0.3, 0.2], dtype=torch.float64), linear_weight=0.4,
+        nonnegative=True))
+
+
+register_operator("prandtl_ishlinskii_inverse", PrandtlIshlinskiiInverse, example=Example(
+    _inverse_example, bad_values={"widths": -1.0, "weights": float("nan")}))
