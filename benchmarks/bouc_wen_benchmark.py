@@ -113,9 +113,10 @@ def train(name: str, d: dict[str, torch.Tensor], fs: float, quick: bool,
         model: torch.nn.Module = BoucWenOscillator(**coef, fs=fs, substeps=2)
         kind, window = "grey_box", 128
     else:
-        element = {"feedback-duhem": {"kind": "duhem", "hidden": 0},
-                   "feedback-duhem-net": {"kind": "duhem", "hidden": 8},
-                   "feedback-plays": {"kind": "plays", "widths": PLAY_WIDTHS, "hidden": 16}}[name]
+        element = {"feedback-duhem": {"name": "duhem", "hidden": 0},
+                   "feedback-duhem-net": {"name": "duhem", "hidden": 8},
+                   "feedback-plays": {"name": "play_hysteresis", "widths": PLAY_WIDTHS,
+                                      "hidden": 16}}[name]
         torch.manual_seed(0)
         model = HysteresisFeedback(2, element, fs=fs, u_scale=float(lin.u_scale),
                                    y_scale=float(lin.y_scale))

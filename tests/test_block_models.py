@@ -17,17 +17,19 @@ from torchhys.models import (
     DuhemHysteresis,
     HysteresisFeedback,
     LinearModel,
+    PlayHysteresis,
     fit_linear,
     fit_windows,
     init_from_linear,
     simulate,
 )
 from torchhys.models.bouc_wen_oscillator import _NODES, _lagrange
+from torchhys.operator import make_operator
 from torchhys.plants import bouc_wen_state
 
 FS = 750.0
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "bouc_wen_benchmark.npz"
-PLAYS = {"kind": "plays", "widths": [0.5, 1.0, 1.5], "hidden": 4}
+PLAYS = {"name": "play_hysteresis", "widths": [0.5, 1.0, 1.5], "hidden": 4}
 
 
 def force(T: int = 200, batch: int | None = None, seed: int = 0) -> torch.Tensor:
@@ -59,7 +61,7 @@ def feedback(element: dict) -> HysteresisFeedback:
 
 MODELS = {
     "linear": lambda: LinearModel(3, fs=FS, u_scale=50.0, y_scale=1e-3),
-    "duhem": lambda: feedback({"kind": "duhem", "hidden": 3}),
+    "duhem": lambda: feedback({"name": "duhem", "hidden": 3}),
     "plays": lambda: feedback(PLAYS),
     "grey_box": lambda: BoucWenOscillator(**BENCHMARK, fs=FS, substeps=2, learn_exponent=True),
 }
@@ -205,7 +207,7 @@ def test_duhem_element_equals_the_bouc_wen_plant() -> None:
 @pytest.mark.parametrize("kind", ["duhem", "plays"])
 def test_element_is_rate_independent(kind: str) -> None:
     """Repeating samples (the same path, slower) leaves the outputs at the samples alone."""
-    element = feedback({"kind": "duhem", "hidden": 3} if kind == "duhem" else PLAYS).H
+    element = feedback({"name": "duhem", "hidden": 3} if kind == "duhem" else PLAYS).H
     v = force(80).unsqueeze(0) / 50
     with torch.no_grad():
         z, _ = element(v)
@@ -215,7 +217,7 @@ def test_element_is_rate_independent(kind: str) -> None:
 
 def test_feedback_model_starts_as_the_linear_model() -> None:
     G = linear_block()
-    model = HysteresisFeedback(2, {"kind": "duhem"}, fs=FS, u_scale=50.0, y_scale=1e-3)
+    model = HysteresisFeedback(2, {"name": "duhem"}, fs=FS, u_scale=50.0, y_scale=1e-3)
     init_from_linear(model, G, fraction=0.6)
     u = force(300)
     with torch.no_grad():
@@ -236,6 +238,19 @@ def test_true_coefficients_reproduce_the_benchmark_output() -> None:
 
 
 # --- save and load -------------------------------------------------------------------------
+
+def test_the_element_is_an_operator_spec_or_an_operator() -> None:
+    """``element`` goes through make_operator; ``config()`` gives the spec that rebuilds it."""
+    by_spec = HysteresisFeedback(2, {"name": "play_hysteresis", "widths": [0.5, 1.0],
+                                     "hidden": 2}, fs=FS)
+    assert type(by_spec.H) is PlayHysteresis and by_spec.state_size == 2 * 2 + 2
+    spec = by_spec.config()["element"]
+    assert spec == {"name": "play_hysteresis", "widths": [0.0, 0.0], "hidden": 2}
+    assert type(make_operator(spec)) is PlayHysteresis
+    element = DuhemHysteresis(hidden=1)
+    assert HysteresisFeedback(2, element, fs=FS).H is element
+    assert HysteresisFeedback(2, fs=FS).config()["element"] == {"name": "duhem", "hidden": 0}
+
 
 @pytest.mark.parametrize("name", list(MODELS))
 def test_config_and_state_dict_rebuild_the_model(name: str, tmp_path: Path) -> None:
@@ -327,9 +342,14 @@ def test_other_bad_input() -> None:
         BoucWenOscillator(m=0.0, fs=FS)
     with pytest.raises(ValueError, match="interpolation must be one of"):
         BoucWenOscillator(fs=FS, interpolation="sinc")
-    with pytest.raises(ValueError, match="element kind must be"):
-        HysteresisFeedback(2, {"kind": "preisach"}, fs=FS)
-    fb = HysteresisFeedback(2, {"kind": "duhem"}, fs=FS)
+    with pytest.raises(ValueError, match=r"^element: no operator is registered as 'duhm'; "
+                                         r"registered names: \[.*'duhem'.*'play_hysteresis'"):
+        HysteresisFeedback(2, {"name": "duhm"}, fs=FS)
+    with pytest.raises(ValueError, match=r"^element: a spec dict needs a 'name'"):
+        HysteresisFeedback(2, {"kind": "duhem"}, fs=FS)
+    with pytest.raises(TypeError, match=r"^element must be a feedback element .* got EIHO$"):
+        HysteresisFeedback(2, "eiho", fs=FS)
+    fb = HysteresisFeedback(2, "duhem", fs=FS)
     with pytest.raises(ValueError, match=r"fraction must be a float in \[0, 1\)"):
         init_from_linear(fb, linear_block(), fraction=1.0)
     with pytest.raises(ValueError, match="G must have the model's order 2"):

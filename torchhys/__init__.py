@@ -8,6 +8,7 @@ from torchhys import (
     deploy,
     dynamics,
     identification,
+    models,
     operator,
     operators,
     optim,

@@ -8,8 +8,10 @@ output itself::
     z[t] = H[y](t)                            (a hysteretic element, rate-independent)
 
 ``G_u`` and ``G_z`` are :class:`torchhys.dynamics.TransferFunction` blocks (stable, poles in
-second-order sections); ``H`` is a :class:`~torchhys.models.hysteretic_elements.
-DuhemHysteresis` or a :class:`~torchhys.models.hysteretic_elements.PlayHysteresis`. Signals
+second-order sections); ``H`` is a feedback element
+(:class:`~torchhys.models.hysteretic_elements.FeedbackElement`: a
+:class:`~torchhys.models.hysteretic_elements.DuhemHysteresis` or a
+:class:`~torchhys.models.hysteretic_elements.PlayHysteresis`). Signals
 are scaled inside (``u / u_scale``, ``y / y_scale``, so ``H`` sees numbers of order one).
 
 It contains the Bouc-Wen oscillator, ``y = G (u - z)``, ``z = BW[y]``, up to sampling, but
@@ -41,7 +43,8 @@ from torchhys._checks import as_batched_sequence, check_int
 from torchhys.dynamics import TransferFunction
 from torchhys.functional.linear_filter import df2t_step
 from torchhys.models._common import check_fs, check_state, scale_buffer
-from torchhys.models.hysteretic_elements import make_element
+from torchhys.models.hysteretic_elements import FeedbackElement
+from torchhys.operator import make_operator
 
 __all__ = ["HysteresisFeedback"]
 
@@ -51,8 +54,10 @@ class HysteresisFeedback(nn.Module):
 
     Args:
         order: order of ``G_u`` and ``G_z``.
-        element: the element's config, e.g. ``{"kind": "duhem", "hidden": 0}`` or
-            ``{"kind": "plays", "widths": [...], "hidden": 16}``.
+        element: the feedback element, as an operator spec
+            (:func:`torchhys.operator.make_operator`), e.g. ``{"name": "duhem", "hidden": 0}``
+            (the default) or ``{"name": "play_hysteresis", "widths": [...], "hidden": 16}``,
+            or a :class:`~torchhys.models.hysteretic_elements.FeedbackElement`.
         fs: sampling frequency the model is identified at (Hz).
         u_scale, y_scale: the input and output units (e.g. their standard deviations).
         max_pole_radius: the pole bounds of ``G_u`` and ``G_z`` (:meth:`set_blocks` may
@@ -64,17 +69,22 @@ class HysteresisFeedback(nn.Module):
         - returns ``(y, state)``: y of u's shape, the state after the last sample.
     """
 
-    def __init__(self, order: int = 2, element: dict[str, object] | None = None, *,
+    def __init__(self, order: int = 2, element: str | dict[str, object] | FeedbackElement |
+                 None = None, *,
                  fs: float, u_scale: float = 1.0, y_scale: float = 1.0,
                  max_pole_radius: Sequence[float] = (0.999, 0.999)) -> None:
         super().__init__()
         self.order = check_int(order, "order", minimum=1)
         self.fs = check_fs(fs, "fs")
-        self.element_config = dict(element or {"kind": "duhem", "hidden": 0})
         r_u, r_z = max_pole_radius
         self.G_u = TransferFunction(self.order, max_pole_radius=r_u)
         self.G_z = TransferFunction(self.order, feedthrough=False, max_pole_radius=r_z)
-        self.H = make_element(self.element_config)
+        self.H = make_operator({"name": "duhem", "hidden": 0} if element is None else element,
+                               argument="element")
+        if not isinstance(self.H, FeedbackElement):
+            raise TypeError(f"element must be a feedback element (an operator with a "
+                            f"per-sample step(v, state): 'duhem' or 'play_hysteresis'), got "
+                            f"{type(self.H).__name__}")
         self.state_size = 2 * self.order + self.H.state_size
         self.register_buffer("u_scale", scale_buffer(u_scale, "u_scale"))
         self.register_buffer("y_scale", scale_buffer(y_scale, "y_scale"))
