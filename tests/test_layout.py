@@ -1,0 +1,128 @@
+"""The package's layout contracts (docs/design.md): no import cycles between torchhys modules
+(function-level imports included), files of at most 500 lines, operators in
+``torchhys/operators/``, and ``import torchhys`` without the training side."""
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import torchhys
+from torchhys.operator import OPERATORS, load_entry_points
+
+PACKAGE = Path(torchhys.__file__).parent
+MAX_LINES = 500
+
+
+def modules() -> dict[str, Path]:
+    out = {}
+    for path in PACKAGE.rglob("*.py"):
+        parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+        name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        out[name] = path
+    return out
+
+
+def import_graph() -> dict[str, set[str]]:
+    """Module -> the torchhys modules it imports anywhere in its source (an imported name
+    that is not a module counts as its module)."""
+    mods = modules()
+
+    def owner(name: str) -> str | None:
+        while name and name not in mods:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    graph: dict[str, set[str]] = {m: set() for m in mods}
+    for module, path in mods.items():
+        package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    up = package.split(".")[:len(package.split(".")) - node.level + 1]
+                    base = ".".join(up + ([base] if base else []))
+                targets = [base] + [f"{base}.{a.name}" for a in node.names]
+            else:
+                continue
+            for target in targets:
+                found = owner(target) if target.startswith("torchhys") else None
+                if found and found != module:
+                    graph[module].add(found)
+    return graph
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_the_cycle_finder_finds_a_cycle() -> None:
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
+    assert cycles(graph) == [["a", "b", "c"]]
+    assert cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_no_import_cycles_between_torchhys_modules() -> None:
+    graph = import_graph()
+    assert sum(map(len, graph.values())) > 100  # the graph was read
+    assert "torchhys.operator" in graph["torchhys.operators.preisach"]
+    assert cycles(graph) == []
+
+
+def test_no_file_in_the_package_over_500_lines() -> None:
+    long = {str(p.relative_to(PACKAGE.parent)): n for p in PACKAGE.rglob("*.py")
+            if (n := len(p.read_text().splitlines())) > MAX_LINES}
+    assert long == {}
+
+
+def test_the_registered_operators_live_in_their_roles_folders() -> None:
+    """Hysteresis operators in torchhys/operators/, linear dynamics in torchhys/dynamics/,
+    element models (Duhem, play hysteresis) in torchhys/models/."""
+    load_entry_points()
+    builtin = {n: f for n, f in OPERATORS.items() if f.__module__.startswith("torchhys.")}
+    assert len(builtin) >= 16
+    homes = ("torchhys.operators.", "torchhys.dynamics.", "torchhys.models.")
+    elsewhere = {n: f.__module__ for n, f in builtin.items()
+                 if not f.__module__.startswith(homes)}
+    assert elsewhere == {}
+    assert sum(f.__module__.startswith("torchhys.operators.") for f in builtin.values()) >= 12
+
+
+def test_import_torchhys_imports_no_lightning() -> None:
+    code = ("import sys, torchhys, torchhys.deploy.export_c, torchhys.identification.preisach\n"
+            "bad = [m for m in ('lightning', 'pytorch_lightning', 'jsonargparse', "
+            "'torchmetrics', 'matplotlib') if m in sys.modules]\n"
+            "assert not bad, bad")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
