@@ -3,20 +3,40 @@
 The names are read from ``torchhys.operator.OPERATORS`` at import (entry points included): an
 operator registered later is covered without editing this file. Each check builds the
 operator's :class:`~torchhys.operator.Example` in float64 and compares within its ``atol``
-(0: bit for bit), relative to the output's scale. Family-specific maths (references, analytic
-values, ties at turning points, other settings, float32) stay in the families' test files.
+(0: bit for bit), relative to the output's scale. The exports: the TorchScript and AOTI
+compensators against the eager one; the C99 step (compiled) and the ONNX step (ONNX
+Runtime) against the TorchScript file's, output and state. Family-specific maths
+(references, analytic values, ties at turning points, other settings, float32) stay in the
+families' test files.
 """
 
 from __future__ import annotations
 
 import contextlib
 import copy
+import importlib.util
 import re
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
-from _helpers import RAW
+from _export_helpers import (
+    CC,
+    FLOAT32_RTOL,
+    FLOAT64_RTOL,
+    N32,
+    NO_CC,
+    assert_equal_runs,
+    compile_harness,
+    record,
+    run_c,
+    run_onnx,
+    run_torchscript,
+    training_range,
+)
+from _helpers import RAW, loop_net
 from torch.utils._pytree import tree_flatten
 
 from torchhys import InverseHysteresisNet, signals
@@ -31,33 +51,22 @@ LIMITS = (-1e6, 1e6)  # command limits that never act
 EXPORT_ATOL = 1e-12
 """The compensators against each other and the network (float64): the head's step,
 TorchScript's graph passes and AOTInductor's kernels round differently."""
-LOADS = "a {} from a state dict loads (the constructor refuses it); the step runs with it"
-NAMES_Y = "forward(x) names its input y in its errors"
-KNOWN_DEFECTS: dict[tuple[str, str, str | None], str] = {
-    **{("bad_value", n, "fixed_widths"): LOADS.format("negative fixed width")
-       for n in ("backlash", "prandtl_ishlinskii", "generalized_pi")},
-    **{("bad_value", n, "threshold"): LOADS.format("negative threshold")
-       for n in ("eiho", "zhao_tan")},
-    ("wrong_shape", "generalized_pi_inverse", None): (
-        "a wrong-shaped lower or upper bound fails in the constraint check ('Boolean value of "
-        "Tensor with more than one value is ambiguous'), not naming the entry"),
-    ("bad_input", "eiho", "text"): "a non-tensor x raises AttributeError before it is checked",
-    **{("bad_input", "stop_pi_inverse", c): NAMES_Y for c in ("text", "integer", "3-d", "nan")},
-}
+KNOWN_DEFECTS: dict[tuple[str, str, str | None], str] = {}
 """``(check, name, case)`` -> the defect that makes an operator fail a check (xfail, strict:
 the mark goes when the defect is fixed)."""
 
 
-def names(check: str, cases: dict[str, list] | None = None) -> list:
-    """The parameters of a check: every name (or ``(name, case)`` for the cases of each)."""
+def names(check: str, cases: dict[str, list] | None = None, slow: tuple = ()) -> list:
+    """The parameters of a check: every name (or ``(name, case)`` for the cases of each);
+    the cases in ``slow`` run with the slow tests."""
     out = []
     for n in NAMES:
         for case in [None] if cases is None else cases[n]:
             reason = KNOWN_DEFECTS.get((check, n, case))
+            marks = [pytest.mark.xfail(reason=reason, strict=True)] if reason else []
             out.append(pytest.param(*([n] if case is None else [n, case]),
                                     id=n if case is None else f"{n}-{case}",
-                                    marks=[pytest.mark.xfail(reason=reason, strict=True)]
-                                    if reason else []))
+                                    marks=marks + [pytest.mark.slow] * (case in slow)))
     return out
 
 
@@ -209,6 +218,66 @@ def test_aoti_equals_the_streaming_compensator(name: str, tmp_path) -> None:
         assert_close(got, net(x)[0], EXPORT_ATOL)
     held = stepper.step(torch.tensor([float("nan")], dtype=torch.float64))
     assert torch.equal(held, got[-1:]) and int(stepper.nonfinite_count()) == 1
+
+
+ONNX_MISSING = [m for m in ("onnx", "onnxscript", "onnxruntime")
+                if importlib.util.find_spec(m) is None]
+RTOL = {"float64": FLOAT64_RTOL, "float32": FLOAT32_RTOL}  # measured: tests/test_export_c.py
+
+
+@pytest.fixture(scope="module")
+def torchscript_runs(tmp_path_factory: pytest.TempPathFactory
+                     ) -> Callable[[str, str], tuple[torch.nn.Module, np.ndarray, dict]]:
+    """``(name, dtype) ->`` the example in a network fitted to follow a loop
+    (``_helpers.loop_net``), a record around its training range (turning points, ties,
+    signed zeros, samples 30 % beyond the range, NaN and inf: 1e4 samples, 3000 in float32)
+    and the TorchScript file's run over it: computed once for the C and the ONNX checks."""
+    runs: dict[tuple[str, str], tuple] = {}
+
+    def run(name: str, dtype: str) -> tuple[torch.nn.Module, np.ndarray, dict]:
+        if (name, dtype) not in runs:
+            _, op = build(name)
+            causal(op)
+            net = loop_net([op])
+            x = record(*training_range(net), **({"n": N32} if dtype == "float32" else {}))
+            path = tmp_path_factory.mktemp(f"{name}-{dtype}") / "comp.pt"
+            runs[name, dtype] = net, x, run_torchscript(net, x, path, getattr(torch, dtype))
+        return runs[name, dtype]
+    return run
+
+
+def assert_as_torchscript(got: dict, x: np.ndarray, ts: dict, dtype: str) -> None:
+    assert_equal_runs(got, ts, RTOL[dtype])
+    assert got["nonfinite"] == int((~np.isfinite(x)).sum()) and got["out_of_range"] > 0
+
+
+@pytest.mark.skipif(CC is None, reason=NO_CC)
+@pytest.mark.parametrize("name, dtype", names("c", dict.fromkeys(NAMES, ["float64", "float32"])))
+def test_c_equals_torchscript(name: str, dtype: str, torchscript_runs: Callable,
+                              tmp_path: Path) -> None:
+    """The C99 step (``to_c``, compiled with ``cc -std=c99 -O2 -Wall -Wextra -Werror
+    -pedantic``): the commands and the final state (the struct's members) within RTOL of
+    their scale, the counters equal."""
+    from torchhys.deploy.export_c import to_c
+
+    net, x, ts = torchscript_runs(name, dtype)
+    to_c(net, tmp_path, dtype=getattr(torch, dtype))
+    assert_as_torchscript(run_c(compile_harness(tmp_path, state=ts["state"]), x, ts["state"]),
+                          x, ts, dtype)
+
+
+@pytest.mark.skipif(bool(ONNX_MISSING), reason=f"{', '.join(ONNX_MISSING)} missing: pip "
+                    'install "torchhys[onnx]"')
+@pytest.mark.parametrize("name, dtype", names("onnx", dict.fromkeys(NAMES, ["float64", "float32"]),
+                                              slow=("float32",)))
+def test_onnx_equals_torchscript(name: str, dtype: str, torchscript_runs: Callable,
+                                 tmp_path: Path) -> None:
+    """The ONNX step under ONNX Runtime: the commands and the final state tensors within
+    RTOL of their scale, the counters equal (float32: with the slow tests)."""
+    net, x, ts = torchscript_runs(name, dtype)
+    got = run_onnx(net, x, tmp_path / "comp.onnx", getattr(torch, dtype))
+    assert_as_torchscript(got, x, ts, dtype)
+    assert got["stepper"].metadata["dtype"] == dtype
 
 
 @pytest.mark.parametrize("name", names("nan"))

@@ -2,11 +2,13 @@
 
 The two files are compiled with ``cc -std=c99 -O2 -Wall -Wextra -Werror -pedantic`` into a
 harness that uses only the contract's names (``NAME_real``, ``NAME_state``, ``NAME_init``,
-``NAME_step``, the two counters, ``NAME_LOW``, ``NAME_HIGH``, ``NAME_STATE_BYTES``) and run
-over a record (nested turning points, ties, samples outside the training range, NaN and inf)
-beside the TorchScript file's ``step``: every registered operator's example network, the
-recommended compensator's network under several export options, an analytic inverse, and a
-checkpoint of the ``torchhys`` command.
+``NAME_step``, the two counters, ``NAME_LOW``, ``NAME_HIGH``, ``NAME_STATE_BYTES``;
+tests/_export_helpers.py) and run over a record (nested turning points, ties, signed zeros,
+samples outside the training range, NaN and inf) beside the TorchScript file's ``step``:
+the recommended compensator's network under several export options, an analytic inverse,
+the B-H compensator, a step of many aten operations, and a checkpoint of the ``torchhys``
+command. Every registered operator's example network (output and state): in
+tests/test_conformance.py, with the same bounds.
 
 float64 (1e4 samples): the commands within 1e-12 of their scale, the counters equal
 (measured with gcc 12 and glibc on x86-64: at most 9e-14; 0 for half of the operators).
@@ -22,9 +24,7 @@ networks' output weights. Skipped without a C compiler.
 
 from __future__ import annotations
 
-import copy
 import re
-import shutil
 import subprocess
 from pathlib import Path
 
@@ -32,135 +32,32 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
-from _helpers import loop_data
+from _export_helpers import (
+    CC,
+    FLAGS,
+    FLOAT32_RTOL,
+    FLOAT64_RTOL,
+    N32,
+    NO_CC,
+    N,
+    assert_equal_runs,
+    compile_harness,
+    recommended,
+    record,
+    run_c,
+    run_torchscript,
+    stepped,
+    training_range,
+)
 from _helpers import loop_net as net_of
 from torch import Tensor
 
 import torchhys
-from torchhys import EIHO, Backlash, InverseHysteresisNet
-from torchhys.deploy.export import to_torchscript
+from torchhys import Backlash, InverseHysteresisNet
 from torchhys.deploy.export_c import to_c
-from torchhys.operator import (
-    OPERATORS,
-    HysteresisOperator,
-    OperatorStep,
-    StateBlock,
-    example_of,
-    load_entry_points,
-)
+from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
 
-load_entry_points()
-NAMES = sorted(OPERATORS)
-CC = shutil.which("cc") or shutil.which("gcc")
-needs_cc = pytest.mark.skipif(CC is None, reason="no C compiler (cc or gcc) on PATH")
-FLAGS = ["-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic"]
-FLOAT64_RTOL = 1e-12
-FLOAT32_RTOL = 1e-4
-N, N32 = 10_000, 3_000
-
-HARNESS = r"""
-#include <complex.h> /* a macro I: the header must not use the name */
-#include <stdio.h>
-#include "NAME.h"
-
-/* Runs the input (binary doubles) twice, NAME_init before each pass: writes the commands of
-   both passes and the two counters after the first; prints LOW HIGH STATE_BYTES. */
-int main(int argc, char **argv)
-{
-    NAME_state s;
-    double x, u;
-    int64_t counts[2];
-    long n = 0, i, pass;
-    FILE *in, *out;
-    if (argc != 3 || !(in = fopen(argv[1], "rb")) || !(out = fopen(argv[2], "wb")))
-        return 2;
-    if (sizeof(NAME_state) != NAME_STATE_BYTES)
-        return 3;
-    for (pass = 0; pass < 2; ++pass) {
-        NAME_init(&s);
-        rewind(in);
-        for (i = 0; fread(&x, sizeof x, 1, in) == 1; ++i) {
-            u = (double)NAME_step(&s, (NAME_real)x);
-            fwrite(&u, sizeof u, 1, out);
-        }
-        if (pass == 0) {
-            n = i;
-            counts[0] = NAME_nonfinite_count(&s);
-            counts[1] = NAME_out_of_range_count(&s);
-        }
-    }
-    fwrite(counts, sizeof counts[0], 2, out);
-    printf("%.17g %.17g %ld %ld\n", (double)NAME_LOW, (double)NAME_HIGH,
-           (long)NAME_STATE_BYTES, n);
-    fclose(in);
-    fclose(out);
-    return 0;
-}
-"""
-
-
-# --- models and records -----------------------------------------------------------------------
-
-
-def record(low: float, high: float, n: int = N, seed: int = 0) -> np.ndarray:
-    """``n`` samples around ``[low, high]``: nested turning points with noise, runs of repeated
-    samples (ties), excursions 30 % beyond the range, NaN, +inf and -inf (the first sample
-    NaN: the initial command is held)."""
-    g = np.random.default_rng(seed)
-    c, h = (low + high) / 2, (high - low) / 2
-    t = np.arange(n)
-    x = c + h * 0.95 * np.sin(2 * np.pi * t / 700) * (0.55 + 0.45 * np.cos(2 * np.pi * t / 2300))
-    x += 0.01 * h * g.standard_normal(n)
-    for k in range(800, n, 1500):  # excursions out of the range, both ways
-        x[k:k + 60] = c + np.sign(np.sin(k)) * 1.3 * h * np.sin(np.linspace(0, np.pi, 60))
-    for k in g.choice(n, 120, replace=False):  # ties: runs of one repeated sample
-        x[k:k + 8] = x[k]
-    x[g.choice(n, 40, replace=False)] = np.nan
-    x[g.choice(n, 15, replace=False)] = np.inf
-    x[g.choice(n, 15, replace=False)] = -np.inf
-    x[0] = np.nan
-    return x
-
-
-def training_range(net: InverseHysteresisNet) -> tuple[float, float]:
-    return float(net.in_min), float(net.in_max)
-
-
-# --- running both files -----------------------------------------------------------------------
-
-
-def compile_harness(folder: Path, prefix: str = "torchhys_comp") -> Path:
-    (folder / "harness.c").write_text(HARNESS.replace("NAME", prefix))
-    exe = folder / "harness"
-    done = subprocess.run([CC, *FLAGS, "-I", str(folder), "-o", str(exe),
-                           str(folder / "harness.c"), str(folder / f"{prefix}.c"), "-lm"],
-                          capture_output=True, text=True)
-    assert done.returncode == 0, done.stderr
-    return exe
-
-
-def run_c(exe: Path, x: np.ndarray) -> dict:
-    """The harness on ``x``: commands, the counters, LOW, HIGH, STATE_BYTES."""
-    src, dst = exe.parent / "x.bin", exe.parent / "u.bin"
-    x.astype(np.float64).tofile(src)
-    done = subprocess.run([str(exe), str(src), str(dst)], capture_output=True, text=True)
-    assert done.returncode == 0, (done.returncode, done.stderr)
-    raw = dst.read_bytes()
-    u = np.frombuffer(raw[:-16], dtype=np.float64)
-    counts = np.frombuffer(raw[-16:], dtype=np.int64)
-    low, high, n_bytes, n = done.stdout.split()
-    assert int(n) == len(x)
-    assert np.array_equal(u[:len(x)], u[len(x):], equal_nan=True)  # NAME_init resets
-    return {"u": u[:len(x)], "nonfinite": int(counts[0]), "out_of_range": int(counts[1]),
-            "low": float(low), "high": float(high), "state_bytes": int(n_bytes)}
-
-
-def run_torchscript(model: torch.nn.Module, x: np.ndarray, path: Path, **options) -> dict:
-    scripted = to_torchscript(model, path, **options)
-    xt = torch.tensor(x, dtype=scripted.low.dtype)
-    u = np.array([float(scripted.step(xt[i:i + 1])) for i in range(len(x))])
-    return {"u": u, "nonfinite": int(scripted.nonfinite_count()),
-            "out_of_range": int(scripted.out_of_range_count())}
+needs_cc = pytest.mark.skipif(CC is None, reason=NO_CC)
 
 
 def both(model: torch.nn.Module, folder: Path, x: np.ndarray, dtype: torch.dtype = torch.float64,
@@ -168,62 +65,11 @@ def both(model: torch.nn.Module, folder: Path, x: np.ndarray, dtype: torch.dtype
     """The C and the TorchScript compensators of ``model`` in ``dtype`` on ``x``."""
     to_c(model, folder, dtype=dtype, **options)
     c = run_c(compile_harness(folder), x)
-    ts = run_torchscript(copy.deepcopy(model).to(dtype), x, folder / "comp.pt", **options)
+    ts = run_torchscript(model, x, folder / "comp.pt", dtype, **options)
     return c, ts
 
 
-def gap(c: dict, ts: dict) -> float:
-    """The largest difference of the commands relative to their scale (at least 1)."""
-    assert np.isfinite(c["u"]).all() and np.isfinite(ts["u"]).all()
-    return float(np.max(np.abs(c["u"] - ts["u"])) / max(1.0, np.max(np.abs(ts["u"]))))
-
-
-def assert_equal_runs(c: dict, ts: dict, rtol: float) -> None:
-    assert gap(c, ts) <= rtol, gap(c, ts)
-    assert (c["nonfinite"], c["out_of_range"]) == (ts["nonfinite"], ts["out_of_range"])
-
-
-# --- every operator ---------------------------------------------------------------------------
-
-
-UNSUPPORTED: dict[str, str] = {}
-"""Registered operators whose step uses an operation without a C template: name -> the
-operation the error must name (none today)."""
-
-
-@needs_cc
-@pytest.mark.parametrize("name", NAMES)
-def test_every_operator_in_c_equals_torchscript_float64(name: str, tmp_path: Path) -> None:
-    net = net_of([example_of(name).build().double()])
-    x = record(*training_range(net))
-    if name in UNSUPPORTED:
-        with pytest.raises(ValueError, match=re.escape(UNSUPPORTED[name])):
-            to_c(net, tmp_path)
-        return
-    c, ts = both(net, tmp_path, x)
-    assert_equal_runs(c, ts, FLOAT64_RTOL)
-    assert c["nonfinite"] == int((~np.isfinite(x)).sum()) and c["out_of_range"] > 0
-
-
-@needs_cc
-@pytest.mark.parametrize("name", [n for n in NAMES if n not in UNSUPPORTED])
-def test_every_operator_in_c_float32(name: str, tmp_path: Path) -> None:
-    net = net_of([example_of(name).build().double()])
-    x = record(*training_range(net), n=N32)
-    c, ts = both(net, tmp_path, x, torch.float32)
-    assert_equal_runs(c, ts, FLOAT32_RTOL)
-
-
 # --- the recommended compensator, options -----------------------------------------------------
-
-
-def recommended() -> InverseHysteresisNet:
-    """The network of configs/compensator.yaml: a re-based EIHO and 16 plays, 64 sigmoids."""
-    x, _ = loop_data()
-    span = float(x.max() - x.min())
-    plays = Backlash(0.4 * span * torch.arange(1, 17, dtype=torch.float64) / 16)
-    return net_of([EIHO(a=1.0, rule="recent", output="branch", threshold=0.0), plays],
-                  hidden=64)
 
 
 @needs_cc
@@ -516,11 +362,8 @@ def test_fit_then_export_c_from_the_command_line(monkeypatch: pytest.MonkeyPatch
         scripted = torchhys.deploy.export.load_torchscript(out / f"{dtype}.pt")
         x = record(float(scripted.in_low), float(scripted.in_high), n=3000, seed=2)
         c = run_c(compile_harness(out, "comp_" + dtype), x)
-        xt = torch.tensor(x, dtype=scripted.low.dtype)
-        u = np.array([float(scripted.step(xt[i:i + 1])) for i in range(len(x))])
-        ts = {"u": u, "nonfinite": int(scripted.nonfinite_count()),
-              "out_of_range": int(scripted.out_of_range_count())}
-        assert_equal_runs(c, ts, FLOAT64_RTOL if dtype == "float64" else FLOAT32_RTOL)
+        assert_equal_runs(c, stepped(scripted, x, scripted.low.dtype),
+                          FLOAT64_RTOL if dtype == "float64" else FLOAT32_RTOL)
 
 
 @pytest.mark.parametrize(("argv", "message"), [

@@ -3,9 +3,10 @@ compensator.
 
 The ONNX file's step (:func:`~torchhys.deploy.export_onnx.load_onnx`, ONNX Runtime on the CPU) and
 the TorchScript file's ``step`` run side by side over a record with nested turning points,
-ties, runs of -0.0 and +0.0, samples outside the training range, NaN and inf: every
-registered operator's example network, the recommended compensator's network under several
-export options, a Prandtl-Ishlinskii inverse, and a graded Preisach beside a stop-type PI.
+ties, runs of -0.0 and +0.0, samples outside the training range, NaN and inf
+(tests/_export_helpers.py): the recommended compensator's network under several export
+options, a Prandtl-Ishlinskii inverse, and a graded Preisach beside a stop-type PI (every
+registered operator's example network: in tests/test_conformance.py, with the same bounds).
 Compared: the commands (relative to their scale, at least 1), the final state tensors (the
 stepper's against the TorchScript module's ``state``; float columns relative to their scale,
 int64 and bool ones equal) and the two counters.
@@ -21,7 +22,6 @@ Skipped without onnxruntime (and onnx, onnxscript): ``pip install "torchhys[onnx
 
 from __future__ import annotations
 
-import copy
 import json
 import math
 import sys
@@ -30,21 +30,26 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from _helpers import loop_data
+from _export_helpers import (
+    FLOAT32_RTOL,
+    FLOAT64_RTOL,
+    N32,
+    N,
+    assert_equal_runs,
+    gap,
+    recommended,
+    record,
+    run_onnx,
+    run_torchscript,
+    training_range,
+)
 from _helpers import loop_net as net_of
 
 import torchhys
-from torchhys import (
-    EIHO,
-    Backlash,
-    InverseHysteresisNet,
-    PrandtlIshlinskii,
-    PrandtlIshlinskiiInverse,
-    Preisach,
-)
+from torchhys import Backlash, PrandtlIshlinskii, PrandtlIshlinskiiInverse, Preisach
 from torchhys.deploy.export import to_torchscript
 from torchhys.deploy.streaming import StreamingCompensator
-from torchhys.operator import OPERATORS, example_of, load_entry_points
+from torchhys.operator import example_of
 
 try:
     import onnx
@@ -67,121 +72,12 @@ needs_onnx = pytest.mark.skipif(
     not HAVE_ONNX, reason='onnx, onnxscript or onnxruntime missing: pip install "torchhys[onnx]"'
 )
 
-load_entry_points()
-NAMES = sorted(OPERATORS)
-FLOAT64_RTOL = 1e-12
-FLOAT32_RTOL = 1e-4
-N, N32 = 10_000, 3_000
-
-
-# --- models and records -----------------------------------------------------------------------
-
-
-def recommended() -> InverseHysteresisNet:
-    """The network of configs/compensator.yaml: a re-based EIHO and 16 plays, 64 sigmoids."""
-    x, _ = loop_data()
-    span = float(x.max() - x.min())
-    plays = Backlash(0.4 * span * torch.arange(1, 17, dtype=torch.float64) / 16)
-    return net_of([EIHO(a=1.0, rule="recent", output="branch", threshold=0.0), plays],
-                  hidden=64)
-
-
-def record(low: float, high: float, n: int = N, seed: int = 0) -> np.ndarray:
-    """``n`` samples around ``[low, high]``: nested turning points with noise, runs of one
-    repeated sample (ties), runs of -0.0, +0.0 and NaN, excursions 30 % beyond the range,
-    NaN, +inf and -inf (the first sample NaN: the initial command is held)."""
-    g = np.random.default_rng(seed)
-    c, h = (low + high) / 2, (high - low) / 2
-    t = np.arange(n)
-    x = c + h * 0.95 * np.sin(2 * np.pi * t / 700) * (0.55 + 0.45 * np.cos(2 * np.pi * t / 2300))
-    x += 0.01 * h * g.standard_normal(n)
-    for k in range(800, n, 1500):  # excursions out of the range, both ways
-        x[k:k + 60] = c + np.sign(np.sin(k)) * 1.3 * h * np.sin(np.linspace(0, np.pi, 60))
-    for k in g.choice(n, 120, replace=False):  # ties: runs of one repeated sample
-        x[k:k + 8] = x[k]
-    for k in range(350, n, 1100):  # signed zeros (in the range), reversals and holds
-        x[k:k + 8] = [0.01, -0.0, np.nan, -0.0, 0.0, -0.01, -0.0, 0.02]
-    x[g.choice(n, 40, replace=False)] = np.nan
-    x[g.choice(n, 15, replace=False)] = np.inf
-    x[g.choice(n, 15, replace=False)] = -np.inf
-    x[0] = np.nan
-    return x
-
-
-def training_range(net: InverseHysteresisNet) -> tuple[float, float]:
-    return float(net.in_min), float(net.in_max)
-
-
-# --- running both files -----------------------------------------------------------------------
-
-
-def run_onnx(model: torch.nn.Module, x: np.ndarray, path: Path,
-             dtype: torch.dtype = torch.float64, **options) -> dict:
-    to_onnx(copy.deepcopy(model).to(dtype), path, **options)
-    stepper = load_onnx(path)
-    xt = torch.tensor(x, dtype=dtype)
-    u = np.array([float(stepper.step(xt[i:i + 1])) for i in range(len(x))])
-    return {"u": u, "state": stepper.state, "nonfinite": int(stepper.nonfinite_count()),
-            "out_of_range": int(stepper.out_of_range_count()), "stepper": stepper}
-
-
-def run_torchscript(model: torch.nn.Module, x: np.ndarray, path: Path,
-                    dtype: torch.dtype = torch.float64, **options) -> dict:
-    scripted = to_torchscript(copy.deepcopy(model).to(dtype), path, **options)
-    xt = torch.tensor(x, dtype=dtype)
-    u = np.array([float(scripted.step(xt[i:i + 1])) for i in range(len(x))])
-    return {"u": u, "state": list(scripted.state), "nonfinite": int(scripted.nonfinite_count()),
-            "out_of_range": int(scripted.out_of_range_count()), "scripted": scripted}
-
 
 def both(model: torch.nn.Module, folder: Path, x: np.ndarray,
          dtype: torch.dtype = torch.float64, **options) -> tuple[dict, dict]:
     """The ONNX and the TorchScript compensators of ``model`` in ``dtype`` on ``x``."""
     return (run_onnx(model, x, folder / "comp.onnx", dtype, **options),
             run_torchscript(model, x, folder / "comp.pt", dtype, **options))
-
-
-def gap(a: np.ndarray | torch.Tensor, b: np.ndarray | torch.Tensor) -> float:
-    """The largest difference relative to the reference's scale (at least 1)."""
-    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
-    assert np.isfinite(a).all() and np.isfinite(b).all()
-    return float(np.max(np.abs(a - b), initial=0.0) / max(1.0, np.max(np.abs(b), initial=0.0)))
-
-
-def assert_equal_runs(ox: dict, ts: dict, rtol: float) -> None:
-    assert gap(ox["u"], ts["u"]) <= rtol, gap(ox["u"], ts["u"])
-    assert (ox["nonfinite"], ox["out_of_range"]) == (ts["nonfinite"], ts["out_of_range"])
-    assert len(ox["state"]) == len(ts["state"])
-    for i, (a, b) in enumerate(zip(ox["state"], ts["state"], strict=True)):
-        assert a.dtype == b.dtype and a.shape == b.shape, (i, a.dtype, b.dtype)
-        if a.is_floating_point():
-            assert gap(a, b) <= rtol, (i, gap(a, b))
-        else:
-            assert torch.equal(a, b), i
-
-
-# --- every operator ---------------------------------------------------------------------------
-
-
-@needs_onnx
-@pytest.mark.parametrize("name", NAMES)
-def test_every_operator_in_onnx_equals_torchscript_float64(name: str, tmp_path: Path) -> None:
-    net = net_of([example_of(name).build().double()])
-    x = record(*training_range(net))
-    ox, ts = both(net, tmp_path, x)
-    assert_equal_runs(ox, ts, FLOAT64_RTOL)
-    assert ox["nonfinite"] == int((~np.isfinite(x)).sum()) and ox["out_of_range"] > 0
-
-
-@needs_onnx
-@pytest.mark.slow  # float64 covers every operator in the default run
-@pytest.mark.parametrize("name", NAMES)
-def test_every_operator_in_onnx_float32(name: str, tmp_path: Path) -> None:
-    net = net_of([example_of(name).build().double()])
-    x = record(*training_range(net), n=N32)
-    ox, ts = both(net, tmp_path, x, torch.float32)
-    assert_equal_runs(ox, ts, FLOAT32_RTOL)
-    assert ox["stepper"].metadata["dtype"] == "float32"
 
 
 # --- named models, options --------------------------------------------------------------------
