@@ -245,23 +245,25 @@ def test_a_module_that_cannot_be_copied_still_loads() -> None:
     assert torch.equal(dst.weights, torch.tensor([0.2, 0.2]))
 
 
-def test_fit_full_batch_calls_a_predictor_method_only() -> None:
-    """A submodule named ``predictor`` is not the fitting hook."""
+def test_the_predictor_is_forward_by_default_and_fit_full_batch_uses_an_override() -> None:
+    """``predictor(x)`` of the base class is the output of ``forward``; ``fit_full_batch``
+    calls the operator's own (counted here)."""
     from torchhys import PrandtlIshlinskii
     from torchhys.identification.fitting import fit_full_batch
 
-    class Scaled(PrandtlIshlinskii):
-        def __init__(self) -> None:
-            super().__init__(torch.tensor([0.2, 0.5]), torch.tensor([0.3, 0.1]))
-            self.predictor = torch.nn.Linear(1, 1)
+    calls = []
 
-        def forward(self, x, state=None):
-            y, s = super().forward(x, state)
-            return self.predictor(y.unsqueeze(-1)).squeeze(-1), s
+    class Counted(PrandtlIshlinskii):
+        def predictor(self, x):
+            calls.append(x.shape)
+            return super().predictor(x)
 
     x = torch.sin(torch.linspace(0, 6, 50))[None]
-    result = fit_full_batch(Scaled(), x, 2 * x, adam_epochs=3, lbfgs_epochs=0)
-    assert result.mse >= 0
+    op = Counted(torch.tensor([0.2, 0.5]), torch.tensor([0.3, 0.1]), learnable=True)
+    torch.testing.assert_close(op.predictor(x)(), op(x)[0], rtol=0, atol=0)
+    calls.clear()
+    result = fit_full_batch(op, x, 2 * x, adam_epochs=3, lbfgs_epochs=0)
+    assert result.mse >= 0 and calls == [x.shape]
 
 
 class _PlayByStep(HysteresisOperator):

@@ -38,7 +38,9 @@ worked example.
 
 A :class:`StateBlock` says how its columns start: at a row's first finite sample ``x0`` the
 compensator sets them to ``start + from_sample * x0`` (a play starts at 0, an anchor at the
-sample itself) before the step runs, so the step needs no "fresh" flag. Blocks of kind
+sample itself) before the step runs, so the step needs no "fresh" flag. A step whose start
+is not of that form overrides ``initial_state(x0)`` (a cascade builds its start from its
+parts'). Blocks of kind
 ``"float"`` are in the compensator's dtype, ``"float64"`` keep a float64 accumulator,
 ``"int64"`` hold counters and indices (``from_sample`` must be 0). The step's maths must not
 branch in Python on tensor values (use ``torch.where``); its Python ints, floats and bools are
@@ -68,6 +70,7 @@ __all__ = [
     "OperatorStep",
     "StateBlock",
     "check_operator",
+    "custom_start",
     "example_of",
     "load_entry_points",
     "make_operator",
@@ -136,7 +139,12 @@ class OperatorStep(nn.Module, abc.ABC):
         (batch, n_outputs), new state)."""
 
     def initial_state(self, x0: Tensor) -> list[Tensor]:
-        """The state at the first sample ``x0`` (batch, 1), as the compensator builds it."""
+        """The state at a row's first finite sample ``x0`` (batch, 1), before the step runs
+        on it. Default: each block at ``start + from_sample * x0`` (its :class:`StateBlock`),
+        which the compensator computes itself for all such steps at once. A step whose start
+        is not of that form overrides it (in TorchScript- and ``torch.export``-able code,
+        e.g. a cascade, whose second part starts from the first part's output); the
+        compensator then runs the override at each row's first finite sample."""
         out = []
         for block in self.state_spec:
             dtype = {"float": x0.dtype, "float64": torch.float64, "int64": torch.long}[block.kind]
@@ -158,6 +166,12 @@ class OperatorStep(nn.Module, abc.ABC):
             f, state = self(xt.unsqueeze(1), state)
             outs.append(f)
         return torch.stack(outs, dim=1)
+
+
+def custom_start(step: OperatorStep) -> bool:
+    """Whether ``step`` overrides :meth:`OperatorStep.initial_state` (its start is not
+    ``start + from_sample * x0`` block by block)."""
+    return type(step).initial_state is not OperatorStep.initial_state
 
 
 class AtomicLoad:

@@ -39,7 +39,8 @@ steps and of their ``state_spec``::
 (``g`` is 1 with the direction guard, ``c`` is 1 with the input clamp, else 0.)
 
 At a row's first finite sample every block column is set to ``start + from_sample * x``
-(its :class:`~torchhys.operator.StateBlock`) before the steps run.
+(its :class:`~torchhys.operator.StateBlock`) before the steps run; a step with a start of
+its own (a cascade) starts from its ``initial_state(x)`` instead.
 """
 
 import math
@@ -50,7 +51,7 @@ import torch
 from torch import Tensor, nn
 
 from torchhys._checks import check_real
-from torchhys.operator import STATE_KINDS, OperatorStep, StateBlock
+from torchhys.operator import STATE_KINDS, OperatorStep, StateBlock, custom_start
 
 __all__ = [
     "COUNTER", "DIRECTIONS", "HELD", "MIN_TREND", "STARTED", "STATE_F", "STATE_F64", "STATE_I",
@@ -72,21 +73,29 @@ _KIND_INDEX = {kind: i for i, kind in enumerate(STATE_KINDS)}
 
 
 class _Slot(nn.Module):
-    """One step and where its blocks are in the compensator's split state (kind, piece)."""
+    """One step and where its blocks are in the compensator's split state (kind, piece).
+    A step with a start of its own (:func:`~torchhys.operator.custom_start`) starts from
+    its ``initial_state(x)`` in the rows that have not started."""
 
     kinds: list[int]
     pieces: list[int]
+    custom: Final[bool]
 
     def __init__(self, step: OperatorStep, kinds: list[int], pieces: list[int]) -> None:
         super().__init__()
         self.step = step
         self.kinds, self.pieces = kinds, pieces
+        self.custom = custom_start(step)
 
-    def forward(self, x: Tensor, parts: list[list[Tensor]], new: list[list[Tensor]]
-                ) -> Tensor:
+    def forward(self, x: Tensor, parts: list[list[Tensor]], new: list[list[Tensor]],
+                started: Tensor) -> Tensor:
         state: list[Tensor] = []
         for j in range(len(self.kinds)):
             state.append(parts[self.kinds[j]][self.pieces[j]])
+        if self.custom:
+            start = self.step.initial_state(x)
+            for j in range(len(self.kinds)):
+                state[j] = torch.where(started, state[j], start[j].to(state[j].dtype))
         features, out = self.step(x, state)
         for j in range(len(self.kinds)):
             new[self.kinds[j]].append(out[j])
@@ -374,7 +383,7 @@ class StreamingCompensator(nn.Module):
         new: list[list[Tensor]] = [[], [], []]
         features = [xc]
         for slot in self.slots:
-            features.append(slot(xc, parts, new))
+            features.append(slot(xc, parts, new, started))
         u = self.head(torch.cat(features, 1))
         # anything but a finite sample with a finite command holds the whole state (a
         # non-finite sample may still give a finite command through a saturating activation);

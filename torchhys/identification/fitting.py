@@ -171,7 +171,9 @@ def _operator_loss(op: object, x: Tensor, y: Tensor, warmup: int,
     xb, _ = as_batched_sequence(x, "x")
     yb, _ = as_batched_sequence(y, "y")
     check_same_shape(yb, xb, "y", "x")
-    predict = op.predictor(xb)  # a faster closure of the output where the operator has one
+    # a faster closure of the output where the operator has one (the class's method: a
+    # submodule that happens to be called `predictor` does not shadow it)
+    predict = type(op).predictor(op, xb)
     return lambda: _mse(predict() - yb, warmup, mask)
 
 

@@ -12,28 +12,27 @@ Every operator but the last has one output; the cascade has the last one's outpu
 is the list of the operators' states; its step runs the steps in series, and its
 ``state_spec`` is the first step's blocks followed by the second's.
 
-Starting state. The compensator starts every block at ``start + from_sample * x0`` with the
-*cascade's* first sample ``x0``, but the second operator's anchored blocks (those with
-``from_sample != 0``, e.g. an EIHO's turning point) must start from *its own* first input,
-the first operator's output ``v0``. Where the second step has such blocks the cascade step
-adds one block ``"cascade fresh"`` (1 at the first sample, 0 after it) and, while it is 1,
-sets those blocks to ``start + from_sample * v0`` before the second step runs (with
-``torch.where``, no Python branching on tensor values). Nested cascades compose.
+Starting state. Each step says how its state starts from a row's first finite sample
+(:meth:`~torchhys.operator.OperatorStep.initial_state`). The cascade's start is built from its
+parts': the first part's from ``x0``, then the second part's from the first part's output
+``v0`` at that sample (so an anchored block of the second part, e.g. an EIHO's turning point,
+starts at its own first input). Nested cascades compose.
 """
 
 # no `from __future__ import annotations`: TorchScript reads CascadeStep's class annotations
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, Final
 
 import torch
 from torch import Tensor
 
 from torchhys._checks import as_batched_sequence
 from torchhys.operator import (
+    STATE_KINDS,
     Example,
     HysteresisOperator,
     OperatorStep,
-    StateBlock,
+    custom_start,
     make_operator,
     register_operator,
 )
@@ -48,15 +47,16 @@ name, or ``{"name": NAME, **options}``."""
 class CascadeStep(OperatorStep):
     """Two operator steps in series: ``second(first(x))`` (see the module docstring).
 
-    State: ``first.state_spec`` + ``second.state_spec`` (+ ``"cascade fresh"``, one column
-    starting at 1, where the second step has anchored float blocks). Features: the second
-    step's.
+    State: ``first.state_spec`` + ``second.state_spec``. Features: the second step's. Its
+    :meth:`initial_state` is its own (the second part starts from the first part's output),
+    which the compensator runs at a row's first finite sample.
     """
 
     n_first: int
-    n_second: int
-    fresh: bool
-    reanchor: list[bool]
+    first_custom: Final[bool]
+    second_custom: Final[bool]
+    kinds: list[int]
+    parts: list[int]
     offsets: list[int]
     sizes: list[int]
 
@@ -67,41 +67,54 @@ class CascadeStep(OperatorStep):
                              f"{type(first).__name__} with n_outputs={first.n_outputs}")
         self.first, self.second = first, second
         self.n_outputs = second.n_outputs
-        self.n_first, self.n_second = len(first.state_spec), len(second.state_spec)
+        self.n_first = len(first.state_spec)
+        # a part whose start is its own (a nested cascade) runs it; the others start at
+        # start + from_sample * (their first input), from these buffers
+        self.first_custom = custom_start(first)
+        self.second_custom = custom_start(second)
         starts: list[float] = []
         slopes: list[float] = []
-        self.reanchor, self.offsets, self.sizes = [], [], []
-        for block in second.state_spec:
-            anchored = block.kind != "int64" and any(
-                v != 0.0 for v in block.columns("from_sample"))
-            self.reanchor.append(anchored)
-            self.offsets.append(len(starts))
-            self.sizes.append(block.size)
-            starts += block.columns("start")
-            slopes += block.columns("from_sample")
-        self.fresh = any(self.reanchor)
-        self.register_buffer("anchor_start", torch.tensor(starts, dtype=torch.float64))
-        self.register_buffer("anchor_slope", torch.tensor(slopes, dtype=torch.float64))
-        extra = [StateBlock("cascade fresh", 1, start=1.0)] if self.fresh else []
-        self.state_spec = list(first.state_spec) + list(second.state_spec) + extra
+        self.kinds, self.parts, self.offsets, self.sizes = [], [], [], []
+        for part, step in enumerate((first, second)):
+            for block in step.state_spec:
+                self.kinds.append(STATE_KINDS.index(block.kind))
+                self.parts.append(part)
+                self.offsets.append(len(starts))
+                self.sizes.append(block.size)
+                starts += block.columns("start")
+                slopes += block.columns("from_sample")
+        self.register_buffer("block_start", torch.tensor(starts, dtype=torch.float64))
+        self.register_buffer("block_slope", torch.tensor(slopes, dtype=torch.float64))
+        self.state_spec = list(first.state_spec) + list(second.state_spec)
 
     def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
         v, s1 = self.first(x, state[:self.n_first])
-        s2 = state[self.n_first:self.n_first + self.n_second]
-        if self.fresh:
-            fresh = state[self.n_first + self.n_second] > 0.5
-            v64 = v.to(torch.float64)
-            for j in range(self.n_second):
-                if self.reanchor[j]:
-                    o, n = self.offsets[j], self.sizes[j]
-                    init = (self.anchor_start.narrow(0, o, n)
-                            + self.anchor_slope.narrow(0, o, n) * v64)
-                    s2[j] = torch.where(fresh, init.to(s2[j].dtype), s2[j])
-        f, s2 = self.second(v, s2)
-        out = s1 + s2
-        if self.fresh:
-            out.append(torch.zeros_like(state[self.n_first + self.n_second]))
-        return f, out
+        f, s2 = self.second(v, state[self.n_first:])
+        return f, s1 + s2
+
+    def initial_state(self, x0: Tensor) -> list[Tensor]:
+        """The state at a row's first sample x0 (batch, 1): the first part's from x0, the
+        second part's from the first part's output there."""
+        s1 = self.first.initial_state(x0) if self.first_custom else self._affine(0, x0)
+        v0, _ = self.first(x0, s1)
+        s2 = self.second.initial_state(v0) if self.second_custom else self._affine(1, v0)
+        return s1 + s2
+
+    def _affine(self, part: int, x0: Tensor) -> list[Tensor]:
+        """The blocks of one part at ``start + from_sample * x0``, in each block's dtype."""
+        out: list[Tensor] = []
+        x64 = x0.to(torch.float64)
+        for j in range(len(self.kinds)):
+            if self.parts[j] == part:
+                o, n = self.offsets[j], self.sizes[j]
+                start = self.block_start.narrow(0, o, n)
+                kind = self.kinds[j]
+                if kind == 2:  # int64 blocks start at constants (also for a NaN sample)
+                    out.append(start.to(torch.long).expand(x0.shape[0], n))
+                else:
+                    value = start + self.block_slope.narrow(0, o, n) * x64
+                    out.append(value.to(x0.dtype) if kind == 0 else value)
+        return out
 
 
 class Cascade(HysteresisOperator):
