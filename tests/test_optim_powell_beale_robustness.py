@@ -147,18 +147,6 @@ def test_reuse_makes_single_iteration_steps_cost_what_one_long_step_costs():
         assert calls[0] == long_calls[0] + extra == opt.state[params[0]]["func_evals"]
 
 
-def test_a_state_dict_without_the_reuse_option_loads():
-    params = _two_params()
-    opt, closure, _ = _counted(params)
-    opt.step(closure)
-    saved = opt.state_dict()
-    del saved["param_groups"][0]["reuse_evaluation"]
-    opt2, closure2, _ = _counted(params)
-    opt2.load_state_dict(saved)
-    assert opt2.param_groups[0]["reuse_evaluation"] is False
-    opt2.step(closure2)
-
-
 def test_reuse_evaluates_again_when_the_parameters_changed():
     params = _two_params()
     opt, closure, calls = _counted(params, reuse_evaluation=True)

@@ -129,14 +129,6 @@ class InverseHysteresisNet(AtomicLoad, nn.Module):
         y = self.head(feats)
         return (y[0] if x.dim() == 1 else y), states
 
-    def _load_from_state_dict(
-        self, state_dict: dict, prefix: str, *args: object, **kwargs: object
-    ) -> None:
-        # state dicts saved before the ranges were recorded: keep them unknown (NaN)
-        for name in ("out_min", "out_max", "in_min", "in_max", "trend"):
-            state_dict.setdefault(prefix + name, torch.full((), float("nan")))
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
-
     @torch.no_grad()
     def fit_normalization(self, x: Tensor, y: Tensor, *, mask: Tensor | None = None) -> None:
         """Fit the input/output normalization buffers to training data (physical units).

@@ -165,11 +165,6 @@ class PowellBealeCG(torch.optim.Optimizer):
             raise ValueError(f"parameters must share one dtype and device; got {dtypes}")
         self._numel = sum(p.numel() for p in self._params)
 
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        super().__setstate__(state)
-        for group in self.param_groups:  # state dicts saved before the option existed
-            group.setdefault("reuse_evaluation", False)
-
     # ----------------------------------------------------------------------------------
     @property
     def _state(self) -> dict[str, Any]:
