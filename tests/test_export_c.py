@@ -123,16 +123,22 @@ def bh_compensator(n: int = 40) -> InverseHysteresisNet:
 
 
 @needs_cc
-@pytest.mark.parametrize(("n", "code"), [(40, "acc += 0.0 + "), (80, "bins[")])
+@pytest.mark.parametrize(("n", "code"), [(40, "acc += 0.0012195121962577105 * ("),
+                                         (80, "bins[")])
 def test_the_bh_compensator(n: int, code: str, tmp_path: Path) -> None:
     """The Preisach inverse's jumps (a constant 820 x 41 table for 40 levels, 3240 x 81 for
-    80) multiplied through their column differences: written out (40 levels), or through
-    index tables (80 levels); the relays' update in one fused loop."""
+    80) multiplied through their column differences: written out (40 levels, pairwise
+    sums), or through index tables (80 levels); the relays' update in one fused loop; the
+    stops' 160 terms summed in 4 lanes; the new state (held or not) stored from a pointer
+    to the old or the new one."""
     net = bh_compensator(n)
     x = record(*training_range(net), n=N if n == 40 else 3000, seed=3)
     c, ts = both(net, tmp_path, x)
     assert_equal_runs(c, ts, FLOAT64_RTOL)
-    assert code in (tmp_path / "torchhys_comp.c").read_text()
+    source = (tmp_path / "torchhys_comp.c").read_text()
+    assert code in source and "double lane[4] = {0.0, 0.0, 0.0, 0.0};" in source
+    assert re.search(r"const double \*p0 = a\d+\[0\] \? s->F : a\d+;", source)
+    assert "if (p0 != s->F) memcpy(s->F, p0, sizeof s->F);" in source
 
 
 class ZooStep(OperatorStep):
@@ -153,7 +159,9 @@ class ZooStep(OperatorStep):
         b = torch.floor(z * 3.0) + torch.round(z * 2.0) - torch.trunc(z) + torch.ceil(z)
         c = torch.remainder(z, 0.7) + torch.fmod(z, 0.3) + torch.div(z, 0.4, rounding_mode="floor")
         d = (torch.cumsum(z, 1) - z.sum(1, keepdim=True) / 4 + z.mean(1, keepdim=True)
-             - z.amax(1, keepdim=True) + z.amin(1, keepdim=True))
+             - z.amax(1, keepdim=True) + z.amin(1, keepdim=True)  # long sums: in lanes
+             + z[:, :, None].expand(-1, 4, 5).sum((1, 2))[:, None] - torch.cat([z] * 5, 1).mean(
+                 1, keepdim=True))
         srt, order = torch.sort(z, 1)
         g = torch.gather(z, 1, order) - srt + srt.flip(1) * 0.1
         pos = torch.searchsorted(self.grid, x.squeeze(1).contiguous(), right=True)

@@ -159,6 +159,11 @@ def _source(prefix: str, w: Writer, comp: StreamingCompensator, members: list[st
         member = f"s->{members[k]}"
         if _whole(t, member, t.numel):
             continue  # unchanged
+        if t.base in w.pointers and _whole(t, t.base, t.numel):  # the old state or a new one
+            held = member in w.pointers[t.base]
+            stores.append((f"if ({t.base} != {member}) " if held else "")
+                          + f"memcpy({member}, {t.base}, sizeof {member});")
+            continue
         if not (t.base in local_sizes and _whole(t, t.base, local_sizes[t.base])):
             w.node += 1
             t = copy_to_local(w, t)

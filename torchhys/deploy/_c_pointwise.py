@@ -138,9 +138,13 @@ def _where(w: Writer, spec: CTensor, cond: CTensor, a: Operand, b: Operand) -> C
     if not (isinstance(cond, CTensor) and cond.numel == 1 and spec.numel > 1):
         return pointwise(w, spec, "({0} ? {1} : {2})", [cond, a, b], raw=[0])
     # one condition for all: two copy loops (which vectorize) under an if; a deferred
-    # operand is computed in its branch only
+    # operand is computed in its branch only. Read by the step's outputs only (the new
+    # state: the old one, held, or the new one): a pointer to one of two whole arrays
+    cond_c = w.read(cond, ['0'] * len(cond.shape))
+    if w.alias and w._depth == 1 and all(_whole_array(w, x, spec) for x in (a, b)):
+        return w.pointer(cond_c, a, b)
     out = w.local(spec.dtype, spec.shape)
-    w.emit(f"if ({w.read(cond, ['0'] * len(cond.shape))}) {{")
+    w.emit(f"if ({cond_c}) {{")
     for k, x in enumerate((a, b)):
         if k:
             w.emit("} else {")
@@ -149,6 +153,14 @@ def _where(w: Writer, spec: CTensor, cond: CTensor, a: Operand, b: Operand) -> C
         w._depth -= 1
     w.emit("}")
     return out
+
+
+def _whole_array(w: Writer, x: Operand, spec: CTensor) -> bool:
+    """Whether ``x`` is a whole contiguous array (a local or the state's) of ``spec``'s shape
+    and dtype."""
+    return (isinstance(x, CTensor) and x.element is None and x.value is None
+            and bool(x.base) and x.base not in w.scalars and x.offset == 0
+            and x.shape == spec.shape and x.dtype == spec.dtype and x.is_contiguous())
 
 
 def _masked_fill(w: Writer, spec: CTensor, x: CTensor, mask: CTensor, value: Operand

@@ -3,8 +3,9 @@
 :mod:`torchhys.deploy._c_templates`.
 
 Reductions and matrix products add in index order (BLAS may not: rounding-level
-differences), except a large constant matrix whose rows are piecewise constant (a cumulative
-table), multiplied through its column differences (:func:`_column_differences`).
+differences), except a long sum, added in partial sums (:func:`_reduce`), and a large constant
+matrix whose rows are piecewise constant (a cumulative table), multiplied through its column
+differences (:func:`_column_differences`).
 """
 
 from __future__ import annotations
@@ -28,12 +29,22 @@ def _block(w: Writer, lines: Callable[[], None]) -> None:
     w.emit("}")
 
 
+#: a sum of at least this many elements per output element is added in LANES partial sums
+LANES_MIN = 16
+LANES = 4
+
+
 def _reduce(w: Writer, spec: CTensor, x: CTensor, dims: Sequence[int] | None, keepdim: bool,
-            init: str | Callable[[list[str]], str], step: str, finish: str = "acc"
-            ) -> CTensor:
+            init: str | Callable[[list[str]], str], step: str, finish: str = "acc",
+            lanes: bool = False) -> CTensor:
     """Reduce ``x`` over ``dims`` (None or []: all) in index order: ``acc = init`` (or
     ``init(index of the slice's first element)``), then ``acc = step`` (``{acc}``, ``{x}``)
-    per element, then ``finish``."""
+    per element, then ``finish``. ``lanes`` (a sum, ``init`` its zero): where a slice has
+    at least :data:`LANES_MIN` elements and its last reduced dim at least :data:`LANES`,
+    element ``k`` of that dim is added to partial sum ``k % LANES`` (in index order), the
+    partial sums added pairwise at the end: no chain of additions as long as the slice
+    (torch's vectorized sums also add in partial sums; the rounding differs from the
+    index-order sum's as theirs does)."""
     n = len(x.shape)
     red = sorted({_dim(d, n) for d in dims}) if dims else list(range(n))
     kept = [d for d in range(n) if d not in red]
@@ -42,6 +53,8 @@ def _reduce(w: Writer, spec: CTensor, x: CTensor, dims: Sequence[int] | None, ke
                         [s for d, s in zip(range(n), out.strides, strict=False) if d in kept]
                         if keepdim else out.strides, 0)
     t = w.ctype(spec.dtype)
+    last = x.shape[red[-1]] if red else 0
+    lanes = lanes and last >= LANES and math.prod(x.shape[d] for d in red) >= LANES_MIN
     with w.loop([x.shape[d] for d in kept]) as kidx:
         def full(ridx: Sequence[str]) -> list[str]:
             at = [""] * n
@@ -49,20 +62,46 @@ def _reduce(w: Writer, spec: CTensor, x: CTensor, dims: Sequence[int] | None, ke
                 at[d] = i
             return at
 
+        def add(acc: str, ridx: list[str]) -> None:
+            value = w.cast(w.read(x, full(ridx)), x.dtype, spec.dtype)
+            w.emit(f"{acc} = " + step.format(acc=acc, x=value) + ";")
+
         def body() -> None:
             first = init(full(["0"] * len(red))) if callable(init) else init
-            w.emit(f"{t} acc = {first};")
-            with w.loop([x.shape[d] for d in red]) as ridx:
-                value = w.cast(w.read(x, full(ridx)), x.dtype, spec.dtype)
-                w.emit("acc = " + step.format(acc="acc", x=value) + ";")
+            if not lanes:
+                w.emit(f"{t} acc = {first};")
+                with w.loop([x.shape[d] for d in red]) as ridx:
+                    add("acc", ridx)
+            else:
+                w.emit(f"{t} lane[{LANES}] = {{{', '.join([first] * LANES)}}};")
+                with w.loop([x.shape[d] for d in red[:-1]]) as ridx:
+                    var, whole = f"i{w._loops}", last - last % LANES
+                    w.emit(f"for (int {var} = 0; {var} < {whole}; {var} += {LANES}) {{")
+                    w._depth += 1
+                    for k in range(LANES):
+                        add(f"lane[{k}]", [*ridx, f"{var} + {k}" if k else var])
+                    w._depth -= 1
+                    w.emit("}")
+                    for j in range(whole, last):
+                        add("lane[0]", [*ridx, str(j)])
+                w.emit(f"{t} acc = {_tree([f'lane[{k}]' for k in range(LANES)])};")
             w.emit(f"{w.read(out_kept, kidx)} = {finish};")
         _block(w, body)
     return out
 
 
+def _tree(terms: list[str]) -> str:
+    """The sum of ``terms`` added pairwise (a balanced tree: no long chain of additions)."""
+    if len(terms) == 1:
+        return terms[0]
+    half = len(terms) // 2
+    return f"({_tree(terms[:half])} + {_tree(terms[half:])})"
+
+
 def _sum(w: Writer, spec: CTensor, x: CTensor, dim: Sequence[int] | None = None,
          keepdim: bool = False, *, dtype: torch.dtype | None = None) -> CTensor:
-    return _reduce(w, spec, x, dim, keepdim, w.literal(0, spec.dtype), "{acc} + {x}")
+    return _reduce(w, spec, x, dim, keepdim, w.literal(0, spec.dtype), "{acc} + {x}",
+                   lanes=True)
 
 
 def _mean(w: Writer, spec: CTensor, x: CTensor, dim: Sequence[int] | None = None,
@@ -70,7 +109,7 @@ def _mean(w: Writer, spec: CTensor, x: CTensor, dim: Sequence[int] | None = None
     n = len(x.shape)
     count = math.prod(x.shape[_dim(d, n)] for d in dim) if dim else x.numel
     return _reduce(w, spec, x, dim, keepdim, w.literal(0, spec.dtype), "{acc} + {x}",
-                   f"acc / {w.literal(count, spec.dtype)}")
+                   f"acc / {w.literal(count, spec.dtype)}", lanes=True)
 
 
 def _extremum(kind: str) -> Emitter:
@@ -186,9 +225,9 @@ def _sparse_cumsum(w: Writer, spec: CTensor, out: CTensor, a: CTensor, rows: lis
     lead = ["0"] * (len(a.shape) - 1)
     at_out = ["0"] * (len(out.shape) - 1)
     if len(rows) <= SPARSE_UNROLL:
-        # written out, one sum a column, the entries of one value summed before their one
-        # product (no index tables; a table of relays' +-1 times one weight each: the sums
-        # are exact)
+        # written out, one sum a column, the entries of one value summed pairwise before
+        # their one product (no index tables, no long chain of additions; a table of
+        # relays' +-1 times one weight each: the sums are exact in any order)
         def unrolled() -> None:
             w.emit(f"{t} acc = {w.literal(0, spec.dtype)};")
             for j in range(n):
@@ -197,10 +236,10 @@ def _sparse_cumsum(w: Writer, spec: CTensor, out: CTensor, a: CTensor, rows: lis
                     if cols[e] == j:
                         groups.setdefault(float(values[e]), []).append(
                             w.cast(w.read(a, [*lead, str(rows[e])]), a.dtype, spec.dtype))
-                terms = [f"{w.literal(value, spec.dtype)} * ({' + '.join(reads)})"
+                terms = [f"{w.literal(value, spec.dtype)} * {_tree(reads)}"
                          for value, reads in groups.items()]
                 if terms:
-                    w.emit(f"acc += {w.literal(0, spec.dtype)} + " + " + ".join(terms) + ";")
+                    w.emit(f"acc += {_tree(terms)};")
                 w.emit(f"{w.read(out, [*at_out, str(j)])} = acc;")
         _block(w, unrolled)
         return

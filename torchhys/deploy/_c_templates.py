@@ -23,7 +23,7 @@ from torchhys.deploy._c_pointwise import POINTWISE
 from torchhys.deploy._c_products import PRODUCTS
 from torchhys.deploy._c_views import JOINS, VIEWS, Emitter, _identity, copy
 
-__all__ = ["POINTWISE_OPS", "SHAPE_ONLY", "TEMPLATES", "copy"]
+__all__ = ["POINTWISE_OPS", "SHAPE_ONLY", "TEMPLATES", "VIEW_OPS", "copy"]
 
 OTHERS: dict[str, Emitter] = {**JOINS, **PRODUCTS, **INDEXING}
 
@@ -41,6 +41,9 @@ def _resolve(table: dict[str, Emitter]) -> dict[Any, Emitter]:
 
 #: the pointwise ops (their results may be deferred into the loop of their reader)
 POINTWISE_OPS = frozenset(_resolve(POINTWISE))
+
+#: the views (no code: a new shape, strides and offset over their operand's array)
+VIEW_OPS = frozenset(_resolve(VIEWS))
 
 #: the op templates: op overload -> emitter
 TEMPLATES: dict[Any, Emitter] = {

@@ -192,6 +192,10 @@ class Writer:
         # set by the caller for each node: its pointwise result may be deferred into its one
         # reader's loop (it has one user, a pointwise op of as many elements)
         self.defer = False
+        # set by the caller for each node: its result is read by the step's outputs only (a
+        # one-condition where of two whole arrays may then be a pointer to one of them)
+        self.alias = False
+        self.pointers: dict[str, tuple[str, str]] = {}  # pointer -> the arrays it may point to
         self._depth = 1
         self._loops = 0
 
@@ -339,6 +343,19 @@ class Writer:
                 self._depth -= 1
                 self.emit("}")
             self._loops -= opened
+
+    def pointer(self, cond: str, a: CTensor, b: CTensor) -> CTensor:
+        """``cond ? a : b`` for two whole contiguous arrays of one shape and dtype, without a
+        copy: a const pointer to one of them, read as a tensor of their shape (both arrays
+        kept to the end of the step)."""
+        name = f"p{len(self.pointers)}"
+        arrays = (self.array(a), self.array(b))
+        for base in arrays:
+            if base in self._last:
+                self.keep(base)
+        self.pointers[name] = arrays
+        self.emit(f"const {self.ctype(a.dtype)} *{name} = {cond} ? {arrays[0]} : {arrays[1]};")
+        return CTensor(a.dtype, a.shape, a.strides, name)
 
     def materialize(self, t: CTensor) -> CTensor:
         """A deferred pointwise result (``t.element``) written into a local; else ``t``."""

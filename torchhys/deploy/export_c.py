@@ -41,7 +41,7 @@ from torch import fx, nn
 from torch.export.graph_signature import InputKind
 
 from torchhys.deploy._c_files import MEMBERS, files
-from torchhys.deploy._c_templates import POINTWISE_OPS, SHAPE_ONLY, TEMPLATES
+from torchhys.deploy._c_templates import POINTWISE_OPS, SHAPE_ONLY, TEMPLATES, VIEW_OPS
 from torchhys.deploy._c_writer import CTensor, Writer, constant, contiguous_strides
 from torchhys.deploy.export import _compensator, _ExplicitStep
 from torchhys.deploy.streaming import StreamingCompensator
@@ -256,6 +256,12 @@ def _numel(node: fx.Node) -> int | None:
     return val.numel() if isinstance(val, torch.Tensor) else None
 
 
+def _outputs_only(node: fx.Node) -> bool:
+    """Whether the node's result reaches the step's outputs only (directly or by views)."""
+    return all(u.op == "output" or (u.target in VIEW_OPS and _outputs_only(u))
+               for u in node.users)
+
+
 def _emit(w: Writer, node: fx.Node, env: dict, missing: dict[str, str]) -> Any:
     args, kwargs = fx.node.map_arg((node.args, node.kwargs), lambda n: env[n])
     spec = _spec(node.meta.get("val"))
@@ -265,6 +271,7 @@ def _emit(w: Writer, node: fx.Node, env: dict, missing: dict[str, str]) -> Any:
     emit = TEMPLATES.get(node.target)
     if emit is not None:
         start = len(w.lines)
+        w.alias = _outputs_only(node)
         if node.target in POINTWISE_OPS:
             users = list(node.users)
             w.defer = len(users) == 1 and (users[0].target == _CAT or (
