@@ -57,7 +57,7 @@ def mse(a: torch.Tensor, b: torch.Tensor) -> float:
 def paper_rows(x, h, adam: int, lbfgs: int, seed: int = 0) -> list[tuple]:
     rows = []
     configs = [
-        ("EIHO-NN", "eiho", {"a": "segment"}, "per-segment sqrt a_i (non-causal)"),
+        ("EIHO-NN", "eiho_segment", {}, "per-segment sqrt a_i (non-causal)"),
         ("Zhao-Tan NN", "zhao_tan", {"scale": float(h.std()) / 5}, "-"),
         ("plain NN (x only)", None, {}, "-"),
     ]

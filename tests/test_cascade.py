@@ -11,7 +11,7 @@ import pytest
 import torch
 from _helpers import RAW, run_split
 
-from torchhys import EIHO, Backlash, Cascade, InverseHysteresisNet, PrandtlIshlinskii
+from torchhys import EIHO, Backlash, Cascade, InverseHysteresisNet, PrandtlIshlinskii, SegmentEIHO
 from torchhys.deploy.export import load_torchscript, to_torchscript
 from torchhys.deploy.streaming import StreamingCompensator
 from torchhys.dynamics import StateSpace, TransferFunction
@@ -216,7 +216,7 @@ def test_bad_input():
     with pytest.raises(ValueError, match="must have one output"):
         Cascade(Backlash([0.1, 0.2]), tf)
     with pytest.warns(UserWarning), pytest.raises(ValueError, match="not causal"):
-        Cascade(tf, EIHO(a="segment"))
+        Cascade(tf, SegmentEIHO())
     with pytest.raises(TypeError, match="HysteresisOperator"):
         Cascade(tf, torch.nn.Linear(1, 1))
     with pytest.raises(ValueError, match="name"):

@@ -68,9 +68,9 @@ def test_exported_config_model_keeps_its_direction(config: Path, tmp_path: Path)
     out = tmp_path / "comp.pt"
     export = _torchhys("export", "--ckpt", str(ckpt), "--format", "torchscript",
                        "--out", str(out))
-    segment = any(isinstance(op, dict) and op.get("a") == "segment"
+    segment = any(isinstance(op, dict) and op.get("name") == "eiho_segment"
                   for op in (cfg["model"].get("operator") or []))
-    segment |= (cfg["model"].get("operator_kwargs") or {}).get("a") == "segment"
+    segment |= cfg["model"].get("operator") == "eiho_segment"
     if segment:  # the paper's per-segment EIHO reads the target: no compensator, refused
         assert export.returncode == 2
         assert "cannot be deployed" in export.stderr.strip().splitlines()[-1]

@@ -25,11 +25,7 @@ PAGE = ROOT / "docs" / "adding-an-operator.md"
 MODULE = "my_operators"
 CONFIG = "my_play.yaml"
 CC = shutil.which("cc")
-KNOWN_DEFECTS = {
-    "test_a_bad_state_names_state[my_fixed_play]":
-        "the base class's forward checks the number of state tensors, not their shapes: a "
-        "state of another batch size raises the step's RuntimeError, not a ValueError",
-}
+KNOWN_DEFECTS: dict[str, str] = {}
 """Conformance checks that the page's operators may fail because of a defect outside the
 page (the entry goes when the defect is fixed)."""
 

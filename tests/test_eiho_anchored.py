@@ -44,8 +44,8 @@ def test_zero_slope_is_a_constant_coefficient(rule: str) -> None:
 def test_module_normalizes_the_anchor() -> None:
     op = EIHO(a="anchored", anchor_center=1.0, anchor_scale=4.0).double()
     with torch.no_grad():
-        op.log_a.copy_(torch.log(torch.tensor(A, dtype=torch.float64)))
-        op.anchor_slope.copy_(torch.tensor(K, dtype=torch.float64) * 4.0)
+        op.coef.log_a.copy_(torch.log(torch.tensor(A, dtype=torch.float64)))
+        op.coef.slope.copy_(torch.tensor(K, dtype=torch.float64) * 4.0)
     x = random_walk(3, quantize=False) / 4
     f, _ = op(x)
     ref = ref_branch(x.tolist(), a_anchor=lambda d, xe: a_anchor(d, xe - 1.0))
@@ -59,7 +59,7 @@ def test_chunked_equals_whole(rule: str, threshold: float, sizes: list[int]) -> 
     op = EIHO(a="anchored", rule=rule, threshold=threshold, max_depth=6, anchor_scale=3.0)
     op = op.double()
     with torch.no_grad():
-        op.anchor_slope.copy_(torch.tensor(K))
+        op.coef.slope.copy_(torch.tensor(K))
     x = batch()
     whole, _ = op(x)
     torch.testing.assert_close(run_chunked(op, x, sizes), whole, rtol=1e-12, atol=1e-12)
@@ -89,9 +89,9 @@ def test_causal_and_finite_gradients_at_kinks() -> None:
     changed[10:] -= 5.0
     torch.testing.assert_close(op(changed)[0][:10], f[:10].detach())
     f.sum().backward()
-    for g in (x.grad, op.log_a.grad, op.anchor_slope.grad):
+    for g in (x.grad, op.coef.log_a.grad, op.coef.slope.grad):
         assert g is not None and bool(torch.isfinite(g).all())
-    assert float(op.anchor_slope.grad.abs().sum()) > 0
+    assert float(op.coef.slope.grad.abs().sum()) > 0
 
 
 def test_slope_trains_with_the_network() -> None:
@@ -100,7 +100,7 @@ def test_slope_trains_with_the_network() -> None:
     x = 2 * torch.sin(t) + torch.sin(3.1 * t)
     net = InverseHysteresisNet(EIHO(a="anchored", rule="dominant"), hidden=6).double()
     fit_full_batch(net, x, torch.tanh(x), adam_epochs=20, lbfgs_epochs=0)
-    assert float(net.operators[0].anchor_slope.detach().abs().sum()) > 0
+    assert float(net.operators[0].coef.slope.detach().abs().sum()) > 0
 
 
 def test_bad_input() -> None:

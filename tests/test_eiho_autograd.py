@@ -65,5 +65,5 @@ def test_learnable_a_receives_gradient() -> None:
     op = EIHO(a="learnable", per_direction=True).double()
     f, _ = op(smooth_input())
     f.sum().backward()
-    assert op.log_a.grad is not None and torch.isfinite(op.log_a.grad).all()
-    assert op.log_a.grad.abs().min() > 0
+    assert op.coef.log_a.grad is not None and torch.isfinite(op.coef.log_a.grad).all()
+    assert op.coef.log_a.grad.abs().min() > 0

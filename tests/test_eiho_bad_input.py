@@ -7,7 +7,7 @@ import warnings
 import pytest
 import torch
 
-from torchhys import EIHO, InverseHysteresisNet, ZhaoTanOperator
+from torchhys import EIHO, InverseHysteresisNet, SegmentEIHO, ZhaoTanOperator
 from torchhys.functional import NonCausalWarning, eiho, segment_coefficients, zhao_tan
 
 X = torch.linspace(0, 1, 10)
@@ -28,7 +28,7 @@ X = torch.linspace(0, 1, 10)
         (lambda: eiho(X, torch.ones(2, 3), per_segment=True), ValueError, "per-segment a"),
         (lambda: EIHO(a=0.0), ValueError, "a must be positive"),
         (lambda: EIHO(a="big"), ValueError, "a must be .*'big'"),
-        (lambda: EIHO(a_formula="square"), ValueError, "a_formula must be .*'square'"),
+        (lambda: SegmentEIHO(a_formula="square"), ValueError, "a_formula must be .*'square'"),
         (lambda: EIHO(rule="x"), ValueError, "rule must be .*'x'"),
         (lambda: EIHO(threshold=-1.0), ValueError, "threshold must be .*-1.0"),
         (lambda: ZhaoTanOperator(scale=0.0), ValueError, "scale must be a positive number"),
@@ -47,7 +47,7 @@ def test_errors_name_the_argument(call, error: type, match: str) -> None:
 
 def test_per_segment_needs_targets_and_warns() -> None:
     with pytest.warns(NonCausalWarning, match="not causal"):
-        op = EIHO(a="segment")
+        op = SegmentEIHO()
     with pytest.raises(ValueError, match="needs target= .* or segment_a="):
         op(X)
     with pytest.warns(NonCausalWarning):
@@ -57,7 +57,7 @@ def test_per_segment_needs_targets_and_warns() -> None:
             warnings.simplefilter("ignore", NonCausalWarning)
             segment_coefficients(X, X[:5])
     with pytest.warns(NonCausalWarning):
-        net = InverseHysteresisNet("eiho", 4, operator_kwargs={"a": "segment"})
+        net = InverseHysteresisNet("eiho_segment", 4)
     with pytest.raises(ValueError, match="needs target="):
         net(X)
 

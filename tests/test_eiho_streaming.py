@@ -8,7 +8,7 @@ import pytest
 import torch
 from _helpers import batch, run_chunked
 
-from torchhys import EIHO, InverseHysteresisNet, ZhaoTanOperator
+from torchhys import EIHO, InverseHysteresisNet, SegmentEIHO, ZhaoTanOperator
 from torchhys.functional import NonCausalWarning
 
 A_MODES = [1.5, (1.5, 0.5), "learnable"]
@@ -30,7 +30,7 @@ def test_eiho_chunked_equals_whole(rule: str, a: object, threshold: float, sizes
 def test_per_segment_chunked_equals_whole(rule: str, a_formula: str) -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NonCausalWarning)
-        op = EIHO(a="segment", rule=rule, a_formula=a_formula, threshold=0.5).double()
+        op = SegmentEIHO(rule=rule, a_formula=a_formula, threshold=0.5).double()
     x = batch()
     y = torch.sin(x)
     whole, _ = op(x, target=y)

@@ -58,7 +58,7 @@ def test_expanded_input_space_with_plays() -> None:
 def test_learnable_operator_trains_jointly() -> None:
     torch.manual_seed(0)
     net = InverseHysteresisNet("eiho", hidden=6, operator_kwargs={"a": "learnable"}).double()
-    before = float(net.operators[0].log_a.detach())
+    before = float(net.operators[0].coef.log_a.detach())
     x, y = data()
     fit_full_batch(net, x, y, adam_epochs=30, lbfgs_epochs=0)
-    assert float(net.operators[0].log_a.detach()) != before
+    assert float(net.operators[0].coef.log_a.detach()) != before

@@ -39,7 +39,7 @@ def zhao_tan_kwargs() -> dict:
 
 def test_ranking_on_a_small_budget(one_thread: None) -> None:
     # measured with one thread: eiho 6.17e-3, zhao_tan 3.10e-2, plain 0.281 (repeatable)
-    eiho = train("eiho", {"a": "segment"}, 300, 200)
+    eiho = train("eiho_segment", {}, 300, 200)
     zhao_tan = train("zhao_tan", zhao_tan_kwargs(), 300, 200)
     plain = train(None, {}, 100, 50)
     assert eiho < 7.5e-3
@@ -49,6 +49,6 @@ def test_ranking_on_a_small_budget(one_thread: None) -> None:
 
 @pytest.mark.slow
 def test_paper_figure_reached(one_thread: None) -> None:
-    eiho = train("eiho", {"a": "segment"}, 2000, 10000)  # about 2 min on one core
+    eiho = train("eiho_segment", {}, 2000, 10000)  # about 2 min on one core
     assert eiho <= PAPER_EIHO_MSE
     assert eiho < train("zhao_tan", zhao_tan_kwargs(), 2000, 3000)

@@ -116,8 +116,8 @@ def anchored_eiho(rule: str, threshold: float, dtype: torch.dtype) -> EIHO:
     op = EIHO(a="anchored", rule=rule, threshold=threshold, max_depth=5, a_init=0.8,
               anchor_center=0.5, anchor_scale=2.0)
     with torch.no_grad():
-        op.log_a.copy_(torch.tensor([-0.2, 0.3]))
-        op.anchor_slope.copy_(torch.tensor([0.4, -0.7]))
+        op.coef.log_a.copy_(torch.tensor([-0.2, 0.3]))
+        op.coef.slope.copy_(torch.tensor([0.4, -0.7]))
     return op.to(dtype)
 
 

@@ -9,7 +9,14 @@ import pytest
 import torch
 from _helpers import RAW
 
-from torchhys import EIHO, Backlash, InverseHysteresisNet, PrandtlIshlinskii, ZhaoTanOperator
+from torchhys import (
+    EIHO,
+    Backlash,
+    InverseHysteresisNet,
+    PrandtlIshlinskii,
+    SegmentEIHO,
+    ZhaoTanOperator,
+)
 from torchhys.deploy.streaming import StreamingCompensator, default_limits
 from torchhys.functional import NonCausalWarning
 
@@ -44,16 +51,6 @@ def test_default_limits_from_training_range() -> None:
     assert low == pytest.approx(float(y.min())) and high == pytest.approx(float(y.max()))
     comp = StreamingCompensator(net)
     assert float(comp.low) == pytest.approx(low) and float(comp.high) == pytest.approx(high)
-
-
-def test_default_limits_of_a_state_dict_without_the_range() -> None:
-    net, x = make_net()
-    state = {k: v for k, v in net.state_dict().items() if k not in ("out_min", "out_max")}
-    old = InverseHysteresisNet(list(net.operators), hidden=net.hidden.out_features).double()
-    old.load_state_dict(state)
-    assert torch.isnan(old.out_min) and torch.isnan(old.out_max)
-    mean, std = float(net.out_mean), float(net.out_std)
-    assert default_limits(old) == pytest.approx((mean - 3 * std, mean + 3 * std))
 
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
@@ -144,7 +141,7 @@ def test_overflowing_input_never_reaches_the_plant() -> None:
 def test_non_causal_eiho_is_rejected() -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NonCausalWarning)
-        net = InverseHysteresisNet(EIHO(a="segment"), hidden=4)
+        net = InverseHysteresisNet(SegmentEIHO(), hidden=4)
     with pytest.raises(ValueError, match="cannot be deployed"):
         StreamingCompensator(net, limits=(-1, 1), **RAW)
 

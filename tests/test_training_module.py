@@ -73,9 +73,9 @@ def test_learnable_a_is_trained_jointly() -> None:
     dm = small_data()
     module = InverseHysteresisModule(operator="eiho", hidden=8, optimizer="cg",
                                      operator_kwargs={"a": "learnable", "a_init": 0.3})
-    before = module.net.operators[0].log_a.detach().clone()
+    before = module.net.operators[0].coef.log_a.detach().clone()
     trainer(max_epochs=3).fit(module, dm)
-    assert not torch.equal(before, module.net.operators[0].log_a.detach())
+    assert not torch.equal(before, module.net.operators[0].coef.log_a.detach())
 
 
 def test_per_segment_eiho_gets_the_target_and_caches_features() -> None:
@@ -83,8 +83,7 @@ def test_per_segment_eiho_gets_the_target_and_caches_features() -> None:
     dm = small_data()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NonCausalWarning)
-        module = InverseHysteresisModule(operator="eiho", hidden=16, optimizer="cg",
-                                         operator_kwargs={"a": "segment"})
+        module = InverseHysteresisModule(operator="eiho_segment", hidden=16, optimizer="cg")
     calls = []
     original = module.net.features
 

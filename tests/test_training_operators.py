@@ -194,7 +194,7 @@ def test_segment_eiho_with_the_least_squares_pi() -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NonCausalWarning)
         module = InverseHysteresisModule(
-            operator=[{"name": "eiho", "a": "segment", "a_formula": "sqrt"},
+            operator=[{"name": "eiho_segment", "a_formula": "sqrt"},
                       {"fit": "pi_ls", "n_widths": 30}], hidden=16, optimizer="cg")
     dm = small_data()
     t = trainer(max_epochs=20)

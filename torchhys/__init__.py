@@ -28,6 +28,7 @@ from torchhys.operators.backlash import Backlash, BacklashCell
 from torchhys.operators.cascade import Cascade
 from torchhys.operators.drift import Drift
 from torchhys.operators.eiho import EIHO, ZhaoTanOperator
+from torchhys.operators.eiho_segment import SegmentEIHO
 from torchhys.operators.generalized_pi import GeneralizedPIInverse, GeneralizedPrandtlIshlinskii
 from torchhys.operators.jiles_atherton import JilesAtherton
 from torchhys.operators.prandtl_ishlinskii import PrandtlIshlinskii, PrandtlIshlinskiiInverse
@@ -42,6 +43,7 @@ __all__ = [
     "deploy",
     "identification",
     "operators",
+    "models",
     "signals",
     "optim",
     "export",
@@ -58,6 +60,7 @@ __all__ = [
     "Drift",
     "fit_drift",
     "EIHO",
+    "SegmentEIHO",
     "InverseHysteresisNet",
     "ZhaoTanOperator",
     "BacklashCell",

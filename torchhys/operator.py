@@ -49,7 +49,7 @@ fixed when it is built.
 
 import abc
 import copy
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from dataclasses import field as dataclass_field
 from typing import Any, ClassVar
@@ -57,8 +57,14 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor, nn
 
-from torchhys._checks import as_batched_sequence, check_choice, check_int
+from torchhys._checks import as_batched_sequence
 from torchhys.constraints import check_constraint
+from torchhys.step import (
+    OperatorStep,
+    StateBlock,
+    _check_step_state,
+    custom_start,
+)
 
 __all__ = [
     "ENTRY_POINT_GROUP",
@@ -76,102 +82,6 @@ __all__ = [
     "make_operator",
     "register_operator",
 ]
-
-STATE_KINDS = ("float", "float64", "int64")
-
-
-@dataclass(frozen=True)
-class StateBlock:
-    """One block of an operator step's state: a ``(batch, size)`` tensor.
-
-    Args:
-        name: what it holds (for the layout table and error messages).
-        size: number of columns (>= 1).
-        kind: ``"float"`` (the compensator's dtype), ``"float64"`` or ``"int64"``.
-        start: value of each column at a row's first finite sample (a number, or one per
-            column) ...
-        from_sample: ... plus this times that sample (a number, or one per column; float
-            kinds only).
-    """
-
-    name: str
-    size: int
-    kind: str = "float"
-    start: float | Sequence[float] = 0.0
-    from_sample: float | Sequence[float] = 0.0
-
-    def __post_init__(self) -> None:
-        check_int(self.size, f"StateBlock {self.name!r}: size", minimum=1)
-        check_choice(self.kind, f"StateBlock {self.name!r}: kind", STATE_KINDS)
-        for field in ("start", "from_sample"):
-            values = self.columns(field)
-            if len(values) != self.size:
-                raise ValueError(f"StateBlock {self.name!r}: {field} needs one value per "
-                                 f"column ({self.size}), got {len(values)}")
-        if self.kind == "int64" and any(v != 0.0 for v in self.columns("from_sample")):
-            raise ValueError(f"StateBlock {self.name!r}: an int64 block cannot start from "
-                             "the sample (from_sample must be 0)")
-
-    def columns(self, field: str) -> list[float]:
-        """``start`` or ``from_sample`` as one float per column."""
-        value = getattr(self, field)
-        if isinstance(value, (int, float)):
-            return [float(value)] * self.size
-        return [float(v) for v in value]
-
-
-class OperatorStep(nn.Module, abc.ABC):
-    """The per-sample step of an operator, for export (see the module docstring).
-
-    Subclasses set ``n_outputs`` and ``state_spec`` in ``__init__`` and implement
-    :meth:`forward`.
-    """
-
-    # class annotations are read by TorchScript (this module keeps them unquoted); the spec is
-    # Python-level layout, not part of the scripted step
-    n_outputs: int
-    state_spec: list[StateBlock]
-    __jit_ignored_attributes__ = ["state_spec"]
-
-    @abc.abstractmethod
-    def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
-        """x (batch, 1), state (one (batch, size) tensor per block) -> (features
-        (batch, n_outputs), new state)."""
-
-    def initial_state(self, x0: Tensor) -> list[Tensor]:
-        """The state at a row's first finite sample ``x0`` (batch, 1), before the step runs
-        on it. Default: each block at ``start + from_sample * x0`` (its :class:`StateBlock`),
-        which the compensator computes itself for all such steps at once. A step whose start
-        is not of that form overrides it (in TorchScript- and ``torch.export``-able code,
-        e.g. a cascade, whose second part starts from the first part's output); the
-        compensator then runs the override at each row's first finite sample."""
-        out = []
-        for block in self.state_spec:
-            dtype = {"float": x0.dtype, "float64": torch.float64, "int64": torch.long}[block.kind]
-            start = torch.tensor(block.columns("start"), dtype=torch.float64)
-            slope = torch.tensor(block.columns("from_sample"), dtype=torch.float64)
-            value = start + slope * x0.to(torch.float64)
-            out.append(value.to(dtype))
-        return out
-
-    def run(self, x: Tensor) -> Tensor:
-        """Step through a whole sequence from a fresh state: x (batch, time) ->
-        (batch, time, n_outputs). For tests and inspection (a Python loop)."""
-        if x.dim() != 2 or x.shape[1] == 0:
-            raise ValueError(f"x must have shape (batch, time) with time >= 1, got shape "
-                             f"{tuple(x.shape)}")
-        state = self.initial_state(x[:, :1])
-        outs = []
-        for xt in x.unbind(1):
-            f, state = self(xt.unsqueeze(1), state)
-            outs.append(f)
-        return torch.stack(outs, dim=1)
-
-
-def custom_start(step: OperatorStep) -> bool:
-    """Whether ``step`` overrides :meth:`OperatorStep.initial_state` (its start is not
-    ``start + from_sample * x0`` block by block)."""
-    return type(step).initial_state is not OperatorStep.initial_state
 
 
 class AtomicLoad:
@@ -220,9 +130,8 @@ class HysteresisOperator(AtomicLoad, nn.Module, abc.ABC):
         step = self.streaming_step(xb.dtype)
         if state is None:
             state = step.initial_state(xb[:, :1])
-        elif not isinstance(state, list) or len(state) != len(step.state_spec):
-            raise ValueError(f"state must be the list of {len(step.state_spec)} tensor(s) this "
-                             f"operator returns, got {type(state).__name__}")
+        else:
+            _check_step_state(state, step.state_spec, xb.shape[0])
         outs = []
         for xt in xb.unbind(1):
             f, state = step(xt.unsqueeze(1), state)

@@ -51,7 +51,7 @@ import torch
 from torch import Tensor, nn
 
 from torchhys._checks import check_real
-from torchhys.operator import STATE_KINDS, OperatorStep, StateBlock, custom_start
+from torchhys.step import STATE_KINDS, OperatorStep, StateBlock, custom_start
 
 __all__ = [
     "COUNTER", "DIRECTIONS", "HELD", "MIN_TREND", "STARTED", "STATE_F", "STATE_F64", "STATE_I",
@@ -121,8 +121,7 @@ def default_limits(model: nn.Module) -> tuple[float, float]:
     """Command limits of a model: its recorded training-target range.
 
     Uses ``model.out_min`` / ``model.out_max`` (the training targets' range, recorded by
-    :meth:`~torchhys.InverseHysteresisNet.fit_normalization`) when they are known, else, for
-    a network saved before the range was recorded, ``out_mean +/- 3 out_std``.
+    :meth:`~torchhys.InverseHysteresisNet.fit_normalization`).
 
     Raises:
         ValueError: the model records no output range (a :class:`PrandtlIshlinskiiInverse`,
@@ -133,11 +132,6 @@ def default_limits(model: nn.Module) -> tuple[float, float]:
         low, high = float(lo), float(hi)
         if math.isfinite(low) and math.isfinite(high) and low < high:
             return low, high
-    mean, std = getattr(model, "out_mean", None), getattr(model, "out_std", None)
-    if isinstance(mean, Tensor) and isinstance(std, Tensor):
-        mean_f, std_f = float(mean), float(std)
-        if not (mean_f == 0.0 and std_f == 1.0):
-            return mean_f - 3.0 * std_f, mean_f + 3.0 * std_f
     raise ValueError(
         f"{type(model).__name__} records no training output range (normalization not fitted, "
         "or an analytic inverse): pass limits=(low, high) in command units"
@@ -248,7 +242,7 @@ class StreamingCompensator(nn.Module):
         step with the state passed explicitly (see the module docstring for its layout).
 
     Raises:
-        ValueError: a non-causal operator (``EIHO(a="segment")``), an uncalibrated
+        ValueError: a non-causal operator (``SegmentEIHO``), an uncalibrated
             ``threshold="auto"``, bad ``limits``, ``input_range``, ``input_margin`` or
             ``direction``, a non-finite ``initial_command``.
         TypeError: a model without streaming steps, or a step outside the protocol.

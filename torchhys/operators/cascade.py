@@ -27,15 +27,8 @@ import torch
 from torch import Tensor
 
 from torchhys._checks import as_batched_sequence
-from torchhys.operator import (
-    STATE_KINDS,
-    Example,
-    HysteresisOperator,
-    OperatorStep,
-    custom_start,
-    make_operator,
-    register_operator,
-)
+from torchhys.operator import Example, HysteresisOperator, make_operator, register_operator
+from torchhys.step import STATE_KINDS, OperatorStep, custom_start
 
 __all__ = ["Cascade", "CascadeStep"]
 

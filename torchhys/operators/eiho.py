@@ -1,23 +1,25 @@
-"""``nn.Module`` wrappers of the branch operators: :class:`EIHO` and :class:`ZhaoTanOperator`."""
+"""The branch operators: :class:`EIHO` with its coefficient kinds (:class:`Coefficients`) and
+:class:`ZhaoTanOperator`; their steps are in :mod:`torchhys.operators.branch_steps`, the
+non-causal per-segment EIHO in :mod:`torchhys.operators.eiho_segment`."""
 
 from __future__ import annotations
 
 import math
-import warnings
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor, nn
 
 from torchhys._checks import as_batched_sequence, check_choice
 from torchhys.functional._branch import BranchState
-from torchhys.functional.eiho import NonCausalWarning, eiho, segment_coefficients, zhao_tan
+from torchhys.functional.eiho import eiho, zhao_tan
 from torchhys.functional.turning_points import estimate_threshold
 from torchhys.operator import Example, HysteresisOperator, OperatorStep, register_operator
 from torchhys.operators.branch_steps import branch_step
 
-__all__ = ["EIHO", "ZhaoTanOperator"]
+__all__ = ["EIHO", "AnchoredCoefficients", "Coefficients", "FixedCoefficients",
+           "LearnableCoefficients", "ZhaoTanOperator", "coefficients"]
 
-_A_FORMULAS = ("sqrt", "paper")
 _OUTPUTS = ("level", "branch")
 
 
@@ -29,6 +31,78 @@ def _threshold_buffer(threshold: float | str) -> Tensor:
     if not math.isfinite(threshold) or threshold < 0:
         raise ValueError(f"threshold must be a finite number >= 0 or 'auto', got {threshold!r}")
     return torch.tensor(float(threshold))
+
+
+class Coefficients(nn.Module):
+    """An EIHO's coefficients ``a`` (ascending, descending): one kind of object per way they
+    are set. :meth:`forward` returns ``(a (2,), slope)``, the coefficient of a branch that
+    starts at ``x_e`` being ``a_d exp(slope_d x_e)`` (``slope`` None: constant)."""
+
+    def forward(self) -> tuple[Tensor, Tensor | None]:  # pragma: no cover (abstract)
+        raise NotImplementedError
+
+    def at_center(self) -> Tensor:
+        """The coefficients (2,) of a branch that starts at the reference level (for
+        constant coefficients: the coefficients)."""
+        return self()[0]
+
+
+class FixedCoefficients(Coefficients):
+    """Constant coefficients (a buffer ``a``): a positive number or a pair."""
+
+    def __init__(self, a: float | Sequence[float]) -> None:
+        super().__init__()
+        pair = (a, a) if isinstance(a, (int, float)) and not isinstance(a, bool) else a
+        try:
+            values = [float(v) for v in pair]  # type: ignore[union-attr]
+        except (TypeError, ValueError):
+            values = []
+        if len(values) != 2 or not all(math.isfinite(v) and v > 0 for v in values):
+            raise ValueError(f"a must be positive (a number or a pair), got {a!r}")
+        self.register_buffer("a", torch.tensor(values))
+
+    def forward(self) -> tuple[Tensor, Tensor | None]:
+        return self.a, None
+
+    def extra_repr(self) -> str:
+        return f"a={self.a.tolist()}"
+
+
+class LearnableCoefficients(Coefficients):
+    """Trained coefficients ``exp(log_a)``: one, or one per direction."""
+
+    def __init__(self, a_init: float = 1.0, per_direction: bool = False) -> None:
+        super().__init__()
+        if not (isinstance(a_init, (int, float)) and math.isfinite(a_init) and a_init > 0):
+            raise ValueError(f"a_init must be a positive number, got {a_init!r}")
+        self.log_a = nn.Parameter(torch.full((2 if per_direction else 1,), math.log(a_init)))
+
+    def forward(self) -> tuple[Tensor, Tensor | None]:
+        return torch.exp(self.log_a).expand(2), None
+
+
+class AnchoredCoefficients(Coefficients):
+    """Trained coefficients that depend on the branch's start point ``x_e``:
+    ``a_d(x_e) = exp(log_a_d + k_d (x_e - center) / scale)``, ``k`` starting at 0."""
+
+    def __init__(self, a_init: float = 1.0, center: float = 0.0, scale: float = 1.0) -> None:
+        super().__init__()
+        if not (isinstance(a_init, (int, float)) and math.isfinite(a_init) and a_init > 0):
+            raise ValueError(f"a_init must be a positive number, got {a_init!r}")
+        if not (math.isfinite(center) and math.isfinite(scale) and scale > 0):
+            raise ValueError("anchor_center must be finite and anchor_scale positive, got "
+                             f"{center!r}, {scale!r}")
+        self.log_a = nn.Parameter(torch.full((2,), math.log(a_init)))
+        self.slope = nn.Parameter(torch.zeros(2))
+        self.register_buffer("norm", torch.tensor([float(center), float(scale)]))
+
+    def forward(self) -> tuple[Tensor, Tensor | None]:
+        # a_d exp(k_d (x_e - c) / s) = [a_d exp(-k_d c / s)] exp((k_d / s) x_e)
+        slope = self.slope / self.norm[1]
+        return torch.exp(self.log_a) * torch.exp(-slope * self.norm[0]), slope
+
+    def at_center(self) -> Tensor:
+        return torch.exp(self.log_a)
 
 
 class _TurningPointOperator(HysteresisOperator):
@@ -71,27 +145,28 @@ class _TurningPointOperator(HysteresisOperator):
 class EIHO(_TurningPointOperator):
     """Elementary inverse hysteresis operator, Eq. (2), with streaming state.
 
-    Modes of ``a``:
-        * a positive number, or a pair ``(ascending, descending)``: fixed (causal);
-        * ``"learnable"``: positive parameter(s) ``exp(log_a)`` (one, or one per direction
-          with ``per_direction=True``), trained with the network (causal);
-        * ``"anchored"``: a learned positive function of the branch's start point ``x_e``
-          (causal): ``a_d(x_e) = exp(log_a_d + k_d (x_e - anchor_center) / anchor_scale)``,
-          one ``(log_a_d, k_d)`` per direction, ``k`` starting at 0 (a constant ``a_init``);
-          set ``anchor_center`` / ``anchor_scale`` near the input's mean and spread;
-        * ``"segment"``: the paper's per-segment ``a_i`` from the training targets with
-          ``a_formula`` (``"sqrt"``: ``|dy| / |dx|^(1/2)``, consistent with Eq. (2);
-          ``"paper"``: Eq. (19) as printed, ``|dy| / dx^2``). **Not causal**: pass
-          ``target=`` (whole record) or precomputed ``segment_a=`` to :meth:`forward`.
+    Its coefficients ``a`` (ascending, descending) are one of the :class:`Coefficients`
+    objects, or given by the shorthand of ``a``:
+        * a positive number, or a pair ``(ascending, descending)``:
+          :class:`FixedCoefficients`;
+        * ``"learnable"``: :class:`LearnableCoefficients`, ``exp(log_a)`` (one, or one per
+          direction with ``per_direction=True``), trained with the network;
+        * ``"anchored"``: :class:`AnchoredCoefficients`, a learned positive function of the
+          branch's start point ``x_e``:
+          ``a_d(x_e) = exp(log_a_d + k_d (x_e - anchor_center) / anchor_scale)``, ``k``
+          starting at 0 (a constant ``a_init``); set ``anchor_center`` / ``anchor_scale``
+          near the input's mean and spread.
+    The paper's per-segment ``a_i`` from the training targets is not causal: it is a
+    separate operator, :class:`~torchhys.operators.eiho_segment.SegmentEIHO`
+    (``"eiho_segment"``).
 
     Args:
         a: see above.
         rule: ``"recent"`` (Eq. (2) as printed) or ``"dominant"`` (return-point memory).
-        a_formula: formula of the ``"segment"`` mode.
         threshold: reversal threshold of the turning-point detector, or ``"auto"`` (then
             call :meth:`calibrate_threshold` before :meth:`forward`).
         per_direction: with ``a="learnable"``, learn ascending and descending values.
-        a_init: initial value of a learnable ``a``.
+        a_init: initial value of a learnable or anchored ``a``.
         max_depth: stack size of the ``"dominant"`` rule.
         eps: linear zone of the square root (see :func:`torchhys.functional.eiho`).
         anchor_center: with ``a="anchored"``, the input level where ``a_d = exp(log_a_d)``.
@@ -108,145 +183,87 @@ class EIHO(_TurningPointOperator):
     """
 
     def __init__(
-        self, *, a: float | tuple[float, float] | str = 1.0, rule: str = "recent",
-        a_formula: str = "sqrt", threshold: float | str = 0.0, per_direction: bool = False,
+        self, *, a: float | tuple[float, float] | str | Coefficients = 1.0,
+        rule: str = "recent", threshold: float | str = 0.0, per_direction: bool = False,
         a_init: float = 1.0, max_depth: int = 32, eps: float = 1e-8,
         anchor_center: float = 0.0, anchor_scale: float = 1.0, output: str = "level",
     ) -> None:
         super().__init__(threshold, rule, max_depth, output)
-        check_choice(a_formula, "a_formula", _A_FORMULAS)
-        mode = a if isinstance(a, str) else "fixed"
-        for name, value, default, modes in (
-            ("per_direction", per_direction, False, ("learnable",)),
-            ("a_init", a_init, 1.0, ("learnable", "anchored")),
-            ("anchor_center", anchor_center, 0.0, ("anchored",)),
-            ("anchor_scale", anchor_scale, 1.0, ("anchored",)),
-            ("a_formula", a_formula, "sqrt", ("segment",)),
-        ):
-            if value != default and mode not in modes:
-                raise ValueError(
-                    f"{name}={value!r} applies only with a in {modes}, got a={a!r}"
-                )
-        if isinstance(eps, bool) or not isinstance(eps, (int, float)) or not (
-                math.isfinite(eps) and eps >= 0):
-            raise ValueError(f"eps must be a finite number >= 0, got {eps!r}")
-        self.a_formula, self.eps = a_formula, float(eps)
-        self.per_segment = a == "segment"
-        self.causal = not self.per_segment
-        if a in ("learnable", "anchored"):
-            if not (math.isfinite(a_init) and a_init > 0):
-                raise ValueError(f"a_init must be a positive number, got {a_init!r}")
-            n_a = 2 if (per_direction or a == "anchored") else 1
-            self.log_a = nn.Parameter(torch.full((n_a,), math.log(a_init)))
-            if a == "anchored":
-                ok = math.isfinite(anchor_center) and math.isfinite(anchor_scale)
-                if not (ok and anchor_scale > 0):
-                    raise ValueError(
-                        "anchor_center must be finite and anchor_scale positive, got "
-                        f"{anchor_center!r}, {anchor_scale!r}"
-                    )
-                self.anchor_slope = nn.Parameter(torch.zeros(2))
-                self.register_buffer(
-                    "anchor_norm", torch.tensor([float(anchor_center), float(anchor_scale)])
-                )
-        elif self.per_segment:
-            warnings.warn(
-                "EIHO(a='segment') uses the target's next extremum: not causal, for replaying "
-                "recorded data only", NonCausalWarning, stacklevel=2,
-            )
-        elif isinstance(a, str):
-            raise ValueError(
-                "a must be a positive number, a pair, 'learnable', 'anchored' or 'segment', "
-                f"got {a!r}"
-            )
-        else:
-            pair = (a, a) if isinstance(a, (int, float)) else tuple(a)
-            if len(pair) != 2 or not all(isinstance(v, (int, float)) and v > 0 for v in pair):
-                raise ValueError(f"a must be positive (a number or a pair), got {a!r}")
-            self.register_buffer("a_fixed", torch.tensor([float(v) for v in pair]))
+        self.eps = check_eps(eps)
+        self.coef = coefficients(a, per_direction=per_direction, a_init=a_init,
+                                 anchor_center=anchor_center, anchor_scale=anchor_scale)
 
     def coefficient(self) -> Tensor:
-        """The causal coefficients ``(ascending, descending)``, shape (2,).
+        """The coefficients ``(ascending, descending)``, shape (2,); anchored ones: their
+        values for a branch starting at ``anchor_center``."""
+        return self.coef.at_center()
 
-        With ``a="anchored"``: their values for a branch starting at ``anchor_center``.
-        """
-        if hasattr(self, "log_a"):
-            return torch.exp(self.log_a).expand(2)
-        if self.per_segment:
-            raise ValueError("a='segment' has no fixed coefficient: it comes from targets")
-        return self.a_fixed
-
-    def segment_coefficients(self, x: Tensor, target: Tensor) -> Tensor:
-        """Per-segment ``a_i`` of a whole record (x, target) with this operator's settings."""
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", NonCausalWarning)
-            return segment_coefficients(
-                x, target, threshold=self._threshold(), formula=self.a_formula
-            )
-
-    def forward(
-        self, x: Tensor, state: BranchState | None = None, *,
-        target: Tensor | None = None, segment_a: Tensor | None = None,
-    ) -> tuple[Tensor, BranchState]:
-        """Apply the operator to ``x`` (time,) or (batch, time), continuing from ``state``.
-
-        ``target`` (same shape as ``x``, the whole record) or ``segment_a`` (from
-        :meth:`segment_coefficients`, for chunked replay) are required with ``a="segment"``.
-        """
+    def forward(self, x: Tensor, state: BranchState | None = None
+                ) -> tuple[Tensor, BranchState]:
+        """Apply the operator to ``x`` (time,) or (batch, time), continuing from ``state``."""
         as_batched_sequence(x, "x")
-        if self.per_segment:
-            if segment_a is None:
-                if target is None:
-                    raise ValueError(
-                        "EIHO(a='segment') needs target= (the recorded outputs) or segment_a=: "
-                        "per-segment coefficients come from the target's extrema"
-                    )
-                segment_a = self.segment_coefficients(x, target)
-            a = segment_a
-        else:
-            a = self.coefficient()
-        slope = None
-        if hasattr(self, "anchor_slope"):
-            a, slope = self._anchored()
-            slope = slope.to(x.dtype) if x.is_floating_point() else slope
+        a, slope = self.coef()
         return eiho(
-            x, a.to(x.dtype) if x.is_floating_point() else a, rule=self.rule,
-            threshold=self._threshold(), state=state, per_segment=self.per_segment,
-            eps=self.eps, max_depth=self.max_depth, anchor_slope=slope, output=self.output,
+            x, a.to(x.dtype), rule=self.rule, threshold=self._threshold(), state=state,
+            eps=self.eps, max_depth=self.max_depth,
+            anchor_slope=None if slope is None else slope.to(x.dtype), output=self.output,
         )
-
-    def _anchored(self) -> tuple[Tensor, Tensor]:
-        """``a="anchored"`` as coefficients of ``exp(slope x_e)``: ``(a (2,), slope (2,))``.
-
-        ``a_d exp(k_d (x_e - c) / s) = [a_d exp(-k_d c / s)] exp((k_d / s) x_e)``.
-        """
-        slope = self.anchor_slope / self.anchor_norm[1]
-        return self.coefficient() * torch.exp(-slope * self.anchor_norm[0]), slope
 
     def streaming_step(self, dtype: torch.dtype) -> OperatorStep:
         """The per-sample step (see :mod:`torchhys.operators.branch_steps`).
 
         Raises:
-            ValueError: ``a="segment"`` (not causal) or an uncalibrated ``"auto"`` threshold.
+            ValueError: an uncalibrated ``"auto"`` threshold.
         """
-        if self.per_segment:
-            raise ValueError(
-                "EIHO(a='segment') cannot be deployed: its per-segment coefficients come from "
-                "the target's next extremum (not causal). Train with a fixed or learnable a."
-            )
         with torch.no_grad():
-            a, slope = self._anchored() if hasattr(self, "anchor_slope") else (
-                self.coefficient(), None)
+            a, slope = self.coef()
             return branch_step(
                 "eiho", self.rule, a, slope, self._threshold(), eps=self.eps, scale=1.0,
                 output=self.output, max_depth=self.max_depth, dtype=dtype,
             )
 
     def extra_repr(self) -> str:
-        mode = "segment" if self.per_segment else ("learnable" if hasattr(self, "log_a") else "")
-        mode = "anchored" if hasattr(self, "anchor_slope") else mode
         out = "" if self.output == "level" else f", output={self.output!r}"
-        return f"rule={self.rule!r}, a={mode or self.a_fixed.tolist()}{out}"
+        return f"rule={self.rule!r}{out}"
+
+
+def check_eps(eps: object) -> float:
+    """The square root's linear zone: a finite number >= 0."""
+    if isinstance(eps, bool) or not isinstance(eps, (int, float)) or not (
+            math.isfinite(eps) and eps >= 0):
+        raise ValueError(f"eps must be a finite number >= 0, got {eps!r}")
+    return float(eps)
+
+
+def coefficients(a: object, *, per_direction: bool = False, a_init: float = 1.0,
+                 anchor_center: float = 0.0, anchor_scale: float = 1.0) -> Coefficients:
+    """The :class:`Coefficients` of :class:`EIHO`'s ``a`` shorthand (see there); options
+    that do not apply to the kind are an error."""
+    if isinstance(a, Coefficients):
+        kind = "object"
+    elif a == "segment":
+        raise ValueError("a='segment' (the paper's per-segment a from the targets) is not "
+                         "causal: use the operator 'eiho_segment' (SegmentEIHO)")
+    elif isinstance(a, str) and a not in ("learnable", "anchored"):
+        raise ValueError(f"a must be a positive number, a pair, 'learnable' or 'anchored', "
+                         f"got {a!r}")
+    else:
+        kind = a if isinstance(a, str) else "fixed"
+    for name, value, default, kinds in (
+        ("per_direction", per_direction, False, ("learnable",)),
+        ("a_init", a_init, 1.0, ("learnable", "anchored")),
+        ("anchor_center", anchor_center, 0.0, ("anchored",)),
+        ("anchor_scale", anchor_scale, 1.0, ("anchored",)),
+    ):
+        if value != default and kind not in kinds:
+            raise ValueError(f"{name}={value!r} applies only with a in {kinds}, got a={a!r}")
+    if kind == "object":
+        return a  # type: ignore[return-value]
+    if kind == "learnable":
+        return LearnableCoefficients(a_init, per_direction)
+    if kind == "anchored":
+        return AnchoredCoefficients(a_init, anchor_center, anchor_scale)
+    return FixedCoefficients(a)  # type: ignore[arg-type]
 
 
 class ZhaoTanOperator(_TurningPointOperator):

@@ -116,7 +116,7 @@ class InverseHysteresisModule(L.LightningModule):
     least-squares Prandtl-Ishlinskii model of the target from the input; ``preisach``,
     ``stop_pi``, ...: see :mod:`torchhys.training.operators`). The families are fitted on the
     training split with the normalization, once, and saved in checkpoints.
-    Per-segment EIHOs (``operator_kwargs={"a": "segment"}``, not causal) get the batch's
+    Per-segment EIHOs (``operator="eiho_segment"``, not causal) get the batch's
     targets as ``target``. Operator outputs that depend on no trainable parameter are
     computed once per batch (and cached across epochs), not in every closure call.
 
@@ -131,7 +131,7 @@ class InverseHysteresisModule(L.LightningModule):
         hidden: hidden units.
         activation: hidden activation (``"sigmoid"`` in the paper).
         operator_kwargs: keyword arguments of the operators given by name only (e.g.
-            ``{"a": "segment"}``); spec dicts carry their own.
+            ``{"a_formula": "sqrt"}``); spec dicts carry their own.
         init: ``"nguyen_widrow"`` or ``"default"`` (PyTorch's initialization).
         optimizer: ``"adam"``, ``"cg"`` or ``"lbfgs"``.
         lr: learning rate of Adam and LBFGS (CG has no learning rate).

@@ -25,7 +25,7 @@ A spec of ``model.operator`` is one of:
   ``{"fit": "preisach"}`` is the Preisach model identified on the data; ``{"name":
   "preisach"}`` the registered operator with the options given.
 
-All of them are causal except an EIHO with ``a="segment"``. A family is built as a
+All of them are causal except ``eiho_segment``. A family is built as a
 placeholder of the right shape and fitted by :func:`fit_data_dependent` on the training
 split; its widths and weights are buffers (or parameters) of the network, so checkpoints and
 exports carry them.

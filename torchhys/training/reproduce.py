@@ -48,9 +48,9 @@ def model_kwargs(model: str, h: torch.Tensor) -> dict:
     """Module options of a model name (``eiho``, ``eiho_pi``, ``zhao_tan``, ``mlp``)."""
     check_choice(model, "model", MODELS)
     if model == "eiho":
-        return {"operator": "eiho", "operator_kwargs": {"a": "segment", "a_formula": "sqrt"}}
+        return {"operator": "eiho_segment", "operator_kwargs": {"a_formula": "sqrt"}}
     if model == "eiho_pi":  # expanded input space: the EIHO and the least-squares PI of h
-        return {"operator": [{"name": "eiho", "a": "segment", "a_formula": "sqrt"},
+        return {"operator": [{"name": "eiho_segment", "a_formula": "sqrt"},
                              {"fit": "pi_ls", "n_widths": 30}]}
     if model == "zhao_tan":  # input scale near the input's spread (s = 1 leaves f ~ x + c)
         return {"operator": "zhao_tan", "operator_kwargs": {"scale": float(h.std()) / 5}}
