@@ -149,14 +149,12 @@ def test_torchscript_keeps_guard_clamp_and_metadata(tmp_path) -> None:
     assert float(meta["input_high"]) == float(comp.in_high) and meta["direction"] == "1"
 
 
-def test_state_dict_without_ranges_gets_no_clamp_or_guard() -> None:
+def test_a_state_dict_without_the_ranges_is_refused_naming_them() -> None:
     net = untrained()
     state = {k: v for k, v in net.state_dict().items()
              if k not in ("in_min", "in_max", "trend")}
-    old = InverseHysteresisNet("eiho", 8).double()
-    old.load_state_dict(state)
-    comp = StreamingCompensator(old)
-    assert not comp.clamp_input and not comp.guard
+    with pytest.raises(RuntimeError, match="in_min.*in_max.*trend|Missing key"):
+        InverseHysteresisNet("eiho", 8).double().load_state_dict(state)
 
 
 @pytest.mark.parametrize(("kwargs", "match"), [
