@@ -1,6 +1,6 @@
 """What the exported compensator's input clamp and direction guard cost on measured data.
 
-For each protocol of the real-data benchmark (``benchmarks/real_data.py``) whose files are
+For each protocol of the real-data benchmark (``benchmarks.real_data``) whose files are
 present, the model that ``configs/measured.yaml`` chooses (the ``default`` row, trained once)
 is scored on the held-out recordings four ways:
 
@@ -18,7 +18,7 @@ Each is given as the ratio of its RMSE to the better memoryless baseline's (a st
 or a polynomial, as in the real-data table). One process per protocol, ``--jobs`` at a
 time, one torch thread each::
 
-    python benchmarks/deploy_safety.py --jobs 2 [--data NAME ...] [--out deploy_safety.csv]
+    python -m benchmarks.deploy_safety --jobs 2 [--data NAME ...] [--out deploy_safety.csv]
 """
 
 from __future__ import annotations
@@ -33,9 +33,9 @@ import warnings
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import real_data as rd  # benchmarks/ (the script's folder) is on sys.path
 import torch
 
+from benchmarks import real_data as rd
 from torchhys.deploy.streaming import StreamingCompensator, default_limits
 
 VARIANTS = {"clamp": {"direction": "none"}, "guard": {"input_margin": None}, "both": {}}
@@ -78,8 +78,11 @@ def available() -> list[str]:
 
 
 def _one(name: str) -> dict:
-    run = subprocess.run([sys.executable, __file__, "--one", name], capture_output=True,
-                         text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    path = os.environ.get("PYTHONPATH")  # the checkout's root first: benchmarks is in it
+    root = os.pathsep.join([str(rd.ROOT), *([path] if path else [])])
+    run = subprocess.run([sys.executable, "-m", "benchmarks.deploy_safety", "--one", name],
+                         capture_output=True, text=True,
+                         env={**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": root})
     if run.returncode != 0:
         return {"dataset": name, "choice": f"failed: {run.stderr.strip().splitlines()[-1:]}"}
     return json.loads(run.stdout.strip().splitlines()[-1])

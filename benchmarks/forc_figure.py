@@ -1,6 +1,6 @@
 """Figure of docs/real-data.md: a Preisach model identified from first-order reversal curves.
 
-Fitted, as the ``preisach`` row of ``benchmarks/real_data.py`` (its ``feco_forc`` protocol:
+Fitted, as the ``preisach`` row of ``benchmarks.real_data`` (its ``feco_forc`` protocol:
 30 levels, no smoothness penalty, the row's choice on the training part's hold-out), on the
 even reversal curves of the FeCo nanowire array (field -> moment). Left: held-out (odd)
 curves, measured and predicted from their calibration point. Right: the identified density
@@ -9,7 +9,7 @@ counterpart of a FORC diagram. Printed beside the RMSE: the relays' weighted mea
 half-width (alpha - beta) / 2 and the coercive field of the held-out curve that reverses
 lowest (the major loop's rising branch), measured independently of the fit.
 
-    python benchmarks/forc_figure.py [--out docs/figures/feco_forc_preisach.png]
+    python -m benchmarks.forc_figure [--out docs/figures/feco_forc_preisach.png]
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from real_data import FULL, forc, line, poly, test_rmse  # noqa: E402
 
+from benchmarks.real_data import FULL, forc, line, poly, test_rmse  # noqa: E402
 from torchhys import fit_preisach  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

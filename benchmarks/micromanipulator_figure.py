@@ -5,9 +5,9 @@ measured and with the sensor shifted back by the lag (0-12 samples) at which a m
 polynomial (degree 5) fits it best. Right: on the test record, the compensator's error
 (predicted minus applied voltage) of the default (``configs/measured.yaml``) and of the
 least-squares line, both fitted on the identification record as in
-``benchmarks/real_data.py`` (its ``piezo_manipulator`` protocol).
+``benchmarks.real_data`` (its ``piezo_manipulator`` protocol).
 
-    python benchmarks/micromanipulator_figure.py [--out docs/figures/piezo_micromanipulator.png]
+    python -m benchmarks.micromanipulator_figure [--out docs/figures/piezo_micromanipulator.png]
 """
 
 from __future__ import annotations
@@ -21,7 +21,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from real_data import FULL, REAL, default, line, micromanipulator, read_csv  # noqa: E402
+
+from benchmarks.real_data import FULL, REAL, default, line, micromanipulator, read_csv  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DEGREE = 5

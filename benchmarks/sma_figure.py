@@ -1,6 +1,6 @@
 """Figure of docs/models.md: a drift beside the stop-type model on the shape-memory-alloy record.
 
-Fitted, as in ``benchmarks/real_data.py`` (its ``sma_actuator`` protocol), on the first four
+Fitted, as in ``benchmarks.real_data`` (its ``sma_actuator`` protocol), on the first four
 thermal cycles of the SMA specimen (chamber temperature -> extension), the default
 (``configs/measured.yaml``; its cross-validation chooses the 40 stops beside a drift of the
 accumulated temperature variation), the ``stop_pi_drift`` row (the same pair, its stops'
@@ -8,7 +8,7 @@ settings chosen on the training part's hold-out) and the ``stop_pi`` row (no dri
 the three cycles the fit never saw, beside the least-squares line; the extension ratchets up
 from cycle to cycle.
 
-    python benchmarks/sma_figure.py [--out docs/figures/sma_drift.png]
+    python -m benchmarks.sma_figure [--out docs/figures/sma_drift.png]
 """
 
 from __future__ import annotations
@@ -21,7 +21,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
-from real_data import (  # noqa: E402
+
+from benchmarks.real_data import (  # noqa: E402
     FULL,
     REAL,
     default,

@@ -1,11 +1,11 @@
 """Figure of docs/models.md: the stop-type Prandtl-Ishlinskii model on the friction damper.
 
-Fitted, as in ``benchmarks/real_data.py`` (its ``stop_pi`` row: settings chosen on the
+Fitted, as in ``benchmarks.real_data`` (its ``stop_pi`` row: settings chosen on the
 training part's hold-out), on the sine tests of the banded rotary friction damper, it
 predicts the force of an earthquake displacement history it never saw, beside the
 least-squares line fitted on the same sines.
 
-    python benchmarks/stop_pi_figure.py [--out docs/figures/stop_pi_friction_damper.png]
+    python -m benchmarks.stop_pi_figure [--out docs/figures/stop_pi_friction_damper.png]
 """
 
 from __future__ import annotations
@@ -18,7 +18,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
-from real_data import FULL, friction_damper, line, stop_pi  # noqa: E402
+
+from benchmarks.real_data import FULL, friction_damper, line, stop_pi  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 

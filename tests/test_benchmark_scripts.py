@@ -21,9 +21,12 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def run(script: str, *args: str) -> str:
-    """The script's standard output (it must exit 0)."""
-    return subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), *args],
-                          check=True, capture_output=True, text=True, timeout=600).stdout
+    """The standard output of a script of benchmarks/ (``name.py``: run as a file) or of a
+    module (``benchmarks.name``: run as ``python -m`` from the repository's root); it must
+    exit 0."""
+    command = [str(ROOT / "benchmarks" / script)] if script.endswith(".py") else ["-m", script]
+    return subprocess.run([sys.executable, *command, *args], cwd=ROOT, check=True,
+                          capture_output=True, text=True, timeout=600).stdout
 
 
 def table(out: str, header: str) -> list[list[str]]:
@@ -105,7 +108,7 @@ def test_linear_filter_benchmark_prints_each_order() -> None:
 
 
 def test_stop_pi_figure_is_drawn_and_beats_the_line(tmp_path: Path) -> None:
-    out = run("stop_pi_figure.py", "--out", str(tmp_path / "fig.png"))
+    out = run("benchmarks.stop_pi_figure", "--out", str(tmp_path / "fig.png"))
     assert (tmp_path / "fig.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     words = out.split("RMSE on record 12: ")[1].split()
     assert words[0] == "stop_pi" and words[3] == "line", out
@@ -115,7 +118,7 @@ def test_stop_pi_figure_is_drawn_and_beats_the_line(tmp_path: Path) -> None:
 
 @pytest.mark.slow  # a figure script's whole fit (about a minute)
 def test_sma_figure_is_drawn_and_the_drift_takes_the_offset(tmp_path: Path) -> None:
-    out = run("sma_figure.py", "--out", str(tmp_path / "fig.png"))
+    out = run("benchmarks.sma_figure", "--out", str(tmp_path / "fig.png"))
     assert (tmp_path / "fig.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     rmse, bias = (dict(zip(*[iter(part.replace(" mm", "").replace(",", "").split())] * 2,
                            strict=True))
@@ -172,7 +175,7 @@ def test_micromanipulator_figure_is_drawn_and_finds_the_lag(tmp_path: Path) -> N
     """The micromanipulator's identification loop closes when the sensor is shifted back by
     its lag (a memoryless polynomial then fits it to a fraction of the unshifted error), and
     the default compensator beats the line on the test record."""
-    out = run("micromanipulator_figure.py", "--out", str(tmp_path / "fig.png"))
+    out = run("benchmarks.micromanipulator_figure", "--out", str(tmp_path / "fig.png"))
     assert (tmp_path / "fig.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     found = re.search(r"polynomial RMSE: ([\d.]+) um unshifted, ([\d.]+) um with the sensor "
                       r"(\d+) samples earlier; RMSE on the test record: default ([\d.]+) V, "
@@ -187,7 +190,7 @@ def test_forc_figure_is_drawn_and_the_density_finds_the_coercive_field(tmp_path:
     """The Preisach model fitted on the even reversal curves predicts the odd ones well
     below the memoryless baseline, and its density is centred at the half-width of the
     loop's coercive field, measured from the data independently of the fit."""
-    out = run("forc_figure.py", "--out", str(tmp_path / "fig.png"))
+    out = run("benchmarks.forc_figure", "--out", str(tmp_path / "fig.png"))
     assert (tmp_path / "fig.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     found = re.search(r"held-out RMSE: Preisach ([\d.e+-]+) emu, baseline ([\d.e+-]+) emu; "
                       r"relays' weighted mean half-width (\d+) Oe, coercive field (\d+) Oe", out)

@@ -1,4 +1,4 @@
-"""Smoke test of benchmarks/real_data.py: its quick mode on the MnZn ferrite loops (the copy
+"""Smoke test of benchmarks.real_data: its quick mode on the MnZn ferrite loops (the copy
 in examples/data), the table's columns, and memoryless baselines fitted on the training part
 only."""
 
@@ -11,10 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from _helpers import load_benchmark
 from _training_helpers import cli
 
-from torchhys import Drift, StopPrandtlIshlinskii
+import benchmarks.real_data as rd
+from benchmarks.real_data import default_row
+from torchhys import Drift, StopPrandtlIshlinskii, fit_jiles_atherton
 from torchhys.training.selection import best
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -24,7 +25,7 @@ COLUMNS = ("dataset", "model", "rmse", "ratio", "n_train", "n_test", "choice")
 
 @pytest.fixture(scope="module")
 def bench():
-    return load_benchmark("real_data.py")
+    return rd
 
 
 @pytest.fixture
@@ -36,7 +37,7 @@ def choices(bench, monkeypatch):
         calls.append((list(scores), rule))
         return best(scores, rule)
 
-    monkeypatch.setattr(bench, "best", watched)
+    monkeypatch.setattr(default_row, "best", watched)
     return calls
 
 
@@ -352,8 +353,8 @@ def test_the_default_rows_cross_validation_scores_as_torchhys_fit_does(bench, tm
     candidates = [{"operator": None}, {"operator": [{"fit": "stop_pi", "n_widths": 5,
                                                      "segments": 2}]}]
     for candidate, (mse, se) in zip(candidates, expected, strict=True):
-        got, got_se, capped = bench._score(path, candidate, split.x, split.y, split.warmup,
-                                           bench.QUICK, 3, mode)
+        got, got_se, capped = default_row._score(path, candidate, split.x, split.y, split.warmup,
+                                                 bench.QUICK, 3, mode)
         # the CLI logs each fold's MSE in float32
         assert got == pytest.approx(mse, rel=1e-6) and got_se == pytest.approx(se, rel=1e-6)
         assert not capped
@@ -384,7 +385,7 @@ def test_the_config_is_read_as_torchhys_fit_reads_it(bench, tmp_path):
     path = tmp_path / "c.yaml"
     path.write_text(_measured_with(
         "  select:\n    - operator: [{fit: stop_pi, n_widths: 5, ridge: 1e-8}]\n"))
-    model = bench._config_model(path)[0]
+    model = default_row._config_model(path)[0]
     assert model["select"][0]["operator"][0]["ridge"] == 1e-8
 
 
@@ -470,9 +471,9 @@ def test_jiles_atherton_row_on_b_h_records_only(bench):
     assert n == 258 and rmse < poly  # five parameters beat the best polynomial
     # the hold-out RMSE is that of the same fit on the part before the hold-out
     cut = bench.holdout(split.x.shape[1], split.warmup)
-    before = bench.fit_jiles_atherton(split.x[:, :cut], split.y[:, :cut], warmup=split.warmup,
-                                      starts=bench.QUICK.ja_starts,
-                                      iterations=bench.QUICK.ja_iterations)
+    before = fit_jiles_atherton(split.x[:, :cut], split.y[:, :cut], warmup=split.warmup,
+                                starts=bench.QUICK.ja_starts,
+                                iterations=bench.QUICK.ja_iterations)
     with torch.no_grad():
         e = before(split.x)[0][:, cut:] - split.y[:, cut:]
     assert fitted.holdout == pytest.approx(float(e.square().mean().sqrt()), rel=1e-12)
