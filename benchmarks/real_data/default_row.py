@@ -95,7 +95,8 @@ def _train_config(path: Path, x: Tensor, y: Tensor, w: int, budget: Budget,
 
 def _describe(m: dict) -> str:
     specs = m["operator"] if isinstance(m["operator"], list) else [m["operator"]]
-    names = "+".join(str(s.get("name")) + (f"({s['direction']})" if "direction" in s else "")
+    names = "+".join(str(s.get("name", s.get("fit")))
+                     + (f"({s['direction']})" if "direction" in s else "")
                      if isinstance(s, dict) else str(s) for s in specs)
     return f"{names} + {m['hidden']} {m['activation']}"
 
