@@ -13,17 +13,15 @@ import torch
 from _training_helpers import cli
 
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
-from torchhys.training.selection import (
+from torchhys.training.folds import (
     RecordingFold,
     RollingFold,
     block_split,
-    check_candidates,
     cv_fold,
     fold_masks,
-    model_arguments,
     rolling_split,
-    run_selection,
 )
+from torchhys.training.selection import check_candidates, model_arguments, run_selection
 
 ROOT = Path(__file__).resolve().parents[1]
 FERRITE = {"path": str(ROOT / "examples/data/mnzn_ferrite_bh_loops.csv"), "input_column": "B_T",

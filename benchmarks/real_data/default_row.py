@@ -15,16 +15,11 @@ from torchhys import InverseHysteresisNet
 from torchhys.deploy.streaming import default_limits
 from torchhys.training.cli import read_config
 from torchhys.training.families import FitError
+from torchhys.training.folds import RECORDING, fold_masks
 from torchhys.training.init import initialize
 from torchhys.training.module import OPTIMIZERS, InverseHysteresisModule
 from torchhys.training.operators import build_operators, fit_data_dependent
-from torchhys.training.selection import (
-    RECORDING,
-    CandidateScore,
-    best,
-    fold_masks,
-    standard_error,
-)
+from torchhys.training.selection import CandidateScore, best, standard_error
 
 from .datasets import F64, ROOT, Split
 from .scoring import Budget, Fitted, holdout
@@ -106,7 +101,7 @@ def _score(config: Path, overrides: dict, x: Tensor, y: Tensor, w: int, budget: 
     """A candidate's validation MSE and its standard error, as ``torchhys fit`` scores it
     with ``model.select_cv`` = ``cv``: None, on the last quarter of the scored samples of
     every training row, fitted before it; ``k``, by blocked cross-validation inside the
-    training rows (:func:`~torchhys.training.selection.fold_masks`: each fold fitted on
+    training rows (:func:`~torchhys.training.folds.fold_masks`: each fold fitted on
     the whole rows without its block's targets, the states running through it);
     ``"recording"``, each training row held out once, fitted on the others; with ``mode``
     ``"rolling"``, each block (row) after the first scored by a fit of those before it

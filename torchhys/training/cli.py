@@ -68,6 +68,7 @@ from lightning.pytorch.utilities import rank_zero_only, rank_zero_warn
 
 from torchhys.training import selection
 from torchhys.training.callbacks import BaselineComparison, PredictionWriter
+from torchhys.training.coverage import warn_coverage
 from torchhys.training.data import HysteresisDataModule
 from torchhys.training.errors import (
     TRACEBACK_ENV,
@@ -77,6 +78,7 @@ from torchhys.training.errors import (
     report_user_error,
     split_traceback_flag,
 )
+from torchhys.training.folds import describe_cv
 from torchhys.training.module import InverseHysteresisModule
 from torchhys.training.operators import build_operators
 from torchhys.training.plugins import IMPORT_ENV, import_modules, split_import_flags
@@ -169,9 +171,9 @@ class TorchhysCLI(LightningCLI):
     def before_fit(self) -> None:
         """A plain fit warns as model selection does (once) when the training record holds
         less than one closed loop or loops of one amplitude
-        (:func:`~torchhys.training.selection.coverage_warning`)."""
+        (:func:`~torchhys.training.coverage.coverage_warning`)."""
         if not self._selected:
-            selection.warn_coverage(self.datamodule, "fit")
+            warn_coverage(self.datamodule, "fit")
 
     # --- model selection ------------------------------------------------------------------
     def _select(self) -> None:
@@ -230,7 +232,7 @@ class TorchhysCLI(LightningCLI):
         progress.close()
         self._selected = True
         chosen = selection.best(scores, rule or "min")
-        _report(scores, chosen, folder / "selection.csv", selection.describe_cv(cv, mode),
+        _report(scores, chosen, folder / "selection.csv", describe_cv(cv, mode),
                 rule or "min")
         self.config = configs[chosen.index]
         self.__dict__.pop("config_dump", None)  # the module's hyperparameters: the choice

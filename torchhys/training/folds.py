@@ -1,0 +1,346 @@
+"""Cross-validation folds inside a datamodule's training part, for model selection
+(:mod:`torchhys.training.selection`):
+
+- blocked (``select_cv=k``, :class:`BlockFold`, :func:`block_split`): the scored samples of
+  each training row cut into ``k`` contiguous blocks, each held out once;
+- leave one recording out (``select_cv="recording"``, :class:`RecordingFold`): each training
+  recording held out once, whole, the candidate fitted on the others;
+- either with a rolling origin (``select_cv_mode="rolling"``, :class:`RollingFold`,
+  :func:`rolling_split`): each block (or recording) validated on a fit of those before it
+  only.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import lightning as L
+import torch
+from torch import Tensor
+from torch.utils.data import DataLoader
+
+from torchhys._checks import check_choice, check_int
+from torchhys.training.data import FitTensors, fit_tensors
+
+RECORDING = "recording"
+"""``select_cv`` of leave-one-recording-out cross-validation (:class:`RecordingFold`)."""
+CV_MODES = ("blocked", "rolling")
+"""``select_cv_mode``: every block held out once and fitted on all the others
+(``"blocked"``), or each block after the first validated on a fit of those before it
+(``"rolling"``, a rolling origin)."""
+
+__all__ = [
+    "CV_MODES", "RECORDING", "BlockFold", "RecordingFold", "RollingFold", "block_split",
+    "cv_fold", "describe_cv", "fold_masks", "rolling_split",
+]
+
+
+def _one(items: list[Any]) -> Any:
+    """Collate a batch of one ready batch: the batch itself."""
+    return items[0]
+
+
+class _Fold(L.LightningDataModule):
+    """A cross-validation fold of a datamodule's training batch: ``_train`` and ``_val``
+    batches ``(x, y, warmup, mask)``, ``_fit`` the :class:`FitTensors` that the
+    normalization and the data-dependent operators are fitted on, ``k`` folds, ``n_val``
+    held-out samples."""
+
+    k: int
+    n_val: int
+    _train: tuple[Tensor, Tensor, Tensor, Tensor]
+    _val: tuple[Tensor, Tensor, Tensor, Tensor]
+    _fit: FitTensors
+
+    def train_tensors(self) -> tuple[Tensor, Tensor]:
+        """The fold's training rows ``(x, y)``, (rows, time), to fit the normalization and
+        the data-dependent operators on (their first :attr:`train_warmup` samples, and the
+        samples outside :attr:`train_mask`, left out)."""
+        return self._fit.x, self._fit.y
+
+    @property
+    def train_warmup(self) -> int:
+        """Leading samples of :meth:`train_tensors` outside the data-dependent fits."""
+        return self._fit.warmup
+
+    @property
+    def train_mask(self) -> Tensor | None:
+        """The samples of :meth:`train_tensors` the fits may use (rows, time), or None: all."""
+        return self._fit.mask
+
+    def train_dataloader(self) -> DataLoader:
+        return DataLoader([self._train], batch_size=1, collate_fn=_one)
+
+    def val_dataloader(self) -> DataLoader:
+        return DataLoader([self._val], batch_size=1, collate_fn=_one)
+
+
+class BlockFold(_Fold):
+    """Fold ``fold`` of ``k`` of blocked cross-validation inside a datamodule's training part.
+
+    The training batch ``(x, y, warmup, mask)`` of a
+    :class:`~torchhys.training.HysteresisDataModule` (one row per recording) keeps its
+    sequences; only the masks change. The scored samples of each row are cut into ``k``
+    contiguous blocks (sizes differ by at most one), and block ``fold`` of every row is held
+    out::
+
+        row      |-- warm-up --|-- block 0 --|-- block 1 --| ... |-- block k-1 --|
+        train    not scored      scored        held out          scored           (fold 1)
+        val      not scored      -             scored            -                (fold 1)
+
+    The held-out block still runs the operator states (a warm-up inside the record), but
+    its targets enter neither the training loss nor the fits of the data-dependent
+    operators and the normalization: :meth:`train_tensors` are the whole rows and
+    :attr:`train_mask` leaves the block out. (A family fitted in the ``inverse`` direction
+    fits a model of the input from the target, so the block's targets run its states into
+    the samples after the block, as a warm-up; they are never fitted or scored.)
+
+    Args:
+        data: the datamodule (set up here).
+        k: number of blocks, >= 2.
+        fold: the held-out block, ``0 <= fold < k``.
+
+    Raises:
+        ValueError: ``k`` or ``fold`` out of range, a training row with fewer than ``2 k``
+            scored samples, or no training data.
+    """
+
+    rolling = False
+    """Whether the folds roll their origin forward (:class:`RollingFold`)."""
+
+    def __init__(self, data: L.LightningDataModule, k: int, fold: int) -> None:
+        super().__init__()
+        check_int(k, "model.select_cv", minimum=2)
+        self.k = k - 1 if self.rolling else k
+        """Number of folds."""
+        x, y, warmup, mask, source = _train_batch(data)
+        fitted, held = fold_masks(mask, k, fold, rolling=self.rolling, source=source)
+        self.n_val = int(held.sum())
+        """Number of held-out (validation) samples."""
+        self._train = (x, y, warmup, fitted)
+        self._val = (x, y, warmup, held)
+        self._fit = fit_tensors(x, y, warmup, _ends(mask), mask & ~fitted)
+
+
+def _train_batch(data: L.LightningDataModule) -> tuple[Tensor, Tensor, Tensor, Tensor, str]:
+    """The training batch ``(x, y, warmup, mask)`` of a datamodule (set up here), the mask
+    as bool, and the data's name; an error when it has no training data."""
+    data.setup("fit")
+    batches = data.batches("train")
+    source = getattr(data, "source", "the data")
+    if not batches:
+        raise ValueError(f"{source}: no training data")
+    x, y, warmup, mask = batches[0]
+    return x, y, warmup, mask.to(torch.bool), source
+
+
+def _ends(mask: Tensor) -> Tensor:
+    """One past each row's last scored sample, (rows,) (the padding starts there)."""
+    t = torch.arange(1, mask.shape[-1] + 1)
+    return (mask.to(torch.bool) * t).amax(-1)
+
+
+def _blocks(mask: Tensor, k: int, source: str) -> list[tuple[Tensor, ...]]:
+    """The scored samples (``mask``, (rows, time)) of each row cut into ``k`` contiguous
+    blocks of indices (sizes differ by at most one); a row with fewer than ``2 k`` scored
+    samples is an error naming ``model.select_cv``."""
+    check_int(k, "model.select_cv", minimum=2)
+    if mask.dim() != 2:
+        raise ValueError(f"mask must have shape (rows, time), got {tuple(mask.shape)}")
+    blocks = []
+    for r in range(mask.shape[0]):
+        idx = mask[r].to(torch.bool).nonzero().flatten()
+        if idx.numel() < 2 * k:
+            raise ValueError(
+                f"model.select_cv={k}: training row {r} of {source} holds {idx.numel()} "
+                f"scored samples, at least {2 * k} are needed; lower select_cv"
+            )
+        blocks.append(torch.tensor_split(idx, k))  # a mask may have gaps
+    return blocks
+
+
+def block_split(mask: Tensor, k: int, fold: int, *, source: str = "the data") -> Tensor:
+    """Fold ``fold`` of ``k`` of blocked cross-validation (:class:`BlockFold`'s cut, on
+    tensors): the scored samples (``mask``) of each row cut into ``k`` contiguous blocks
+    (sizes differ by at most one), block ``fold`` held out.
+
+    Args:
+        mask: the scored samples, (rows, time), bool or 0/1.
+        k: number of blocks, >= 2.
+        fold: the held-out block, ``0 <= fold < k``.
+        source: the data's name, for the error message.
+
+    Returns:
+        The held-out samples, (rows, time), bool. The candidate is fitted on the whole rows
+        with the scored samples outside them (the states running through the block).
+
+    Raises:
+        ValueError: ``k`` or ``fold`` out of range, a mask that is not (rows, time), a row
+            with fewer than ``2 k`` scored samples.
+    """
+    check_int(k, "model.select_cv", minimum=2)
+    if not 0 <= fold < k:
+        raise ValueError(f"fold must be in [0, {k}), got {fold}")
+    held = torch.zeros_like(mask, dtype=torch.bool)
+    for r, blocks in enumerate(_blocks(mask, k, source)):
+        held[r, blocks[fold]] = True
+    return held
+
+
+def rolling_split(mask: Tensor, k: int, fold: int, *,
+                  source: str = "the data") -> tuple[Tensor, Tensor]:
+    """Fold ``fold`` of the ``k - 1`` folds of rolling-origin cross-validation
+    (:class:`RollingFold`'s cut, on tensors): the scored samples (``mask``) of each row cut
+    into ``k`` contiguous blocks as :func:`block_split` cuts them; blocks ``0 .. fold``
+    are fitted, block ``fold + 1`` is held out, the later blocks are not used.
+
+    Args:
+        mask: the scored samples, (rows, time), bool or 0/1.
+        k: number of blocks, >= 2 (``k - 1`` folds).
+        fold: ``0 <= fold < k - 1``.
+        source: the data's name, for the error message.
+
+    Returns:
+        ``(fitted, held)``, each (rows, time) bool: the samples the candidate is fitted on,
+        and those it is scored on. Every fitted sample comes before every held-out one in
+        its row; the states run from the row's start.
+
+    Raises:
+        ValueError: ``k`` or ``fold`` out of range, a mask that is not (rows, time), a row
+            with fewer than ``2 k`` scored samples.
+    """
+    check_int(k, "model.select_cv", minimum=2)
+    if not 0 <= fold < k - 1:
+        raise ValueError(f"fold must be in [0, {k - 1}) (k - 1 rolling folds of k={k} "
+                         f"blocks), got {fold}")
+    fitted = torch.zeros_like(mask, dtype=torch.bool)
+    held = torch.zeros_like(mask, dtype=torch.bool)
+    for r, blocks in enumerate(_blocks(mask, k, source)):
+        fitted[r, torch.cat(blocks[:fold + 1])] = True
+        held[r, blocks[fold + 1]] = True
+    return fitted, held
+
+
+def fold_masks(mask: Tensor, k: int, fold: int, *, rolling: bool = False,
+               source: str = "the data") -> tuple[Tensor, Tensor]:
+    """``(fitted, held)`` of fold ``fold`` of blocked cross-validation on ``k`` blocks (the
+    scored samples outside :func:`block_split`'s block, and the block), or with ``rolling``
+    of rolling-origin cross-validation (:func:`rolling_split`); (rows, time) bool each.
+    :class:`BlockFold` and :class:`RollingFold` cut their folds so."""
+    if rolling:
+        return rolling_split(mask, k, fold, source=source)
+    held = block_split(mask, k, fold, source=source)
+    return mask.to(torch.bool) & ~held, held
+
+
+class RollingFold(BlockFold):
+    """Fold ``fold`` of rolling-origin cross-validation inside a datamodule's training part:
+    the scored samples of each row cut into ``k`` contiguous blocks as :class:`BlockFold`
+    cuts them, blocks ``0 .. fold`` fitted, block ``fold + 1`` validated, the later blocks
+    not used (``k - 1`` folds)::
+
+        row      |-- warm-up --|-- block 0 --|-- block 1 --|-- block 2 --| ... |-- block k-1 --|
+        train    not scored      scored        scored        -                 -       (fold 1)
+        val      not scored      -             -             scored            -
+
+    Each block after the first is predicted by a model fitted on the samples before it
+    only, as the model will be used (:func:`rolling_split`). The states run from each
+    row's start; :meth:`train_tensors` are the whole rows and :attr:`train_mask` their
+    fitted samples.
+
+    Args:
+        data: the datamodule (set up here).
+        k: number of blocks, >= 2.
+        fold: ``0 <= fold < k - 1``.
+
+    Raises:
+        ValueError: ``k`` or ``fold`` out of range, a training row with fewer than ``2 k``
+            scored samples, or no training data.
+    """
+
+    rolling = True
+
+
+class RecordingFold(_Fold):
+    """Fold ``fold`` of leave-one-recording-out cross-validation: training recording
+    ``fold`` held out whole, the candidate fitted on the others.
+
+    The training batch ``(x, y, warmup, mask)`` of a
+    :class:`~torchhys.training.HysteresisDataModule` holds one row per training recording
+    (``data.split_by: recording``, or several files); fold ``j`` trains on every row but
+    ``j`` and validates on row ``j`` (its scored samples, from its own initial state and
+    warm-up)::
+
+        rows     0        1        2
+        train    scored   -        scored      (fold 1)
+        val      -        scored   -
+
+    With ``rolling=True`` the origin rolls forward through the recordings in their order:
+    fold ``j`` trains on rows ``0 .. j`` and validates on row ``j + 1`` (one fold fewer than
+    the recordings; for recordings taken one after another on a device that changes).
+
+    :meth:`train_tensors` are the training rows, each from its own initial state
+    (:func:`~torchhys.training.data.fit_tensors`).
+
+    Args:
+        data: the datamodule (set up here).
+        fold: the fold, ``0 <= fold < k``: ``k`` the number of training recordings, or one
+            fewer with ``rolling``.
+        rolling: validate each recording on a fit of those before it only.
+
+    Raises:
+        ValueError: fewer than two training recordings, ``fold`` out of range.
+    """
+
+    def __init__(self, data: L.LightningDataModule, fold: int, *, rolling: bool = False) -> None:
+        super().__init__()
+        data.setup("fit")
+        batches = data.batches("train")
+        source = getattr(data, "source", "the data")
+        x, y, warmup, mask = batches[0] if batches else (None,) * 4
+        n = 0 if x is None else x.shape[0]
+        if n < 2:
+            raise ValueError(
+                f"model.select_cv={RECORDING!r} holds each training recording out once, but "
+                f"the training split of {source} holds {n}: give several (data.split_by: "
+                "recording with data.train_recordings, or several data.path files), or use "
+                "blocked cross-validation inside the record (model.select_cv: k)"
+            )
+        self.k = n - 1 if rolling else n
+        """Number of folds: the training recordings (one fewer with ``rolling``)."""
+        if not 0 <= fold < self.k:
+            raise ValueError(f"fold must be in [0, {self.k}), got {fold}")
+        mask = mask.to(torch.bool)
+        if rolling:
+            keep, val = list(range(fold + 1)), fold + 1
+        else:
+            keep, val = [r for r in range(n) if r != fold], fold
+        self.n_val = int(mask[val].sum())
+        """Number of held-out (validation) samples."""
+        self._train = (x[keep], y[keep], warmup[keep], mask[keep])
+        self._val = (x[val:val + 1], y[val:val + 1], warmup[val:val + 1], mask[val:val + 1])
+        ends = _ends(mask[keep])
+        T = int(ends.max())  # the other rows' padding to the held-out one's length goes
+        self._fit = fit_tensors(x[keep, :T], y[keep, :T], warmup[keep], ends)
+
+
+def cv_fold(data: L.LightningDataModule, cv: int | str, fold: int,
+            mode: str | None = None) -> _Fold:
+    """Fold ``fold`` of the cross-validation ``select_cv=cv``, ``select_cv_mode=mode`` (None:
+    ``"blocked"``): a :class:`BlockFold`, :class:`RollingFold` or :class:`RecordingFold`
+    (its ``k`` the number of folds)."""
+    rolling = check_choice(mode or "blocked", "model.select_cv_mode", CV_MODES) == "rolling"
+    if cv == RECORDING:
+        return RecordingFold(data, fold, rolling=rolling)
+    return RollingFold(data, cv, fold) if rolling else BlockFold(data, cv, fold)
+
+
+def describe_cv(cv: int | str | None, mode: str | None = None) -> str:
+    """How the candidates are scored, in words (the CLI's report)."""
+    if cv is None:
+        return "the validation split"
+    if mode == "rolling":
+        return ("rolling-origin cross-validation over the training recordings" if cv == RECORDING
+                else f"rolling-origin cross-validation on {cv} blocks ({cv - 1} folds)")
+    return ("leave-one-recording-out cross-validation" if cv == RECORDING else
+            f"{cv}-fold blocked cross-validation")
