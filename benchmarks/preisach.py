@@ -44,7 +44,10 @@ PER_SAMPLE = ("step", "inverse", "inverse_loop", "inverse_slow", "inverse_step")
 
 def inverse_loop(inverse, y: torch.Tensor) -> torch.Tensor:  # noqa: ANN001
     """The inverse's sequence path as a loop of its per-sample function: y (1, T) -> x."""
-    from torchhys.functional.preisach import preisach_inverse_constants, preisach_inverse_step
+    from torchhys.functional.preisach_inverse import (
+        preisach_inverse_constants,
+        preisach_inverse_step,
+    )
 
     tables = preisach_inverse_constants(inverse.alpha, inverse.beta, inverse.weights,
                                         inverse.linear, inverse.offset, inverse.centre,

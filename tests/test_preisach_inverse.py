@@ -17,11 +17,9 @@ from _helpers import random_walk, run_split, scripted_run
 from _helpers import step_loop as run_steps
 
 from torchhys import Preisach, PreisachInverse, fit_preisach
-from torchhys.functional.preisach import (
+from torchhys.functional.preisach import graded_input, graded_input_inverse, preisach_grid
+from torchhys.functional.preisach_inverse import (
     _inverse_windows,
-    graded_input,
-    graded_input_inverse,
-    preisach_grid,
     preisach_inverse,
     preisach_inverse_constants,
     preisach_inverse_step,

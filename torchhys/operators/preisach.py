@@ -17,14 +17,15 @@ term > 0 rises strictly with its input at every state: given the relays, its out
 :func:`~torchhys.functional.preisach.graded_input`; x itself on an even grid), and jumps up
 at each threshold where relays switch. So each sample has one solution, found in closed form
 on the segment that holds the target, or the threshold itself when the target lies inside a
-jump (:func:`~torchhys.functional.preisach.preisach_inverse_step`); the relays then switch
-with the solved input. Fitted in the direction where the Preisach model has the right shape
-(the flux density of a magnetic core from its field, H -> B), it is the compensator of that
-model (B -> H): fed the model's output from the same state, it returns the model's input.
+jump (:func:`~torchhys.functional.preisach_inverse.preisach_inverse_step`); the relays then
+switch with the solved input. Fitted in the direction where the Preisach model has the right
+shape (the flux density of a magnetic core from its field, H -> B), it is the compensator of
+that model (B -> H): fed the model's output from the same state, it returns the model's input.
 
 Each sample's relays depend on the inputs solved before it, so the sequence path is
 sequential; but the relays change only where a solution reaches a threshold, and it solves
-the samples between two switches at once (:func:`~torchhys.functional.preisach.preisach_inverse`).
+the samples between two switches at once
+(:func:`~torchhys.functional.preisach_inverse.preisach_inverse`).
 Still slower than the model's own (a scan) where the relays switch often.
 """
 
@@ -41,19 +42,21 @@ from torchhys._checks import (
 )
 from torchhys.functional.preisach import (
     _check_smooth,
-    check_preisach_invertible,
     check_relay_state,
     check_scale,
     demagnetized_state,
     graded_input,
     graded_input_inverse,
     preisach_grid,
-    preisach_inverse,
-    preisach_inverse_constants,
-    preisach_inverse_step,
     preisach_with_state,
     relay_output,
     relay_update,
+)
+from torchhys.functional.preisach_inverse import (
+    check_preisach_invertible,
+    preisach_inverse,
+    preisach_inverse_constants,
+    preisach_inverse_step,
 )
 from torchhys.operator import (
     Example,
@@ -288,7 +291,7 @@ register_operator("preisach", Preisach, example=Example(
 
 class PreisachInverseStep(OperatorStep):
     """Per-sample step of :class:`PreisachInverse`
-    (:func:`~torchhys.functional.preisach.preisach_inverse_step`).
+    (:func:`~torchhys.functional.preisach_inverse.preisach_inverse_step`).
 
     State: one block ``"relays"`` (batch, K), starting at the model's initial relays.
     Feature: the solved input. Shapes: y (batch, 1) -> features (batch, 1). Written for
@@ -357,7 +360,7 @@ class PreisachInverse(HysteresisOperator):
         Raises:
             TypeError: ``model`` is not a :class:`~torchhys.Preisach`.
             ValueError: smooth relays, or no inverse
-                (:func:`~torchhys.functional.preisach.check_preisach_invertible`).
+                (:func:`~torchhys.functional.preisach_inverse.check_preisach_invertible`).
         """
         if not isinstance(model, Preisach):
             raise TypeError(f"model must be a Preisach, got {type(model).__name__}")
