@@ -103,7 +103,7 @@ def test_stop_pi_drift_row_on_the_sma_record():
     """sma_actuator with the quick grid: the stops beside a drift predict cycles 5-7 at 0.43
     of the line's RMSE (measured), the stops alone at 0.61."""
     split = rd.DATASETS["sma_actuator"][1](rd.Files())
-    rmse = {name: rd.test_rmse(getattr(name)(split, rd.QUICK).predict, split)[0]
+    rmse = {name: rd.test_rmse(getattr(rd, name)(split, rd.QUICK).predict, split)[0]
             for name in ("line", "stop_pi", "stop_pi_drift")}
     assert rmse["stop_pi_drift"] < 0.5 * rmse["line"], rmse
     assert rmse["stop_pi_drift"] < 0.8 * rmse["stop_pi"], rmse
