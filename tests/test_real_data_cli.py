@@ -23,7 +23,7 @@ COLUMNS = ("dataset", "model", "rmse", "ratio", "n_train", "n_test", "choice")
 def table(tmp_path_factory):
     out = tmp_path_factory.mktemp("real_data") / "table.csv"
     rows = rd.main(["--quick", "--data", "mnzn_ferrite", "--ferrite", str(FERRITE),
-                       "--out", str(out)])
+                    "--out", str(out)])
     return rows, out
 
 
@@ -98,14 +98,32 @@ def test_saved_tables_are_tallied_as_the_run(table, tmp_path, capsys):
         rd.read_tables([bad])
 
 
-def test_jobs_run_each_protocol_in_a_process_of_its_own(tmp_path, capsys):
+def test_the_default_inverts_a_preisach_model_on_the_ferrite_loops(table):
+    """mnzn_ferrite (trained on its smallest and largest loops, the middle ones held out):
+    the default's cross-validation chooses the 40 stops beside the inverse of a graded
+    Preisach model, which predict the held-out loops below half the error of the better
+    memoryless baseline (measured: 0.352; on m130_steel it chooses the inverse generalized
+    PI, 0.382)."""
+    default = next(r for r in table[0] if r["model"] == "default")
+    assert "stop_pi+preisach(inverse)" in default["choice"], default["choice"]
+    assert default["ratio"] < 0.45, default
+
+
+def test_jobs_run_each_protocol_in_a_process_of_its_own(table, tmp_path, capsys):
     """``--jobs 2``: the same rows as one process, in the order of ``--data``, a missing
-    optional file still skipped with its message; a failing protocol names itself."""
+    optional file still skipped with its message; a failing protocol names itself.
+    ``--models stop_pi``: that row beside the baselines, the same fits as in the full
+    table."""
     args = ["--quick", "--models", "stop_pi", "--ferrite", str(FERRITE),
             "--piezo", str(tmp_path / "absent.csv"),
             "--data", "pneumatic_kdn", "piezo_actuator", "mnzn_ferrite"]
     serial = rd.main(args)
     capsys.readouterr()
+    ferrite = [r for r in serial if r["dataset"] == "mnzn_ferrite"]
+    assert [r["model"] for r in ferrite] == ["line", "poly", "stop_pi", "selected"]
+    full = {r["model"]: r for r in table[0]}
+    for r in ferrite[:3]:
+        assert r["rmse"] == full[r["model"]]["rmse"] and r["ratio"] == full[r["model"]]["ratio"]
     parallel = rd.main([*args, "--jobs", "2", "--out", str(tmp_path / "t.csv")])
     out = capsys.readouterr().out
     assert "skipping piezo_actuator" in out and "targets over 2 protocols" in out
@@ -118,18 +136,9 @@ def test_jobs_run_each_protocol_in_a_process_of_its_own(tmp_path, capsys):
     broken.write_text("model:\n  select: 3\n")
     with pytest.raises(RuntimeError, match="pneumatic_kdn: its process failed"):
         rd.main(["--quick", "--models", "default", "--config", str(broken), "--jobs", "2",
-                    "--data", "pneumatic_kdn", "pneumatic_pk"])
+                 "--data", "pneumatic_kdn", "pneumatic_pk"])
     with pytest.raises(SystemExit):
         rd.main([*args, "--jobs", "0"])
-
-
-def test_models_option_fits_those_rows_beside_the_baselines(table):
-    rows = rd.main(["--quick", "--data", "mnzn_ferrite", "--ferrite", str(FERRITE),
-                       "--models", "stop_pi"])
-    assert [r["model"] for r in rows] == ["line", "poly", "stop_pi", "selected"]
-    full = {r["model"]: r for r in table[0]}
-    for r in rows[:3]:  # the same fits as in the full table
-        assert r["rmse"] == full[r["model"]]["rmse"] and r["ratio"] == full[r["model"]]["ratio"]
 
 
 def test_baselines_use_the_training_part_only(table):

@@ -252,19 +252,3 @@ def test_the_default_follows_the_sma_records_drift():
     assert -2.3 < float(errors["line"].mean()) < -1.5
     assert abs(float(errors["default"].mean())) < 1.0
 
-
-@pytest.mark.slow
-def test_the_default_inverts_a_preisach_model_on_the_ferrite_loops():
-    """mnzn_ferrite (trained on its smallest and largest loops, the middle ones held out):
-    the default's cross-validation chooses the 40 stops beside the inverse of a graded
-    Preisach model, which predict the held-out loops below half the error of the better
-    memoryless baseline (measured: 0.352; on m130_steel it chooses the inverse generalized
-    PI, 0.382)."""
-    split = rd.DATASETS["mnzn_ferrite"][1](rd.Files(FERRITE))
-    fitted = rd.default(split, rd.QUICK)
-    assert "stop_pi+preisach(inverse)" in fitted.choice, fitted.choice
-    rmse = rd.test_rmse(fitted.predict, split)[0]
-    baseline = min(rd.test_rmse(rd.line(split, rd.QUICK).predict, split)[0],
-                   rd.test_rmse(rd.poly(split, rd.QUICK).predict, split)[0])
-    assert rmse < 0.45 * baseline, (rmse, baseline)
-

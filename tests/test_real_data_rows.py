@@ -39,8 +39,7 @@ def test_jiles_atherton_row_on_b_h_records_only():
     assert other.choice == fitted.choice
     assert not rd.DATASETS["mr_damper_0V"][1](rd.Files(FERRITE)).magnetic
     with pytest.raises(rd.NotApplicable, match="B -> H records only"):
-        rd.jiles_atherton(rd.DATASETS["mr_damper_0V"][1](rd.Files(FERRITE)),
-                             rd.QUICK)
+        rd.jiles_atherton(rd.DATASETS["mr_damper_0V"][1](rd.Files(FERRITE)), rd.QUICK)
 
 
 @pytest.mark.parametrize("dataset, bound", [("friction_damper", 0.6), ("friction_damper_sines",
@@ -63,15 +62,13 @@ def test_stop_pi_row_predicts_the_friction_damper(dataset, bound):
 def test_stop_pi_row_predicts_each_seals_other_pressures(seal):
     """On each of the six other seals the stop-type PI row, fitted at 1 and 7 bar, predicts
     the friction at 3 and 5 bar well below a straight line (measured with the quick grid:
-    0.23-0.38; the line and the best polynomial are within 0.2 % of each other there), its
-    settings from the training part only."""
+    0.23-0.38; the line and the best polynomial are within 0.2 % of each other there); that
+    its settings come from the training part only is checked on the friction damper."""
     split = rd.DATASETS[f"pneumatic_{seal}"][1](rd.Files())
     fitted = rd.stop_pi(split, rd.QUICK)
     rmse, _ = rd.test_rmse(fitted.predict, split)
     line, _ = rd.test_rmse(rd.line(split, rd.QUICK).predict, split)
     assert rmse < 0.45 * line, (rmse, line, fitted.choice)
-    spoiled = split._replace(test=[(x, 1e6 + 0 * y, w) for x, y, w in split.test])
-    assert rd.stop_pi(spoiled, rd.QUICK).choice == fitted.choice
 
 
 def test_stop_pi_drift_row_follows_a_ratchet():
