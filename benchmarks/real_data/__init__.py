@@ -42,9 +42,9 @@ the states and are neither fitted nor scored):
 - ``stop_pi``: ``fit_stop_pi`` (non-negative slopes) of the target or of its negative, on
   ``play_width_grid`` thresholds; their number, the grid power, the characteristic segments,
   the sign and the ridge chosen on the hold-out;
-- ``stop_pi_drift``: those stops beside ``fit_drift`` (a drift of the accumulated input
-  variation, free slope, the ``drift`` family's scales), an affine least-squares readout of
-  the two; the stops' settings chosen on the hold-out of the whole;
+- ``stop_pi_drift``: those stops beside the configs' ``drift`` family (``fit_drift``: a drift
+  of the accumulated input variation beside a free slope), an affine least-squares readout
+  of the two; the stops' settings chosen on the hold-out of the whole;
 - ``jiles_atherton``: ``fit_jiles_atherton`` (the inverse Jiles-Atherton model, five physical
   parameters, Levenberg-Marquardt from 8 starts) in physical units, on the B -> H records
   only (n/a elsewhere); nothing to choose, the hold-out RMSE is that of the fit before it;

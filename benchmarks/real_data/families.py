@@ -16,7 +16,6 @@ from torchhys import (
     Drift,
     InverseHysteresisNet,
     JilesAtherton,
-    fit_drift,
     fit_generalized_pi,
     fit_jiles_atherton,
     fit_preisach,
@@ -25,7 +24,7 @@ from torchhys import (
     select_stop_pi_ridge,
 )
 from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
-from torchhys.training.families import DRIFT_SCALES, PENALTIES
+from torchhys.training.families import FAMILIES, PENALTIES
 
 from .datasets import F64, Split
 from .scoring import Budget, Fitted, NotApplicable, Scaled, _rmse, holdout, scaled
@@ -199,11 +198,11 @@ def stop_pi(split: Split, budget: Budget) -> Fitted:
 
 
 def _drift(d: Scaled, end: int) -> Drift:
-    """:func:`~torchhys.fit_drift` (free slope, ``DRIFT_SCALES`` spans of the scored input) on
-    the samples before ``end``."""
-    x, y, w = d.x[:, :end], d.y[:, :end], d.warmup
-    span = float(x[:, w:].max() - x[:, w:].min())
-    return fit_drift(x, y, [span * c for c in DRIFT_SCALES], warmup=w)
+    """The configs' ``drift`` family (:data:`torchhys.training.families.FAMILIES`:
+    :func:`~torchhys.fit_drift`, a free slope, ``DRIFT_SCALES`` spans of the scored input)
+    fitted on the samples before ``end``."""
+    _, fit = FAMILIES["drift"]({"fit": "drift"})
+    return fit(d.x[:, :end], d.y[:, :end], d.warmup)
 
 
 def _stop_pi_drift(d: Scaled, setting: StopSetting, drift: Drift,
