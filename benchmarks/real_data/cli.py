@@ -59,7 +59,8 @@ def run_in_processes(args: argparse.Namespace, jobs: int) -> tuple[list[dict], l
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.real_data",
+                                     description=__doc__.splitlines()[0])
     parser.add_argument("--data", nargs="+", choices=list(DATASETS), default=list(DATASETS),
                         metavar="NAME", help=f"data sets (default: all): {', '.join(DATASETS)}")
     parser.add_argument("--out", type=Path, default=None, help="write the table to this CSV")
