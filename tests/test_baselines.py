@@ -224,7 +224,7 @@ def test_comparison_on_recordings_of_different_lengths(tmp_path: Path) -> None:
     warmup = 30
     dm = HysteresisDataModule(path=paths, split_by="recording", train_recordings=[0, 1],
                               val_recordings=[2], test_recordings=[3, 4], warmup=warmup)
-    module = InverseHysteresisModule(operator="plays", operator_kwargs={"n": 4}, hidden=4,
+    module = InverseHysteresisModule(operator=[{"fit": "plays", "n": 4}], hidden=4,
                                      optimizer="lbfgs")
     comparison = BaselineComparison(max_degree=4)
     t = trainer(max_epochs=2, callbacks=[comparison])
@@ -251,7 +251,7 @@ def test_comparison_scores_the_dataloaders_the_test_ran(tmp_path: Path) -> None:
     paths = _recording_files(tmp_path, [300, 320, 280, 310])
     dm = HysteresisDataModule(path=paths, split_by="recording", train_recordings=[0, 1],
                               val_recordings=[2], test_recordings=[3], warmup=20)
-    module = InverseHysteresisModule(operator="plays", operator_kwargs={"n": 3}, hidden=3,
+    module = InverseHysteresisModule(operator=[{"fit": "plays", "n": 3}], hidden=3,
                                      optimizer="lbfgs")
     comparison = BaselineComparison(max_degree=1)
     t = trainer(max_epochs=2, callbacks=[comparison])
