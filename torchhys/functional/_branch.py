@@ -40,7 +40,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from torchhys._checks import (
     as_batched_sequence,
@@ -52,7 +52,8 @@ from torchhys._checks import (
 from torchhys.functional.turning_points import resolve_threshold, zigzag
 
 __all__ = [
-    "BranchState", "branch_g", "branch_operator", "check_a", "direction_coefficient",
+    "BranchShape", "BranchState", "SquareRoot", "ZhaoTanShape", "branch_operator", "check_a",
+    "direction_coefficient",
     "initial_branch_state", "linear_zone_sqrt", "safe_sqrt", "signed_sqrt", "sqrt_constants",
 ]
 
@@ -138,14 +139,37 @@ def signed_sqrt(v: Tensor, eps: Tensor, root_eps: Tensor) -> Tensor:
     return torch.copysign(linear_zone_sqrt(v.abs(), eps, root_eps), v)
 
 
-def branch_g(u: Tensor, coef: Tensor, kind: str, eps: float, scale: float) -> Tensor:
-    """The branch shape ``g(u)``, ``u = |x - x_e| >= 0``: ``coef * safe_sqrt(u, eps)`` for
-    the EIHO, ``(1 - exp(-u / scale)) u`` for the Zhao-Tan operator (no coefficient)."""
-    if kind == "eiho":
-        return coef * safe_sqrt(u, eps)
-    if kind == "zhao_tan":
-        return (1.0 - torch.exp(-u / scale)) * u
-    raise ValueError("kind must be 'eiho' or 'zhao_tan', got " + kind)
+class BranchShape(nn.Module):
+    """The shape ``g(u)`` of a branch operator's branches, ``u = |x - x_e| >= 0`` from the
+    branch's anchor ``x_e``, times the branch's coefficient where the shape has one: one
+    small object per shape (:class:`SquareRoot`, :class:`ZhaoTanShape`), scriptable, called
+    by the sequence path and by the steps."""
+
+    def forward(self, u: Tensor, coef: Tensor) -> Tensor:  # pragma: no cover (abstract)
+        raise NotImplementedError
+
+
+class SquareRoot(BranchShape):
+    """``g(u) = coef * safe_sqrt(u, eps)``: the EIHO's branch (Eq. (2)), linear below ``eps``
+    (:func:`safe_sqrt`)."""
+
+    def __init__(self, eps: float) -> None:
+        super().__init__()
+        self.eps = float(eps)
+
+    def forward(self, u: Tensor, coef: Tensor) -> Tensor:
+        return coef * safe_sqrt(u, self.eps)
+
+
+class ZhaoTanShape(BranchShape):
+    """``g(u) = (1 - exp(-u / scale)) u``: the Zhao-Tan operator's branch (no coefficient)."""
+
+    def __init__(self, scale: float) -> None:
+        super().__init__()
+        self.scale = float(scale)
+
+    def forward(self, u: Tensor, coef: Tensor) -> Tensor:
+        return (1.0 - torch.exp(-u / self.scale)) * u
 
 
 def direction_coefficient(
@@ -191,7 +215,7 @@ def _pops(stack_x: Tensor, depth: Tensor, m: Tensor, d: Tensor) -> Tensor:
 
 def _dominant_stacks(
     state: BranchState, v: Tensor, d_prev: Tensor, confirm: Tensor, a: Tensor,
-    kind: str, per_segment: bool, eps: float, slope: Tensor | None = None, scale: float = 1.0,
+    shape: BranchShape, per_segment: bool, slope: Tensor | None = None,
 ) -> tuple[BranchState, list[Tensor]]:
     """Update the stack at every confirmed turning point; return per-segment snapshots."""
     B, T = v.shape
@@ -209,7 +233,7 @@ def _dominant_stacks(
         top = depth - 1 - 2 * _pops(sx, depth, vj.detach(), dj)
         ax, af, aseg = sx[rows, top], sf[rows, top], ss[rows, top]
         coef = _coef(a, dj, aseg, per_segment, ax, slope)
-        fv = af + dj * branch_g((vj - ax).abs(), coef, kind, eps, scale)
+        fv = af + dj * shape((vj - ax).abs(), coef)
         pos = top + 1
         full = pos >= D
         pos = torch.where(full, pos - 2, pos)
@@ -226,9 +250,9 @@ def _dominant_stacks(
 
 
 def branch_operator(
-    x: Tensor, a: Tensor, kind: str, rule: str, threshold: float | str | Tensor,
-    state: BranchState | None, per_segment: bool, eps: float, max_depth: int,
-    anchor_slope: Tensor | None = None, branch: bool = False, scale: float = 1.0,
+    x: Tensor, a: Tensor, shape: BranchShape, rule: str, threshold: float | str | Tensor,
+    state: BranchState | None, per_segment: bool, max_depth: int,
+    anchor_slope: Tensor | None = None, branch: bool = False,
 ) -> tuple[Tensor, BranchState]:
     xb, squeezed = as_batched_sequence(x, "x")
     check_choice(rule, "rule", _RULES)
@@ -257,7 +281,7 @@ def branch_operator(
         x_a = torch.where(lc >= 0, v.gather(1, lc.clamp(min=0)), state.stack_x[:, :1])
         x_a_prev = torch.cat([state.stack_x[:, :1], x_a[:, :-1]], dim=1)
         coef = _coef(a, d_prev, segment - 1, per_segment, x_a_prev, anchor_slope)
-        g = branch_g((v - x_a_prev).abs(), coef, kind, eps, scale)
+        g = shape((v - x_a_prev).abs(), coef)
         inc = torch.where(z.confirm, d_prev * g, 0.0)
         f_a = state.stack_f[:, :1] + inc.cumsum(dim=1)
         seg_a = segment
@@ -266,7 +290,7 @@ def branch_operator(
         )
     else:
         new_state, (sx, sf, ss, sdepth) = _dominant_stacks(
-            state, v, d_prev, z.confirm, a, kind, per_segment, eps, anchor_slope, scale
+            state, v, d_prev, z.confirm, a, shape, per_segment, anchor_slope
         )
         D = sx.shape[-1]
         g_idx = seg_local[..., None].expand(B, T, D)
@@ -276,12 +300,12 @@ def branch_operator(
         x_a, f_a, seg_a = (s.gather(2, top)[..., 0] for s in (sx_t, sf_t, ss_t))
     coef_a = _coef(a, d, seg_a, per_segment, x_a, anchor_slope)
     base = torch.zeros_like(f_a) if branch else f_a  # "branch" output: f - f(x_e)
-    f_m = base + d * branch_g((M - x_a).abs(), coef_a, kind, eps, scale)
+    f_m = base + d * shape((M - x_a).abs(), coef_a)
     s = torch.where(d != 0, -d, torch.sign(xb.detach() - M.detach()).long())
     u = torch.relu(s * (xb - M))
     seg_rev = torch.where(d != 0, segment + 1, segment)
     coef_s = _coef(a, s, seg_rev, per_segment, M, anchor_slope)
-    f = f_m + s * branch_g(u, coef_s, kind, eps, scale)
+    f = f_m + s * shape(u, coef_s)
     new_state = new_state._replace(
         play=z.play, direction=d[:, -1], extremum=M[:, -1], segment=segment[:, -1]
     )

@@ -20,7 +20,13 @@ from torchhys._checks import (
     check_int,
     check_same_shape,
 )
-from torchhys.functional._branch import BranchState, branch_operator, check_a
+from torchhys.functional._branch import (
+    BranchState,
+    SquareRoot,
+    ZhaoTanShape,
+    branch_operator,
+    check_a,
+)
 from torchhys.functional.turning_points import turning_points
 
 __all__ = ["NonCausalWarning", "eiho", "segment_coefficients", "zhao_tan"]
@@ -106,7 +112,7 @@ def eiho(
     a_t = check_a(a if isinstance(a, Tensor) else xb.new_tensor(a), per_segment, xb.shape[0])
     slope = None if anchor_slope is None else _check_slope(anchor_slope, per_segment, xb)
     return branch_operator(
-        x, a_t.to(xb.dtype), "eiho", rule, threshold, state, per_segment, eps, max_depth,
+        x, a_t.to(xb.dtype), SquareRoot(eps), rule, threshold, state, per_segment, max_depth,
         anchor_slope=slope, branch=branch,
     )
 
@@ -167,8 +173,8 @@ def zhao_tan(
         raise ValueError(f"scale must be a positive number, got {scale!r}")
     a = xb.new_ones(2)
     return branch_operator(
-        x, a, "zhao_tan", rule, threshold, state, False, 0.0, max_depth, branch=branch,
-        scale=float(scale),
+        x, a, ZhaoTanShape(float(scale)), rule, threshold, state, False, max_depth,
+        branch=branch,
     )
 
 

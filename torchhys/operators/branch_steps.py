@@ -2,8 +2,8 @@
 
 The sequence path is :func:`torchhys.functional._branch.branch_operator`; these steps call
 the same definitions (:func:`~torchhys.functional.play_step` for the turning-point
-detector, :func:`~torchhys.functional._branch.branch_g` and
-:func:`~torchhys.functional._branch.direction_coefficient` for the branch shape), operation
+detector, :class:`~torchhys.functional._branch.BranchShape` and
+:func:`~torchhys.functional._branch.direction_coefficient` for the branches), operation
 for operation, so a step-by-step run equals the sequence output bit for bit. Three steps:
 
 * :class:`RecentStep`: the ``"recent"`` rule, any threshold, ``"level"`` or ``"branch"``
@@ -22,7 +22,8 @@ import torch
 from torch import Tensor
 
 from torchhys.functional._branch import (
-    branch_g,
+    BranchShape,
+    SquareRoot,
     direction_coefficient,
     signed_sqrt,
     sqrt_constants,
@@ -36,11 +37,11 @@ __all__ = ["DominantStep", "RebasedStep", "RecentStep", "branch_step"]
 class _BranchStep(OperatorStep):
     """Settings shared by the branch steps (fixed at build; tensors in the step's dtype)."""
 
-    def __init__(self, kind: str, a: Tensor, slope: Tensor | None, r: Tensor, eps: float,
-                 scale: float, branch: bool) -> None:
+    def __init__(self, shape: BranchShape, a: Tensor, slope: Tensor | None, r: Tensor,
+                 branch: bool) -> None:
         super().__init__()
         self.n_outputs = 1
-        self.kind, self.eps, self.scale, self.branch = kind, float(eps), float(scale), branch
+        self.shape, self.branch = shape, branch
         self.anchored: bool = slope is not None
         slope = torch.zeros_like(a) if slope is None else slope
         for name, value in (("a0", a[0]), ("a1", a[1]), ("s0", slope[0]), ("s1", slope[1]),
@@ -53,7 +54,7 @@ class _BranchStep(OperatorStep):
             coef = direction_coefficient(self.a0, self.a1, direction, anchor, self.s0, self.s1)
         else:
             coef = direction_coefficient(self.a0, self.a1, direction)
-        return branch_g(u, coef, self.kind, self.eps, self.scale)
+        return self.shape(u, coef)
 
     def turn(self, x: Tensor, p_old: Tensor, M: Tensor, d_prev: Tensor
              ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -82,9 +83,9 @@ class RecentStep(_BranchStep):
     (the sequence path sums the increments with ``cumsum``, which accumulates in double).
     """
 
-    def __init__(self, kind: str, a: Tensor, slope: Tensor | None, r: Tensor, eps: float,
-                 scale: float, branch: bool) -> None:
-        super().__init__(kind, a, slope, r, eps, scale, branch)
+    def __init__(self, shape: BranchShape, a: Tensor, slope: Tensor | None, r: Tensor,
+                 branch: bool) -> None:
+        super().__init__(shape, a, slope, r, branch)
         self.state_spec = [StateBlock("turning", 4, from_sample=[1.0, 1.0, 0.0, 1.0])]
         if not branch:
             self.state_spec.append(StateBlock("level", 1, kind="float64"))
@@ -140,9 +141,9 @@ class DominantStep(_BranchStep):
     is updated by table lookups (:func:`_tables`), no data-dependent control flow.
     """
 
-    def __init__(self, kind: str, a: Tensor, slope: Tensor | None, r: Tensor, eps: float,
-                 scale: float, branch: bool, depth: int) -> None:
-        super().__init__(kind, a, slope, r, eps, scale, branch)
+    def __init__(self, shape: BranchShape, a: Tensor, slope: Tensor | None, r: Tensor,
+                 branch: bool, depth: int) -> None:
+        super().__init__(shape, a, slope, r, branch)
         self.depth = depth
         width = 3 + 2 * depth + 2
         anchors = [0.0] * width
@@ -185,7 +186,7 @@ class RebasedStep(_BranchStep):
     """
 
     def __init__(self, a: Tensor, eps: float) -> None:
-        super().__init__("eiho", a, None, a.new_zeros(()), eps, 1.0, True)
+        super().__init__(SquareRoot(eps), a, None, a.new_zeros(()), True)
         self.symmetric: bool = bool(a[0] == a[1])
         # the square root's eps and eps ** 0.5 as buffers (for the TorchScript interpreter,
         # which would wrap Python numbers into new tensors at every step; same values)
@@ -205,25 +206,29 @@ class RebasedStep(_BranchStep):
 
 
 def branch_step(
-    kind: str, rule: str, a: Tensor, slope: Tensor | None, threshold: Tensor, *, eps: float,
-    scale: float, output: str, max_depth: int, dtype: torch.dtype,
+    shape: BranchShape, rule: str, a: Tensor, slope: Tensor | None, threshold: Tensor, *,
+    output: str, max_depth: int, dtype: torch.dtype,
 ) -> _BranchStep:
-    """The step of a branch operator with these settings, in ``dtype``.
+    """The step of a branch operator with these settings, in ``dtype``: one step class per
+    rule (:class:`DominantStep`, :class:`RecentStep`), and :class:`RebasedStep` for the
+    recent rule's deployed case (the square-root shape, threshold 0, fixed coefficients,
+    the ``"branch"`` output).
 
     Args:
-        kind: ``"eiho"`` or ``"zhao_tan"``.
+        shape: the branch shape (:class:`~torchhys.functional._branch.SquareRoot` of the
+            EIHO, :class:`~torchhys.functional._branch.ZhaoTanShape`).
         rule: ``"recent"`` or ``"dominant"``.
         a: (2,) coefficients (ascending, descending); ones for the Zhao-Tan operator.
         slope: (2,) anchor slopes (``a_d exp(slope_d x_e)``), or None.
         threshold: 0-dim reversal threshold (calibrated).
-        eps: linear zone of the EIHO square root; scale: the Zhao-Tan input scale.
         output: ``"level"`` or ``"branch"``; max_depth: stack size of ``"dominant"``.
     """
     a, r = a.detach().to(dtype).reshape(-1).expand(2), (0.5 * threshold.detach()).to(dtype)
     slope = None if slope is None else slope.detach().to(dtype).reshape(-1).expand(2)
     branch = output == "branch"
     if rule == "dominant":
-        return DominantStep(kind, a, slope, r, eps, scale, branch, max_depth)
-    if kind == "eiho" and branch and slope is None and float(r) == 0.0 and eps > 0:
-        return RebasedStep(a, eps)
-    return RecentStep(kind, a, slope, r, eps, scale, branch)
+        return DominantStep(shape, a, slope, r, branch, max_depth)
+    if (isinstance(shape, SquareRoot) and branch and slope is None and float(r) == 0.0
+            and shape.eps > 0):
+        return RebasedStep(a, shape.eps)
+    return RecentStep(shape, a, slope, r, branch)

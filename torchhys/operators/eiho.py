@@ -11,7 +11,7 @@ import torch
 from torch import Tensor, nn
 
 from torchhys._checks import as_batched_sequence, check_choice
-from torchhys.functional._branch import BranchState
+from torchhys.functional._branch import BranchState, SquareRoot, ZhaoTanShape
 from torchhys.functional.eiho import eiho, zhao_tan
 from torchhys.functional.turning_points import estimate_threshold
 from torchhys.operator import Example, HysteresisOperator, OperatorStep, register_operator
@@ -218,7 +218,7 @@ class EIHO(_TurningPointOperator):
         with torch.no_grad():
             a, slope = self.coef()
             return branch_step(
-                "eiho", self.rule, a, slope, self._threshold(), eps=self.eps, scale=1.0,
+                SquareRoot(self.eps), self.rule, a, slope, self._threshold(),
                 output=self.output, max_depth=self.max_depth, dtype=dtype,
             )
 
@@ -307,8 +307,8 @@ class ZhaoTanOperator(_TurningPointOperator):
             ValueError: an uncalibrated ``"auto"`` threshold.
         """
         return branch_step(
-            "zhao_tan", self.rule, torch.ones(2), None, self._threshold(), eps=0.0,
-            scale=self.scale, output=self.output, max_depth=self.max_depth, dtype=dtype,
+            ZhaoTanShape(self.scale), self.rule, torch.ones(2), None, self._threshold(),
+            output=self.output, max_depth=self.max_depth, dtype=dtype,
         )
 
 
