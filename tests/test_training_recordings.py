@@ -391,3 +391,27 @@ def test_paper_split_may_evaluate_on_training_recordings(tmp_path: Path) -> None
     dm = data(path, split_by="recording", split="paper", train_recordings=[10, 11],
               test_recordings=[11])
     assert dm is not None
+
+
+def test_a_file_read_again_is_parsed_once_until_it_changes(tmp_path: Path,
+                                                           monkeypatch) -> None:
+    """Model selection builds a datamodule per candidate and fold: the file is parsed once,
+    every caller gets its own arrays, and a file written again is read again."""
+    import os
+
+    from torchhys.training import files
+
+    path = tmp_path / "log.csv"
+    path.write_text("u,y\n" + "".join(f"{i},{2 * i}\n" for i in range(10)))
+    parsed = []
+    real = files._read
+    monkeypatch.setattr(files, "_read", lambda *a: parsed.append(1) or real(*a))
+    first = read_recordings(path, input_column="u", target_column="y")
+    first[0].x[0] = 99.0  # a caller's copy: the next read does not see it
+    second = read_recordings(path, input_column="u", target_column="y")
+    assert len(parsed) == 1 and second[0].x[0] == 0.0
+    assert read_recordings(path, input_column="y", target_column="u")[0].x[1] == 2.0
+    path.write_text("u,y\n" + "".join(f"{i},{3 * i}\n" for i in range(10)))
+    os.utime(path, ns=(1, 1))  # a new modification time even on a coarse clock
+    assert read_recordings(path, input_column="u", target_column="y")[0].y[1] == 3.0
+    assert len(parsed) == 3

@@ -10,6 +10,7 @@ header, text that is not in the file's encoding, a value that is not a finite nu
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
@@ -178,6 +179,34 @@ def read_recordings(
     paths = [path] if isinstance(path, (str, Path)) else list(path)
     if not paths:
         raise ValueError("path must name a file or a non-empty list of files, got []")
+    options = (input_column, target_column, time_column, run_column, min_samples, encoding,
+               delimiter, decimal)
+    try:  # the files as they are now: a file written again is read again
+        key = (*options, *((str(Path(p).resolve()), os.stat(p).st_mtime_ns, os.stat(p).st_size)
+                           for p in paths))
+        hash(key)
+    except (OSError, TypeError):  # a missing file: read (and report) it below
+        key = None
+    recordings = _READ.get(key) if key is not None else None
+    if recordings is None:
+        recordings = _read(paths, *options)
+        if key is not None:
+            _READ.clear()  # the last file read only (a fit reads it once per candidate run)
+            _READ[key] = recordings
+    return [r._replace(x=r.x.copy(), y=r.y.copy(), t=None if r.t is None else r.t.copy())
+            for r in recordings]
+
+
+_READ: dict[tuple, list[Recording]] = {}
+"""The recordings of the last files read, by path, modification time, size and options:
+model selection builds a datamodule for every candidate and fold, and the files are parsed
+once (each caller gets copies of the arrays)."""
+
+
+def _read(paths: list[str | Path], input_column: Column, target_column: Column,
+          time_column: Column | None, run_column: Column | None, min_samples: int,
+          encoding: str | None, delimiter: str | None, decimal: str) -> list[Recording]:
+    """:func:`read_recordings` of checked options, uncached."""
     roles = {"input_column": input_column, "target_column": target_column}
     if time_column is not None:
         roles["time_column"] = time_column
