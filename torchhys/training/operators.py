@@ -50,6 +50,7 @@ from torchhys._checks import (
 from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid
 from torchhys.operator import HysteresisOperator, make_operator
 from torchhys.training.families import FAMILIES
+from torchhys.training.fit_cache import shared
 
 __all__ = ["FIT_FAMILIES", "OperatorSpec", "build_operators", "fit_data_dependent"]
 
@@ -142,7 +143,8 @@ def _build(spec: object, argument: str, operator_kwargs: Mapping[str, Any]
         if not isinstance(family, str) or family not in FIT_FAMILIES:
             raise ValueError(f"{argument}: no model family is called {family!r}; families: "
                              f"{sorted(FIT_FAMILIES)}")
-        return FIT_FAMILIES[family](spec)
+        module, fitter = FIT_FAMILIES[family](spec)
+        return module, None if fitter is None else shared(spec, fitter)
     if isinstance(spec, Mapping) and "name" not in spec:
         raise ValueError(f"{argument}: a spec dict needs a 'name' (a registered operator) or "
                          f"a 'fit' (a model family: {sorted(FIT_FAMILIES)}), got {dict(spec)!r}")

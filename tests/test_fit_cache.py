@@ -1,0 +1,70 @@
+"""Fitted families shared between model selection's runs (torchhys.training.fit_cache)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchhys.training import fit_cache
+from torchhys.training.families import FitError
+from torchhys.training.operators import build_operators
+
+
+def _data(n: int = 400) -> tuple[torch.Tensor, torch.Tensor]:
+    t = torch.linspace(0, 6 * torch.pi, n, dtype=torch.float64)
+    x = (t.sin() * (1 + t / 10))[None]
+    return x, 2 * x + 0.1 * torch.cumsum(x, -1) / n
+
+
+def test_the_same_spec_on_the_same_data_is_fitted_once() -> None:
+    fit_cache.clear()
+    calls = []
+    spec = {"fit": "stop_pi", "n_widths": 8, "segments": 2}
+    (module,), fitters = build_operators([spec])
+    x, y = _data()
+
+    def counted(*args):
+        calls.append(1)
+        return inner(*args)
+
+    from torchhys.training.families import FAMILIES
+    _, inner = FAMILIES["stop_pi"](spec)
+    fit = fit_cache.shared(spec, counted)
+    a, b = fit(x, y, 10, None), fit(x.clone(), y.clone(), 10, None)
+    assert len(calls) == 1 and a is not b
+    for k, v in a.state_dict().items():
+        assert torch.equal(v, b.state_dict()[k])
+    # another warm-up, mask or spec is another fit
+    fit(x, y, 20, None)
+    mask = torch.ones_like(x, dtype=torch.bool)
+    mask[:, 200:300] = False
+    fit(x, y, 10, mask)
+    assert len(calls) == 3
+    # the wrapped fitter of build_operators gives the unwrapped fit's model
+    direct = inner(x, y, 10, None)
+    via = fitters[0](x, y, 10, None)
+    for k, v in direct.state_dict().items():
+        assert torch.equal(v, via.state_dict()[k])
+
+
+def test_a_failed_fit_fails_again_without_refitting() -> None:
+    fit_cache.clear()
+    calls = []
+
+    def failing(*args):
+        calls.append(1)
+        raise FitError("no inverse")
+
+    fit = fit_cache.shared({"fit": "gpi"}, failing)
+    x, y = _data()
+    for _ in range(2):
+        with pytest.raises(FitError, match="no inverse"):
+            fit(x, y, 0, None)
+    assert len(calls) == 1
+
+
+def test_random_families_are_not_shared() -> None:
+    def fit(*args):
+        return None
+
+    assert fit_cache.shared({"fit": "jiles_atherton"}, fit) is fit
