@@ -105,6 +105,28 @@ def test_gpi_both_directions_recover_a_generalized_pi_plant():
     assert not any(p.requires_grad for p in inv.parameters())
 
 
+@pytest.mark.parametrize("samples, work, expected", [
+    (400, None, 150),  # a short record: every epoch
+    (400, 400 * 60, 60),  # a long one (here: a small bound): fewer
+    (400, 400, 20),  # at least 20
+])
+def test_gpi_iterations_bounded_by_sample_iterations(monkeypatch, samples, work, expected):
+    import torchhys.training.families as families
+    from torchhys.training import fit_cache
+
+    fit_cache.clear()  # fitted here, not taken from an earlier test's fit
+    seen = []
+    real = families.fit_generalized_pi
+    monkeypatch.setattr(families, "fit_generalized_pi",
+                        lambda *a, **k: seen.append(k["lbfgs_epochs"]) or real(*a, **k))
+    x = 1.5 * signal(samples)
+    spec = {"fit": "gpi", "n_widths": 6, "units": 2, "epochs": 150}
+    if work is not None:
+        spec["sample_iterations"] = work
+    fitted(spec, x, gpi_plant(x))
+    assert seen and seen[0] == expected
+
+
 def test_preisach_recovers_a_preisach_plant():
     x = signal(rows=2)
     plant = Preisach(float(x.min()), float(x.max()), 8).double()  # the grid the fit uses
@@ -187,6 +209,7 @@ def test_a_family_that_cannot_fit_raises_fit_error():
     ({"fit": "gpi", "power": 0}, "power must be a finite number > 0"),
     ({"fit": "pi_nonneg", "power": float("inf")}, "power must be a finite number > 0"),
     ({"fit": "gpi", "power": True}, "power must be a finite number > 0"),
+    ({"fit": "gpi", "sample_iterations": 0}, "sample_iterations must be a finite number > 0"),
     ({"fit": "preisach", "n": 1}, "n must be"),
     ({"fit": "preisach", "smoothness": "big"}, "smoothness must be 'auto'"),
     ({"fit": "stop_pi", "segments": 0}, "segments must be"),
