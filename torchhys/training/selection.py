@@ -27,6 +27,10 @@ that drifts as it is used (a shape-memory alloy's ratcheting, a piezo's creep) t
 earlier blocks from later ones; rolling folds do not, at the price of fitting on less data
 (``k - 1`` folds, the first fitted on one block of ``k``).
 
+A run whose readout is affine and whose operators are fixed (the fitted families of
+``configs/measured.yaml``) is not trained by its ``Trainer``: the readout's least-squares
+solution is solved directly (:func:`~torchhys.training.readout.direct_validation`).
+
 A candidate whose family operator cannot be fitted to the data (no inverse, a diverged fit)
 scores NaN and is never chosen. The test split is never read. :func:`run_selection` returns
 one :class:`CandidateScore` per candidate (validation MSE and its standard error),
@@ -56,6 +60,7 @@ from torchhys._checks import check_choice, check_int
 from torchhys.training.coverage import warn_coverage
 from torchhys.training.families import FitError
 from torchhys.training.folds import CV_MODES, RECORDING, cv_fold
+from torchhys.training.readout import direct_validation, solvable
 
 __all__ = [
     "RULES", "Build", "CandidateScore", "best", "check_candidates", "check_holdout",
@@ -193,22 +198,30 @@ def _validation(module: L.LightningModule, datamodule: L.LightningDataModule,
     failed: NaN, none and the reason (with a warning naming the ``run``) when a family
     operator cannot be fitted to the data (:class:`~torchhys.training.families.FitError`)
     or the validation MSE is not finite (a diverged training); else ``""``."""
+    direct = solvable(module, datamodule, trainer)
     try:
-        trainer.fit(module, datamodule=datamodule)
+        if direct:  # an affine readout: its least-squares solution, no Trainer
+            mse, errors = direct_validation(module, datamodule, trainer)
+            if trainer.logger is not None:
+                trainer.logger.log_metrics({"val_mse": mse}, step=0)
+                trainer.logger.save()
+        else:
+            trainer.fit(module, datamodule=datamodule)
     except FitError as err:
         warnings.warn(f"model.select: {run} skipped: {err}", RuntimeWarning, stacklevel=3)
         return math.nan, torch.zeros(0, dtype=torch.float64), f"FitError: {err}"
-    results = trainer.validate(module, datamodule=datamodule, verbose=False)
-    if not results or "val_mse" not in results[0]:
-        raise ValueError(
-            "model.select: validation logged no val_mse (is trainer.limit_val_batches 0?)"
-        )
-    mse = float(results[0]["val_mse"])
+    if not direct:
+        results = trainer.validate(module, datamodule=datamodule, verbose=False)
+        if not results or "val_mse" not in results[0]:
+            raise ValueError(
+                "model.select: validation logged no val_mse (is trainer.limit_val_batches 0?)"
+            )
+        mse = float(results[0]["val_mse"])
     if not math.isfinite(mse):
         reason = f"validation MSE {mse}: the training diverged"
         warnings.warn(f"model.select: {run}: {reason}", RuntimeWarning, stacklevel=3)
         return math.nan, torch.zeros(0, dtype=torch.float64), reason
-    return mse, _squared_errors(module, datamodule), ""
+    return mse, errors if direct else _squared_errors(module, datamodule), ""
 
 
 def standard_error(squared_errors: Tensor) -> float:

@@ -1,0 +1,93 @@
+"""The affine readout of a model-selection run solved by least squares, without a Trainer.
+
+The candidates of ``configs/measured.yaml`` are fitted model families read by an affine
+network (``hidden: 1, activation: identity``) trained full-batch by L-BFGS: once the
+families are fitted, its training is a linear least-squares problem in the normalized
+features, which L-BFGS solves in a few steps. Model selection trains such a readout on every
+fold of every candidate; :func:`direct_validation` solves it directly instead (one
+least-squares solve on the training batch's scored samples) and scores it on the validation
+batches as the Trainer's validation does. The chosen candidate's final fit still runs
+through the Trainer (its checkpoint and logs).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import lightning as L
+import torch
+from torch import Tensor
+
+from torchhys.networks import InverseHysteresisNet
+from torchhys.training.module import CLOSURE_OPTIMIZERS, InverseHysteresisModule
+
+__all__ = ["direct_validation", "solvable"]
+
+
+def solvable(module: Any, datamodule: Any, trainer: Any) -> bool:
+    """Whether :func:`direct_validation` gives the trained run's result: an
+    :class:`InverseHysteresisModule` of an identity-activation network with fixed operators,
+    trained full-batch by a closure optimizer (its training a least-squares problem it
+    solves), on one device, on a datamodule with ``train_tensors`` and (x, y, warmup, mask)
+    batches; its trainer trains at least one epoch."""
+    return (isinstance(module, InverseHysteresisModule)
+            and isinstance(module.net, InverseHysteresisNet)
+            and module.hparams.get("activation") == "identity"
+            and module.optimizer_name in CLOSURE_OPTIMIZERS
+            and module._fixed_operators()
+            and hasattr(datamodule, "train_tensors")
+            and getattr(trainer, "world_size", 1) == 1
+            and (getattr(trainer, "max_epochs", None) or 0) >= 1
+            and not getattr(trainer, "limit_train_batches", 1) == 0)
+
+
+def _batches(loader: Any) -> list[tuple[Tensor, Tensor, Tensor]]:
+    out = []
+    for batch in loader or []:
+        if not (isinstance(batch, (tuple, list)) and len(batch) == 4):
+            raise ValueError("a direct readout needs (x, y, warmup, mask) batches")
+        x, y, _, mask = batch
+        out.append((x, y, mask.to(torch.bool)))
+    return out
+
+
+@torch.no_grad()
+def direct_validation(module: InverseHysteresisModule, datamodule: L.LightningDataModule,
+                      trainer: L.Trainer) -> tuple[float, Tensor]:
+    """Fit ``module`` as its training would (the families and the normalization on
+    ``datamodule``'s training tensors, then the readout), with the readout solved by least
+    squares; its validation MSE and the squared errors of the scored validation samples.
+
+    Raises:
+        FitError: a family that cannot be fitted (as the Trainer's run raises it).
+    """
+    datamodule.setup("fit")
+    if str(getattr(trainer, "precision", "")).startswith("64"):
+        module.net.double()
+    x, y = datamodule.train_tensors()
+    module.fit_normalization(x, y, warmup=int(getattr(datamodule, "train_warmup", 0)),
+                             mask=getattr(datamodule, "train_mask", None))
+    net, dtype = module.net, module.net.in_mean.dtype
+    rows, targets = [], []
+    for bx, by, mask in _batches(datamodule.train_dataloader()):
+        feats, _ = net.features(bx.to(dtype), target=by.to(dtype))
+        rows.append(((feats - net.in_mean) / net.in_std)[mask])
+        targets.append(((by.to(dtype) - net.out_mean) / net.out_std)[mask])
+    z, t = torch.cat(rows), torch.cat(targets)
+    design = torch.cat([z, torch.ones_like(z[:, :1])], 1).to(torch.float64)
+    theta = torch.linalg.lstsq(design, t.to(torch.float64)[:, None],
+                               driver="gelsd").solution[:, 0].to(dtype)
+    hidden, output = net.hidden, net.output
+    hidden.weight.zero_()
+    hidden.bias.zero_()
+    output.weight.zero_()
+    output.bias.zero_()
+    hidden.weight[0] = theta[:-1]
+    hidden.bias[0] = theta[-1]
+    output.weight[0, 0] = 1.0
+    errors = []
+    for bx, by, mask in _batches(datamodule.val_dataloader()):
+        e = module(bx.to(dtype), target=by.to(dtype)).to(torch.float64) - by.to(torch.float64)
+        errors.append(e.square()[mask])
+    squared = torch.cat(errors) if errors else torch.zeros(0, dtype=torch.float64)
+    return float(squared.mean()) if squared.numel() else float("nan"), squared
