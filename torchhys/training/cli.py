@@ -32,6 +32,8 @@ before the module is built)::
       select_cv_mode: null                      # "rolling": validate each block (recording)
                                                 # on a fit of those before it only
       select_rule: null                         # "1se": the first unless beaten by > 1 s.e.
+      select_jobs: null                         # n: candidates in n processes at a time
+      select_budget_s: null                     # s: no candidate starts after s seconds
 
 Every candidate is trained from the same seed with the same trainer settings (one progress
 line before and after each: :mod:`torchhys.training.progress`) and scored by its validation
@@ -58,7 +60,7 @@ import sys
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 from jsonargparse import ArgumentError, Namespace, get_loader
 from lightning.pytorch import Trainer, seed_everything
@@ -79,6 +81,7 @@ from torchhys.training.errors import (
     split_traceback_flag,
 )
 from torchhys.training.folds import describe_cv
+from torchhys.training.jobs import check_budget, check_jobs
 from torchhys.training.module import InverseHysteresisModule
 from torchhys.training.operators import build_operators
 from torchhys.training.plugins import IMPORT_ENV, import_modules, split_import_flags
@@ -119,25 +122,8 @@ class TorchhysCLI(LightningCLI):
                              "trainer.plugins": [{"class_path": _ATOMIC_IO}]})
         # Arguments of the command kept in the model section, removed before the module is
         # built (see _select).
-        parser.add_argument(
-            "--model.select", type=list[dict[str, Any]] | None, default=None,
-            help="fit: candidate model configurations, each a dict of model arguments that "
-                 "replace the model section's; the one of lowest validation MSE is fitted "
-                 "(table in <default_root_dir>/logs/version_<N>/selection.csv)")
-        parser.add_argument(
-            "--model.select_cv", type=int | Literal["recording"] | None, default=None,
-            help="fit with model.select: score the candidates by blocked cross-validation "
-                 "with this many contiguous blocks of the training part, or 'recording': "
-                 "hold each training recording out once (default: on the validation split)")
-        parser.add_argument(
-            "--model.select_cv_mode", type=Literal["blocked", "rolling"] | None, default=None,
-            help="fit with model.select_cv: 'blocked' (default) holds each block (recording) "
-                 "out once, fitted on all the others; 'rolling' validates each block "
-                 "(recording) after the first on a fit of those before it only")
-        parser.add_argument(
-            "--model.select_rule", type=Literal["min", "1se"] | None, default=None,
-            help="fit with model.select: 'min' (default) chooses the lowest validation MSE, "
-                 "'1se' the first candidate (the baseline) when within one standard error of it")
+        for name, kind, text in selection.ARGUMENTS:
+            parser.add_argument(f"--model.{name}", type=kind, default=None, help=text)
 
     def parse_arguments(self, parser, args) -> None:  # noqa: ANN001 (LightningCLI's)
         """Parse, then read and check ``--ckpt_path`` (a file) before anything is written:
@@ -183,10 +169,11 @@ class TorchhysCLI(LightningCLI):
         self._selected = False  # set once run_selection has run (and warned, before_fit)
         sub = self.subcommand
         cfg = self.config[sub] if sub else self.config
-        select, cv, mode, rule = _pop_select(cfg)
+        options = _pop_select(cfg)
+        select, cv, mode, rule = (options[k] for k in ("select", "select_cv", "select_cv_mode",
+                                                       "select_rule"))
         if select is None:
-            for key, value in (("select_cv", cv), ("select_cv_mode", mode),
-                               ("select_rule", rule)):
+            for key, value in options.items():
                 if value is not None:
                     raise ValueError(f"model.{key}={value!r} needs model.select (the candidates)")
             return
@@ -204,6 +191,8 @@ class TorchhysCLI(LightningCLI):
         with config_errors():  # a TypeError here is in the candidates, not in training
             candidates = selection.check_candidates(
                 select, selection.model_arguments(self._model_class), cv=cv, mode=mode)
+            jobs, budget = check_jobs(options["select_jobs"]), check_budget(
+                options["select_budget_s"])
             configs = [self._candidate_config(i, c) for i, c in enumerate(candidates)]
         seed = cfg.get("seed_everything")
         if isinstance(seed, bool) or seed is None:  # unseeded: still one seed for all
@@ -223,6 +212,7 @@ class TorchhysCLI(LightningCLI):
         try:
             with _quiet_lightning():
                 scores = selection.run_selection(candidates, build, cv=cv, mode=mode,
+                                                 jobs=jobs, budget_s=budget,
                                                  report=progress.scored)
         except BaseException:
             progress.close()
@@ -352,15 +342,16 @@ def _reserve_run_dir(trainer: Namespace) -> tuple[Path, int | str | None]:
     return folder, int(suffix) if version is None and suffix.isdigit() else None
 
 
-def _pop_select(cfg: Namespace) -> tuple[Any, Any, Any, Any]:
-    """Remove ``model.select``, ``model.select_cv``, ``model.select_cv_mode`` and
-    ``model.select_rule`` from a (subcommand's) config; their values."""
-    values = []
-    for key in ("model.select", "model.select_cv", "model.select_cv_mode", "model.select_rule"):
-        values.append(cfg.get(key))
-        if key in cfg:
-            del cfg[key]
-    return values[0], values[1], values[2], values[3]
+def _pop_select(cfg: Namespace) -> dict[str, Any]:
+    """Remove the options of model selection (``model.select``, ``model.select_cv``, ...:
+    :data:`~torchhys.training.selection.ARGUMENTS`) from a (subcommand's) config; their
+    values by name."""
+    values = {}
+    for name, _, _ in selection.ARGUMENTS:
+        values[name] = cfg.get(f"model.{name}")
+        if f"model.{name}" in cfg:
+            del cfg[f"model.{name}"]
+    return values
 
 
 @contextlib.contextmanager

@@ -50,7 +50,7 @@ import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import lightning as L
 import torch
@@ -63,10 +63,35 @@ from torchhys.training.folds import CV_MODES, RECORDING, cv_fold
 from torchhys.training.readout import direct_validation, solvable
 
 __all__ = [
-    "RULES", "Build", "CandidateScore", "best", "check_candidates", "check_holdout",
+    "ARGUMENTS", "RULES", "Build", "CandidateScore", "best", "check_candidates", "check_holdout",
     "config_json", "format_table", "model_arguments", "run_selection", "standard_error",
     "write_table",
 ]
+
+ARGUMENTS: list[tuple[str, Any, str]] = [
+    ("select", list[dict[str, Any]] | None,
+     "fit: candidate model configurations, each a dict of model arguments that replace the "
+     "model section's; the one of lowest validation MSE is fitted (table in "
+     "<default_root_dir>/logs/version_<N>/selection.csv)"),
+    ("select_cv", int | Literal["recording"] | None,
+     "fit with model.select: score the candidates by blocked cross-validation with this many "
+     "contiguous blocks of the training part, or 'recording': hold each training recording "
+     "out once (default: on the validation split)"),
+    ("select_cv_mode", Literal["blocked", "rolling"] | None,
+     "fit with model.select_cv: 'blocked' (default) holds each block (recording) out once, "
+     "fitted on all the others; 'rolling' validates each block (recording) after the first "
+     "on a fit of those before it only"),
+    ("select_rule", Literal["min", "1se"] | None,
+     "fit with model.select: 'min' (default) chooses the lowest validation MSE, '1se' the "
+     "first candidate (the baseline) when within one standard error of it"),
+    ("select_jobs", int | None,
+     "fit with model.select: candidates scored at a time, each in a process of its own, "
+     "torch's threads divided among them (default 1)"),
+    ("select_budget_s", float | None,
+     "fit with model.select: seconds after which no further candidate starts; those not "
+     "started are skipped, said in the table (default: none)"),
+]
+"""The command's options of model selection (``--model.NAME``): name, type, help."""
 
 Build = Callable[[int, int | None], tuple[L.LightningModule, L.LightningDataModule, L.Trainer]]
 """``build(candidate, fold)``: a fresh, seeded ``(module, datamodule, trainer)`` for one run
@@ -243,8 +268,8 @@ def standard_error(squared_errors: Tensor) -> float:
 
 def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
                   cv: int | str | None = None, mode: str | None = None,
-                  report: Callable[[CandidateScore], None] | None = None
-                  ) -> list[CandidateScore]:
+                  report: Callable[[CandidateScore], None] | None = None, jobs: int = 1,
+                  budget_s: float | None = None) -> list[CandidateScore]:
     """Train and score every candidate.
 
     Args:
@@ -256,54 +281,60 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
         mode: with ``cv``, ``"blocked"`` (None) or ``"rolling"``
             (:func:`~torchhys.training.folds.cv_fold`).
         report: called with each candidate's score as soon as it is known (progress).
+        jobs: candidates scored at a time, each in a process of its own
+            (:mod:`torchhys.training.jobs`); 1: all in this process.
+        budget_s: seconds after which no further candidate starts (the first always runs);
+            the candidates not started score NaN, ``error`` saying they were skipped.
 
     Returns:
         One :class:`CandidateScore` per candidate, in order. A candidate whose fold scores
         NaN (it cannot be fitted to that fold's data, or its training diverged) scores NaN
         without training on the remaining folds (NaN there too).
     """
+    from torchhys.training.jobs import run_candidates
+
     if mode is not None and cv is None:
         raise ValueError(f"model.select_cv_mode={mode!r} needs model.select_cv (k blocks, or "
                          f"{RECORDING!r})")
-    scores = []
-    for i, overrides in enumerate(candidates):
-        if cv is None:
-            module, data, trainer = build(i, None)
-            check_holdout(data)
-            if i == 0:
-                warn_coverage(data)
-            mse, errors, reason = _validation(module, data, trainer, f"candidate {i}")
-            scores.append(CandidateScore(i, overrides, mse, val_se=standard_error(errors),
-                                         error=reason))
-            if report is not None:
-                report(scores[-1])
-            continue
-        folds, counts, errors, reason = [], [], [], ""
-        j, k = 0, None
-        while k is None or j < k:
-            module, data, trainer = build(i, j)
-            fold = cv_fold(data, cv, j, mode)
-            if i == 0 and j == 0:
-                warn_coverage(data)
-            k = fold.k
-            mse, e, why = _validation(module, fold, trainer,
-                                      f"candidate {i}, fold {j + 1} of {k}")
-            folds.append(mse)
-            counts.append(fold.n_val)
-            errors.append(e)
-            j += 1
-            if math.isnan(mse):  # the pooled MSE is NaN whatever the other folds give
-                reason = f"fold {j} of {k}: {why}" + (
-                    f" (folds {j + 1}-{k} not run)" if j < k else "")
-                folds += [math.nan] * (k - j)
-                counts += [1] * (k - j)
-                break
-        pooled = sum(m * n for m, n in zip(folds, counts, strict=True)) / sum(counts)
-        se = standard_error(torch.cat(errors)) if math.isfinite(pooled) else math.nan
-        scores.append(CandidateScore(i, overrides, pooled, tuple(folds), se, reason))
-        if report is not None:
-            report(scores[-1])
-    return scores
+    return run_candidates(len(candidates), lambda i: score_candidate(
+        i, candidates[i], build, cv, mode), lambda i: CandidateScore(
+        i, candidates[i], math.nan, error=f"skipped: model.select_budget_s={budget_s:g} "
+        "spent before it started"), report=report, jobs=jobs, budget_s=budget_s)
+
+
+def score_candidate(i: int, overrides: dict[str, Any], build: Build, cv: int | str | None,
+                    mode: str | None) -> CandidateScore:
+    """Train and score candidate ``i`` (:func:`run_selection`)."""
+    if cv is None:
+        module, data, trainer = build(i, None)
+        check_holdout(data)
+        if i == 0:
+            warn_coverage(data)
+        mse, errors, reason = _validation(module, data, trainer, f"candidate {i}")
+        return CandidateScore(i, overrides, mse, val_se=standard_error(errors), error=reason)
+    folds, counts, errors, reason = [], [], [], ""
+    j, k = 0, None
+    while k is None or j < k:
+        module, data, trainer = build(i, j)
+        fold = cv_fold(data, cv, j, mode)
+        if i == 0 and j == 0:
+            warn_coverage(data)
+        k = fold.k
+        mse, e, why = _validation(module, fold, trainer,
+                                  f"candidate {i}, fold {j + 1} of {k}")
+        folds.append(mse)
+        counts.append(fold.n_val)
+        errors.append(e)
+        j += 1
+        if math.isnan(mse):  # the pooled MSE is NaN whatever the other folds give
+            reason = f"fold {j} of {k}: {why}" + (
+                f" (folds {j + 1}-{k} not run)" if j < k else "")
+            folds += [math.nan] * (k - j)
+            counts += [1] * (k - j)
+            break
+    pooled = sum(m * n for m, n in zip(folds, counts, strict=True)) / sum(counts)
+    se = standard_error(torch.cat(errors)) if math.isfinite(pooled) else math.nan
+    return CandidateScore(i, overrides, pooled, tuple(folds), se, reason)
 
 
 RULES = ("min", "1se")

@@ -1,0 +1,97 @@
+"""model.select_jobs (candidates in parallel processes) and model.select_budget_s (no
+candidate starts once the budget is spent)."""
+
+from __future__ import annotations
+
+import csv
+import time
+from pathlib import Path
+
+import pytest
+from _training_helpers import cli
+
+from torchhys.training.jobs import run_candidates
+
+CONFIG = """\
+seed_everything: 0
+trainer:
+  accelerator: cpu
+  devices: 1
+  precision: 64-true
+  max_epochs: 10
+  enable_progress_bar: false
+  enable_model_summary: false
+model:
+  operator: null
+  hidden: 1
+  activation: identity
+  init: default
+  optimizer: lbfgs
+  lr: 1.0
+  select:
+    - {operator: null}
+    - {operator: [{fit: pi_nonneg, n_widths: 6}]}
+    - {operator: [{fit: stop_pi, n_widths: 8, segments: 2}]}
+  select_cv: 2
+data:
+  simulation: paper
+  dt: 0.05
+  t_end: 25.2
+  split: [0.6, 0.2, 0.2]
+"""
+
+
+def _table(monkeypatch, tmp_path: Path, name: str, *options: str) -> list[dict]:
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(CONFIG)
+    cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={tmp_path / name}",
+        *options)
+    (table,) = (tmp_path / name).glob("logs/version_*/selection.csv")
+    with table.open() as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_jobs_give_the_table_of_one_process(monkeypatch, tmp_path) -> None:
+    one = _table(monkeypatch, tmp_path, "one")
+    two = _table(monkeypatch, tmp_path, "two", "--model.select_jobs=2")
+    assert [r["candidate"] for r in two] == ["0", "1", "2"]
+    for a, b in zip(one, two, strict=True):
+        assert (a["val_mse"], a["selected"], a["error"]) == (b["val_mse"], b["selected"],
+                                                             b["error"])
+
+
+def test_budget_skips_the_candidates_not_started(monkeypatch, tmp_path, capsys) -> None:
+    rows = _table(monkeypatch, tmp_path, "budget", "--model.select_budget_s=1e-9")
+    assert rows[0]["val_mse"] != "nan" and rows[0]["selected"] == "1"
+    for r in rows[1:]:
+        assert r["val_mse"] == "nan"
+        assert r["error"].startswith("skipped: model.select_budget_s=1e-09 spent")
+    assert "skipped: model.select_budget_s" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("option, match", [
+    ("--model.select_jobs=0", "model.select_jobs must be a whole number >= 1"),
+    ("--model.select_budget_s=-1", "model.select_budget_s must be a finite number of seconds"),
+])
+def test_bad_values(monkeypatch, tmp_path, option, match) -> None:
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(CONFIG)
+    with pytest.raises(ValueError, match=match):
+        cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={tmp_path}",
+            option)
+    assert not (tmp_path / "logs").exists()
+
+
+def _slow(i: int) -> int:
+    time.sleep(0.3)
+    return i
+
+
+def test_candidates_run_at_the_same_time_and_report_in_order() -> None:
+    seen: list[int] = []
+    began = time.perf_counter()
+    out = run_candidates(4, _slow, lambda i: -i, report=seen.append, jobs=4)
+    assert out == seen == [0, 1, 2, 3]
+    assert time.perf_counter() - began < 1.0  # four 0.3 s jobs at once, not 1.2 s
+    # a budget spent after the first: the others are skipped, in their places
+    assert run_candidates(3, _slow, lambda i: -i, jobs=2, budget_s=0.1) == [0, 1, -2]

@@ -1,0 +1,99 @@
+"""Model selection's candidates run one after another or in parallel processes, within a
+time budget: ``model.select_jobs`` and ``model.select_budget_s``.
+
+``select_jobs: n`` scores up to n candidates at a time, each in a process of its own (forked
+from the command's process, so it has the command's configuration and data as they are),
+with torch's threads divided among them (the command's thread count over n, at least one
+each); the scores come back in the candidates' order. ``select_budget_s: s`` starts no
+candidate once s seconds have passed since the first started (the first always runs; the
+ones running then finish): the others score NaN, and their ``error`` in ``selection.csv``
+and the printed table says that they were skipped. The chosen candidate is the best of
+those scored.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing
+import time
+from collections.abc import Callable
+from typing import Any
+
+import torch
+
+__all__ = ["check_budget", "check_jobs", "run_candidates"]
+
+_SCORE: Callable[[int], Any] | None = None
+"""The scoring function of the running selection, inherited by the forked processes."""
+
+
+def check_jobs(value: object) -> int:
+    """``model.select_jobs`` (None: 1), checked: a whole number >= 1."""
+    if value is None:
+        return 1
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"model.select_jobs must be a whole number >= 1 (candidates scored "
+                         f"at a time, each in a process), got {value!r}")
+    return value
+
+
+def check_budget(value: object) -> float | None:
+    """``model.select_budget_s`` (None: no budget), checked: a finite number of seconds > 0."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
+            math.isfinite(value) and value > 0):
+        raise ValueError(f"model.select_budget_s must be a finite number of seconds > 0 (or "
+                         f"null: no budget), got {value!r}")
+    return float(value)
+
+
+def _score(index: int) -> Any:
+    assert _SCORE is not None
+    return _SCORE(index)
+
+
+def run_candidates(n: int, score: Callable[[int], Any], skipped: Callable[[int], Any], *,
+                   report: Callable[[Any], None] | None = None, jobs: int = 1,
+                   budget_s: float | None = None) -> list:
+    """``score(i)`` of the candidates ``i < n``, ``skipped(i)`` for those not started within
+    ``budget_s``; ``jobs`` at a time (forked processes, threads divided); ``report`` called
+    with each in order as soon as it and those before it are known."""
+    global _SCORE
+    jobs, budget_s = check_jobs(jobs), check_budget(budget_s)
+    start = time.perf_counter()
+
+    def spent(i: int) -> bool:
+        return i > 0 and budget_s is not None and time.perf_counter() - start >= budget_s
+
+    results: list = []
+
+    def done(result: Any) -> None:
+        results.append(result)
+        if report is not None:
+            report(result)
+
+    if jobs == 1 or n == 1:
+        for i in range(n):
+            done(skipped(i) if spent(i) else score(i))
+        return results
+    try:
+        context = multiprocessing.get_context("fork")
+    except ValueError:
+        raise ValueError("model.select_jobs > 1 needs processes started by fork (Linux, "
+                         "macOS); set model.select_jobs: 1 here") from None
+    threads = max(1, torch.get_num_threads() // jobs)
+    _SCORE = score
+    try:
+        with context.Pool(jobs, initializer=torch.set_num_threads, initargs=(threads,)) as pool:
+            pending: list = []  # (index, async result or None: skipped), in order
+            for i in range(n):
+                while sum(r is not None for _, r in pending) >= jobs:
+                    j, r = pending.pop(0)
+                    done(skipped(j) if r is None else r.get())
+                pending.append((i, None if spent(i) else pool.apply_async(_score, (i,))))
+            for j, r in pending:
+                done(skipped(j) if r is None else r.get())
+    finally:
+        _SCORE = None
+    return results
