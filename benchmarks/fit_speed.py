@@ -9,7 +9,8 @@ largest candidate, and the peak memory of the process (its maximum resident set)
 same fit two and three at a time against one alone (each run's wall time over the alone
 run's), the thrashing of oversubscribed threads that the command's one-thread default
 avoids. ``--threads`` passes a thread count to every fit (``torchhys fit --threads``), to
-measure that thrashing::
+measure that thrashing; ``--jobs`` passes ``--model.select_jobs`` (candidates in parallel
+processes); ``--candidates`` prints every candidate's seconds under each run::
 
     python benchmarks/fit_speed.py [--sizes 1000 10000 100000] [--concurrent 10000]
 """
@@ -48,7 +49,8 @@ def write_record(path: Path, n: int, recordings: int) -> None:
                header="recording,displacement_um,voltage_V", fmt=["%d", "%.9g", "%.9g"])
 
 
-def command(data: Path, root: Path, recordings: int, threads: int | None) -> list[str]:
+def command(data: Path, root: Path, recordings: int, threads: int | None,
+            jobs: int | None = None) -> list[str]:
     args = [sys.executable, "-m", "torchhys.training.cli", "fit", "--config", str(CONFIG),
             f"--data.path={data}", "--data.input_column=displacement_um",
             "--data.target_column=voltage_V", "--data.time_column=null", "--data.warmup=0",
@@ -57,12 +59,15 @@ def command(data: Path, root: Path, recordings: int, threads: int | None) -> lis
         args.append("--data.run_column=recording")
     if threads is not None:
         args.append(f"--threads={threads}")
+    if jobs is not None:
+        args.append(f"--model.select_jobs={jobs}")
     return args
 
 
-def start(data: Path, root: Path, recordings: int, threads: int | None) -> subprocess.Popen:
+def start(data: Path, root: Path, recordings: int, threads: int | None,
+          jobs: int | None = None) -> subprocess.Popen:
     env = {k: v for k, v in os.environ.items() if k not in ("TORCHHYS_THREADS", "OMP_NUM_THREADS")}
-    return subprocess.Popen(command(data, root, recordings, threads), cwd=ROOT, env=env,
+    return subprocess.Popen(command(data, root, recordings, threads, jobs), cwd=ROOT, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
@@ -82,11 +87,12 @@ def finish(proc: subprocess.Popen, began: float) -> dict:
     return {"wall": wall, "peak_mib": usage.ru_maxrss / 1024, "candidates": seconds}
 
 
-def run_one(n: int, recordings: int, tmp: Path, threads: int | None) -> dict:
+def run_one(n: int, recordings: int, tmp: Path, threads: int | None,
+            jobs: int | None = None) -> dict:
     data = tmp / f"rec_{n}_{recordings}.csv"
     write_record(data, n, recordings)
     began = time.perf_counter()
-    return finish(start(data, tmp / f"run_{n}_{recordings}", recordings, threads), began)
+    return finish(start(data, tmp / f"run_{n}_{recordings}", recordings, threads, jobs), began)
 
 
 def concurrent(n: int, k: int, tmp: Path, threads: int | None) -> list[float]:
@@ -107,20 +113,28 @@ def main(argv: list[str] | None = None) -> None:
                         help="samples of the fits run two and three at a time (0: none)")
     parser.add_argument("--threads", type=int, default=None,
                         help="torch threads of every fit (default: the command's, one)")
+    parser.add_argument("--jobs", type=int, default=None,
+                        help="model.select_jobs of every fit (default: the config's, one)")
+    parser.add_argument("--candidates", action="store_true",
+                        help="print every candidate's seconds under each run")
     args = parser.parse_args(argv)
     print(f"{os.cpu_count()} cores; torchhys fit --config configs/measured.yaml; "
-          f"threads {args.threads or 'default (1)'}")
+          f"threads {args.threads or 'default (1)'}; select_jobs {args.jobs or 'default (1)'}; "
+          f"load average {os.getloadavg()[0]:.2f}")
     print("| samples | recordings | wall s | peak MiB | slowest candidate |")
     print("|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
         tmp_path = Path(tmp)
         for n in args.sizes:
             for r in args.recordings:
-                res = run_one(n, r, tmp_path, args.threads)
+                res = run_one(n, r, tmp_path, args.threads, args.jobs)
                 slow = max(res["candidates"].items(), key=lambda kv: kv[1][0], default=None)
                 what = f"{slow[1][0]:.1f} s: {slow[1][1]}" if slow else "n/a"
                 print(f"| {n} | {r} | {res['wall']:.1f} | {res['peak_mib']:.0f} | {what} |",
                       flush=True)
+                if args.candidates:
+                    for i, (sec, config) in sorted(res["candidates"].items()):
+                        print(f"|   | candidate {i} | {sec:.1f} |   | {config} |", flush=True)
         if args.concurrent:
             alone = concurrent(args.concurrent, 1, tmp_path, args.threads)[0]
             print(f"\n{args.concurrent} samples, one fit alone: {alone:.1f} s")
@@ -135,3 +149,4 @@ def main(argv: list[str] | None = None) -> None:
 
 if __name__ == "__main__":
     main()
+    print(f"load average at the end {os.getloadavg()[0]:.2f}")
