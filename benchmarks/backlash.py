@@ -59,7 +59,7 @@ def run_one(method: str, T: int, repeats: int) -> dict:
             y = naive_backlash(x, widths, y0)
         else:
             with kernel_enabled(method == "kernel"):
-                y = backlash(x, widths, y0=y0)
+                y = backlash(x, widths, state=y0)
         (y * probe).sum().backward()
         x.grad = None
         widths.grad = None

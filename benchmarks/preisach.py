@@ -50,12 +50,12 @@ def inverse_loop(inverse, y: torch.Tensor) -> torch.Tensor:  # noqa: ANN001
     )
 
     tables = preisach_inverse_constants(inverse.alpha, inverse.beta, inverse.weights,
-                                        inverse.linear, inverse.offset, inverse.centre,
+                                        inverse.linear, inverse.offset, inverse.center,
                                         inverse.scale)
     r, xs = inverse.initial_relays.expand(y.shape[0], -1), []
     for t in range(y.shape[1]):
         x, r = preisach_inverse_step(y[:, t:t + 1], r, inverse.alpha, inverse.beta, *tables,
-                                     inverse.linear, inverse.centre, inverse.scale)
+                                     inverse.linear, inverse.center, inverse.scale)
         xs.append(x)
     return torch.cat(xs, 1)
 

@@ -25,7 +25,7 @@ def test_gradcheck_x_widths_y0(backend, T):
     x = torch.randn(2, T, dtype=torch.float64).cumsum(1).requires_grad_()
     widths = (torch.rand(4, dtype=torch.float64) * 2 + 0.1).requires_grad_()
     y0 = torch.randn(2, 4, dtype=torch.float64).requires_grad_()
-    assert torch.autograd.gradcheck(lambda a, b, c: backlash(a, b, y0=c), (x, widths, y0))
+    assert torch.autograd.gradcheck(lambda a, b, c: backlash(a, b, state=c), (x, widths, y0))
 
 
 def test_gradcheck_unbatched_broadcast_state(backend):
@@ -33,7 +33,7 @@ def test_gradcheck_unbatched_broadcast_state(backend):
     x = torch.randn(80, dtype=torch.float64).cumsum(0).requires_grad_()
     widths = (torch.rand(3, dtype=torch.float64) + 0.2).requires_grad_()
     y0 = torch.randn(3, dtype=torch.float64).requires_grad_()
-    assert torch.autograd.gradcheck(lambda a, b, c: backlash(a, b, y0=c), (x, widths, y0))
+    assert torch.autograd.gradcheck(lambda a, b, c: backlash(a, b, state=c), (x, widths, y0))
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -45,7 +45,7 @@ def test_gradients_match_autograd_loop(backend, dtype):
     s0 = torch.randn(B, N, dtype=dtype)
     g = torch.randn(B, T, N, dtype=dtype)
     grads = []
-    for fn in (lambda a, b, c: backlash(a, b, y0=c), _loop):
+    for fn in (lambda a, b, c: backlash(a, b, state=c), _loop):
         x, w, s = (t.clone().requires_grad_() for t in (x0, w0, s0))
         out = fn(x, w, s)
         grads.append(torch.autograd.grad((out * g).sum(), (x, w, s)))

@@ -27,15 +27,15 @@ W = torch.tensor([0.5, 1.0])
         (torch.zeros(5), torch.tensor([1, 2]), None, TypeError, "widths must have a floating"),
         (torch.zeros(5), torch.tensor([math.nan]), None, ValueError, "widths must be finite"),
         (torch.zeros(5), torch.empty(0), None, ValueError, "at least one width"),
-        (torch.zeros(2, 5), W, torch.zeros(3, 2), ValueError, r"y0 must have shape"),
-        (torch.zeros(2, 5), W, torch.zeros(3), ValueError, r"y0 must have shape"),
-        (torch.zeros(5), W, torch.tensor([0.0, math.nan]), ValueError, "y0 must be finite"),
-        (torch.zeros(5), W, torch.tensor([0, 1]), TypeError, "y0 must have a floating"),
+        (torch.zeros(2, 5), W, torch.zeros(3, 2), ValueError, r"state must have shape"),
+        (torch.zeros(2, 5), W, torch.zeros(3), ValueError, r"state must have shape"),
+        (torch.zeros(5), W, torch.tensor([0.0, math.nan]), ValueError, "state must be finite"),
+        (torch.zeros(5), W, torch.tensor([0, 1]), TypeError, "state must have a floating"),
     ],
 )
 def test_functional_errors(x, widths, y0, err, match):
     with pytest.raises(err, match=match):
-        backlash(x, widths, y0=y0)
+        backlash(x, widths, state=y0)
 
 
 def test_module_errors():

@@ -34,7 +34,7 @@ def test_matches_float64_loop(backend, T, dtype):
     ref = play_reference(x, widths, y0)
     y = backlash(
         torch.tensor(x, dtype=dtype), torch.tensor(widths, dtype=dtype),
-        y0=torch.tensor(y0, dtype=dtype),
+        state=torch.tensor(y0, dtype=dtype),
     )
     assert y.shape == (B, T, widths.size)
     assert y.dtype == dtype
@@ -48,7 +48,7 @@ def test_random_float_inputs(backend):
     widths = rng.uniform(0, 3, size=9)
     y0 = rng.normal(size=9)
     ref = play_reference(x, widths, y0)
-    y = backlash(torch.tensor(x), torch.tensor(widths), y0=torch.tensor(y0))
+    y = backlash(torch.tensor(x), torch.tensor(widths), state=torch.tensor(y0))
     np.testing.assert_allclose(y.numpy(), ref, rtol=0, atol=1e-12)
 
 
@@ -69,9 +69,9 @@ def test_batch_consistency(backend):
     x = torch.randn(5, 200, dtype=torch.float64).cumsum(1)
     widths = torch.rand(4, dtype=torch.float64) * 2
     y0 = torch.randn(5, 4, dtype=torch.float64)
-    whole = backlash(x, widths, y0=y0)
+    whole = backlash(x, widths, state=y0)
     for b in range(5):
-        single = backlash(x[b], widths, y0=y0[b])
+        single = backlash(x[b], widths, state=y0[b])
         torch.testing.assert_close(whole[b], single, rtol=0, atol=0)
 
 

@@ -188,7 +188,7 @@ def test_micromanipulator_figure_is_drawn_and_finds_the_lag(tmp_path: Path) -> N
 
 def test_forc_figure_is_drawn_and_the_density_finds_the_coercive_field(tmp_path: Path) -> None:
     """The Preisach model fitted on the even reversal curves predicts the odd ones well
-    below the memoryless baseline, and its density is centred at the half-width of the
+    below the memoryless baseline, and its density is centered at the half-width of the
     loop's coercive field, measured from the data independently of the fit."""
     out = run("benchmarks.forc_figure", "--out", str(tmp_path / "fig.png"))
     assert (tmp_path / "fig.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -36,7 +36,7 @@ def test_lfilter_matches_scipy(backend, name, with_zi):
     x = signal((3, 257), seed=1)
     zi = torch.randn(3, n, dtype=torch.float64) if with_zi else None
     with use_backend(backend):
-        y, zf = lfilter(x, torch.from_numpy(b), torch.from_numpy(a), zi=zi)
+        y, zf = lfilter(x, torch.from_numpy(b), torch.from_numpy(a), state=zi)
     kwargs = {"zi": zi.numpy()} if with_zi else {"zi": np.zeros((3, n))}
     y_ref, zf_ref = scipy_signal.lfilter(b, a, x.numpy(), **kwargs)
     assert y.shape == (3, 257) and zf.shape == (3, n)
@@ -52,8 +52,8 @@ def test_lfilter_short_sequences_and_batch_shapes(backend, T):
     x = signal((2, 3, T), seed=2)
     zi = torch.randn(3, dtype=torch.float64)  # (n,): the same for every row
     with use_backend(backend):
-        y, zf = lfilter(x, torch.from_numpy(b), torch.from_numpy(a), zi=zi)
-        y1, zf1 = lfilter(x[0, 0], torch.from_numpy(b), torch.from_numpy(a), zi=zi)
+        y, zf = lfilter(x, torch.from_numpy(b), torch.from_numpy(a), state=zi)
+        y1, zf1 = lfilter(x[0, 0], torch.from_numpy(b), torch.from_numpy(a), state=zi)
     y_ref, zf_ref = scipy_signal.lfilter(b, a, x.numpy(), zi=np.broadcast_to(zi, (2, 3, 3)))
     assert y.shape == (2, 3, T) and zf.shape == (2, 3, 3)
     np.testing.assert_allclose(y.numpy(), y_ref, rtol=0, atol=1e-12)
@@ -72,7 +72,7 @@ def test_lfilter_chunked_equals_one_call(backend, splits):
         whole, final = lfilter(x, b, a)
         parts, z = [], None
         for chunk in x.split(splits, dim=1):
-            y, z = lfilter(chunk, b, a, zi=z)
+            y, z = lfilter(chunk, b, a, state=z)
             parts.append(y)
     tol = 0 if backend == "kernel" else 1e-12  # the kernel runs the same arithmetic
     torch.testing.assert_close(torch.cat(parts, 1), whole, rtol=0, atol=tol)
@@ -98,7 +98,7 @@ def test_state_space_matches_dlsim(backend):
     u = signal((300,), seed=6)
     s0 = torch.randn(3, dtype=torch.float64)
     with use_backend(backend):
-        y, s = state_space(u, A, B, C, D, s0=s0)
+        y, s = state_space(u, A, B, C, D, state=s0)
         w = signal((2, 40, 3), seed=7)
         states = linear_recurrence(A, w)
     _, y_ref, x_ref = scipy_signal.dlsim((A.numpy(), B.numpy()[:, None], C.numpy(),

@@ -26,7 +26,7 @@ def _filter_inputs(nb: int, na: int, T: int, seed: int = 0, a0: float = 1.0):
 
 
 def _lfilter(x, b, a, zi):
-    return lfilter(x, b, a, zi=zi)
+    return lfilter(x, b, a, state=zi)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -51,7 +51,7 @@ def test_fused_adjoint_equals_differentiable_backward(backend):
     x, b, a, zi = _filter_inputs(4, 5, 3000, seed=4)
     probe = signal((2, 3000), seed=5)
     with use_backend(backend):
-        y, zf = lfilter(x, b, a, zi=zi)
+        y, zf = lfilter(x, b, a, state=zi)
         loss = (y * probe).sum() + zf.square().sum()
         fused = torch.autograd.grad(loss, (x, b, a, zi), retain_graph=True)
         graph = torch.autograd.grad(loss, (x, b, a, zi), create_graph=True)
@@ -69,9 +69,9 @@ def test_linear_recurrence_and_state_space_gradcheck(backend):
                for s in [(3,), (2, 3), (2,)])
     u = torch.randn(2, 15, generator=g, dtype=torch.float64, requires_grad=True)
     with use_backend(backend):
-        assert gradcheck(lambda A, w, s0: linear_recurrence(A, w, s0=s0), (A, w, s0))
-        assert gradgradcheck(lambda A, w, s0: linear_recurrence(A, w, s0=s0), (A, w, s0))
-        assert gradcheck(lambda u, A, B, C, D, s0: state_space(u, A, B, C, D, s0=s0),
+        assert gradcheck(lambda A, w, s0: linear_recurrence(A, w, state=s0), (A, w, s0))
+        assert gradgradcheck(lambda A, w, s0: linear_recurrence(A, w, state=s0), (A, w, s0))
+        assert gradcheck(lambda u, A, B, C, D, s0: state_space(u, A, B, C, D, state=s0),
                          (u, A, B, C, D, s0))
 
 

@@ -34,14 +34,15 @@ def _with(value: float, index: tuple[int, ...] = (1, 5)) -> torch.Tensor:
     ({"b": B.long()}, TypeError, "b must have a floating-point dtype"),
     ({"a": torch.tensor([1.0, math.nan])}, ValueError, "a must be finite"),
     ({"a": torch.tensor([0.0, 1.0, 0.5])}, ValueError, r"a\[0\] must be non-zero"),
-    ({"zi": torch.zeros(3, 2)}, ValueError, r"zi must have shape \(2,\) or \(2, 2\).*\(3, 2\)"),
-    ({"zi": torch.full((2,), math.inf)}, ValueError, "zi must be finite"),
-    ({"zi": [0.0, 0.0]}, TypeError, "zi must be a torch.Tensor"),
+    ({"state": torch.zeros(3, 2)}, ValueError,
+     r"state must have shape \(2,\) or \(2, 2\).*\(3, 2\)"),
+    ({"state": torch.full((2,), math.inf)}, ValueError, "state must be finite"),
+    ({"state": [0.0, 0.0]}, TypeError, "state must be a torch.Tensor"),
 ])
 def test_lfilter(kwargs, error, match):
-    args = {"x": X, "b": B, "a": A, "zi": None} | kwargs
+    args = {"x": X, "b": B, "a": A, "state": None} | kwargs
     with pytest.raises(error, match=match):
-        lfilter(args["x"], args["b"], args["a"], zi=args["zi"])
+        lfilter(args["x"], args["b"], args["a"], state=args["state"])
 
 
 def test_linear_recurrence_and_state_space():
@@ -50,8 +51,8 @@ def test_linear_recurrence_and_state_space():
         linear_recurrence(torch.zeros(3, 2, dtype=torch.float64), w)
     with pytest.raises(ValueError, match=r"w must have shape \(\.\.\., time, n\)"):
         linear_recurrence(torch.zeros(3, 3), w[0, :, 0])
-    with pytest.raises(ValueError, match=r"s0 must have shape \(3,\) or \(2, 3\)"):
-        linear_recurrence(torch.zeros(3, 3), w, s0=torch.zeros(4))
+    with pytest.raises(ValueError, match=r"state must have shape \(3,\) or \(2, 3\)"):
+        linear_recurrence(torch.zeros(3, 3), w, state=torch.zeros(4))
     Am, Bv, C, D = torch.zeros(3, 3), torch.zeros(3), torch.zeros(2, 3), torch.zeros(2)
     with pytest.raises(ValueError, match="A must be a matrix"):
         state_space(X, Bv, Bv, C, D)

@@ -88,7 +88,7 @@ def test_functional_state_space_batch_shapes():
     B, C, D = (torch.randn(*s, generator=g, dtype=torch.float64) for s in [(4, 2), (3, 4), (3, 2)])
     u = _inputs((2, 3, 25, 2), seed=3)
     s0 = torch.randn(4, generator=g, dtype=torch.float64)
-    y, s = state_space(u, A, B, C, D, s0=s0)
+    y, s = state_space(u, A, B, C, D, state=s0)
     assert y.shape == (2, 3, 25, 3) and s.shape == (2, 3, 4)
     _, y_ref, s_ref = scipy_signal.dlsim((A.numpy(), B.numpy(), C.numpy(), D.numpy(), 1.0),
                                          u[1, 2].numpy(), x0=s0.numpy())
@@ -168,8 +168,8 @@ def test_lfilter_with_one_filter_a_row(backend):
     x = signal((2, 3, 50), seed=5)
     zi = torch.randn(2, 3, 2, dtype=torch.float64)
     with use_backend(backend):
-        y, zf = lfilter(x, b, a, zi=zi)
-        y_shared, _ = lfilter(x, b[0], a, zi=zi)  # a 1-D b is shared by the three filters
+        y, zf = lfilter(x, b, a, state=zi)
+        y_shared, _ = lfilter(x, b[0], a, state=zi)  # a 1-D b is shared by the three filters
     for f in range(3):
         y_ref, zf_ref = scipy_signal.lfilter(b[f], a[f], x[:, f].numpy(), zi=zi[:, f].numpy())
         np.testing.assert_allclose(y[:, f].numpy(), y_ref, rtol=0, atol=1e-12)
@@ -191,7 +191,7 @@ def test_lfilter_filters_gradcheck(backend):
                                stable_denominator([-0.2 + 0.7j])]), dtype=torch.float64)
     zi = torch.randn(2, 3, 2, generator=g, dtype=torch.float64)
     inputs = [t.requires_grad_() for t in (x, b, a, zi)]
-    fn = lambda x, b, a, zi: lfilter(x, b, a, zi=zi)  # noqa: E731
+    fn = lambda x, b, a, zi: lfilter(x, b, a, state=zi)  # noqa: E731
     with use_backend(backend):
         assert gradcheck(fn, inputs)
         assert gradgradcheck(fn, [t.detach()[..., :6].clone().requires_grad_()
@@ -207,7 +207,7 @@ def test_state_space_gradcheck(backend):
     s0 = torch.randn(2, 3, generator=g, dtype=torch.float64)
     inputs = [t.requires_grad_() for t in (u, A, B, C, D, s0)]
     with use_backend(backend):
-        assert gradcheck(lambda u, A, B, C, D, s0: state_space(u, A, B, C, D, s0=s0), inputs)
+        assert gradcheck(lambda u, A, B, C, D, s0: state_space(u, A, B, C, D, state=s0), inputs)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

@@ -299,7 +299,7 @@ def test_an_operator_with_only_a_step_gets_a_sequence_forward() -> None:
     op = _PlayByStep(0.25)
     y, state = op(x)
     # backlash takes the dead band's full width: 2 x the play's half-width
-    ref = backlash(x, torch.tensor([0.5], dtype=torch.float64), y0=x[:, :1])[..., 0]
+    ref = backlash(x, torch.tensor([0.5], dtype=torch.float64), state=x[:, :1])[..., 0]
     torch.testing.assert_close(y, ref, rtol=0, atol=0)
     y1, s1 = op(x[:, :17])
     y2, _ = op(x[:, 17:], s1)

@@ -81,14 +81,14 @@ def test_relays_match_reference(B, T, n, given_r0):
           ).to(F64) if given_r0 else None
     ref_r0 = r0.numpy() if given_r0 else np.tile(demag_reference(n), (B, 1))
     ref = relay_reference(x.numpy(), alpha.numpy(), beta.numpy(), ref_r0)
-    out = relay_states(x, alpha, beta, r0=r0)
+    out = relay_states(x, alpha, beta, state=r0)
     assert out.shape == (B, T, K) and out.dtype == F64
     np.testing.assert_array_equal(out.numpy(), ref)
     w = torch.rand(K, dtype=F64)
-    y = preisach(x, w, alpha, beta, offset=0.4, linear=-1.5, r0=r0)
+    y = preisach(x, w, alpha, beta, offset=0.4, linear=-1.5, state=r0)
     np.testing.assert_allclose(y.numpy(), 0.4 - 1.5 * x.numpy() + ref @ w.numpy(),
                                rtol=0, atol=1e-12)
-    np.testing.assert_array_equal(relay_states(x[0], alpha, beta, r0=None if r0 is None
+    np.testing.assert_array_equal(relay_states(x[0], alpha, beta, state=None if r0 is None
                                                else r0[0]).numpy(), ref[0])
 
 

@@ -16,7 +16,7 @@ F64 = torch.float64
 
 def _off_threshold(B: int, T: int, n: int, seed: int) -> torch.Tensor:
     """Samples a tenth of a cell or more away from every level (the levels are the cell
-    centres), so that finite differences stay on a branch."""
+    centers), so that finite differences stay on a branch."""
     g = torch.Generator().manual_seed(seed)
     edge = torch.randint(0, n + 1, (B, T), generator=g).to(F64)
     shift = 0.4 * (2 * torch.rand(B, T, generator=g, dtype=F64) - 1)
@@ -93,9 +93,9 @@ def test_ties_and_gradient_at_a_threshold(alpha, beta, r0, x, hard, theta):
     a, b = torch.tensor([alpha], dtype=F64), torch.tensor([beta], dtype=F64)
     r = torch.tensor([r0], dtype=F64)
     xs = torch.tensor([x], dtype=F64, requires_grad=True)
-    assert relay_states(xs, a, b, r0=r).item() == hard
+    assert relay_states(xs, a, b, state=r).item() == hard
     tau = 0.25
-    y = preisach(xs, torch.ones(1, dtype=F64), a, b, r0=r, smooth=tau)
+    y = preisach(xs, torch.ones(1, dtype=F64), a, b, state=r, smooth=tau)
     expected = np.tanh((x - theta) / tau)
     assert y.item() == pytest.approx(expected, abs=1e-15)
     (gx,) = torch.autograd.grad(y.sum(), xs)

@@ -54,7 +54,7 @@ def differences(n: int) -> np.ndarray:
 
 def scipy_fit(x, y, model, ridge, smoothness, linear, warmup):
     """The same problem through scipy: free columns projected out, NNLS on the rest."""
-    R = relay_states(x, model.alpha, model.beta, r0=model.initial_relays)[:, warmup:]
+    R = relay_states(x, model.alpha, model.beta, state=model.initial_relays)[:, warmup:]
     K = R.shape[-1]
     xs, ys = x[:, warmup:].reshape(-1).numpy(), y[:, warmup:].reshape(-1).numpy()
     N = ys.size

@@ -114,7 +114,7 @@ def test_graded_grid_levels_are_even_in_the_graded_variable():
     glo, ghi = c + s * np.arcsinh((lo - c) / s), c + s * np.arcsinh((hi - c) / s)
     np.testing.assert_allclose(g, glo + (ghi - glo) * (np.arange(n) + 0.5) / n, atol=1e-12)
     assert torch.equal(beta.unique(), levels)
-    # symmetric about the centre, denser near it
+    # symmetric about the center, denser near it
     np.testing.assert_allclose(levels.numpy() + levels.flip(0).numpy(), 2 * c, atol=1e-12)
     gaps = levels.diff()
     assert float(gaps[n // 2 - 1]) < float(gaps[0])
@@ -208,11 +208,11 @@ def step_loop(y: torch.Tensor, r: torch.Tensor, m: Preisach) -> tuple[torch.Tens
     """The sequence path's reference: :func:`preisach_inverse_step` sample by sample."""
     linear = m.linear.detach().reshape(())
     tables = preisach_inverse_constants(m.alpha, m.beta, m.weights.detach(), linear,
-                                        m.offset.detach().reshape(()), m.centre, m.scale)
+                                        m.offset.detach().reshape(()), m.center, m.scale)
     xs = []
     for t in range(y.shape[1]):
         x, r = preisach_inverse_step(y[:, t:t + 1], r, m.alpha, m.beta, *tables, linear,
-                                     m.centre, m.scale)
+                                     m.center, m.scale)
         xs.append(x)
     return torch.cat(xs, 1), r
 
@@ -237,8 +237,8 @@ def test_windows_equal_a_loop_of_steps(scale, windows):
         r0 = torch.where(torch.rand(6, m.n_relays, generator=g) < 0.5, 1.0, -1.0).to(F64)
         linear = m.linear.detach().reshape(())
         tables = preisach_inverse_constants(m.alpha, m.beta, m.weights.detach(), linear,
-                                            m.offset.detach().reshape(()), m.centre, m.scale)
-        x, r = _inverse_windows(y, r0, m.alpha, m.beta, tables, linear, m.centre, m.scale,
+                                            m.offset.detach().reshape(()), m.center, m.scale)
+        x, r = _inverse_windows(y, r0, m.alpha, m.beta, tables, linear, m.center, m.scale,
                                 *windows)
         ref, r_ref = step_loop(y, r0, m)
         assert torch.equal(r, r_ref)
@@ -292,8 +292,8 @@ def test_gradcheck():
     yy = y.clone().requires_grad_()
 
     def f(yy, w, lin, off):
-        return preisach_inverse(yy, w, a, b, offset=off, linear=lin, r0=r0,
-                                centre=m.centre, scale=m.scale)[0]
+        return preisach_inverse(yy, w, a, b, offset=off, linear=lin, state=r0,
+                                center=m.center, scale=m.scale)[0]
 
     assert torch.autograd.gradcheck(f, (yy, w, lin, off))
 
@@ -374,7 +374,7 @@ def test_loading_is_checked_all_or_nothing():
     target.load_state_dict(inv.state_dict())
     y = walks(1, 50)
     torch.testing.assert_close(target(y)[0], inv(y)[0], rtol=0, atol=0)
-    assert target.scale == inv.scale and target.centre == inv.centre
+    assert target.scale == inv.scale and target.center == inv.center
     before = {k: v.clone() for k, v in target.state_dict().items()}
     for key, value, match in (
             ("linear", torch.tensor(-1.0, dtype=F64), "linear"),

@@ -22,12 +22,12 @@ def test_a_preisach_state_that_is_not_plus_or_minus_one_names_state() -> None:
         op(X, torch.zeros_like(good))
 
 
-def test_the_functional_stop_model_names_p0() -> None:
+def test_the_functional_stop_model_names_state() -> None:
     weights = torch.ones(2, 3, dtype=torch.float64)
-    with pytest.raises(ValueError, match=r"^p0 must have shape \(2,\)"):
-        stop_pi(X, W, weights, p0=torch.zeros(5, dtype=torch.float64))
-    with pytest.raises(ValueError, match="p0"):
-        stop_pi(X, W, weights, p0=torch.tensor([0.0, float("inf")], dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"^state must have shape \(2,\)"):
+        stop_pi(X, W, weights, state=torch.zeros(5, dtype=torch.float64))
+    with pytest.raises(ValueError, match="^state must be finite"):
+        stop_pi(X, W, weights, state=torch.tensor([0.0, float("inf")], dtype=torch.float64))
 
 
 def test_the_pi_inverse_names_its_input_x_and_checks_a_linear_models_state() -> None:

@@ -133,7 +133,7 @@ def test_forward_matches_the_loop_reference(K, backend):
     ref0, plays0 = model_reference(x.numpy(), R, W, center=0.25, w0=0.4, offset=-0.3,
                                    p0=p0.numpy())
     y0, s0 = stop_pi(x, m.thresholds, m.weights, center=0.25, linear_weight=0.4, offset=-0.3,
-                     p0=p0)
+                     state=p0)
     np.testing.assert_allclose(y0.numpy(), ref0, rtol=0, atol=1e-12)
     np.testing.assert_allclose(s0.numpy(), plays0, rtol=0, atol=1e-12)
     assert not np.allclose(ref0, ref, atol=1e-3)  # the initial state matters
@@ -545,7 +545,7 @@ def test_warmup_leaves_samples_out_of_the_fit_and_of_the_centre():
     torch.testing.assert_close(b.weights, W, rtol=0, atol=1e-8)
     c = fit_stop_pi(x, bad, thresholds, segments=2, center=0.2)  # no warmup: corrupted
     assert float((c.weights - W).abs().max()) > 1e-2
-    # the default centre is the midpoint of the fitted samples only
+    # the default center is the midpoint of the fitted samples only
     d = fit_stop_pi(x_spike, y, thresholds, segments=2, warmup=60)
     xs = x_spike[:, 60:]
     assert float(d.center) == pytest.approx(0.5 * float(xs.min() + xs.max()), abs=1e-15)
@@ -571,7 +571,7 @@ def test_ridge_shrinks_the_slopes():
 
 @pytest.mark.parametrize("nonnegative, warmup, validation", [(False, 0, 0.25), (True, 30, 0.3)])
 def test_select_ridge_scores_the_hold_out(nonnegative, warmup, validation):
-    """Each candidate fitted on the first part of every row (centre: the midpoint of the
+    """Each candidate fitted on the first part of every row (center: the midpoint of the
     fitted samples), run over the whole rows, scored by the RMS error on the rest."""
     g = torch.Generator().manual_seed(11)
     t = torch.arange(700, dtype=F64)
@@ -673,7 +673,7 @@ def test_the_functional_core_takes_float_tensor_thresholds_only():
 def test_bad_sequence_input(kwargs, err, match):
     args = {"x": X, "p0": None, **kwargs}
     with pytest.raises(err, match=match):
-        stop_pi(args["x"], T3, W3, p0=args["p0"])
+        stop_pi(args["x"], T3, W3, state=args["p0"])
     m = StopPrandtlIshlinskii(T3, W3)
     with pytest.raises(err, match=match):
         m(args["x"], args["p0"])

@@ -30,7 +30,7 @@ R = [0.3, 0.8, 1.5]
 
 def output_at(u: float, plays: list[float], r: list[float], W: np.ndarray, w0: float,
               offset: float) -> float:
-    """The model's output at the current input ``u`` (centred), given the plays before it:
+    """The model's output at the current input ``u`` (centered), given the plays before it:
     every stop at ``clip(u - p_i, -r_i, r_i)``, through its characteristic."""
     K = W.shape[1]
     acc = offset + w0 * u
@@ -171,7 +171,7 @@ def test_gradcheck_inverse():
         torch.tensor(-0.2, dtype=F64), p0)]
 
     def f(y, W, c, w0, off, p0):
-        return stop_pi_inverse(y, r, W, center=c, linear_weight=w0, offset=off, p0=p0)[0]
+        return stop_pi_inverse(y, r, W, center=c, linear_weight=w0, offset=off, state=p0)[0]
 
     torch.autograd.gradcheck(f, args)
     # the gradient reaches every argument (none silently detached)

@@ -116,7 +116,7 @@ class StateSpace(HysteresisOperator):
         if self.n_inputs == 1:
             xb = xb.squeeze(-1)
         A, B, C, D = (m.to(xb.dtype) for m in self.matrices())
-        y, s = state_space(xb, A, B, C, D, s0=start(state, xb, A.shape[0]))
+        y, s = state_space(xb, A, B, C, D, state=start(state, xb, A.shape[0]))
         return (y[0], s[0]) if squeezed else (y, s)
 
     def streaming_step(self, dtype: torch.dtype) -> StateSpaceStep:

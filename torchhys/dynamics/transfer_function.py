@@ -107,7 +107,7 @@ class TransferFunction(HysteresisOperator):
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
         xb, squeezed = as_batched_sequence(x, "x")
         b, a = (c.to(xb.dtype) for c in self.coefficients())
-        y, zf = lfilter(xb, b, a, zi=start(state, xb, self.order))
+        y, zf = lfilter(xb, b, a, state=start(state, xb, self.order))
         return (y[0], zf[0]) if squeezed else (y, zf)
 
     def streaming_step(self, dtype: torch.dtype) -> TransferFunctionStep:

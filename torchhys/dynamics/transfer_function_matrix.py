@@ -143,7 +143,7 @@ class TransferFunctionMatrix(HysteresisOperator):
         b, a = (c.to(xb.dtype).reshape(p * m, n + 1) for c in self.coefficients())
         rows = xb.mT.unsqueeze(1).expand(batch, p, m, T).reshape(batch, p * m, T)
         zi = start(state, xb, (p, m, n))
-        y, zf = lfilter(rows, b, a, zi=None if zi is None else zi.reshape(batch, p * m, n))
+        y, zf = lfilter(rows, b, a, state=None if zi is None else zi.reshape(batch, p * m, n))
         y = y.reshape(batch, p, m, T).sum(2).mT  # (batch, time, p)
         zf = zf.reshape(batch, p, m, n)
         return (y[0], zf[0]) if squeezed else (y, zf)

@@ -229,7 +229,7 @@ def _validate_state(y0: Tensor, B: int, n: int, name: str) -> None:
     check_finite(y0, name)
 
 
-def _check_state(y0: Tensor | None, x: Tensor, n: int, name: str = "y0") -> Tensor:
+def _check_state(y0: Tensor | None, x: Tensor, n: int, name: str = "state") -> Tensor:
     """Return the initial state as (B, N) in x's dtype and device."""
     B = x.shape[0]
     if y0 is None:
@@ -242,7 +242,7 @@ def check_play_state(state: Tensor | None, x: Tensor, n: int, name: str) -> None
     """Raise unless ``state`` is None or the outputs of ``n`` play operators before the first
     sample of ``x`` (time,) or (batch, time): a finite floating tensor of shape (n,) or
     (batch, n). The messages name the argument ``name`` (``state`` of a module's
-    ``forward``, ``p0`` of a functional model), where :func:`backlash` names its ``y0``.
+    ``forward`` and of the functional models).
 
     Raises:
         TypeError, ValueError: a bad ``state``. ``x`` is only read for its batch size
@@ -254,29 +254,29 @@ def check_play_state(state: Tensor | None, x: Tensor, n: int, name: str) -> None
         _validate_state(state, B, n, name)
 
 
-def backlash(x: Tensor, widths: Tensor, *, y0: Tensor | None = None) -> Tensor:
+def backlash(x: Tensor, widths: Tensor, *, state: Tensor | None = None) -> Tensor:
     """Outputs of N play (backlash) operators driven by the same input.
 
     Each operator i has the full dead-band width ``d_i`` (half-width ``d_i / 2``,
     Eq. (20) of the EIHO paper) and follows, in discrete time,
 
-        y_i[t] = min(x[t] + d_i / 2, max(x[t] - d_i / 2, y_i[t-1])),   y_i[-1] = y0_i.
+        y_i[t] = min(x[t] + d_i / 2, max(x[t] - d_i / 2, y_i[t-1])),   y_i[-1] = state_i.
 
     A width of zero gives ``y_i = x``. Supports autograd with respect to ``x``,
-    ``widths`` and ``y0`` (first order), batches, float32 and float64. Cost: about
+    ``widths`` and ``state`` (first order), batches, float32 and float64. Cost: about
     ``2 sqrt(2 T)`` vectorized steps; memory: the output.
 
     Args:
         x: input, shape (time,) or (batch, time), floating point.
         widths: dead-band widths d_i >= 0, shape (N,).
-        y0: outputs before the first sample, shape (N,) or (batch, N); zeros if None.
+        state: outputs before the first sample, shape (N,) or (batch, N); zeros if None.
 
     Returns:
         Operator outputs, shape ``x.shape + (N,)``, i.e. (time, N) or (batch, time, N).
 
     Raises:
         TypeError: a non-tensor or a non-floating tensor.
-        ValueError: wrong dimensions, NaN or inf, negative widths, mismatched ``y0``.
+        ValueError: wrong dimensions, NaN or inf, negative widths, mismatched ``state``.
 
     References:
         M. Brokate and J. Sprekels, Hysteresis and Phase Transitions, Springer 1996
@@ -284,7 +284,7 @@ def backlash(x: Tensor, widths: Tensor, *, y0: Tensor | None = None) -> Tensor:
     """
     xb, squeezed = as_batched_sequence(x, "x")
     check_widths(widths, "widths")
-    state = _check_state(y0, xb, widths.shape[0])
+    y0 = _check_state(state, xb, widths.shape[0])
     r = 0.5 * widths.to(dtype=xb.dtype, device=xb.device)
-    y = _PlayScan.apply(xb, r, state)
+    y = _PlayScan.apply(xb, r, y0)
     return y.squeeze(0) if squeezed else y

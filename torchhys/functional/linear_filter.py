@@ -235,13 +235,13 @@ def _filters(v: Tensor, name: str, x: Tensor) -> Tensor:
     return _coefficients(v, name, x).unsqueeze(0)
 
 
-def lfilter(x: Tensor, b: Tensor, a: Tensor, *, zi: Tensor | None = None
+def lfilter(x: Tensor, b: Tensor, a: Tensor, *, state: Tensor | None = None
             ) -> tuple[Tensor, Tensor]:
     """Filter ``x`` along time with ``B(z) / A(z)`` in direct form II transposed.
 
-    Same results as ``scipy.signal.lfilter(b, a, x, zi=zi)`` (``b`` and ``a`` divided by
-    ``a[0]``; ``zi`` is the DF2T state of the normalised filter). Supports autograd with
-    respect to ``x``, ``b``, ``a`` and ``zi`` (double backward too), batches, float32 and
+    Same results as ``scipy.signal.lfilter(b, a, x, zi=state)`` (``b`` and ``a`` divided by
+    ``a[0]``; ``state`` is the DF2T state of the normalised filter). Supports autograd with
+    respect to ``x``, ``b``, ``a`` and ``state`` (double backward too), batches, float32 and
     float64, CPU (compiled kernel) and other devices (chunked scan). Stability is not checked.
 
     Several filters in one call: with ``b`` (F, nb) and/or ``a`` (F, na) (a 1-D one is shared)
@@ -251,7 +251,7 @@ def lfilter(x: Tensor, b: Tensor, a: Tensor, *, zi: Tensor | None = None
     Args:
         x: input, (..., time), finite, floating point.
         b: numerator, (nb,) or (F, nb). a: denominator, (na,) or (F, na), ``a[..., 0] != 0``.
-        zi: delays before the first sample, (n,) or (..., n) with ``n = max(na, nb) - 1``;
+        state: delays before the first sample, (n,) or (..., n) with ``n = max(na, nb) - 1``;
             zeros if None.
 
     Returns:
@@ -279,7 +279,7 @@ def lfilter(x: Tensor, b: Tensor, a: Tensor, *, zi: Tensor | None = None
     a = torch.cat([a, a.new_zeros(a.shape[0], n + 1 - a.shape[1])], 1) / a[:, :1]
     b, a = b.expand(F, n + 1), a.expand(F, n + 1)
     batch = x.shape[:-1]
-    z0 = _initial(zi, batch, n, x, "zi")
+    z0 = _initial(state, batch, n, x, "state")
     if n == 0:
         gain = b[:, 0] if F == 1 else b[:, :1]
         return gain * x, x.new_zeros(batch + (0,))
@@ -287,14 +287,14 @@ def lfilter(x: Tensor, b: Tensor, a: Tensor, *, zi: Tensor | None = None
     return y.reshape(x.shape), zf.reshape(batch + (n,))
 
 
-def linear_recurrence(A: Tensor, w: Tensor, *, s0: Tensor | None = None) -> Tensor:
-    """States of ``s[t] = A s[t-1] + w[t]`` with ``s[-1] = s0``.
+def linear_recurrence(A: Tensor, w: Tensor, *, state: Tensor | None = None) -> Tensor:
+    """States of ``s[t] = A s[t-1] + w[t]`` with ``s[-1] = state``.
 
-    Supports autograd with respect to ``A``, ``w`` and ``s0`` (double backward too). Stability
+    Supports autograd with respect to ``A``, ``w`` and ``state`` (double backward too). Stability
     is not checked.
 
     Args:
-        A: (n, n). w: inputs, (..., time, n). s0: (n,) or (..., n); zeros if None.
+        A: (n, n). w: inputs, (..., time, n). state: (n,) or (..., n); zeros if None.
 
     Returns:
         The states s[0], ..., s[T-1], (..., time, n).
@@ -306,13 +306,13 @@ def linear_recurrence(A: Tensor, w: Tensor, *, s0: Tensor | None = None) -> Tens
     n = w.shape[-1]
     A = _coefficients(A, "A", w, (n, n))
     batch = w.shape[:-2]
-    start = _initial(s0, batch, n, w, "s0")
+    start = _initial(state, batch, n, w, "state")
     s = _LinearRecurrence.apply(A, w.reshape(-1, w.shape[-2], n), start)
     return s.reshape(w.shape)
 
 
 def state_space(u: Tensor, A: Tensor, B: Tensor, C: Tensor, D: Tensor, *,
-                s0: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                state: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Outputs of ``s[t+1] = A s[t] + B u[t]``, ``y[t] = C s[t] + D u[t]``.
 
     One input: u (..., time), B (n,), D (p,). m inputs: u (..., time, m), B (n, m), D (p, m).
@@ -322,7 +322,7 @@ def state_space(u: Tensor, A: Tensor, B: Tensor, C: Tensor, D: Tensor, *,
     Args:
         u: input, (..., time) or (..., time, m). A: (n, n). B: (n,) or (n, m). C: (p, n).
         D: (p,) or (p, m).
-        s0: state at the first sample, (n,) or (..., n); zeros if None.
+        state: state at the first sample, (n,) or (..., n); zeros if None.
 
     Returns:
         ``(y, s)``: y (..., time, p) and the state after the last sample (..., n).
@@ -349,7 +349,7 @@ def state_space(u: Tensor, A: Tensor, B: Tensor, C: Tensor, D: Tensor, *,
     D = _coefficients(D, "D", u, (p, m) if multi else (p,))
     batch = u.shape[:-2] if multi else u.shape[:-1]
     T = u.shape[-2] if multi else u.shape[-1]
-    start = _initial(s0, batch, n, u, "s0")
+    start = _initial(state, batch, n, u, "state")
     ur = u.reshape(-1, T, m)
     s = _LinearRecurrence.apply(A, ur @ B.mT if multi else ur * B, start)
     entering = torch.cat([start.unsqueeze(1), s[:, :-1]], dim=1)

@@ -48,7 +48,7 @@ def prandtl_ishlinskii(
     weights: Tensor,
     *,
     linear_weight: float | Tensor = 0.0,
-    y0: Tensor | None = None,
+    state: Tensor | None = None,
 ) -> Tensor:
     """Prandtl-Ishlinskii output ``H[x] = w0 * x + sum_i w_i * play_{d_i}[x]``.
 
@@ -57,7 +57,7 @@ def prandtl_ishlinskii(
         widths: full dead-band widths d_i >= 0 of the play operators, shape (N,).
         weights: weights w_i, shape (N,).
         linear_weight: the weight w0 of the linear term (float or 0-dim tensor).
-        y0: play-operator outputs before the first sample, (N,) or (batch, N); zeros if None.
+        state: play-operator outputs before the first sample, (N,) or (batch, N); zeros if None.
 
     Returns:
         H[x], the shape of ``x``.
@@ -68,7 +68,7 @@ def prandtl_ishlinskii(
     """
     check_widths(widths, "widths")
     _check_weights(weights, widths.shape[0])
-    y = backlash(x, widths, y0=y0)
+    y = backlash(x, widths, state=state)
     return pi_output(x, y, weights.to(y.dtype), torch.as_tensor(linear_weight, dtype=y.dtype))
 
 

@@ -8,7 +8,7 @@ when one sample does both (``alpha == beta == x``) switching up wins. The model 
 
 here over the relays of a triangular grid (:func:`preisach_grid`), numbered row by row::
 
-    n = 3 levels l0 < l1 < l2 (cell centres of [lo, hi]); relay k at (alpha, beta):
+    n = 3 levels l0 < l1 < l2 (cell centers of [lo, hi]); relay k at (alpha, beta):
 
                  beta = l0   l1   l2
       alpha = l0        0
@@ -88,14 +88,14 @@ def preisach_grid(
 ) -> tuple[Tensor, Tensor]:
     """Thresholds of the triangular Preisach grid on ``[lo, hi]`` with n levels per axis.
 
-    The levels are the centres of n equal cells, ``lo + (hi - lo) (i + 1/2) / n``; relay
+    The levels are the centers of n equal cells, ``lo + (hi - lo) (i + 1/2) / n``; relay
     ``k = i (i + 1) / 2 + j`` (``0 <= j <= i < n``) has ``alpha = level[i]``,
     ``beta = level[j]`` (see the module docstring). An input at or beyond hi (lo) sets every
     relay to +1 (-1): the relays saturate.
 
     With ``scale = s``, a graded grid: the cells are equal in :func:`graded_input`
     ``c + s asinh((x - c) / s)``, c = (lo + hi) / 2, so the levels are dense within about s
-    of the centre and sparse beyond (a magnetic core's field: the loops of small amplitude
+    of the center and sparse beyond (a magnetic core's field: the loops of small amplitude
     need fine thresholds near 0, the tips of the large ones few).
 
     Returns:
@@ -125,9 +125,9 @@ def check_scale(scale: object) -> float | None:
     return _positive_or_none(scale, "scale")
 
 
-def graded_input(x: Tensor, centre: float, scale: float | None) -> Tensor:
-    """``centre + scale * asinh((x - centre) / scale)``: x near the centre, growing like the
-    logarithm of ``|x - centre|`` beyond ``scale``; x itself when ``scale`` is None.
+def graded_input(x: Tensor, center: float, scale: float | None) -> Tensor:
+    """``center + scale * asinh((x - center) / scale)``: x near the center, growing like the
+    logarithm of ``|x - center|`` beyond ``scale``; x itself when ``scale`` is None.
 
     A graded Preisach model (:func:`preisach_grid` with ``scale``) spaces its levels equally
     in this variable, and its linear term reads it: a reversible part that saturates (the
@@ -135,30 +135,30 @@ def graded_input(x: Tensor, centre: float, scale: float | None) -> Tensor:
     """
     if scale is None:
         return x
-    return centre + scale * torch.asinh((x - centre) / scale)
+    return center + scale * torch.asinh((x - center) / scale)
 
 
-def graded_input_inverse(v: Tensor, centre: float, scale: float | None) -> Tensor:
-    """The inverse of :func:`graded_input`: ``centre + scale * sinh((v - centre) / scale)``."""
+def graded_input_inverse(v: Tensor, center: float, scale: float | None) -> Tensor:
+    """The inverse of :func:`graded_input`: ``center + scale * sinh((v - center) / scale)``."""
     if scale is None:
         return v
-    return centre + scale * torch.sinh((v - centre) / scale)
+    return center + scale * torch.sinh((v - center) / scale)
 
 
-def demagnetized_state(alpha: Tensor, beta: Tensor, centre: float | None = None) -> Tensor:
-    """The demagnetised relays: +1 strictly below the line ``alpha + beta = 2 centre``, -1 on
+def demagnetized_state(alpha: Tensor, beta: Tensor, center: float | None = None) -> Tensor:
+    """The demagnetised relays: +1 strictly below the line ``alpha + beta = 2 center``, -1 on
     and above it (a margin of 64 machine epsilons, relative, absorbs rounding, so grid relays
     on the line are -1).
 
     Args:
         alpha, beta: (K,) thresholds.
-        centre: default ``(alpha.max() + beta.min()) / 2``, which is ``(lo + hi) / 2`` on a
+        center: default ``(alpha.max() + beta.min()) / 2``, which is ``(lo + hi) / 2`` on a
             :func:`preisach_grid`.
 
     Returns:
         (K,) of +-1 in alpha's dtype.
     """
-    total = alpha.max() + beta.min() if centre is None else 2.0 * centre
+    total = alpha.max() + beta.min() if center is None else 2.0 * center
     tol = 64 * torch.finfo(alpha.dtype).eps * (alpha.abs().max() + beta.abs().max())
     one = torch.ones_like(alpha)
     return torch.where(alpha + beta < total - tol, one, -one)
@@ -196,7 +196,7 @@ def relay_states(
     alpha: Tensor,
     beta: Tensor,
     *,
-    r0: Tensor | None = None,
+    state: Tensor | None = None,
     smooth: float | None = None,
 ) -> Tensor:
     """Outputs of every relay at every sample (materialised: memory batch * time * K).
@@ -204,14 +204,14 @@ def relay_states(
     Args:
         x: input, (time,) or (batch, time).
         alpha, beta: thresholds, (K,) each, ``alpha >= beta``.
-        r0: relays before the first sample, +-1, (K,) or (batch, K); default
+        state: relays before the first sample, +-1, (K,) or (batch, K); default
             :func:`demagnetized_state`.
         smooth: temperature tau > 0 of smooth relays (module docstring), or None.
 
     Returns:
         (batch, time, K) or (time, K) in x's dtype; differentiable in x when smooth.
     """
-    xb, alpha, beta, r0b, squeeze = _check_inputs(x, alpha, beta, r0, smooth)
+    xb, alpha, beta, r0b, squeeze = _check_inputs(x, alpha, beta, state, smooth)
     a, b = alpha[:, None, None], beta[:, None, None]
     outs = [
         relay_output(xb[None, :, start:stop], a, b, r, smooth).permute(1, 2, 0)
@@ -229,9 +229,9 @@ def preisach(
     *,
     offset: float | Tensor = 0.0,
     linear: float | Tensor = 0.0,
-    r0: Tensor | None = None,
+    state: Tensor | None = None,
     smooth: float | None = None,
-    centre: float = 0.0,
+    center: float = 0.0,
     scale: float | None = None,
 ) -> Tensor:
     """Preisach model ``offset + linear * x + relays @ weights``, chunked (module docstring).
@@ -241,19 +241,19 @@ def preisach(
         weights: density w, (K,); non-negative for a Preisach model (not checked here).
         alpha, beta: thresholds, (K,) each, ``alpha >= beta`` (e.g. :func:`preisach_grid`).
         offset, linear: numbers or 0-dim tensors.
-        r0: relays before the first sample, +-1, (K,) or (batch, K); default
+        state: relays before the first sample, +-1, (K,) or (batch, K); default
             :func:`demagnetized_state`.
         smooth: temperature of smooth relays, or None for hard relays.
-        centre, scale: a graded grid's (:func:`preisach_grid`): the linear term reads
-            ``graded_input(x, centre, scale)``; scale None: x.
+        center, scale: a graded grid's (:func:`preisach_grid`): the linear term reads
+            ``graded_input(x, center, scale)``; scale None: x.
 
     Returns:
         y, the shape of x. Supports autograd (weights, offset, linear; x through ``linear``
         and, when smooth, through the relays).
     """
     return preisach_with_state(
-        x, weights, alpha, beta, offset=offset, linear=linear, r0=r0, smooth=smooth,
-        centre=centre, scale=scale,
+        x, weights, alpha, beta, offset=offset, linear=linear, state=state, smooth=smooth,
+        center=center, scale=scale,
     )[0]
 
 
@@ -265,15 +265,15 @@ def preisach_with_state(
     *,
     offset: float | Tensor = 0.0,
     linear: float | Tensor = 0.0,
-    r0: Tensor | None = None,
+    state: Tensor | None = None,
     smooth: float | None = None,
-    centre: float = 0.0,
+    center: float = 0.0,
     scale: float | None = None,
 ) -> tuple[Tensor, Tensor]:
     """:func:`preisach`, also returning the relays at the last sample, (K,) or (batch, K),
-    to pass as r0 to the call on the continuation of the sequence. With ``scale`` (a graded
-    grid) the linear term reads ``graded_input(x, centre, scale)``."""
-    xb, alpha, beta, r0b, squeeze = _check_inputs(x, alpha, beta, r0, smooth)
+    to pass as state to the call on the continuation of the sequence. With ``scale`` (a graded
+    grid) the linear term reads ``graded_input(x, center, scale)``."""
+    xb, alpha, beta, r0b, squeeze = _check_inputs(x, alpha, beta, state, smooth)
     check_tensor(weights, "weights")
     check_floating(weights, "weights")
     if weights.shape != alpha.shape:
@@ -281,7 +281,7 @@ def preisach_with_state(
                          f"shape {tuple(weights.shape)}")
     check_finite(weights, "weights")
     relays, last = _PreisachRelays.apply(xb, weights.to(xb.dtype), alpha, beta, r0b, smooth)
-    y = relays + linear * graded_input(xb, centre, check_scale(scale)) + offset
+    y = relays + linear * graded_input(xb, center, check_scale(scale)) + offset
     return (y[0], last[0]) if squeeze else (y, last)
 
 
@@ -398,7 +398,7 @@ def _check_inputs(
     K = alpha.shape[0]
     if r0 is None:
         r0 = demagnetized_state(alpha, beta)
-    _check_relays(r0, xb.shape[0], K, "r0")
+    _check_relays(r0, xb.shape[0], K, "state")
     return xb, alpha, beta, r0.to(xb.dtype).expand(xb.shape[0], K), squeeze
 
 
@@ -414,8 +414,8 @@ def _check_relays(r0: Tensor, B: int, K: int, name: str) -> None:
 def check_relay_state(state: Tensor | None, x: Tensor, K: int, name: str) -> None:
     """Raise unless ``state`` is None or the ``K`` relays before the first sample of ``x``
     (time,) or (batch, time): a tensor of +-1 of shape (K,) or (batch, K). The messages name
-    the argument ``name`` (``state`` of :class:`~torchhys.Preisach`'s ``forward``), where the
-    functions here name their ``r0``.
+    the argument ``name`` (``state`` of :class:`~torchhys.Preisach`'s ``forward`` and of the
+    functions here).
 
     Raises:
         TypeError, ValueError: a bad ``state``. ``x`` is only read for its batch size

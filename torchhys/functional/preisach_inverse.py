@@ -48,7 +48,7 @@ def check_preisach_invertible(weights: Tensor, linear: Tensor) -> None:
 
 def preisach_inverse_constants(
     alpha: Tensor, beta: Tensor, weights: Tensor, linear: Tensor, offset: Tensor,
-    centre: float, scale: float | None,
+    center: float, scale: float | None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """The tables of :func:`inverse_on_relays` for the model with thresholds alpha, beta
     (K,), density ``weights`` (K,), 0-dim ``linear`` and ``offset``, and its grading;
@@ -76,7 +76,7 @@ def preisach_inverse_constants(
     base = (offset - w.sum()).reshape(1)
     offs0 = torch.cat([base, base + w @ (at_a + at_b)])
     doffs = torch.cat([torch.zeros_like(w)[:, None], w[:, None] * (at_b - at_a)], -1)
-    glevels = graded_input(levels, centre, scale)
+    glevels = graded_input(levels, center, scale)
     inf = torch.full_like(levels[:1], math.inf)
     cap = torch.cat([glevels, inf])
     level = torch.cat([levels, levels[-1:]])
@@ -87,7 +87,7 @@ def preisach_inverse_constants(
 
 def inverse_on_relays(
     y: Tensor, r: Tensor, offs0: Tensor, doffs: Tensor, lin_g: Tensor, cap: Tensor,
-    level: Tensor, bounds: Tensor, linear: Tensor, centre: float, scale: float | None,
+    level: Tensor, bounds: Tensor, linear: Tensor, center: float, scale: float | None,
 ) -> Tensor:
     """The input x at which the model outputs y while its relays stay r: the solve of
     :func:`preisach_inverse_step`, for any number of samples of y against one state.
@@ -107,7 +107,7 @@ def inverse_on_relays(
         y: target, (batch, m). r: relays, (batch, K).
         offs0, doffs, lin_g, cap, level, bounds: :func:`preisach_inverse_constants`.
         linear: 0-dim (> 0: :func:`check_preisach_invertible`).
-        centre, scale: the grading (:func:`graded_input`).
+        center, scale: the grading (:func:`graded_input`).
 
     Returns:
         x, (batch, m). Differentiable in y and in what the tables are differentiable in, on
@@ -118,14 +118,14 @@ def inverse_on_relays(
         m = torch.searchsorted((lin_g + offs[:, 1:]).detach(), y.detach().contiguous())
     g = (y - offs.gather(1, m)) / linear
     c = cap[m]
-    x = graded_input_inverse(torch.minimum(g, c), centre, scale)
+    x = graded_input_inverse(torch.minimum(g, c), center, scale)
     x = torch.maximum(torch.minimum(x, bounds[1][m]), bounds[0][m])
     return torch.where(g >= c, level[m], x)  # inside a jump: the level itself, exactly
 
 
 def preisach_inverse_step(
     y: Tensor, r: Tensor, alpha: Tensor, beta: Tensor, offs0: Tensor, doffs: Tensor,
-    lin_g: Tensor, cap: Tensor, level: Tensor, bounds: Tensor, linear: Tensor, centre: float,
+    lin_g: Tensor, cap: Tensor, level: Tensor, bounds: Tensor, linear: Tensor, center: float,
     scale: float | None,
 ) -> tuple[Tensor, Tensor]:
     """One sample of the inverse: the input x at which the model, from relays r, outputs y
@@ -136,19 +136,19 @@ def preisach_inverse_step(
         alpha, beta: (K,); offs0, doffs, lin_g, cap, level, bounds:
             :func:`preisach_inverse_constants`.
         linear: 0-dim (linear > 0: :func:`check_preisach_invertible`).
-        centre, scale: the grading (:func:`graded_input`).
+        center, scale: the grading (:func:`graded_input`).
 
     Returns:
         ``(x, r)``: x (batch, 1), the relays after it (batch, K).
     """
-    x = inverse_on_relays(y, r, offs0, doffs, lin_g, cap, level, bounds, linear, centre,
+    x = inverse_on_relays(y, r, offs0, doffs, lin_g, cap, level, bounds, linear, center,
                           scale)
     return x, relay_update(x, alpha, beta, r)
 
 
 def _inverse_windows(
     y: Tensor, r: Tensor, alpha: Tensor, beta: Tensor, tables: tuple[Tensor, ...],
-    linear: Tensor, centre: float, scale: float | None, first: int = 8, largest: int = 4096,
+    linear: Tensor, center: float, scale: float | None, first: int = 8, largest: int = 4096,
 ) -> tuple[Tensor, Tensor]:
     """The sequence path of :func:`preisach_inverse`, for y (batch, time >= 1), from relays
     r (batch, K): what a loop of :func:`preisach_inverse_step` returns, in fewer steps.
@@ -185,7 +185,7 @@ def _inverse_windows(
     s = 0
     width = first
     while s < T:
-        x = inverse_on_relays(y[:, s:s + width], r, *tables, linear, centre, scale)
+        x = inverse_on_relays(y[:, s:s + width], r, *tables, linear, center, scale)
         switch = ((x >= next_up) | (x <= next_down) | (x < next_below)).any(0)  # (m,)
         m = x.shape[1]
         # the first switch, or m where there is none (argmax returns the first maximum)
@@ -210,8 +210,8 @@ def preisach_inverse(
     *,
     offset: Tensor,
     linear: Tensor,
-    r0: Tensor | None = None,
-    centre: float = 0.0,
+    state: Tensor | None = None,
+    center: float = 0.0,
     scale: float | None = None,
 ) -> tuple[Tensor, Tensor]:
     """The exact inverse of the hard-relay Preisach model :func:`preisach`: the input x,
@@ -221,9 +221,9 @@ def preisach_inverse(
     Args:
         y: target, (time,) or (batch, time).
         weights, alpha, beta, offset, linear: the model (non-negative weights, linear > 0).
-        r0: relays before the first sample, (K,) or (batch, K); default
+        state: relays before the first sample, (K,) or (batch, K); default
             :func:`demagnetized_state`.
-        centre, scale: its grading (:func:`preisach_grid`).
+        center, scale: its grading (:func:`preisach_grid`).
 
     Returns:
         ``(x, r)``: x the shape of y, r the relays at the last sample.
@@ -232,7 +232,7 @@ def preisach_inverse(
         ValueError: bad arguments; a model without an inverse
             (:func:`check_preisach_invertible`).
     """
-    yb, alpha, beta, r, squeeze = _check_inputs(y, alpha, beta, r0, None)
+    yb, alpha, beta, r, squeeze = _check_inputs(y, alpha, beta, state, None)
     check_tensor(weights, "weights")
     if weights.shape != alpha.shape:
         raise ValueError(f"weights must have shape {tuple(alpha.shape)} (one per relay), got "
@@ -242,6 +242,6 @@ def preisach_inverse(
     check_preisach_invertible(weights.detach(), linear.detach())
     scale = check_scale(scale)
     tables = preisach_inverse_constants(alpha, beta, weights.to(yb.dtype), linear, offset,
-                                        float(centre), scale)
-    x, r = _inverse_windows(yb, r, alpha, beta, tables, linear, float(centre), scale)
+                                        float(center), scale)
+    x, r = _inverse_windows(yb, r, alpha, beta, tables, linear, float(center), scale)
     return (x[0], r[0]) if squeeze else (x, r)

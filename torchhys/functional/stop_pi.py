@@ -18,7 +18,7 @@ stop-type Prandtl-Ishlinskii model ``offset + w0 u + sum_i W[i, 0] s_i``; with `
 every characteristic rises (a spring that stiffens or softens), as in a friction element in
 series with a nonlinear spring. A stop started at zero never slips while ``|u| <= r_i``: its
 output is then u itself, and its characteristic a memoryless, piecewise-linear function of the
-input. With the centre at the midpoint of the input's range, the stops of thresholds of at
+input. With the center at the midpoint of the input's range, the stops of thresholds of at
 least half its span are such (the elastic part of the model).
 
 The output is linear in ``(offset, w0, W)``: :func:`torchhys.fit_stop_pi` identifies
@@ -128,7 +128,7 @@ def stop_pi(
     center: float | Tensor = 0.0,
     linear_weight: float | Tensor = 0.0,
     offset: float | Tensor = 0.0,
-    p0: Tensor | None = None,
+    state: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Stop-type Prandtl-Ishlinskii output with piecewise-linear characteristics.
 
@@ -138,7 +138,7 @@ def stop_pi(
         weights: segment slopes W, (N, K).
         center: the input value c at which the stops' plays start (u = x - c).
         linear_weight, offset: w0 and the offset.
-        p0: the plays of u before the first sample, (N,) or (batch, N); zeros if None
+        state: the plays of u before the first sample, (N,) or (batch, N); zeros if None
             (every stop starts at ``u[0]`` clipped to ``[-r_i, r_i]``).
 
     Returns:
@@ -146,15 +146,15 @@ def stop_pi(
         (the state to pass on to the continuation of the sequence).
 
     Raises:
-        TypeError, ValueError: bad x, thresholds, weights or p0.
+        TypeError, ValueError: bad x, thresholds, weights or state.
     """
     xb, squeezed = as_batched_sequence(x, "x")
     check_stop_parameters(thresholds, weights)
     u = xb - _scalar(center, "center", xb)
     w0, b = _scalar(linear_weight, "linear_weight", xb), _scalar(offset, "offset", xb)
-    check_play_state(p0, xb, thresholds.shape[0], "p0")
+    check_play_state(state, xb, thresholds.shape[0], "state")
     r = thresholds.to(device=xb.device, dtype=xb.dtype)
-    p = backlash(u, 2.0 * r, y0=p0)  # (B, T, N)
+    p = backlash(u, 2.0 * r, state=state)  # (B, T, N)
     y = b + w0 * u + stop_characteristic(u.unsqueeze(-1) - p, r, weights.to(xb.device))
     last = p[:, -1, :]
     return (y[0], last[0]) if squeezed else (y, last)
@@ -274,7 +274,7 @@ def stop_pi_inverse(
     center: float | Tensor = 0.0,
     linear_weight: float | Tensor = 1.0,
     offset: float | Tensor = 0.0,
-    p0: Tensor | None = None,
+    state: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """The exact inverse of :func:`stop_pi`: the input x whose output is y, sample by sample
     (:func:`stop_pi_inverse_step`; a loop over time: each sample's plays depend on the
@@ -285,7 +285,7 @@ def stop_pi_inverse(
         thresholds, weights, center, linear_weight, offset: the model's, as in
             :func:`stop_pi`; the output must be strictly monotone in the input
             (:func:`check_invertible`).
-        p0: the model's plays before the first sample, (N,) or (batch, N); zeros if None.
+        state: the model's plays before the first sample, (N,) or (batch, N); zeros if None.
 
     Returns:
         ``(x, p)``: x the shape of y; p the plays at the last sample (the model's state: the
@@ -299,12 +299,12 @@ def stop_pi_inverse(
     c = _scalar(center, "center", yb)
     w0, b = _scalar(linear_weight, "linear_weight", yb), _scalar(offset, "offset", yb)
     check_invertible(weights.detach(), w0.detach())
-    check_play_state(p0, yb, thresholds.shape[0], "p0")
+    check_play_state(state, yb, thresholds.shape[0], "state")
     r = thresholds.to(device=yb.device, dtype=yb.dtype)
     sign, w, w0s, knots, jumps, floor = inverse_constants(
         r, weights.to(device=yb.device, dtype=yb.dtype), w0)
-    p = (yb.new_zeros(yb.shape[0], r.shape[0]) if p0 is None
-         else p0.to(device=yb.device, dtype=yb.dtype).reshape(-1, r.shape[0])
+    p = (yb.new_zeros(yb.shape[0], r.shape[0]) if state is None
+         else state.to(device=yb.device, dtype=yb.dtype).reshape(-1, r.shape[0])
          .expand(yb.shape[0], -1))
     xs = []
     for t in range(yb.shape[1]):

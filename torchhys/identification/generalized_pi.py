@@ -33,7 +33,7 @@ def fit_generalized_pi(
     Initialisation: ``p`` from the non-negative PI fit
     (``fit_prandtl_ishlinskii(x, y, widths, ridge=ridge, nonnegative=True)``), its play
     weights raised to at least 1% of the largest (so that none starts dead); ``g`` with
-    ``units`` tanh units centred on quantiles of that fit's output, slopes ``2 / spacing``
+    ``units`` tanh units centered on quantiles of that fit's output, slopes ``2 / spacing``
     and weights ``0.1 spacing`` (spacing: the output's span / units), gain 1, offset 0. Then
     full-batch training of every parameter but the widths and ``w0`` on the mean squared
     error plus ``anchor * (|log a - log a_init|^2 + |log s - log s_init|^2)``
@@ -59,12 +59,12 @@ def fit_generalized_pi(
             :func:`~torchhys.identification.fitting.select_pi_ridge`).
         adam_epochs, lbfgs_epochs, lr: as in
         :func:`~torchhys.identification.fitting.fit_full_batch`.
-        warmup: samples at the start of each row left out of the initial fit, the centres of
+        warmup: samples at the start of each row left out of the initial fit, the centers of
             g and the loss (they still run the plays), to forget the zero initial state.
         anchor: weight of the penalty on the log-gain and log-slopes moving from their
             initial values (y in units of its standard deviation), >= 0 (0: none).
         mask: the scored samples, bool, the shape of ``x`` (False: left out of the initial
-            fit, the centres, the scale of y and the loss, as the warm-up; the plays still run
+            fit, the centers, the scale of y and the loss, as the warm-up; the plays still run
             through them, e.g. a held-out block or a shorter row's padding); None: every
             sample (after ``warmup`` in both cases).
 

@@ -170,7 +170,7 @@ def _normal_equations(x: Tensor, y: Tensor, model: Preisach,
             if not bool(chunk.any()):
                 continue
             xs = graded_input(x[:, start:stop][chunk].unsqueeze(0).to(torch.float64),
-                              model.centre, model.scale)
+                              model.center, model.scale)
             cols = [r[:, chunk]]
             cols += [xs] if m > K + 1 else []
             A = torch.cat(cols + [torch.ones_like(xs)])

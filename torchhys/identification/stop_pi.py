@@ -50,7 +50,7 @@ def _check_data(x: Tensor, y: Tensor, thresholds: Tensor, segments: int,
 
 def _center(xb: Tensor, fitted: Tensor, center: float | None) -> float:
     """The midpoint of the range of the fitted input (the samples of the (rows, time) bool
-    mask ``fitted``), or the given centre."""
+    mask ``fitted``), or the given center."""
     if center is not None:
         return check_real(center, "center")
     xs = xb[fitted.to(xb.device)]
@@ -172,7 +172,7 @@ def fit_stop_pi(
 
     Thresholds: :func:`~torchhys.identification.fitting.play_width_grid` of the input gives ``span
     (k/n)^p``,
-    up to the input's span: with the default centre (the midpoint of the fitted input's range)
+    up to the input's span: with the default center (the midpoint of the fitted input's range)
     the stops of at least half the span never slip on the fitted samples (nor on the warm-up,
     when it stays inside that range) and make the memoryless (elastic) part of the model, the
     smaller ones the hysteresis. A segment the fitted samples never enter gets slope 0.
@@ -196,7 +196,7 @@ def fit_stop_pi(
             input's range.
         warmup: leading samples of each row left out of the fit (the stops still run).
         mask: the samples to fit, bool, the shape of ``x`` (False: left out of the fit and
-            of the default centre, the stops still run through them, e.g. a held-out block
+            of the default center, the stops still run through them, e.g. a held-out block
             or a shorter row's padding); None: every sample (after ``warmup`` in both
             cases).
 
@@ -241,7 +241,7 @@ def select_stop_pi_ridge(
     """Choose the ``ridge`` of :func:`fit_stop_pi` on a time-ordered hold-out: each
     candidate is fitted on the first ``1 - validation`` of every row (after ``warmup``; with
     a ``mask``, of its masked samples) and scored by the RMS error on the rest (the stops run
-    through the whole sequence; the centre is taken from the fitted part).
+    through the whole sequence; the center is taken from the fitted part).
 
     Returns:
         The ridge with the least hold-out RMS error (the first on ties), and the RMS error of

@@ -146,7 +146,7 @@ class Backlash(_Widths, HysteresisOperator):
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
         widths = self.get_widths()
         check_play_state(state, x, widths.shape[0], "state")
-        y = backlash(x, widths, y0=state)
+        y = backlash(x, widths, state=state)
         return y, y[..., -1, :]
 
     def streaming_step(self, dtype: torch.dtype) -> PlayStep:

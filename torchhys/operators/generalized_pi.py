@@ -154,7 +154,7 @@ class GeneralizedPrandtlIshlinskii(_Widths, HysteresisOperator):
         widths: full dead-band widths d_i >= 0, shape (N,).
         weights: play weights w_i >= 0, shape (N,); ones if None.
         linear_weight: w0 > 0.
-        centers: centres b_k of the tanh units of g, shape (K,) (K >= 0); default
+        centers: centers b_k of the tanh units of g, shape (K,) (K >= 0); default
             ``linspace(-1, 1, 5)``.
         slopes: their slopes s_k > 0, shape (K,); ones if None.
         unit_weights: their weights c_k >= 0, shape (K,); 0.1 each if None.
@@ -213,7 +213,7 @@ class GeneralizedPrandtlIshlinskii(_Widths, HysteresisOperator):
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
         widths, *rest = self.parameters_effective()
         check_play_state(state, x, widths.shape[0], "state")
-        y = backlash(x, widths, y0=state)
+        y = backlash(x, widths, state=state)
         w, w0, a, c, b, s, off = (t.to(y.dtype) for t in rest)
         return monotone_output(pi_output(x, y, w, w0), a, c, b, s, off), y[..., -1, :]
 
@@ -402,7 +402,7 @@ class GeneralizedPIInverse(HysteresisOperator):
         v = monotone_inverse(x, *(t.to(x.dtype) for t in (
             self.gain, self.unit_weights, self.centers, self.slopes, self.offset, self.lower,
             self.upper)))
-        z = backlash(v, self.widths.to(v.dtype), y0=state)
+        z = backlash(v, self.widths.to(v.dtype), state=state)
         out = pi_output(v, z, self.weights.to(z.dtype), self.linear_weight.to(z.dtype))
         return out, z[..., -1, :]
 

@@ -126,7 +126,7 @@ class PrandtlIshlinskii(_Widths, HysteresisOperator):
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
         widths = self.get_widths()
         check_play_state(state, x, widths.shape[0], "state")
-        y = backlash(x, widths, y0=state)
+        y = backlash(x, widths, state=state)
         h = pi_output(x, y, self.weights.to(y.dtype), self.linear_weight.to(y.dtype))
         return h, y[..., -1, :]
 
@@ -247,7 +247,7 @@ class PrandtlIshlinskiiInverse(HysteresisOperator):
         check_play_state(state, x, self.widths.shape[0], "state")
         if self.widths.numel() == 0:  # purely linear model
             return self.linear_weight.to(x.dtype) * x, x.new_zeros(x.shape[:-1] + (0,))
-        z = backlash(x, self.widths.to(x.dtype), y0=state)
+        z = backlash(x, self.widths.to(x.dtype), state=state)
         u = pi_output(x, z, self.weights.to(z.dtype), self.linear_weight.to(z.dtype))
         return u, z[..., -1, :]
 

@@ -93,11 +93,11 @@ class Preisach(HysteresisOperator):
         scale: None (an even grid), or s > 0: a graded grid
             (:func:`~torchhys.functional.preisach_grid`), whose levels are equal steps of
             ``g(x) = c + s asinh((x - c) / s)``, c = (lo + hi) / 2: dense within about s of
-            the centre, sparse beyond. The linear term then reads g(x), a reversible part
+            the center, sparse beyond. The linear term then reads g(x), a reversible part
             that saturates. For a magnetic core modelled from its field (H -> B; invert it
             with :meth:`inverse` for the compensator B -> H), s about a tenth of the largest
             field puts thresholds where the small loops turn. Saved in the state dict
-            (buffer ``grading``: centre, then scale or 0).
+            (buffer ``grading``: center, then scale or 0).
 
     Shape:
         - x: (time,) or (batch, time)
@@ -128,11 +128,11 @@ class Preisach(HysteresisOperator):
         alpha, beta = preisach_grid(lo, hi, n, scale=scale, dtype=torch.float64)
         self.lo, self.hi, self.n, self.n_relays = float(lo), float(hi), n, alpha.numel()
         self.smooth = _check_smooth(smooth)
-        self.centre, self.scale = 0.5 * (self.lo + self.hi), check_scale(scale)
+        self.center, self.scale = 0.5 * (self.lo + self.hi), check_scale(scale)
         dtype = torch.get_default_dtype()
-        # (centre, scale) of the grading, scale 0 for none: saved with the model
+        # (center, scale) of the grading, scale 0 for none: saved with the model
         self.register_buffer("grading", torch.tensor(
-            [self.centre, 0.0 if self.scale is None else self.scale], dtype=dtype))
+            [self.center, 0.0 if self.scale is None else self.scale], dtype=dtype))
         self._read_grading()
         self.register_buffer("initial_relays", self._initial(initial, alpha, beta).to(dtype))
         self.register_buffer("alpha", alpha.to(dtype))
@@ -163,7 +163,7 @@ class Preisach(HysteresisOperator):
     def _read_grading(self) -> None:
         """The grading as Python numbers, from the saved buffer (in its dtype's rounding, so
         that a loaded copy computes the same)."""
-        self.centre = float(self.grading[0])
+        self.center = float(self.grading[0])
         self.scale = float(self.grading[1]) if float(self.grading[1]) > 0 else None
 
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
@@ -171,7 +171,7 @@ class Preisach(HysteresisOperator):
         r0 = self.initial_relays if state is None else state
         return preisach_with_state(
             x, self.weights.clamp_min(0.0), self.alpha, self.beta, offset=self.offset,
-            linear=self.linear, r0=r0, smooth=self.smooth, centre=self.centre,
+            linear=self.linear, state=r0, smooth=self.smooth, center=self.center,
             scale=self.scale,
         )
 
@@ -185,7 +185,7 @@ class Preisach(HysteresisOperator):
         """The per-sample step with the current parameters (detached), in ``dtype``."""
         return PreisachStep(self.alpha, self.beta, self.weights.clamp_min(0.0), self.linear,
                             self.offset, self.initial_relays, self.smooth, dtype,
-                            self.centre, self.scale)
+                            self.center, self.scale)
 
     def inverse(self) -> PreisachInverse:
         """The exact inverse ``x = F^-1[y]`` as an operator (:class:`~torchhys.PreisachInverse`,
@@ -216,9 +216,9 @@ class Preisach(HysteresisOperator):
         self._read_grading()
         a = self.alpha.detach()
         if self.n > 1:
-            # the grid range of the loaded thresholds (cell centres, module docstring),
+            # the grid range of the loaded thresholds (cell centers, module docstring),
             # in the graded variable where the cells are equal
-            c, s = self.centre, self.scale
+            c, s = self.center, self.scale
             gl, gh = (graded_input(torch.stack([a.min(), a.max()]).double().cpu(), c, s)
                       .tolist())
             half = 0.5 * (gh - gl) / (self.n - 1)
@@ -230,7 +230,7 @@ def check_saved_grid(prefix: str, alpha: Tensor | None, beta: Tensor | None,
                      initial: Tensor | None, grading: Tensor | None) -> None:
     """The values of a Preisach grid about to be loaded (each None where not given): finite
     thresholds ``alpha >= beta`` (when both are given, of one shape), initial relays of +-1,
-    and a grading ``(centre, scale)``, finite, scale >= 0.
+    and a grading ``(center, scale)``, finite, scale >= 0.
 
     Raises:
         ValueError: naming the key (after ``prefix``).
@@ -243,7 +243,7 @@ def check_saved_grid(prefix: str, alpha: Tensor | None, beta: Tensor | None,
         raise ValueError(f"{prefix}initial_relays must hold relay values +-1")
     if grading is not None and (grading.shape != (2,) or not bool(grading.isfinite().all())
                                 or float(grading[1]) < 0):
-        raise ValueError(f"{prefix}grading must be (centre, scale), finite, scale >= 0 "
+        raise ValueError(f"{prefix}grading must be (center, scale), finite, scale >= 0 "
                          f"(0: an even grid), got {grading.tolist()!r:.80}")
 
 
@@ -257,12 +257,12 @@ class PreisachStep(OperatorStep):
 
     def __init__(self, alpha: Tensor, beta: Tensor, weights: Tensor, linear: Tensor,
                  offset: Tensor, initial: Tensor, smooth: float | None,
-                 dtype: torch.dtype, centre: float = 0.0, scale: float | None = None) -> None:
+                 dtype: torch.dtype, center: float = 0.0, scale: float | None = None) -> None:
         super().__init__()
         self.n_outputs = 1
         self.state_spec = [StateBlock("relays", alpha.numel(), start=initial.tolist())]
         self.smooth = smooth
-        self.centre, self.scale = float(centre), scale
+        self.center, self.scale = float(center), scale
         for name, v in (("alpha", alpha), ("beta", beta), ("weights", weights[:, None]),
                         ("linear", linear), ("offset", offset)):
             self.register_buffer(name, v.detach().to(dtype).clone())
@@ -270,7 +270,7 @@ class PreisachStep(OperatorStep):
     def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
         r = relay_update(x, self.alpha, self.beta, state[0])
         out = relay_output(x, self.alpha, self.beta, r, self.smooth)
-        lin = self.linear * graded_input(x, self.centre, self.scale)
+        lin = self.linear * graded_input(x, self.center, self.scale)
         return self.offset + lin + out @ self.weights, [r]
 
 
@@ -299,23 +299,23 @@ class PreisachInverseStep(OperatorStep):
     """
 
     def __init__(self, alpha: Tensor, beta: Tensor, weights: Tensor, linear: Tensor,
-                 offset: Tensor, initial: Tensor, centre: float, scale: float | None) -> None:
+                 offset: Tensor, initial: Tensor, center: float, scale: float | None) -> None:
         super().__init__()
         linear, offset = linear.detach().reshape(()), offset.detach().reshape(())
         tables = preisach_inverse_constants(alpha, beta, weights.detach(), linear, offset,
-                                            centre, scale)
+                                            center, scale)
         for name, v in (("alpha", alpha), ("beta", beta), ("linear", linear),
                         *zip(("offs0", "doffs", "lin_g", "cap", "level", "bounds"), tables,
                              strict=True)):
             self.register_buffer(name, v.detach().clone())
-        self.centre, self.scale = float(centre), scale
+        self.center, self.scale = float(center), scale
         self.n_outputs = 1
         self.state_spec = [StateBlock("relays", alpha.numel(), start=initial.tolist())]
 
     def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
         u, r = preisach_inverse_step(x, state[0], self.alpha, self.beta, self.offs0,
                                      self.doffs, self.lin_g, self.cap, self.level,
-                                     self.bounds, self.linear, self.centre, self.scale)
+                                     self.bounds, self.linear, self.center, self.scale)
         return u, [r]
 
 
@@ -350,7 +350,7 @@ class PreisachInverse(HysteresisOperator):
         self.register_buffer("linear", torch.ones((), dtype=dtype))
         self.register_buffer("offset", torch.zeros((), dtype=dtype))
         self.n = n
-        self.centre, self.scale = model.centre, model.scale
+        self.center, self.scale = model.center, model.scale
 
     @classmethod
     @torch.no_grad()
@@ -379,7 +379,7 @@ class PreisachInverse(HysteresisOperator):
         check_relay_state(state, x, self.alpha.shape[0], "state")
         r0 = self.initial_relays if state is None else state
         return preisach_inverse(x, self.weights, self.alpha, self.beta, offset=self.offset,
-                                linear=self.linear, r0=r0, centre=self.centre,
+                                linear=self.linear, state=r0, center=self.center,
                                 scale=self.scale)
 
     def streaming_step(self, dtype: torch.dtype) -> PreisachInverseStep:
@@ -387,7 +387,7 @@ class PreisachInverse(HysteresisOperator):
         alpha, beta, weights, linear, offset, initial = (t.detach().to(dtype) for t in (
             self.alpha, self.beta, self.weights, self.linear, self.offset,
             self.initial_relays))
-        return PreisachInverseStep(alpha, beta, weights, linear, offset, initial, self.centre,
+        return PreisachInverseStep(alpha, beta, weights, linear, offset, initial, self.center,
                                    self.scale)
 
     constraints = {"alpha": "finite", "beta": "finite", "initial_relays": "relay",

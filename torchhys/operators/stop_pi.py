@@ -2,7 +2,7 @@
 per-sample step (identification: :mod:`torchhys.identification.stop_pi`).
 
 The maths is in :mod:`torchhys.functional.stop_pi`; the module holds the thresholds, the
-segment slopes, the linear term, the offset and the input's centre, and the step runs the
+segment slopes, the linear term, the offset and the input's center, and the step runs the
 same :func:`~torchhys.functional.play_step` and
 :func:`~torchhys.functional.stop_pi.stop_characteristic` as the sequence path.
 
@@ -121,7 +121,7 @@ class StopPrandtlIshlinskii(HysteresisOperator):
         center: the input value at which the stops start (their plays at 0).
         linear_weight, offset: w0 and the offset.
         learnable: make the weights, linear weight and offset trainable (the thresholds and
-            the centre stay fixed).
+            the center stay fixed).
 
     Shape:
         - x: (time,) or (batch, time)
@@ -173,7 +173,7 @@ class StopPrandtlIshlinskii(HysteresisOperator):
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
         check_play_state(state, x, self.thresholds.shape[0], "state")
         return stop_pi(x, self.thresholds, self.weights, center=self.center,
-                       linear_weight=self.linear_weight, offset=self.offset, p0=state)
+                       linear_weight=self.linear_weight, offset=self.offset, state=state)
 
     @torch.no_grad()
     def project_(self) -> StopPrandtlIshlinskii:
@@ -304,7 +304,7 @@ class StopPIInverse(HysteresisOperator):
         as_batched_sequence(x, "x")  # the maths calls its input y: check x under its name
         check_play_state(state, x, self.thresholds.shape[0], "state")
         return stop_pi_inverse(x, self.thresholds, self.weights, center=self.center,
-                               linear_weight=self.linear_weight, offset=self.offset, p0=state)
+                               linear_weight=self.linear_weight, offset=self.offset, state=state)
 
     def streaming_step(self, dtype: torch.dtype) -> StopPIInverseStep:
         """The per-sample step with the current buffers, in ``dtype``."""
