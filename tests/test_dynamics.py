@@ -1,4 +1,4 @@
-"""Linear dynamics against scipy.signal (lfilter, dlsim) in float64; stable parametrisations."""
+"""Linear dynamics against scipy.signal (lfilter, dlsim) in float64; stable parametrizations."""
 
 from __future__ import annotations
 

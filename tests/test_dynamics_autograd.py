@@ -32,7 +32,7 @@ def _lfilter(x, b, a, zi):
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("nb,na,T", [(3, 3, 25), (2, 4, 20), (5, 2, 15), (3, 3, 1), (4, 4, 2)])
 def test_lfilter_gradcheck(backend, nb, na, T):
-    inputs = _filter_inputs(nb, na, T, seed=nb * 10 + na, a0=1.5)  # a[0] != 1: normalised
+    inputs = _filter_inputs(nb, na, T, seed=nb * 10 + na, a0=1.5)  # a[0] != 1: normalized
     with use_backend(backend):
         assert gradcheck(_lfilter, inputs)
 

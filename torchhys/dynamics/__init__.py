@@ -14,7 +14,7 @@ several inputs (``n_inputs > 1``) the sequence path takes x (..., time, m) and t
 (``streaming_step(dtype)``) x (batch, m); such a block is not an operator of the protocol
 (which feeds one input column) and :func:`~torchhys.operator.check_operator` rejects it.
 
-Stable parametrisations (poles strictly inside a circle of radius ``r < 1`` for every value
+Stable parametrizations (poles strictly inside a circle of radius ``r < 1`` for every value
 of the parameters):
 
 - :class:`TransferFunction`, :class:`TransferFunctionMatrix`: each denominator is a product

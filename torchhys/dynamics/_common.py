@@ -1,5 +1,5 @@
 """Shared pieces of the linear dynamic blocks: argument checks, carried states, the input
-layout of multi-input blocks and the stable second-order-section parametrisation."""
+layout of multi-input blocks and the stable second-order-section parametrization."""
 
 from __future__ import annotations
 
@@ -87,7 +87,7 @@ def section_parameters(a1: Tensor, a2: Tensor, r: float) -> tuple[Tensor, Tensor
 def initial_sections(order: int, r: float, dtype: torch.dtype
                      ) -> tuple[Tensor, Tensor, Tensor]:
     """(alpha (n2,), beta (n2,), gamma (order % 2,)) in ``dtype``: poles of modulus 0.5
-    spread in angle (the blocks' initialisation)."""
+    spread in angle (the blocks' initialization)."""
     n2 = order // 2
     angles = torch.arange(1, n2 + 1, dtype=torch.float64) * math.pi / (2 * n2 + 2)
     alpha, beta = section_parameters(-torch.cos(angles), torch.full((n2,), 0.25), r)

@@ -1,7 +1,7 @@
 """The elementary inverse hysteresis operator (EIHO, Eq. (2)) and Zhao-Tan's operator.
 
 See :mod:`torchhys.functional._branch` for the shared turning-point machinery (rules
-``"recent"`` / ``"dominant"``, behaviour between a turning point and its confirmation).
+``"recent"`` / ``"dominant"``, behavior between a turning point and its confirmation).
 """
 
 from __future__ import annotations

@@ -240,7 +240,7 @@ def lfilter(x: Tensor, b: Tensor, a: Tensor, *, state: Tensor | None = None
     """Filter ``x`` along time with ``B(z) / A(z)`` in direct form II transposed.
 
     Same results as ``scipy.signal.lfilter(b, a, x, zi=state)`` (``b`` and ``a`` divided by
-    ``a[0]``; ``state`` is the DF2T state of the normalised filter). Supports autograd with
+    ``a[0]``; ``state`` is the DF2T state of the normalized filter). Supports autograd with
     respect to ``x``, ``b``, ``a`` and ``state`` (double backward too), batches, float32 and
     float64, CPU (compiled kernel) and other devices (chunked scan). Stability is not checked.
 

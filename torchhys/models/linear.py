@@ -3,7 +3,7 @@
 :func:`fit_linear` fits ``B(z) / A(z)`` of a given order: an ARX least-squares fit (equation
 error, one linear solve) gives the start, then L-BFGS minimises the simulation (output)
 error over the whole record with :class:`torchhys.dynamics.TransferFunction` (stable
-parametrisation, the compiled lfilter). An unstable ARX start falls back to the block's
+parametrization, the compiled lfilter). An unstable ARX start falls back to the block's
 default (poles of modulus 0.5).
 
 References:
