@@ -6,13 +6,11 @@ formula, non-causal: they use the target's extrema), a 168-unit sigmoid network;
 Zhao-Tan's operator and a plain network of h alone as baselines. MSE on the training
 signal, as in the paper (1.737e-3 for EIHO-NN, 3.867e-3 for Ref. [8]).
 
-Part 2 (causal): configurations that need no targets at run time, trained on the paper's
-signal and tested on two signals of the same range through the same plant: a decaying
-multisine (nested minor loops) and a steady multisine. The least-squares Prandtl-Ishlinskii
-model of h (:func:`torchhys.identification.fitting.fit_prandtl_ishlinskii`, linear in the outputs
-of 30 play
-operators of h on a cubic width grid) is the causal inverse, alone or as the network's
-operator.
+Part 2 (causal): configurations that need no targets at run time, trained on the paper's signal and
+tested on two signals of the same range through the same plant: a decaying multisine (nested minor
+loops) and a steady multisine. The least-squares Prandtl-Ishlinskii model of h
+(:func:`torchhys.identification.fitting.fit_prandtl_ishlinskii`, linear in the outputs of 30 play
+operators of h on a cubic width grid) is the causal inverse, alone or as the network's operator.
 
 Prints markdown tables. Usage: ``python benchmarks/paper_protocol.py [--quick]``.
 """

@@ -12,11 +12,10 @@ stepper's against the TorchScript module's ``state``; float columns relative to 
 int64 and bool ones equal) and the two counters.
 
 float64 (1e4 samples): within FLOAT64_RTOL = 1e-12 (measured with onnxruntime 1.32 on
-x86-64, every operator's example: at most 1.2e-13, the EIHO and cascade examples; 1e-14 to
-7e-14 for the others). float32 (3000 samples): within FLOAT32_RTOL = 1e-4 (measured: at most
-8.2e-5, the cascade example; 9e-6 to 7.1e-5 for the others): both runtimes round the sums
-and ``exp`` in float32,
-in another order, and the networks' output weights scale that up (the C step's bound).
+x86-64, every operator's example: at most 1.2e-13, the EIHO and cascade examples; 1e-14 to 7e-14 for
+the others). float32 (3000 samples): within FLOAT32_RTOL = 1e-4 (measured: at most 8.2e-5, the
+cascade example; 9e-6 to 7.1e-5 for the others): both runtimes round the sums and ``exp`` in
+float32, in another order, and the networks' output weights scale that up (the C step's bound).
 
 Skipped without onnxruntime (and onnx, onnxscript): ``pip install "torchhys[onnx]"``.
 """

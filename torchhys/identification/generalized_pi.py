@@ -35,13 +35,12 @@ def fit_generalized_pi(
     weights raised to at least 1% of the largest (so that none starts dead); ``g`` with
     ``units`` tanh units centered on quantiles of that fit's output, slopes ``2 / spacing``
     and weights ``0.1 spacing`` (spacing: the output's span / units), gain 1, offset 0. Then
-    full-batch training of every parameter but the widths and ``w0`` on the mean squared
-    error plus ``anchor * (|log a - log a_init|^2 + |log s - log s_init|^2)``
+    full-batch training of every parameter but the widths and ``w0`` on the mean squared error plus
+    ``anchor * (|log a - log a_init|^2 + |log s - log s_init|^2)``
     (:func:`~torchhys.identification.fitting.fit_full_batch`: Adam, then L-BFGS). The fit sees y
-    divided by
-    its standard deviation over the scored samples (then ``a``, ``c_k`` and the offset are
-    scaled back), so that the fit, its tolerances and the anchor mean the same in any units
-    of y.
+    divided by its standard deviation over the scored samples (then ``a``, ``c_k`` and the offset
+    are scaled back), so that the fit, its tolerances and the anchor mean the same in any units of
+    y.
 
     Why ``w0`` is held and the logarithms anchored: the model is unchanged when ``p`` is
     scaled by k and ``g``'s input by 1 / k (``w, w0, b`` times k, ``a, s`` over k), and

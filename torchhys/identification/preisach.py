@@ -157,8 +157,7 @@ def _prepare(x: Tensor, y: Tensor, lo: float | None, hi: float | None, n: int, l
 def _normal_equations(x: Tensor, y: Tensor, model: Preisach,
                       samples: list[Tensor]) -> list[Moments]:
     """The :class:`~torchhys.identification._nnls.Moments` ``(A'A, A'y, y'y, rows)`` in float64 of
-    the
-    design ``A = [relays, x, 1]`` over the samples of each segment (a (rows, time) bool
+    the design ``A = [relays, x, 1]`` over the samples of each segment (a (rows, time) bool
     mask)."""
     K, m = model.n_relays, model.n_relays + 1 + isinstance(model.linear, nn.Parameter)
     out = [[x.new_zeros(m, m, dtype=torch.float64), x.new_zeros(m, dtype=torch.float64),

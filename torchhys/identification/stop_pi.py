@@ -171,9 +171,8 @@ def fit_stop_pi(
     constrained fit, the offset and w0 free).
 
     Thresholds: :func:`~torchhys.identification.fitting.play_width_grid` of the input gives ``span
-    (k/n)^p``,
-    up to the input's span: with the default center (the midpoint of the fitted input's range)
-    the stops of at least half the span never slip on the fitted samples (nor on the warm-up,
+    (k/n)^p``, up to the input's span: with the default center (the midpoint of the fitted input's
+    range) the stops of at least half the span never slip on the fitted samples (nor on the warm-up,
     when it stays inside that range) and make the memoryless (elastic) part of the model, the
     smaller ones the hysteresis. A segment the fitted samples never enter gets slope 0.
     Train a ``learnable`` copy further with :meth:`StopPrandtlIshlinskii.project_` after each

@@ -218,13 +218,12 @@ class GeneralizedPrandtlIshlinskii(_Widths, HysteresisOperator):
         return monotone_output(pi_output(x, y, w, w0), a, c, b, s, off), y[..., -1, :]
 
     def predictor(self, x: Tensor) -> Callable[[], Tensor]:
-        """The output on a fixed input x (batch, time), zero initial state, as a closure of
-        the parameters, for fitting (:func:`~torchhys.identification.fitting.fit_full_batch` calls
-        it at
-        every step). With fixed widths the plays are computed once and ``p`` and ``g`` are
-        matrix products: about half the time of :meth:`forward` per call on 1e5 samples,
-        equal to it up to rounding (forward sums in a fixed order, so that chunked calls
-        equal one call; this closure does not need that)."""
+        """The output on a fixed input x (batch, time), zero initial state, as a closure of the
+        parameters, for fitting (:func:`~torchhys.identification.fitting.fit_full_batch` calls it at
+        every step). With fixed widths the plays are computed once and ``p`` and ``g`` are matrix
+        products: about half the time of :meth:`forward` per call on 1e5 samples, equal to it up to
+        rounding (forward sums in a fixed order, so that chunked calls equal one call; this closure
+        does not need that)."""
         if self.learnable:
             return lambda: self(x)[0]
         widths = self.get_widths()

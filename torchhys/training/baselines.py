@@ -4,11 +4,10 @@ A hysteresis model earns its place only where it predicts held-out data better t
 better of these two, fitted on the same training samples (the ``ratio`` of
 ``docs/real-data.md`` and of ``torchhys test``).
 
-The polynomial's degree is chosen on a time-ordered hold-out inside the training part: the
-last ``validation`` share of each row's scored samples (the cut of
+The polynomial's degree is chosen on a time-ordered hold-out inside the training part: the last
+``validation`` share of each row's scored samples (the cut of
 :func:`torchhys.identification.fitting.select_pi_ridge`); the chosen degree is then refitted on all
-of them.
-The fits are numpy's :class:`numpy.polynomial.Polynomial` least squares in float64 (on a
+of them. The fits are numpy's :class:`numpy.polynomial.Polynomial` least squares in float64 (on a
 scaled domain, well conditioned up to degree 9).
 """
 
@@ -51,9 +50,8 @@ class Polynomial(NamedTuple):
 
 
 def holdout_mask(mask: Tensor, validation: float = VALIDATION) -> Tensor:
-    """The hold-out of a training part: the last ``validation`` share (at least one sample)
-    of each row's scored samples (:func:`torchhys.identification.fitting.select_pi_ridge`'s cut of
-    a row,
+    """The hold-out of a training part: the last ``validation`` share (at least one sample) of each
+    row's scored samples (:func:`torchhys.identification.fitting.select_pi_ridge`'s cut of a row,
     :func:`torchhys.identification._nnls.holdout_cuts`, applied to the row's scored samples).
 
     Args:

@@ -8,9 +8,9 @@ standardizes the operator's output) maps it back. They are the candidates of
 
 - ``{"fit": "pi_nonneg", "n_widths": 10, "power": 2.0, "ridge": "auto",
   "direction": "direct"}``: a Prandtl-Ishlinskii model with non-negative weights
-  (:func:`torchhys.identification.fitting.fit_prandtl_ishlinskii` with ``nonnegative=True``) of the
-  target
-  from the input (``direct``), or of the input from the target, then its exact inverse
+  (:func:`torchhys.identification.fitting.fit_prandtl_ishlinskii` with
+  ``nonnegative=True``) of the target from the input (``direct``), or of the input from the
+  target, then its exact inverse
   (``inverse``). Such a model draws loops of one orientation only, so the target's sign is
   chosen by the training fit (both signs are fitted).
 - ``{"fit": "gpi", "n_widths": 10, "power": 2.0, "ridge": "auto", "units": 4,
@@ -28,11 +28,10 @@ standardizes the operator's output) maps it back. They are the candidates of
   density from its field, inverted into the compensator); both signs of the target fitted,
   the better kept. ``grading``: None for an even grid, or a graded one whose ``scale`` is
   that fraction of half the grid's span (:class:`torchhys.Preisach`).
-- ``{"fit": "stop_pi", "n_widths": 20, "power": 2.0, "segments": 4, "ridge": "auto",
-  "nonnegative": True}``: :func:`torchhys.fit_stop_pi`, stop operators with thresholds on
-  :func:`~torchhys.identification.fitting.play_width_grid` of the input (up to its span: the
-  largest make
-  the memoryless part), each through a piecewise-linear characteristic of ``segments`` equal
+- ``{"fit": "stop_pi", "n_widths": 20, "power": 2.0, "segments": 4, "ridge": "auto", "nonnegative":
+  True}``: :func:`torchhys.fit_stop_pi`, stop operators with thresholds on
+  :func:`~torchhys.identification.fitting.play_width_grid` of the input (up to its span: the largest
+  make the memoryless part), each through a piecewise-linear characteristic of ``segments`` equal
   segments (non-negative slopes: a friction element with a nonlinear spring, whose loops run
   clockwise); both signs of the target fitted, the better kept.
 - ``{"fit": "jiles_atherton", "mu0": 4e-7 pi, "starts": 8, "iterations": 60,
@@ -50,15 +49,13 @@ standardizes the operator's output) maps it back. They are the candidates of
   shape-memory alloy). It is fitted beside a free slope in the input (not part of the
   drift), so that a loop's rise and fall with the input is not taken for a drift.
 
-``ridge``/``smoothness: "auto"`` picks the penalty on a time-ordered hold-out inside the
-training split (the last quarter of each row's scored samples; :func:`select_pi_ridge`,
-:func:`select_penalty`; for ``gpi``, whose fit can stop at a poor local optimum, the next
-best ridges on that hold-out are tried in turn when the fit fails). Every choice uses the
-training split only. Widths come from :func:`~torchhys.identification.fitting.play_width_grid` of
-the
-fitted model's input. A fit that cannot
-exist (no inverse, a target that does not rise, a diverged fit) raises :class:`FitError`:
-model selection scores that candidate as failed.
+``ridge``/``smoothness: "auto"`` picks the penalty on a time-ordered hold-out inside the training
+split (the last quarter of each row's scored samples; :func:`select_pi_ridge`,
+:func:`select_penalty`; for ``gpi``, whose fit can stop at a poor local optimum, the next best
+ridges on that hold-out are tried in turn when the fit fails). Every choice uses the training split
+only. Widths come from :func:`~torchhys.identification.fitting.play_width_grid` of the fitted
+model's input. A fit that cannot exist (no inverse, a target that does not rise, a diverged fit)
+raises :class:`FitError`: model selection scores that candidate as failed.
 """
 
 from __future__ import annotations
