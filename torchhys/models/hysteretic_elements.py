@@ -150,29 +150,41 @@ class FeedbackElement(HysteresisOperator):
         return (out[0], s[0]) if squeezed else (out, s)
 
 
-class DuhemStep(OperatorStep):
+class _NetStep(OperatorStep):
+    """A feedback element's step that holds an optional ``Linear -> tanh -> Linear`` slope
+    network as buffers ``w1t, b1, w2t, b2`` (empty without one), in the step's dtype."""
+
+    has_net: bool
+
+    def _hold_layers(self, layers: list[Tensor], dtype: torch.dtype) -> None:
+        self.has_net = len(layers) > 0
+        empty = torch.zeros(0, dtype=dtype)
+        for name, t in zip(("w1t", "b1", "w2t", "b2"), layers or [empty] * 4, strict=True):
+            self.register_buffer(name, t.detach().to(dtype).contiguous().clone())
+
+    def layers(self) -> list[Tensor]:
+        """The network's ``[w1t, b1, w2t, b2]``, or ``[]`` without one."""
+        out: list[Tensor] = []
+        if self.has_net:
+            out = [self.w1t, self.b1, self.w2t, self.b2]
+        return out
+
+
+class DuhemStep(_NetStep):
     """The per-sample step of :class:`DuhemHysteresis` (:func:`duhem_step`).
 
     State: ``duhem`` (2 columns, z and the previous v, 0 at the first sample: from rest).
     """
-
-    has_net: bool
 
     def __init__(self, coef: Tensor, layers: list[Tensor], dtype: torch.dtype) -> None:
         super().__init__()
         self.n_outputs = 1
         self.state_spec = [StateBlock("duhem", 2)]
         self.register_buffer("coef", coef.detach().to(dtype).clone())
-        self.has_net = len(layers) > 0
-        empty = torch.zeros(0, dtype=dtype)
-        for name, t in zip(("w1t", "b1", "w2t", "b2"), layers or [empty] * 4, strict=True):
-            self.register_buffer(name, t.detach().to(dtype).contiguous().clone())
+        self._hold_layers(layers, dtype)
 
     def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
-        layers: list[Tensor] = []
-        if self.has_net:
-            layers = [self.w1t, self.b1, self.w2t, self.b2]
-        z, s = duhem_step(x, state[0], self.coef, layers)
+        z, s = duhem_step(x, state[0], self.coef, self.layers())
         return z, [s]
 
 
@@ -208,13 +220,11 @@ class DuhemHysteresis(FeedbackElement):
         return DuhemStep(self.coef, _layers(self.net if self.hidden else None), dtype)
 
 
-class PlayHysteresisStep(OperatorStep):
+class PlayHysteresisStep(_NetStep):
     """The per-sample step of :class:`PlayHysteresis` (:func:`play_hysteresis_step`).
 
     State: ``plays`` (N columns, 0 at the first sample: from rest).
     """
-
-    has_net: bool
 
     def __init__(self, widths: Tensor, w: Tensor, layers: list[Tensor],
                  dtype: torch.dtype) -> None:
@@ -223,16 +233,10 @@ class PlayHysteresisStep(OperatorStep):
         self.state_spec = [StateBlock("plays", int(widths.shape[0]))]
         self.register_buffer("r", (0.5 * widths.detach()).to(dtype).clone())
         self.register_buffer("w", w.detach().to(dtype).clone())
-        self.has_net = len(layers) > 0
-        empty = torch.zeros(0, dtype=dtype)
-        for name, t in zip(("w1t", "b1", "w2t", "b2"), layers or [empty] * 4, strict=True):
-            self.register_buffer(name, t.detach().to(dtype).contiguous().clone())
+        self._hold_layers(layers, dtype)
 
     def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
-        layers: list[Tensor] = []
-        if self.has_net:
-            layers = [self.w1t, self.b1, self.w2t, self.b2]
-        z, p = play_hysteresis_step(x, state[0], self.r, self.w, layers)
+        z, p = play_hysteresis_step(x, state[0], self.r, self.w, self.layers())
         return z, [p]
 
 

@@ -47,6 +47,12 @@ class Coefficients(nn.Module):
         return self()[0]
 
 
+def _check_a_init(a_init: object) -> None:
+    """The initial value of trained coefficients: a positive finite number."""
+    if not (isinstance(a_init, (int, float)) and math.isfinite(a_init) and a_init > 0):
+        raise ValueError(f"a_init must be a positive number, got {a_init!r}")
+
+
 class FixedCoefficients(Coefficients):
     """Constant coefficients (a buffer ``a``): a positive number or a pair."""
 
@@ -73,8 +79,7 @@ class LearnableCoefficients(Coefficients):
 
     def __init__(self, a_init: float = 1.0, per_direction: bool = False) -> None:
         super().__init__()
-        if not (isinstance(a_init, (int, float)) and math.isfinite(a_init) and a_init > 0):
-            raise ValueError(f"a_init must be a positive number, got {a_init!r}")
+        _check_a_init(a_init)
         self.log_a = nn.Parameter(torch.full((2 if per_direction else 1,), math.log(a_init)))
 
     def forward(self) -> tuple[Tensor, Tensor | None]:
@@ -87,8 +92,7 @@ class AnchoredCoefficients(Coefficients):
 
     def __init__(self, a_init: float = 1.0, center: float = 0.0, scale: float = 1.0) -> None:
         super().__init__()
-        if not (isinstance(a_init, (int, float)) and math.isfinite(a_init) and a_init > 0):
-            raise ValueError(f"a_init must be a positive number, got {a_init!r}")
+        _check_a_init(a_init)
         if not (math.isfinite(center) and math.isfinite(scale) and scale > 0):
             raise ValueError("anchor_center must be finite and anchor_scale positive, got "
                              f"{center!r}, {scale!r}")
