@@ -319,3 +319,35 @@ def test_predictor_equals_forward_with_its_gradient(learnable):
     with torch.no_grad():  # the closure reads the current parameters
         m.offset.add_(1.0)
     torch.testing.assert_close(predict(), ref.detach() + 1.0, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("learnable", [False, True])
+def test_mse_closure_equals_autograd_through_forward(learnable):
+    """The fitting loss (plays once, the masked rows, the analytic gradient of
+    ``monotone_mse``) equals the masked MSE of the sequence path, and its gradient that of
+    autograd through it, for every parameter."""
+    m = model(learnable_widths=learnable)
+    x = walks(300)
+    y = torch.sin(3.0 * x) + 0.1 * x
+    samples = torch.rand(x.shape, generator=torch.Generator().manual_seed(1)) < 0.7
+    loss = m.mse_closure(x, y, samples)()
+    ref = (m(x)[0] - y)[samples].square().mean()
+    torch.testing.assert_close(loss, ref, rtol=1e-12, atol=0)
+    params = list(m.parameters())
+    grads = torch.autograd.grad(loss, params)
+    refs = torch.autograd.grad(ref, params)
+    for g, r in zip(grads, refs, strict=True):
+        torch.testing.assert_close(g, r, rtol=1e-10, atol=1e-12)
+
+
+def test_monotone_mse_gradcheck():
+    from torchhys.functional.generalized_pi import monotone_mse
+
+    gen = torch.Generator().manual_seed(2)
+    design = torch.randn(40, 4, generator=gen, dtype=F64)
+    y = torch.randn(40, generator=gen, dtype=F64)
+    params = [torch.randn(4, generator=gen, dtype=F64), torch.tensor(0.7, dtype=F64),
+              torch.rand(3, generator=gen, dtype=F64), torch.randn(3, generator=gen, dtype=F64),
+              torch.rand(3, generator=gen, dtype=F64) + 0.5, torch.tensor(0.2, dtype=F64)]
+    params = [p.requires_grad_() for p in params]
+    assert torch.autograd.gradcheck(lambda *p: monotone_mse(design, y, *p), params)

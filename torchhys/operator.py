@@ -162,6 +162,15 @@ class HysteresisOperator(AtomicLoad, nn.Module, abc.ABC):
         the trained parameters can be done once (e.g. plays of fixed widths)."""
         return lambda: self(x)[0]
 
+    def mse_closure(self, x: Tensor, y: Tensor, samples: Tensor) -> Callable[[], Tensor]:
+        """The mean squared error of the output on a fixed input x (batch, time), from the
+        zero state, against y (batch, time) over ``samples`` (bool, (batch, time)), as a
+        closure of the parameters: what full-batch fitting minimizes. Default: from
+        :meth:`predictor`; an operator overrides it where the loss and its gradient have a
+        faster form (e.g. :class:`~torchhys.GeneralizedPrandtlIshlinskii`)."""
+        predict = type(self).predictor(self, x)
+        return lambda: (predict() - y)[samples].square().mean()
+
     def check_loaded(self, values: Mapping[str, Tensor], prefix: str) -> None:  # noqa: B027
         """Constraints between the values about to be loaded (``alpha >= beta``, an
         invertible model), after the declared :attr:`constraints` hold. ``values``: each of

@@ -64,9 +64,9 @@ def fit_full_batch(
     ``y`` is passed as ``target`` (used only by per-segment, non-causal EIHOs). An operator
     with one output (e.g. :class:`~torchhys.operators.generalized_pi.GeneralizedPrandtlIshlinskii`)
     is fitted as a model of ``y`` itself: the loss is ``mean((op(x) - y)^2)``, computed through
-    ``op.predictor(x)`` (:meth:`torchhys.HysteresisOperator.predictor`: a faster closure of
-    its output on this fixed input where the operator has one, e.g.
-    :meth:`~torchhys.GeneralizedPrandtlIshlinskii.predictor`).
+    ``op.mse_closure(x, y, samples)`` (:meth:`torchhys.HysteresisOperator.mse_closure`: a
+    faster closure of the loss on this fixed input where the operator has one, e.g.
+    :meth:`~torchhys.GeneralizedPrandtlIshlinskii.mse_closure`).
 
     Args:
         model: the network, or a causal operator with ``n_outputs == 1``.
@@ -171,10 +171,12 @@ def _operator_loss(op: object, x: Tensor, y: Tensor, warmup: int,
     xb, _ = as_batched_sequence(x, "x")
     yb, _ = as_batched_sequence(y, "y")
     check_same_shape(yb, xb, "y", "x")
-    # a faster closure of the output where the operator has one (the class's method: a
-    # submodule that happens to be called `predictor` does not shadow it)
-    predict = type(op).predictor(op, xb)
-    return lambda: _mse(predict() - yb, warmup, mask)
+    # a faster closure where the operator has one (the class's method: a submodule that
+    # happens to be called `mse_closure` does not shadow it)
+    if mask is None:
+        mask = torch.ones(xb.shape, dtype=torch.bool, device=xb.device)
+        mask[:, :warmup] = False
+    return type(op).mse_closure(op, xb, yb, mask)
 
 
 def play_width_grid(u: Tensor, n: int = 30, *, power: float = 3.0) -> Tensor:
