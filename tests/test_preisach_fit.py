@@ -12,7 +12,7 @@ import torch
 from scipy.optimize import nnls
 
 from torchhys.functional.preisach import relay_states
-from torchhys.identification.preisach import fit_preisach, select_penalty
+from torchhys.identification.preisach import fit_preisach, fit_preisach_signs, select_penalty
 from torchhys.operators.preisach import Preisach
 
 F64 = torch.float64
@@ -146,3 +146,27 @@ def test_fit_default_range_and_deployment():
     step = fit.streaming_step(F64)
     with torch.no_grad():
         torch.testing.assert_close(step.run(x)[..., 0], fit(x)[0], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("penalties", [[0.0, 1e-4, 1e-2], 1e-3])
+def test_fit_signs_equals_select_then_fit(penalties):
+    """One pass of the relays for both signs of y and for the penalty's choice gives what
+    select_penalty then fit_preisach give for each sign, up to rounding."""
+    x = excitation(2, 400)
+    with torch.no_grad():
+        y = plant(6)(x)[0] + 0.01 * torch.randn(x.shape, generator=torch.Generator()
+                                                 .manual_seed(3), dtype=F64)
+    mask = torch.ones_like(x, dtype=torch.bool)
+    mask[:, 150:200] = False
+    kw = dict(lo=-1.2, hi=1.2, n=6, mask=mask, validation=0.25)
+    fits = fit_preisach_signs(x, y, penalties, signs=(1.0, -1.0), **kw)
+    for (penalty, m), sign in zip(fits, (1.0, -1.0), strict=True):
+        if isinstance(penalties, list):
+            best, _ = select_penalty(x, sign * y, penalties, **kw)
+        else:
+            best = penalties
+        assert penalty == best
+        kw_fit = {k: v for k, v in kw.items() if k != "validation"}
+        ref = fit_preisach(x, sign * y, smoothness=best, **kw_fit)
+        for a, b in zip(m.parameters(), ref.parameters(), strict=True):
+            torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-10)

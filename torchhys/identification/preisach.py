@@ -3,8 +3,10 @@
 
 from __future__ import annotations
 
+import copy
 import functools
 import warnings
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor, nn
@@ -29,7 +31,7 @@ from torchhys.identification._nnls import (
 )
 from torchhys.operators.preisach import Preisach
 
-__all__ = ["fit_preisach", "select_penalty"]
+__all__ = ["fit_preisach", "fit_preisach_signs", "select_penalty"]
 
 
 def fit_preisach(
@@ -124,6 +126,59 @@ def select_penalty(
         return last
 
     return select_on_holdout(train, valid, penalties, solve)
+
+
+def fit_preisach_signs(
+    x: Tensor,
+    y: Tensor,
+    penalties: float | Sequence[float],
+    *,
+    signs: Sequence[float] = (1.0,),
+    kind: str = "smoothness",
+    validation: float = 0.25,
+    lo: float | None = None,
+    hi: float | None = None,
+    n: int = 20,
+    linear: bool = True,
+    warmup: int = 0,
+    scale: float | None = None,
+    mask: Tensor | None = None,
+) -> list[tuple[float, Preisach]]:
+    """:func:`fit_preisach` of ``sign * y`` for each sign, its ``kind`` penalty chosen by
+    :func:`select_penalty` when ``penalties`` is a sequence (one number: that penalty), from
+    one pass of the relays over x: the fit on all samples takes the sum of the training and
+    hold-out moments, and a sign flips only ``A'y``. Equal to those calls up to rounding.
+
+    Returns:
+        ``(penalty, model)`` for each sign, in order.
+    """
+    if kind not in ("ridge", "smoothness"):
+        raise ValueError(f"kind must be one of ('ridge', 'smoothness'), got {kind!r}")
+    select = not isinstance(penalties, (int, float, Tensor))
+    xb, yb, model, samples = _prepare(x, y, lo, hi, n, linear, warmup,
+                                      check_validation(validation) if select else None, scale,
+                                      mask)
+    segments = _normal_equations(xb, yb, model, samples)
+    out = []
+    for sign in signs:
+        parts = [Moments(m.gram, sign * m.moment, m.yy, m.count) for m in segments]
+        last: Tensor | None = None  # each penalty's fit starts from the previous one's
+
+        def solve(G: Tensor, h: Tensor, p: float) -> Tensor:
+            nonlocal last
+            last = _solve(G, h, model, *((p, 0.0) if kind == "ridge" else (0.0, p)), init=last)
+            return last
+
+        if select:
+            best, _ = select_on_holdout(*parts, penalties, solve)
+        else:
+            best = check_penalty(penalties, kind)
+        G, h = sum(m.gram for m in parts), sum(m.moment for m in parts)
+        count = sum(m.count for m in parts)
+        theta = _solve(G / count, h / count, model,
+                       *((best, 0.0) if kind == "ridge" else (0.0, best)))
+        out.append((best, _set(copy.deepcopy(model), theta)))
+    return out
 
 
 def _prepare(x: Tensor, y: Tensor, lo: float | None, hi: float | None, n: int, linear: bool,

@@ -78,9 +78,7 @@ from torchhys import (
     fit_drift,
     fit_generalized_pi,
     fit_jiles_atherton,
-    fit_preisach,
     fit_stop_pi,
-    select_penalty,
     select_stop_pi_ridge,
 )
 from torchhys._checks import (
@@ -94,6 +92,7 @@ from torchhys._checks import (
 from torchhys.functional.jiles_atherton import MU0
 from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
 from torchhys.identification.jiles_atherton import substeps_for
+from torchhys.identification.preisach import fit_preisach_signs
 
 __all__ = ["FAMILIES", "FitError", "GPI_SAMPLE_ITERATIONS", "PENALTIES"]
 
@@ -330,30 +329,31 @@ def _preisach(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     direction = check_choice(spec.get("direction", "direct"), "fit 'preisach': direction",
                              ["direct", "inverse"])
 
-    def one_sign(u: Tensor, out: Tensor, scored: Tensor, known: Tensor) -> Preisach:
-        """The Preisach model of ``out`` from ``u`` on a grid over u's (known) range."""
+    def fitted(u: Tensor, out: Tensor, scored: Tensor, known: Tensor,
+               signs: tuple[float, ...]) -> list[Preisach]:
+        """The Preisach models of ``sign * out`` from ``u`` on a grid over u's (known) range,
+        one pass of the relays for all signs."""
         lo, hi = float(u[known].min()), float(u[known].max())
         scale = None if grading is None else grading * 0.5 * (hi - lo)
-        p = smoothness
-        if p == "auto":
-            p, _ = select_penalty(u, out, list(PENALTIES), kind="smoothness",
-                                  validation=_holdout(scored), lo=lo, hi=hi, n=n,
-                                  mask=scored, scale=scale)
-        return fit_preisach(u, out, lo=lo, hi=hi, n=n, smoothness=p, mask=scored,
-                            scale=scale)
+        penalties = list(PENALTIES) if smoothness == "auto" else smoothness
+        validation = _holdout(scored) if smoothness == "auto" else VALIDATION
+        return [m for _, m in fit_preisach_signs(
+            u, out, penalties, signs=signs, kind="smoothness", validation=validation, lo=lo,
+            hi=hi, n=n, mask=scored, scale=scale)]
 
     def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
         scored, known = _samples(x, warmup, mask)
         sx, t = _standardized(x, y, scored)
         mx = float(x[scored].mean())
         fits = []
-        for sign in (1.0, -1.0):
-            if direction == "direct":
-                m: nn.Module = one_sign(x, sign * t, scored, known)
+        direct = fitted(x, t, scored, known, (1.0, -1.0)) if direction == "direct" else None
+        for i, sign in enumerate((1.0, -1.0)):
+            if direct is not None:
+                m: nn.Module = direct[i]
             else:
                 # the model of the centred, scaled input from sign x the target, mapped back
                 # to the physical input, then inverted
-                forward = one_sign(sign * t, (x - mx) / sx, scored, known)
+                forward, = fitted(sign * t, (x - mx) / sx, scored, known, (1.0,))
                 with torch.no_grad():
                     forward.weights.mul_(sx)
                     forward.linear.mul_(sx)
