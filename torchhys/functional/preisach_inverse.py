@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from torchhys._checks import check_tensor
+from torchhys.functional._preisach_kernel import inverse_kernel, inverse_kernel_available
 from torchhys.functional.preisach import (
     _check_inputs,
     check_scale,
@@ -216,7 +217,9 @@ def preisach_inverse(
 ) -> tuple[Tensor, Tensor]:
     """The exact inverse of the hard-relay Preisach model :func:`preisach`: the input x,
     sample by sample, at which the model outputs y (:func:`preisach_inverse_step`), in
-    windows of samples that leave the relays as they are (:func:`_inverse_windows`).
+    windows of samples that leave the relays as they are (:func:`_inverse_windows`); without
+    gradients on the CPU, one compiled loop
+    (:mod:`torchhys.functional._preisach_kernel`).
 
     Args:
         y: target, (time,) or (batch, time).
@@ -243,5 +246,8 @@ def preisach_inverse(
     scale = check_scale(scale)
     tables = preisach_inverse_constants(alpha, beta, weights.to(yb.dtype), linear, offset,
                                         float(center), scale)
-    x, r = _inverse_windows(yb, r, alpha, beta, tables, linear, float(center), scale)
+    if inverse_kernel_available(yb, r, alpha, beta, weights, linear, offset):
+        x, r = inverse_kernel(yb, r, alpha, beta, tables, linear, float(center), scale)
+    else:
+        x, r = _inverse_windows(yb, r, alpha, beta, tables, linear, float(center), scale)
     return (x[0], r[0]) if squeeze else (x, r)
