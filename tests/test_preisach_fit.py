@@ -160,7 +160,7 @@ def test_fit_signs_equals_select_then_fit(penalties):
     mask[:, 150:200] = False
     kw = dict(lo=-1.2, hi=1.2, n=6, mask=mask, validation=0.25)
     fits = fit_preisach_signs(x, y, penalties, signs=(1.0, -1.0), **kw)
-    for (penalty, m), sign in zip(fits, (1.0, -1.0), strict=True):
+    for (penalty, m, rmse), sign in zip(fits, (1.0, -1.0), strict=True):
         if isinstance(penalties, list):
             best, _ = select_penalty(x, sign * y, penalties, **kw)
         else:
@@ -170,3 +170,7 @@ def test_fit_signs_equals_select_then_fit(penalties):
         ref = fit_preisach(x, sign * y, smoothness=best, **kw_fit)
         for a, b in zip(m.parameters(), ref.parameters(), strict=True):
             torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-10)
+        with torch.no_grad():
+            out = m(x)[0]
+        assert math.isclose(rmse, float((out - sign * y)[mask].square().mean().sqrt()),
+                            rel_tol=1e-9)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import math
 import warnings
 from collections.abc import Sequence
 
@@ -143,14 +144,15 @@ def fit_preisach_signs(
     warmup: int = 0,
     scale: float | None = None,
     mask: Tensor | None = None,
-) -> list[tuple[float, Preisach]]:
+) -> list[tuple[float, Preisach, float]]:
     """:func:`fit_preisach` of ``sign * y`` for each sign, its ``kind`` penalty chosen by
     :func:`select_penalty` when ``penalties`` is a sequence (one number: that penalty), from
     one pass of the relays over x: the fit on all samples takes the sum of the training and
     hold-out moments, and a sign flips only ``A'y``. Equal to those calls up to rounding.
 
     Returns:
-        ``(penalty, model)`` for each sign, in order.
+        ``(penalty, model, rmse)`` for each sign, in order: rmse the RMS error of the model
+        against ``sign * y`` on the fitted samples, from the moments (no run of the model).
     """
     if kind not in ("ridge", "smoothness"):
         raise ValueError(f"kind must be one of ('ridge', 'smoothness'), got {kind!r}")
@@ -177,7 +179,13 @@ def fit_preisach_signs(
         count = sum(m.count for m in parts)
         theta = _solve(G / count, h / count, model,
                        *((best, 0.0) if kind == "ridge" else (0.0, best)))
-        out.append((best, _set(copy.deepcopy(model), theta)))
+        fitted = _set(copy.deepcopy(model), theta)
+        theta = torch.cat([fitted.weights.detach().reshape(-1), fitted.linear.detach().reshape(-1)
+                           if isinstance(model.linear, nn.Parameter) else theta[:0],
+                           fitted.offset.detach().reshape(-1)]).double()
+        yy = sum(m.yy for m in parts)
+        sse = float(yy - 2.0 * theta @ h + theta @ G @ theta)
+        out.append((best, fitted, math.sqrt(max(sse, 0.0) / count)))
     return out
 
 

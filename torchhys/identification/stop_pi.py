@@ -33,7 +33,7 @@ from torchhys.identification._nnls import (
 )
 from torchhys.operators.stop_pi import StopPrandtlIshlinskii
 
-__all__ = ["fit_stop_pi", "select_stop_pi_ridge"]
+__all__ = ["fit_stop_pi", "fit_stop_pi_signs", "select_stop_pi_ridge"]
 
 
 # --- identification -----------------------------------------------------------------------
@@ -212,6 +212,13 @@ def fit_stop_pi(
     fitted = fitted_samples(mask, xb.shape, warmup)
     c = _center(xb, fitted, center)
     ((mom, varying),) = _moments(xb, yb, thresholds, segments, c, [fitted])
+    return _fitted(mom, varying, ridge, nonnegative, bound, thresholds, segments, c, xb)
+
+
+def _fitted(mom: Moments, varying: Tensor, ridge: float, nonnegative: bool,
+            bound: float | None, thresholds: Tensor, segments: int, c: float,
+            xb: Tensor) -> StopPrandtlIshlinskii:
+    """The model of the solution of the moments (in x's dtype and device)."""
     theta = _solve(mom.gram / mom.count, mom.moment / mom.count, ridge, nonnegative, varying,
                    bound)
     if not bool(torch.isfinite(theta).all()):
@@ -221,6 +228,57 @@ def fit_stop_pi(
     return StopPrandtlIshlinskii(
         thresholds.detach().to(dt), theta[2:].reshape(n, segments).to(dt), center=c,
         linear_weight=float(theta[1]), offset=float(theta[0])).to(xb.device)
+
+
+def fit_stop_pi_signs(
+    x: Tensor,
+    y: Tensor,
+    thresholds: Tensor,
+    ridges: float | Sequence[float],
+    *,
+    signs: Sequence[float] = (1.0,),
+    segments: int = 4,
+    nonnegative: bool = True,
+    validation: float = 0.25,
+    mask: Tensor | None = None,
+) -> list[tuple[float, StopPrandtlIshlinskii, float]]:
+    """:func:`fit_stop_pi` of ``sign * y`` for each sign, its ridge chosen by
+    :func:`select_stop_pi_ridge` when ``ridges`` is a sequence (one number: that ridge), the
+    default center, no warm-up: the design's moments are formed once for all signs (a sign
+    flips only ``A'y``). Equal to those calls up to rounding.
+
+    Returns:
+        ``(ridge, model, rmse)`` for each sign, in order: rmse the RMS error of the model
+        against ``sign * y`` on the fitted samples, from the moments (no run of the model).
+    """
+    xb, yb, segments = _check_data(x, y, thresholds, segments, 0)
+    nonnegative = check_bool(nonnegative, "nonnegative")
+    select = not isinstance(ridges, (int, float, Tensor))
+    fitted = fitted_samples(mask, xb.shape, 0)
+    c = _center(xb, fitted, None)
+    ((full, varying),) = _moments(xb, yb, thresholds, segments, c, [fitted])
+    if select:
+        train_part, held = fit_segments(xb.shape, 0, mask, check_validation(validation))
+        (train, part_varying), (valid, _) = _moments(
+            xb, yb, thresholds, segments, _center(xb, train_part, None), [train_part, held])
+    out = []
+    for sign in signs:
+        if select:
+            best, _ = select_on_holdout(
+                train._replace(moment=sign * train.moment),
+                valid._replace(moment=sign * valid.moment), ridges,
+                lambda G, h, ridge: _solve(G, h, ridge, nonnegative, part_varying, None),
+                name="ridges")
+        else:
+            best = check_penalty(ridges, "ridge")
+        mom = full._replace(moment=sign * full.moment)
+        model = _fitted(mom, varying, best, nonnegative, None, thresholds, segments, c, xb)
+        theta = torch.cat([model.offset.detach().reshape(1),
+                           model.linear_weight.detach().reshape(1),
+                           model.weights.detach().flatten()]).double().cpu()
+        sse = mom.yy - 2.0 * theta @ mom.moment + theta @ mom.gram @ theta
+        out.append((best, model, math.sqrt(max(float(sse), 0.0) / mom.count)))
+    return out
 
 
 def select_stop_pi_ridge(

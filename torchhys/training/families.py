@@ -78,8 +78,6 @@ from torchhys import (
     fit_drift,
     fit_generalized_pi,
     fit_jiles_atherton,
-    fit_stop_pi,
-    select_stop_pi_ridge,
 )
 from torchhys._checks import (
     check_bool,
@@ -93,6 +91,7 @@ from torchhys.functional.jiles_atherton import MU0
 from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
 from torchhys.identification.jiles_atherton import substeps_for
 from torchhys.identification.preisach import fit_preisach_signs
+from torchhys.identification.stop_pi import fit_stop_pi_signs
 
 __all__ = ["FAMILIES", "FitError", "GPI_SAMPLE_ITERATIONS", "PENALTIES"]
 
@@ -330,16 +329,16 @@ def _preisach(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
                              ["direct", "inverse"])
 
     def fitted(u: Tensor, out: Tensor, scored: Tensor, known: Tensor,
-               signs: tuple[float, ...]) -> list[Preisach]:
+               signs: tuple[float, ...]) -> list[tuple[float, Preisach, float]]:
         """The Preisach models of ``sign * out`` from ``u`` on a grid over u's (known) range,
         one pass of the relays for all signs."""
         lo, hi = float(u[known].min()), float(u[known].max())
         scale = None if grading is None else grading * 0.5 * (hi - lo)
         penalties = list(PENALTIES) if smoothness == "auto" else smoothness
         validation = _holdout(scored) if smoothness == "auto" else VALIDATION
-        return [m for _, m in fit_preisach_signs(
+        return fit_preisach_signs(
             u, out, penalties, signs=signs, kind="smoothness", validation=validation, lo=lo,
-            hi=hi, n=n, mask=scored, scale=scale)]
+            hi=hi, n=n, mask=scored, scale=scale)
 
     def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
         scored, known = _samples(x, warmup, mask)
@@ -349,19 +348,20 @@ def _preisach(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
         direct = fitted(x, t, scored, known, (1.0, -1.0)) if direction == "direct" else None
         for i, sign in enumerate((1.0, -1.0)):
             if direct is not None:
-                m: nn.Module = direct[i]
-            else:
-                # the model of the centred, scaled input from sign x the target, mapped back
-                # to the physical input, then inverted
-                forward, = fitted(sign * t, (x - mx) / sx, scored, known, (1.0,))
-                with torch.no_grad():
-                    forward.weights.mul_(sx)
-                    forward.linear.mul_(sx)
-                    forward.offset.mul_(sx).add_(mx)
-                try:
-                    m = forward.inverse()
-                except ValueError:
-                    continue
+                _, m, rmse = direct[i]  # its RMS error from the fit's moments
+                fits.append((rmse, sign, m))
+                continue
+            # the model of the centred, scaled input from sign x the target, mapped back to
+            # the physical input, then inverted
+            (_, forward, _), = fitted(sign * t, (x - mx) / sx, scored, known, (1.0,))
+            with torch.no_grad():
+                forward.weights.mul_(sx)
+                forward.linear.mul_(sx)
+                forward.offset.mul_(sx).add_(mx)
+            try:
+                m = forward.inverse()
+            except ValueError:
+                continue
             fits.append((_rmse(m, x, sign * t, scored), sign, m))
         if not fits:
             raise FitError(f"preisach ({direction}): no invertible fit of either sign")
@@ -386,19 +386,18 @@ def _stop_pi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
         u = x / sx
         thresholds = play_width_grid(u[scored], n, power=power)
         fits = []
-        for sign in (1.0, -1.0) if nonnegative else (1.0,):
-            r = ridge
-            if r == "auto":
-                r, _ = select_stop_pi_ridge(u, sign * t, thresholds, PENALTIES,
-                                            segments=segments, nonnegative=nonnegative,
-                                            validation=_holdout(scored), mask=scored)
-            m = fit_stop_pi(u, sign * t, thresholds, segments=segments, ridge=r,
-                            nonnegative=nonnegative, mask=scored)
+        signs = (1.0, -1.0) if nonnegative else (1.0,)
+        auto = ridge == "auto"
+        models = fit_stop_pi_signs(u, t, thresholds, list(PENALTIES) if auto else ridge,
+                                   signs=signs, segments=segments, nonnegative=nonnegative,
+                                   validation=_holdout(scored) if auto else VALIDATION,
+                                   mask=scored)
+        for sign, (_, m, rmse) in zip(signs, models, strict=True):
             # the same model of the physical input x, times the sign
             m = StopPrandtlIshlinskii(
                 m.thresholds * sx, sign * m.weights / sx, center=float(m.center) * sx,
                 linear_weight=sign * float(m.linear_weight) / sx, offset=sign * float(m.offset))
-            fits.append((_rmse(m, x, t, scored), m))
+            fits.append((rmse, m))
         rmse, m = min(fits, key=lambda f: f[0])
         return _checked(m, x, t, scored, "stop_pi", rmse=rmse)
 
