@@ -511,3 +511,26 @@ def test_family_fits_leave_the_samples_outside_the_mask_out(spec):
     except FitError:  # the spoiled targets leave no fit better than a line: moved too
         return
     assert float((moved - clean).abs().max()) > 1e-3
+
+
+@pytest.mark.parametrize("rmse, starts", [(0.5, 1), (0.5004, 1), (0.6, 3)])
+def test_gpi_is_not_started_again_when_it_ended_on_the_line(monkeypatch, rmse, starts):
+    """A gpi fit no better than a straight line is started again from the next ridges' PI
+    fits (a poor local optimum), unless it ended on the line itself (within ON_THE_LINE)."""
+    from torchhys.training import families
+
+    calls = []
+
+    def no_better(model, x, t, scored, name, *args, **kwargs):  # noqa: ANN001
+        calls.append(name)
+        raise families.NoBetterThanLine(f"{name}: no better", rmse, 0.5)
+
+    monkeypatch.setattr(families, "_checked", no_better)
+    _, fit = families.FAMILIES["gpi"]({"fit": "gpi", "epochs": 20})
+    t = torch.arange(400, dtype=torch.float64)
+    x = torch.sin(0.05 * t).reshape(1, -1)
+    y = torch.tanh(2 * x) + 0.1 * torch.sin(0.3 * t)
+    with pytest.raises(families.FitError) as err:
+        fit(x, y, 0, None)
+    assert len(calls) == starts
+    assert ("no other start tried" in str(err.value)) == (starts == 1)

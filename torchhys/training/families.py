@@ -52,7 +52,8 @@ standardizes the operator's output) maps it back. They are the candidates of
 ``ridge``/``smoothness: "auto"`` picks the penalty on a time-ordered hold-out inside the training
 split (the last quarter of each row's scored samples; :func:`select_pi_ridge`,
 :func:`select_penalty`; for ``gpi``, whose fit can stop at a poor local optimum, the next best
-ridges on that hold-out are tried in turn when the fit fails). Every choice uses the training split
+ridges on that hold-out are tried in turn when the fit fails, unless it ended on the straight
+line itself: :attr:`NoBetterThanLine.on_the_line`). Every choice uses the training split
 only. Widths come from :func:`~torchhys.identification.fitting.play_width_grid` of the fitted
 model's input. A fit that cannot exist (no inverse, a target that does not rise, a diverged fit)
 raises :class:`FitError`: model selection scores that candidate as failed.
@@ -93,7 +94,8 @@ from torchhys.identification.jiles_atherton import substeps_for
 from torchhys.identification.preisach import fit_preisach_signs
 from torchhys.identification.stop_pi import fit_stop_pi_signs
 
-__all__ = ["FAMILIES", "FitError", "GPI_SAMPLE_ITERATIONS", "PENALTIES"]
+__all__ = ["FAMILIES", "FitError", "GPI_SAMPLE_ITERATIONS", "NoBetterThanLine", "ON_THE_LINE",
+           "PENALTIES"]
 
 PENALTIES = (0.0, 1e-8, 1e-6, 1e-4, 1e-2, 1e-1)
 """The grid of ``ridge``/``smoothness: "auto"``."""
@@ -110,6 +112,27 @@ Fitter = Callable[[Tensor, Tensor, int, Tensor | None], nn.Module]
 
 class FitError(ValueError):
     """A model family that cannot be fitted to these data (model selection skips it)."""
+
+
+class NoBetterThanLine(FitError):
+    """A fit no better than a straight line on its training samples (standardized RMS
+    errors ``rmse`` and ``line``)."""
+
+    def __init__(self, message: str, rmse: float, line: float) -> None:
+        super().__init__(message)
+        self.rmse, self.line = rmse, line
+
+    @property
+    def on_the_line(self) -> bool:
+        """Whether the fit ended on the line itself (RMS error within
+        :data:`ON_THE_LINE` of it, relative): its nonlinear part found nothing to fit."""
+        return self.rmse <= self.line * (1.0 + ON_THE_LINE)
+
+
+ON_THE_LINE = 1e-3
+"""How close to the straight line's RMS error (relative) a failed fit ends "on the line"
+(:attr:`NoBetterThanLine.on_the_line`): a ``gpi`` fit that does is not started again from
+the next ridge's PI fit."""
 
 
 def _keys(spec: Mapping[str, Any], allowed: set[str]) -> None:
@@ -193,8 +216,9 @@ def _checked(model: nn.Module, x: Tensor, t: Tensor, scored: Tensor, name: str,
     line = float((design @ torch.linalg.lstsq(design, ts[:, None]).solution - ts[:, None])
                  .square().mean().sqrt())
     if not rmse < line:
-        raise FitError(f"{name}: the fitted model is no better than a straight line on the "
-                       f"training samples (standardized RMSE {rmse:.3g}, line {line:.3g})")
+        raise NoBetterThanLine(f"{name}: the fitted model is no better than a straight line on "
+                               f"the training samples (standardized RMSE {rmse:.3g}, line "
+                               f"{line:.3g})", rmse, line)
     return model
 
 
@@ -285,6 +309,9 @@ def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
                 return fitted(x, t, u, out, widths, r, sx, mx, scored, known)
             except (ValueError, FloatingPointError) as err:  # FitError, diverged, no inverse
                 errors.append(f"ridge {r:g}: {err}")
+                if isinstance(err, NoBetterThanLine) and err.on_the_line:
+                    errors.append("the fit ended on the line: no other start tried")
+                    break
         raise FitError(f"gpi ({direction}): " + "; ".join(errors))
 
     def fitted(x: Tensor, t: Tensor, u: Tensor, out: Tensor, widths: Tensor, r: float,
