@@ -14,12 +14,12 @@ standardizes the operator's output) maps it back. They are the candidates of
   (``inverse``). Such a model draws loops of one orientation only, so the target's sign is
   chosen by the training fit (both signs are fitted).
 - ``{"fit": "gpi", "n_widths": 10, "power": 2.0, "ridge": "auto", "units": 4,
-  "epochs": 1000, "sample_iterations": 2e7, "direction": "direct"}``:
+  "epochs": 1000, "sample_iterations": 1e7, "direction": "direct"}``:
   :func:`torchhys.fit_generalized_pi` of the target (times the sign that makes it rise with
   the input) from the input, or of the input from it, then
   :class:`torchhys.GeneralizedPIInverse`. Its L-BFGS iterations are at most ``epochs`` and
   at most ``sample_iterations`` over the fitted samples (at least 20): a long record gets
-  fewer (1000 iterations on 1e5 samples took about 20 s per fit), records up to 2e4
+  fewer (1000 iterations on 1e5 samples took about 10 s per fit), records up to 1e4
   samples all of them.
 - ``{"fit": "preisach", "n": 20, "smoothness": "auto", "grading": None,
   "direction": "direct"}``: :func:`torchhys.fit_preisach` of the target from the input on a
@@ -103,7 +103,7 @@ VALIDATION = 0.25
 """The hold-out share of ``"auto"`` penalties: the last quarter of each row's scored
 samples."""
 
-GPI_SAMPLE_ITERATIONS = 2e7
+GPI_SAMPLE_ITERATIONS = 1e7
 """The ``gpi`` family's bound on L-BFGS iterations times fitted samples (its
 ``sample_iterations``)."""
 
