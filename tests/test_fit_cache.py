@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torchhys.training import fit_cache
-from torchhys.training.families import FitError
+from torchhys.training.fit_checks import FitError
 from torchhys.training.operators import build_operators
 
 

@@ -30,7 +30,8 @@ from torchhys import (
 from torchhys.deploy.export import load_torchscript, to_torchscript
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule, selection
 from torchhys.training.cli import main
-from torchhys.training.families import FitError, _substeps
+from torchhys.training.families import _substeps
+from torchhys.training.fit_checks import FitError
 from torchhys.training.operators import build_operators, fit_data_dependent
 
 F64 = torch.float64
@@ -517,20 +518,20 @@ def test_family_fits_leave_the_samples_outside_the_mask_out(spec):
 def test_gpi_is_not_started_again_when_it_ended_on_the_line(monkeypatch, rmse, starts):
     """A gpi fit no better than a straight line is started again from the next ridges' PI
     fits (a poor local optimum), unless it ended on the line itself (within ON_THE_LINE)."""
-    from torchhys.training import families
+    from torchhys.training import families, fit_checks
 
     calls = []
 
     def no_better(model, x, t, scored, name, *args, **kwargs):  # noqa: ANN001
         calls.append(name)
-        raise families.NoBetterThanLine(f"{name}: no better", rmse, 0.5)
+        raise fit_checks.NoBetterThanLine(f"{name}: no better", rmse, 0.5)
 
     monkeypatch.setattr(families, "_checked", no_better)
     _, fit = families.FAMILIES["gpi"]({"fit": "gpi", "epochs": 20})
     t = torch.arange(400, dtype=torch.float64)
     x = torch.sin(0.05 * t).reshape(1, -1)
     y = torch.tanh(2 * x) + 0.1 * torch.sin(0.3 * t)
-    with pytest.raises(families.FitError) as err:
+    with pytest.raises(fit_checks.FitError) as err:
         fit(x, y, 0, None)
     assert len(calls) == starts
     assert ("no other start tried" in str(err.value)) == (starts == 1)

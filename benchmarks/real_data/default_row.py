@@ -14,7 +14,7 @@ from torch import Tensor
 from torchhys import InverseHysteresisNet
 from torchhys.deploy.streaming import default_limits
 from torchhys.training.cli import read_config
-from torchhys.training.families import FitError
+from torchhys.training.fit_checks import FitError
 from torchhys.training.folds import RECORDING, fold_masks
 from torchhys.training.init import initialize
 from torchhys.training.module import OPTIMIZERS, InverseHysteresisModule

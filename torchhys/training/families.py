@@ -53,7 +53,7 @@ standardizes the operator's output) maps it back. They are the candidates of
 split (the last quarter of each row's scored samples; :func:`select_pi_ridge`,
 :func:`select_penalty`; for ``gpi``, whose fit can stop at a poor local optimum, the next best
 ridges on that hold-out are tried in turn when the fit fails, unless it ended on the straight
-line itself: :attr:`NoBetterThanLine.on_the_line`). Every choice uses the training split
+line itself: :attr:`~torchhys.training.fit_checks.NoBetterThanLine.on_the_line`). Every choice uses the training split
 only. Widths come from :func:`~torchhys.identification.fitting.play_width_grid` of the fitted
 model's input. A fit that cannot exist (no inverse, a target that does not rise, a diverged fit)
 raises :class:`FitError`: model selection scores that candidate as failed.
@@ -86,16 +86,22 @@ from torchhys._checks import (
     check_int,
     check_nonnegative,
     check_positive,
-    fitted_samples,
 )
 from torchhys.functional.jiles_atherton import MU0
 from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
 from torchhys.identification.jiles_atherton import substeps_for
 from torchhys.identification.preisach import fit_preisach_signs
 from torchhys.identification.stop_pi import fit_stop_pi_signs
+from torchhys.training.fit_checks import (
+    FitError,
+    NoBetterThanLine,
+    _checked,
+    _rmse,
+    _samples,
+    _standardized,
+)
 
-__all__ = ["FAMILIES", "FitError", "GPI_SAMPLE_ITERATIONS", "NoBetterThanLine", "ON_THE_LINE",
-           "PENALTIES"]
+__all__ = ["FAMILIES", "GPI_SAMPLE_ITERATIONS", "PENALTIES"]
 
 PENALTIES = (0.0, 1e-8, 1e-6, 1e-4, 1e-2, 1e-1)
 """The grid of ``ridge``/``smoothness: "auto"``."""
@@ -108,31 +114,6 @@ GPI_SAMPLE_ITERATIONS = 1e7
 ``sample_iterations``)."""
 
 Fitter = Callable[[Tensor, Tensor, int, Tensor | None], nn.Module]
-
-
-class FitError(ValueError):
-    """A model family that cannot be fitted to these data (model selection skips it)."""
-
-
-class NoBetterThanLine(FitError):
-    """A fit no better than a straight line on its training samples (standardized RMS
-    errors ``rmse`` and ``line``)."""
-
-    def __init__(self, message: str, rmse: float, line: float) -> None:
-        super().__init__(message)
-        self.rmse, self.line = rmse, line
-
-    @property
-    def on_the_line(self) -> bool:
-        """Whether the fit ended on the line itself (RMS error within
-        :data:`ON_THE_LINE` of it, relative): its nonlinear part found nothing to fit."""
-        return self.rmse <= self.line * (1.0 + ON_THE_LINE)
-
-
-ON_THE_LINE = 1e-3
-"""How close to the straight line's RMS error (relative) a failed fit ends "on the line"
-(:attr:`NoBetterThanLine.on_the_line`): a ``gpi`` fit that does is not started again from
-the next ridge's PI fit."""
 
 
 def _keys(spec: Mapping[str, Any], allowed: set[str]) -> None:
@@ -160,34 +141,6 @@ def _grid(spec: Mapping[str, Any], n_default: int) -> tuple[int, float, str]:
     return n, power, direction
 
 
-def _samples(x: Tensor, warmup: int, mask: Tensor | None) -> tuple[Tensor, Tensor]:
-    """The scored samples (in ``mask``, after the warm-up) and the known ones (in ``mask``,
-    the warm-up's too), (rows, time) bool each; ``mask`` None: every sample."""
-    known = fitted_samples(mask, (x.shape[0], x.shape[1]), 0).to(x.device)
-    scored = known.clone()
-    scored[:, :warmup] = False
-    if not bool(scored.any()):
-        raise FitError(f"no scored training sample (warmup {warmup}, {int(known.sum())} "
-                       "samples in the mask)")
-    return scored, known
-
-
-def _standardized(x: Tensor, y: Tensor, scored: Tensor) -> tuple[float, Tensor]:
-    """The input's scale (std of the scored samples) and the standardized target."""
-    xs, ys = x[scored], y[scored]
-    sx, sy = float(xs.std()), float(ys.std())
-    if not (sx > 0 and sy > 0):
-        raise FitError("the input and the target must vary over the scored training samples")
-    return sx, (y - ys.mean()) / sy
-
-
-def _rmse(model: nn.Module, x: Tensor, t: Tensor, scored: Tensor, mean: float = 0.0,
-          std: float = 1.0) -> float:
-    """RMSE of ``(model(x) - mean) / std`` against t on the scored samples."""
-    with torch.no_grad():
-        return float(((model(x)[0] - mean) / std - t)[scored].square().mean().sqrt())
-
-
 def _holdout(scored: Tensor) -> float:
     """:data:`VALIDATION`, the share of each row's scored samples (the mask given to
     ``select_pi_ridge`` / ``select_penalty``) held out to choose a penalty.
@@ -200,26 +153,6 @@ def _holdout(scored: Tensor) -> float:
         raise FitError(f"{n} scored training samples are too few to choose a penalty "
                        "on a hold-out; give the penalty as a number")
     return VALIDATION
-
-
-def _checked(model: nn.Module, x: Tensor, t: Tensor, scored: Tensor, name: str,
-             mean: float = 0.0, std: float = 1.0, rmse: float | None = None) -> nn.Module:
-    """``model`` if it fits the standardized target t on the scored training samples better
-    than a straight line in x does, else :class:`FitError` (a diverged or degenerate fit;
-    an exact inverse of a poor forward fit can blow up). A model of the physical target
-    gives the target's ``mean`` and ``std``: its output is standardized as t was. ``rmse``:
-    the model's :func:`_rmse` when the caller has it already (not computed again)."""
-    if rmse is None:
-        rmse = _rmse(model, x, t, scored, mean, std)
-    xs, ts = x[scored], t[scored]
-    design = torch.stack([xs, torch.ones_like(xs)], 1)
-    line = float((design @ torch.linalg.lstsq(design, ts[:, None]).solution - ts[:, None])
-                 .square().mean().sqrt())
-    if not rmse < line:
-        raise NoBetterThanLine(f"{name}: the fitted model is no better than a straight line on "
-                               f"the training samples (standardized RMSE {rmse:.3g}, line "
-                               f"{line:.3g})", rmse, line)
-    return model
 
 
 def _pi_fit(u: Tensor, out: Tensor, widths: Tensor, ridge: float | str,

@@ -5,7 +5,7 @@ stop-type PI model with 40 thresholds is a candidate of its own and a part of tw
 ``configs/measured.yaml``, fitted on the same fold's data each time. :func:`shared` wraps a
 family's fitter so that a fit of the same spec on the same data (input, target, warm-up and
 mask, compared by content) is done once: later calls get a copy of the fitted module, or the
-same :class:`~torchhys.training.families.FitError`. Only families whose fit draws no random
+same :class:`~torchhys.training.fit_checks.FitError`. Only families whose fit draws no random
 numbers are shared (:data:`SHARED_FAMILIES`), so a run's random state is the same with the
 cache as without it. The last :data:`SIZE` fits are kept.
 """
@@ -21,7 +21,7 @@ from typing import Any
 
 from torch import Tensor, nn
 
-from torchhys.training.families import FitError
+from torchhys.training.fit_checks import FitError
 
 __all__ = ["SHARED_FAMILIES", "SIZE", "clear", "shared"]
 

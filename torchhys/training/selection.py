@@ -58,7 +58,7 @@ from torch import Tensor
 
 from torchhys._checks import check_choice, check_int
 from torchhys.training.coverage import warn_coverage
-from torchhys.training.families import FitError
+from torchhys.training.fit_checks import FitError
 from torchhys.training.folds import CV_MODES, RECORDING, cv_fold
 from torchhys.training.readout import direct_validation, solvable
 
@@ -221,7 +221,7 @@ def _validation(module: L.LightningModule, datamodule: L.LightningDataModule,
                 trainer: L.Trainer, run: str) -> tuple[float, Tensor, str]:
     """Train, then the validation MSE of the trained module, its squared errors and why it
     failed: NaN, none and the reason (with a warning naming the ``run``) when a family
-    operator cannot be fitted to the data (:class:`~torchhys.training.families.FitError`)
+    operator cannot be fitted to the data (:class:`~torchhys.training.fit_checks.FitError`)
     or the validation MSE is not finite (a diverged training); else ``""``."""
     direct = solvable(module, datamodule, trainer)
     try:
