@@ -68,3 +68,27 @@ def test_random_families_are_not_shared() -> None:
         return None
 
     assert fit_cache.shared({"fit": "jiles_atherton"}, fit) is fit
+
+
+def test_gpi_specs_that_run_the_same_iterations_share_a_fit() -> None:
+    """On a long record (here: a small sample_iterations) the gpi spec with ``epochs: 200``
+    runs the default spec's iterations: one fit; on a short one they differ: two."""
+    from torchhys.training.families import fit_key
+
+    x, y = _data()
+    long = {"fit": "gpi", "sample_iterations": 400 * 50}
+    assert fit_key(long, x, 0, None) == fit_key({**long, "epochs": 200}, x, 0, None)
+    assert fit_key(long, x, 0, None)["epochs"] == 50
+    short = {"fit": "gpi"}
+    assert fit_key(short, x, 0, None) != fit_key({**short, "epochs": 200}, x, 0, None)
+    fit_cache.clear()
+    calls = []
+
+    def counted(*args):
+        calls.append(1)
+        raise FitError("counted")
+
+    for spec in (long, {**long, "epochs": 200}, short, {**short, "epochs": 200}):
+        with pytest.raises(FitError):
+            fit_cache.shared(spec, counted)(x, y, 0, None)
+    assert len(calls) == 3

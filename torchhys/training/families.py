@@ -53,10 +53,12 @@ standardizes the operator's output) maps it back. They are the candidates of
 split (the last quarter of each row's scored samples; :func:`select_pi_ridge`,
 :func:`select_penalty`; for ``gpi``, whose fit can stop at a poor local optimum, the next best
 ridges on that hold-out are tried in turn when the fit fails, unless it ended on the straight
-line itself: :attr:`~torchhys.training.fit_checks.NoBetterThanLine.on_the_line`). Every choice uses the training split
-only. Widths come from :func:`~torchhys.identification.fitting.play_width_grid` of the fitted
-model's input. A fit that cannot exist (no inverse, a target that does not rise, a diverged fit)
-raises :class:`FitError`: model selection scores that candidate as failed.
+line itself: :attr:`~torchhys.training.fit_checks.NoBetterThanLine.on_the_line`). Every
+choice uses the training split only. Widths come from
+:func:`~torchhys.identification.fitting.play_width_grid` of the fitted model's input. A fit that
+cannot exist (no inverse, a target that does not rise, a diverged fit) raises
+:class:`~torchhys.training.fit_checks.FitError`: model selection scores that candidate as
+failed.
 """
 
 from __future__ import annotations
@@ -101,7 +103,7 @@ from torchhys.training.fit_checks import (
     _standardized,
 )
 
-__all__ = ["FAMILIES", "GPI_SAMPLE_ITERATIONS", "PENALTIES"]
+__all__ = ["FAMILIES", "GPI_SAMPLE_ITERATIONS", "PENALTIES", "fit_key"]
 
 PENALTIES = (0.0, 1e-8, 1e-6, 1e-4, 1e-2, 1e-1)
 """The grid of ``ridge``/``smoothness: "auto"``."""
@@ -211,6 +213,25 @@ def _pi_nonneg(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     return placeholder, fit
 
 
+def _gpi_iterations(epochs: int, work: float, scored: int) -> int:
+    """The L-BFGS iterations of a ``gpi`` fit on ``scored`` samples."""
+    return min(epochs, max(20, int(work / scored)))
+
+
+def fit_key(spec: Mapping[str, Any], x: Tensor, warmup: int,
+            mask: Tensor | None) -> dict[str, Any]:
+    """The spec as it determines the fit on these data (for sharing fits between
+    candidates, :mod:`torchhys.training.fit_cache`): a ``gpi`` spec with ``epochs`` the
+    iterations it runs on these samples and no ``sample_iterations`` (on a long record the
+    spec with ``epochs: 200`` and the default one run the same fit); others as given."""
+    key = dict(spec)
+    if key.get("fit") == "gpi":
+        scored, _ = _samples(x.reshape(-1, x.shape[-1]), warmup, mask)
+        work = key.pop("sample_iterations", GPI_SAMPLE_ITERATIONS)
+        key["epochs"] = _gpi_iterations(key.get("epochs", 1000), work, int(scored.sum()))
+    return key
+
+
 def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     _keys(spec, {"n_widths", "power", "ridge", "units", "epochs", "sample_iterations",
                  "direction"})
@@ -249,7 +270,7 @@ def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
 
     def fitted(x: Tensor, t: Tensor, u: Tensor, out: Tensor, widths: Tensor, r: float,
                sx: float, mx: float, scored: Tensor, known: Tensor) -> nn.Module:
-        iterations = min(epochs, max(20, int(work / int(scored.sum()))))
+        iterations = _gpi_iterations(epochs, work, int(scored.sum()))
         m = fit_generalized_pi(u, out, widths, units=units, ridge=r, lbfgs_epochs=iterations,
                                mask=scored)
         pw, w, w0, a, c, b, s, off = (v.detach() for v in m.parameters_effective())

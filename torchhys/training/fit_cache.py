@@ -4,7 +4,8 @@ Model selection fits every candidate on every fold, and candidates share familie
 stop-type PI model with 40 thresholds is a candidate of its own and a part of two others in
 ``configs/measured.yaml``, fitted on the same fold's data each time. :func:`shared` wraps a
 family's fitter so that a fit of the same spec on the same data (input, target, warm-up and
-mask, compared by content) is done once: later calls get a copy of the fitted module, or the
+mask, compared by content; :func:`~torchhys.training.families.fit_key`: a ``gpi`` spec by the
+iterations it runs on them) is done once: later calls get a copy of the fitted module, or the
 same :class:`~torchhys.training.fit_checks.FitError`. Only families whose fit draws no random
 numbers are shared (:data:`SHARED_FAMILIES`), so a run's random state is the same with the
 cache as without it. The last :data:`SIZE` fits are kept.
@@ -21,6 +22,7 @@ from typing import Any
 
 from torch import Tensor, nn
 
+from torchhys.training.families import fit_key
 from torchhys.training.fit_checks import FitError
 
 __all__ = ["SHARED_FAMILIES", "SIZE", "clear", "shared"]
@@ -57,11 +59,15 @@ def shared(spec: Mapping[str, Any], fit: Fitter) -> Fitter:
     if spec.get("fit") not in SHARED_FAMILIES:
         return fit
     try:
-        name = json.dumps(dict(spec), sort_keys=True, allow_nan=True)
+        json.dumps(dict(spec), sort_keys=True, allow_nan=True)
     except (TypeError, ValueError):
         return fit
 
     def cached(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
+        try:  # the spec as it determines the fit on these data
+            name = json.dumps(fit_key(spec, x, warmup, mask), sort_keys=True, allow_nan=True)
+        except (TypeError, ValueError):  # what the fit itself refuses: not shared
+            return fit(x, y, warmup, mask)
         key = (name, int(warmup), str(x.device), _fingerprint(x), _fingerprint(y),
                _fingerprint(mask))
         kept = _FITS.get(key)
