@@ -62,6 +62,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import torch
 from jsonargparse import ArgumentError, Namespace, get_loader
 from lightning.pytorch import Trainer, seed_everything
 from lightning.pytorch.callbacks import ModelCheckpoint
@@ -81,7 +82,7 @@ from torchhys.training.errors import (
     split_traceback_flag,
 )
 from torchhys.training.folds import describe_cv
-from torchhys.training.jobs import check_budget, check_jobs
+from torchhys.training.jobs import check_budget, check_jobs, usable_cores
 from torchhys.training.module import InverseHysteresisModule
 from torchhys.training.operators import build_operators
 from torchhys.training.plugins import IMPORT_ENV, import_modules, split_import_flags
@@ -204,6 +205,12 @@ class TorchhysCLI(LightningCLI):
 
         progress = SelectionProgress(candidates, cv if isinstance(cv, int) else None,
                                      quiet=quiet_requested())
+        jobs = min(jobs, len(candidates))
+        if jobs > 1 and not quiet_requested():
+            print(f"torchhys fit: candidates in {jobs} processes at a time, torch threads "
+                  f"{max(1, torch.get_num_threads() // jobs)} each (model.select_jobs="
+                  f"{options['select_jobs']}; {usable_cores()} usable cores)",
+                  file=sys.stderr, flush=True)
 
         def build(i: int, fold: int | None) -> tuple[Any, Any, Trainer]:
             progress.starts(i, fold)

@@ -84,9 +84,9 @@ ARGUMENTS: list[tuple[str, Any, str]] = [
     ("select_rule", Literal["min", "1se"] | None,
      "fit with model.select: 'min' (default) chooses the lowest validation MSE, '1se' the "
      "first candidate (the baseline) when within one standard error of it"),
-    ("select_jobs", int | None,
+    ("select_jobs", int | Literal["auto"] | None,
      "fit with model.select: candidates scored at a time, each in a process of its own, "
-     "torch's threads divided among them (default 1)"),
+     "torch's threads divided among them; 'auto': the usable cores, at most 4 (default 1)"),
     ("select_budget_s", float | None,
      "fit with model.select: seconds after which no further candidate starts; those not "
      "started are skipped, said in the table (default: none)"),
