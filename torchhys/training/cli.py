@@ -55,7 +55,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import re
 import sys
 import warnings
 from collections.abc import Iterator
@@ -87,6 +86,7 @@ from torchhys.training.module import InverseHysteresisModule
 from torchhys.training.operators import build_operators
 from torchhys.training.plugins import IMPORT_ENV, import_modules, split_import_flags
 from torchhys.training.progress import QUIET_ENV, SelectionProgress, quiet_requested
+from torchhys.training.run_dirs import RUN_DIR_ENV, reserve_run_dir
 from torchhys.training.threads import THREADS_ENV, choose_threads, split_threads_flag
 
 __all__ = ["TorchhysCLI", "main", "read_config"]
@@ -200,7 +200,7 @@ class TorchhysCLI(LightningCLI):
             seed = seed_everything(workers=True)
         # the run's own version folder, reserved now: concurrent runs into the same
         # default_root_dir keep their tables apart; the final fit logs there too
-        folder, version = _reserve_run_dir(cfg["trainer"])
+        folder, version = reserve_run_dir(cfg["trainer"])
         self._run_dir = (folder, version)
 
         progress = SelectionProgress(candidates, cv if isinstance(cv, int) else None,
@@ -282,71 +282,11 @@ class TorchhysCLI(LightningCLI):
         return self.model, self._get(self.config_init, "data"), self.trainer_class(**kwargs)
 
 
-_RUN_DIR_ENV = "TORCHHYS_RUN_DIR"
-"""The version folder model selection reserved, passed to the processes of other ranks that
-the run launches (DDP): they use it instead of reserving their own."""
-
-
 def _special_ckpt_path(path: str) -> bool:
     """Lightning's ``ckpt_path`` values that are not a local file ('last', 'best', 'hpc',
     'registry[:...]') and remote URLs: Lightning resolves them."""
     return (path in ("last", "best", "hpc") or path.lower().startswith("registry")
             or "://" in path)
-
-
-def _log_folder(trainer: Namespace) -> tuple[Path, int | str | None, bool]:
-    """Where the run's logger puts its version folders: the parent folder, the version
-    its config pins (or None), and whether the logger is one whose version can be pinned
-    (the default CSV logger, or a configured CSVLogger or TensorBoardLogger)."""
-    root = Path(trainer.get("default_root_dir") or ".")
-    logger = trainer.get("logger")
-    if logger in (None, True):
-        return root / "logs", None, True
-    if isinstance(logger, dict | Namespace):
-        init = logger.get("init_args") or {}
-        if str(logger.get("class_path", "")).endswith(("CSVLogger", "TensorBoardLogger")) \
-                and init.get("save_dir"):
-            return Path(init["save_dir"]) / (init.get("name") or ""), init.get("version"), True
-    return root / "logs", None, False  # no logger or another kind: a folder of its own
-
-
-def _next_version(parent: Path) -> int:
-    """One more than the highest ``version_N`` under ``parent`` (0 if none), as Lightning's
-    loggers count."""
-    found = [int(p.name[8:]) for p in parent.glob("version_*")
-             if p.name[8:].isdigit() and p.is_dir()] if parent.is_dir() else []
-    return max(found, default=-1) + 1
-
-
-def _reserve_run_dir(trainer: Namespace) -> tuple[Path, int | str | None]:
-    """The run's version folder, created now (``os.mkdir`` of the next free ``version_N``,
-    the next one on ``FileExistsError``: concurrent runs get different folders), and the
-    version to pin the logger to (None: the logger's own, or no logger to pin)."""
-    parent, version, pinnable = _log_folder(trainer)
-    if version is not None:  # the config pins it: that folder, as the logger would
-        folder = parent / (f"version_{version}" if isinstance(version, int) else str(version))
-        folder.mkdir(parents=True, exist_ok=True)
-    elif rank_zero_only.rank != 0:  # launched by rank 0 (DDP): its folder, none of our own
-        inherited = os.environ.get(_RUN_DIR_ENV)
-        folder = Path(inherited) if inherited else parent / f"version_{_next_version(parent)}"
-    else:
-        parent.mkdir(parents=True, exist_ok=True)
-        n = _next_version(parent)
-        while True:
-            folder = parent / f"version_{n}"
-            try:
-                os.mkdir(folder)
-                break
-            except FileExistsError:
-                n += 1
-        os.environ[_RUN_DIR_ENV] = str(folder)
-    if not pinnable:
-        return folder, None
-    # the final fit's CSV logger finds the folder holding the table: not a previous run's
-    warnings.filterwarnings("ignore", "Experiment logs directory .*"
-                            f"{re.escape(os.path.join(parent.name, folder.name))} exists")
-    suffix = folder.name[8:]
-    return folder, int(suffix) if version is None and suffix.isdigit() else None
 
 
 def _pop_select(cfg: Namespace) -> dict[str, Any]:
@@ -491,7 +431,7 @@ def _main(argv: list[str] | None) -> None:
             raise
         raise SystemExit(2) from None
     finally:
-        os.environ.pop(_RUN_DIR_ENV, None)
+        os.environ.pop(RUN_DIR_ENV, None)
 
 
 if __name__ == "__main__":
