@@ -205,6 +205,8 @@ class TorchhysCLI(LightningCLI):
 
         progress = SelectionProgress(candidates, cv if isinstance(cv, int) else None,
                                      quiet=quiet_requested())
+        if options["select_jobs"] == "auto" and _on_gpu(cfg["trainer"]):
+            jobs = 1  # CUDA does not survive a fork
         jobs = min(jobs, len(candidates))
         if jobs > 1 and not quiet_requested():
             print(f"torchhys fit: candidates in {jobs} processes at a time, torch threads "
@@ -287,6 +289,12 @@ def _special_ckpt_path(path: str) -> bool:
     'registry[:...]') and remote URLs: Lightning resolves them."""
     return (path in ("last", "best", "hpc") or path.lower().startswith("registry")
             or "://" in path)
+
+
+def _on_gpu(trainer: Any) -> bool:
+    """Whether the trainer section may run on a GPU (an accelerator other than ``cpu`` on a
+    machine with CUDA)."""
+    return str(trainer.get("accelerator") or "auto") != "cpu" and torch.cuda.is_available()
 
 
 def _pop_select(cfg: Namespace) -> dict[str, Any]:
