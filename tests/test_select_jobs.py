@@ -4,6 +4,7 @@ candidate starts once the budget is spent)."""
 from __future__ import annotations
 
 import csv
+import re
 import time
 from pathlib import Path
 
@@ -95,3 +96,31 @@ def test_candidates_run_at_the_same_time_and_report_in_order() -> None:
     assert time.perf_counter() - began < 1.0  # four 0.3 s jobs at once, not 1.2 s
     # a budget spent after the first: the others are skipped, in their places
     assert run_candidates(3, _slow, lambda i: -i, jobs=2, budget_s=0.1) == [0, 1, -2]
+
+
+def test_auto_jobs_take_the_usable_cores(monkeypatch, tmp_path, capsys) -> None:
+    """select_jobs: auto is the usable cores, at most AUTO_JOBS (one where processes cannot
+    be forked), at most one per candidate; the command says what it chose; the table is that
+    of one process, and each candidate's seconds are its own."""
+    from torchhys.training import jobs
+
+    monkeypatch.setattr(jobs, "usable_cores", lambda: 16)
+    assert jobs.check_jobs("auto") == jobs.AUTO_JOBS
+    monkeypatch.setattr(jobs, "usable_cores", lambda: 2)
+    assert jobs.check_jobs("auto") == 2
+    monkeypatch.setattr(jobs, "_can_fork", lambda: False)
+    assert jobs.check_jobs("auto") == 1
+    monkeypatch.undo()
+    one = _table(monkeypatch, tmp_path, "one")
+    capsys.readouterr()
+    monkeypatch.setattr("torchhys.training.cli.check_jobs", lambda value: 8)
+    auto = _table(monkeypatch, tmp_path, "auto", "--model.select_jobs=auto")
+    out, err = capsys.readouterr()
+    assert "candidates in 3 processes at a time, torch threads 1 each (model.select_jobs=auto" \
+        in err
+    seconds = [float(m) for m in re.findall(r"^candidate \d \(\d of 3\): val_mse .*?, "
+                                            r"([\d.]+) s: ", out, re.M)]
+    assert len(seconds) == 3 and all(s > 0 for s in seconds)
+    for a, b in zip(one, auto, strict=True):
+        assert (a["val_mse"], a["selected"], a["error"]) == (b["val_mse"], b["selected"],
+                                                             b["error"])

@@ -110,8 +110,9 @@ class SelectionProgress:
         failed = ""
         if math.isnan(score.val_mse):
             failed = f" (failed: {score.error})" if score.error else " (failed)"
+        seconds = score.seconds if math.isfinite(score.seconds) else now - self.last
         self._print(f"candidate {score.index} ({score.index + 1} of {self.n}): val_mse "
-                    f"{score.val_mse:.6g}{failed}{folds}, {now - self.last:.1f} s: "
+                    f"{score.val_mse:.6g}{failed}{folds}, {seconds:.1f} s: "
                     f"{selection.config_json(score.overrides)}")
         self.last = now
 

@@ -43,9 +43,11 @@ error of the lowest, and
 from __future__ import annotations
 
 import csv
+import dataclasses
 import inspect
 import json
 import math
+import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -116,6 +118,8 @@ class CandidateScore:
     error: str = ""
     """Why the candidate scored NaN (the fold and the reason: a family that cannot be fitted,
     a diverged training); empty when it scored."""
+    seconds: float = math.nan
+    """Wall seconds of its scoring, in the process that scored it (NaN: not run)."""
 
 
 def model_arguments(model_class: type) -> list[str]:
@@ -304,7 +308,14 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
 
 def score_candidate(i: int, overrides: dict[str, Any], build: Build, cv: int | str | None,
                     mode: str | None) -> CandidateScore:
-    """Train and score candidate ``i`` (:func:`run_selection`)."""
+    """Train and score candidate ``i`` (:func:`run_selection`), timed."""
+    start = time.perf_counter()
+    score = _score(i, overrides, build, cv, mode)
+    return dataclasses.replace(score, seconds=time.perf_counter() - start)
+
+
+def _score(i: int, overrides: dict[str, Any], build: Build, cv: int | str | None,
+           mode: str | None) -> CandidateScore:
     if cv is None:
         module, data, trainer = build(i, None)
         check_holdout(data)
