@@ -3,14 +3,16 @@
 ``torchhys fit --config configs/measured.yaml`` on the piezo micromanipulator's records
 (``examples/data/real/piezo_micromanipulator.csv``: displacement in, voltage out, a
 compensator), tiled to each size, as one record and as five recordings (a run column), each
-fit in a process of its own (the command's default: one torch thread). Printed per run:
-the wall time, the seconds of each candidate (from the command's progress lines), the
-largest candidate, and the peak memory of the process (its maximum resident set). Then the
+fit a command of its own (the config's ``select_jobs: auto``: candidates in one process per
+usable core, one torch thread each). Printed per run: the wall time, the seconds of each
+candidate (from the command's progress lines: measured in the process that scored it), the
+largest candidate, and the peak memory (the largest maximum resident set of the command's
+processes). Then the
 same fit two and three at a time against one alone (each run's wall time over the alone
 run's), the thrashing of oversubscribed threads that the command's one-thread default
 avoids. ``--threads`` passes a thread count to every fit (``torchhys fit --threads``), to
-measure that thrashing; ``--jobs`` passes ``--model.select_jobs`` (candidates in parallel
-processes); ``--candidates`` prints every candidate's seconds under each run::
+measure that thrashing; ``--jobs`` passes ``--model.select_jobs`` (1: every candidate in the
+command's process); ``--candidates`` prints every candidate's seconds under each run::
 
     python benchmarks/fit_speed.py [--sizes 1000 10000 100000] [--concurrent 10000]
 """
@@ -95,12 +97,13 @@ def run_one(n: int, recordings: int, tmp: Path, threads: int | None,
     return finish(start(data, tmp / f"run_{n}_{recordings}", recordings, threads, jobs), began)
 
 
-def concurrent(n: int, k: int, tmp: Path, threads: int | None) -> list[float]:
+def concurrent(n: int, k: int, tmp: Path, threads: int | None,
+               jobs: int | None = None) -> list[float]:
     """Wall times of ``k`` identical fits started at once."""
     data = tmp / f"rec_{n}_1.csv"
     write_record(data, n, 1)
     began = time.perf_counter()
-    procs = [start(data, tmp / f"conc_{k}_{i}", 1, threads) for i in range(k)]
+    procs = [start(data, tmp / f"conc_{k}_{i}", 1, threads, jobs) for i in range(k)]
     return [finish(p, began)["wall"] for p in procs]
 
 
@@ -114,12 +117,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--threads", type=int, default=None,
                         help="torch threads of every fit (default: the command's, one)")
     parser.add_argument("--jobs", type=int, default=None,
-                        help="model.select_jobs of every fit (default: the config's, one)")
+                        help="model.select_jobs of every fit (default: the config's, auto)")
     parser.add_argument("--candidates", action="store_true",
                         help="print every candidate's seconds under each run")
     args = parser.parse_args(argv)
     print(f"{os.cpu_count()} cores; torchhys fit --config configs/measured.yaml; "
-          f"threads {args.threads or 'default (1)'}; select_jobs {args.jobs or 'default (1)'}; "
+          f"threads {args.threads or 'default (1)'}; "
+          f"select_jobs {args.jobs or 'the config (auto)'}; "
           f"load average {os.getloadavg()[0]:.2f}")
     print("| samples | recordings | wall s | peak MiB | slowest candidate |")
     print("|---|---|---|---|---|")
@@ -136,12 +140,12 @@ def main(argv: list[str] | None = None) -> None:
                     for i, (sec, config) in sorted(res["candidates"].items()):
                         print(f"|   | candidate {i} | {sec:.1f} |   | {config} |", flush=True)
         if args.concurrent:
-            alone = concurrent(args.concurrent, 1, tmp_path, args.threads)[0]
+            alone = concurrent(args.concurrent, 1, tmp_path, args.threads, args.jobs)[0]
             print(f"\n{args.concurrent} samples, one fit alone: {alone:.1f} s")
             print("| fits at once | wall s of each | each over alone (median) |")
             print("|---|---|---|")
             for k in (2, 3):
-                walls = concurrent(args.concurrent, k, tmp_path, args.threads)
+                walls = concurrent(args.concurrent, k, tmp_path, args.threads, args.jobs)
                 ratio = float(np.median(walls)) / alone
                 print(f"| {k} | {', '.join(f'{w:.1f}' for w in walls)} | {ratio:.2f} |",
                       flush=True)
