@@ -936,3 +936,15 @@ def test_every_penalty_selection_names_a_bad_validation_share(select, validation
             torchhys.identification.fitting.select_pi_ridge(x, y, T3, [0.0], validation=validation)
         else:
             torchhys.select_penalty(x, y, [0.0], validation=validation, n=4)
+
+
+def test_sequence_path_without_gradients_equals_the_one_with_them():
+    """Without gradients the characteristic is one clamp into one buffer: the same output to
+    the bit as the path autograd records (which the step path shares)."""
+    m = stop_model(3, seed=4, learnable=True)
+    x = walks(2, 400)
+    with torch.no_grad():
+        fast = m(x)[0]
+    slow = m(x)[0]
+    assert slow.requires_grad and not fast.requires_grad
+    assert torch.equal(fast, slow.detach())
