@@ -4,6 +4,7 @@ candidate starts once the budget is spent)."""
 from __future__ import annotations
 
 import csv
+import os
 import re
 import time
 from pathlib import Path
@@ -124,3 +125,33 @@ def test_auto_jobs_take_the_usable_cores(monkeypatch, tmp_path, capsys) -> None:
     for a, b in zip(one, auto, strict=True):
         assert (a["val_mse"], a["selected"], a["error"]) == (b["val_mse"], b["selected"],
                                                              b["error"])
+
+
+def _pid(i: int) -> tuple[int, int]:
+    time.sleep(0.05)
+    return i, os.getpid()
+
+
+def test_neighbours_sharing_a_fit_run_in_one_process() -> None:
+    """Consecutive candidates with the same key run one after another in one process (where
+    they share their fit); the scores still come back in order."""
+    from torchhys.training.jobs import _groups
+    from torchhys.training.selection import shared_key
+
+    stops = {"fit": "stop_pi", "n_widths": 40}
+    gpi = {"fit": "gpi", "direction": "inverse"}
+    keys = [shared_key(c) for c in (
+        {"operator": None}, {"operator": [gpi]}, {"operator": [{**gpi, "epochs": 200}]},
+        {"operator": [stops]}, {"operator": [stops, {"fit": "drift"}]}, {"hidden": 4},
+        {"operator": [{"fit": "gpi", "direction": "direct"}]})]
+    assert keys[0] is None and keys[5] is None and keys[1] == keys[2] and keys[3] == keys[4]
+    assert keys[1] != keys[6]
+    assert _groups(7, keys) == [[0], [1, 2], [3, 4], [5], [6]]
+    out = run_candidates(7, _pid, lambda i: (i, -1), jobs=3, together=keys)
+    assert [i for i, _ in out] == list(range(7))
+    pids = [p for _, p in out]
+    assert pids[1] == pids[2] and pids[3] == pids[4] and os.getpid() not in pids
+    # a budget spent inside a group skips its later members, in their places
+    out = run_candidates(3, _pid, lambda i: (i, -1), jobs=2, budget_s=0.01,
+                         together=["a", "a", "a"])
+    assert [p for _, p in out][1:] == [-1, -1]

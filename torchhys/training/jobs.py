@@ -18,7 +18,7 @@ import math
 import multiprocessing
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
@@ -27,6 +27,8 @@ __all__ = ["AUTO_JOBS", "check_budget", "check_jobs", "run_candidates", "usable_
 
 _SCORE: Callable[[int], Any] | None = None
 """The scoring function of the running selection, inherited by the forked processes."""
+_SKIPPED: Callable[[int], Any] | None = None
+"""Its score of a candidate skipped for the budget, inherited likewise."""
 
 
 AUTO_JOBS = 4
@@ -70,24 +72,42 @@ def check_budget(value: object) -> float | None:
     return float(value)
 
 
-def _score(index: int) -> Any:
-    assert _SCORE is not None
-    return _SCORE(index)
+def _score_group(indices: list[int], start: float, budget_s: float | None) -> list:
+    """The scores of a group of candidates, in order, in one process (the fits they share
+    are done once there: :mod:`torchhys.training.fit_cache`)."""
+    assert _SCORE is not None and _SKIPPED is not None
+    return [_SKIPPED(i) if _spent(i, start, budget_s) else _SCORE(i) for i in indices]
+
+
+def _spent(i: int, start: float, budget_s: float | None) -> bool:
+    return i > 0 and budget_s is not None and time.perf_counter() - start >= budget_s
+
+
+def _groups(n: int, together: Sequence[object] | None) -> list[list[int]]:
+    """The candidates ``0..n-1`` cut into runs of consecutive ones with the same
+    ``together`` key (None: a run of its own)."""
+    groups: list[list[int]] = []
+    for i in range(n):
+        key = None if together is None else together[i]
+        if groups and key is not None and together[groups[-1][-1]] == key:  # type: ignore[index]
+            groups[-1].append(i)
+        else:
+            groups.append([i])
+    return groups
 
 
 def run_candidates(n: int, score: Callable[[int], Any], skipped: Callable[[int], Any], *,
                    report: Callable[[Any], None] | None = None, jobs: int = 1,
-                   budget_s: float | None = None) -> list:
+                   budget_s: float | None = None,
+                   together: Sequence[object] | None = None) -> list:
     """``score(i)`` of the candidates ``i < n``, ``skipped(i)`` for those not started within
     ``budget_s``; ``jobs`` at a time (forked processes, threads divided); ``report`` called
-    with each in order as soon as it and those before it are known."""
-    global _SCORE
+    with each in order as soon as it and those before it are known. Consecutive candidates
+    with the same ``together`` key (not None) run one after another in one process, where
+    they share their fits."""
+    global _SCORE, _SKIPPED
     jobs, budget_s = check_jobs(jobs), check_budget(budget_s)
     start = time.perf_counter()
-
-    def spent(i: int) -> bool:
-        return i > 0 and budget_s is not None and time.perf_counter() - start >= budget_s
-
     results: list = []
 
     def done(result: Any) -> None:
@@ -97,7 +117,7 @@ def run_candidates(n: int, score: Callable[[int], Any], skipped: Callable[[int],
 
     if jobs == 1 or n == 1:
         for i in range(n):
-            done(skipped(i) if spent(i) else score(i))
+            done(skipped(i) if _spent(i, start, budget_s) else score(i))
         return results
     try:
         context = multiprocessing.get_context("fork")
@@ -105,17 +125,23 @@ def run_candidates(n: int, score: Callable[[int], Any], skipped: Callable[[int],
         raise ValueError("model.select_jobs > 1 needs processes started by fork (Linux, "
                          "macOS); set model.select_jobs: 1 here") from None
     threads = max(1, torch.get_num_threads() // jobs)
-    _SCORE = score
+    _SCORE, _SKIPPED = score, skipped
     try:
         with context.Pool(jobs, initializer=torch.set_num_threads, initargs=(threads,)) as pool:
-            pending: list = []  # (index, async result or None: skipped), in order
-            for i in range(n):
+            pending: list = []  # (group, async result or None: skipped), in order
+
+            def collect() -> None:
+                group, r = pending.pop(0)
+                for result in [skipped(j) for j in group] if r is None else r.get():
+                    done(result)
+
+            for group in _groups(n, together):
                 while sum(r is not None for _, r in pending) >= jobs:
-                    j, r = pending.pop(0)
-                    done(skipped(j) if r is None else r.get())
-                pending.append((i, None if spent(i) else pool.apply_async(_score, (i,))))
-            for j, r in pending:
-                done(skipped(j) if r is None else r.get())
+                    collect()
+                pending.append((group, None if _spent(group[0], start, budget_s) else
+                                pool.apply_async(_score_group, (group, start, budget_s))))
+            while pending:
+                collect()
     finally:
-        _SCORE = None
+        _SCORE = _SKIPPED = None
     return results
