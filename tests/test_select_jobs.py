@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import os
 import re
+import signal
 import time
 from pathlib import Path
 
@@ -155,3 +156,17 @@ def test_neighbours_sharing_a_fit_run_in_one_process() -> None:
     out = run_candidates(3, _pid, lambda i: (i, -1), jobs=2, budget_s=0.01,
                          together=["a", "a", "a"])
     assert [p for _, p in out][1:] == [-1, -1]
+
+
+def _killed(i: int) -> int:
+    if i == 1:
+        os.kill(os.getpid(), signal.SIGKILL)  # as the kernel ends a process out of memory
+    return i
+
+
+def test_a_killed_process_is_a_one_line_error_not_a_hang() -> None:
+    from torchhys.training.jobs import SelectionJobError
+
+    with pytest.raises(SelectionJobError, match=r"the process scoring candidate 1 ended "
+                       r"without a result \(killed: out of memory\?\).*select_jobs=1"):
+        run_candidates(3, _killed, lambda i: -i, jobs=2)

@@ -19,11 +19,14 @@ import multiprocessing
 import os
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
 import torch
 
-__all__ = ["AUTO_JOBS", "check_budget", "check_jobs", "run_candidates", "usable_cores"]
+__all__ = ["AUTO_JOBS", "SelectionJobError", "check_budget", "check_jobs", "run_candidates",
+           "usable_cores"]
 
 _SCORE: Callable[[int], Any] | None = None
 """The scoring function of the running selection, inherited by the forked processes."""
@@ -46,6 +49,11 @@ def usable_cores() -> int:
 
 def _can_fork() -> bool:
     return "fork" in multiprocessing.get_all_start_methods()
+
+
+class SelectionJobError(ValueError):
+    """A process of ``select_jobs`` ended without a result (killed, e.g. out of memory): a
+    one-line error that says to run fewer at a time."""
 
 
 def check_jobs(value: object) -> int:
@@ -127,19 +135,29 @@ def run_candidates(n: int, score: Callable[[int], Any], skipped: Callable[[int],
     threads = max(1, torch.get_num_threads() // jobs)
     _SCORE, _SKIPPED = score, skipped
     try:
-        with context.Pool(jobs, initializer=torch.set_num_threads, initargs=(threads,)) as pool:
-            pending: list = []  # (group, async result or None: skipped), in order
+        with ProcessPoolExecutor(jobs, mp_context=context, initializer=torch.set_num_threads,
+                                 initargs=(threads,)) as pool:
+            pending: list = []  # (group, future or None: skipped), in order
 
             def collect() -> None:
                 group, r = pending.pop(0)
-                for result in [skipped(j) for j in group] if r is None else r.get():
+                try:
+                    scores = [skipped(j) for j in group] if r is None else r.result()
+                except BrokenProcessPool:
+                    which = (f"candidate {group[0]}" if len(group) == 1
+                             else f"candidates {group[0]}-{group[-1]}")
+                    raise SelectionJobError(
+                        f"model.select_jobs: the process scoring {which} ended without a "
+                        f"result (killed: out of memory?); run fewer at a time "
+                        f"(--model.select_jobs=1: all in the command's process)") from None
+                for result in scores:
                     done(result)
 
             for group in _groups(n, together):
                 while sum(r is not None for _, r in pending) >= jobs:
                     collect()
                 pending.append((group, None if _spent(group[0], start, budget_s) else
-                                pool.apply_async(_score_group, (group, start, budget_s))))
+                                pool.submit(_score_group, group, start, budget_s)))
             while pending:
                 collect()
     finally:
