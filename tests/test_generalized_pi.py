@@ -322,10 +322,11 @@ def test_predictor_equals_forward_with_its_gradient(learnable):
 
 
 @pytest.mark.parametrize("learnable", [False, True])
-def test_mse_closure_equals_autograd_through_forward(learnable):
+def test_mse_closure_equals_autograd_through_forward(learnable, monkeypatch):
     """The fitting loss (plays once, the masked rows, the analytic gradient of
-    ``monotone_mse``) equals the masked MSE of the sequence path, and its gradient that of
-    autograd through it, for every parameter."""
+    ``monotone_mse``, here from any number of rows) equals the masked MSE of the sequence
+    path, and its gradient that of autograd through it, for every parameter."""
+    monkeypatch.setattr("torchhys.operators.generalized_pi.ANALYTIC_ROWS", 0)
     m = model(learnable_widths=learnable)
     x = walks(300)
     y = torch.sin(3.0 * x) + 0.1 * x
@@ -351,3 +352,29 @@ def test_monotone_mse_gradcheck():
               torch.rand(3, generator=gen, dtype=F64) + 0.5, torch.tensor(0.2, dtype=F64)]
     params = [p.requires_grad_() for p in params]
     assert torch.autograd.gradcheck(lambda *p: monotone_mse(design, y, *p), params)
+
+
+def test_mse_closure_below_analytic_rows_is_autograd_through_predictor():
+    """Below ANALYTIC_ROWS scored samples the loss and its gradient are autograd's through
+    the predictor, to the bit (the fits of short records are unchanged); from it on, the
+    analytic ones."""
+    from torchhys.operator import HysteresisOperator
+    from torchhys.operators import generalized_pi as gpi
+
+    m = model()
+    x = walks(300)
+    y = torch.sin(3.0 * x)
+    samples = torch.ones_like(x, dtype=torch.bool)
+    params = list(m.parameters())
+    loss = m.mse_closure(x, y, samples)()
+    ref = HysteresisOperator.mse_closure(m, x, y, samples)()
+    assert "MonotoneMSE" not in type(loss.grad_fn).__name__
+    assert torch.equal(loss, ref)
+    for g, r in zip(torch.autograd.grad(loss, params), torch.autograd.grad(ref, params),
+                    strict=True):
+        assert torch.equal(g, r)
+    rows = int(samples.sum())
+    assert rows < gpi.ANALYTIC_ROWS
+    big = walks(gpi.ANALYTIC_ROWS // x.shape[0] + 1)
+    fast = m.mse_closure(big, torch.sin(big), torch.ones_like(big, dtype=torch.bool))()
+    assert "MonotoneMSE" in type(fast.grad_fn).__name__

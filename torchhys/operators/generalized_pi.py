@@ -89,8 +89,8 @@ from torchhys.operator import (
 from torchhys.operators.backlash import _inverse_softplus, _Widths
 from torchhys.operators.prandtl_ishlinskii import PrandtlIshlinskii
 
-__all__ = ["GeneralizedPIInverse", "GeneralizedPIInverseStep", "GeneralizedPIStep",
-           "GeneralizedPrandtlIshlinskii"]
+__all__ = ["ANALYTIC_ROWS", "GeneralizedPIInverse", "GeneralizedPIInverseStep",
+           "GeneralizedPIStep", "GeneralizedPrandtlIshlinskii"]
 
 
 class GeneralizedPIStep(OperatorStep):
@@ -120,6 +120,11 @@ class GeneralizedPIStep(OperatorStep):
         out = monotone_output(p, self.gain, self.unit_weights, self.centers, self.slopes,
                               self.offset)
         return out, [y]
+
+
+ANALYTIC_ROWS = 10_000
+"""Scored samples from which :meth:`GeneralizedPrandtlIshlinskii.mse_closure` takes the
+analytic gradient."""
 
 
 def _vector(value: Tensor | Sequence[float], n: int | None, name: str, dtype: torch.dtype,
@@ -241,11 +246,15 @@ class GeneralizedPrandtlIshlinskii(_Widths, HysteresisOperator):
 
     def mse_closure(self, x: Tensor, y: Tensor, samples: Tensor) -> Callable[[], Tensor]:
         """The mean squared error against y over ``samples`` as a closure of the parameters
-        (:meth:`~torchhys.HysteresisOperator.mse_closure`). With fixed widths the plays are
-        computed once and only the rows of the samples are kept; the loss and its gradient
-        are :func:`~torchhys.functional.generalized_pi.monotone_mse` (about half the time of
-        autograd through :meth:`predictor` on long records, equal to it up to rounding)."""
-        if self.learnable:
+        (:meth:`~torchhys.HysteresisOperator.mse_closure`). From :data:`ANALYTIC_ROWS` scored
+        samples on, with fixed widths, the plays are computed once and only the rows of the
+        samples are kept; the loss and its gradient are
+        :func:`~torchhys.functional.generalized_pi.monotone_mse` (about half the time of
+        autograd through :meth:`predictor`, equal to it up to rounding). Below, autograd
+        through :meth:`predictor`: the fit is non-convex, and a gradient that differs in its
+        last bits can end it in another local optimum; short records keep the fits they had
+        (the analytic gradient saves well under a second there)."""
+        if self.learnable or int(samples.sum()) < ANALYTIC_ROWS:
             return super().mse_closure(x, y, samples)
         widths = self.get_widths()
         with torch.no_grad():
