@@ -7,14 +7,17 @@ fit a command of its own (the config's ``select_jobs: auto``: candidates in one 
 usable core, one torch thread each). Printed per run: the wall time, the seconds of each
 candidate (from the command's progress lines: measured in the process that scored it), the
 largest candidate, and the peak memory (the largest maximum resident set of the command's
-processes). Then the
-same fit two and three at a time against one alone (each run's wall time over the alone
-run's), the thrashing of oversubscribed threads that the command's one-thread default
-avoids. ``--threads`` passes a thread count to every fit (``torchhys fit --threads``), to
-measure that thrashing; ``--jobs`` passes ``--model.select_jobs`` (1: every candidate in the
-command's process); ``--candidates`` prints every candidate's seconds under each run::
+processes). Then the same fit two and three at a time against one alone (each run's wall time
+over the alone run's), the thrashing of oversubscribed threads that the command's one-thread
+default avoids. ``--threads`` passes a thread count to every fit (``torchhys fit --threads``),
+to measure that thrashing; ``--jobs`` passes ``--model.select_jobs`` (1: every candidate in
+the command's process); ``--candidates`` prints every candidate's seconds under each run;
+``--profile N`` then fits N samples in one process under cProfile and prints the seconds of
+each stage (start-up, reading, the families' least-squares moments, solves and nonlinear
+fits, the operators' outputs, Lightning's runs, the final fit)::
 
     python benchmarks/fit_speed.py [--sizes 1000 10000 100000] [--concurrent 10000]
+                                   [--profile 100000]
 """
 
 from __future__ import annotations
@@ -107,6 +110,61 @@ def concurrent(n: int, k: int, tmp: Path, threads: int | None,
     return [finish(p, began)["wall"] for p in procs]
 
 
+STAGES = [
+    # (stage, file suffix, function): cumulative seconds of the function under cProfile
+    ("start-up: importing the command", "torchhys/training/cli.py", "<module>"),
+    ("reading the data file", "torchhys/training/files.py", "read_recordings"),
+    ("model selection (all candidates)", "torchhys/training/selection.py", "run_selection"),
+    ("  families fitted on each fold", "torchhys/training/operators.py",
+     "fit_data_dependent"),
+    ("    least-squares moments: Preisach relays", "identification/preisach.py",
+     "_normal_equations"),
+    ("    least-squares moments: stops", "identification/stop_pi.py", "_moments"),
+    ("    least-squares moments: plays", "identification/fitting.py", "_pi_segments"),
+    ("    non-negative solves", "identification/_nnls.py", "nnls_gram"),
+    ("    nonlinear fits: generalized PI (L-BFGS)", "identification/fitting.py",
+     "fit_full_batch"),
+    ("    nonlinear fits: drift", "identification/drift.py", "fit_drift"),
+    ("    families' checks against a line", "torchhys/training/fit_checks.py", "_checked"),
+    ("  operators' outputs for the readouts", "torchhys/networks.py", "features"),
+    ("  readouts solved (least squares, validation)", "torchhys/training/readout.py",
+     "direct_validation"),
+    ("  Lightning: building each fold's run", "torchhys/training/cli.py", "_instantiate_run"),
+    ("the chosen candidate's fit (Trainer.fit)", "lightning/pytorch/trainer/trainer.py", "fit"),
+]
+
+
+def profile(n: int, tmp: Path) -> None:
+    """One fit of ``n`` samples (one record) in one process under cProfile: the cumulative
+    seconds of each stage of :data:`STAGES` (nested: a stage's time includes those indented
+    under it)."""
+    import pstats
+
+    data = tmp / f"rec_{n}_1.csv"
+    write_record(data, n, 1)
+    out = tmp / "fit.prof"
+    args = command(data, tmp / "profiled", 1, None, 1)
+    env = {k: v for k, v in os.environ.items() if k not in ("TORCHHYS_THREADS", "OMP_NUM_THREADS")}
+    began = time.perf_counter()
+    subprocess.run([args[0], "-m", "cProfile", "-o", str(out), *args[1:]], cwd=ROOT, env=env,
+                   check=True, capture_output=True, text=True)
+    wall = time.perf_counter() - began
+    stats = pstats.Stats(str(out)).stats  # type: ignore[attr-defined]
+    print(f"\n{n} samples, one record, one process (select_jobs 1) under cProfile: "
+          f"{wall:.1f} s wall (the profiler adds about 10 %)")
+    print("| stage | cumulative s |")
+    print("|---|---|")
+    def cumulative(suffix: str, func: str) -> float:
+        return max((v[3] for (f, _, fn), v in stats.items()
+                    if f.endswith(suffix) and fn == func), default=0.0)
+
+    for name, suffix, func in STAGES:
+        seconds = cumulative(suffix, func)
+        if func == "<module>":  # run as __main__: the module's time less the command's
+            seconds -= cumulative(suffix, "main")
+        print(f"| {name} | {seconds:.1f} |")
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[1000, 10_000, 100_000])
@@ -120,6 +178,9 @@ def main(argv: list[str] | None = None) -> None:
                         help="model.select_jobs of every fit (default: the config's, auto)")
     parser.add_argument("--candidates", action="store_true",
                         help="print every candidate's seconds under each run")
+    parser.add_argument("--profile", type=int, default=None, metavar="N",
+                        help="then one fit of N samples in one process under cProfile: the "
+                             "seconds of each stage")
     args = parser.parse_args(argv)
     print(f"{os.cpu_count()} cores; torchhys fit --config configs/measured.yaml; "
           f"threads {args.threads or 'default (1)'}; "
@@ -149,6 +210,8 @@ def main(argv: list[str] | None = None) -> None:
                 ratio = float(np.median(walls)) / alone
                 print(f"| {k} | {', '.join(f'{w:.1f}' for w in walls)} | {ratio:.2f} |",
                       flush=True)
+        if args.profile:
+            profile(args.profile, tmp_path)
 
 
 if __name__ == "__main__":

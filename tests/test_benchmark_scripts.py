@@ -198,3 +198,18 @@ def test_forc_figure_is_drawn_and_the_density_finds_the_coercive_field(tmp_path:
     rmse, baseline, half_width, coercive = (float(g) for g in found.groups())
     assert 0 < rmse < 0.3 * baseline, out
     assert 500 < coercive < 2000 and abs(half_width - coercive) < 0.2 * coercive, out
+
+
+@pytest.mark.slow
+def test_fit_speed_prints_each_run_and_the_stages() -> None:
+    """benchmarks/fit_speed.py at its smallest: one fit's row with every candidate's
+    seconds, and the stages of a profiled fit (each stage a number, model selection the
+    largest part of a fit that is not start-up)."""
+    out = run("fit_speed.py", "--sizes", "1000", "--recordings", "1", "--concurrent", "0",
+              "--candidates", "--profile", "1000")
+    assert re.search(r"^\| 1000 \| 1 \| [\d.]+ \| \d+ \| [\d.]+ s: ", out, re.M)
+    assert len(re.findall(r"^\|   \| candidate \d+ \| [\d.]+ \|", out, re.M)) == 11
+    stages = dict(re.findall(r"^\| ([^|]+?) \| ([\d.]+) \|$", out, re.M))
+    assert float(stages["model selection (all candidates)"]) > 0
+    assert float(stages["start-up: importing the command"]) > 0
+    assert "the chosen candidate's fit (Trainer.fit)" in stages
