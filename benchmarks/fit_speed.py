@@ -112,7 +112,7 @@ def concurrent(n: int, k: int, tmp: Path, threads: int | None,
 
 STAGES = [
     # (stage, file suffix, function): cumulative seconds of the function under cProfile
-    ("start-up: importing the command", "torchhys/training/cli.py", "<module>"),
+    ("start-up: the interpreter and the imports", "", "<start-up>"),
     ("reading the data file", "torchhys/training/files.py", "read_recordings"),
     ("model selection (all candidates)", "torchhys/training/selection.py", "run_selection"),
     ("  families fitted on each fold", "torchhys/training/operators.py",
@@ -158,10 +158,12 @@ def profile(n: int, tmp: Path) -> None:
         return max((v[3] for (f, _, fn), v in stats.items()
                     if f.endswith(suffix) and fn == func), default=0.0)
 
+    total = max(v[3] for v in stats.values())
     for name, suffix, func in STAGES:
-        seconds = cumulative(suffix, func)
-        if func == "<module>":  # run as __main__: the module's time less the command's
-            seconds -= cumulative(suffix, "main")
+        if func == "<start-up>":  # everything before the command's main()
+            seconds = total - cumulative("torchhys/training/cli.py", "main")
+        else:
+            seconds = cumulative(suffix, func)
         print(f"| {name} | {seconds:.1f} |")
 
 
