@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
+import torch
 from _training_helpers import cli
 
 from torchhys.training.jobs import run_candidates
@@ -170,3 +171,15 @@ def test_a_killed_process_is_a_one_line_error_not_a_hang() -> None:
     with pytest.raises(SelectionJobError, match=r"the process scoring candidate 1 ended "
                        r"without a result \(killed: out of memory\?\).*select_jobs=1"):
         run_candidates(3, _killed, lambda i: -i, jobs=2)
+
+
+def test_auto_jobs_are_one_process_where_the_trainer_may_use_cuda(monkeypatch) -> None:
+    """CUDA does not survive a fork: select_jobs auto is one process when the trainer's
+    accelerator is not the CPU on a machine with CUDA."""
+    from torchhys.training.cli import _on_gpu
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert _on_gpu({"accelerator": "gpu"}) and _on_gpu({"accelerator": "auto"})
+    assert _on_gpu({}) and not _on_gpu({"accelerator": "cpu"})
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert not _on_gpu({"accelerator": "gpu"})
