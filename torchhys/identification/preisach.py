@@ -7,7 +7,7 @@ import copy
 import functools
 import math
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor, nn
@@ -118,15 +118,20 @@ def select_penalty(
     xb, yb, model, samples = _prepare(x, y, lo, hi, n, linear, warmup,
                                       check_validation(validation), scale, mask)
     train, valid = _normal_equations(xb, yb, model, samples)
+    return select_on_holdout(train, valid, penalties, _warm_solver(model, kind))
 
-    last: Tensor | None = None  # each penalty's fit starts from the previous one's solution
+
+def _warm_solver(model: Preisach, kind: str) -> Callable[[Tensor, Tensor, float], Tensor]:
+    """``solve(G, h, penalty)`` of :func:`select_on_holdout` for the ``kind`` penalty, each
+    penalty's fit started from the previous one's solution."""
+    last: Tensor | None = None
 
     def solve(G: Tensor, h: Tensor, p: float) -> Tensor:
         nonlocal last
         last = _solve(G, h, model, *((p, 0.0) if kind == "ridge" else (0.0, p)), init=last)
         return last
 
-    return select_on_holdout(train, valid, penalties, solve)
+    return solve
 
 
 def fit_preisach_signs(
@@ -164,15 +169,8 @@ def fit_preisach_signs(
     out = []
     for sign in signs:
         parts = [Moments(m.gram, sign * m.moment, m.yy, m.count) for m in segments]
-        last: Tensor | None = None  # each penalty's fit starts from the previous one's
-
-        def solve(G: Tensor, h: Tensor, p: float) -> Tensor:
-            nonlocal last
-            last = _solve(G, h, model, *((p, 0.0) if kind == "ridge" else (0.0, p)), init=last)
-            return last
-
         if select:
-            best, _ = select_on_holdout(*parts, penalties, solve)
+            best, _ = select_on_holdout(*parts, penalties, _warm_solver(model, kind))
         else:
             best = check_penalty(penalties, kind)
         G, h = sum(m.gram for m in parts), sum(m.moment for m in parts)
