@@ -173,10 +173,8 @@ def _operator_loss(op: object, x: Tensor, y: Tensor, warmup: int,
     check_same_shape(yb, xb, "y", "x")
     # a faster closure where the operator has one (the class's method: a submodule that
     # happens to be called `mse_closure` does not shadow it)
-    if mask is None:
-        mask = torch.ones(xb.shape, dtype=torch.bool, device=xb.device)
-        mask[:, :warmup] = False
-    return type(op).mse_closure(op, xb, yb, mask)
+    samples = fitted_samples(mask, (xb.shape[0], xb.shape[1]), warmup).to(xb.device)
+    return type(op).mse_closure(op, xb, yb, samples)
 
 
 def play_width_grid(u: Tensor, n: int = 30, *, power: float = 3.0) -> Tensor:
