@@ -25,7 +25,7 @@ from torch import Tensor
 from torchhys._checks import fitted_samples
 
 __all__ = ["Moments", "check_penalty", "check_validation", "fit_segments", "holdout_cuts",
-           "moments", "nnls_gram", "select_on_holdout"]
+           "moments", "moments_rmse", "nnls_gram", "select_on_holdout"]
 
 
 class Moments(NamedTuple):
@@ -45,6 +45,14 @@ def moments(A: Tensor, y: Tensor) -> Moments:
     """The :class:`Moments` of a design ``A`` (rows, m) and target ``y`` (rows,), float64."""
     A, y = A.to(torch.float64), y.to(torch.float64)
     return Moments(A.T @ A, A.T @ y, y @ y, int(y.numel()))
+
+
+def moments_rmse(m: Moments, theta: Tensor) -> float:
+    """The RMS error of the solution ``theta`` on the rows of the moments ``m``, from them:
+    ``sqrt((y'y - 2 theta'A'y + theta'A'A theta) / rows)`` (0 where rounding makes it
+    negative)."""
+    sse = m.yy - 2.0 * theta @ m.moment + theta @ m.gram @ theta
+    return math.sqrt(max(float(sse) / m.count, 0.0))
 
 
 def check_penalty(value: object, name: str) -> float:
@@ -152,8 +160,7 @@ def select_on_holdout(
     scores: dict[float, float] = {}
     for p in values:
         theta = solve(train.gram / train.count, train.moment / train.count, p)
-        sse = valid.yy - 2.0 * theta @ valid.moment + theta @ valid.gram @ theta
-        scores[p] = math.sqrt(max(float(sse) / valid.count, 0.0))
+        scores[p] = moments_rmse(valid, theta)
     return min(scores, key=scores.__getitem__), scores
 
 

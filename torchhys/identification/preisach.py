@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import copy
 import functools
-import math
 import warnings
 from collections.abc import Callable, Sequence
 
@@ -27,6 +26,7 @@ from torchhys.identification._nnls import (
     check_penalty,
     check_validation,
     fit_segments,
+    moments_rmse,
     nnls_gram,
     select_on_holdout,
 )
@@ -181,9 +181,8 @@ def fit_preisach_signs(
         theta = torch.cat([fitted.weights.detach().reshape(-1), fitted.linear.detach().reshape(-1)
                            if isinstance(model.linear, nn.Parameter) else theta[:0],
                            fitted.offset.detach().reshape(-1)]).double()
-        yy = sum(m.yy for m in parts)
-        sse = float(yy - 2.0 * theta @ h + theta @ G @ theta)
-        out.append((best, fitted, math.sqrt(max(sse, 0.0) / count)))
+        total = Moments(G, h, sum(m.yy for m in parts), count)
+        out.append((best, fitted, moments_rmse(total, theta)))
     return out
 
 

@@ -28,6 +28,7 @@ from torchhys.identification._nnls import (
     check_penalty,
     check_validation,
     fit_segments,
+    moments_rmse,
     nnls_gram,
     select_on_holdout,
 )
@@ -276,8 +277,7 @@ def fit_stop_pi_signs(
         theta = torch.cat([model.offset.detach().reshape(1),
                            model.linear_weight.detach().reshape(1),
                            model.weights.detach().flatten()]).double().cpu()
-        sse = mom.yy - 2.0 * theta @ mom.moment + theta @ mom.gram @ theta
-        out.append((best, model, math.sqrt(max(float(sse), 0.0) / mom.count)))
+        out.append((best, model, moments_rmse(mom, theta)))
     return out
 
 
