@@ -16,6 +16,7 @@ from torchhys._checks import (
     check_warmup,
     fitted_samples,
 )
+from torchhys._memory import check_memory
 from torchhys.functional.preisach import (
     _real,
     _relay_chunks,
@@ -32,7 +33,25 @@ from torchhys.identification._nnls import (
 )
 from torchhys.operators.preisach import Preisach
 
-__all__ = ["fit_preisach", "fit_preisach_signs", "select_penalty"]
+__all__ = ["check_fit_memory", "fit_preisach", "fit_preisach_signs", "select_penalty"]
+
+FIT_MATRICES = 10
+"""The (relays, relays) float64 matrices a fit holds at its peak, about (measured: the
+moments of the training and hold-out samples and their sum, the penalised copy, the
+solver's, the difference operator, two such, and its Gram matrix, and temporaries)."""
+
+
+def check_fit_memory(n: int, what: str = "fit_preisach") -> None:
+    """Refuse a fit of an n-level grid whose matrices (:data:`FIT_MATRICES` of
+    ``K x K`` float64, ``K = n (n + 1) / 2`` relays: they grow as n**4) exceed the memory
+    limit (:func:`torchhys._memory.check_memory`), before anything is allocated.
+
+    Raises:
+        ValueError: naming ``what``, n, the relays, the estimate and the limit.
+    """
+    K = n * (n + 1) // 2
+    check_memory(FIT_MATRICES * 8.0 * (K + 2) ** 2, f"{what}: n={n} ({K} relays)",
+                 "lower n (the fit's matrices grow as n**4)")
 
 
 def fit_preisach(
@@ -203,6 +222,8 @@ def _prepare(x: Tensor, y: Tensor, lo: float | None, hi: float | None, n: int, l
                          "give lo and hi")
     lo = float(xb.min()) if lo is None else _real(lo, "lo")
     hi = float(xb.max()) if hi is None else _real(hi, "hi")
+    if isinstance(n, int):  # Preisach checks other values
+        check_fit_memory(n)
     model = Preisach(lo, hi, n, linear=linear, scale=scale).to(xb.dtype)
     samples = fit_segments(tuple(xb.shape), warmup, mask, validation)
     xs = xb if mask is None else xb[fitted_samples(mask, tuple(xb.shape), 0).to(xb.device)]

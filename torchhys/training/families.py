@@ -92,7 +92,7 @@ from torchhys._checks import (
 from torchhys.functional.jiles_atherton import MU0
 from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
 from torchhys.identification.jiles_atherton import substeps_for
-from torchhys.identification.preisach import fit_preisach_signs
+from torchhys.identification.preisach import check_fit_memory, fit_preisach_signs
 from torchhys.identification.stop_pi import fit_stop_pi_signs
 from torchhys.training.fit_checks import (
     FitError,
@@ -302,6 +302,7 @@ def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
 def _preisach(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     _keys(spec, {"n", "smoothness", "grading", "direction"})
     n = check_int(spec.get("n", 20), "fit 'preisach': n", minimum=2)
+    check_fit_memory(n, "fit 'preisach'")
     smoothness = _penalty(spec, "smoothness")
     grading = spec.get("grading")
     if grading is not None:
