@@ -28,6 +28,7 @@ from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
 from torchhys._checks import check_choice, check_int
+from torchhys._memory import SAMPLE_BYTES, check_memory
 from torchhys.training.files import (
     Column,
     DataFileError,
@@ -290,7 +291,10 @@ class HysteresisDataModule(L.LightningDataModule):
                 time_column=hp.time_column, run_column=hp.run_column,
                 min_samples=hp.min_samples, encoding=hp.encoding, delimiter=hp.delimiter,
                 decimal=hp.decimal)
-        recs = self.recordings
+        recs, n = self.recordings, sum(len(r.x) for r in self.recordings)
+        if hp.repeat > 1:  # the sequences, and a training's passes over them, grow with it
+            check_memory(SAMPLE_BYTES * hp.repeat * n, f"data.repeat={hp.repeat} ({hp.repeat}"
+                         f" x {n} samples)", "lower data.repeat")
         self.x = torch.from_numpy(np.concatenate([r.x for r in recs]))
         self.y = torch.from_numpy(np.concatenate([r.y for r in recs]))
         self.t = (None if any(r.t is None for r in recs)
