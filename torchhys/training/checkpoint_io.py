@@ -12,7 +12,8 @@ before the rename either, so a power cut may leave an empty file.
 own folder, flushes it to the disk (``fsync``), and :func:`os.replace`\\ s it over the old
 file (then ``fsync``\\ s the folder): a reader sees the old checkpoint or the new one, never a
 part. On any error the temporary file is removed and the old checkpoint is left as it was.
-Remote paths (``s3://``, ...) are saved as Lightning saves them.
+Remote paths (``s3://``, ...) are saved as Lightning saves them; checkpoints are loaded from
+local files only, with ``weights_only=True`` (no code from the file runs).
 
 Use it as a trainer plugin: ``Trainer(plugins=[AtomicCheckpointIO()])``, or on the command
 line ``--trainer.plugins=torchhys.training.checkpoint_io.AtomicCheckpointIO``.
@@ -28,6 +29,8 @@ from typing import Any
 import torch
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from lightning.fabric.utilities.cloud_io import _is_local_file_protocol
+
+from torchhys.training.errors import refuse_url
 
 __all__ = ["AtomicCheckpointIO", "atomic_write_bytes"]
 
@@ -80,7 +83,21 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
 class AtomicCheckpointIO(TorchCheckpointIO):
     """:class:`~lightning.fabric.plugins.io.TorchCheckpointIO` whose local checkpoint files
     are replaced atomically (:func:`atomic_write_bytes`): the previous checkpoint survives a
-    full disk or a killed process during the save. Loading and removing are Lightning's."""
+    full disk or a killed process during the save. Loading reads local files only, with
+    ``weights_only=True`` (:meth:`load_checkpoint`); removing is Lightning's."""
+
+    def load_checkpoint(self, path: Any, map_location: Any = lambda storage, loc: storage,
+                        weights_only: bool | None = None) -> dict[str, Any]:
+        """The checkpoint in the local file ``path`` (Lightning's read of ``ckpt_path``, of
+        ``best`` and ``hpc``), loaded with ``weights_only=True`` whatever ``weights_only``
+        asks: no code from the file runs. A URL (``http://``, ``file://``, ``s3://`` ...) is
+        refused with a :class:`~torchhys.training.errors.CheckpointError`: nothing is
+        downloaded (Lightning's loader would load a URL with ``weights_only=False``)."""
+        refuse_url(path, "ckpt_path")
+        if not os.path.isfile(path):
+            raise FileNotFoundError(f"Checkpoint file not found: {path}")
+        with open(path, "rb") as fh:
+            return torch.load(fh, map_location=map_location, weights_only=True)
 
     def save_checkpoint(self, checkpoint: dict[str, Any], path: Any,
                         storage_options: Any | None = None) -> None:

@@ -70,13 +70,13 @@ from lightning.pytorch.utilities import rank_zero_only, rank_zero_warn
 
 from torchhys.training import selection
 from torchhys.training.callbacks import BaselineComparison, PredictionWriter
+from torchhys.training.ckpt_paths import check_ckpt_path
 from torchhys.training.coverage import warn_coverage
 from torchhys.training.data import HysteresisDataModule
 from torchhys.training.errors import (
     TRACEBACK_ENV,
     TRACEBACK_FLAG,
     config_errors,
-    read_checkpoint,
     report_user_error,
     split_traceback_flag,
 )
@@ -131,9 +131,10 @@ class TorchhysCLI(LightningCLI):
         a missing or damaged checkpoint is a one-line error, with no run folder left."""
         super().parse_arguments(parser, args)
         sub = self.config.get("subcommand")
-        path = self.config[sub].get("ckpt_path") if sub else None
-        if isinstance(path, str | os.PathLike) and not _special_ckpt_path(str(path)):
-            read_checkpoint(path, "--ckpt_path")
+        if sub and isinstance(self.config[sub].get("ckpt_path"), str | os.PathLike):
+            # a file read and checked, a URL refused, 'last' the newest earlier run's
+            self.config[sub]["ckpt_path"] = check_ckpt_path(self.config[sub]["ckpt_path"],
+                                                            self.config[sub])
 
     def before_instantiate_classes(self) -> None:
         self._run_dir: tuple[Path, int | str | None] | None = None
@@ -282,13 +283,6 @@ class TorchhysCLI(LightningCLI):
         kwargs["callbacks"] = [c for c in kwargs.get("callbacks") or []
                                if not isinstance(c, ModelCheckpoint)]
         return self.model, self._get(self.config_init, "data"), self.trainer_class(**kwargs)
-
-
-def _special_ckpt_path(path: str) -> bool:
-    """Lightning's ``ckpt_path`` values that are not a local file ('last', 'best', 'hpc',
-    'registry[:...]') and remote URLs: Lightning resolves them."""
-    return (path in ("last", "best", "hpc") or path.lower().startswith("registry")
-            or "://" in path)
 
 
 def _on_gpu(trainer: Any) -> bool:

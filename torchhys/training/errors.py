@@ -35,7 +35,8 @@ from lightning.fabric.utilities.exceptions import MisconfigurationException
 
 __all__ = [
     "CheckpointError", "TRACEBACK_ENV", "TRACEBACK_FLAG", "config_errors", "is_user_error",
-    "read_checkpoint", "report_user_error", "split_traceback_flag", "traceback_requested",
+    "read_checkpoint", "refuse_url", "report_user_error", "split_traceback_flag",
+    "traceback_requested",
 ]
 
 TRACEBACK_FLAG = "--traceback"
@@ -104,6 +105,20 @@ def report_user_error(prog: str, exc: BaseException, traceback: bool = False) ->
 
 _EXPECTED = "expected a checkpoint written by torchhys fit (<run>/checkpoints/last.ckpt)"
 _ZIP, _PICKLE = b"PK\x03\x04", b"\x80"
+_URL = re.compile(r"[A-Za-z][A-Za-z0-9+.-]+:/")
+"""A URL's scheme (``http://``, ``file://``, ``s3://``; ``http:/`` once a :class:`Path` has
+folded the slashes); one letter is a Windows drive (``C:/``), not a scheme."""
+
+
+def refuse_url(path: str | os.PathLike, option: str = "--ckpt") -> None:
+    """Raise a :class:`CheckpointError` if ``path`` is a URL (any scheme, ``file://``
+    included): checkpoints are read from local files only, nothing is downloaded (a loader
+    of remote files may run code from them)."""
+    text = os.fspath(path)
+    if _URL.match(text):
+        raise CheckpointError(f"{option} {text} is a URL: torchhys reads checkpoints from "
+                              "local files only (nothing is downloaded); download it and "
+                              "give the local file's path")
 
 
 def read_checkpoint(path: str | Path, option: str = "--ckpt", *,
@@ -118,11 +133,13 @@ def read_checkpoint(path: str | Path, option: str = "--ckpt", *,
             a plain ``torch.save``d state dict (names to tensors) is accepted too.
 
     Raises:
-        CheckpointError: no such file, not a PyTorch file, damaged or truncated, or not a
-            dict of the expected kind; the message names the file and what was expected.
+        CheckpointError: a URL (:func:`refuse_url`), no such file, not a PyTorch file,
+            damaged or truncated, or not a dict of the expected kind; the message names the
+            file and what was expected.
     """
     import torch
 
+    refuse_url(path, option)
     expected = _EXPECTED + ("" if lightning else " or a torch.save'd state dict of a network")
     where = f"{option} {path}"
     file = Path(path)

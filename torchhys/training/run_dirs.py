@@ -12,14 +12,14 @@ from pathlib import Path
 from jsonargparse import Namespace
 from lightning.pytorch.utilities import rank_zero_only
 
-__all__ = ["RUN_DIR_ENV", "reserve_run_dir"]
+__all__ = ["RUN_DIR_ENV", "log_folder", "reserve_run_dir"]
 
 RUN_DIR_ENV = "TORCHHYS_RUN_DIR"
 """The version folder model selection reserved, passed to the processes of other ranks that
 the run launches (DDP): they use it instead of reserving their own."""
 
 
-def _log_folder(trainer: Namespace) -> tuple[Path, int | str | None, bool]:
+def log_folder(trainer: Namespace) -> tuple[Path, int | str | None, bool]:
     """Where the run's logger puts its version folders: the parent folder, the version
     its config pins (or None), and whether the logger is one whose version can be pinned
     (the default CSV logger, or a configured CSVLogger or TensorBoardLogger)."""
@@ -47,7 +47,7 @@ def reserve_run_dir(trainer: Namespace) -> tuple[Path, int | str | None]:
     """The run's version folder, created now (``os.mkdir`` of the next free ``version_N``,
     the next one on ``FileExistsError``: concurrent runs get different folders), and the
     version to pin the logger to (None: the logger's own, or no logger to pin)."""
-    parent, version, pinnable = _log_folder(trainer)
+    parent, version, pinnable = log_folder(trainer)
     if version is not None:  # the config pins it: that folder, as the logger would
         folder = parent / (f"version_{version}" if isinstance(version, int) else str(version))
         folder.mkdir(parents=True, exist_ok=True)
