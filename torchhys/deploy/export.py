@@ -33,6 +33,7 @@ file's extra files of the same names), all strings:
 
 from __future__ import annotations
 
+import io
 import os
 import warnings
 from typing import Any
@@ -40,6 +41,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from torchhys._atomic import atomic_write_files
 from torchhys._checks import check_int
 from torchhys.deploy.streaming import COUNTER, HELD, STATE_I, StreamingCompensator
 
@@ -73,13 +75,37 @@ def _compensator(
 
 
 def _check_path(path: str | os.PathLike) -> str:
+    """``path`` as a str, if a file can be written there (checked before any compile)."""
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"path must be a str or os.PathLike, got {type(path).__name__}")
     path = os.fspath(path)
     parent = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(parent):
         raise ValueError(f"the directory of path {path!r} does not exist")
+    if os.path.isdir(path):
+        raise ValueError(f"path {path!r} is a folder; give the file to write")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ValueError(f"path {path!r}: the folder {parent!r} is not writable")
     return path
+
+
+def _write(path: str, data: bytes) -> None:
+    """Write an export's bytes to ``path`` atomically (:mod:`torchhys._atomic`): on an error
+    the previous file at ``path`` is left whole, and the OSError names ``path``."""
+    write_outputs([(path, data)])
+
+
+def write_outputs(files: list[tuple[str | os.PathLike, bytes]]) -> None:
+    """Write an export's files atomically, all complete before the first replaces its old
+    version (:func:`torchhys._atomic.atomic_write_files`). An OSError (a full disk, no
+    permission) leaves every old file whole and is raised naming the first target."""
+    try:
+        atomic_write_files(files, tag="export")
+    except OSError as err:
+        first = os.fspath(files[0][0])
+        reason = err.strerror or str(err)
+        raise OSError(err.errno, f"{reason} (nothing was replaced: the previous file is "
+                      "left as it was)", first) from err
 
 
 def to_torchscript(
@@ -98,7 +124,8 @@ def to_torchscript(
         model: an :class:`~torchhys.InverseHysteresisNet` with causal operators, a
             :class:`~torchhys.PrandtlIshlinskiiInverse`, or a built
             :class:`~torchhys.deploy.streaming.StreamingCompensator`.
-        path: output file (conventionally ``.pt``).
+        path: output file (conventionally ``.pt``), written atomically: an old file there
+            is replaced whole or, on an error (a full disk), left as it was.
         limits: ``(low, high)`` command saturation; default: the training output range
             (:func:`~torchhys.deploy.streaming.default_limits`).
         initial_command: command held until the first finite input.
@@ -125,7 +152,8 @@ def to_torchscript(
             "ignore", message=r"`torch\.jit\.script` is deprecated", category=DeprecationWarning
         )
         scripted = torch.jit.script(comp)
-    scripted.save(path, _extra_files=metadata(comp))
+    # to memory first: a full disk then fails in Python, not inside torch's writer
+    _write(path, scripted.save_to_buffer(_extra_files=metadata(comp)))
     return scripted
 
 
@@ -223,7 +251,8 @@ def to_aoti(
     Args:
         model, limits, initial_command, input_range, input_margin, direction: as
             :func:`to_torchscript`.
-        path: output package (``.pt2``).
+        path: output package (a name ending in ``.pt2``), written atomically: an old file
+            there is replaced whole or, on an error, left as it was.
         batch: batch size the package is compiled for (static).
         inductor_configs: extra AOTInductor options; they override the defaults
             (in float32 ``max_autotune=True, max_autotune_gemm_backends="CPP"``: generated
@@ -233,6 +262,8 @@ def to_aoti(
         The package path.
     """
     path = _check_path(path)
+    if not path.endswith(".pt2"):
+        raise ValueError(f"path {path!r}: the name of an AOTI package must end in .pt2")
     check_int(batch, "batch", minimum=1)
     comp = _compensator(model, limits, initial_command,
                         {"input_range": input_range, "input_margin": input_margin,
@@ -243,9 +274,10 @@ def to_aoti(
         ep = torch.export.export(_ExplicitStep(comp), (x, *state), strict=False)
     configs = {**_aoti_defaults(comp.low.dtype), "aot_inductor.metadata": metadata(comp, batch),
                **(inductor_configs or {})}
-    return torch._inductor.aoti_compile_and_package(
-        ep, package_path=path, inductor_configs=configs
-    )
+    buffer = io.BytesIO()
+    torch._inductor.aoti_compile_and_package(ep, package_path=buffer, inductor_configs=configs)
+    _write(path, buffer.getvalue())
+    return path
 
 
 class AOTIStepper:

@@ -43,7 +43,7 @@ from torch.export.graph_signature import InputKind
 from torchhys.deploy._c_files import MEMBERS, files
 from torchhys.deploy._c_templates import POINTWISE_OPS, SHAPE_ONLY, TEMPLATES, VIEW_OPS
 from torchhys.deploy._c_writer import CTensor, Writer, constant, contiguous_strides
-from torchhys.deploy.export import _compensator, _ExplicitStep
+from torchhys.deploy.export import _compensator, _ExplicitStep, write_outputs
 from torchhys.deploy.streaming import StreamingCompensator
 
 __all__ = ["DEFAULT_PREFIX", "check_prefix", "to_c"]
@@ -72,6 +72,8 @@ def _check_out_dir(out_dir: object) -> Path:
     path = Path(out_dir)
     if not path.is_dir():
         raise ValueError(f"out_dir {os.fspath(out_dir)!r} is not an existing folder")
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise ValueError(f"out_dir {os.fspath(out_dir)!r} is not writable")
     return path
 
 
@@ -101,7 +103,9 @@ def to_c(
         model: an :class:`~torchhys.InverseHysteresisNet` with causal operators, a
             :class:`~torchhys.PrandtlIshlinskiiInverse`, any model with streaming steps, or a
             built :class:`~torchhys.deploy.streaming.StreamingCompensator` (then in ``dtype``).
-        out_dir: an existing folder.
+        out_dir: an existing folder. The two files are written atomically: both are
+            complete on the disk before either replaces an old file of its name; on an error
+            (a full disk) the old pair is left as it was.
         prefix: the C prefix of every name (a C identifier).
         dtype: ``torch.float64`` or ``torch.float32``: the C step's real type (a model in
             another dtype is copied and converted, as ``model.to(dtype)``).
@@ -136,8 +140,8 @@ def to_c(
                "input_margin": input_margin, "direction": direction}
     header, source = files(prefix, w, model, comp, state, u, outputs, options)
     h_path, c_path = folder / f"{prefix}.h", folder / f"{prefix}.c"
-    h_path.write_text(header)
-    c_path.write_text(source)
+    # both complete on the disk before either replaces its old version
+    write_outputs([(h_path, header.encode()), (c_path, source.encode())])
     return h_path, c_path
 
 

@@ -64,6 +64,7 @@ from torchhys.deploy.export import (
     _ExplicitStep,
     _parse_state_spec,
     _position,
+    _write,
     metadata,
 )
 
@@ -196,7 +197,8 @@ def to_onnx(
         model, limits, initial_command, input_range, input_margin, direction: as
             :func:`torchhys.deploy.export.to_torchscript` (a model, or a built
             :class:`~torchhys.deploy.streaming.StreamingCompensator` with the defaults here).
-        path: output file (conventionally ``.onnx``); the weights are inside it.
+        path: output file (conventionally ``.onnx``); the weights are inside it. Written
+            atomically: an old file there is replaced whole or, on an error, left as it was.
         batch: rows per step (static).
         opset: the ONNX opset (default: the exporter's).
 
@@ -213,8 +215,6 @@ def to_onnx(
     if opset is not None:
         check_int(opset, "opset", minimum=1)
     _require("onnx", "onnxscript")
-    import onnx
-
     comp = _compensator(model, limits, initial_command,
                         {"input_range": input_range, "input_margin": input_margin,
                          "direction": direction}).eval()
@@ -239,7 +239,7 @@ def to_onnx(
         entry = proto.metadata_props.add()
         entry.key, entry.value = key, value
     _check_runs(proto)
-    onnx.save_model(proto, path)
+    _write(path, proto.SerializeToString())  # atomic: a full disk leaves the old file
     return path
 
 

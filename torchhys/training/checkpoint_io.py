@@ -11,7 +11,8 @@ before the rename either, so a power cut may leave an empty file.
 :class:`AtomicCheckpointIO` writes the new checkpoint to a temporary file in the checkpoint's
 own folder, flushes it to the disk (``fsync``), and :func:`os.replace`\\ s it over the old
 file (then ``fsync``\\ s the folder): a reader sees the old checkpoint or the new one, never a
-part. On any error the temporary file is removed and the old checkpoint is left as it was.
+part. On any error the temporary file is removed and the old checkpoint is left as it was
+(:mod:`torchhys._atomic`, which the exported compensators' files share).
 Remote paths (``s3://``, ...) are saved as Lightning saves them; checkpoints are loaded from
 local files only, with ``weights_only=True`` (no code from the file runs).
 
@@ -23,61 +24,16 @@ from __future__ import annotations
 
 import io
 import os
-import uuid
 from typing import Any
 
 import torch
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from lightning.fabric.utilities.cloud_io import _is_local_file_protocol
 
+from torchhys._atomic import atomic_write_bytes
 from torchhys.training.errors import refuse_url
 
 __all__ = ["AtomicCheckpointIO", "atomic_write_bytes"]
-
-_PARTIAL = ".partial"
-"""Suffix of the temporary files (their names never hold "last": Lightning's
-``ckpt_path="last"`` looks for files with "last" in the name)."""
-
-
-def _fsync_dir(folder: str) -> None:
-    """Flush a folder's entries (the rename) to the disk, where the system allows it."""
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:  # a system without directory handles (Windows)
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Replace the file ``path`` by ``data``, whole or not at all.
-
-    The bytes go to a new file ``.ckpt-<random>.partial`` in the same folder, which is
-    flushed (``fsync``) and renamed over ``path`` (:func:`os.replace`, atomic within a
-    filesystem). On any error (a full disk, no permission) the temporary file is removed and
-    ``path`` keeps its old contents. The new file gets the permissions of a newly created
-    file (``0o666`` less the umask).
-    """
-    path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    temp = os.path.join(folder, f".ckpt-{uuid.uuid4().hex}{_PARTIAL}")
-    try:
-        with open(temp, "xb") as fh:  # a new file: O_EXCL, 0o666 less the umask
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(temp, path)
-    except BaseException:
-        try:
-            os.remove(temp)
-        except OSError:
-            pass
-        raise
-    _fsync_dir(folder)
 
 
 class AtomicCheckpointIO(TorchCheckpointIO):

@@ -2,11 +2,18 @@
 
     torchhys export --ckpt CKPT --format torchscript|aoti|c|onnx --out FILE|DIR [--limits LOW HIGH]
         [--input-margin M | --input-margin none] [--direction auto|increasing|decreasing|none]
-        [--dtype float64|float32] [--prefix NAME]
+        [--dtype float64|float32] [--prefix NAME] [--force]
 
 ``--format c`` writes ``DIR/NAME.h`` and ``DIR/NAME.c`` (``--prefix``, default
 ``torchhys_comp``), dependency-free C99 (:func:`torchhys.deploy.export_c.to_c`); ``--dtype`` sets
 the exported step's real type (default: the checkpoint's).
+
+The output is checked before anything is read or compiled: its folder exists and is
+writable, it is not the ``--ckpt`` file itself (refused even with ``--force``), and an
+existing file is replaced only with ``--force``. Every file is written atomically (a
+temporary file beside it, flushed, renamed over it; the C pair both complete before either
+is renamed): on an error, a full disk included, the previous output is left whole.
+Numbers may be given in scientific notation, negative ones too (``--limits -5e-3 5e-3``).
 
 The compensator clamps its input to the training input range widened by ``--input-margin``
 (a share of the range, default 0.05) and counts the samples it clamped; its command never
@@ -25,6 +32,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import re
 import sys
 from pathlib import Path
 
@@ -44,8 +53,14 @@ __all__ = ["build_net", "main"]
 _ARCH_KEYS = ("operator", "hidden", "activation", "operator_kwargs")
 
 
+NEGATIVE_NUMBER = re.compile(r"^-(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?$")
+"""What argparse takes for a negative number, not an option: ``-5``, ``-0.005``, ``-.5`` and
+scientific notation (``-5e-3``, ``-1E+2``), which its own pattern does not cover."""
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="torchhys export", description=__doc__.splitlines()[0])
+    p._negative_number_matcher = NEGATIVE_NUMBER  # argparse's hook for this pattern
     p.add_argument("--ckpt", type=Path, required=True, help="checkpoint or state dict file")
     p.add_argument("--format", choices=("torchscript", "aoti", "c", "onnx"), required=True)
     p.add_argument("--out", type=Path, required=True,
@@ -68,6 +83,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--import", dest="imports", action="append", default=[], metavar="MODULE",
                    help="import this module first (repeatable): the operators it registers "
                         "can be named in the checkpoint's config")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing output file (never the --ckpt file itself)")
     p.add_argument("--traceback", action="store_true",
                    help="on an error in the checkpoint or options, show the traceback "
                         "(also TORCHHYS_TRACEBACK=1)")
@@ -118,6 +135,46 @@ def _plain_arch(args: argparse.Namespace) -> dict:
             "operator_kwargs": json.loads(args.operator_kwargs or "{}")}
 
 
+def _same_file(a: Path, b: Path) -> bool:
+    if os.path.realpath(a) == os.path.realpath(b):
+        return True
+    try:
+        return os.path.samefile(a, b)  # hard links
+    except OSError:
+        return False
+
+
+def check_out(args: argparse.Namespace) -> list[Path]:
+    """The files the export will write, after checking (before anything is read or
+    compiled) that they can be written: the folder exists and is writable, no target is a
+    folder or the ``--ckpt`` file, an existing target only with ``--force``."""
+    if args.format == "c":
+        if not args.out.is_dir():
+            raise ValueError(f"--out {args.out}: the folder does not exist (--format c writes "
+                             "two files into an existing folder)")
+        folder, prefix = args.out, args.prefix or DEFAULT_PREFIX
+        targets = [args.out / f"{prefix}.h", args.out / f"{prefix}.c"]
+    else:
+        folder, targets = args.out.parent, [args.out]
+        if args.out.is_dir():
+            raise ValueError(f"--out {args.out} is a folder; --format {args.format} writes one "
+                             "file: give its name")
+        if not folder.is_dir():
+            raise ValueError(f"--out {args.out}: the folder {folder} does not exist")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise ValueError(f"--out {args.out}: the folder {folder} is not writable")
+    for target in targets:
+        if _same_file(target, args.ckpt):
+            raise ValueError(f"--out {target} is the --ckpt file itself: the export would "
+                             "replace its own checkpoint; give another --out")
+        if target.is_dir():
+            raise ValueError(f"--out {target} is a folder; move it or give another --out")
+        if target.exists() and not args.force:
+            raise ValueError(f"--out {target} exists; give --force to replace it, or "
+                             "another --out")
+    return targets
+
+
 def build_net(ckpt: dict, arch: dict | None = None) -> InverseHysteresisNet:
     """Rebuild the network of a Lightning checkpoint (or of a plain state dict + ``arch``)."""
     if "state_dict" in ckpt:
@@ -159,13 +216,9 @@ def main(argv: list[str]) -> int:
     """
     args = _parser().parse_args(argv)
     try:
-        if args.format == "c" and not args.out.is_dir():
-            raise ValueError(f"--out {args.out}: the folder does not exist (--format c writes "
-                             "two files into an existing folder)")
-        if not args.out.parent.is_dir():
-            raise ValueError(f"--out {args.out}: the folder {args.out.parent} does not exist")
         if args.prefix is not None and args.format != "c":
             raise ValueError(f"--prefix applies to --format c only, not {args.format}")
+        check_out(args)
         import_modules(args.imports)
         ckpt = read_checkpoint(args.ckpt, "--ckpt", lightning=False)
         options = {"limits": args.limits, "initial_command": args.initial_command,
