@@ -3,8 +3,8 @@
 The page's code blocks are read from the page: the Python blocks headed ``# my_operators.py``
 make the module it says to save (in a temporary folder), the other Python blocks run in
 order in one process there, and their asserts and prints are checked. With the slow tests,
-the page's command lines run too: ``torchhys fit --import`` on its config, the exports, and
-the conformance suite on the page's operators.
+the page's command lines run too: ``torchhys fit --import-path . --import`` on its config,
+the exports, and the conformance suite on the page's operators.
 """
 
 from __future__ import annotations
@@ -52,9 +52,19 @@ def write_files(folder: Path, module: str | None = None) -> str:
     return "\n".join(b for b in python if not headed(b, f"{MODULE}.py"))
 
 
-def run(args: list[str], cwd: Path, timeout: int = 600) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(cwd), "OMP_NUM_THREADS": "1"}
-    env.pop("TORCHHYS_IMPORT", None)
+def run(args: list[str], cwd: Path, timeout: int = 600, *, command: bool = False
+        ) -> subprocess.CompletedProcess:
+    """``args`` in ``cwd`` with ``cwd`` on ``PYTHONPATH``; ``command``: with ``sys.path`` as
+    the ``torchhys`` console script has it instead (no working folder: ``PYTHONSAFEPATH``,
+    Python 3.11 and later), so that the page's ``--import-path .`` is what finds the module."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    if command:
+        env["PYTHONSAFEPATH"] = "1"
+        env.pop("PYTHONPATH", None)
+    else:
+        env["PYTHONPATH"] = str(cwd)
+    for key in ("TORCHHYS_IMPORT", "TORCHHYS_IMPORT_PATH"):
+        env.pop(key, None)
     return subprocess.run(args, cwd=cwd, capture_output=True, text=True, timeout=timeout,
                           env=env)
 
@@ -116,14 +126,14 @@ def commands(prefix: str) -> list[list[str]]:
 
 @pytest.mark.slow
 def test_the_command_line_route(tmp_path: Path) -> None:
-    """``torchhys fit --import`` on the page's config, both exports, and the TorchScript file
-    run where neither torchhys nor the module is imported (about 50 s)."""
+    """``torchhys fit --import-path . --import`` on the page's config, both exports, and the
+    TorchScript file run where neither torchhys nor the module is imported (about 50 s)."""
     write_files(tmp_path)
     (tmp_path / "c_out").mkdir()
     steps = commands("torchhys")
     assert [s[0] for s in steps] == ["fit", "export", "export"]
     for args in steps:
-        out = run([sys.executable, "-m", "torchhys", *args], tmp_path)
+        out = run([sys.executable, "-m", "torchhys", *args], tmp_path, command=True)
         assert out.returncode == 0, (args, out.stderr[-3000:])
     assert (tmp_path / "c_out" / "my_comp.c").is_file()
     check = textwrap.dedent("""

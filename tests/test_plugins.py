@@ -2,9 +2,9 @@
 ``torchhys.operators`` entry-point group.
 
 A module written in a temporary folder (no torchhys file knows it) defines and registers an
-operator; ``torchhys fit --import`` trains a config that names it, ``torchhys export
---import`` exports the checkpoint, and the exported file runs in a process that never imports
-torchhys.
+operator; ``torchhys fit --import-path . --import`` trains a config that names it (the
+working folder is searched only when named), ``torchhys export --import`` exports the
+checkpoint, and the exported file runs in a process that never imports torchhys.
 """
 
 from __future__ import annotations
@@ -78,8 +78,11 @@ data:
 
 
 def _run(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    env.pop("TORCHHYS_IMPORT", None)
+    """``torchhys ARGS`` in ``cwd`` with ``sys.path`` as the console script has it: without
+    the working folder (``PYTHONSAFEPATH``, Python 3.11 and later)."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONSAFEPATH": "1"}
+    for key in ("TORCHHYS_IMPORT", "TORCHHYS_IMPORT_PATH", "PYTHONPATH"):
+        env.pop(key, None)
     return subprocess.run([sys.executable, "-m", "torchhys.training.cli", *args], cwd=cwd,
                           capture_output=True, text=True, timeout=600, env=env)
 
@@ -97,12 +100,16 @@ def test_fit_and_export_an_operator_of_an_imported_module(tmp_path: Path) -> Non
     # without the module the name is unknown: a one-line error
     bad = _run(["fit", "--config", "c.yaml", "--trainer.default_root_dir=run"], tmp_path)
     assert bad.returncode == 2 and "soft_zone_cli" in bad.stderr.strip().splitlines()[-1]
-    fit = _run(["fit", "--import", "my_operators", "--config", "c.yaml",
+    if sys.version_info >= (3, 11):  # the working folder is not searched unless named
+        unnamed = _run(["fit", "--import", "my_operators", "--config", "c.yaml",
+                        "--trainer.default_root_dir=run"], tmp_path)
+        assert unnamed.returncode == 2 and "add --import-path ." in unnamed.stderr
+    fit = _run(["fit", "--import-path", ".", "--import", "my_operators", "--config", "c.yaml",
                 "--trainer.default_root_dir=run"], tmp_path)
     assert fit.returncode == 0, fit.stderr[-3000:]
     ckpt = tmp_path / "run/logs/version_0/checkpoints/last.ckpt"
-    export = _run(["export", "--import", "my_operators", "--ckpt", str(ckpt), "--format",
-                   "torchscript", "--out", "comp.pt"], tmp_path)
+    export = _run(["export", "--import", "my_operators", "--import-path", ".", "--ckpt",
+                   str(ckpt), "--format", "torchscript", "--out", "comp.pt"], tmp_path)
     assert export.returncode == 0, export.stderr[-3000:]
     missing = _run(["export", "--import", "no_such_module", "--ckpt", str(ckpt), "--format",
                     "torchscript", "--out", "comp2.pt"], tmp_path)

@@ -46,7 +46,7 @@ docs/training.md ("Model selection on validation data"); the code is in
 ``model.select``, and so does a ``fit --ckpt_path`` that resumes.
 
 Options of the command itself, taken out before LightningCLI reads the rest: ``--import
-MODULE`` (:mod:`torchhys.training.plugins`), ``--threads N``
+MODULE`` and ``--import-path DIR`` (:mod:`torchhys.training.plugins`), ``--threads N``
 (:mod:`torchhys.training.threads`), ``--quiet``, ``--traceback``.
 """
 
@@ -84,7 +84,16 @@ from torchhys.training.folds import describe_cv
 from torchhys.training.jobs import check_budget, check_jobs, usable_cores
 from torchhys.training.module import InverseHysteresisModule
 from torchhys.training.operators import build_operators
-from torchhys.training.plugins import IMPORT_ENV, import_modules, split_import_flags
+from torchhys.training.plugins import (
+    IMPORT_ENV,
+    IMPORT_PATH_ENV,
+    add_import_paths,
+    import_modules,
+    modules_from_env,
+    paths_from_env,
+    split_import_flags,
+    split_import_path_flags,
+)
 from torchhys.training.progress import QUIET_ENV, SelectionProgress, quiet_requested
 from torchhys.training.run_dirs import RUN_DIR_ENV, reserve_run_dir
 from torchhys.training.threads import THREADS_ENV, choose_threads, split_threads_flag
@@ -357,7 +366,8 @@ def main(argv: list[str] | None = None) -> None:
 
     ``--import MODULE`` (repeatable, any subcommand) imports a module before the config is
     read: an operator it registers can be named in ``model.operator``
-    (:func:`~torchhys.training.plugins.import_modules`). ``--threads N`` (or
+    (:func:`~torchhys.training.plugins.import_modules`; nothing is added to ``sys.path`` but
+    the folders of ``--import-path DIR``). ``--threads N`` (or
     ``TORCHHYS_THREADS``) sets torch's threads, one by default
     (:mod:`torchhys.training.threads`).
 
@@ -365,13 +375,15 @@ def main(argv: list[str] | None = None) -> None:
         argv: command-line arguments without the program name (``sys.argv[1:]`` if None).
 
     The environment variables it sets for the processes of a multi-process run
-    (``TORCHHYS_QUIET``, ``TORCHHYS_THREADS``, ``TORCHHYS_IMPORT``, ``TORCHHYS_TRACEBACK``) are
+    (``TORCHHYS_QUIET``, ``TORCHHYS_THREADS``, ``TORCHHYS_IMPORT``, ``TORCHHYS_IMPORT_PATH``,
+    ``TORCHHYS_TRACEBACK``) are
     restored when it returns.
 
     Raises:
         SystemExit: 2 on a user error (and as LightningCLI exits: usage errors, ``--help``).
     """
-    saved = {k: os.environ.get(k) for k in (QUIET_ENV, THREADS_ENV, IMPORT_ENV, TRACEBACK_ENV)}
+    saved = {k: os.environ.get(k)
+             for k in (QUIET_ENV, THREADS_ENV, IMPORT_ENV, IMPORT_PATH_ENV, TRACEBACK_ENV)}
     try:
         _main(argv)
     finally:
@@ -386,6 +398,7 @@ def _main(argv: list[str] | None) -> None:
     args, traceback = split_traceback_flag(sys.argv[1:] if argv is None else argv)
     try:
         args, modules = split_import_flags(args)
+        args, paths = split_import_path_flags(args)
         args, threads = split_threads_flag(args)
         if "--quiet" in args:  # no progress lines (the ranks of a multi-process run too)
             args = [a for a in args if a != "--quiet"]
@@ -397,7 +410,8 @@ def _main(argv: list[str] | None) -> None:
         choose_threads(threads, f"torchhys {sub}" if sub else "torchhys",
                        say=sub is not None and "--help" not in args and "-h" not in args
                        and not quiet_requested())
-        modules = modules or [m for m in os.environ.get(IMPORT_ENV, "").split(",") if m]
+        paths = add_import_paths(paths or paths_from_env())
+        modules = modules or modules_from_env()
         import_modules(modules)
     except Exception as exc:
         if not report_user_error(f"torchhys {args[0] if args else ''}".strip(), exc,
@@ -406,6 +420,8 @@ def _main(argv: list[str] | None) -> None:
         raise SystemExit(2) from None
     if modules:
         os.environ[IMPORT_ENV] = ",".join(modules)  # for the ranks of a multi-process run
+    if paths:
+        os.environ[IMPORT_PATH_ENV] = os.pathsep.join(paths)
     if args and args[0] == "export":
         from torchhys.training.export_cmd import main as export_main
 

@@ -83,6 +83,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--import", dest="imports", action="append", default=[], metavar="MODULE",
                    help="import this module first (repeatable): the operators it registers "
                         "can be named in the checkpoint's config")
+    p.add_argument("--import-path", dest="import_paths", action="append", default=[],
+                   metavar="DIR", help="a folder to search for the modules of --import "
+                   "(repeatable; the working folder is not searched unless named: "
+                   "--import-path .)")
     p.add_argument("--force", action="store_true",
                    help="replace an existing output file (never the --ckpt file itself)")
     p.add_argument("--traceback", action="store_true",
@@ -219,7 +223,7 @@ def main(argv: list[str]) -> int:
         if args.prefix is not None and args.format != "c":
             raise ValueError(f"--prefix applies to --format c only, not {args.format}")
         check_out(args)
-        import_modules(args.imports)
+        import_modules(args.imports, args.import_paths)
         ckpt = read_checkpoint(args.ckpt, "--ckpt", lightning=False)
         options = {"limits": args.limits, "initial_command": args.initial_command,
                    "input_margin": args.input_margin, "direction": args.direction}
