@@ -49,6 +49,7 @@ fixed when it is built.
 
 import abc
 import copy
+import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from dataclasses import field as dataclass_field
@@ -67,6 +68,7 @@ from torchhys.step import (
 )
 
 __all__ = [
+    "BROKEN_ENTRY_POINTS",
     "ENTRY_POINT_GROUP",
     "EXAMPLES",
     "OPERATORS",
@@ -318,6 +320,9 @@ ENTRY_POINT_GROUP = "torchhys.operators"
 """The entry-point group of operators that other packages provide: the entry's name is the
 operator's registered name, its value ``module:Class``."""
 _entry_points_loaded = False
+BROKEN_ENTRY_POINTS: dict[str, str] = {}
+"""The entry points that could not be loaded or registered, by name: why (the message of
+the warning :func:`load_entry_points` gave, and of the error when the name is used)."""
 
 
 def load_entry_points() -> list[str]:
@@ -330,12 +335,13 @@ def load_entry_points() -> list[str]:
         [project.entry-points."torchhys.operators"]
         my_operator = "my_package.operators:MyOperator"
 
+    An entry point that cannot be loaded (its import fails) or registered (its name is taken
+    by another class) is skipped with one warning that names it and the error; the others
+    are registered. Its name stays unknown: :func:`make_operator` raises a ``ValueError``
+    with the same message where a spec names it (:data:`BROKEN_ENTRY_POINTS`).
+
     Returns:
         The names registered by this call.
-
-    Raises:
-        ValueError: an entry point that cannot be loaded (naming it and the reason), or a
-            name registered already for another class.
     """
     global _entry_points_loaded
     if _entry_points_loaded:
@@ -346,11 +352,15 @@ def load_entry_points() -> list[str]:
     names = []
     for ep in entry_points(group=ENTRY_POINT_GROUP):
         try:
-            factory = ep.load()
+            register_operator(ep.name, ep.load())
         except Exception as exc:  # noqa: BLE001 (whatever importing another package raises)
-            raise ValueError(f"entry point {ep.name!r} = {ep.value!r} of group "
-                             f"{ENTRY_POINT_GROUP!r} cannot be loaded: {exc}") from exc
-        register_operator(ep.name, factory)
+            text = " ".join(f"{type(exc).__name__}: {exc}".split())
+            why = (f"entry point {ep.name!r} = {ep.value!r} of group {ENTRY_POINT_GROUP!r} "
+                   f"cannot be loaded: {text}")
+            BROKEN_ENTRY_POINTS[ep.name] = why
+            warnings.warn(f"{why}; skipped (the other operators are registered)",
+                          stacklevel=2)
+            continue
         names.append(ep.name)
     return names
 
@@ -375,7 +385,8 @@ def make_operator(spec: Any, /, *, argument: str = "operator", **options: Any
         **options: keyword options of the operator given by name (or added to a dict's).
 
     Raises:
-        ValueError: an unknown name (the message lists the registered ones), a dict without
+        ValueError: an unknown name (the message lists the registered ones; for the name of
+            an entry point that could not be loaded, why), a dict without
             a ``name`` or with an option given twice, options the operator does not take
             (the operator's own checks name the option).
         TypeError: a spec of another type, an object outside the operator protocol, options
@@ -405,6 +416,8 @@ def make_operator(spec: Any, /, *, argument: str = "operator", **options: Any
         raise TypeError(f"{argument} must be a registered operator name, a dict "
                         f"{{'name': NAME, **options}} or a HysteresisOperator, got "
                         f"{type(spec).__name__} {spec!r}")
+    if isinstance(name, str) and name not in OPERATORS and name in BROKEN_ENTRY_POINTS:
+        raise ValueError(f"{argument}: {BROKEN_ENTRY_POINTS[name]}")
     if not isinstance(name, str) or name not in OPERATORS:
         raise ValueError(f"{argument}: no operator is registered as {name!r}; registered "
                          f"names: {sorted(OPERATORS)}")
