@@ -20,6 +20,7 @@ __all__ = [
     "check_real",
     "check_nonnegative",
     "check_choice",
+    "check_dtype_of",
     "check_finite",
     "check_floating",
     "check_int",
@@ -48,6 +49,17 @@ def check_floating(value: Tensor, name: str) -> Tensor:
             f"{name} must have a floating-point dtype (e.g. torch.float32), got {value.dtype}; "
             f"convert it with {name}.float()"
         )
+    return value
+
+
+def check_dtype_of(value: Tensor, name: str, dtype: torch.dtype, owner: str) -> Tensor:
+    """Raise ``TypeError`` unless ``value`` has the dtype ``dtype`` of ``owner``'s
+    parameters (as ``nn.Linear`` does, with a message that names both and the remedies)."""
+    if value.dtype != dtype:
+        got, want = (str(d).replace("torch.", "") for d in (value.dtype, dtype))
+        var = owner.split()[-1]
+        raise TypeError(f"{name} is {got} but the {owner} is {want}: convert the input "
+                        f"({name}.to(torch.{want})) or the {owner} ({var}.to(torch.{got}))")
     return value
 
 

@@ -7,7 +7,13 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from torchhys._checks import as_batched_sequence, check_choice, check_int, fitted_samples
+from torchhys._checks import (
+    as_batched_sequence,
+    check_choice,
+    check_dtype_of,
+    check_int,
+    fitted_samples,
+)
 from torchhys.operator import AtomicLoad, HysteresisOperator, OperatorStep, make_operator
 
 __all__ = ["InverseHysteresisNet"]
@@ -95,11 +101,16 @@ class InverseHysteresisNet(AtomicLoad, nn.Module):
         self, x: Tensor, state: list | None = None, *,
         target: Tensor | None = None, segment_a: Tensor | None = None,
     ) -> tuple[Tensor, list]:
-        """Physical-unit input space ``[x, f_1(x), ...]``: (batch, time, features), states."""
+        """Physical-unit input space ``[x, f_1(x), ...]``: (batch, time, features), states.
+
+        Raises:
+            TypeError: ``x`` (or ``target``) of another dtype than the network's."""
         xb, _ = as_batched_sequence(x, "x")
+        check_dtype_of(xb, "x", self.hidden.weight.dtype, "network")
         if state is not None and len(state) != len(self.operators):
             raise ValueError(f"state must hold {len(self.operators)} states, got {len(state)}")
-        yb = None if target is None else as_batched_sequence(target, "target")[0]
+        yb = None if target is None else check_dtype_of(
+            as_batched_sequence(target, "target")[0], "target", xb.dtype, "network")
         feats, states = [xb.unsqueeze(-1)], []
         for i, op in enumerate(self.operators):
             prev = None if state is None else state[i]

@@ -37,7 +37,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from torchhys._checks import as_batched_sequence, check_int
+from torchhys._checks import as_batched_sequence, check_dtype_of, check_int
 from torchhys.functional.backlash import play_step
 from torchhys.models._common import check_state
 from torchhys.operator import (
@@ -139,6 +139,9 @@ class FeedbackElement(HysteresisOperator):
 
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
         xb, squeezed = as_batched_sequence(x, "x")
+        weights = [p for n, p in self.named_parameters() if n.startswith("net.")]
+        if weights:  # the slope network's layers (its coefficients follow the input)
+            check_dtype_of(xb, "x", weights[0].dtype, f"{type(self).__name__} operator")
         B = xb.shape[0]
         s = (xb.new_zeros(B, self.state_size) if state is None
              else check_state(state, B, self.state_size, xb))
