@@ -6,6 +6,7 @@ that look right but are not (duplicate header names, ``1_000``, a spreadsheet sa
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -76,3 +77,104 @@ def test_repeat_refused_with_the_estimate(monkeypatch, tmp_path) -> None:
     ok = HysteresisDataModule(path=str(path), repeat=3)
     ok.setup()
     assert ok.tensors("train")[0].numel() == 600
+
+
+# ------------------------------------------------------------------------------------------
+# YAML with bounded aliases
+# ------------------------------------------------------------------------------------------
+
+def alias_bomb(levels: int) -> str:
+    """A config whose ``model.select`` nests ``levels`` lists of nine aliases of the one
+    before: 9**(levels + 1) strings from a few hundred bytes."""
+    lines = ["model:", "  select:", "  - &a [" + ", ".join(['"lol"'] * 9) + "]"]
+    names = "abcdefghijk"
+    for k in range(1, levels + 1):
+        lines.append(f"  - &{names[k]} [" + ", ".join([f"*{names[k - 1]}"] * 9) + "]")
+    return "\n".join(lines) + "\n"
+
+
+def test_yaml_loader_refuses_an_alias_bomb() -> None:
+    """The command's YAML loader (jsonargparse's, as the command installs it) refuses 9**9
+    strings of aliases, and a structure that contains itself; a bomb of 9**4 still loads."""
+    from jsonargparse import get_loader
+
+    from torchhys.training.cli import read_config  # noqa: F401 (installs the loader)
+    from torchhys.training.config_yaml import ConfigSizeError
+
+    load = get_loader("yaml")
+    with pytest.raises(ConfigSizeError, match="expands to more than 1000000 values"):
+        load(alias_bomb(8))
+    with pytest.raises(ConfigSizeError, match="contains itself"):
+        load("a: &x [1, *x]")
+    small = load(alias_bomb(3))
+    assert len(small["model"]["select"][3][0][0]) == 9
+    assert load("a: 1e-8") == {"a": 1e-8}  # jsonargparse's own reading of the values
+
+
+def test_cli_refuses_an_alias_bomb_naming_the_file(monkeypatch, tmp_path) -> None:
+    from _training_helpers import cli
+
+    from torchhys.training.config_yaml import ConfigSizeError
+
+    bomb = tmp_path / "bomb.yaml"
+    bomb.write_text(alias_bomb(8))
+    with pytest.raises(ConfigSizeError, match=f"--config {bomb}: the YAML expands"):
+        cli(monkeypatch, "fit", "--config", str(bomb))
+
+
+# ------------------------------------------------------------------------------------------
+# a data file that changes during a command
+# ------------------------------------------------------------------------------------------
+
+def test_watched_file_rewritten_is_refused(tmp_path) -> None:
+    """While watched, a file rewritten with other content of the same size (and a new time)
+    is refused naming it; touched (same content) it reads on; unwatched it is read again."""
+    from torchhys.training import files
+
+    path = write_csv(tmp_path / "log.csv")
+    text = path.read_text()
+    cols = dict(input_column="response", target_column="command")
+    files.watch_files()
+    try:
+        first = read_recordings(path, **cols)
+        os.utime(path, ns=(1, 2))  # touched: same bytes, a new time
+        assert np.array_equal(read_recordings(path, **cols)[0].x, first[0].x)
+        path.write_text(text.replace("0.", "1.", 1))  # one digit other, same size
+        os.utime(path, ns=(3, 4))
+        with pytest.raises(DataFileError, match=f"{path}: the file changed after this run "
+                                                r"first read it \(\d+ bytes then, \d+ now\)"):
+            read_recordings(path, **cols)
+    finally:
+        files.watch_files(False)
+    assert not np.array_equal(read_recordings(path, **cols)[0].x, first[0].x)
+
+
+def test_fit_stops_when_the_data_file_grows_during_selection(monkeypatch, tmp_path) -> None:
+    """A logger still appending to the file: the candidates would be scored on one version
+    and the chosen one trained on another. The fit stops with an error naming the file."""
+    from _training_helpers import cli
+
+    path = write_csv(tmp_path / "log.csv", rows=120)
+    from torchhys.training import data
+
+    calls = []
+
+    def appending(*args, **kwargs):  # the logger writes a row between two reads
+        if calls:
+            with path.open("a") as f:
+                f.write("0.5,0.5\n")
+        calls.append(1)
+        return read_recordings(*args, **kwargs)
+
+    monkeypatch.setattr(data, "read_recordings", appending)
+    config = tmp_path / "fit.yaml"
+    config.write_text(f"""\
+trainer: {{accelerator: cpu, devices: 1, precision: 64-true, max_epochs: 1,
+          enable_progress_bar: false, enable_model_summary: false, logger: false}}
+model: {{operator: zhao_tan, hidden: 2, optimizer: cg}}
+data: {{path: {path}, split: [0.6, 0.2, 0.2]}}
+""")
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(DataFileError, match=f"{path}: the file changed after this run first"):
+        cli(monkeypatch, "fit", "--config", str(config), "--model.select",
+            "[{hidden: 1}, {hidden: 2}]")

@@ -71,6 +71,8 @@ from lightning.pytorch.utilities import rank_zero_only, rank_zero_warn
 from torchhys.training import selection
 from torchhys.training.callbacks import BaselineComparison, PredictionWriter
 from torchhys.training.ckpt_paths import check_ckpt_path
+from torchhys.training.config_yaml import check_config_aliases
+from torchhys.training.config_yaml import install as install_bounded_yaml
 from torchhys.training.coverage import warn_coverage
 from torchhys.training.data import HysteresisDataModule
 from torchhys.training.errors import (
@@ -80,6 +82,7 @@ from torchhys.training.errors import (
     report_user_error,
     split_traceback_flag,
 )
+from torchhys.training.files import watch_files
 from torchhys.training.folds import describe_cv
 from torchhys.training.jobs import check_budget, check_jobs, usable_cores
 from torchhys.training.module import InverseHysteresisModule
@@ -97,6 +100,8 @@ from torchhys.training.plugins import (
 from torchhys.training.progress import QUIET_ENV, SelectionProgress, quiet_requested
 from torchhys.training.run_dirs import RUN_DIR_ENV, reserve_run_dir
 from torchhys.training.threads import THREADS_ENV, choose_threads, split_threads_flag
+
+install_bounded_yaml()  # aliases in configs expand to a bounded size
 
 __all__ = ["TorchhysCLI", "main", "read_config"]
 
@@ -435,6 +440,8 @@ def _main(argv: list[str] | None) -> None:
     # Full-batch training: one sequence per step, so loader workers would only add start-up.
     warnings.filterwarnings("ignore", ".*does not have many workers.*")
     try:
+        check_config_aliases(args)  # before the parser expands them
+        watch_files()  # a data file read again in this command holds what it held first
         TorchhysCLI(
             InverseHysteresisModule,
             HysteresisDataModule,
@@ -450,6 +457,7 @@ def _main(argv: list[str] | None) -> None:
         raise SystemExit(2) from None
     finally:
         os.environ.pop(RUN_DIR_ENV, None)
+        watch_files(False)
 
 
 if __name__ == "__main__":

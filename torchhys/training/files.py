@@ -10,6 +10,8 @@ header, text that is not in the file's encoding, a value that is not a finite nu
 
 from __future__ import annotations
 
+import errno
+import hashlib
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -30,7 +32,7 @@ from torchhys.training.tables import (
 
 __all__ = [
     "DECIMALS", "DELIMITERS", "Column", "DataFileError", "Record", "Recording", "RecordingId",
-    "check_text_options", "read_record", "read_recordings", "recording_id",
+    "check_text_options", "read_record", "read_recordings", "recording_id", "watch_files",
 ]
 
 
@@ -181,15 +183,22 @@ def read_recordings(
         raise ValueError("path must name a file or a non-empty list of files, got []")
     options = (input_column, target_column, time_column, run_column, min_samples, encoding,
                delimiter, decimal)
+    for p in paths:
+        _check_path(Path(p))
     try:  # the files as they are now: a file written again is read again
-        key = (*options, *((str(Path(p).resolve()), os.stat(p).st_mtime_ns, os.stat(p).st_size)
-                           for p in paths))
+        key = (*options, *((str(Path(p).resolve()), *_stat(Path(p))) for p in paths))
         hash(key)
     except (OSError, TypeError):  # a missing file: read (and report) it below
         key = None
+    if _FIRST is not None:
+        for p in paths:
+            _check_unchanged(Path(p))
     recordings = _READ.get(key) if key is not None else None
     if recordings is None:
         recordings = _read(paths, *options)
+        if _FIRST is not None and key is not None:  # not written while it was read either
+            for p, (_, mtime, size) in zip(paths, key[len(options):], strict=True):
+                _check_unchanged(Path(p), (mtime, size))
         if key is not None:
             _READ.clear()  # the last file read only (a fit reads it once per candidate run)
             _READ[key] = recordings
@@ -201,6 +210,71 @@ _READ: dict[tuple, list[Recording]] = {}
 """The recordings of the last files read, by path, modification time, size and options:
 model selection builds a datamodule for every candidate and fold, and the files are parsed
 once (each caller gets copies of the arrays)."""
+
+
+_FIRST: dict[str, tuple[int, int, str]] | None = None
+"""While a command runs (:func:`watch_files`): each data file's modification time, size and
+content digest at its first read; None: not watched."""
+
+
+def watch_files(on: bool = True) -> None:
+    """Start (``on``) or stop watching the data files: while watched, a file read again (a
+    model selection reads it for every candidate and fold, and for the final fit) must hold
+    what it held at its first read, or :func:`read_recordings` raises a
+    :class:`DataFileError` naming it. The command line watches for the whole of a command
+    (the processes of ``model.select_jobs`` inherit what the command read first)."""
+    global _FIRST
+    _FIRST = {} if on else None
+
+
+def _stat(path: Path) -> tuple[int, int]:
+    st = os.stat(path)
+    return st.st_mtime_ns, st.st_size
+
+
+def _digest(path: Path) -> str:
+    h = hashlib.blake2b(digest_size=20)
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _check_path(path: Path) -> None:
+    """A path that cannot name a file: a symbolic link that leads back to itself."""
+    try:
+        path.resolve()
+    except (RuntimeError, OSError) as exc:  # RuntimeError: a loop, Python < 3.13
+        if "loop" in str(exc).lower() or getattr(exc, "errno", None) == errno.ELOOP:
+            raise DataFileError(f"{path}: a symbolic link that leads back to itself (a "
+                                "loop); point the path at the data file") from None
+
+
+def _check_unchanged(path: Path, read_at: tuple[int, int] | None = None) -> None:
+    """Record a watched file's first state, or raise if it changed since (``read_at``: the
+    modification time and size before a read just made, which must still hold)."""
+    try:
+        now = _stat(path)
+    except OSError:
+        return  # missing: the reader reports it
+    key = str(path.resolve())
+    first = _FIRST.get(key)
+    if read_at is not None and now != read_at:
+        what = "while it was read"
+    elif first is not None and now == first[:2]:
+        return
+    elif first is None:
+        _FIRST[key] = (*now, _digest(path))
+        return
+    elif _digest(path) == first[2]:
+        _FIRST[key] = (*now, first[2])  # touched, same content
+        return
+    else:
+        what = f"after this run first read it ({first[1]} bytes then, {now[1]} now)"
+    raise DataFileError(
+        f"{path}: the file changed {what}: the run would mix two versions of the data (the "
+        "candidates scored on one, the fit on another); wait until its writer has finished "
+        "(or copy it) and run again")
 
 
 def _read(paths: list[str | Path], input_column: Column, target_column: Column,
