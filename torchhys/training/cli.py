@@ -70,6 +70,7 @@ from lightning.pytorch.utilities import rank_zero_only, rank_zero_warn
 
 from torchhys.training import selection
 from torchhys.training.callbacks import BaselineComparison, PredictionWriter
+from torchhys.training.cli_checks import check_config_files, check_optimizer_switch
 from torchhys.training.ckpt_paths import check_ckpt_path
 from torchhys.training.config_yaml import check_config_aliases
 from torchhys.training.config_yaml import install as install_bounded_yaml
@@ -142,9 +143,16 @@ class TorchhysCLI(LightningCLI):
 
     def parse_arguments(self, parser, args) -> None:  # noqa: ANN001 (LightningCLI's)
         """Parse, then read and check ``--ckpt_path`` (a file) before anything is written:
-        a missing or damaged checkpoint is a one-line error, with no run folder left."""
+        a missing or damaged checkpoint is a one-line error, with no run folder left. A
+        ``--config`` that is no config, and ``--model.optimizer`` with the config's kwargs
+        of another optimizer, are one-line errors too (:mod:`torchhys.training.cli_checks`)."""
+        argv = sys.argv[1:] if args is None else args
+        if isinstance(argv, list):
+            check_config_files(argv)
         super().parse_arguments(parser, args)
         sub = self.config.get("subcommand")
+        if isinstance(argv, list) and sub:
+            check_optimizer_switch(self.config[sub], argv)
         if sub and isinstance(self.config[sub].get("ckpt_path"), str | os.PathLike):
             # a file read and checked, a URL refused, 'last' the newest earlier run's
             self.config[sub]["ckpt_path"] = check_ckpt_path(self.config[sub]["ckpt_path"],

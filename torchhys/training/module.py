@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import inspect
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import lightning as L
@@ -17,6 +18,7 @@ from torchmetrics import MeanSquaredError
 from torchhys import InverseHysteresisNet
 from torchhys._checks import check_choice
 from torchhys.optim import PowellBealeCG
+from torchhys.training.finite import check_normalization, check_training
 from torchhys.training.init import initialize
 from torchhys.training.operators import build_operators, fit_data_dependent
 
@@ -31,6 +33,37 @@ OPTIMIZERS: dict[str, type[torch.optim.Optimizer]] = {
 CLOSURE_OPTIMIZERS = frozenset({"cg", "lbfgs"})
 """Optimizers that re-evaluate the loss in a line search: trained full-batch, manually."""
 _FULL_PRECISION = ("32-true", "64-true", "32", "64")
+
+RESET_OPTIMIZER_KWARGS = "--model.optimizer_kwargs '{}'"
+"""How the command line resets ``model.optimizer_kwargs`` (in messages)."""
+
+
+def optimizer_keywords(optimizer: str) -> list[str]:
+    """The keyword arguments the optimizer ``optimizer`` (a name of :data:`OPTIMIZERS`)
+    takes besides its parameters."""
+    signature = inspect.signature(OPTIMIZERS[optimizer].__init__)
+    return [n for n, p in signature.parameters.items() if n not in ("self", "params")
+            and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+
+
+def unknown_optimizer_kwargs(optimizer: str, optimizer_kwargs: Any) -> list[str]:
+    """The keys of ``optimizer_kwargs`` that the optimizer ``optimizer`` does not take,
+    sorted."""
+    known = optimizer_keywords(optimizer)
+    return sorted(str(k) for k in (optimizer_kwargs or {}) if k not in known)
+
+
+def _check_optimizer_kwargs(optimizer: str, optimizer_kwargs: Any) -> None:
+    if optimizer_kwargs is not None and not isinstance(optimizer_kwargs, Mapping):
+        raise ValueError(f"optimizer_kwargs must be a dict of keyword arguments of the "
+                         f"optimizer, got {type(optimizer_kwargs).__name__}")
+    unknown = unknown_optimizer_kwargs(optimizer, optimizer_kwargs)
+    if unknown:
+        raise ValueError(
+            f"optimizer_kwargs {unknown} are not keyword arguments of optimizer={optimizer!r} "
+            f"({OPTIMIZERS[optimizer].__name__} takes {optimizer_keywords(optimizer)}); kwargs "
+            f"of another optimizer are reset with {RESET_OPTIMIZER_KWARGS}")
+
 
 Batch = tuple[Tensor, ...]
 """``(x, y)``, ``(x, y, warmup)`` or ``(x, y, warmup, mask)``: x, y (batch, time);
@@ -149,6 +182,7 @@ class InverseHysteresisModule(L.LightningModule):
     ) -> None:
         super().__init__()
         check_choice(optimizer, "optimizer", sorted(OPTIMIZERS))
+        _check_optimizer_kwargs(optimizer, optimizer_kwargs)
         if schedule not in (None, "cosine") or (schedule and optimizer in CLOSURE_OPTIMIZERS):
             raise ValueError(
                 f"schedule must be None or 'cosine' (with optimizer='adam'), got {schedule!r} "
@@ -167,6 +201,7 @@ class InverseHysteresisModule(L.LightningModule):
         self.val_mse, self.test_mse = MeanSquaredError(), MeanSquaredError()
         self._feature_cache: dict[str, tuple[Tensor, Tensor, Tensor]] = {}
         self._outside = (0, 0)  # (outside, total) input samples of a test or predict run
+        self._last_loss: Tensor | None = None  # of the last training step (check_training)
 
     # --- checks -------------------------------------------------------------------------
     @property
@@ -208,6 +243,7 @@ class InverseHysteresisModule(L.LightningModule):
         ref = next(iter(self.net.buffers()), None)
         dtype = ref.dtype if ref is not None else torch.get_default_dtype()
         self.net.fit_normalization(x.to(dtype), y.to(dtype), mask=mask)
+        check_normalization(self.net)  # data too large for the dtype: refused here
         self.normalization_fitted.fill_(True)
         self._feature_cache.clear()
 
@@ -268,6 +304,7 @@ class InverseHysteresisModule(L.LightningModule):
         y = scored(y)
         if self.automatic_optimization:
             loss = F.mse_loss(predict(), y)
+            self._last_loss = loss.detach()
             self.log("train_loss", loss.detach(), on_step=False, on_epoch=True,
                      prog_bar=True, sync_dist=True)
             return loss
@@ -282,8 +319,14 @@ class InverseHysteresisModule(L.LightningModule):
         opt.step(closure=closure)
         with torch.no_grad():
             loss = self._global_mean(F.mse_loss(predict(), y))
+        self._last_loss = loss
         self.log("train_loss", loss, on_step=False, on_epoch=True, prog_bar=True)
         return None
+
+    def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
+        """Stop a diverged fit: a loss or weights not finite after the step raise
+        :class:`~torchhys.training.finite.DivergedError`, before a checkpoint is saved."""
+        check_training(self, self._last_loss)
 
     def _evaluate(self, batch: Batch, stage: str) -> dict[str, Tensor]:
         x, y, scored = _unpack(batch)
