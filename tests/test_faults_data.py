@@ -178,3 +178,18 @@ data: {{path: {path}, split: [0.6, 0.2, 0.2]}}
     with pytest.raises(DataFileError, match=f"{path}: the file changed after this run first"):
         cli(monkeypatch, "fit", "--config", str(config), "--model.select",
             "[{hidden: 1}, {hidden: 2}]")
+
+
+def test_subnormal_column_is_constant_naming_the_file(tmp_path) -> None:
+    """Values that differ only below float64's normal range have a standard deviation of 0
+    (the normalization's divisor): refused as constant, naming the file and the column."""
+    path = tmp_path / "tiny.csv"
+    k = np.arange(40)
+    np.savetxt(path, np.c_[(k % 7 + 1) * 1e-310, np.sin(k)], delimiter=",",
+               header="response,command", comments="")
+    data = HysteresisDataModule(path=str(path))
+    data.setup()
+    with pytest.raises(DataFileError, match=rf"{path}: data.input_column 'response' is constant "
+                                            r"over the training split \(40 samples, 1e-310 to "
+                                            r"7e-310, std 0\)"):
+        data.train_tensors()

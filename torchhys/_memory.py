@@ -13,7 +13,8 @@ from __future__ import annotations
 import os
 import re
 
-__all__ = ["MEMORY_ENV", "SAMPLE_BYTES", "check_memory", "format_bytes", "memory_limit"]
+__all__ = ["MEMORY_ENV", "SAMPLE_BYTES", "check_memory", "check_repeat", "format_bytes",
+           "memory_limit"]
 
 MEMORY_ENV = "TORCHHYS_MAX_MEMORY"
 """The environment variable of the memory limit."""
@@ -80,3 +81,11 @@ SAMPLE_BYTES = 512
 """Bytes a training sample takes, about: the stage batches and a small network's forward and
 backward pass (measured: about 580 with one operator and 8 hidden units; larger networks
 take more), for the estimate of ``data.repeat``, which multiplies the samples."""
+
+
+def check_repeat(repeat: int, samples: int) -> None:
+    """Refuse ``data.repeat`` whose ``repeat * samples`` training samples would take more
+    than the memory limit (:data:`SAMPLE_BYTES` each), before the sequences are built."""
+    if repeat > 1:
+        check_memory(SAMPLE_BYTES * repeat * samples,
+                     f"data.repeat={repeat} ({repeat} x {samples} samples)", "lower data.repeat")

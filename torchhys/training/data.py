@@ -28,7 +28,7 @@ from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
 from torchhys._checks import check_choice, check_int
-from torchhys._memory import SAMPLE_BYTES, check_memory
+from torchhys._memory import check_repeat
 from torchhys.training.files import (
     Column,
     DataFileError,
@@ -291,10 +291,8 @@ class HysteresisDataModule(L.LightningDataModule):
                 time_column=hp.time_column, run_column=hp.run_column,
                 min_samples=hp.min_samples, encoding=hp.encoding, delimiter=hp.delimiter,
                 decimal=hp.decimal)
-        recs, n = self.recordings, sum(len(r.x) for r in self.recordings)
-        if hp.repeat > 1:  # the sequences, and a training's passes over them, grow with it
-            check_memory(SAMPLE_BYTES * hp.repeat * n, f"data.repeat={hp.repeat} ({hp.repeat}"
-                         f" x {n} samples)", "lower data.repeat")
+        recs = self.recordings
+        check_repeat(hp.repeat, sum(len(r.x) for r in recs))  # memory, before it is taken
         self.x = torch.from_numpy(np.concatenate([r.x for r in recs]))
         self.y = torch.from_numpy(np.concatenate([r.y for r in recs]))
         self.t = (None if any(r.t is None for r in recs)
@@ -368,14 +366,16 @@ class HysteresisDataModule(L.LightningDataModule):
         for option, role in (("input_column", "x"), ("target_column", "y")):
             values = np.concatenate([getattr(self.recordings[w.index], role)[: w.end]
                                      for w in windows])
-            if np.all(values == values[0]):
+            if not np.std(values) > 0:  # equal, or too close for float64 (subnormal)
+                lo, hi = float(values.min()), float(values.max())
+                spread = f"all {lo:.10g}" if lo == hi else f"{lo:.3g} to {hi:.3g}, std 0"
                 if hp.path is None:
                     err, what = ValueError, f"the simulated {option.split('_')[0]}"
                 else:
                     err, what = DataFileError, f"data.{option} {hp[option]!r}"
                 raise err(
                     f"{where}: {what} is constant over the training split ({values.size} "
-                    f"samples, all {float(values[0]):.10g}); the normalization needs a "
+                    f"samples, {spread}); the normalization needs a "
                     "varying input and target: check the column (is it the right one?) and "
                     "the split"
                 )
