@@ -109,16 +109,17 @@ int main(int argc, char **argv)
 
 
 def compile_harness(folder: Path, prefix: str = "torchhys_comp",
-                    state: list[torch.Tensor] | None = None) -> Path:
+                    state: list[torch.Tensor] | None = None, flags: list[str] = FLAGS) -> Path:
     """The harness over ``folder/PREFIX.c``: the contract's names only, or also the state's
-    members (their names: torchhys.deploy._c_files.MEMBERS), shaped as ``state``."""
+    members (their names: torchhys.deploy._c_files.MEMBERS), shaped as ``state``; compiled
+    with ``flags``."""
     from torchhys.deploy._c_files import MEMBERS
 
     dump = "".join(f"fwrite(s.{MEMBERS[k]}, sizeof s.{MEMBERS[k]}[0], {t.numel()}, out);\n"
                    for k, t in enumerate(state or []))
     (folder / "harness.c").write_text(HARNESS.replace("DUMP_STATE", dump).replace("NAME", prefix))
     exe = folder / "harness"
-    done = subprocess.run([CC, *FLAGS, "-I", str(folder), "-o", str(exe),
+    done = subprocess.run([CC, *flags, "-I", str(folder), "-o", str(exe),
                            str(folder / "harness.c"), str(folder / f"{prefix}.c"), "-lm"],
                           capture_output=True, text=True)
     assert done.returncode == 0, done.stderr

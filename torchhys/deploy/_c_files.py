@@ -22,7 +22,14 @@ from torchhys.deploy.streaming import (
     StreamingCompensator,
 )
 
-__all__ = ["MEMBERS", "files"]
+__all__ = ["FAST_MATH_CHECK", "FAST_MATH_ERROR", "MEMBERS", "files"]
+
+#: why the source refuses to compile under -ffast-math / -Ofast (its #error)
+FAST_MATH_ERROR = ("compile without -ffast-math or -Ofast: the generated step relies on IEEE "
+                   "arithmetic (NaN, signed zeros and the rounding of each operation, as the "
+                   "exported model computes them)")
+#: the source's check (GCC and Clang define __FAST_MATH__ under -ffast-math and -Ofast)
+FAST_MATH_CHECK = ["#if defined(__FAST_MATH__)", f'#error "{FAST_MATH_ERROR}"', "#endif"]
 
 #: the state tensors' struct members (torchhys.deploy.streaming's F, I, started, F64; not I: a macro
 #: of <complex.h>)
@@ -108,7 +115,8 @@ def _header(prefix: str, model: nn.Module, comp: StreamingCompensator, options: 
             "sample. x is the desired output in physical units, u the saturated command. A "
             "NaN or inf sample holds the last command (the initial command before the first "
             "finite sample) and is counted; a finite sample outside the training input range "
-            "(widened by the margin) is clamped and counted. Compile without -ffast-math.",
+            "(widened by the margin) is clamped and counted. Compile without -ffast-math or "
+            "-Ofast (the source stops with an #error under them).",
             "", "State layout (torchhys.deploy.streaming; batch 1):"]),
         *layout,
         " */",
@@ -186,6 +194,8 @@ def _source(prefix: str, w: Writer, comp: StreamingCompensator, members: list[st
         "#include <math.h>",
         "#include <stdint.h>",
         "#include <string.h>",
+        "",
+        *FAST_MATH_CHECK,
         "",
         f"typedef char {prefix}_state_bytes_check[(sizeof({prefix}_state) == "
         f"{prefix}_STATE_BYTES) ? 1 : -1];",

@@ -198,11 +198,12 @@ def _unary_float(name: str) -> Emitter:
     return _op(name + "{f}({0})")
 
 
-def _test(fmt: str, integer: str) -> Emitter:
-    """isnan / isinf / isfinite: computed in the input's dtype, a bool out (``integer``: the
-    answer for an integer input)."""
+def _test(kind: str, integer: str) -> Emitter:
+    """isnan / isinf / isfinite: a float's bits tested (the writer's helper ``kind``, right
+    under -ffast-math too), a bool out (``integer``: the answer for an integer input)."""
     def emit(w: Writer, spec: CTensor, x: CTensor) -> CTensor:
-        return pointwise(w, spec, {"float": fmt, "int": integer}, [x], x.dtype)
+        fmt = w.helper(kind, x.dtype) + "({0})" if x.dtype.is_floating_point else integer
+        return pointwise(w, spec, fmt, [x], x.dtype)
     return emit
 
 
@@ -261,9 +262,9 @@ POINTWISE: dict[str, Emitter] = {
     "where.self": _where, "where.ScalarOther": _where, "where.ScalarSelf": _where,
     "where.Scalar": _where, "masked_fill.Scalar": _masked_fill,
     "masked_fill.Tensor": _masked_fill,
-    "isnan.default": _test("({0} != {0})", "0"),
-    "isinf.default": _test("(fabs{f}({0}) == INFINITY)", "0"),
-    "isfinite.default": _test("({0} - {0} == 0)", "1"),
+    "isnan.default": _test("isnan", "0"),
+    "isinf.default": _test("isinf", "0"),
+    "isfinite.default": _test("isfinite", "1"),
     "to.dtype": _to, "_to_copy.default": _to, "to.dtype_layout": _to,
 }
 

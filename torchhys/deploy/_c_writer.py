@@ -123,21 +123,33 @@ _INT_HELPERS = {
 }
 _ARGS = {"clamp": "T a, T lo, T hi", "exp": "double x"}
 
+# isfinite / isnan / isinf of a float told from its bits (the magnitude's bits against
+# those of inf), not by arithmetic: -ffinite-math-only (in -ffast-math) folds x != x and
+# x - x == 0 to constants
+_BIT_TESTS = {"isfinite": "<", "isnan": ">", "isinf": "=="}
+_BITS = {"double": ("uint64_t", "UINT64_C(0x7FFFFFFFFFFFFFFF)", "UINT64_C(0x7FF0000000000000)"),
+         "float": ("uint32_t", "UINT32_C(0x7FFFFFFF)", "UINT32_C(0x7F800000)")}
+
 # exp of a double without libm, branch-free so that a loop of it vectorizes (a libm call in
 # a loop does not): x = k ln2 + r, |r| <= ln2 / 2, with a two-constant Cody-Waite split
 # (fdlibm's ln2 hi and lo; k ln2hi exact for |k| < 2^21); exp(r) fdlibm's rational form
 # 1 + r + r c / (2 - c), c = r - r^2 P(r^2) (P of degree 4: error < 2^-59 on the interval); times
 # 2^k as two exact factors 2^floor(k/2) and 2^ceil(k/2) built in the exponent bits, so that
 # a subnormal result is rounded once. k is read from the bits of x log2e + 1.5 2^52 (no
-# conversion of a float to an integer: none is undefined for NaN). |x| > 746 is replaced by
-# +-746 (exp: inf, resp. 0, as libm); a NaN goes through as NaN; the select uses fabs and
-# copysign (GCC does not if-convert a clamp to two constants under -ftrapping-math).
-# Within 1 ulp of glibc's exp (tests/test_exp_c.py); no -ffast-math needed.
+# conversion of a float to an integer: none is undefined for NaN), and k as a double is the
+# double of those bits with the exponent of 2^52, less 1.5 2^52 (exact): not the sum less
+# 1.5 2^52, which -fassociative-math (in -ffast-math) folds to x log2e, unrounded.
+# |x| > 746 is replaced by +-746 (exp: inf, resp. 0, as libm); a NaN goes through as NaN;
+# the select uses fabs and copysign (GCC does not if-convert a clamp to two constants under
+# -ftrapping-math). Within 1 ulp of glibc's exp (tests/test_exp_c.py).
 _EXP_DOUBLE = """double kd, hi, lo, r, t, c, p, s1, s2;
     uint64_t bits, kb;
     x = (fabs(x) > 746.0) ? copysign(746.0, x) : x;
     kd = x * 1.4426950408889634 + 6755399441055744.0;
     memcpy(&bits, &kd, sizeof bits);
+    kb = bits & UINT64_C(0xFFFFFFFFFFFFF); /* k + 2^51 */
+    bits = kb | UINT64_C(0x4330000000000000); /* 1.5 2^52 + k */
+    memcpy(&kd, &bits, sizeof kd);
     kd -= 6755399441055744.0;
     hi = x - kd * 6.93147180369123816490e-01;
     lo = kd * 1.90821492927058770002e-10;
@@ -147,7 +159,6 @@ _EXP_DOUBLE = """double kd, hi, lo, r, t, c, p, s1, s2;
         + t * (6.61375632143793436117e-05 + t * (-1.65339022054652515390e-06
         + t * 4.13813679705723846039e-08))));
     p = 1.0 - ((lo - (r * c) / (2.0 - c)) - hi);
-    kb = bits & UINT64_C(0xFFFFFFFFFFFFF); /* k + 2^51 */
     bits = ((kb >> 1) - (UINT64_C(1) << 50) + 1023) << 52;
     memcpy(&s1, &bits, sizeof s1);
     bits = ((kb - (kb >> 1)) - (UINT64_C(1) << 50) + 1023) << 52;
@@ -375,8 +386,18 @@ class Writer:
     def helper(self, kind: str, dtype: torch.dtype) -> str:
         """The name of a shared helper function (``max``, ``min``, ``clamp``, ``fmax``,
         ``fmin``, ``floordiv``, ``remainder``; ``exp`` and ``sigmoid``: vectorizable ones of
-        a double) for ``dtype``, defined on first use."""
+        a double; ``isfinite``, ``isnan``, ``isinf``: tests of a float's bits) for ``dtype``,
+        defined on first use."""
         t = self.ctype(dtype)
+        if kind in _BIT_TESTS:
+            if not dtype.is_floating_point:
+                raise ValueError(f"no {kind} for {dtype}")
+            name = f"{self.prefix}_{kind}_{t}"
+            unsigned, magnitude, inf = _BITS[t]
+            self.helpers.setdefault(name, (
+                f"static int {name}({t} a)\n{{\n    {unsigned} b;\n    memcpy(&b, &a, sizeof b);"
+                f"\n    return (b & {magnitude}) {_BIT_TESTS[kind]} {inf};\n}}"))
+            return name
         if kind in ("exp", "sigmoid") and dtype != torch.float64:
             raise ValueError(f"no {kind} helper for {dtype} (libm's expf is used)")
         name = f"{self.prefix}_{kind}_{t.split('_')[0]}"

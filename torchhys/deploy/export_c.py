@@ -23,9 +23,12 @@ recursion)::
 
 and a comment with the model, its training range, the torchhys version and the export
 options. The step is the TorchScript and AOTI files' step: saturation, a NaN or inf sample
-held and counted, the input clamp and the direction guard. Compile it without
-``-ffast-math`` (the step tests ``x - x`` for non-finite samples); with ``-ffp-contract=off``
-(the default of ``-std=c99``) float64 results equal the TorchScript file's to about 1e-15.
+held and counted, the input clamp and the direction guard. The source stops with an
+``#error`` where ``__FAST_MATH__`` is defined (``-ffast-math``, ``-Ofast``: GCC, Clang);
+its tests of NaN and inf read the numbers' bits and its ``exp`` takes its rounding from
+bits too, so that a build that bypasses the check still holds NaN samples
+(:mod:`torchhys.deploy._c_finite`). With ``-ffp-contract=off`` (the default of ``-std=c99``)
+float64 results equal the TorchScript file's to about 1e-15.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ import torch
 from torch import fx, nn
 from torch.export.graph_signature import InputKind
 
+from torchhys.deploy import _c_finite
 from torchhys.deploy._c_files import MEMBERS, files
 from torchhys.deploy._c_templates import POINTWISE_OPS, SHAPE_ONLY, TEMPLATES, VIEW_OPS
 from torchhys.deploy._c_writer import CTensor, Writer, constant, contiguous_strides
@@ -202,14 +206,15 @@ def _is_known(value: Any) -> bool:
     return known
 
 
-def _live(graph: fx.Graph) -> set[fx.Node]:
+def _live(graph: fx.Graph, finite: dict[fx.Node, tuple[list[fx.Node], bool]]) -> set[fx.Node]:
+    """The nodes the outputs read (a finite test reads its ``t``'s, not their ``t - t``)."""
     out = next(n for n in graph.nodes if n.op == "output")
     live, todo = set(), [out]
     while todo:
         n = todo.pop()
         if n not in live:
             live.add(n)
-            todo.extend(n.all_input_nodes)
+            todo.extend(finite[n][0] if n in finite else n.all_input_nodes)
     return live
 
 
@@ -226,7 +231,10 @@ def _translate(ep: torch.export.ExportedProgram, w: Writer, members: list[str]
     users = list(sig.user_inputs)
     env: dict[fx.Node, Any] = {}
     missing: dict[str, str] = {}
-    live = _live(ep.graph)
+    # the step's t - t tests of non-finite values, written as tests of bits (_c_finite)
+    finite = {n: t for n in ep.graph.nodes if (t := _c_finite.finite_test(
+        n, lambda p: known.get(p.name) if p.op == "placeholder" else None)) is not None}
+    live = _live(ep.graph, finite)
     for node in ep.graph.nodes:
         if node not in live:
             continue
@@ -241,7 +249,7 @@ def _translate(ep: torch.export.ExportedProgram, w: Writer, members: list[str]
                                     contiguous_strides(val.shape), base)
         elif node.op == "call_function":
             w.node += 1
-            env[node] = _emit(w, node, env, missing)
+            env[node] = _emit(w, node, env, missing, finite.get(node))
         elif node.op == "output":
             w.node += 1
             outs = [w.materialize(env[a]) for a in node.args[0]]
@@ -266,13 +274,22 @@ def _outputs_only(node: fx.Node) -> bool:
                for u in node.users)
 
 
-def _emit(w: Writer, node: fx.Node, env: dict, missing: dict[str, str]) -> Any:
-    args, kwargs = fx.node.map_arg((node.args, node.kwargs), lambda n: env[n])
+def _emit(w: Writer, node: fx.Node, env: dict, missing: dict[str, str],
+          finite: tuple[list[fx.Node], bool] | None = None) -> Any:
+    if finite is not None:  # a t - t test: its operands are the t's (not live otherwise)
+        terms, ne = finite
+        args, kwargs = tuple(env[t] for t in terms), {}
+    else:
+        args, kwargs = fx.node.map_arg((node.args, node.kwargs), lambda n: env[n])
     spec = _spec(node.meta.get("val"))
     if node.target in SHAPE_ONLY or (_is_known((args, kwargs))
                                      and isinstance(spec, (CTensor, list))):
+        if finite is not None:
+            return constant(_c_finite.fold([a.value for a in args], finite[1], spec.shape))
         return _fold(node, args, kwargs)
     emit = TEMPLATES.get(node.target)
+    if finite is not None:
+        emit = lambda w, spec, *ops: _c_finite.emit(w, spec, list(ops), ne)  # noqa: E731
     if emit is not None:
         start = len(w.lines)
         w.alias = _outputs_only(node)
