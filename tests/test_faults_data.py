@@ -193,3 +193,100 @@ def test_subnormal_column_is_constant_naming_the_file(tmp_path) -> None:
                                             r"over the training split \(40 samples, 1e-310 to "
                                             r"7e-310, std 0\)"):
         data.train_tensors()
+
+
+# ------------------------------------------------------------------------------------------
+# CSV files that look right but are not
+# ------------------------------------------------------------------------------------------
+
+COLS = dict(input_column="response", target_column="command")
+
+
+def test_duplicate_header_name_is_refused_where_it_is_used(tmp_path) -> None:
+    path = tmp_path / "dup.csv"
+    path.write_text("response,command,response\n" + "".join(
+        f"{np.sin(k):.6f},{np.cos(k):.6f},{k}\n" for k in range(20)))
+    with pytest.raises(DataFileError, match=rf"{path}: column 'response' \(input_column\) is "
+                                            r"the name of 2 columns \(indices \[0, 2\]\)"):
+        read_recordings(path, **COLS)
+    rec, = read_recordings(path, input_column=2, target_column="command")  # by index: fine
+    assert rec.x[5] == 5.0
+
+
+def test_underscore_digits_are_not_a_number(tmp_path) -> None:
+    """float() reads ``1_000`` as 1000; a data file's ``1_000`` is refused, row and line named."""
+    path = write_csv(tmp_path / "d.csv", rows=30)
+    lines = path.read_text().splitlines()
+    lines[4] = "1_000," + lines[4].split(",")[1]
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataFileError, match=rf"{path}: column 'response' \(input_column\), row "
+                                            r"3 \(line 5\): '1_000' is not a finite number; "
+                                            r"write numbers without '_'"):
+        read_recordings(path, **COLS)
+
+
+@pytest.mark.parametrize(("magic", "kind"), [(b"PK\x03\x04\x14\x00\x06\x00", "xlsx"),
+                                             (bytes.fromhex("d0cf11e0a1b11ae1") + b"\0" * 8,
+                                              "xls")])
+def test_spreadsheet_saved_as_csv(tmp_path, magic: bytes, kind: str) -> None:
+    """An Excel workbook renamed ``.csv`` is named a spreadsheet, not an encoding problem."""
+    path = tmp_path / "book.csv"
+    path.write_bytes(magic + bytes(range(256)) * 4)
+    with pytest.raises(DataFileError, match=rf"{path}: the file is an \.{kind} .*spreadsheet, "
+                                            r"not CSV text.*save it from the spreadsheet as CSV"):
+        read_recordings(path, **COLS)
+
+
+def test_symlink_loop_is_one_line(tmp_path) -> None:
+    loop = tmp_path / "loop.csv"
+    loop.symlink_to(loop)
+    with pytest.raises(DataFileError, match=rf"{loop}: a symbolic link that leads back to "
+                                            "itself"):
+        read_recordings(loop, **COLS)
+    other = write_csv(tmp_path / "other.csv")
+    with pytest.raises(DataFileError, match=rf"{loop}: a symbolic link that leads back"):
+        HysteresisDataModule(path=[str(other), str(loop)])
+
+
+def test_input_column_equal_to_target_column(tmp_path) -> None:
+    path = write_csv(tmp_path / "d.csv")
+    with pytest.raises(ValueError, match=r"input_column \(data.input_column\) and target_column "
+                                         r"\(data.target_column\) are both 'response'"):
+        read_recordings(path, input_column="response", target_column="response")
+
+
+def test_digits_name_a_column_as_on_the_command_line(tmp_path) -> None:
+    """``--data.input_column 2`` reaches the reader as the string '2', a YAML ``2`` as the
+    int: both are the column named 2 where the header has one, else the index 2."""
+    plain = tmp_path / "plain.csv"
+    plain.write_text("a,b,c\n" + "".join(f"{k},{k * k},{-k}\n" for k in range(20)))
+    by_str, = read_recordings(plain, input_column="2", target_column="1")
+    by_int, = read_recordings(plain, input_column=2, target_column=1)
+    assert np.array_equal(by_str.x, by_int.x) and by_int.x[3] == -3.0
+    named = tmp_path / "named.csv"
+    named.write_text("2,a,b\n" + "".join(f"{k},{k * k},{-k}\n" for k in range(20)))
+    by_str, = read_recordings(named, input_column="2", target_column="a")
+    by_int, = read_recordings(named, input_column=2, target_column="a")
+    assert np.array_equal(by_str.x, by_int.x) and by_int.x[3] == 3.0
+    data = HysteresisDataModule(path=str(plain), input_column="2", target_column="1")
+    data.setup()
+    assert data.x[3] == -3.0
+
+
+def test_csv_reader_peak_memory_is_at_most_four_times_the_file(tmp_path) -> None:
+    """tracemalloc's peak (Python and numpy allocations) while a 1e5-row file is read, over
+    the file's size: about 3 (the bytes and their text, then float64 columns), was 15."""
+    import tracemalloc
+
+    path = tmp_path / "big.csv"
+    k = np.arange(100_000)
+    np.savetxt(path, np.c_[k * 1e-3, np.sin(k * 1e-3), np.cos(k * 1e-3)], delimiter=",",
+               header="time,response,command", comments="", fmt="%.9g")
+    tracemalloc.start()
+    try:
+        rec, = read_recordings(path, time_column="time", **COLS)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert rec.x.shape == (100_000,) and rec.y[0] == 1.0
+    assert peak <= 4 * path.stat().st_size, peak / path.stat().st_size

@@ -36,6 +36,7 @@ from torchhys.training.files import (
     RecordingId,
     check_text_options,
     read_recordings,
+    resolve_path,
 )
 from torchhys.training.splits import STAGES, Window, assign_recordings, check_split
 
@@ -267,7 +268,7 @@ class HysteresisDataModule(L.LightningDataModule):
         if hp.path is not None and not isinstance(hp.path, (str, Path)):
             seen: set[Path] = set()
             for p in hp.path:
-                resolved = Path(p).resolve()
+                resolved = resolve_path(p)
                 if resolved in seen:
                     raise ValueError(f"path lists the file {str(p)!r} twice: each recording "
                                      "once, or its copies would be in training and held out")
@@ -377,8 +378,7 @@ class HysteresisDataModule(L.LightningDataModule):
                     f"{where}: {what} is constant over the training split ({values.size} "
                     f"samples, {spread}); the normalization needs a "
                     "varying input and target: check the column (is it the right one?) and "
-                    "the split"
-                )
+                    "the split")
 
     def prepare_data(self) -> None:
         """Nothing to download: data are simulated or read in :meth:`setup`."""

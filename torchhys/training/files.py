@@ -32,7 +32,8 @@ from torchhys.training.tables import (
 
 __all__ = [
     "DECIMALS", "DELIMITERS", "Column", "DataFileError", "Record", "Recording", "RecordingId",
-    "check_text_options", "read_record", "read_recordings", "recording_id", "watch_files",
+    "check_text_options", "read_record", "read_recordings", "recording_id", "resolve_path",
+    "watch_files",
 ]
 
 
@@ -168,23 +169,31 @@ def read_recordings(
         of shape (time,).
 
     Raises:
-        ValueError: an empty list of files; a bad ``encoding``, ``delimiter`` or
-            ``decimal``.
+        ValueError: an empty list of files; input_column equal to target_column; a bad
+            ``encoding``, ``delimiter`` or ``decimal``.
         DataFileError: a missing file or column, files with different columns, text that
             is not in the encoding, a row with more or fewer fields than the header (with
             a hint when the numbers look like they have decimal commas), a non-finite or
             empty value, non-increasing time, a recording whose rows are not contiguous or
-            whose id another file also uses, too few rows; the message names the file, the
-            column and the row (and the line) or the recording.
+            whose id another file also uses, too few rows, a column name that the header
+            gives to several columns, a spreadsheet file saved under a ``.csv`` name, a
+            symbolic link loop, a file that changed since this command first read it
+            (:func:`watch_files`); the message names the file, the column and the row (and
+            the line) or the recording.
     """
     delimiter = check_text_options(encoding, delimiter, decimal)
+    if str(input_column) == str(target_column):
+        raise ValueError(
+            f"input_column (data.input_column) and target_column (data.target_column) are both "
+            f"{input_column!r}: the input (the plant's response) and the target (the command) "
+            "are two columns of the file")
     paths = [path] if isinstance(path, (str, Path)) else list(path)
     if not paths:
         raise ValueError("path must name a file or a non-empty list of files, got []")
     options = (input_column, target_column, time_column, run_column, min_samples, encoding,
                delimiter, decimal)
     for p in paths:
-        _check_path(Path(p))
+        resolve_path(p)
     try:  # the files as they are now: a file written again is read again
         key = (*options, *((str(Path(p).resolve()), *_stat(Path(p))) for p in paths))
         hash(key)
@@ -240,14 +249,16 @@ def _digest(path: Path) -> str:
     return h.hexdigest()
 
 
-def _check_path(path: Path) -> None:
-    """A path that cannot name a file: a symbolic link that leads back to itself."""
+def resolve_path(path: str | Path) -> Path:
+    """``Path(path).resolve()``, or a :class:`DataFileError` naming a symbolic link that
+    leads back to itself (a loop) where it cannot be resolved."""
     try:
-        path.resolve()
+        return Path(path).resolve()
     except (RuntimeError, OSError) as exc:  # RuntimeError: a loop, Python < 3.13
         if "loop" in str(exc).lower() or getattr(exc, "errno", None) == errno.ELOOP:
             raise DataFileError(f"{path}: a symbolic link that leads back to itself (a "
                                 "loop); point the path at the data file") from None
+        raise
 
 
 def _check_unchanged(path: Path, read_at: tuple[int, int] | None = None) -> None:

@@ -26,7 +26,10 @@ import csv
 import io
 import math
 import re
+from array import array
+from collections.abc import Iterator
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -103,9 +106,20 @@ def check_text_options(encoding: object, delimiter: object, decimal: object, *,
     return delimiter
 
 
+_ZIP = b"PK\x03\x04"
+"""The first bytes of a zip file: an .xlsx (or .ods) spreadsheet."""
+_OLE2 = bytes.fromhex("d0cf11e0a1b11ae1")
+"""The first bytes of an OLE2 compound file: an .xls spreadsheet."""
+
+
 def _decode(path: Path, encoding: str | None) -> str:
     """The text of a file: UTF-8 with an optional byte-order mark, or ``encoding``."""
     data = path.read_bytes()
+    if data.startswith((_ZIP, _OLE2)):
+        kind = "an .xlsx (zip)" if data.startswith(_ZIP) else "an .xls (OLE2)"
+        raise DataFileError(
+            f"{path}: the file is {kind} spreadsheet, not CSV text (whatever its name); "
+            "save it from the spreadsheet as CSV (File > Save As > CSV UTF-8)")
     skip = 0
     if encoding is None and data.startswith(codecs.BOM_UTF8):
         skip = len(codecs.BOM_UTF8)
@@ -162,14 +176,57 @@ _DECIMAL_HINT = (f"{_DECIMAL_OPTION} and separate the fields with ';' (the delim
                  "files normally use)")
 
 
+def _lines_of(text: str) -> Iterator[str]:
+    """The lines of ``text`` with their line ends, as ``io.StringIO(text, newline="")`` gives
+    them, without its copy of the text (a line ends at ``\\n``; text with a lone ``\\r``
+    goes through StringIO)."""
+    if text.count("\r") != text.count("\r\n"):
+        yield from io.StringIO(text, newline="")
+        return
+    start, end = 0, len(text)
+    while start < end:
+        stop = text.find("\n", start)
+        stop = end if stop < 0 else stop + 1
+        yield text[start:stop]
+        start = stop
+
+
+class _Csv(NamedTuple):
+    """A CSV file parsed: header names (``str(index)`` without a header), every column as
+    float64 (NaN where a field is not a number), the 1-based line of each data row, and what
+    reading the fields again needs (:func:`_fields`)."""
+
+    names: list[str]
+    values: np.ndarray
+    """(rows, columns) float64."""
+    lines: np.ndarray
+    text: str
+    delimiter: str
+    header: bool
+
+
+def _data_rows(table: _Csv) -> Iterator[list[str]]:
+    """The data rows of a parsed file again, as lists of fields (for ids and messages): the
+    rows :func:`_read_csv` kept, in order."""
+    started = False
+    for row in csv.reader(_lines_of(table.text), delimiter=table.delimiter):
+        if _blank(row) or not started and row[0].lstrip().startswith("#"):
+            continue
+        if not started:
+            started = True
+            if table.header:
+                continue
+        yield row
+
+
 def _read_csv(path: Path, encoding: str | None, delimiter: str | None,
-              decimal: str) -> tuple[list[str], list[list[str]], list[int]]:
-    """Header names (``str(index)`` without a header), data rows (each with the header's
-    number of fields) and the 1-based line of each data row."""
+              decimal: str) -> _Csv:
+    """Parse a CSV file (see the module docstring) into float64 columns, checking that every
+    row has the header's number of fields."""
     text = _decode(path, encoding)
     if delimiter is None:
         sample = []
-        for raw in io.StringIO(text, newline=""):
+        for raw in _lines_of(text):
             if raw.strip() and not raw.lstrip().startswith("#"):
                 sample.append(raw)
                 if len(sample) == 50:
@@ -183,40 +240,74 @@ def _read_csv(path: Path, encoding: str | None, delimiter: str | None,
                 f"{path}: the fields are separated by ',', which decimal=',' (data.decimal) "
                 f"makes the decimal mark; {fix}"
             )
-    reader = csv.reader(io.StringIO(text, newline=""), delimiter=delimiter)
-    rows, lines = [], []
+    reader = csv.reader(_lines_of(text), delimiter=delimiter)
+    values, lines = array("d"), array("q")
+    names: list[str] | None = None
+    has_header = underscores = False
+    what, n = "", 0
     last = 0
     try:
         for row in reader:
             line, last = last + 1, reader.line_num
-            if rows or (row and not row[0].lstrip().startswith("#")):
-                if not _blank(row):
-                    rows.append(row)
-                    lines.append(line)
+            if names is None:
+                if not row or row[0].lstrip().startswith("#") or _blank(row):
+                    continue
+                head = [c.strip() for c in row]
+                has_header = not all(_is_number(c, decimal) for c in head)
+                names = head if has_header else [str(i) for i in range(len(head))]
+                what, n = ("the header" if has_header else "the first row"), len(names)
+                # float() reads 1_000 as 1000: rows are checked for '_' where the data has any
+                underscores = text.count("_") > sum(c.count("_") for c in row) * has_header
+                if has_header:
+                    continue
+            elif _blank(row):
+                continue
+            if len(row) != n:
+                hint = ""
+                if decimal == "." and delimiter == "," and _looks_decimal_comma(row, n):
+                    hint = (f"; the file looks like it uses decimal commas ('1,5' split into "
+                            f"'1' and '5'): {_DECIMAL_HINT}")
+                raise DataFileError(
+                    f"{path}: line {line}: expected {n} fields as {what}, got {len(row)} "
+                    f"(delimiter {delimiter!r}){hint}"
+                )
+            values.extend(_numbers(row, decimal, underscores))
+            lines.append(line)
     except csv.Error as exc:
         raise DataFileError(f"{path}: line {reader.line_num}: {exc}") from None
-    if not rows:
+    if names is None:
         raise DataFileError(f"{path}: the file holds no data rows")
-    head = [c.strip() for c in rows[0]]
-    has_header = not all(_is_number(c, decimal) for c in head)
-    names = head if has_header else [str(i) for i in range(len(head))]
-    what = "the header" if has_header else "the first row"
-    for row, line in zip(rows, lines, strict=True):
-        if len(row) != len(names):
-            hint = ""
-            if decimal == "." and delimiter == "," and _looks_decimal_comma(row, len(names)):
-                hint = (f"; the file looks like it uses decimal commas ('1,5' split into '1' "
-                        f"and '5'): {_DECIMAL_HINT}")
-            raise DataFileError(
-                f"{path}: line {line}: expected {len(names)} fields as {what}, got "
-                f"{len(row)} (delimiter {delimiter!r}){hint}"
-            )
-    if has_header:
-        rows, lines = rows[1:], lines[1:]
-    return names, rows, lines
+    table = np.frombuffer(values, dtype=np.float64).reshape(-1, n) if n else np.zeros((0, 0))
+    return _Csv(names, table, np.frombuffer(lines, dtype=np.int64), text, delimiter,
+                has_header)
+
+
+def _numbers(row: list[str], decimal: str, underscores: bool) -> list[float]:
+    """The numbers of a row's fields, NaN for a field that is not one (:func:`_number`;
+    ``underscores``: the row may hold ``_``, which float() would take)."""
+    try:
+        if underscores and any("_" in f for f in row):
+            raise ValueError
+        if decimal == ",":
+            return [float(f.replace(",", ".")) for f in row]
+        return list(map(float, row))
+    except ValueError:
+        return [_number(f.strip(), decimal) for f in row]
+
+
+def as_column(column: Column, names: list[str]) -> Column:
+    """A column as the file's ``names`` read it: an integer, or a string of digits (as the
+    command line gives ``--data.input_column 2``), names the column of that name where the
+    header has one, else it is a 0-based index; any other string is a name."""
+    if isinstance(column, str) and re.fullmatch(r"\d+", column.strip()):
+        return column if column in names else int(column)
+    if isinstance(column, int) and not isinstance(column, bool) and str(column) in names:
+        return str(column)
+    return column
 
 
 def _index(path: Path, names: list[str], column: Column, role: str) -> int:
+    column = as_column(column, names)
     if isinstance(column, int) and not isinstance(column, bool):
         if not 0 <= column < len(names):
             raise DataFileError(
@@ -228,7 +319,13 @@ def _index(path: Path, names: list[str], column: Column, role: str) -> int:
         raise DataFileError(
             f"{path}: column {column!r} ({role}) not found; the file's columns are {names}"
         )
-    return names.index(column)
+    where = [i for i, name in enumerate(names) if name == column]
+    if len(where) > 1:
+        raise DataFileError(
+            f"{path}: column {column!r} ({role}) is the name of {len(where)} columns (indices "
+            f"{where}); rename them in the header, or give the column by its index"
+        )
+    return where[0]
 
 
 class _Table:
@@ -241,10 +338,12 @@ class _Table:
             raise DataFileError(f"{path}: no such file")
         self.path = path
         self.decimal = decimal
+        self._csv: _Csv | None = None
+        self._arrays: dict[str, np.ndarray] | None = None
         suffix = path.suffix.lower()
         if suffix == ".csv":
-            self.names, self._rows, self._lines = _read_csv(path, encoding, delimiter, decimal)
-            self._arrays: dict[str, np.ndarray] | None = None
+            self._csv = _read_csv(path, encoding, delimiter, decimal)
+            self.names = self._csv.names
         elif suffix == ".npz":
             with np.load(path, allow_pickle=False) as data:
                 self._arrays = {k: np.asarray(data[k]) for k in data.keys()}
@@ -254,15 +353,24 @@ class _Table:
 
     def line(self, row: int) -> str:
         """`` (line N)`` of a data row in a CSV file, ``""`` in an NPZ file."""
-        return "" if self._arrays is not None else f" (line {self._lines[row]})"
+        return "" if self._csv is None else f" (line {int(self._csv.lines[row])})"
 
-    def _raw(self, column: Column, role: str) -> tuple[str, list[str] | np.ndarray]:
-        """The column's name and its values (CSV: the stripped texts)."""
+    def _texts(self, idx: int) -> list[str]:
+        """The stripped texts of a CSV file's column ``idx``, read again from the text."""
+        return [r[idx].strip() for r in _data_rows(self._csv)]
+
+    def _text(self, idx: int, row: int) -> str:
+        """The stripped text of one field of a CSV file."""
+        for i, r in enumerate(_data_rows(self._csv)):
+            if i == row:
+                return r[idx].strip()
+        raise AssertionError(f"row {row} not found")
+
+    def _raw(self, column: Column, role: str) -> tuple[str, np.ndarray]:
+        """The column's name and its values (NPZ)."""
         path = self.path
-        if self._arrays is None:
-            idx = _index(path, self.names, column, role)
-            return self.names[idx], [r[idx].strip() for r in self._rows]
         keys = self.names
+        column = as_column(column, keys)
         if isinstance(column, str) and column in keys:
             arr = self._arrays[column]
             if arr.ndim != 1:
@@ -285,50 +393,63 @@ class _Table:
 
     def column(self, column: Column, role: str) -> np.ndarray:
         """A column of finite numbers, float64, (rows,)."""
-        name, raw = self._raw(column, role)
-        if self._arrays is None:
-            out = np.array([_number(v, self.decimal) for v in raw], dtype=np.float64)
-        else:
-            if not (np.issubdtype(raw.dtype, np.floating) or np.issubdtype(raw.dtype, np.integer)):
-                raise DataFileError(f"{self.path}: column {name!r} ({role}) must hold real "
-                                    f"numbers, got dtype {raw.dtype}")
-            try:
-                out = np.asarray(raw, dtype=np.float64)
-            except ValueError as exc:
+        if self._csv is not None:
+            idx = _index(self.path, self.names, column, role)
+            name, out = self.names[idx], np.ascontiguousarray(self._csv.values[:, idx])
+            bad = np.flatnonzero(~np.isfinite(out))
+            if bad.size:
+                i = int(bad[0])
+                text = self._text(idx, i)
+                fix = "remove or fill the row"
+                if self.decimal == "." and re.fullmatch(r"[+-]?\d*,\d+([eE][+-]?\d+)?", text):
+                    fix = f"the file looks like it uses decimal commas: {_DECIMAL_OPTION}"
+                elif "_" in text and _is_number(text.replace("_", ""), self.decimal):
+                    fix = "write numbers without '_' between the digits (1000, not 1_000)"
                 raise DataFileError(
-                    f"{self.path}: column {name!r} ({role}) is not numeric: {exc}"
-                ) from None
+                    f"{self.path}: column {name!r} ({role}), row {i}{self.line(i)}: "
+                    f"{repr(text) if text else 'an empty cell'} is not a finite number; {fix}"
+                )
+            return out
+        name, raw = self._raw(column, role)
+        if not (np.issubdtype(raw.dtype, np.floating) or np.issubdtype(raw.dtype, np.integer)):
+            raise DataFileError(f"{self.path}: column {name!r} ({role}) must hold real "
+                                f"numbers, got dtype {raw.dtype}")
+        try:
+            out = np.asarray(raw, dtype=np.float64)
+        except ValueError as exc:
+            raise DataFileError(
+                f"{self.path}: column {name!r} ({role}) is not numeric: {exc}"
+            ) from None
         bad = np.flatnonzero(~np.isfinite(out))
         if bad.size:
             i = int(bad[0])
-            value = (repr(raw[i]) if raw[i] else "an empty cell") if self._arrays is None \
-                else raw[i]
-            more = f" ({bad.size} such rows)" if self._arrays is not None else ""
-            fix = "remove or fill the row" if self._arrays is None else "remove or fill them"
-            if (self._arrays is None and self.decimal == "."
-                    and re.fullmatch(r"[+-]?\d*,\d+([eE][+-]?\d+)?", raw[i])):
-                fix = f"the file looks like it uses decimal commas: {_DECIMAL_OPTION}"
             raise DataFileError(
-                f"{self.path}: column {name!r} ({role}), row {i}{self.line(i)}: {value} is "
-                f"not a finite number{more}; {fix}"
+                f"{self.path}: column {name!r} ({role}), row {i}: {raw[i]} is not a finite "
+                f"number ({bad.size} such rows); remove or fill them"
             )
         return out
 
     def ids(self, column: Column, role: str) -> list[RecordingId]:
         """A column of recording ids (see :func:`recording_id`), (rows,)."""
-        name, raw = self._raw(column, role)
+        if self._csv is not None:
+            idx = _index(self.path, self.names, column, role)
+            name, raw = self.names[idx], self._texts(idx)
+        else:
+            name, raw = self._raw(column, role)
         for i, v in enumerate(raw):
             if isinstance(v, str) and not v:
                 raise DataFileError(
                     f"{self.path}: column {name!r} ({role}), row {i}{self.line(i)}: empty "
                     "value; every row needs its recording id"
                 )
-        if self._arrays is None and self.decimal == ",":
+        if self._csv is not None and self.decimal == ",":
             raw = [v.replace(",", ".") if _is_number(v, ",") else v for v in raw]
         return [recording_id(v) for v in raw]
 
 
 def _is_number(text: str, decimal: str) -> bool:
+    if "_" in text:  # float() reads 1_000 as 1000
+        return False
     try:
         float(text.replace(",", ".") if decimal == "," else text)
     except ValueError:
@@ -337,7 +458,10 @@ def _is_number(text: str, decimal: str) -> bool:
 
 
 def _number(text: str, decimal: str = ".") -> float:
-    """The number a CSV field holds (``decimal=","``: ``1,5`` is 1.5), NaN if none."""
+    """The number a CSV field holds (``decimal=","``: ``1,5`` is 1.5), NaN if none (and for
+    ``1_000``, which float() would read as 1000)."""
+    if "_" in text:
+        return math.nan
     try:
         return float(text.replace(",", ".") if decimal == "," else text)
     except ValueError:
