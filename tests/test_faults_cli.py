@@ -217,6 +217,18 @@ def test_switching_the_optimizer_keeps_lbfgs_kwargs(clean_path: Path, capsys, op
     assert not (clean_path / "run").exists()
 
 
+def test_a_candidate_that_switches_the_optimizer(clean_path: Path, capsys) -> None:
+    """A model.select candidate ``{optimizer: adam}`` on the section's L-BFGS kwargs: one
+    line naming the candidate, before any candidate trains."""
+    (clean_path / "c.yaml").write_text(LBFGS_CONFIG.replace(
+        "  optimizer_kwargs: {max_iter: 5, history_size: 3}\n",
+        "  optimizer_kwargs: {max_iter: 5, history_size: 3}\n  select: [{}, {optimizer: adam}]\n"))
+    line = error_line(capsys, "fit", "--config", "c.yaml")
+    assert "model.select[1] {'optimizer': 'adam'}: optimizer_kwargs ['history_size', " in line
+    assert "--model.optimizer_kwargs '{}'" in line
+    assert not (clean_path / "run").exists()
+
+
 def test_optimizer_kwargs_of_another_optimizer_in_python(clean_path: Path) -> None:
     with pytest.raises(ValueError, match=r"optimizer_kwargs \['lr'\] are not keyword "
                                          r"arguments of optimizer='cg' \(PowellBealeCG takes"):

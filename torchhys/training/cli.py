@@ -86,7 +86,7 @@ from torchhys.training.errors import (
 from torchhys.training.files import watch_files
 from torchhys.training.folds import describe_cv
 from torchhys.training.jobs import check_budget, check_jobs, usable_cores
-from torchhys.training.module import InverseHysteresisModule
+from torchhys.training.module import InverseHysteresisModule, check_optimizer_kwargs
 from torchhys.training.operators import build_operators
 from torchhys.training.plugins import (
     IMPORT_ENV,
@@ -271,8 +271,9 @@ class TorchhysCLI(LightningCLI):
         finally:
             parser.exit_on_error = exit_on_error
         model = cfg["model"]
-        try:  # the operators' specs, checked before any candidate trains
+        try:  # the operators' specs and the optimizer's kwargs, before any candidate trains
             build_operators(model["operator"], model["operator_kwargs"])
+            check_optimizer_kwargs(model["optimizer"], model["optimizer_kwargs"])
         except (ValueError, TypeError) as err:
             raise ValueError(f"model.select[{index}] {overrides}: {err}") from None
         _pop_select(cfg)

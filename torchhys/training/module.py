@@ -22,7 +22,7 @@ from torchhys.training.finite import check_normalization, check_training
 from torchhys.training.init import initialize
 from torchhys.training.operators import build_operators, fit_data_dependent
 
-__all__ = ["CLOSURE_OPTIMIZERS", "OPTIMIZERS", "InverseHysteresisModule"]
+__all__ = ["CLOSURE_OPTIMIZERS", "OPTIMIZERS", "InverseHysteresisModule", "check_optimizer_kwargs"]
 
 OPTIMIZERS: dict[str, type[torch.optim.Optimizer]] = {
     "adam": torch.optim.Adam,
@@ -53,7 +53,12 @@ def unknown_optimizer_kwargs(optimizer: str, optimizer_kwargs: Any) -> list[str]
     return sorted(str(k) for k in (optimizer_kwargs or {}) if k not in known)
 
 
-def _check_optimizer_kwargs(optimizer: str, optimizer_kwargs: Any) -> None:
+def check_optimizer_kwargs(optimizer: str, optimizer_kwargs: Any) -> None:
+    """Raise ``ValueError`` for ``optimizer_kwargs`` that the optimizer ``optimizer`` does
+    not take, naming them, the ones it takes and how the command line resets them (an
+    unknown optimizer name is left to the module's own check)."""
+    if optimizer not in OPTIMIZERS:
+        return
     if optimizer_kwargs is not None and not isinstance(optimizer_kwargs, Mapping):
         raise ValueError(f"optimizer_kwargs must be a dict of keyword arguments of the "
                          f"optimizer, got {type(optimizer_kwargs).__name__}")
@@ -182,7 +187,7 @@ class InverseHysteresisModule(L.LightningModule):
     ) -> None:
         super().__init__()
         check_choice(optimizer, "optimizer", sorted(OPTIMIZERS))
-        _check_optimizer_kwargs(optimizer, optimizer_kwargs)
+        check_optimizer_kwargs(optimizer, optimizer_kwargs)
         if schedule not in (None, "cosine") or (schedule and optimizer in CLOSURE_OPTIMIZERS):
             raise ValueError(
                 f"schedule must be None or 'cosine' (with optimizer='adam'), got {schedule!r} "
