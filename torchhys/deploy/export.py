@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import io
 import os
+import threading
 import warnings
 from typing import Any
 
@@ -282,6 +283,7 @@ def to_aoti(
 
 class AOTIStepper:
     """Python runner of an AOTI package from :func:`to_aoti`: ``step``, ``reset``, counter.
+    Safe across threads: a lock makes ``step`` and ``reset`` run one at a time.
 
     Args:
         path: the ``.pt2`` package.
@@ -296,12 +298,14 @@ class AOTIStepper:
         oor = meta.get("out_of_range", "")
         self.out_of_range = _position(oor) if oor else None
         self.low, self.high = float(meta["low"]), float(meta["high"])
+        self._lock = threading.Lock()
         self.reset()
         self.batch = int(self.state[0].shape[0])
 
     def reset(self) -> None:
         """Back to the fresh (all-zero) state."""
-        self.state = _parse_state_spec(self.spec)
+        with self._lock:
+            self.state = _parse_state_spec(self.spec)
 
     def step(self, x_t: Tensor) -> Tensor:
         """One sample, x_t (batch,) -> command (batch,).
@@ -318,8 +322,9 @@ class AOTIStepper:
                 f"step expects shape ({self.batch},) (the compiled batch), got shape "
                 f"{tuple(x_t.shape)}"
             )
-        out = self.runner(x_t.to(self.state[0].dtype).contiguous(), *self.state)
-        self.state = [s.contiguous() for s in out[1:]]
+        with self._lock:  # the state read, stepped and replaced by one thread at a time
+            out = self.runner(x_t.to(self.state[0].dtype).contiguous(), *self.state)
+            self.state = [s.contiguous() for s in out[1:]]
         return out[0]
 
     def nonfinite_count(self) -> Tensor:

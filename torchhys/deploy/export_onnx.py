@@ -50,6 +50,7 @@ import logging
 import math
 import os
 import re
+import threading
 import warnings
 from typing import Any
 
@@ -311,6 +312,7 @@ def _check_runs(proto: Any) -> None:
 class ONNXStepper:
     """Python runner of a file from :func:`to_onnx` over ONNX Runtime: ``step``, ``reset``,
     the counters. The state is kept as torch tensors (``state``), in the file's layout.
+    Safe across threads: a lock makes ``step`` and ``reset`` run one at a time.
 
     Args:
         path: the ``.onnx`` file.
@@ -340,13 +342,15 @@ class ONNXStepper:
         self.out_of_range = _position(oor) if oor else None
         self.low, self.high = float(meta["low"]), float(meta["high"])
         self.input_names = [i.name for i in self.session.get_inputs()]
+        self._lock = threading.Lock()
         self.reset()
         self.batch = int(self.state[0].shape[0])
         self.dtype = self.state[0].dtype
 
     def reset(self) -> None:
         """Back to the fresh (all-zero) state."""
-        self.state = _parse_state_spec(self.spec)
+        with self._lock:
+            self.state = _parse_state_spec(self.spec)
 
     def step(self, x_t: Tensor) -> Tensor:
         """One sample, x_t (batch,) -> command (batch,).
@@ -358,10 +362,12 @@ class ONNXStepper:
         if x_t.dim() != 1 or x_t.shape[0] != self.batch:
             raise ValueError(f"step expects shape ({self.batch},) (the exported batch), got "
                              f"shape {tuple(x_t.shape)}")
-        feed = {name: t.numpy() for name, t in
-                zip(self.input_names, [x_t.to(self.dtype).contiguous(), *self.state], strict=True)}
-        out = self.session.run(None, feed)
-        self.state = [torch.from_numpy(a) for a in out[1:]]
+        x_t = x_t.to(self.dtype).contiguous()
+        with self._lock:  # the state read, stepped and replaced by one thread at a time
+            feed = {name: t.numpy() for name, t in
+                    zip(self.input_names, [x_t, *self.state], strict=True)}
+            out = self.session.run(None, feed)
+            self.state = [torch.from_numpy(a) for a in out[1:]]
         return torch.from_numpy(out[0])
 
     def nonfinite_count(self) -> Tensor:

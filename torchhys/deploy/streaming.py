@@ -51,6 +51,7 @@ import torch
 from torch import Tensor, nn
 
 from torchhys._checks import check_real
+from torchhys.deploy._threads import StepLock
 from torchhys.deploy.ranges import (
     DIRECTIONS,
     MIN_TREND,
@@ -126,6 +127,13 @@ def _check_step(step: object, i: int) -> OperatorStep:
 
 
 
+def _dtype_name(dtype: torch.dtype) -> str:
+    """The name of a state dtype, for messages (a scripted dtype is a number)."""
+    if dtype == torch.float32 or dtype == torch.float64:
+        return "float32" if dtype == torch.float32 else "float64"
+    return "int64" if dtype == torch.int64 else "bool" if dtype == torch.bool else "another"
+
+
 def _model_dtype(model: nn.Module) -> torch.dtype:
     for t in (*model.parameters(), *model.buffers()):
         if t.is_floating_point():
@@ -181,6 +189,16 @@ class StreamingCompensator(nn.Module):
     COUNTER_COLUMN: Final[int] = COUNTER[1]
     clamp_input: bool
     guard: bool
+    # one step at a time: a Python lock in eager mode (not scripted), and in the scripted
+    # module a flag and a ticket that tell a step begun while another runs (see step)
+    __jit_ignored_attributes__ = ["_step_lock"]
+    stepping: bool
+    calls: int
+    state_names: list[str]
+    CONCURRENT: Final[str] = (
+        "step: another step of this compensator is running (a call from another thread): "
+        "use one compensator per thread, or a lock around its calls; reset() clears this "
+        "after a step that failed")
 
     def __init__(
         self, model: nn.Module, *, limits: Sequence[float] | None = None,
@@ -216,6 +234,10 @@ class StreamingCompensator(nn.Module):
         self._layout(steps, dtype)
         self.state = self.initial_state(1)
         self.n_steps = 0
+        self._step_lock = StepLock()
+        self.stepping, self.calls = False, 0
+        self.state_names = ["F (the float columns)", "I (the int64 counters)",
+                            "started", "F64 (the float64 columns)"]
 
     def _layout(self, steps: list[OperatorStep], dtype: torch.dtype) -> None:
         """Pack the steps' blocks by kind (see the module docstring) and record, for each
@@ -279,7 +301,24 @@ class StreamingCompensator(nn.Module):
 
     @torch.jit.export
     def step_explicit(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
-        """One sample with an explicit state: x (batch,) -> (u (batch,), new state)."""
+        """One sample with an explicit state: x (batch,) -> (u (batch,), new state).
+
+        Raises:
+            ValueError: ``state`` has another number of tensors than :meth:`initial_state`,
+                or a tensor of another dtype (the message names it and the dtype expected).
+        """
+        if len(state) != len(self.templates):
+            raise ValueError("step_explicit: state has " + str(len(state)) + " tensors, "
+                             "expected " + str(len(self.templates)) + " (initial_state)")
+        for i in range(len(self.templates)):
+            if state[i].dtype != self.templates[i].dtype:
+                raise ValueError("step_explicit: state[" + str(i) + "], " + self.state_names[i]
+                                 + ", has dtype " + _dtype_name(state[i].dtype) + ", expected "
+                                 + _dtype_name(self.templates[i].dtype))
+        return self._advance(x, state)
+
+    def _advance(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
+        """:meth:`step_explicit` of a state known to be of the layout."""
         F, I, started = state[self.STATE_F], state[self.STATE_I], state[self.STATE_STARTED]
         G = state[self.STATE_F64] if self.has_f64 else F
         xr = x.unsqueeze(1)
@@ -342,28 +381,61 @@ class StreamingCompensator(nn.Module):
 
     @torch.jit.export
     def step(self, x_t: Tensor) -> Tensor:
-        """Advance the stored state by one sample: x_t (batch,) -> command (batch,)."""
+        """Advance the stored state by one sample: x_t (batch,) -> command (batch,).
+
+        Threads: in Python (not scripted) a lock makes the steps of several threads run one
+        at a time. The scripted module holds no lock: use one per thread (``step_explicit``
+        with a state of each thread's own is safe); a step begun while another runs is
+        found in most cases and raises ``RuntimeError`` (:attr:`CONCURRENT`), leaving the
+        state to the other step.
+        """
+        if torch.jit.is_scripting():
+            return self._step(x_t)
+        return self._locked(x_t, True)
+
+    @torch.jit.unused
+    def _locked(self, x_t: Tensor, step: bool) -> Tensor:
+        with self._step_lock:
+            return self._step(x_t) if step else self._reset(x_t)
+
+    def _step(self, x_t: Tensor) -> Tensor:
         if x_t.dim() != 1:
             raise ValueError(
                 "step expects one sample per row, shape (batch,), got shape " + str(x_t.shape)
             )
+        if self.stepping:
+            raise RuntimeError(self.CONCURRENT)
+        self.stepping = True  # read before the state is: no read while another step writes
+        ticket = self.calls + 1
+        self.calls = ticket
         if x_t.shape[0] != self.state[0].shape[0]:
             if self.n_steps != 0:
+                self.stepping = False
                 raise ValueError(
                     "step: batch " + str(x_t.shape[0]) + " differs from the running batch "
                     + str(self.state[0].shape[0]) + "; call reset() first"
                 )
             self.state = self.initial_state(x_t.shape[0])
-        u, s = self.step_explicit(x_t.to(self.low.dtype), self.state)
+        u, s = self._advance(x_t.to(self.low.dtype), self.state)
+        if self.calls != ticket:  # a step begun meanwhile: that one writes the state
+            raise RuntimeError(self.CONCURRENT)
         self.state = s
         self.n_steps += 1
+        self.stepping = False
         return u
 
     @torch.jit.export
     def reset(self) -> None:
         """Back to the fresh state (the counter too); the next ``step`` may change the batch."""
+        if torch.jit.is_scripting():
+            self._reset(self.zero)
+        else:
+            self._locked(self.zero, False)
+
+    def _reset(self, x: Tensor) -> Tensor:
         self.state = self.initial_state(self.state[0].shape[0])
-        self.n_steps = 0
+        self.n_steps, self.stepping = 0, False
+        return x
 
     @torch.jit.export
     def nonfinite_count(self) -> Tensor:
@@ -391,7 +463,7 @@ class StreamingCompensator(nn.Module):
         state = self.initial_state(xb.shape[0])
         outs: list[Tensor] = []
         for xt in xb.unbind(1):
-            u, state = self.step_explicit(xt, state)
+            u, state = self._advance(xt, state)
             outs.append(u)
         if len(outs) == 0:
             return x.to(self.low.dtype)
