@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import builtins
 import errno
+import json
 import os
 from pathlib import Path
 
@@ -286,3 +287,213 @@ def test_negative_margin_is_still_refused(ckpt: Path, tmp_path: Path, capsys) ->
     with pytest.raises(SystemExit):
         export(ckpt, "torchscript", tmp_path / "m.pt", "--input-margin", "-1e-2")
     assert "expected a finite number >= 0" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------------
+# 4. a diverged fit stops; data whose normalization is not finite are refused; export
+#    refuses non-finite weights
+# ------------------------------------------------------------------------------------------
+
+TINY = """\
+seed_everything: 0
+trainer:
+  accelerator: cpu
+  devices: 1
+  precision: {precision}
+  max_epochs: 4
+  check_val_every_n_epoch: 1000
+  enable_progress_bar: false
+  enable_model_summary: false
+model:
+  operator: zhao_tan
+  operator_kwargs:
+    scale: 1.8
+  hidden: 8
+  optimizer: adam
+data:
+  simulation: paper
+  t_end: 6.3
+  split: [0.6, 0.2, 0.2]
+"""
+"""tests/test_cli.py's TINY with Adam, for a few epochs."""
+
+
+@pytest.mark.parametrize("precision", ["64-true", "32-true"])
+def test_a_diverged_fit_stops_naming_the_epoch(tmp_path: Path, monkeypatch,
+                                               precision: str) -> None:
+    """``--model.lr 1e300``: the weights overflow after the first steps; the fit stops
+    with one line naming the epoch and the learning rate, and saves no checkpoint."""
+    from _training_helpers import cli
+
+    from torchhys.training.finite import DivergedError
+
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(TINY.format(precision=precision))
+    ckpts = tmp_path / "ckpts"
+    with pytest.raises(DivergedError) as err:
+        cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={tmp_path}",
+            f"--checkpoint.dirpath={ckpts}", "--model.lr", "1e300",
+            "--model.optimizer_kwargs", "{}")
+    text = str(err.value)
+    assert "\n" not in text and "model.lr 1e+300" in text
+    if precision == "32-true":  # beyond float32: refused before the first step
+        assert "is not a finite number in the weights' float32" in text
+    else:
+        assert "the fit diverged in epoch " in text and "learning rate too large" in text
+    # what was saved before the loss overflowed (float64: weights near 1e300) is finite
+    for saved in (ckpts.glob("*.ckpt") if ckpts.exists() else []):
+        state = torch.load(saved, weights_only=True)["state_dict"]
+        assert all(torch.isfinite(v).all() for v in state.values() if v.is_floating_point())
+
+
+def test_a_fit_that_stays_finite_is_not_stopped(tmp_path: Path, monkeypatch) -> None:
+    from _training_helpers import cli
+
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(TINY.format(precision="64-true"))
+    cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={tmp_path}",
+        f"--checkpoint.dirpath={tmp_path / 'ckpts'}", "--checkpoint.save_last=true")
+    assert (tmp_path / "ckpts" / "last.ckpt").is_file()
+
+
+def test_the_cli_reports_a_diverged_fit_in_one_line(tmp_path: Path, monkeypatch,
+                                                    capsys) -> None:
+    from torchhys.training.cli import main
+
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(TINY.format(precision="64-true"))
+    monkeypatch.setattr("sys.argv", ["torchhys"])
+    monkeypatch.delenv("TORCHHYS_TRACEBACK", raising=False)
+    torch.set_num_threads(1)
+    with pytest.raises(SystemExit) as exit_:
+        main(["fit", "--config", str(cfg), f"--trainer.default_root_dir={tmp_path}",
+              "--model.optimizer", "adam", "--model.lr", "1e300",
+              "--model.optimizer_kwargs", "{}"])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("torchhys fit: error: the fit diverged in epoch ")
+    assert not any("Traceback" in line for line in err)
+
+
+def test_data_near_1e300_are_refused_when_read(tmp_path: Path) -> None:
+    import numpy as np
+
+    from torchhys.training import HysteresisDataModule
+    from torchhys.training.files import DataFileError
+
+    t = np.linspace(0, 20, 400)
+    path = tmp_path / "huge.csv"
+    np.savetxt(path, np.column_stack([1e300 * np.sin(t), 0.5e300 * np.sin(t - 0.3)]),
+               delimiter=",", header="response,command", comments="")
+    with pytest.raises(DataFileError) as err:
+        dm = HysteresisDataModule(path=str(path), min_samples=8)
+        dm.setup("fit")
+        dm.train_tensors()  # what a fit reads first
+    text = str(err.value)
+    assert "huge.csv" in text and "data.input_column 'response'" in text
+    assert "not finite" in text and "\n" not in text
+
+
+def test_data_beyond_float32_are_refused_by_a_float32_normalization() -> None:
+    """Values float32 holds (up to 3e38) whose mean it does not (the sum overflows): the
+    normalization fitted in float32 is refused before any training step."""
+    from torchhys.training import InverseHysteresisModule
+
+    module = InverseHysteresisModule(operator="zhao_tan", hidden=4)
+    t = torch.linspace(0, 20, 400, dtype=torch.float64)
+    x = (3e38 * (1 + torch.sin(t)) / 2)[None]
+    with pytest.raises(ValueError, match="normalization fitted on the training data is not "
+                                         "finite in float32"):
+        module.fit_normalization(x, 0.5 * x)
+
+
+def test_export_refuses_non_finite_weights(tmp_path: Path, capsys) -> None:
+    net = trained()
+    with torch.no_grad():
+        net.hidden.weight[2, 0] = float("nan")
+    ckpt = tmp_path / "nan.ckpt"
+    torch.save(lightning_ckpt(net), ckpt)
+    for fmt, out in (("torchscript", tmp_path / "m.pt"), ("c", tmp_path)):
+        assert export(ckpt, fmt, out) == 2
+        err = one_error_line(capsys)
+        assert f"--ckpt {ckpt}: the weight hidden.weight (1 of 16 values) is not finite" in err
+    assert not (tmp_path / "m.pt").exists() and not (tmp_path / "torchhys_comp.c").exists()
+
+
+def test_export_refuses_weights_whose_output_overflows(tmp_path: Path, capsys) -> None:
+    """Finite float64 weights near 1e308 (a fit stopped as it diverged): the network's
+    output is infinite, the compensator would hold its initial command."""
+    net = trained().double()
+    with torch.no_grad():
+        net.output.weight.fill_(1e308)
+    ckpt = tmp_path / "big.ckpt"
+    torch.save(lightning_ckpt(net), ckpt)
+    assert export(ckpt, "torchscript", tmp_path / "m.pt", "--limits", "-1", "1") == 2
+    err = one_error_line(capsys)
+    assert "the network's output is not finite" in err and "1e+308" in err
+
+
+def test_export_accepts_an_unfitted_range(tmp_path: Path, capsys) -> None:
+    """The NaN of a range the network never recorded is not a diverged weight."""
+    torch.manual_seed(0)
+    net = InverseHysteresisNet("eiho", 4, operator_kwargs=OPERATOR_KWARGS)
+    ckpt = tmp_path / "raw.ckpt"
+    torch.save(lightning_ckpt(net), ckpt)
+    assert export(ckpt, "torchscript", tmp_path / "m.pt", "--limits", "-1", "1") == 0
+
+
+# ------------------------------------------------------------------------------------------
+# 8. a crafted checkpoint's hidden: 10**9 is refused before the network is built
+# ------------------------------------------------------------------------------------------
+
+
+def test_a_crafted_hidden_is_refused_before_building(tmp_path: Path, monkeypatch,
+                                                     capsys) -> None:
+    def no_build(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        raise AssertionError("the network was built")
+
+    ckpt = tmp_path / "crafted.ckpt"
+    torch.save(lightning_ckpt(trained(), hidden=10**9), ckpt)
+    assert ckpt.stat().st_size < 20_000
+    monkeypatch.setattr("torchhys.training.export_cmd.InverseHysteresisNet", no_build)
+    assert export(ckpt, "torchscript", tmp_path / "m.pt") == 2
+    err = one_error_line(capsys)
+    assert "hidden=1000000000" in err and "GiB" in err and "do not describe its weights" in err
+
+
+def test_a_plain_state_dict_with_a_huge_hidden_is_refused(tmp_path: Path, capsys) -> None:
+    sd = tmp_path / "sd.pt"
+    torch.save(trained().state_dict(), sd)
+    assert export_main(["--ckpt", str(sd), "--format", "torchscript", "--out",
+                        str(tmp_path / "m.pt"), "--hidden", str(10**9), "--operator-kwargs",
+                        json.dumps(OPERATOR_KWARGS)]) == 2
+    assert "hidden=1000000000" in one_error_line(capsys)
+
+
+def test_a_network_over_the_memory_limit_is_refused(tmp_path: Path, monkeypatch,
+                                                    capsys) -> None:
+    """A checkpoint whose weights agree with its hyperparameters, under a memory limit
+    smaller than the network (TORCHHYS_MAX_MEMORY)."""
+    ckpt = tmp_path / "m.ckpt"
+    torch.save(lightning_ckpt(trained(hidden=64)), ckpt)
+    monkeypatch.setenv("TORCHHYS_MAX_MEMORY", "1K")
+    assert export(ckpt, "torchscript", tmp_path / "m.pt") == 2
+    err = one_error_line(capsys)
+    assert "the network of hidden=64" in err and "TORCHHYS_MAX_MEMORY" in err
+    monkeypatch.setenv("TORCHHYS_MAX_MEMORY", "1M")
+    assert export(ckpt, "torchscript", tmp_path / "m.pt") == 0
+
+
+def test_fit_reads_negative_numbers_in_scientific_notation(tmp_path: Path, monkeypatch,
+                                                           capsys) -> None:
+    """LightningCLI's parsers (jsonargparse, on argparse) had export's problem too."""
+    from _training_helpers import cli
+
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(TINY.format(precision="64-true"))
+    with pytest.raises(SystemExit) as exit_:
+        cli(monkeypatch, "fit", "--config", str(cfg), "--model.lr", "-1e-3",
+            "--trainer.gradient_clip_val", "-5E-1", "--print_config")
+    assert exit_.value.code in (0, None)
+    out = capsys.readouterr().out
+    assert "lr: -0.001" in out and "gradient_clip_val: -0.5" in out

@@ -87,6 +87,7 @@ from torchhys.training.files import watch_files
 from torchhys.training.folds import describe_cv
 from torchhys.training.jobs import check_budget, check_jobs, usable_cores
 from torchhys.training.module import InverseHysteresisModule, check_optimizer_kwargs
+from torchhys.training.negative_numbers import accept_negative_numbers
 from torchhys.training.operators import build_operators
 from torchhys.training.plugins import (
     IMPORT_ENV,
@@ -124,6 +125,9 @@ class TorchhysCLI(LightningCLI):
     checkpoint after every training epoch (``--checkpoint.*``; ``last.ckpt`` to resume), and
     model selection by validation in ``fit`` (``--model.select``, ``--model.select_cv``: see
     the module docstring)."""
+
+    def init_parser(self, **kwargs: Any) -> Any:  # each parser: --model.lr -1e-3 a value
+        return accept_negative_numbers(super().init_parser(**kwargs))
 
     def add_arguments_to_parser(self, parser) -> None:  # noqa: ANN001 (jsonargparse parser)
         parser.add_lightning_class_args(PredictionWriter, "predictions")

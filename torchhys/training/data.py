@@ -38,6 +38,7 @@ from torchhys.training.files import (
     read_recordings,
     resolve_path,
 )
+from torchhys.training.finite import check_scale
 from torchhys.training.splits import STAGES, Window, assign_recordings, check_split
 
 __all__ = [
@@ -367,13 +368,12 @@ class HysteresisDataModule(L.LightningDataModule):
         for option, role in (("input_column", "x"), ("target_column", "y")):
             values = np.concatenate([getattr(self.recordings[w.index], role)[: w.end]
                                      for w in windows])
+            err, what = ((ValueError, f"the simulated {option.split('_')[0]}") if hp.path is None
+                         else (DataFileError, f"data.{option} {hp[option]!r}"))
+            check_scale(values, f"{where}: {what}", err)  # a finite mean and spread
             if not np.std(values) > 0:  # equal, or too close for float64 (subnormal)
                 lo, hi = float(values.min()), float(values.max())
                 spread = f"all {lo:.10g}" if lo == hi else f"{lo:.3g} to {hi:.3g}, std 0"
-                if hp.path is None:
-                    err, what = ValueError, f"the simulated {option.split('_')[0]}"
-                else:
-                    err, what = DataFileError, f"data.{option} {hp[option]!r}"
                 raise err(
                     f"{where}: {what} is constant over the training split ({values.size} "
                     f"samples, {spread}); the normalization needs a "

@@ -33,18 +33,20 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import sys
 from pathlib import Path
 
 import torch
 
 from torchhys import InverseHysteresisNet
+from torchhys._memory import check_memory, format_bytes
 from torchhys.deploy.export import to_aoti, to_torchscript
 from torchhys.deploy.export_c import DEFAULT_PREFIX, check_prefix, to_c
 from torchhys.deploy.export_onnx import to_onnx
 from torchhys.deploy.streaming import DIRECTIONS, StreamingCompensator
 from torchhys.training.errors import config_errors, read_checkpoint, report_user_error
+from torchhys.training.finite import check_output, check_weights
+from torchhys.training.negative_numbers import accept_negative_numbers
 from torchhys.training.operators import build_operators
 from torchhys.training.plugins import import_modules
 
@@ -53,14 +55,9 @@ __all__ = ["build_net", "main"]
 _ARCH_KEYS = ("operator", "hidden", "activation", "operator_kwargs")
 
 
-NEGATIVE_NUMBER = re.compile(r"^-(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?$")
-"""What argparse takes for a negative number, not an option: ``-5``, ``-0.005``, ``-.5`` and
-scientific notation (``-5e-3``, ``-1E+2``), which its own pattern does not cover."""
-
-
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="torchhys export", description=__doc__.splitlines()[0])
-    p._negative_number_matcher = NEGATIVE_NUMBER  # argparse's hook for this pattern
+    accept_negative_numbers(p)  # --limits -5e-3 5e-3
     p.add_argument("--ckpt", type=Path, required=True, help="checkpoint or state dict file")
     p.add_argument("--format", choices=("torchscript", "aoti", "c", "onnx"), required=True)
     p.add_argument("--out", type=Path, required=True,
@@ -179,8 +176,34 @@ def check_out(args: argparse.Namespace) -> list[Path]:
     return targets
 
 
+def check_size(arch: dict, state: dict) -> None:
+    """Refuse, before building it, a network whose layers the architecture ``arch`` sizes
+    beyond the weights ``state`` holds (a damaged or crafted checkpoint: ``hidden: 10**9``
+    in a 1 KB file) or beyond the memory limit (``TORCHHYS_MAX_MEMORY``,
+    :mod:`torchhys._memory`)."""
+    hidden = arch.get("hidden")
+    if not isinstance(hidden, int) or isinstance(hidden, bool) or hidden < 1:
+        return  # InverseHysteresisNet's own check names it
+    weight = state.get("hidden.weight")
+    shaped = isinstance(weight, torch.Tensor) and weight.dim() == 2
+    features = int(weight.shape[1]) if shaped else 1
+    itemsize = weight.element_size() if shaped and weight.is_floating_point() else 4
+    params = hidden * (features + 2) + 1  # the hidden and output layers
+    nbytes = params * 4 + (params * itemsize if itemsize != 4 else 0)  # built, converted
+    held = sum(v.numel() for v in state.values() if isinstance(v, torch.Tensor))
+    if params > held:
+        raise ValueError(
+            f"the architecture (hidden={hidden}, {features} input features) asks for {params} "
+            f"weights ({format_bytes(nbytes)}), but the file holds {held} values in all: its "
+            "hyper_parameters (or --hidden) do not describe its weights (a damaged or "
+            "mismatched checkpoint)")
+    check_memory(nbytes, f"the network of hidden={hidden} ({features} input features)",
+                 "check the checkpoint's hyper_parameters (or --hidden)")
+
+
 def build_net(ckpt: dict, arch: dict | None = None) -> InverseHysteresisNet:
-    """Rebuild the network of a Lightning checkpoint (or of a plain state dict + ``arch``)."""
+    """Rebuild the network of a Lightning checkpoint (or of a plain state dict + ``arch``),
+    after :func:`check_size`."""
     if "state_dict" in ckpt:
         hp = ckpt.get("hyper_parameters") or {}
         missing = [k for k in ("operator", "hidden") if k not in hp]
@@ -195,6 +218,7 @@ def build_net(ckpt: dict, arch: dict | None = None) -> InverseHysteresisNet:
         raise ValueError("a plain state dict needs the architecture (see --hidden)")
     else:
         state = ckpt
+    check_size(arch, state)
     # operator specs as the training module reads them (names, {"name": ...} and
     # {"fit": ...} dicts); the fitted families get their widths and weights from the state
     operators, _ = build_operators(arch["operator"], arch.get("operator_kwargs") or {})
@@ -229,6 +253,8 @@ def main(argv: list[str]) -> int:
                    "input_margin": args.input_margin, "direction": args.direction}
         with config_errors():  # a TypeError here is in the options or the checkpoint
             net = build_net(ckpt, None if "state_dict" in ckpt else _plain_arch(args))
+            check_weights(net, f"--ckpt {args.ckpt}")  # a diverged fit's NaN weights
+            check_output(net, f"--ckpt {args.ckpt}")  # or its overflowing ones
             if args.dtype is not None:
                 net = net.to(_DTYPES[args.dtype])
             comp = StreamingCompensator(net, **options)

@@ -18,7 +18,7 @@ from torchmetrics import MeanSquaredError
 from torchhys import InverseHysteresisNet
 from torchhys._checks import check_choice
 from torchhys.optim import PowellBealeCG
-from torchhys.training.finite import check_normalization, check_training
+from torchhys.training.finite import check_learning_rate, check_normalization, check_training
 from torchhys.training.init import initialize
 from torchhys.training.operators import build_operators, fit_data_dependent
 
@@ -409,6 +409,8 @@ class InverseHysteresisModule(L.LightningModule):
         if self.optimizer_name == "lbfgs":
             kwargs.setdefault("line_search_fn", "strong_wolfe")
         params = [p for p in self.parameters() if p.requires_grad]
+        if "lr" in kwargs and params:  # one the weights' dtype holds (else a raw overflow)
+            check_learning_rate(kwargs["lr"], params[0].dtype, self.optimizer_name)
         opt = OPTIMIZERS[self.optimizer_name](params, **kwargs)
         if self.hparams.get("schedule") == "cosine":
             epochs = max(int(self.trainer.max_epochs or 1), 1)
