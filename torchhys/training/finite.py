@@ -98,10 +98,14 @@ def check_training(module: Any, loss: Tensor | None) -> None:
         DivergedError: one line naming the epoch (Lightning's, counted from 0), what is
             not finite and the likely causes.
     """
+    params = dict(module.named_parameters())
+    flags = [torch.isfinite(p.detach()).all() for p in params.values()]
+    if loss is not None:
+        flags.append(torch.isfinite(loss.detach()).all())
+    if not flags or bool(torch.stack([f.to(flags[0].device) for f in flags]).all()):
+        return  # one synchronization a step on a GPU
     bad_loss = loss is not None and not bool(torch.isfinite(loss.detach()).all())
-    bad = first_nonfinite(dict(module.named_parameters()))
-    if not bad_loss and bad is None:
-        return
+    bad = first_nonfinite(params)
     what = []
     if bad_loss:
         what.append(f"the training loss is {float(loss.detach().reshape(-1)[0]):g}")
