@@ -82,7 +82,7 @@ def main() -> None:
     if a.ckpt:
         subprocess.run([sys.executable, "-m", "torchhys", "export", "--ckpt", a.ckpt,
                         "--format", "c", "--out", str(a.out_dir), "--dtype", a.dtype,
-                        "--prefix", a.prefix], check=True)
+                        "--prefix", a.prefix, "--force"], check=True)  # rewrites OUT_DIR
         net = None
     else:
         net = example_network()
