@@ -192,3 +192,147 @@ def test_ckpt_path_last_resumes_the_newest_earlier_run(monkeypatch, tmp_path, ti
         saved = torch.load(logs / f"version_{v}" / "checkpoints" / "last.ckpt",
                            weights_only=True)
         assert saved["epoch"] == v
+
+
+# --- 6. signals --------------------------------------------------------------------------------
+FOREVER = TINY.replace("max_epochs: 1", "max_epochs: 1000000")
+"""TINY training until a signal stops it."""
+
+SELECT = FOREVER.replace("  optimizer: cg\n", """\
+  optimizer: cg
+  select: [{hidden: 2}, {hidden: 3}]
+  select_jobs: 2
+""")
+"""Two candidates of FOREVER, in two processes."""
+
+
+_ERR: dict[int, Path] = {}
+"""The file of each spawned command's stderr, by its process id."""
+
+
+def _spawn(tmp_path: Path, config: str, *extra: str, session: bool = False
+           ) -> subprocess.Popen:
+    path = tmp_path / "c.yaml"
+    path.write_text(config)
+    env = {k: v for k, v in os.environ.items() if k != "TORCHHYS_TRACEBACK"}
+    env.update(OMP_NUM_THREADS="1", PYTHONWARNINGS="ignore")
+    # a file, not a pipe: orphaned workers would hold a pipe open after the command ends
+    with (tmp_path / "stderr.txt").open("wb") as err:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "torchhys.training.cli", "fit", "--config", str(path),
+             f"--trainer.default_root_dir={tmp_path / 'run'}", *extra],
+            cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=err,
+            start_new_session=session)
+    _ERR[proc.pid] = tmp_path / "stderr.txt"
+    return proc
+
+
+def _until(condition, proc: subprocess.Popen, what: str, timeout: float = 120) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if proc.poll() is not None:
+            pytest.fail(f"ended ({proc.returncode}) before {what}:\n{_stderr(proc)}")
+        if time.monotonic() > deadline:
+            proc.kill()
+            pytest.fail(f"no {what} within {timeout} s")
+        time.sleep(0.05)
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie, ended but not yet reaped, does not)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return False
+
+
+def _children(pid: int) -> list[int]:
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid and fields[0] != "Z":
+            found.append(int(stat.parent.name))
+    return found
+
+
+def _stderr(proc: subprocess.Popen) -> str:
+    return _ERR[proc.pid].read_text(errors="replace")
+
+
+def _finish(proc: subprocess.Popen, timeout: float = 60) -> tuple[int, str]:
+    try:
+        proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+        pytest.fail(f"still running {timeout} s after the signal:\n{_stderr(proc)[-3000:]}")
+    return proc.returncode, _stderr(proc)
+
+
+def test_sigterm_ends_a_fit_with_143_after_saving_last_ckpt(monkeypatch, tmp_path) -> None:
+    """Checkpoints every 10**6 epochs: Lightning alone would save none at a SIGTERM (and end
+    with status 0); the run saves last.ckpt, says so, and resumes from it."""
+    proc = _spawn(tmp_path, FOREVER, "--checkpoint.every_n_epochs=1000000")
+    config = tmp_path / "run" / "logs" / "version_0" / "config.yaml"
+    _until(config.exists, proc, "training")
+    time.sleep(1.0)  # some epochs
+    proc.send_signal(signal.SIGTERM)
+    rc, err = _finish(proc)
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert rc == 128 + signal.SIGTERM, err[-3000:]
+    assert "Traceback" not in err, err[-3000:]
+    trained = config.parent.joinpath("metrics.csv").read_text().splitlines()[1:]
+    n = int(trained[-1].split(",")[0]) + 1  # epochs 0 .. n-1 trained
+    assert lines[-1] == (f"torchhys fit: interrupted by SIGTERM after {n} epochs; last.ckpt "
+                         f"saved in {config.parent / 'checkpoints'} (resume: --ckpt_path "
+                         "last)"), lines[-1]
+    saved = torch.load(config.parent / "checkpoints" / "last.ckpt", weights_only=True)
+    assert saved["global_step"] == n  # one full batch per epoch: saved as the run stopped
+    # resumed: the next run trains from epoch n, none repeated or skipped
+    monkeypatch.setenv("TORCHHYS_TRACEBACK", "1")
+    monkeypatch.setattr(sys, "argv", ["torchhys"])
+    main(["fit", "--config", str(tmp_path / "c.yaml"),
+          f"--trainer.default_root_dir={tmp_path / 'run'}", "--ckpt_path=last",
+          f"--trainer.max_epochs={n + 1}"])
+    metrics = (tmp_path / "run" / "logs" / "version_1" / "metrics.csv").read_text()
+    assert [r.split(",")[0] for r in metrics.splitlines()[1:]] == [str(n)], metrics[:300]
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
+@pytest.mark.parametrize("how", ["SIGTERM", "Ctrl-C", "SIGKILL"])
+def test_select_jobs_workers_end_with_the_command(tmp_path, how) -> None:
+    """Two candidates training without end in two processes; a signal to the command (a
+    Ctrl-C reaches its whole process group): the workers end, and but for SIGKILL the
+    command says it was interrupted, in one line, with 128 + the signal's number."""
+    proc = _spawn(tmp_path, SELECT, session=True)
+    workers: list[int] = []
+    try:
+        _until(lambda: len(_children(proc.pid)) >= 2, proc, "two worker processes")
+        workers = _children(proc.pid)
+        time.sleep(1.0)  # the candidates are training
+        if how == "Ctrl-C":
+            os.killpg(proc.pid, signal.SIGINT)
+        else:
+            proc.send_signal(getattr(signal, how))
+        rc, err = _finish(proc)
+        deadline = time.monotonic() + 10
+        while any(map(_alive, workers)) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not any(map(_alive, workers)), (how, workers)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        for pid in workers:  # orphans, where the fault is back
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+    if how == "SIGKILL":
+        assert rc == -signal.SIGKILL
+        return
+    signum = signal.SIGINT if how == "Ctrl-C" else signal.SIGTERM
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert rc == 128 + signum, err[-3000:]
+    assert "Traceback" not in err, err[-3000:]
+    assert lines[-1] == f"torchhys fit: interrupted by {signal.Signals(signum).name}", err

@@ -70,8 +70,8 @@ from lightning.pytorch.utilities import rank_zero_only, rank_zero_warn
 
 from torchhys.training import selection
 from torchhys.training.callbacks import BaselineComparison, PredictionWriter
-from torchhys.training.cli_checks import check_config_files, check_optimizer_switch
 from torchhys.training.ckpt_paths import check_ckpt_path
+from torchhys.training.cli_checks import check_config_files, check_optimizer_switch
 from torchhys.training.config_yaml import check_config_aliases
 from torchhys.training.config_yaml import install as install_bounded_yaml
 from torchhys.training.coverage import warn_coverage
@@ -85,6 +85,12 @@ from torchhys.training.errors import (
 )
 from torchhys.training.files import watch_files
 from torchhys.training.folds import describe_cv
+from torchhys.training.interrupts import (
+    Interrupted,
+    SigtermCheckpoint,
+    report_interrupt,
+    signals_raise,
+)
 from torchhys.training.jobs import check_budget, check_jobs, usable_cores
 from torchhys.training.module import InverseHysteresisModule, check_optimizer_kwargs
 from torchhys.training.negative_numbers import accept_negative_numbers
@@ -182,6 +188,12 @@ class TorchhysCLI(LightningCLI):
         with config_errors():
             super().instantiate_classes()
 
+    def instantiate_trainer(self, **kwargs: Any) -> Trainer:
+        """LightningCLI's, with :class:`~torchhys.training.interrupts.SigtermCheckpoint`."""
+        trainer = super().instantiate_trainer(**kwargs)
+        trainer.callbacks.append(SigtermCheckpoint())
+        return trainer
+
     def before_fit(self) -> None:
         """A plain fit warns as model selection does (once) when the training record holds
         less than one closed loop or loops of one amplitude
@@ -246,7 +258,7 @@ class TorchhysCLI(LightningCLI):
             return self._instantiate_run(configs[i], seed, folder / "selection", i, fold)
 
         try:
-            with _quiet_lightning():
+            with _quiet_lightning(), signals_raise():  # SIGTERM, Ctrl-C: Interrupted
                 scores = selection.run_selection(candidates, build, cv=cv, mode=mode,
                                                  jobs=jobs, budget_s=budget,
                                                  report=progress.scored)
@@ -464,6 +476,10 @@ def _main(argv: list[str] | None) -> None:
             trainer_defaults={"log_every_n_steps": 1},
             parser_kwargs={"description": _DESCRIPTION},
         )
+    except (Interrupted, KeyboardInterrupt) as exc:  # a signal during model selection
+        if traceback:
+            raise
+        raise SystemExit(report_interrupt(prog, exc)) from None
     except Exception as exc:
         if not report_user_error(prog, exc, traceback):
             raise

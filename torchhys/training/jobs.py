@@ -9,7 +9,10 @@ cores, at most :data:`AUTO_JOBS` (one process where processes cannot be forked).
 ``select_budget_s: s`` starts no candidate once s seconds have passed since the first
 started (the first always runs; the ones running then finish): the others score NaN, and
 their ``error`` in ``selection.csv`` and the printed table says that they were skipped. The
-chosen candidate is the best of those scored.
+chosen candidate is the best of those scored. The processes die with the command's process
+however it ends (SIGKILL included) and ignore SIGINT; when the selection stops early (a
+signal, Ctrl-C, a candidate's error) the running ones are killed, not waited for
+(:mod:`torchhys.training.interrupts`).
 """
 
 from __future__ import annotations
@@ -24,6 +27,8 @@ from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
 import torch
+
+from torchhys.training.interrupts import die_with_parent
 
 __all__ = ["AUTO_JOBS", "SelectionJobError", "check_budget", "check_jobs", "run_candidates",
            "usable_cores"]
@@ -134,32 +139,54 @@ def run_candidates(n: int, score: Callable[[int], Any], skipped: Callable[[int],
                          "macOS); set model.select_jobs: 1 here") from None
     threads = max(1, torch.get_num_threads() // jobs)
     _SCORE, _SKIPPED = score, skipped
+    before = set(multiprocessing.active_children())
+    pool = ProcessPoolExecutor(jobs, mp_context=context, initializer=_start_worker,
+                               initargs=(threads, os.getpid()))
     try:
-        with ProcessPoolExecutor(jobs, mp_context=context, initializer=torch.set_num_threads,
-                                 initargs=(threads,)) as pool:
-            pending: list = []  # (group, future or None: skipped), in order
+        pending: list = []  # (group, future or None: skipped), in order
 
-            def collect() -> None:
-                group, r = pending.pop(0)
-                try:
-                    scores = [skipped(j) for j in group] if r is None else r.result()
-                except BrokenProcessPool:
-                    which = (f"candidate {group[0]}" if len(group) == 1
-                             else f"candidates {group[0]}-{group[-1]}")
-                    raise SelectionJobError(
-                        f"model.select_jobs: the process scoring {which} ended without a "
-                        f"result (killed: out of memory?); run fewer at a time "
-                        f"(--model.select_jobs=1: all in the command's process)") from None
-                for result in scores:
-                    done(result)
+        def collect() -> None:
+            group, r = pending.pop(0)
+            try:
+                scores = [skipped(j) for j in group] if r is None else r.result()
+            except BrokenProcessPool:
+                which = (f"candidate {group[0]}" if len(group) == 1
+                         else f"candidates {group[0]}-{group[-1]}")
+                raise SelectionJobError(
+                    f"model.select_jobs: the process scoring {which} ended without a "
+                    f"result (killed: out of memory?); run fewer at a time "
+                    f"(--model.select_jobs=1: all in the command's process)") from None
+            for result in scores:
+                done(result)
 
-            for group in _groups(n, together):
-                while sum(r is not None for _, r in pending) >= jobs:
-                    collect()
-                pending.append((group, None if _spent(group[0], start, budget_s) else
-                                pool.submit(_score_group, group, start, budget_s)))
-            while pending:
+        for group in _groups(n, together):
+            while sum(r is not None for _, r in pending) >= jobs:
                 collect()
+            pending.append((group, None if _spent(group[0], start, budget_s) else
+                            pool.submit(_score_group, group, start, budget_s)))
+        while pending:
+            collect()
+    except BaseException:  # a signal, Ctrl-C, a candidate's error: nothing waits for the rest
+        _stop(pool, set(multiprocessing.active_children()) - before)
+        raise
+    else:
+        pool.shutdown()
     finally:
         _SCORE = _SKIPPED = None
     return results
+
+
+def _start_worker(threads: int, parent: int) -> None:
+    """A worker's start: its share of torch's threads; it dies with the command's process
+    and ignores SIGINT (:func:`~torchhys.training.interrupts.die_with_parent`)."""
+    die_with_parent(parent)
+    torch.set_num_threads(threads)
+
+
+def _stop(pool: ProcessPoolExecutor, workers: set) -> None:
+    """End the pool now: queued candidates cancelled, the running ones' processes killed."""
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in workers:
+        process.kill()
+    for process in workers:
+        process.join(timeout=5)
