@@ -78,10 +78,12 @@ def test_generated_c_refuses_to_compile_under_fast_math(exported: dict, flags: l
 
 @needs_cc
 @pytest.mark.parametrize("dtype", list(DTYPES))
-@pytest.mark.parametrize("flags", [FLAGS, FAST_BYPASSED], ids=["O2", "fast-math-bypassed"])
+@pytest.mark.parametrize("flags", [FLAGS, FAST_BYPASSED, ["-std=c99", "-O2", "-ffinite-math-only"]],
+                         ids=["O2", "fast-math-bypassed", "finite-math-only"])
 def test_generated_c_holds_nan_and_agrees_under_every_flag(exported: dict, dtype: str,
                                                            flags: list[str]) -> None:
-    """At -O2 and under -O3 -ffast-math with the #error bypassed: every NaN and inf sample
+    """At -O2, under -O3 -ffast-math with the #error bypassed and under -ffinite-math-only
+    alone (no #error: __FAST_MATH__ is not defined): every NaN and inf sample
     held and counted, the commands within the conformance bound of the TorchScript file's
     (before: NaN drove the command to a limit, uncounted, and exp's rounding was folded
     away, a gap of 2 on this record)."""
