@@ -278,3 +278,17 @@ def test_float64_input_to_a_float32_feedback_element(name: str) -> None:
     assert any(n.startswith("net.") for n, _ in op.named_parameters())
     with pytest.raises(TypeError, match=r"^x is float64 but the \w+ operator is float32"):
         op(torch.linspace(0.0, 1.0, 20, dtype=torch.float64))
+
+
+def test_a_narrower_input_is_widened_to_the_network() -> None:
+    """float32 into a float64 network (torch's default dtype into a 64-true fit) is widened,
+    as before the dtype check: the same output as the float64 input, in float64."""
+    net = InverseHysteresisNet("eiho", 4).double()
+    x = torch.linspace(0.0, 1.0, 20, dtype=torch.float32)
+    y, _ = net(x)
+    assert y.dtype == torch.float64
+    torch.testing.assert_close(y, net(x.double())[0], rtol=0, atol=0)
+    op = example_of("duhem").build().double()
+    z, _ = op(x)
+    assert z.dtype == torch.float64
+    torch.testing.assert_close(z, op(x.double())[0], rtol=0, atol=0)

@@ -53,14 +53,18 @@ def check_floating(value: Tensor, name: str) -> Tensor:
 
 
 def check_dtype_of(value: Tensor, name: str, dtype: torch.dtype, owner: str) -> Tensor:
-    """Raise ``TypeError`` unless ``value`` has the dtype ``dtype`` of ``owner``'s
-    parameters (as ``nn.Linear`` does, with a message that names both and the remedies)."""
-    if value.dtype != dtype:
-        got, want = (str(d).replace("torch.", "") for d in (value.dtype, dtype))
-        var = owner.split()[-1]
-        raise TypeError(f"{name} is {got} but the {owner} is {want}: convert the input "
-                        f"({name}.to(torch.{want})) or the {owner} ({var}.to(torch.{got}))")
-    return value
+    """``value`` in the floating dtype ``dtype`` of ``owner``'s parameters: a narrower float
+    (float32 into a float64 network) is widened, as torch's type promotion does; a wider one
+    (float64 into a float32 network) raises ``TypeError`` naming both and the remedies (as
+    ``nn.Linear`` refuses it, which would lose the input's precision). Other dtypes pass."""
+    if value.dtype == dtype or not (value.is_floating_point() and dtype.is_floating_point):
+        return value
+    if torch.finfo(value.dtype).bits < torch.finfo(dtype).bits:
+        return value.to(dtype)
+    got, want = (str(d).replace("torch.", "") for d in (value.dtype, dtype))
+    var = owner.split()[-1]
+    raise TypeError(f"{name} is {got} but the {owner} is {want}: convert the input "
+                    f"({name}.to(torch.{want})) or the {owner} ({var}.to(torch.{got}))")
 
 
 def check_finite(value: Tensor, name: str) -> Tensor:

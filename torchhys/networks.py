@@ -104,9 +104,10 @@ class InverseHysteresisNet(AtomicLoad, nn.Module):
         """Physical-unit input space ``[x, f_1(x), ...]``: (batch, time, features), states.
 
         Raises:
-            TypeError: ``x`` (or ``target``) of another dtype than the network's."""
+            TypeError: ``x`` (or ``target``) of a wider float dtype than the network's (a
+                narrower one is widened)."""
         xb, _ = as_batched_sequence(x, "x")
-        check_dtype_of(xb, "x", self.hidden.weight.dtype, "network")
+        xb = check_dtype_of(xb, "x", self.hidden.weight.dtype, "network")
         if state is not None and len(state) != len(self.operators):
             raise ValueError(f"state must hold {len(self.operators)} states, got {len(state)}")
         yb = None if target is None else check_dtype_of(

@@ -141,7 +141,7 @@ class FeedbackElement(HysteresisOperator):
         xb, squeezed = as_batched_sequence(x, "x")
         weights = [p for n, p in self.named_parameters() if n.startswith("net.")]
         if weights:  # the slope network's layers (its coefficients follow the input)
-            check_dtype_of(xb, "x", weights[0].dtype, f"{type(self).__name__} operator")
+            xb = check_dtype_of(xb, "x", weights[0].dtype, f"{type(self).__name__} operator")
         B = xb.shape[0]
         s = (xb.new_zeros(B, self.state_size) if state is None
              else check_state(state, B, self.state_size, xb))
