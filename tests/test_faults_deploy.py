@@ -355,15 +355,19 @@ print(len(done), len(refused), int(m.nonfinite_count()), m.n_steps, len(other))
 def test_a_torchscript_compensator_refuses_a_step_from_a_second_thread(tmp_path: Path) -> None:
     """4 threads x 100 NaN samples into one scripted compensator (in a child process: before,
     it crashed with a corrupted heap or lost updates): no crash, a step that overlaps another
-    is refused with a RuntimeError that says so, and the counter counts exactly the steps
-    that ran."""
+    is refused with a RuntimeError that says so, and the counter counts the steps that ran.
+    The check is a diagnosis, not a lock (docs/deployment.md, "Threads"): two steps that
+    pass it at the same instant both run, and one of them may be lost, so the count may
+    fall short of the steps by the few such overlaps (the code before lost 25-60 % of them
+    and refused none)."""
     to_torchscript(small_net(), tmp_path / "comp.pt")
     done = subprocess.run([sys.executable, "-c", TORCHSCRIPT_THREADS, str(tmp_path / "comp.pt")],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, (done.returncode, done.stderr[-2000:])
     ran, refused, count, n_steps, other = map(int, done.stdout.split())
     assert other == 0 and ran + refused == 400 and ran >= 1
-    assert count == n_steps == ran
+    assert refused >= 1  # overlapping steps are found and refused
+    assert count <= n_steps <= ran and ran - count <= max(2, ran // 50), (count, n_steps, ran)
 
 
 def test_a_torchscript_compensator_after_a_refused_step_goes_on() -> None:
@@ -411,3 +415,18 @@ def test_step_explicit_refuses_a_state_of_another_dtype(case: int) -> None:
         scripted.step_explicit(x, state)
     u, new = comp.step_explicit(x, comp.initial_state(1))  # the right state still steps
     assert [t.dtype for t in new] == [torch.float64, torch.int64, torch.bool]
+
+
+def test_a_python_compensator_steps_on_after_a_failed_step() -> None:
+    """A step that fails part-way (here a meta tensor, which the step cannot compute on)
+    leaves the Python compensator usable: the next step from the same thread runs and is
+    the fresh state's first, not "another step of this compensator is running"."""
+    comp = StreamingCompensator(small_net())
+    x = torch.tensor([0.2], dtype=torch.float64)
+    with pytest.raises(Exception) as failed:
+        comp.step(torch.empty(1, dtype=torch.float64, device="meta"))
+    assert "another step" not in str(failed.value)
+    assert not comp.stepping
+    fresh = StreamingCompensator(small_net())
+    fresh.load_state_dict(comp.state_dict())
+    torch.testing.assert_close(comp.step(x), fresh.step(x), rtol=0, atol=0)

@@ -396,7 +396,11 @@ class StreamingCompensator(nn.Module):
     @torch.jit.unused
     def _locked(self, x_t: Tensor, step: bool) -> Tensor:
         with self._step_lock:
-            return self._step(x_t) if step else self._reset(x_t)
+            try:
+                return self._step(x_t) if step else self._reset(x_t)
+            except BaseException:
+                self.stepping = False  # under the lock no other step runs: a failed one ended
+                raise
 
     def _step(self, x_t: Tensor) -> Tensor:
         if x_t.dim() != 1:
