@@ -302,7 +302,8 @@ def test_sigterm_ends_a_fit_with_143_after_saving_last_ckpt(monkeypatch, tmp_pat
 
 
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
-@pytest.mark.parametrize("how", ["SIGTERM", "Ctrl-C", "SIGKILL"])
+@pytest.mark.parametrize("how", [pytest.param("SIGTERM", marks=pytest.mark.slow), "Ctrl-C",
+                                 "SIGKILL"])
 def test_select_jobs_workers_end_with_the_command(tmp_path, how) -> None:
     """Two candidates training without end in two processes; a signal to the command (a
     Ctrl-C reaches its whole process group): the workers end, and but for SIGKILL the

@@ -172,7 +172,7 @@ class FullDisk:
         monkeypatch.setattr(builtins, "open", limited_open)
 
 
-@pytest.mark.parametrize("fmt", ["torchscript", "onnx"])
+@pytest.mark.parametrize("fmt", ["torchscript", pytest.param("onnx", marks=pytest.mark.slow)])
 def test_full_disk_keeps_the_previous_file(ckpt: Path, tmp_path: Path, monkeypatch, capsys,
                                            fmt: str) -> None:
     if fmt == "onnx":
