@@ -114,7 +114,7 @@ def install() -> None:
         return
 
     def bounded_yaml_load(stream: str) -> Any:
-        if isinstance(stream, str):
+        if isinstance(stream, str) and "*" in stream:  # no alias without a '*'
             expanded_nodes(stream)
         return original(stream)
 
