@@ -7,6 +7,7 @@ that look right but are not (duplicate header names, ``1_000``, a spreadsheet sa
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -290,3 +291,38 @@ def test_csv_reader_peak_memory_is_at_most_four_times_the_file(tmp_path) -> None
         tracemalloc.stop()
     assert rec.x.shape == (30_000,) and rec.y[0] == 1.0
     assert peak <= 4 * path.stat().st_size, peak / path.stat().st_size
+
+
+# ------------------------------------------------------------------------------------------
+# 8. the widths and units of the fitted families: refused with the estimate
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("spec", [{"fit": "pi_nonneg", "n_widths": 10**7},
+                                  {"fit": "gpi", "units": 10**7},
+                                  {"fit": "stop_pi", "n_widths": 10**6, "segments": 10}])
+def test_family_placeholder_refused_when_the_spec_is_read(monkeypatch, spec) -> None:
+    """10**7 columns: a placeholder of 150 MiB, over a limit of 64 MiB."""
+    monkeypatch.setenv(MEMORY_ENV, "64M")
+    with pytest.raises(ValueError, match=rf"fit '{spec['fit']}': .*\(10000\d+ columns\) needs "
+                                         r"about 15\d\.\d MiB.*64\.0 MiB.*lower "):
+        build_operators([spec], {})
+
+
+@pytest.mark.parametrize("spec, what", [
+    ({"fit": "pi_nonneg", "n_widths": 1000}, "n_widths=1000 (1000 columns)"),
+    ({"fit": "gpi", "n_widths": 10, "units": 1000}, "n_widths=10 + units=1000 (1010 columns)"),
+    ({"fit": "stop_pi", "n_widths": 250}, "n_widths=250 x segments=4 (1000 columns)")])
+def test_family_fit_refused_before_allocating(monkeypatch, spec, what) -> None:
+    """About 1000 columns of 2000 samples (12 float64 copies: 183 MiB) over 64 MiB: refused
+    before the width grid (the first allocation of the fit) is made."""
+    def no_grid(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        raise AssertionError("the fit began")
+
+    monkeypatch.setenv(MEMORY_ENV, "64M")
+    _, fitters = build_operators([spec], {})
+    monkeypatch.setattr("torchhys.training.families.play_width_grid", no_grid)
+    x = torch.sin(torch.linspace(0, 20, 2000, dtype=torch.float64))[None]
+    with pytest.raises(ValueError, match=rf"fit '{spec['fit']}': {re.escape(what)} fitted on "
+                                         r"2000 samples needs about 18\d\.\d MiB"):
+        fitters[0](x, 0.5 * x, 0)

@@ -497,3 +497,16 @@ def test_fit_reads_negative_numbers_in_scientific_notation(tmp_path: Path, monke
     assert exit_.value.code in (0, None)
     out = capsys.readouterr().out
     assert "lr: -0.001" in out and "gradient_clip_val: -0.5" in out
+
+
+def test_a_crafted_family_width_is_refused_before_building(tmp_path: Path, monkeypatch,
+                                                           capsys) -> None:
+    """``{fit: pi_nonneg, n_widths: 10**7}`` in a small file: its placeholder (150 MiB)
+    over a limit of 64 MiB is refused naming the option, before anything is built."""
+    ckpt = tmp_path / "crafted.ckpt"
+    torch.save(lightning_ckpt(trained(), operator=[{"fit": "pi_nonneg", "n_widths": 10**7}]),
+               ckpt)
+    monkeypatch.setenv("TORCHHYS_MAX_MEMORY", "64M")
+    assert export(ckpt, "torchscript", tmp_path / "m.pt") == 2
+    err = one_error_line(capsys)
+    assert "fit 'pi_nonneg': n_widths=10000000" in err and "lower n_widths" in err

@@ -63,6 +63,7 @@ failed.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -89,6 +90,7 @@ from torchhys._checks import (
     check_nonnegative,
     check_positive,
 )
+from torchhys._memory import check_memory
 from torchhys.functional.jiles_atherton import MU0
 from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
 from torchhys.identification.jiles_atherton import substeps_for
@@ -134,9 +136,31 @@ def _penalty(spec: Mapping[str, Any], key: str) -> float | str:
                              alternatives="'auto' or ")
 
 
+FIT_BYTES = 8 * 12
+"""Bytes a fit takes per column (a play or stop of the grid, a unit of ``gpi``) and fitted
+sample: float64 columns times 12, measured on real fits (pi_nonneg, gpi and stop_pi, 2000
+columns of 2000 samples: 9 to 11.5 times the float64 columns at their peak)."""
+PLACEHOLDER_BYTES = 16
+"""Bytes of the placeholder operator per column (its widths built as int64, then float32
+widths and weights), before any data are seen."""
+
+
+def _check_columns(spec: Mapping[str, Any], columns: int, what: str,
+                   samples: int | None = None) -> None:
+    """Refuse a spec whose ``columns`` (``what``: the option) would take more than the memory
+    limit: its placeholder (``samples`` None: when the spec is read) or its fit on
+    ``samples`` samples (:data:`FIT_BYTES`), before allocating."""
+    nbytes = columns * (PLACEHOLDER_BYTES if samples is None else FIT_BYTES * samples)
+    on = "" if samples is None else f" fitted on {samples} samples"
+    check_memory(nbytes, f"fit {spec['fit']!r}: {what} ({columns} columns){on}",
+                 "lower " + " or ".join(re.findall(r"(\w+)=", what)))
+
+
 def _grid(spec: Mapping[str, Any], n_default: int) -> tuple[int, float, str]:
     n = check_int(spec.get("n_widths", n_default), f"fit {spec['fit']!r}: n_widths",
                   minimum=1)
+    if spec["fit"] == "pi_nonneg":
+        _check_columns(spec, n, f"n_widths={n}")
     power = check_positive(spec.get("power", 2.0), f"fit {spec['fit']!r}: power")
     direction = check_choice(spec.get("direction", "direct"),
                              f"fit {spec['fit']!r}: direction", ["direct", "inverse"])
@@ -191,6 +215,7 @@ def _pi_nonneg(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
             raise FitError(f"pi_nonneg inverse: {err}") from None
 
     def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
+        _check_columns(spec, n, f"n_widths={n}", x.numel())
         scored, known = _samples(x, warmup, mask)
         sx, t = _standardized(x, y, scored)
         fits = []
@@ -238,11 +263,13 @@ def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     n, power, direction = _grid(spec, 10)
     ridge = _penalty(spec, "ridge")
     units = check_int(spec.get("units", 4), "fit 'gpi': units", minimum=0)
+    _check_columns(spec, n + units, f"n_widths={n} + units={units}")
     epochs = check_int(spec.get("epochs", 1000), "fit 'gpi': epochs", minimum=1)
     work = check_positive(spec.get("sample_iterations", GPI_SAMPLE_ITERATIONS),
                           "fit 'gpi': sample_iterations")
 
     def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
+        _check_columns(spec, n + units, f"n_widths={n} + units={units}", x.numel())
         scored, known = _samples(x, warmup, mask)
         sx, t = _standardized(x, y, scored)
         xs, ts = (x / sx)[scored], t[scored]
@@ -361,8 +388,10 @@ def _stop_pi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     segments = check_int(spec.get("segments", 4), "fit 'stop_pi': segments", minimum=1)
     nonnegative = check_bool(spec.get("nonnegative", True), "fit 'stop_pi': nonnegative")
     ridge = _penalty(spec, "ridge")
+    _check_columns(spec, n * segments, f"n_widths={n} x segments={segments}")
 
     def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
+        _check_columns(spec, n * segments, f"n_widths={n} x segments={segments}", x.numel())
         scored, _ = _samples(x, warmup, mask)
         sx, t = _standardized(x, y, scored)
         u = x / sx
