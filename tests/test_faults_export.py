@@ -510,3 +510,28 @@ def test_a_crafted_family_width_is_refused_before_building(tmp_path: Path, monke
     assert export(ckpt, "torchscript", tmp_path / "m.pt") == 2
     err = one_error_line(capsys)
     assert "fit 'pi_nonneg': n_widths=10000000" in err and "lower n_widths" in err
+
+
+def test_export_refuses_the_last_checkpoint_of_a_diverged_fit(tmp_path: Path, monkeypatch,
+                                                              capsys) -> None:
+    """``--model.lr 1e300`` in float64: last.ckpt of epoch 0 holds finite weights near
+    1e300 whose output is the compensator's limit for every input; export refuses it."""
+    from _training_helpers import cli
+
+    from torchhys.training.finite import DivergedError
+
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(TINY.format(precision="64-true"))
+    ckpts = tmp_path / "ckpts"
+    with pytest.raises(DivergedError):
+        cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={tmp_path}",
+            f"--checkpoint.dirpath={ckpts}", "--checkpoint.save_last=true", "--model.lr",
+            "1e300", "--model.optimizer_kwargs", "{}")
+    last = ckpts / "last.ckpt"
+    assert last.is_file()
+    monkeypatch.delenv("TORCHHYS_TRACEBACK", raising=False)
+    capsys.readouterr()
+    assert export(last, "torchscript", tmp_path / "m.pt") == 2
+    err = one_error_line(capsys)
+    assert f"--ckpt {last}: the network's output" in err and "standard deviations" in err
+    assert not (tmp_path / "m.pt").exists()

@@ -139,10 +139,19 @@ def check_weights(net: nn.Module, where: str) -> None:
                          "model.lr, data in other units)")
 
 
+OUTPUT_BOUND = 1e6
+"""How far (in the training output's standard deviations, from its mean) a network's output
+over its training input range may lie before :func:`check_output` refuses it: a fitted
+network's output stays within a few; 1e6 is reached only by weights blown up by a diverging
+step (a learning rate such as 1e300 leaves weights near 1e300)."""
+
+
 def check_output(net: nn.Module, where: str, samples: int = 64) -> None:
-    """Refuse a network whose output is not finite over its training input range (weights
-    finite but so large that the output overflows: a fit stopped as it diverged). Nothing
-    is checked for a network that records no input range."""
+    """Refuse a network whose output over its training input range is not finite (weights
+    finite but so large that the output overflows) or lies more than :data:`OUTPUT_BOUND`
+    of the training output's standard deviations (``out_std``) from its mean (``out_mean``):
+    a fit stopped as it diverged. Nothing is checked for a network that records no input
+    range."""
     lo, hi = float(net.in_min), float(net.in_max)
     if not (math.isfinite(lo) and math.isfinite(hi)):
         return
@@ -151,6 +160,14 @@ def check_output(net: nn.Module, where: str, samples: int = 64) -> None:
     with torch.no_grad():
         y = net(torch.cat([x, x.flip(0)]))[0]
     bad = int((~torch.isfinite(y)).sum())
+    if not bad and hasattr(net, "out_mean") and hasattr(net, "out_std"):
+        mean, std = float(net.out_mean), float(net.out_std)
+        far = float((y.double() - mean).abs().max()) / max(std, 1e-300)
+        if math.isfinite(mean) and std > 0 and far > OUTPUT_BOUND:
+            raise ValueError(f"{where}: the network's output across its training input range "
+                             f"lies {far:.3g} standard deviations of the training output from "
+                             f"its mean (more than {OUTPUT_BOUND:g}: a diverged fit's weights); "
+                             "fit again (a smaller model.lr, data in other units)")
     if bad:
         big = max(float(p.detach().abs().max()) for p in net.parameters())
         raise ValueError(f"{where}: the network's output is not finite at {bad} of "
