@@ -512,6 +512,19 @@ def test_a_crafted_family_width_is_refused_before_building(tmp_path: Path, monke
     assert "fit 'pi_nonneg': n_widths=10000000" in err and "lower n_widths" in err
 
 
+def test_a_crafted_operator_size_is_one_line(tmp_path: Path, capsys) -> None:
+    """``{name: state_space, n_states: 10**6}`` in a small file asks for terabytes when the
+    operator is built (no estimate covers every registered operator's sizes): one line,
+    not the allocator's traceback."""
+    ckpt = tmp_path / "crafted.ckpt"
+    torch.save(lightning_ckpt(trained(), operator=[{"name": "state_space",
+                                                    "n_states": 10**6}]), ckpt)
+    assert export(ckpt, "torchscript", tmp_path / "m.pt") == 2
+    err = one_error_line(capsys)
+    assert "cannot be built: out of memory (3.6 TiB at once)" in err and "crafted" in err
+    assert not (tmp_path / "m.pt").exists()
+
+
 def test_export_refuses_the_last_checkpoint_of_a_diverged_fit(tmp_path: Path, monkeypatch,
                                                               capsys) -> None:
     """``--model.lr 1e300`` in float64: last.ckpt of epoch 0 holds finite weights near

@@ -33,6 +33,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -221,10 +222,19 @@ def build_net(ckpt: dict, arch: dict | None = None) -> InverseHysteresisNet:
     check_size(arch, state)
     # operator specs as the training module reads them (names, {"name": ...} and
     # {"fit": ...} dicts); the fitted families get their widths and weights from the state
-    operators, _ = build_operators(arch["operator"], arch.get("operator_kwargs") or {})
-    net = InverseHysteresisNet(
-        operators, arch["hidden"], activation=arch.get("activation") or "sigmoid",
-    )
+    try:  # sizes that no estimate covers (a registered operator's n_states, n, ...)
+        operators, _ = build_operators(arch["operator"], arch.get("operator_kwargs") or {})
+        net = InverseHysteresisNet(
+            operators, arch["hidden"], activation=arch.get("activation") or "sigmoid",
+        )
+    except (MemoryError, RuntimeError) as err:
+        if isinstance(err, RuntimeError) and "allocate" not in str(err):
+            raise
+        asked = re.search(r"allocate (\d+) bytes", str(err))
+        size = f" ({format_bytes(int(asked.group(1)))} at once)" if asked else ""
+        raise ValueError(f"the network of the operators {arch['operator']!r} cannot be built: "
+                         f"out of memory{size}; check the sizes in the checkpoint's "
+                         "hyper_parameters (a damaged or crafted checkpoint)") from None
     ref = next(iter(state.values()), None)
     if isinstance(ref, torch.Tensor) and ref.is_floating_point():
         net = net.to(ref.dtype)  # before loading: float64 weights are not rounded to float32
