@@ -55,6 +55,8 @@ def test_not_solvable_where_the_readout_is_not_affine() -> None:
                                                                   "activation": "sigmoid"}),
                         fold, run)
     assert not solvable(InverseHysteresisModule(operator=None, **{**LBFGS, "optimizer": "adam",
-                                                                  "lr": 1e-2}), fold, run)
+                                                                  "lr": 1e-2,
+                                                                  "optimizer_kwargs": {}}),
+                        fold, run)
     learnable = [{"fit": "pi_ls", "n_widths": 4, "learnable": True}]  # trainable operators
     assert not solvable(InverseHysteresisModule(operator=learnable, **LBFGS), fold, run)
