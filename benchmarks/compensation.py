@@ -69,11 +69,11 @@ from torchhys.deploy.export import load_torchscript, to_torchscript
 from torchhys.dynamics import TransferFunction
 from torchhys.functional import backlash
 from torchhys.identification.fitting import FitResult, fit_full_batch
+from torchhys.identification.specs import build_operators, fit_data_dependent
+from torchhys.init import initialize
 from torchhys.plants import PiezoStage, bouc_wen, paper_plant_widths
 from torchhys.signals import chirp, decaying_sine, multisine, to_range
 from torchhys.training.cli import read_config
-from torchhys.training.init import initialize
-from torchhys.training.operators import build_operators, fit_data_dependent
 
 DTYPE = torch.float32
 #: The recommended compensator: the EIHO network's operators, hidden units, activation and

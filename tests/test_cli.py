@@ -16,9 +16,9 @@ import yaml
 from _training_helpers import cli
 
 from torchhys.deploy.export import load_torchscript
+from torchhys.identification.specs import build_operators
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 from torchhys.training.export_cmd import main as export_main
-from torchhys.training.operators import build_operators
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"

@@ -16,9 +16,9 @@ import torch
 
 from torchhys import fit_preisach
 from torchhys._memory import MEMORY_ENV, memory_limit
+from torchhys.identification.specs import build_operators
 from torchhys.training import HysteresisDataModule
 from torchhys.training.files import DataFileError, read_recordings
-from torchhys.training.operators import build_operators
 
 
 def write_csv(path: Path, rows: int = 200, header: str = "response,command") -> Path:
@@ -321,7 +321,7 @@ def test_family_fit_refused_before_allocating(monkeypatch, spec, what) -> None:
 
     monkeypatch.setenv(MEMORY_ENV, "64M")
     _, fitters = build_operators([spec], {})
-    monkeypatch.setattr("torchhys.training.families.play_width_grid", no_grid)
+    monkeypatch.setattr("torchhys.identification.families.play_width_grid", no_grid)
     x = torch.sin(torch.linspace(0, 20, 2000, dtype=torch.float64))[None]
     with pytest.raises(ValueError, match=rf"fit '{spec['fit']}': {re.escape(what)} fitted on "
                                          r"2000 samples needs about 18\d\.\d MiB"):

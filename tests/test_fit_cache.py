@@ -1,13 +1,13 @@
-"""Fitted families shared between model selection's runs (torchhys.training.fit_cache)."""
+"""Fitted families shared between model selection's runs (torchhys.identification._fit_cache)."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from torchhys.training import fit_cache
-from torchhys.training.fit_checks import FitError
-from torchhys.training.operators import build_operators
+from torchhys.identification import _fit_cache as fit_cache
+from torchhys.identification.errors import FitError
+from torchhys.identification.specs import build_operators
 
 
 def _data(n: int = 400) -> tuple[torch.Tensor, torch.Tensor]:
@@ -27,7 +27,7 @@ def test_the_same_spec_on_the_same_data_is_fitted_once() -> None:
         calls.append(1)
         return inner(*args)
 
-    from torchhys.training.families import FAMILIES
+    from torchhys.identification.families import FAMILIES
     _, inner = FAMILIES["stop_pi"](spec)
     fit = fit_cache.shared(spec, counted)
     a, b = fit(x, y, 10, None), fit(x.clone(), y.clone(), 10, None)
@@ -73,7 +73,7 @@ def test_random_families_are_not_shared() -> None:
 def test_gpi_specs_that_run_the_same_iterations_share_a_fit() -> None:
     """On a long record (here: a small sample_iterations) the gpi spec with ``epochs: 200``
     runs the default spec's iterations: one fit; on a short one they differ: two."""
-    from torchhys.training.families import fit_key
+    from torchhys.identification.families import fit_key
 
     x, y = _data()
     long = {"fit": "gpi", "sample_iterations": 400 * 50}

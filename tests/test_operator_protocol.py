@@ -175,8 +175,8 @@ def test_step_equals_sequence(op: HysteresisOperator) -> None:
 def test_trains_in_a_network_through_the_lightning_module(tmp_path) -> None:
     from _training_helpers import trainer
 
+    from torchhys.identification.specs import build_operators
     from torchhys.training import HysteresisDataModule, InverseHysteresisModule
-    from torchhys.training.operators import build_operators
 
     modules, fitters = build_operators([{"name": "dead_zone", "width": 0.4}])
     assert isinstance(modules[0], DeadZone) and fitters == {}

@@ -328,7 +328,7 @@ def test_fit_of_a_graded_plant_is_exact_and_beats_the_even_grid():
 
 
 def test_preisach_family_in_the_inverse_direction():
-    from torchhys.training.families import FAMILIES
+    from torchhys.identification.families import FAMILIES
 
     plant, H, B = magnetic_plant(0.15)  # in the family: grid over H's range, 0.1 of 1.5
     placeholder, fit = FAMILIES["preisach"](

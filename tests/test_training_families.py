@@ -28,11 +28,11 @@ from torchhys import (
     StopPrandtlIshlinskii,
 )
 from torchhys.deploy.export import load_torchscript, to_torchscript
+from torchhys.identification.errors import FitError
+from torchhys.identification.families import _substeps
+from torchhys.identification.specs import build_operators, fit_data_dependent
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule, selection
 from torchhys.training.cli import main
-from torchhys.training.families import _substeps
-from torchhys.training.fit_checks import FitError
-from torchhys.training.operators import build_operators, fit_data_dependent
 
 F64 = torch.float64
 torch.set_num_threads(1)
@@ -112,8 +112,8 @@ def test_gpi_both_directions_recover_a_generalized_pi_plant():
     (400, 400, 20),  # at least 20
 ])
 def test_gpi_iterations_bounded_by_sample_iterations(monkeypatch, samples, work, expected):
-    import torchhys.training.families as families
-    from torchhys.training import fit_cache
+    import torchhys.identification.families as families
+    from torchhys.identification import _fit_cache as fit_cache
 
     fit_cache.clear()  # fitted here, not taken from an earlier test's fit
     seen = []
@@ -294,7 +294,7 @@ def test_selection_skips_a_candidate_that_cannot_be_fitted(monkeypatch, tmp_path
     def refuse(*args, **kwargs):
         raise FitError("gpi: refused for the test")
 
-    monkeypatch.setattr("torchhys.training.families.fit_generalized_pi", refuse)
+    monkeypatch.setattr("torchhys.identification.families.fit_generalized_pi", refuse)
     monkeypatch.setattr(sys, "argv", ["torchhys"])
     with pytest.warns(RuntimeWarning, match="candidate 1 skipped: gpi .*refused"):
         main(["fit", "--config", str(cfg)])
@@ -328,7 +328,7 @@ def test_a_candidate_that_fails_a_fold_is_not_trained_on_the_others(monkeypatch,
         runs.append(run)
         return validation(module, data, trainer, run)
 
-    monkeypatch.setattr("torchhys.training.families.fit_generalized_pi", refuse)
+    monkeypatch.setattr("torchhys.identification.families.fit_generalized_pi", refuse)
     monkeypatch.setattr(selection, "_validation", watched)
     monkeypatch.setattr(sys, "argv", ["torchhys"])
     with pytest.warns(RuntimeWarning, match="skipped") as record:
@@ -518,7 +518,8 @@ def test_family_fits_leave_the_samples_outside_the_mask_out(spec):
 def test_gpi_is_not_started_again_when_it_ended_on_the_line(monkeypatch, rmse, starts):
     """A gpi fit no better than a straight line is started again from the next ridges' PI
     fits (a poor local optimum), unless it ended on the line itself (within ON_THE_LINE)."""
-    from torchhys.training import families, fit_checks
+    from torchhys.identification import errors as fit_checks
+    from torchhys.identification import families
 
     calls = []
 

@@ -13,8 +13,8 @@ from _training_helpers import trainer
 
 from torchhys import InverseHysteresisNet
 from torchhys.functional import NonCausalWarning
+from torchhys.init import initialize
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
-from torchhys.training.init import initialize
 
 torch.set_num_threads(1)
 

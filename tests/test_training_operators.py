@@ -14,11 +14,11 @@ from _training_helpers import trainer
 
 from torchhys import EIHO, Backlash, PrandtlIshlinskii, ZhaoTanOperator
 from torchhys.functional import NonCausalWarning, backlash
+from torchhys.identification.families import FAMILIES
 from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid
+from torchhys.identification.specs import FIT_FAMILIES, build_operators
 from torchhys.operator import OPERATORS
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
-from torchhys.training.families import FAMILIES
-from torchhys.training.operators import FIT_FAMILIES, build_operators
 
 torch.set_num_threads(1)
 

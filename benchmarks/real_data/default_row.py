@@ -13,12 +13,12 @@ from torch import Tensor
 
 from torchhys import InverseHysteresisNet
 from torchhys.deploy.streaming import default_limits
+from torchhys.identification.errors import FitError
+from torchhys.identification.specs import build_operators, fit_data_dependent
+from torchhys.init import initialize
 from torchhys.training.cli import read_config
-from torchhys.training.fit_checks import FitError
 from torchhys.training.folds import RECORDING, fold_masks
-from torchhys.training.init import initialize
 from torchhys.training.module import OPTIMIZERS, InverseHysteresisModule
-from torchhys.training.operators import build_operators, fit_data_dependent
 from torchhys.training.selection import CandidateScore, best, standard_error
 
 from .datasets import F64, ROOT, Split

@@ -23,8 +23,8 @@ from torchhys import (
     select_penalty,
     select_stop_pi_ridge,
 )
+from torchhys.identification.families import FAMILIES, PENALTIES
 from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
-from torchhys.training.families import FAMILIES, PENALTIES
 
 from .datasets import F64, Split
 from .scoring import Budget, Fitted, NotApplicable, Scaled, _rmse, holdout, scaled
@@ -198,7 +198,7 @@ def stop_pi(split: Split, budget: Budget) -> Fitted:
 
 
 def _drift(d: Scaled, end: int) -> Drift:
-    """The configs' ``drift`` family (:data:`torchhys.training.families.FAMILIES`:
+    """The configs' ``drift`` family (:data:`torchhys.identification.families.FAMILIES`:
     :func:`~torchhys.fit_drift`, a free slope, ``DRIFT_SCALES`` spans of the scored input)
     fitted on the samples before ``end``."""
     _, fit = FAMILIES["drift"]({"fit": "drift"})

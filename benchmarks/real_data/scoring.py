@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from torchhys.identification._nnls import holdout_cuts
-from torchhys.training.families import VALIDATION
+from torchhys.identification.families import VALIDATION
 
 from .datasets import Split
 

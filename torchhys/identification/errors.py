@@ -1,4 +1,4 @@
-"""What every model family's fit checks (:mod:`torchhys.training.families`): its scored and
+"""What every model family's fit checks (:mod:`torchhys.identification.families`): its scored and
 known samples, the standardized target, its RMS error, and that it beats a straight line on
 its training samples (else :class:`FitError`, which model selection scores as failed)."""
 

@@ -53,11 +53,11 @@ standardizes the operator's output) maps it back. They are the candidates of
 split (the last quarter of each row's scored samples; :func:`select_pi_ridge`,
 :func:`select_penalty`; for ``gpi``, whose fit can stop at a poor local optimum, the next best
 ridges on that hold-out are tried in turn when the fit fails, unless it ended on the straight
-line itself: :attr:`~torchhys.training.fit_checks.NoBetterThanLine.on_the_line`). Every
+line itself: :attr:`~torchhys.identification.errors.NoBetterThanLine.on_the_line`). Every
 choice uses the training split only. Widths come from
 :func:`~torchhys.identification.fitting.play_width_grid` of the fitted model's input. A fit that
 cannot exist (no inverse, a target that does not rise, a diverged fit) raises
-:class:`~torchhys.training.fit_checks.FitError`: model selection scores that candidate as
+:class:`~torchhys.identification.errors.FitError`: model selection scores that candidate as
 failed.
 """
 
@@ -92,11 +92,7 @@ from torchhys._checks import (
 )
 from torchhys._memory import check_memory
 from torchhys.functional.jiles_atherton import MU0
-from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
-from torchhys.identification.jiles_atherton import substeps_for
-from torchhys.identification.preisach import check_fit_memory, fit_preisach_signs
-from torchhys.identification.stop_pi import fit_stop_pi_signs
-from torchhys.training.fit_checks import (
+from torchhys.identification.errors import (
     FitError,
     NoBetterThanLine,
     _checked,
@@ -104,6 +100,10 @@ from torchhys.training.fit_checks import (
     _samples,
     _standardized,
 )
+from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
+from torchhys.identification.jiles_atherton import substeps_for
+from torchhys.identification.preisach import check_fit_memory, fit_preisach_signs
+from torchhys.identification.stop_pi import fit_stop_pi_signs
 
 __all__ = ["FAMILIES", "GPI_SAMPLE_ITERATIONS", "PENALTIES", "fit_key"]
 
@@ -246,7 +246,7 @@ def _gpi_iterations(epochs: int, work: float, scored: int) -> int:
 def fit_key(spec: Mapping[str, Any], x: Tensor, warmup: int,
             mask: Tensor | None) -> dict[str, Any]:
     """The spec as it determines the fit on these data (for sharing fits between
-    candidates, :mod:`torchhys.training.fit_cache`): a ``gpi`` spec with ``epochs`` the
+    candidates, :mod:`torchhys.identification._fit_cache`): a ``gpi`` spec with ``epochs`` the
     iterations it runs on these samples and no ``sample_iterations`` (on a long record the
     spec with ``epochs: 200`` and the default one run the same fit); others as given."""
     key = dict(spec)

@@ -20,7 +20,7 @@ A spec of ``model.operator`` is one of:
     (:func:`torchhys.identification.fitting.fit_prandtl_ishlinskii` on
     :func:`~torchhys.identification.fitting.play_width_grid`);
   - ``pi_nonneg``, ``gpi``, ``preisach``, ``stop_pi``, ``jiles_atherton``, ``drift``:
-    constrained model families (:mod:`torchhys.training.families`).
+    constrained model families (:mod:`torchhys.identification.families`).
 
   ``{"fit": "preisach"}`` is the Preisach model identified on the data; ``{"name":
   "preisach"}`` the registered operator with the options given.
@@ -47,10 +47,10 @@ from torchhys._checks import (
     check_warmup,
     fitted_samples,
 )
+from torchhys.identification._fit_cache import shared
+from torchhys.identification.families import FAMILIES
 from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid
 from torchhys.operator import HysteresisOperator, make_operator
-from torchhys.training.families import FAMILIES
-from torchhys.training.fit_cache import shared
 
 __all__ = ["FIT_FAMILIES", "OperatorSpec", "build_operators", "fit_data_dependent"]
 

@@ -24,7 +24,7 @@ from torch import Tensor
 
 from torchhys._checks import check_int
 from torchhys.identification._nnls import check_validation, holdout_cuts
-from torchhys.training.families import VALIDATION
+from torchhys.identification.families import VALIDATION
 
 __all__ = ["MAX_DEGREE", "Polynomial", "fit_polynomial", "holdout_mask", "max_degree"]
 

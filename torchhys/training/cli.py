@@ -68,6 +68,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
 from lightning.pytorch.utilities import rank_zero_only, rank_zero_warn
 
+from torchhys.identification.specs import build_operators
 from torchhys.training import selection
 from torchhys.training.callbacks import BaselineComparison, PredictionWriter
 from torchhys.training.ckpt_paths import check_ckpt_path
@@ -94,7 +95,6 @@ from torchhys.training.interrupts import (
 from torchhys.training.jobs import check_budget, check_jobs, usable_cores
 from torchhys.training.module import InverseHysteresisModule, check_optimizer_kwargs
 from torchhys.training.negative_numbers import accept_negative_numbers
-from torchhys.training.operators import build_operators
 from torchhys.training.plugins import (
     IMPORT_ENV,
     IMPORT_PATH_ENV,

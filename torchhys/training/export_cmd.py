@@ -45,10 +45,10 @@ from torchhys.deploy.export import to_aoti, to_torchscript
 from torchhys.deploy.export_c import DEFAULT_PREFIX, check_prefix, to_c
 from torchhys.deploy.export_onnx import to_onnx
 from torchhys.deploy.streaming import DIRECTIONS, StreamingCompensator
+from torchhys.identification.specs import build_operators
 from torchhys.training.errors import config_errors, read_checkpoint, report_user_error
 from torchhys.training.finite import check_output, check_weights
 from torchhys.training.negative_numbers import accept_negative_numbers
-from torchhys.training.operators import build_operators
 from torchhys.training.plugins import import_modules
 
 __all__ = ["build_net", "main"]

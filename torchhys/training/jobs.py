@@ -87,7 +87,7 @@ def check_budget(value: object) -> float | None:
 
 def _score_group(indices: list[int], start: float, budget_s: float | None) -> list:
     """The scores of a group of candidates, in order, in one process (the fits they share
-    are done once there: :mod:`torchhys.training.fit_cache`)."""
+    are done once there: :mod:`torchhys.identification._fit_cache`)."""
     assert _SCORE is not None and _SKIPPED is not None
     return [_SKIPPED(i) if _spent(i, start, budget_s) else _SCORE(i) for i in indices]
 

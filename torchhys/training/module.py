@@ -17,10 +17,10 @@ from torchmetrics import MeanSquaredError
 
 from torchhys import InverseHysteresisNet
 from torchhys._checks import check_choice
+from torchhys.identification.specs import build_operators, fit_data_dependent
+from torchhys.init import initialize
 from torchhys.optim import PowellBealeCG
 from torchhys.training.finite import check_learning_rate, check_normalization, check_training
-from torchhys.training.init import initialize
-from torchhys.training.operators import build_operators, fit_data_dependent
 
 __all__ = ["CLOSURE_OPTIMIZERS", "OPTIMIZERS", "InverseHysteresisModule", "check_optimizer_kwargs"]
 
@@ -152,7 +152,7 @@ class InverseHysteresisModule(L.LightningModule):
     **options}`` (``eiho``, ``zhao_tan``, ...), or model families fitted on the training data,
     ``{"fit": ..., **options}`` (``plays``: play operators of the input; ``pi_ls``: the
     least-squares Prandtl-Ishlinskii model of the target from the input; ``preisach``,
-    ``stop_pi``, ...: see :mod:`torchhys.training.operators`). The families are fitted on the
+    ``stop_pi``, ...: see :mod:`torchhys.identification.specs`). The families are fitted on the
     training split with the normalization, once, and saved in checkpoints.
     Per-segment EIHOs (``operator="eiho_segment"``, not causal) get the batch's
     targets as ``target``. Operator outputs that depend on no trainable parameter are

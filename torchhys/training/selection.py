@@ -59,8 +59,8 @@ import torch
 from torch import Tensor
 
 from torchhys._checks import check_choice, check_int
+from torchhys.identification.errors import FitError
 from torchhys.training.coverage import warn_coverage
-from torchhys.training.fit_checks import FitError
 from torchhys.training.folds import CV_MODES, RECORDING, cv_fold
 from torchhys.training.readout import direct_validation, solvable
 
@@ -225,7 +225,7 @@ def _validation(module: L.LightningModule, datamodule: L.LightningDataModule,
                 trainer: L.Trainer, run: str) -> tuple[float, Tensor, str]:
     """Train, then the validation MSE of the trained module, its squared errors and why it
     failed: NaN, none and the reason (with a warning naming the ``run``) when a family
-    operator cannot be fitted to the data (:class:`~torchhys.training.fit_checks.FitError`)
+    operator cannot be fitted to the data (:class:`~torchhys.identification.errors.FitError`)
     or the validation MSE is not finite (a diverged training); else ``""``."""
     direct = solvable(module, datamodule, trainer)
     try:
@@ -313,7 +313,7 @@ def shared_key(overrides: dict[str, Any]) -> str | None:
     without ``epochs: 200`` run one fit on a long record; the 40 stops of three candidates
     one fit), or None. Candidates scored in parallel processes
     (:func:`~torchhys.training.jobs.run_candidates`) run with their neighbours of the same
-    key in one process, where the fit is shared (:mod:`torchhys.training.fit_cache`)."""
+    key in one process, where the fit is shared (:mod:`torchhys.identification._fit_cache`)."""
     ops = overrides.get("operator")
     first = ops[0] if isinstance(ops, list) and ops else ops
     if not isinstance(first, dict) or "fit" not in first:
