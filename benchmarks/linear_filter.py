@@ -14,15 +14,7 @@ Usage: python benchmarks/linear_filter.py [--quick] [--repeats N] [--threads N]
 
 ``--threads`` sets torch's intra-op threads (default 1: on a small machine shared with other
 jobs, a second thread that waits for a busy core makes every tensor operation slower).
-
-Measured on a 2-core Intel Xeon shared with other jobs, torch 2.13.0+cpu, 1 thread::
-
-    | T     | order | naive (ms) | scan (ms) | kernel (ms) | naive / scan | naive / kernel |
-    |-------|-------|------------|-----------|-------------|--------------|----------------|
-    | 1e+04 | 2     | 1884.9     | 9.3       | 2.3         | 204x         | 829x           |
-    | 1e+04 | 4     | 2381.8     | 12.9      | 2.8         | 185x         | 847x           |
-    | 1e+05 | 2     | 21535.7    | 52.7      | 14.4        | 409x         | 1497x          |
-    | 1e+05 | 4     | 20863.3    | 119.3     | 20.5        | 175x         | 1018x          |
+The measured table is in docs/benchmarks.md.
 """
 
 from __future__ import annotations

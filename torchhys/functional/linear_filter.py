@@ -33,12 +33,8 @@ Why this path: the recursion is latency-bound (each output needs the previous on
 about ``3n`` flops a sample, so a scalar C loop runs it at a few nanoseconds a sample; the
 chunked scan adds ``n^2`` work a sample (the ``A^(k+1) s_in`` products) and ~``2 sqrt(2 T)``
 tensor operations, the per-sample Python loop a dispatch and an autograd node per sample.
-Measured with ``benchmarks/linear_filter.py`` (float64, batch 8, T = 1e5, one torch thread
-on a shared 2-core Xeon), forward + backward: kernel 14 ms (order 2) and 21 ms (order 4),
-chunked scan 53 and 119 ms, per-sample loop 21 s. Of the kernel's time the DF2T loop takes
-4.3 ms and the fused adjoint 7.5-9.7 ms; the all-pole loop alone takes 4.1 ms and a
-``conv1d`` of the FIR part 5.6-11 ms, so splitting off the FIR part costs more than the
-whole DF2T loop.
+``benchmarks/linear_filter.py`` times the three (docs/benchmarks.md). The FIR part is not
+split off as a ``conv1d``: that costs more than the whole DF2T loop.
 
 References:
     A. V. Oppenheim and R. W. Schafer, Discrete-Time Signal Processing, 3rd ed., Pearson

@@ -19,8 +19,7 @@ standardizes the operator's output) maps it back. They are the candidates of
   the input) from the input, or of the input from it, then
   :class:`torchhys.GeneralizedPIInverse`. Its L-BFGS iterations are at most ``epochs`` and
   at most ``sample_iterations`` over the fitted samples (at least 20): a long record gets
-  fewer (1000 iterations on 1e5 samples took about 10 s per fit), records up to 1e4
-  samples all of them.
+  fewer (100 on 1e5 fitted samples), records up to 1e4 samples all of them.
 - ``{"fit": "preisach", "n": 20, "smoothness": "auto", "grading": None,
   "direction": "direct"}``: :func:`torchhys.fit_preisach` of the target from the input on a
   grid over the input's training range (``direct``), or of the input from the target, then

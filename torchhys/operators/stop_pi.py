@@ -27,8 +27,8 @@ forward model, command -> response), it is the compensator (response -> command)
 model: fed the model's output from the same state, it returns the model's input.
 
 The sequence path loops over time (each sample's state depends on the inputs solved before
-it), so it is much slower than the model's own (a scan); the scripted step costs about
-four of the model's steps (``benchmarks/stop_pi.py``).
+it), so it is much slower than the model's own (a scan); docs/models.md gives the costs of
+both, measured by ``benchmarks/stop_pi.py``.
 """
 
 from __future__ import annotations

@@ -14,8 +14,8 @@ Runge-Kutta-4 step (or ``substeps`` of them) in the input variable per sample in
 which equals RK4 in time on the sample grid. The adaptive solvers of ``torchdiffeq``
 (``method="dopri5"`` etc.) are available too and are told about the kinks through
 ``jump_t``; they are several times slower (every sample restarts the step) and serve as
-a cross-check. Cost is one Python-level step per sample: on one CPU core 2500 samples take
-about 0.2 s without autograd; with autograd the backward pass dominates (about 1.4 s).
+a cross-check. Cost is one Python-level step per sample; with autograd the backward pass
+dominates.
 
 The piezo form of Low and Guo (1995), ``y = d_p u - h`` with
 ``dh/dt = alpha d_p du/dt - beta |du/dt| h |h|^(n-1) - gamma du/dt |h|^n``, is the case

@@ -2,8 +2,7 @@
 
 A fit is dominated by small tensor operations in loops (operator scans, line searches, one
 full batch per step): with several intra-op threads per process the threads spin and wait
-for each other, and several fits on the same cores thrash (a fit that takes 1.5 minutes
-alone took 13 to 26 with two others beside it on two cores). The command therefore runs
+for each other, and several fits on the same cores thrash. The command therefore runs
 torch with one thread unless told otherwise: ``--threads N`` on the command line, or the
 environment variable ``TORCHHYS_THREADS`` (``--threads`` wins). It says what it chose on
 stderr.
