@@ -1,7 +1,7 @@
 """What a training record cannot show: the branches between reversals
 (``torchhys.functional.reversal_ranges``) and the warning of ``torchhys fit``'s model
 selection on records of one loop amplitude or less than one closed loop
-(``torchhys.training.coverage.coverage_warning``)."""
+(``torchhys.selection.coverage.coverage_warning``)."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ import torch
 from _training_helpers import cli
 
 from torchhys.functional import reversal_ranges
-from torchhys.training.coverage import WHAT_TO_RECORD, coverage_warning
+from torchhys.selection.coverage import WHAT_TO_RECORD, coverage_warning
 
 F64 = torch.float64
 

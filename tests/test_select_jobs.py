@@ -14,7 +14,7 @@ import pytest
 import torch
 from _training_helpers import cli
 
-from torchhys.training.jobs import run_candidates
+from torchhys.selection.jobs import run_candidates
 
 CONFIG = """\
 seed_everything: 0
@@ -137,7 +137,7 @@ def _pid(i: int) -> tuple[int, int]:
 def test_neighbours_sharing_a_fit_run_in_one_process() -> None:
     """Consecutive candidates with the same key run one after another in one process (where
     they share their fit); the scores still come back in order."""
-    from torchhys.training.jobs import _groups
+    from torchhys.selection.jobs import _groups
     from torchhys.training.selection import shared_key
 
     stops = {"fit": "stop_pi", "n_widths": 40}
@@ -166,7 +166,7 @@ def _killed(i: int) -> int:
 
 
 def test_a_killed_process_is_a_one_line_error_not_a_hang() -> None:
-    from torchhys.training.jobs import SelectionJobError
+    from torchhys.selection.jobs import SelectionJobError
 
     with pytest.raises(SelectionJobError, match=r"the process scoring candidate 1 ended "
                        r"without a result \(killed: out of memory\?\).*select_jobs=1"):

@@ -7,7 +7,7 @@
   Lightning's own is 0).
 - SIGTERM or SIGINT (Ctrl-C) during model selection: :func:`signals_raise` (around the
   command's selection) turns them into :class:`Interrupted`, the processes of
-  ``model.select_jobs`` are killed (:mod:`torchhys.training.jobs`), and the command prints
+  ``model.select_jobs`` are killed (:mod:`torchhys.selection.jobs`), and the command prints
   ``torchhys fit: interrupted by SIGINT`` (or SIGTERM) and exits with 128 + the signal's
   number (130, 143). A Ctrl-C elsewhere in the command is that line too.
 - The processes of ``model.select_jobs`` die with the command's process however it ends

@@ -60,7 +60,7 @@ from torch import Tensor
 
 from torchhys._checks import check_choice, check_int
 from torchhys.identification.errors import FitError
-from torchhys.training.coverage import warn_coverage
+from torchhys.selection.coverage import warn_coverage
 from torchhys.training.folds import CV_MODES, RECORDING, cv_fold
 from torchhys.training.readout import direct_validation, solvable
 
@@ -286,7 +286,7 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
             (:func:`~torchhys.training.folds.cv_fold`).
         report: called with each candidate's score as soon as it is known (progress).
         jobs: candidates scored at a time, each in a process of its own
-            (:mod:`torchhys.training.jobs`); 1: all in this process.
+            (:mod:`torchhys.selection.jobs`); 1: all in this process.
         budget_s: seconds after which no further candidate starts (the first always runs);
             the candidates not started score NaN, ``error`` saying they were skipped.
 
@@ -295,7 +295,7 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
         NaN (it cannot be fitted to that fold's data, or its training diverged) scores NaN
         without training on the remaining folds (NaN there too).
     """
-    from torchhys.training.jobs import run_candidates
+    from torchhys.selection.jobs import run_candidates
 
     if mode is not None and cv is None:
         raise ValueError(f"model.select_cv_mode={mode!r} needs model.select_cv (k blocks, or "
@@ -312,7 +312,7 @@ def shared_key(overrides: dict[str, Any]) -> str | None:
     its first family operator's spec without its iteration counts (``{fit: gpi}`` with and
     without ``epochs: 200`` run one fit on a long record; the 40 stops of three candidates
     one fit), or None. Candidates scored in parallel processes
-    (:func:`~torchhys.training.jobs.run_candidates`) run with their neighbours of the same
+    (:func:`~torchhys.selection.jobs.run_candidates`) run with their neighbours of the same
     key in one process, where the fit is shared (:mod:`torchhys.identification._fit_cache`)."""
     ops = overrides.get("operator")
     first = ops[0] if isinstance(ops, list) and ops else ops
