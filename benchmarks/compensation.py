@@ -73,7 +73,7 @@ from torchhys.identification.specs import build_operators, fit_data_dependent
 from torchhys.init import initialize
 from torchhys.plants import PiezoStage, bouc_wen, paper_plant_widths
 from torchhys.signals import chirp, decaying_sine, multisine, to_range
-from torchhys.training.cli import read_config
+from torchhys.cli.train import read_config
 
 DTYPE = torch.float32
 #: The recommended compensator: the EIHO network's operators, hidden units, activation and

@@ -15,9 +15,9 @@ import pytest
 import torch
 
 from torchhys.training import HysteresisDataModule
-from torchhys.training.cli import main
-from torchhys.training.errors import CheckpointError, read_checkpoint
-from torchhys.training.export_cmd import main as export_main
+from torchhys.cli.train import main
+from torchhys.cli.errors import CheckpointError, read_checkpoint
+from torchhys.cli.export import main as export_main
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -54,7 +54,7 @@ def run(cwd: Path, *args: str, env: dict[str, str] | None = None
     """``torchhys ARGS`` in a fresh process in ``cwd`` (one thread, no traceback setting)."""
     base = {k: v for k, v in os.environ.items() if k != "TORCHHYS_TRACEBACK"}
     return subprocess.run(
-        [sys.executable, "-m", "torchhys.training.cli", *args], cwd=cwd,
+        [sys.executable, "-m", "torchhys.cli.train", *args], cwd=cwd,
         env={**base, "OMP_NUM_THREADS": "1", **(env or {})}, capture_output=True, text=True,
         timeout=300, check=False)
 
@@ -222,7 +222,7 @@ def test_export_bug_propagates(monkeypatch, tmp_path) -> None:
     def broken(*args, **kwargs) -> None:
         raise RuntimeError("a bug in the exporter")
 
-    monkeypatch.setattr("torchhys.training.export_cmd.build_net", broken)
+    monkeypatch.setattr("torchhys.cli.export.build_net", broken)
     monkeypatch.delenv("TORCHHYS_TRACEBACK", raising=False)
     with pytest.raises(RuntimeError, match="a bug in the exporter"):
         export_main(["--ckpt", str(lightning_like(tmp_path / "m.ckpt")), "--format",
@@ -235,7 +235,7 @@ def test_concurrent_selections_keep_their_tables(tiny, tmp_path) -> None:
     default_root_dir: each table in its own version folder, each printed path real, and
     each run's final fit logged beside its table."""
     base = {k: v for k, v in os.environ.items() if k != "TORCHHYS_TRACEBACK"}
-    args = [sys.executable, "-m", "torchhys.training.cli", *fit(
+    args = [sys.executable, "-m", "torchhys.cli.train", *fit(
         tiny, "--model.select", "[{hidden: 1}, {hidden: 2}]")]
     procs = [subprocess.Popen(args, cwd=tmp_path, env={**base, "OMP_NUM_THREADS": "1"},
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

@@ -17,8 +17,8 @@ from torch import nn
 from torchhys import EIHO, Backlash
 from torchhys.deploy.export import load_torchscript, to_torchscript
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
-from torchhys.training.cli import main
-from torchhys.training.export_cmd import main as export_main
+from torchhys.cli.train import main
+from torchhys.cli.export import main as export_main
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "compensator.yaml"

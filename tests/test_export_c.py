@@ -355,7 +355,7 @@ def test_fit_then_export_c_from_the_command_line(monkeypatch: pytest.MonkeyPatch
     pytest.importorskip("lightning")
     from _training_helpers import cli
 
-    from torchhys.training.export_cmd import main as export_main
+    from torchhys.cli.export import main as export_main
 
     config = tmp_path / "tiny.yaml"
     config.write_text(TINY)
@@ -385,7 +385,7 @@ def test_fit_then_export_c_from_the_command_line(monkeypatch: pytest.MonkeyPatch
 def test_bad_options_of_the_command_name_the_argument(argv: list, message: str,
                                                       tmp_path: Path, capsys) -> None:
     pytest.importorskip("lightning")
-    from torchhys.training.export_cmd import main as export_main
+    from torchhys.cli.export import main as export_main
 
     with pytest.raises(SystemExit) as exit_:
         export_main(["--ckpt", str(tmp_path / "x.ckpt"), "--out", str(tmp_path), *argv])
@@ -396,7 +396,7 @@ def test_bad_options_of_the_command_name_the_argument(argv: list, message: str,
 def test_bad_inputs_of_the_command_are_one_line(erfinv_module, tmp_path: Path,
                                                 monkeypatch: pytest.MonkeyPatch, capsys) -> None:
     pytest.importorskip("lightning")
-    from torchhys.training.export_cmd import main as export_main
+    from torchhys.cli.export import main as export_main
 
     monkeypatch.delenv("TORCHHYS_TRACEBACK", raising=False)
     net = net_of(["erfinv_zone"], hidden=2)

@@ -1,4 +1,4 @@
-"""``torchhys export`` (torchhys/training/export_cmd.py): checkpoints to compensator files."""
+"""``torchhys export`` (torchhys/cli/export.py): checkpoints to compensator files."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import torch
 from torchhys import InverseHysteresisNet
 from torchhys.deploy.export import load_torchscript
 from torchhys.deploy.streaming import StreamingCompensator
-from torchhys.training.export_cmd import main
+from torchhys.cli.export import main
 
 OPERATOR_KWARGS = {"a": 1.3, "rule": "dominant", "threshold": 0.1}
 

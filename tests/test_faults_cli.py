@@ -17,8 +17,8 @@ import torchhys.operator as operator_module
 from torchhys import InverseHysteresisNet
 from torchhys.operator import OPERATORS, example_of, load_entry_points, make_operator
 from torchhys.training import InverseHysteresisModule
-from torchhys.training.cli import main
-from torchhys.training.plugins import (
+from torchhys.cli.train import main
+from torchhys.cli.plugins import (
     IMPORT_ENV,
     IMPORT_PATH_ENV,
     import_modules,

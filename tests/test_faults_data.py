@@ -99,8 +99,8 @@ def test_yaml_loader_refuses_an_alias_bomb() -> None:
     strings of aliases, and a structure that contains itself; a bomb of 9**4 still loads."""
     from jsonargparse import get_loader
 
-    from torchhys.training.cli import read_config  # noqa: F401 (installs the loader)
-    from torchhys.training.config_yaml import ConfigSizeError
+    from torchhys.cli.train import read_config  # noqa: F401 (installs the loader)
+    from torchhys.cli.config_yaml import ConfigSizeError
 
     load = get_loader("yaml")
     with pytest.raises(ConfigSizeError, match="expands to more than 1000000 values"):
@@ -115,7 +115,7 @@ def test_yaml_loader_refuses_an_alias_bomb() -> None:
 def test_cli_refuses_an_alias_bomb_naming_the_file(monkeypatch, tmp_path) -> None:
     from _training_helpers import cli
 
-    from torchhys.training.config_yaml import ConfigSizeError
+    from torchhys.cli.config_yaml import ConfigSizeError
 
     bomb = tmp_path / "bomb.yaml"
     bomb.write_text(alias_bomb(8))

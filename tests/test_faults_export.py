@@ -19,7 +19,7 @@ import torch
 from torchhys import InverseHysteresisNet
 from torchhys.deploy.export import load_torchscript, to_torchscript
 from torchhys.deploy.export_c import to_c
-from torchhys.training.export_cmd import main as export_main
+from torchhys.cli.export import main as export_main
 
 OPERATOR_KWARGS = {"a": 1.3, "rule": "dominant", "threshold": 0.1}
 
@@ -358,7 +358,7 @@ def test_a_fit_that_stays_finite_is_not_stopped(tmp_path: Path, monkeypatch) -> 
 
 def test_the_cli_reports_a_diverged_fit_in_one_line(tmp_path: Path, monkeypatch,
                                                     capsys) -> None:
-    from torchhys.training.cli import main
+    from torchhys.cli.train import main
 
     cfg = tmp_path / "tiny.yaml"
     cfg.write_text(TINY.format(precision="64-true"))
@@ -455,7 +455,7 @@ def test_a_crafted_hidden_is_refused_before_building(tmp_path: Path, monkeypatch
     ckpt = tmp_path / "crafted.ckpt"
     torch.save(lightning_ckpt(trained(), hidden=10**9), ckpt)
     assert ckpt.stat().st_size < 20_000
-    monkeypatch.setattr("torchhys.training.export_cmd.InverseHysteresisNet", no_build)
+    monkeypatch.setattr("torchhys.cli.export.InverseHysteresisNet", no_build)
     assert export(ckpt, "torchscript", tmp_path / "m.pt") == 2
     err = one_error_line(capsys)
     assert "hidden=1000000000" in err and "GiB" in err and "do not describe its weights" in err

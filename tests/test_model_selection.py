@@ -19,7 +19,7 @@ from _training_helpers import cli, trainer
 
 from torchhys.deploy.export import load_torchscript
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
-from torchhys.training.export_cmd import main as export_main
+from torchhys.cli.export import main as export_main
 from torchhys.training.folds import BlockFold, RecordingFold, block_split
 from torchhys.training.selection import (
     CandidateScore,

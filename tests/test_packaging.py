@@ -28,7 +28,7 @@ def wheel(tmp_path_factory: pytest.TempPathFactory) -> zipfile.ZipFile:
 
 def test_training_installs_under_the_package_namespace(wheel: zipfile.ZipFile) -> None:
     names = wheel.namelist()
-    assert "torchhys/training/cli.py" in names
+    assert "torchhys/cli/train.py" in names
     assert "torchhys/training/__init__.py" in names
     assert not any(n.startswith("training/") for n in names), "a top-level training package"
 
@@ -45,8 +45,8 @@ def test_every_subpackage_is_in_the_wheel(wheel: zipfile.ZipFile) -> None:
 def test_console_script_points_into_the_namespace(wheel: zipfile.ZipFile) -> None:
     (entry,) = [n for n in wheel.namelist() if n.endswith("entry_points.txt")]
     text = wheel.read(entry).decode()
-    # torchhys._command checks for the train extra, then runs torchhys.training.cli:main
-    assert "torchhys = torchhys._command:main" in text
+    # torchhys.cli.main checks for the train extra, then runs torchhys.cli.train:main
+    assert "torchhys = torchhys.cli.main:main" in text
 
 
 def test_the_training_packages_are_in_the_train_extra_only(wheel: zipfile.ZipFile) -> None:

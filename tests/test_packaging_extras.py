@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-import torchhys._command as command
+import torchhys.cli.main as command
 
 ROOT = Path(__file__).resolve().parents[1]
 TRAIN = ("lightning", "jsonargparse", "torchmetrics", "matplotlib")
@@ -70,7 +70,7 @@ def test_core_dependencies_hold_none_of_the_training_packages() -> None:
     for name in TRAIN:
         assert name in train, f"{name} is missing from the train extra"
     assert "torchhys[train]" in project["optional-dependencies"]["dev"]
-    assert project["scripts"]["torchhys"] == "torchhys._command:main"
+    assert project["scripts"]["torchhys"] == "torchhys.cli.main:main"
 
 
 def test_every_module_but_training_imports_without_the_training_packages(site) -> None:
@@ -91,7 +91,7 @@ def test_every_module_but_training_imports_without_the_training_packages(site) -
 
         def walk(package):
             for info in pkgutil.iter_modules(package.__path__, package.__name__ + "."):
-                if info.name == "torchhys.training" or info.name.startswith("torchhys.training."):
+                if info.name.split(".")[1] in ("training", "cli"):
                     continue
                 module = importlib.import_module(info.name)
                 imported.append(info.name)
@@ -101,7 +101,7 @@ def test_every_module_but_training_imports_without_the_training_packages(site) -
         walk(torchhys)
         assert len(imported) > 30, imported
         for name in ("torchhys.deploy.export", "torchhys.deploy.streaming",
-                     "torchhys.functional.backlash", "torchhys._command", "torchhys.__main__"):
+                     "torchhys.functional.backlash", "torchhys.__main__"):
             assert name in imported, name
         print(len(imported), "modules")
     """)
@@ -137,7 +137,7 @@ def test_every_subcommand_says_which_extra_to_install(site) -> None:
     subs = ["fit", "validate", "test", "predict", "export"]
     proc = python(site, f"""
         import sys
-        from torchhys._command import main
+        from torchhys.cli.main import main
 
         for sub in {subs!r}:
             try:
@@ -150,7 +150,7 @@ def test_every_subcommand_says_which_extra_to_install(site) -> None:
 
 
 def test_the_message_names_only_what_is_missing(site) -> None:
-    proc = python(site, "from torchhys._command import main; main(['fit'])",
+    proc = python(site, "from torchhys.cli.main import main; main(['fit'])",
                   blocked=("lightning",))
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.strip() == ERROR.format("lightning")
@@ -172,7 +172,7 @@ def test_the_installed_script_says_which_extra_to_install(site) -> None:
 
 
 def test_with_the_extra_the_command_runs_the_training_cli(monkeypatch) -> None:
-    import torchhys.training.cli as cli
+    import torchhys.cli.train as cli
 
     seen = []
     monkeypatch.setattr(cli, "main", seen.append)
@@ -188,7 +188,7 @@ def test_a_missing_dependency_of_the_extra_is_named(monkeypatch, capsys) -> None
     real_import = builtins.__import__
 
     def fake_import(name, *args, **kwargs):
-        if name == "torchhys.training.cli":
+        if name == "torchhys.cli.train":
             raise ModuleNotFoundError("No module named 'docstring_parser'",
                                       name="docstring_parser")
         return real_import(name, *args, **kwargs)

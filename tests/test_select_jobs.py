@@ -116,7 +116,7 @@ def test_auto_jobs_take_the_usable_cores(monkeypatch, tmp_path, capsys) -> None:
     monkeypatch.undo()
     one = _table(monkeypatch, tmp_path, "one")
     capsys.readouterr()
-    monkeypatch.setattr("torchhys.training.cli.check_jobs", lambda value: 8)
+    monkeypatch.setattr("torchhys.cli.train.check_jobs", lambda value: 8)
     auto = _table(monkeypatch, tmp_path, "auto", "--model.select_jobs=auto")
     out, err = capsys.readouterr()
     assert "candidates in 3 processes at a time, torch threads 1 each (model.select_jobs=auto" \
@@ -176,7 +176,7 @@ def test_a_killed_process_is_a_one_line_error_not_a_hang() -> None:
 def test_auto_jobs_are_one_process_where_the_trainer_may_use_cuda(monkeypatch) -> None:
     """CUDA does not survive a fork: select_jobs auto is one process when the trainer's
     accelerator is not the CPU on a machine with CUDA."""
-    from torchhys.training.cli import _on_gpu
+    from torchhys.cli.train import _on_gpu
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     assert _on_gpu({"accelerator": "gpu"}) and _on_gpu({"accelerator": "auto"})

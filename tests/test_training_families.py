@@ -32,7 +32,7 @@ from torchhys.identification.errors import FitError
 from torchhys.identification.families import _substeps
 from torchhys.identification.specs import build_operators, fit_data_dependent
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule, selection
-from torchhys.training.cli import main
+from torchhys.cli.train import main
 
 F64 = torch.float64
 torch.set_num_threads(1)

@@ -15,7 +15,7 @@ import torch
 from _training_helpers import trainer
 
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
-from torchhys.training.cli import main
+from torchhys.cli.train import main
 from torchhys.training.files import DataFileError, read_recordings
 
 torch.set_num_threads(1)

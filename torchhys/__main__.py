@@ -1,6 +1,6 @@
-"""``python -m torchhys``: the ``torchhys`` command (:mod:`torchhys._command`)."""
+"""``python -m torchhys``: the ``torchhys`` command (:mod:`torchhys.cli.main`)."""
 
-from torchhys._command import main
+from torchhys.cli.main import main
 
 if __name__ == "__main__":
     main()

@@ -16,7 +16,7 @@ from torchhys.deploy.streaming import default_limits
 from torchhys.identification.errors import FitError
 from torchhys.identification.specs import build_operators, fit_data_dependent
 from torchhys.init import initialize
-from torchhys.training.cli import read_config
+from torchhys.cli.train import read_config
 from torchhys.training.folds import RECORDING, fold_masks
 from torchhys.training.module import OPTIMIZERS, InverseHysteresisModule
 from torchhys.training.selection import CandidateScore, best, standard_error

@@ -31,7 +31,7 @@ from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from lightning.fabric.utilities.cloud_io import _is_local_file_protocol
 
 from torchhys._atomic import atomic_write_bytes
-from torchhys.training.errors import refuse_url
+from torchhys.cli.errors import refuse_url
 
 __all__ = ["AtomicCheckpointIO", "atomic_write_bytes"]
 
@@ -47,7 +47,7 @@ class AtomicCheckpointIO(TorchCheckpointIO):
         """The checkpoint in the local file ``path`` (Lightning's read of ``ckpt_path``, of
         ``best`` and ``hpc``), loaded with ``weights_only=True`` whatever ``weights_only``
         asks: no code from the file runs. A URL (``http://``, ``file://``, ``s3://`` ...) is
-        refused with a :class:`~torchhys.training.errors.CheckpointError`: nothing is
+        refused with a :class:`~torchhys.cli.errors.CheckpointError`: nothing is
         downloaded (Lightning's loader would load a URL with ``weights_only=False``)."""
         refuse_url(path, "ckpt_path")
         if not os.path.isfile(path):

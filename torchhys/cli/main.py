@@ -1,7 +1,7 @@
 """Entry point of the ``torchhys`` console script (and ``python -m torchhys``).
 
 The command (``torchhys fit|validate|test|predict|export``) runs on the training side,
-:mod:`torchhys.training.cli`, which needs the ``train`` extra (Lightning, jsonargparse,
+:mod:`torchhys.cli.train`, which needs the ``train`` extra (Lightning, jsonargparse,
 torchmetrics, matplotlib). Without it the command says which extra to install, in one line
 on stderr, and exits with status 2, instead of failing with a traceback on an import.
 """
@@ -41,18 +41,18 @@ def main(argv: list[str] | None = None) -> None:
 
     Args:
         argv: command-line arguments without the program name (``sys.argv[1:]`` if None),
-            passed on to :func:`torchhys.training.cli.main` unchanged.
+            passed on to :func:`torchhys.cli.train.main` unchanged.
 
     Raises:
         SystemExit: 2 when a package of the ``train`` extra is missing (after printing
             ``torchhys: error: the torchhys command needs the training extra: ...`` on
-            stderr); otherwise as :func:`torchhys.training.cli.main`.
+            stderr); otherwise as :func:`torchhys.cli.train.main`.
     """
     missing = missing_train_packages()
     if missing:
         _refuse(missing)
     try:
-        from torchhys.training.cli import main as cli_main
+        from torchhys.cli.train import main as cli_main
     except ModuleNotFoundError as exc:
         # a package the extra pulls in (a dependency of Lightning, say) is missing
         top = (exc.name or "").split(".")[0]

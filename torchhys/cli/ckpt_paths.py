@@ -1,6 +1,6 @@
 """The checkpoint a command's ``--ckpt_path`` names, checked before anything is written.
 
-- a local file: read and checked (:func:`~torchhys.training.errors.read_checkpoint`,
+- a local file: read and checked (:func:`~torchhys.cli.errors.read_checkpoint`,
   ``weights_only=True``: no code from the file runs);
 - a URL (``http://``, ``file://``, ``s3://`` ...) or Lightning's ``registry:...``: refused,
   one line; torchhys downloads nothing (Lightning's loader would load a URL with
@@ -22,9 +22,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from torchhys.training.errors import CheckpointError, read_checkpoint
-from torchhys.training.progress import quiet_requested
-from torchhys.training.run_dirs import log_folder
+from torchhys.cli.errors import CheckpointError, read_checkpoint
+from torchhys.cli.progress import quiet_requested
+from torchhys.cli.run_dirs import log_folder
 
 __all__ = ["check_ckpt_path", "last_checkpoint"]
 
@@ -54,7 +54,7 @@ def check_ckpt_path(path: Any, cfg: Any) -> str | None:
 
     Raises:
         CheckpointError: a URL or a registry, no earlier ``last.ckpt``, or a file that
-            :func:`~torchhys.training.errors.read_checkpoint` refuses.
+            :func:`~torchhys.cli.errors.read_checkpoint` refuses.
     """
     if path is None:
         return None

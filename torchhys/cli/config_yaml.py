@@ -4,7 +4,7 @@ laughs" file: a few lines that expand to 9**9 strings) is refused before anythin
 built from it, in one line.
 
 :func:`install` makes it the loader of jsonargparse's ``yaml`` mode (the loader of
-``torchhys fit --config`` and of :func:`torchhys.training.cli.read_config`); the values
+``torchhys fit --config`` and of :func:`torchhys.cli.train.read_config`); the values
 are those of jsonargparse's own loader, which reads the text after the check.
 """
 

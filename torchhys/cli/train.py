@@ -13,7 +13,7 @@ An error in the user's files, options or data (a missing or malformed data file,
 config value, a damaged checkpoint ...) is printed as one line, ``torchhys fit: error:
 <message>``, and the command exits with status 2; ``--traceback`` (or
 ``TORCHHYS_TRACEBACK=1``) shows its traceback. Any other exception is a bug in torchhys and
-keeps its traceback (:mod:`torchhys.training.errors`).
+keeps its traceback (:mod:`torchhys.cli.errors`).
 
 Model selection (``fit`` only): ``model.select`` lists candidates, each a dict of model
 arguments that replace the ``model`` section's (an argument of the command, not of
@@ -36,7 +36,7 @@ before the module is built)::
       select_budget_s: null                     # s: no candidate starts after s seconds
 
 Every candidate is trained from the same seed with the same trainer settings (one progress
-line before and after each: :mod:`torchhys.training.progress`) and scored by its validation
+line before and after each: :mod:`torchhys.cli.progress`) and scored by its validation
 MSE; the table goes to ``selection.csv`` in the run's own ``logs/version_<N>`` folder
 (reserved atomically: concurrent runs keep theirs), and the chosen candidate is fitted once
 more as a plain ``fit`` in that folder. The rules (validation split, blocked, rolling and
@@ -46,8 +46,8 @@ docs/training.md ("Model selection on validation data"); the code is in
 ``model.select``, and so does a ``fit --ckpt_path`` that resumes.
 
 Options of the command itself, taken out before LightningCLI reads the rest: ``--import
-MODULE`` and ``--import-path DIR`` (:mod:`torchhys.training.plugins`), ``--threads N``
-(:mod:`torchhys.training.threads`), ``--quiet``, ``--traceback``.
+MODULE`` and ``--import-path DIR`` (:mod:`torchhys.cli.plugins`), ``--threads N``
+(:mod:`torchhys.cli.threads`), ``--quiet``, ``--traceback``.
 """
 
 from __future__ import annotations
@@ -71,13 +71,13 @@ from lightning.pytorch.utilities import rank_zero_only, rank_zero_warn
 from torchhys.identification.specs import build_operators
 from torchhys.training import selection
 from torchhys.training.callbacks import BaselineComparison, PredictionWriter
-from torchhys.training.ckpt_paths import check_ckpt_path
-from torchhys.training.cli_checks import check_config_files, check_optimizer_switch
-from torchhys.training.config_yaml import check_config_aliases
-from torchhys.training.config_yaml import install as install_bounded_yaml
+from torchhys.cli.ckpt_paths import check_ckpt_path
+from torchhys.cli.checks import check_config_files, check_optimizer_switch
+from torchhys.cli.config_yaml import check_config_aliases
+from torchhys.cli.config_yaml import install as install_bounded_yaml
 from torchhys.training.coverage import warn_coverage
 from torchhys.training.data import HysteresisDataModule
-from torchhys.training.errors import (
+from torchhys.cli.errors import (
     TRACEBACK_ENV,
     TRACEBACK_FLAG,
     config_errors,
@@ -94,8 +94,8 @@ from torchhys.training.interrupts import (
 )
 from torchhys.training.jobs import check_budget, check_jobs, usable_cores
 from torchhys.training.module import InverseHysteresisModule, check_optimizer_kwargs
-from torchhys.training.negative_numbers import accept_negative_numbers
-from torchhys.training.plugins import (
+from torchhys.cli.negative_numbers import accept_negative_numbers
+from torchhys.cli.plugins import (
     IMPORT_ENV,
     IMPORT_PATH_ENV,
     add_import_paths,
@@ -105,9 +105,9 @@ from torchhys.training.plugins import (
     split_import_flags,
     split_import_path_flags,
 )
-from torchhys.training.progress import QUIET_ENV, SelectionProgress, quiet_requested
-from torchhys.training.run_dirs import RUN_DIR_ENV, reserve_run_dir
-from torchhys.training.threads import THREADS_ENV, choose_threads, split_threads_flag
+from torchhys.cli.progress import QUIET_ENV, SelectionProgress, quiet_requested
+from torchhys.cli.run_dirs import RUN_DIR_ENV, reserve_run_dir
+from torchhys.cli.threads import THREADS_ENV, choose_threads, split_threads_flag
 
 install_bounded_yaml()  # aliases in configs expand to a bounded size
 
@@ -155,7 +155,7 @@ class TorchhysCLI(LightningCLI):
         """Parse, then read and check ``--ckpt_path`` (a file) before anything is written:
         a missing or damaged checkpoint is a one-line error, with no run folder left. A
         ``--config`` that is no config, and ``--model.optimizer`` with the config's kwargs
-        of another optimizer, are one-line errors too (:mod:`torchhys.training.cli_checks`)."""
+        of another optimizer, are one-line errors too (:mod:`torchhys.cli.checks`)."""
         argv = sys.argv[1:] if args is None else args
         if isinstance(argv, list):
             check_config_files(argv)
@@ -392,14 +392,14 @@ def main(argv: list[str] | None = None) -> None:
     An error caused by the user's files, options or data is printed as one line,
     ``torchhys fit: error: <message>``, and exits with status 2; a bug keeps its traceback;
     ``--traceback`` (anywhere in ``argv``) or ``TORCHHYS_TRACEBACK=1`` shows the traceback
-    of user errors too (:mod:`torchhys.training.errors`).
+    of user errors too (:mod:`torchhys.cli.errors`).
 
     ``--import MODULE`` (repeatable, any subcommand) imports a module before the config is
     read: an operator it registers can be named in ``model.operator``
-    (:func:`~torchhys.training.plugins.import_modules`; nothing is added to ``sys.path`` but
+    (:func:`~torchhys.cli.plugins.import_modules`; nothing is added to ``sys.path`` but
     the folders of ``--import-path DIR``). ``--threads N`` (or
     ``TORCHHYS_THREADS``) sets torch's threads, one by default
-    (:mod:`torchhys.training.threads`).
+    (:mod:`torchhys.cli.threads`).
 
     Args:
         argv: command-line arguments without the program name (``sys.argv[1:]`` if None).
@@ -453,7 +453,7 @@ def _main(argv: list[str] | None) -> None:
     if paths:
         os.environ[IMPORT_PATH_ENV] = os.pathsep.join(paths)
     if args and args[0] == "export":
-        from torchhys.training.export_cmd import main as export_main
+        from torchhys.cli.export import main as export_main
 
         raise SystemExit(export_main(args[1:] + [TRACEBACK_FLAG] * traceback))
     if argv is None:  # LightningCLI reads sys.argv (DDP relaunches each rank with it)

@@ -46,10 +46,10 @@ from torchhys.deploy.export_c import DEFAULT_PREFIX, check_prefix, to_c
 from torchhys.deploy.export_onnx import to_onnx
 from torchhys.deploy.streaming import DIRECTIONS, StreamingCompensator
 from torchhys.identification.specs import build_operators
-from torchhys.training.errors import config_errors, read_checkpoint, report_user_error
+from torchhys.cli.errors import config_errors, read_checkpoint, report_user_error
 from torchhys.training.finite import check_output, check_weights
-from torchhys.training.negative_numbers import accept_negative_numbers
-from torchhys.training.plugins import import_modules
+from torchhys.cli.negative_numbers import accept_negative_numbers
+from torchhys.cli.plugins import import_modules
 
 __all__ = ["build_net", "main"]
 
@@ -250,7 +250,7 @@ def main(argv: list[str]) -> int:
 
     An error in the user's checkpoint or options is printed as one line,
     ``torchhys export: error: <message>`` (``--traceback``: raised instead); any other
-    exception is a bug and propagates (:mod:`torchhys.training.errors`).
+    exception is a bug and propagates (:mod:`torchhys.cli.errors`).
     """
     args = _parser().parse_args(argv)
     try:
