@@ -13,7 +13,7 @@ Each path runs ``step`` on a batch of one, one thread;
 the C++ rows use deploy/cpp/controller (built on first use, ``--rate 0``), which times each
 step with a steady clock (TorchScript: the module frozen, ``step_explicit`` with the state
 held by the program; AOTI: ``boxed_run``, single-threaded runner). The C rows: the C99
-step of :func:`torchhys.deploy.export_c.to_c` in a C harness compiled here (``cc -std=c99 -O2``, the
+step of :func:`torchhys.deploy.c.to_c` in a C harness compiled here (``cc -std=c99 -O2``, the
 compiler's default target, and ``-O3 -march=native``), which times each step with
 ``clock_gettime(CLOCK_MONOTONIC)`` after a warm-up pass; ``--c-only`` runs these alone (no
 libtorch, no AOTI compile of minutes). ONNX Runtime (through ``torchhys.deploy.export_onnx``'s
@@ -123,7 +123,7 @@ C_FLAGS = {"C, cc -O2": ["-O2"], "C, cc -O3 -march=native": ["-O3", "-march=nati
 def c_timer(comp: StreamingCompensator, folder: Path, flags: list[str]) -> Path:
     """The compensator's C step (``to_c``, prefix ``comp``) in the timing harness, compiled
     with ``cc -std=c99 FLAGS`` into ``folder``."""
-    from torchhys.deploy.export_c import to_c
+    from torchhys.deploy.c import to_c
 
     folder.mkdir(parents=True, exist_ok=True)
     if not (folder / "comp.c").exists():

@@ -111,9 +111,9 @@ int main(int argc, char **argv)
 def compile_harness(folder: Path, prefix: str = "torchhys_comp",
                     state: list[torch.Tensor] | None = None, flags: list[str] = FLAGS) -> Path:
     """The harness over ``folder/PREFIX.c``: the contract's names only, or also the state's
-    members (their names: torchhys.deploy._c_files.MEMBERS), shaped as ``state``; compiled
+    members (their names: torchhys.deploy.c._files.MEMBERS), shaped as ``state``; compiled
     with ``flags``."""
-    from torchhys.deploy._c_files import MEMBERS
+    from torchhys.deploy.c._files import MEMBERS
 
     dump = "".join(f"fwrite(s.{MEMBERS[k]}, sizeof s.{MEMBERS[k]}[0], {t.numel()}, out);\n"
                    for k, t in enumerate(state or []))

@@ -264,7 +264,7 @@ def test_c_equals_torchscript(name: str, dtype: str, torchscript_runs: Callable,
     """The C99 step (``to_c``, compiled with ``cc -std=c99 -O2 -Wall -Wextra -Werror
     -pedantic``): the commands and the final state (the struct's members) within RTOL of
     their scale, the counters equal."""
-    from torchhys.deploy.export_c import to_c
+    from torchhys.deploy.c import to_c
 
     net, x, ts = torchscript_runs(name, dtype)
     to_c(net, tmp_path, dtype=getattr(torch, dtype))

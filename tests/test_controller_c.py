@@ -41,7 +41,7 @@ def example_comp():
 @pytest.fixture(scope="module")
 def built(tmp_path_factory: pytest.TempPathFactory):
     """(the controller, the example network), the C files float64 with the prefix ``comp``."""
-    from torchhys.deploy.export_c import to_c
+    from torchhys.deploy.c import to_c
 
     folder = tmp_path_factory.mktemp("controller_c")
     net = example_comp().example_network()

@@ -1,4 +1,4 @@
-"""The exp and the sigmoid of a double that the generated C uses (torchhys.deploy._c_writer:
+"""The exp and the sigmoid of a double that the generated C uses (torchhys.deploy.c._writer:
 libm-free, so that a loop of sigmoids vectorizes), against the C library's exp.
 
 Compiled with ``cc -std=c99 -O2 -Wall -Wextra -Werror -pedantic``: within 1 ulp of libm's
@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchhys.deploy._c_writer import Writer
+from torchhys.deploy.c._writer import Writer
 
 CC = shutil.which("cc") or shutil.which("gcc")
 needs_cc = pytest.mark.skipif(CC is None, reason="no C compiler (cc or gcc) on PATH")
@@ -141,7 +141,7 @@ def test_a_generated_sigmoid_loop_vectorizes_at_O2(tmp_path: Path) -> None:
     generic x86-64 (or the target's default), as -fopt-info-vec reports."""
     from test_export_c import recommended
 
-    from torchhys.deploy.export_c import to_c
+    from torchhys.deploy.c import to_c
 
     _, c = to_c(recommended(), tmp_path, prefix="comp")
     lines = c.read_text().splitlines()

@@ -1,4 +1,4 @@
-"""torchhys.deploy.export_c: the generated C99 step, compiled, against the TorchScript compensator.
+"""torchhys.deploy.c: the generated C99 step, compiled, against the TorchScript compensator.
 
 The two files are compiled with ``cc -std=c99 -O2 -Wall -Wextra -Werror -pedantic`` into a
 harness that uses only the contract's names (``NAME_real``, ``NAME_state``, ``NAME_init``,
@@ -56,7 +56,7 @@ from torch import Tensor
 
 import torchhys
 from torchhys import Backlash, InverseHysteresisNet
-from torchhys.deploy.export_c import to_c
+from torchhys.deploy.c import to_c
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
 
 needs_cc = pytest.mark.skipif(CC is None, reason=NO_CC)

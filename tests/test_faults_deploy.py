@@ -33,10 +33,10 @@ from _helpers import loop_net
 from torch import Tensor
 
 from torchhys import Backlash
-from torchhys.deploy._c_files import FAST_MATH_ERROR
-from torchhys.deploy._c_writer import Writer
+from torchhys.deploy.c import to_c
+from torchhys.deploy.c._files import FAST_MATH_ERROR
+from torchhys.deploy.c._writer import Writer
 from torchhys.deploy.export import to_torchscript
-from torchhys.deploy.export_c import to_c
 from torchhys.deploy.streaming import StreamingCompensator
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
 

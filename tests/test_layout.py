@@ -120,7 +120,7 @@ def test_the_registered_operators_live_in_their_roles_folders() -> None:
 
 
 def test_import_torchhys_imports_no_lightning() -> None:
-    code = ("import sys, torchhys, torchhys.deploy.export_c, torchhys.identification.preisach\n"
+    code = ("import sys, torchhys, torchhys.deploy.c, torchhys.identification.preisach\n"
             "bad = [m for m in ('lightning', 'pytorch_lightning', 'jsonargparse', "
             "'torchmetrics', 'matplotlib') if m in sys.modules]\n"
             "assert not bad, bad")

@@ -7,7 +7,7 @@ Without ``--ckpt``: the network of ``configs/compensator.yaml`` (a re-based EIHO
 64 sigmoid units), its normalization fitted with ``fit_normalization`` on a loop and its
 output layer the ridge least-squares fit of the loop's target, so that it follows the loop
 (no training run). With ``--ckpt``: the checkpoint, exported as ``torchhys export --format c``
-does. Writes ``OUT_DIR/NAME.h``, ``OUT_DIR/NAME.c`` (``torchhys.deploy.export_c.to_c``) and
+does. Writes ``OUT_DIR/NAME.h``, ``OUT_DIR/NAME.c`` (``torchhys.deploy.c.to_c``) and
 ``OUT_DIR/ref.h``: ``static const NAME_real ref[]`` (``REF_N`` samples around the training range:
 nested turning points, ties, excursions beyond the range, one NaN), the reference sequence
 ``mcu_main.c`` steps. Prints the paths.
@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from torchhys import EIHO, Backlash, InverseHysteresisNet
-from torchhys.deploy.export_c import to_c
+from torchhys.deploy.c import to_c
 
 
 def loop_data(T: int = 600) -> tuple[torch.Tensor, torch.Tensor]:

@@ -1,6 +1,6 @@
-"""C templates of :mod:`torchhys.deploy.export_c` that sum: reductions (``sum``, ``mean``,
+"""C templates of :mod:`torchhys.deploy.c` that sum: reductions (``sum``, ``mean``,
 ``amax``, ``amin``), matrix products and ``cumsum``. Registered in
-:mod:`torchhys.deploy._c_templates`.
+:mod:`torchhys.deploy.c._templates`.
 
 Reductions and matrix products add in index order (BLAS may not: rounding-level
 differences), except a long sum, added in partial sums (:func:`_reduce`), and a large constant
@@ -15,8 +15,8 @@ from collections.abc import Callable, Sequence
 
 import torch
 
-from torchhys.deploy._c_views import Emitter, Operand, _dim, _transpose, _unsqueeze
-from torchhys.deploy._c_writer import CTensor, Writer, constant, contiguous_strides
+from torchhys.deploy.c._views import Emitter, Operand, _dim, _transpose, _unsqueeze
+from torchhys.deploy.c._writer import CTensor, Writer, constant, contiguous_strides
 
 __all__ = ["PRODUCTS"]
 

@@ -17,8 +17,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor, fx
 
-from torchhys.deploy._c_pointwise import pointwise
-from torchhys.deploy._c_writer import CTensor, Writer
+from torchhys.deploy.c._pointwise import pointwise
+from torchhys.deploy.c._writer import CTensor, Writer
 
 __all__ = ["emit", "finite_test", "fold"]
 

@@ -2,7 +2,7 @@
 
 :func:`to_c` builds the :class:`~torchhys.deploy.streaming.StreamingCompensator` of a model, exports
 its explicit-state step with ``torch.export`` at batch 1 (static shapes) and writes C from the
-graph, one small template per aten operation (:mod:`torchhys.deploy._c_templates`): every tensor a
+graph, one small template per aten operation (:mod:`torchhys.deploy.c._templates`): every tensor a
 fixed-size array, parameters and buffers ``static const`` arrays, the state a struct the
 caller owns. No operator has C of its own: a new operator whose step exports with
 ``torch.export`` gets C without new code, or :func:`to_c` names the operation without a
@@ -27,7 +27,7 @@ held and counted, the input clamp and the direction guard. The source stops with
 ``#error`` where ``__FAST_MATH__`` is defined (``-ffast-math``, ``-Ofast``: GCC, Clang);
 its tests of NaN and inf read the numbers' bits and its ``exp`` takes its rounding from
 bits too, so that a build that bypasses the check still holds NaN samples
-(:mod:`torchhys.deploy._c_finite`). With ``-ffp-contract=off`` (the default of ``-std=c99``)
+(:mod:`torchhys.deploy.c._finite`). With ``-ffp-contract=off`` (the default of ``-std=c99``)
 float64 results equal the TorchScript file's to about 1e-15.
 """
 
@@ -43,10 +43,10 @@ import torch
 from torch import fx, nn
 from torch.export.graph_signature import InputKind
 
-from torchhys.deploy import _c_finite
-from torchhys.deploy._c_files import MEMBERS, files
-from torchhys.deploy._c_templates import POINTWISE_OPS, SHAPE_ONLY, TEMPLATES, VIEW_OPS
-from torchhys.deploy._c_writer import CTensor, Writer, constant, contiguous_strides
+import torchhys.deploy.c._finite as _finite
+from torchhys.deploy.c._files import MEMBERS, files
+from torchhys.deploy.c._templates import POINTWISE_OPS, SHAPE_ONLY, TEMPLATES, VIEW_OPS
+from torchhys.deploy.c._writer import CTensor, Writer, constant, contiguous_strides
 from torchhys.deploy.export import _compensator, _ExplicitStep, write_outputs
 from torchhys.deploy.streaming import StreamingCompensator
 
@@ -231,8 +231,8 @@ def _translate(ep: torch.export.ExportedProgram, w: Writer, members: list[str]
     users = list(sig.user_inputs)
     env: dict[fx.Node, Any] = {}
     missing: dict[str, str] = {}
-    # the step's t - t tests of non-finite values, written as tests of bits (_c_finite)
-    finite = {n: t for n in ep.graph.nodes if (t := _c_finite.finite_test(
+    # the step's t - t tests of non-finite values, written as tests of bits (_finite)
+    finite = {n: t for n in ep.graph.nodes if (t := _finite.finite_test(
         n, lambda p: known.get(p.name) if p.op == "placeholder" else None)) is not None}
     live = _live(ep.graph, finite)
     for node in ep.graph.nodes:
@@ -256,7 +256,7 @@ def _translate(ep: torch.export.ExportedProgram, w: Writer, members: list[str]
     if missing:
         raise ValueError("to_c: no C template for " + "; ".join(
             f"{op} (from {where})" for op, where in missing.items())
-            + " (templates: torchhys.deploy._c_templates.TEMPLATES)")
+            + " (templates: torchhys.deploy.c._templates.TEMPLATES)")
     return outs[0], outs[1:]
 
 
@@ -285,11 +285,11 @@ def _emit(w: Writer, node: fx.Node, env: dict, missing: dict[str, str],
     if node.target in SHAPE_ONLY or (_is_known((args, kwargs))
                                      and isinstance(spec, (CTensor, list))):
         if finite is not None:
-            return constant(_c_finite.fold([a.value for a in args], finite[1], spec.shape))
+            return constant(_finite.fold([a.value for a in args], finite[1], spec.shape))
         return _fold(node, args, kwargs)
     emit = TEMPLATES.get(node.target)
     if finite is not None:
-        emit = lambda w, spec, *ops: _c_finite.emit(w, spec, list(ops), ne)  # noqa: E731
+        emit = lambda w, spec, *ops: _finite.emit(w, spec, list(ops), ne)  # noqa: E731
     if emit is not None:
         start = len(w.lines)
         w.alias = _outputs_only(node)

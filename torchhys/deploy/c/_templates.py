@@ -1,14 +1,14 @@
-"""One small C template per aten operation, for :mod:`torchhys.deploy.export_c`.
+"""One small C template per aten operation, for :mod:`torchhys.deploy.c`.
 
 :data:`TEMPLATES` maps an op overload (``torch.ops.aten.addmm.default``) to an emitter
-``emit(w, spec, *args, **kwargs)``: ``w`` is the :class:`~torchhys.deploy._c_writer.Writer`,
-``spec`` the node's output (a :class:`~torchhys.deploy._c_writer.CTensor` of its dtype and shape,
+``emit(w, spec, *args, **kwargs)``: ``w`` is the :class:`~torchhys.deploy.c._writer.Writer`,
+``spec`` the node's output (a :class:`~torchhys.deploy.c._writer.CTensor` of its dtype and shape,
 or a list of them), the arguments are the node's, tensors as
-:class:`~torchhys.deploy._c_writer.CTensor`. It writes C and returns the output's CTensor(s).
-The templates, one concept a file: pointwise (:mod:`torchhys.deploy._c_pointwise`), views and
-joins (:mod:`torchhys.deploy._c_views`), reductions and matrix products
-(:mod:`torchhys.deploy._c_products`), sorting and indexing
-(:mod:`torchhys.deploy._c_indexing`).
+:class:`~torchhys.deploy.c._writer.CTensor`. It writes C and returns the output's CTensor(s).
+The templates, one concept a file: pointwise (:mod:`torchhys.deploy.c._pointwise`), views and
+joins (:mod:`torchhys.deploy.c._views`), reductions and matrix products
+(:mod:`torchhys.deploy.c._products`), sorting and indexing
+(:mod:`torchhys.deploy.c._indexing`).
 """
 
 from __future__ import annotations
@@ -18,10 +18,10 @@ from typing import Any
 
 import torch
 
-from torchhys.deploy._c_indexing import INDEXING
-from torchhys.deploy._c_pointwise import POINTWISE
-from torchhys.deploy._c_products import PRODUCTS
-from torchhys.deploy._c_views import JOINS, VIEWS, Emitter, _identity, copy
+from torchhys.deploy.c._indexing import INDEXING
+from torchhys.deploy.c._pointwise import POINTWISE
+from torchhys.deploy.c._products import PRODUCTS
+from torchhys.deploy.c._views import JOINS, VIEWS, Emitter, _identity, copy
 
 __all__ = ["POINTWISE_OPS", "SHAPE_ONLY", "TEMPLATES", "VIEW_OPS", "copy"]
 

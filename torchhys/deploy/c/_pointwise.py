@@ -1,5 +1,5 @@
-"""Pointwise C templates of :mod:`torchhys.deploy.export_c` (see
-:mod:`torchhys.deploy._c_templates`).
+"""Pointwise C templates of :mod:`torchhys.deploy.c` (see
+:mod:`torchhys.deploy.c._templates`).
 
 Each reproduces torch's CPU kernel, NaN included: ``maximum``, ``minimum`` and ``clamp``
 propagate NaN (unlike C's ``fmax``), ``sign(NaN)`` is 0, ``pow`` takes torch's special
@@ -16,7 +16,7 @@ from typing import Any
 
 import torch
 
-from torchhys.deploy._c_writer import CTensor, Writer, contiguous_strides
+from torchhys.deploy.c._writer import CTensor, Writer, contiguous_strides
 
 __all__ = ["POINTWISE", "pointwise", "promoted"]
 

@@ -1,13 +1,13 @@
-"""C templates of :mod:`torchhys.deploy.export_c` that move no arithmetic: views (a new
+"""C templates of :mod:`torchhys.deploy.c` that move no arithmetic: views (a new
 shape, strides and offset over the same array: no code), a copy into a contiguous local,
-and the joins (``cat``, ``stack``). Registered in :mod:`torchhys.deploy._c_templates`."""
+and the joins (``cat``, ``stack``). Registered in :mod:`torchhys.deploy.c._templates`."""
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from torchhys.deploy._c_writer import CTensor, Writer, contiguous_strides
+from torchhys.deploy.c._writer import CTensor, Writer, contiguous_strides
 
 __all__ = ["JOINS", "VIEWS", "Emitter", "Operand", "copy"]
 

@@ -1,6 +1,6 @@
-"""C templates of :mod:`torchhys.deploy.export_c` that order and index: ``sort``,
+"""C templates of :mod:`torchhys.deploy.c` that order and index: ``sort``,
 ``searchsorted``, ``gather``, ``index_select``, ``scatter`` and ``index``. Registered in
-:mod:`torchhys.deploy._c_templates`. Integer indices out of range (where torch raises) are
+:mod:`torchhys.deploy.c._templates`. Integer indices out of range (where torch raises) are
 clamped to the tensor, so the C never reads outside an array."""
 
 from __future__ import annotations
@@ -9,10 +9,10 @@ from collections.abc import Sequence
 
 import torch
 
-from torchhys.deploy._c_pointwise import promoted
-from torchhys.deploy._c_products import _block
-from torchhys.deploy._c_views import Emitter, Operand, _dim, _unsqueeze, copy
-from torchhys.deploy._c_writer import CTensor, Writer
+from torchhys.deploy.c._pointwise import promoted
+from torchhys.deploy.c._products import _block
+from torchhys.deploy.c._views import Emitter, Operand, _dim, _unsqueeze, copy
+from torchhys.deploy.c._writer import CTensor, Writer
 
 __all__ = ["INDEXING"]
 

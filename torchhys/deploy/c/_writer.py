@@ -1,4 +1,4 @@
-"""The C99 primitives of :mod:`torchhys.deploy.export_c`: static-shape tensors as arrays, loops,
+"""The C99 primitives of :mod:`torchhys.deploy.c`: static-shape tensors as arrays, loops,
 literals, constants and the small helper functions the op templates share.
 
 Every tensor of the step has a static shape. A :class:`CTensor` is either a constant (its
