@@ -113,7 +113,7 @@ def concurrent(n: int, k: int, tmp: Path, threads: int | None,
 STAGES = [
     # (stage, file suffix, function): cumulative seconds of the function under cProfile
     ("start-up: the interpreter and the imports", "", "<start-up>"),
-    ("reading the data file", "torchhys/training/files.py", "read_recordings"),
+    ("reading the data file", "torchhys/data/files.py", "read_recordings"),
     ("model selection (all candidates)", "torchhys/training/selection.py", "run_selection"),
     ("  families fitted on each fold", "torchhys/identification/specs.py",
      "fit_data_dependent"),

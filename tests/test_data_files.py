@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from torchhys.data.files import DataFileError, read_record, read_recordings
 from torchhys.training import HysteresisDataModule
-from torchhys.training.files import DataFileError, read_record, read_recordings
 
 N = 24
 TIME = np.round(np.arange(N) * 0.01, 2)

@@ -28,11 +28,11 @@ from _training_helpers import cli, trainer
 from lightning.pytorch.callbacks import ModelCheckpoint
 
 from torchhys import InverseHysteresisNet
+from torchhys.data.files import DataFileError, read_recordings
 from torchhys.deploy.export import load_torchscript, to_torchscript
 from torchhys.deploy.streaming import StreamingCompensator
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 from torchhys.training.checkpoint_io import AtomicCheckpointIO
-from torchhys.training.files import DataFileError, read_recordings
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -16,9 +16,9 @@ import torch
 
 from torchhys import fit_preisach
 from torchhys._memory import MEMORY_ENV, memory_limit
+from torchhys.data.files import DataFileError, read_recordings
 from torchhys.identification.specs import build_operators
 from torchhys.training import HysteresisDataModule
-from torchhys.training.files import DataFileError, read_recordings
 
 
 def write_csv(path: Path, rows: int = 200, header: str = "response,command") -> Path:
@@ -99,8 +99,8 @@ def test_yaml_loader_refuses_an_alias_bomb() -> None:
     strings of aliases, and a structure that contains itself; a bomb of 9**4 still loads."""
     from jsonargparse import get_loader
 
-    from torchhys.cli.train import read_config  # noqa: F401 (installs the loader)
     from torchhys.cli.config_yaml import ConfigSizeError
+    from torchhys.cli.train import read_config  # noqa: F401 (installs the loader)
 
     load = get_loader("yaml")
     with pytest.raises(ConfigSizeError, match="expands to more than 1000000 values"):
@@ -130,7 +130,7 @@ def test_cli_refuses_an_alias_bomb_naming_the_file(monkeypatch, tmp_path) -> Non
 def test_watched_file_rewritten_is_refused(tmp_path) -> None:
     """While watched, a file rewritten with other content of the same size (and a new time)
     is refused naming it; touched (same content) it reads on; unwatched it is read again."""
-    from torchhys.training import files
+    from torchhys.data import files
 
     path = write_csv(tmp_path / "log.csv")
     text = path.read_text()

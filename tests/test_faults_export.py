@@ -18,8 +18,8 @@ import torch
 
 from torchhys import InverseHysteresisNet
 from torchhys.cli.export import main as export_main
-from torchhys.deploy.c import to_c
 from torchhys.deploy.export import load_torchscript, to_torchscript
+from torchhys.deploy.export_c import to_c
 
 OPERATOR_KWARGS = {"a": 1.3, "rule": "dominant", "threshold": 0.1}
 
@@ -325,7 +325,7 @@ def test_a_diverged_fit_stops_naming_the_epoch(tmp_path: Path, monkeypatch,
     with one line naming the epoch and the learning rate, and saves no checkpoint."""
     from _training_helpers import cli
 
-    from torchhys.training.finite import DivergedError
+    from torchhys._finite import DivergedError
 
     cfg = tmp_path / "tiny.yaml"
     cfg.write_text(TINY.format(precision=precision))
@@ -378,8 +378,8 @@ def test_the_cli_reports_a_diverged_fit_in_one_line(tmp_path: Path, monkeypatch,
 def test_data_near_1e300_are_refused_when_read(tmp_path: Path) -> None:
     import numpy as np
 
+    from torchhys.data.files import DataFileError
     from torchhys.training import HysteresisDataModule
-    from torchhys.training.files import DataFileError
 
     t = np.linspace(0, 20, 400)
     path = tmp_path / "huge.csv"
@@ -531,7 +531,7 @@ def test_export_refuses_the_last_checkpoint_of_a_diverged_fit(tmp_path: Path, mo
     1e300 whose output is the compensator's limit for every input; export refuses it."""
     from _training_helpers import cli
 
-    from torchhys.training.finite import DivergedError
+    from torchhys._finite import DivergedError
 
     cfg = tmp_path / "tiny.yaml"
     cfg.write_text(TINY.format(precision="64-true"))

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
+from torchhys.data.files import DataFileError, read_record
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
-from torchhys.training.files import DataFileError, read_record
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples/data/bouc_wen.csv"
 

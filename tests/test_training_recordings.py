@@ -14,9 +14,9 @@ import pytest
 import torch
 from _training_helpers import trainer
 
-from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 from torchhys.cli.train import main
-from torchhys.training.files import DataFileError, read_recordings
+from torchhys.data.files import DataFileError, read_recordings
+from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 
 torch.set_num_threads(1)
 # training_step called directly, outside a Trainer, logs nothing
@@ -399,7 +399,7 @@ def test_a_file_read_again_is_parsed_once_until_it_changes(tmp_path: Path,
     every caller gets its own arrays, and a file written again is read again."""
     import os
 
-    from torchhys.training import files
+    from torchhys.data import files
 
     path = tmp_path / "log.csv"
     path.write_text("u,y\n" + "".join(f"{i},{2 * i}\n" for i in range(10)))

@@ -68,15 +68,10 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
 from lightning.pytorch.utilities import rank_zero_only, rank_zero_warn
 
-from torchhys.identification.specs import build_operators
-from torchhys.training import selection
-from torchhys.training.callbacks import BaselineComparison, PredictionWriter
-from torchhys.cli.ckpt_paths import check_ckpt_path
 from torchhys.cli.checks import check_config_files, check_optimizer_switch
+from torchhys.cli.ckpt_paths import check_ckpt_path
 from torchhys.cli.config_yaml import check_config_aliases
 from torchhys.cli.config_yaml import install as install_bounded_yaml
-from torchhys.training.coverage import warn_coverage
-from torchhys.training.data import HysteresisDataModule
 from torchhys.cli.errors import (
     TRACEBACK_ENV,
     TRACEBACK_FLAG,
@@ -84,16 +79,6 @@ from torchhys.cli.errors import (
     report_user_error,
     split_traceback_flag,
 )
-from torchhys.training.files import watch_files
-from torchhys.training.folds import describe_cv
-from torchhys.training.interrupts import (
-    Interrupted,
-    SigtermCheckpoint,
-    report_interrupt,
-    signals_raise,
-)
-from torchhys.training.jobs import check_budget, check_jobs, usable_cores
-from torchhys.training.module import InverseHysteresisModule, check_optimizer_kwargs
 from torchhys.cli.negative_numbers import accept_negative_numbers
 from torchhys.cli.plugins import (
     IMPORT_ENV,
@@ -108,6 +93,21 @@ from torchhys.cli.plugins import (
 from torchhys.cli.progress import QUIET_ENV, SelectionProgress, quiet_requested
 from torchhys.cli.run_dirs import RUN_DIR_ENV, reserve_run_dir
 from torchhys.cli.threads import THREADS_ENV, choose_threads, split_threads_flag
+from torchhys.data.files import watch_files
+from torchhys.identification.specs import build_operators
+from torchhys.training import selection
+from torchhys.training.callbacks import BaselineComparison, PredictionWriter
+from torchhys.training.coverage import warn_coverage
+from torchhys.training.data import HysteresisDataModule
+from torchhys.training.folds import describe_cv
+from torchhys.training.interrupts import (
+    Interrupted,
+    SigtermCheckpoint,
+    report_interrupt,
+    signals_raise,
+)
+from torchhys.training.jobs import check_budget, check_jobs, usable_cores
+from torchhys.training.module import InverseHysteresisModule, check_optimizer_kwargs
 
 install_bounded_yaml()  # aliases in configs expand to a bounded size
 

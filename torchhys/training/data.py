@@ -28,8 +28,9 @@ from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
 from torchhys._checks import check_choice, check_int
+from torchhys._finite import check_scale
 from torchhys._memory import check_repeat
-from torchhys.training.files import (
+from torchhys.data.files import (
     Column,
     DataFileError,
     Recording,
@@ -38,8 +39,7 @@ from torchhys.training.files import (
     read_recordings,
     resolve_path,
 )
-from torchhys.training.finite import check_scale
-from torchhys.training.splits import STAGES, Window, assign_recordings, check_split
+from torchhys.data.splits import STAGES, Window, assign_recordings, check_split
 
 __all__ = [
     "SIMULATIONS", "SPLIT_BY", "STAGES", "HysteresisDataModule", "SequenceDataset", "Window",
@@ -177,7 +177,7 @@ class HysteresisDataModule(L.LightningDataModule):
 
     Args:
         path: a recorded ``.csv``/``.npz`` file, a list of them with the same columns (see
-            :func:`torchhys.training.files.read_recordings`), or None for a simulation.
+            :func:`torchhys.data.files.read_recordings`), or None for a simulation.
         input_column: column of the model input (the plant's response), name or index.
         target_column: column of the model target (the command), name or index.
         time_column: optional column of sample times (checked to increase per recording).
@@ -211,14 +211,14 @@ class HysteresisDataModule(L.LightningDataModule):
             also ``"tab"``); None: sniffed among ``,``, ``;`` and tab.
         decimal: the decimal mark of numbers in CSV files, ``"."`` or ``","`` (the
             delimiter is then ``;`` or a tab). The three are those of
-            :func:`torchhys.training.files.read_recordings`; NPZ files ignore them.
+            :func:`torchhys.data.files.read_recordings`; NPZ files ignore them.
 
     Raises:
         ValueError: a bad split, ``split_by``, ``repeat``, ``warmup``, ``encoding``,
             ``delimiter`` or ``decimal`` (named ``data.<option>``); recording lists with
             ``split_by="time"``; ``run_column`` without ``path``; at :meth:`setup`, an
             empty split, an unknown recording id, too few samples in a split.
-        torchhys.training.files.DataFileError: problems in a file (names file, column and
+        torchhys.data.files.DataFileError: problems in a file (names file, column and
             row or recording), a recording not longer than its warm-up; at
             :meth:`train_tensors`, a constant input or target column over the training
             split (names the files and the column option).

@@ -17,10 +17,10 @@ from torchmetrics import MeanSquaredError
 
 from torchhys import InverseHysteresisNet
 from torchhys._checks import check_choice
+from torchhys._finite import check_learning_rate, check_normalization, check_training
 from torchhys.identification.specs import build_operators, fit_data_dependent
 from torchhys.init import initialize
 from torchhys.optim import PowellBealeCG
-from torchhys.training.finite import check_learning_rate, check_normalization, check_training
 
 __all__ = ["CLOSURE_OPTIMIZERS", "OPTIMIZERS", "InverseHysteresisModule", "check_optimizer_kwargs"]
 
@@ -330,7 +330,7 @@ class InverseHysteresisModule(L.LightningModule):
 
     def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
         """Stop a diverged fit: a loss or weights not finite after the step raise
-        :class:`~torchhys.training.finite.DivergedError`, before a checkpoint is saved."""
+        :class:`~torchhys._finite.DivergedError`, before a checkpoint is saved."""
         check_training(self, self._last_loss)
 
     def _evaluate(self, batch: Batch, stage: str) -> dict[str, Tensor]:

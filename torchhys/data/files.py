@@ -1,6 +1,6 @@
 """Reading recorded (command, response) data from CSV and NPZ files, with checks: the
 recordings of one file or several (:func:`read_recordings`), each file read as
-:mod:`torchhys.training.tables` reads it (CSV text as spreadsheets and loggers write it).
+:mod:`torchhys.data.tables` reads it (CSV text as spreadsheets and loggers write it).
 
 Every problem is reported as a :class:`DataFileError` (a ``ValueError``) that names the
 file, the column and, where it applies, the row (0-based data row; for CSV files also the
@@ -19,7 +19,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from torchhys.training.tables import (
+from torchhys.data.tables import (
     DECIMALS,
     DELIMITERS,
     Column,
@@ -330,7 +330,7 @@ def read_record(
     Args:
         path: a ``.csv`` file (fields separated by ``,``, ``;`` or a tab; an optional
             header row; lines starting with ``#`` before the data, and blank lines, are
-            skipped; see :mod:`torchhys.training.tables`) or a ``.npz`` file (one 1-D array per
+            skipped; see :mod:`torchhys.data.tables`) or a ``.npz`` file (one 1-D array per
             column, or a single 2-D array addressed by column index).
         input_column: column of the inverse model's input (the plant's response).
         target_column: column of the inverse model's target (the command).

@@ -1,5 +1,5 @@
 """One data file's columns, read and checked: a CSV file or an NPZ file's arrays
-(:func:`torchhys.training.files.read_recordings` cuts them into recordings).
+(:func:`torchhys.data.files.read_recordings` cuts them into recordings).
 
 CSV files are read as spreadsheets and loggers write them:
 
