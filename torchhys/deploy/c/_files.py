@@ -11,7 +11,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from torchhys.deploy.c._templates import copy as copy_to_local
+from torchhys.deploy.c._views import copy as copy_to_local
 from torchhys.deploy.c._writer import CTensor, Writer
 from torchhys.deploy.export import metadata
 from torchhys.deploy.streaming import (
@@ -21,8 +21,6 @@ from torchhys.deploy.streaming import (
     STATE_STARTED,
     StreamingCompensator,
 )
-
-__all__ = ["FAST_MATH_CHECK", "FAST_MATH_ERROR", "MEMBERS", "files"]
 
 #: why the source refuses to compile under -ffast-math / -Ofast (its #error)
 FAST_MATH_ERROR = ("compile without -ffast-math or -Ofast: the generated step relies on IEEE "

@@ -20,8 +20,6 @@ from torch import Tensor, fx
 from torchhys.deploy.c._pointwise import pointwise
 from torchhys.deploy.c._writer import CTensor, Writer
 
-__all__ = ["emit", "finite_test", "fold"]
-
 _SUB = torch.ops.aten.sub.Tensor
 _ADD = torch.ops.aten.add.Tensor
 _NE = (torch.ops.aten.ne.Tensor, torch.ops.aten.ne.Scalar)

@@ -14,8 +14,6 @@ from torchhys.deploy.c._products import _block
 from torchhys.deploy.c._views import Emitter, Operand, _dim, _unsqueeze, copy
 from torchhys.deploy.c._writer import CTensor, Writer
 
-__all__ = ["INDEXING"]
-
 
 def _sort(w: Writer, spec: list, x: CTensor, dim: int = -1, descending: bool = False, *,
           stable: bool | None = None) -> list[CTensor]:

@@ -18,8 +18,6 @@ import torch
 
 from torchhys.deploy.c._writer import CTensor, Writer, contiguous_strides
 
-__all__ = ["POINTWISE", "pointwise", "promoted"]
-
 Emitter = Callable[..., Any]
 Operand = CTensor | float | int | bool
 

@@ -18,8 +18,6 @@ import torch
 from torchhys.deploy.c._views import Emitter, Operand, _dim, _transpose, _unsqueeze
 from torchhys.deploy.c._writer import CTensor, Writer, constant, contiguous_strides
 
-__all__ = ["PRODUCTS"]
-
 
 def _block(w: Writer, lines: Callable[[], None]) -> None:
     w.emit("{")

@@ -21,9 +21,7 @@ import torch
 from torchhys.deploy.c._indexing import INDEXING
 from torchhys.deploy.c._pointwise import POINTWISE
 from torchhys.deploy.c._products import PRODUCTS
-from torchhys.deploy.c._views import JOINS, VIEWS, Emitter, _identity, copy
-
-__all__ = ["POINTWISE_OPS", "SHAPE_ONLY", "TEMPLATES", "VIEW_OPS", "copy"]
+from torchhys.deploy.c._views import JOINS, VIEWS, Emitter, _identity
 
 OTHERS: dict[str, Emitter] = {**JOINS, **PRODUCTS, **INDEXING}
 

@@ -50,8 +50,6 @@ from torchhys.deploy.c._writer import CTensor, Writer, constant, contiguous_stri
 from torchhys.deploy.export import _compensator, _ExplicitStep, write_outputs
 from torchhys.deploy.streaming import StreamingCompensator
 
-__all__ = ["DEFAULT_PREFIX", "check_prefix", "to_c"]
-
 _C_KEYWORDS = frozenset(
     "auto break case char const continue default do double else enum extern float for goto "
     "if inline int long register restrict return short signed sizeof static struct switch "

@@ -9,8 +9,6 @@ from typing import Any
 
 from torchhys.deploy.c._writer import CTensor, Writer, contiguous_strides
 
-__all__ = ["JOINS", "VIEWS", "Emitter", "Operand", "copy"]
-
 Emitter = Callable[..., Any]
 Operand = CTensor | float | int | bool
 

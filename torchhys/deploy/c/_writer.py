@@ -24,8 +24,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["CTYPES", "CTensor", "Writer", "contiguous_strides"]
-
 #: C type of each tensor dtype (a bool is a uint8_t holding 0 or 1)
 CTYPES = {torch.float64: "double", torch.float32: "float", torch.int64: "int64_t",
           torch.int32: "int32_t", torch.bool: "uint8_t"}
