@@ -17,7 +17,7 @@ test-all: setup
 	@$(PYTHON) -m pytest ; rc=$$?; if [ $$rc -eq 5 ]; then exit 0; fi; exit $$rc
 
 reproduce: setup
-	@$(PYTHON) -m torchhys.training.reproduce
+	@$(PYTHON) -m torchhys.reproduce
 
 lint: setup
 	@$(PYTHON) -m ruff check .
