@@ -15,6 +15,7 @@ from torchhys._checks import (
     fitted_samples,
 )
 from torchhys.operator import AtomicLoad, HysteresisOperator, OperatorStep, make_operator
+from torchhys.protocols import Deployable, Network
 
 __all__ = ["InverseHysteresisNet"]
 
@@ -28,7 +29,7 @@ Operator = str | Mapping[str, Any] | HysteresisOperator
 ``{"name": NAME, **options}`` or an operator."""
 
 
-class InverseHysteresisNet(AtomicLoad, nn.Module):
+class InverseHysteresisNet(AtomicLoad, nn.Module, Network, Deployable):
     """Elementary operator(s) plus a one-hidden-layer network: ``y = W sigma(V [x, f(x)])``.
 
     The input is expanded with the outputs of the elementary operators (Theorem 1: the map

@@ -102,6 +102,25 @@ class OperatorStep(nn.Module, abc.ABC):
         return torch.stack(outs, dim=1)
 
 
+def check_step(step: object, argument: str = "step") -> OperatorStep:
+    """``step``, checked to be an :class:`OperatorStep` with its ``n_outputs`` and a
+    ``state_spec`` of :class:`StateBlock` (both set in ``__init__``).
+
+    Raises:
+        TypeError: naming ``argument`` and what is missing.
+    """
+    kind = type(step).__name__
+    if not isinstance(step, OperatorStep):
+        raise TypeError(f"{argument} must be a torchhys.step.OperatorStep, got {kind}")
+    missing = [m for m in ("n_outputs", "state_spec") if not hasattr(step, m)]
+    if missing:
+        raise TypeError(f"{argument} ({kind}) has no {', '.join(missing)} (an OperatorStep "
+                        "sets both in __init__)")
+    if not all(isinstance(b, StateBlock) for b in step.state_spec):
+        raise TypeError(f"{argument} ({kind}): state_spec must be a list of StateBlock")
+    return step
+
+
 def _check_step_state(state: object, spec: Sequence[StateBlock], batch: int) -> None:
     """Raise ``ValueError`` naming ``state`` unless it is the step's state for ``batch``
     rows: one tensor (batch, size) per block, floating (finite) or int64 by the block's

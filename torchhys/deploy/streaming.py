@@ -62,7 +62,8 @@ from torchhys.deploy.ranges import (
     default_input_range,
     default_limits,
 )
-from torchhys.step import STATE_KINDS, OperatorStep, StateBlock, custom_start
+from torchhys.protocols import check_deployable
+from torchhys.step import STATE_KINDS, OperatorStep, check_step, custom_start
 
 __all__ = [
     "COUNTER", "DIRECTIONS", "HELD", "MIN_TREND", "STARTED", "STATE_F", "STATE_F64", "STATE_I",
@@ -109,21 +110,6 @@ class _Slot(nn.Module):
         for j in range(len(self.kinds)):
             new[self.kinds[j]].append(out[j])
         return features
-
-
-def _check_step(step: object, i: int) -> OperatorStep:
-    if not isinstance(step, OperatorStep):
-        raise TypeError(
-            f"streaming step {i} must be a torchhys.operator.OperatorStep, got "
-            f"{type(step).__name__}"
-        )
-    for name in ("n_outputs", "state_spec"):
-        if not hasattr(step, name):
-            raise TypeError(f"streaming step {i} ({type(step).__name__}) has no {name}")
-    if not all(isinstance(b, StateBlock) for b in step.state_spec):
-        raise TypeError(f"streaming step {i} ({type(step).__name__}): state_spec must be a "
-                        "list of StateBlock")
-    return step
 
 
 
@@ -206,14 +192,10 @@ class StreamingCompensator(nn.Module):
         input_margin: float | None = 0.05, direction: str = "auto",
     ) -> None:
         super().__init__()
-        if not (hasattr(model, "streaming_steps") and hasattr(model, "streaming_head")):
-            raise TypeError(
-                "StreamingCompensator needs a model with streaming_steps(dtype) and "
-                "streaming_head(dtype) (an InverseHysteresisNet or a PrandtlIshlinskiiInverse), "
-                f"got {type(model).__name__}"
-            )
+        check_deployable(model, "model")
         dtype = _model_dtype(model)
-        steps = [_check_step(s, i) for i, s in enumerate(model.streaming_steps(dtype))]
+        steps = [check_step(s, f"streaming step {i}")
+                 for i, s in enumerate(model.streaming_steps(dtype))]
         self.head = model.streaming_head(dtype)
         low, high = _check_limits(default_limits(model) if limits is None else limits)
         self.register_buffer("low", torch.tensor(low, dtype=dtype))

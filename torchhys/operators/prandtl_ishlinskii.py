@@ -27,6 +27,7 @@ from torchhys.operator import (
     register_operator,
 )
 from torchhys.operators.backlash import _Widths
+from torchhys.protocols import Deployable
 
 __all__ = ["PIStep", "PrandtlIshlinskii", "PrandtlIshlinskiiInverse"]
 
@@ -196,7 +197,7 @@ class PrandtlIshlinskii(_Widths, HysteresisOperator):
         return p.cumulative[1:].to(z.dtype) * z + tail
 
 
-class PrandtlIshlinskiiInverse(HysteresisOperator):
+class PrandtlIshlinskiiInverse(HysteresisOperator, Deployable):
     """The analytic inverse of a :class:`PrandtlIshlinskii` model, as an operator: a
     compensator.
 

@@ -21,6 +21,7 @@ from torchhys._finite import check_learning_rate, check_normalization, check_tra
 from torchhys.identification.specs import build_operators, fit_data_dependent
 from torchhys.init import initialize
 from torchhys.optim import PowellBealeCG
+from torchhys.protocols import check_network
 
 __all__ = ["CLOSURE_OPTIMIZERS", "OPTIMIZERS", "InverseHysteresisModule", "check_optimizer_kwargs"]
 
@@ -159,8 +160,9 @@ class InverseHysteresisModule(L.LightningModule):
     computed once per batch (and cached across epochs), not in every closure call.
 
     Args:
-        net: a ready network (a plain ``nn.Module`` with ``features``/``head``/
-            ``fit_normalization`` like :class:`torchhys.InverseHysteresisNet`); when given,
+        net: a ready network (an ``nn.Module`` with the members of
+            :class:`torchhys.protocols.Network`, as :class:`torchhys.InverseHysteresisNet`
+            has); when given,
             ``operator``, ``hidden``, ``activation``, ``operator_kwargs`` are ignored and
             ``load_from_checkpoint`` needs it passed again.
         operator: ``"eiho"``, ``"zhao_tan"``, a spec dict such as ``{"name": "eiho",
@@ -199,7 +201,7 @@ class InverseHysteresisModule(L.LightningModule):
             ops, self._fitters = build_operators(operator, operator_kwargs)
             net = InverseHysteresisNet(ops, hidden, activation=activation)
             initialize(net, init)
-        self.net = net
+        self.net = check_network(net, "net")
         self.optimizer_name = optimizer
         self.automatic_optimization = optimizer not in CLOSURE_OPTIMIZERS
         self.register_buffer("normalization_fitted", torch.tensor(False))

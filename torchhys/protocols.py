@@ -1,0 +1,130 @@
+"""The two roles a model plays besides its operators': a network and a deployable.
+
+The operator protocol (:mod:`torchhys.operator`, :mod:`torchhys.step`) is what an operator
+implements. A model built of operators plays up to two more roles, declared here:
+
+* :class:`Network`: what the training side fits (:class:`~torchhys.training.module.
+  InverseHysteresisModule`, the full-batch fits): its operators, the features of an input,
+  the head on them and the normalization fitted to the training data.
+* :class:`Deployable`: what the streaming compensator runs
+  (:class:`~torchhys.deploy.streaming.StreamingCompensator`, and through it every export):
+  its per-sample steps and the head on their features.
+
+:class:`~torchhys.InverseHysteresisNet` plays both; a
+:class:`~torchhys.PrandtlIshlinskiiInverse` is deployable on its own. A model of another
+class plays a role by being an ``nn.Module`` with the members of its protocol (both are
+``typing.Protocol``\\ s, checkable with ``isinstance``); :func:`check_network` and
+:func:`check_deployable` are the one check of each, a ``TypeError`` naming the argument
+and every member it lacks.
+
+Besides its members, a model may record its training data's ranges as buffers (``in_min``,
+``in_max``, ``out_min``, ``out_max``, ``trend``: :meth:`InverseHysteresisNet.fit_normalization
+<torchhys.InverseHysteresisNet.fit_normalization>`); the compensator's default limits, input
+clamp and direction guard read them where present (:mod:`torchhys.deploy.ranges`).
+"""
+
+from collections.abc import Sequence
+from typing import Any, Protocol, TypeVar, runtime_checkable
+
+import torch
+from torch import Tensor, nn
+
+from torchhys.step import OperatorStep
+
+__all__ = ["Deployable", "Network", "check_deployable", "check_network", "missing_members"]
+
+
+@runtime_checkable
+class Network(Protocol):
+    """What the training side fits: operators, then a head on their features.
+
+    Shapes: x, y (batch, time) in physical units; features (batch, time, n_features), the
+    input itself first.
+    """
+
+    operators: Sequence[nn.Module]
+    """The operators (:class:`~torchhys.HysteresisOperator`), in the order of their
+    features; the data-dependent ones (model families) are fitted on the training data
+    before :meth:`fit_normalization`."""
+
+    def features(self, x: Tensor, state: list | None = None, *, target: Tensor | None = None,
+                 segment_a: Tensor | None = None) -> tuple[Tensor, list]:
+        """The input space ``[x, f_1(x), ...]`` of x (batch, time): (batch, time,
+        n_features) and the operators' states; ``state`` continues them. ``target`` and
+        ``segment_a`` go to a non-causal operator (it needs the target)."""
+        ...
+
+    def head(self, features: Tensor) -> Tensor:
+        """The output of the features (..., n_features) -> (...), in physical units."""
+        ...
+
+    def fit_normalization(self, x: Tensor, y: Tensor, *, mask: Tensor | None = None) -> None:
+        """Fit what the head normalizes with to training data x, y (batch, time), over the
+        samples of ``mask`` (bool, (batch, time); None: all); calibrate the operators'
+        data-dependent settings first."""
+        ...
+
+
+@runtime_checkable
+class Deployable(Protocol):
+    """What the streaming compensator runs, one sample at a time.
+
+    Shapes: a step takes x (batch, 1) and returns (batch, n_outputs); the head takes the
+    features ``[x, step features...]`` (batch, 1 + sum of n_outputs) and returns the command
+    (batch, 1).
+    """
+
+    def streaming_steps(self, dtype: torch.dtype) -> list[OperatorStep]:
+        """The per-sample steps (:class:`~torchhys.step.OperatorStep`) in ``dtype``, with the
+        current parameters (detached); raise ``ValueError`` where the model cannot stream
+        (a non-causal operator, an uncalibrated setting)."""
+        ...
+
+    def streaming_head(self, dtype: torch.dtype) -> nn.Module:
+        """A module of the steps' features (batch, n) -> the command (batch, 1), physical
+        units, in ``dtype``; written for TorchScript and ``torch.export``."""
+        ...
+
+
+P = TypeVar("P")
+
+
+def missing_members(obj: object, protocol: type) -> list[str]:
+    """The members of ``protocol`` (:class:`Network`, :class:`Deployable`) that ``obj``
+    lacks, in the order the protocol declares them."""
+    declared = [*getattr(protocol, "__annotations__", {}),
+                *(k for k, v in vars(protocol).items() if callable(v) and not k.startswith("_"))]
+    return [m for m in declared if not hasattr(obj, m)]
+
+
+def _check(obj: Any, argument: str, protocol: type[P], roles: str) -> P:
+    missing = missing_members(obj, protocol)
+    if isinstance(obj, nn.Module) and not missing:
+        return obj
+    why = [] if isinstance(obj, nn.Module) else ["it is no nn.Module"]
+    why += [f"it has no {', '.join(missing)}"] if missing else []
+    raise TypeError(f"{argument} must be an nn.Module with the members of "
+                    f"torchhys.protocols.{protocol.__name__} ({roles}), got "
+                    f"{type(obj).__name__}: {'; '.join(why)}")
+
+
+def check_network(obj: Any, argument: str = "net") -> Network:
+    """``obj``, checked to be a :class:`Network` (an ``nn.Module`` with its members).
+
+    Raises:
+        TypeError: naming ``argument`` and every member ``obj`` lacks.
+    """
+    return _check(obj, argument, Network,
+                  "operators, features, head and fit_normalization, as an "
+                  "InverseHysteresisNet has")
+
+
+def check_deployable(obj: Any, argument: str = "model") -> Deployable:
+    """``obj``, checked to be a :class:`Deployable` (an ``nn.Module`` with its members).
+
+    Raises:
+        TypeError: naming ``argument`` and every member ``obj`` lacks.
+    """
+    return _check(obj, argument, Deployable,
+                  "streaming_steps(dtype) and streaming_head(dtype), as an "
+                  "InverseHysteresisNet or a PrandtlIshlinskiiInverse has")
