@@ -8,7 +8,9 @@ import torch
 from torch import nn
 
 from torchhys import InverseHysteresisNet, PrandtlIshlinskii
-from torchhys.deploy.export import to_torchscript
+from torchhys.deploy.c import to_c
+from torchhys.deploy.export import to_aoti, to_torchscript
+from torchhys.deploy.export_onnx import to_onnx
 from torchhys.deploy.streaming import StreamingCompensator
 from torchhys.protocols import (
     Deployable,
@@ -57,16 +59,26 @@ def test_the_members_are_read_from_the_declaration() -> None:
     assert not isinstance(NoHead(), Network) and not isinstance(NoHead(), Deployable)
 
 
-@pytest.mark.parametrize("build", [StreamingCompensator, lambda m: to_torchscript(m, "x.pt")],
-                         ids=["compensator", "torchscript"])
-def test_the_compensator_names_the_missing_member(build) -> None:
+EXPORTS = {"compensator": lambda m, tmp: StreamingCompensator(m),
+           "torchscript": lambda m, tmp: to_torchscript(m, tmp / "c.pt"),
+           "aoti": lambda m, tmp: to_aoti(m, tmp / "c.pt2"),
+           "onnx": lambda m, tmp: to_onnx(m, tmp / "c.onnx"),
+           "c": lambda m, tmp: to_c(m, tmp)}
+
+
+@pytest.mark.parametrize("entry", list(EXPORTS))
+def test_the_compensator_and_the_exports_name_the_missing_member(entry: str, tmp_path) -> None:
+    if entry == "onnx":
+        for module in ("onnx", "onnxscript"):
+            pytest.importorskip(module)
     with pytest.raises(TypeError, match=r"^model must be an nn\.Module with the members of "
                        r"torchhys\.protocols\.Deployable .*got NoHead: it has no "
                        r"streaming_head$"):
-        build(NoHead())
+        EXPORTS[entry](NoHead(), tmp_path)
     with pytest.raises(TypeError, match=r"^model .*got str: it is no nn\.Module; it has no "
                        r"streaming_steps, streaming_head$"):
-        StreamingCompensator("eiho")
+        EXPORTS[entry]("eiho", tmp_path)
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_the_training_module_names_the_missing_member() -> None:

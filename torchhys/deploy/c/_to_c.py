@@ -49,6 +49,7 @@ from torchhys.deploy.c._templates import POINTWISE_OPS, SHAPE_ONLY, TEMPLATES, V
 from torchhys.deploy.c._writer import CTensor, Writer, constant, contiguous_strides
 from torchhys.deploy.export import _compensator, _ExplicitStep, write_outputs
 from torchhys.deploy.streaming import StreamingCompensator
+from torchhys.protocols import check_deployable
 
 _C_KEYWORDS = frozenset(
     "auto break case char const continue default do double else enum extern float for goto "
@@ -88,7 +89,7 @@ def _build(model: nn.Module, dtype: torch.dtype, limits: Any, initial_command: f
             raise ValueError(f"dtype {dtype} differs from the StreamingCompensator's "
                              f"{model.low.dtype}: pass the model instead")
     elif any(t.is_floating_point() and t.dtype != dtype
-             for t in (*model.parameters(), *model.buffers())):
+             for t in (*check_deployable(model, "model").parameters(), *model.buffers())):
         model = copy.deepcopy(model).to(dtype)
     return _compensator(model, limits, initial_command, options).eval()
 
