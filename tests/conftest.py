@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from torchhys.functional._kernel import kernel_enabled, kernel_unavailable_reason
-from torchhys.operator import EXAMPLES, OPERATORS
+from torchhys.registry import EXAMPLES, OPERATORS
 
 
 @pytest.fixture(params=["kernel", "scan"])
@@ -29,7 +29,8 @@ def backend(request):
 
 ERFINV_OPERATOR = '''
 import torch
-from torchhys.operator import HysteresisOperator, OperatorStep, register_operator
+from torchhys.operator import HysteresisOperator, OperatorStep
+from torchhys.registry import register_operator
 
 
 class ErfinvStep(OperatorStep):

@@ -24,8 +24,8 @@ from torchhys.models import (
     simulate,
 )
 from torchhys.models.bouc_wen_oscillator import _NODES, _lagrange
-from torchhys.operator import make_operator
 from torchhys.plants import bouc_wen_state
+from torchhys.registry import make_operator
 
 FS = 750.0
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "bouc_wen_benchmark.npz"

@@ -15,7 +15,7 @@ from torchhys import EIHO, Backlash, Cascade, InverseHysteresisNet, PrandtlIshli
 from torchhys.deploy.export import load_torchscript, to_torchscript
 from torchhys.deploy.streaming import StreamingCompensator
 from torchhys.dynamics import StateSpace, TransferFunction
-from torchhys.operator import make_operator
+from torchhys.registry import make_operator
 
 
 def _tf() -> TransferFunction:

@@ -1,6 +1,6 @@
 """Every registered operator through the same checks of the operator protocol.
 
-The names are read from ``torchhys.operator.OPERATORS`` at import (entry points included): an
+The names are read from ``torchhys.registry.OPERATORS`` at import (entry points included): an
 operator registered later is covered without editing this file. Each check builds the
 operator's :class:`~torchhys.operator.Example` in float64 and compares within its ``atol``
 (0: bit for bit), relative to the output's scale. The exports: the TorchScript and AOTI
@@ -43,7 +43,8 @@ from torchhys import InverseHysteresisNet, signals
 from torchhys.deploy.export import load_aoti, to_aoti, to_torchscript
 from torchhys.deploy.streaming import StreamingCompensator
 from torchhys.functional import _filter_kernel, _kernel
-from torchhys.operator import OPERATORS, check_operator, example_of, load_entry_points
+from torchhys.operator import check_operator
+from torchhys.registry import OPERATORS, example_of, load_entry_points
 
 load_entry_points()
 NAMES = sorted(OPERATORS)

@@ -14,7 +14,7 @@ from scipy.optimize import nnls
 
 from torchhys import Drift, fit_drift
 from torchhys.functional.drift import accumulated_variation, drift
-from torchhys.operator import OPERATORS, make_operator
+from torchhys.registry import OPERATORS, make_operator
 
 F64 = torch.float64
 SCALES = [0.5, 2.0, 8.0]

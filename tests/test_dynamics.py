@@ -15,7 +15,7 @@ from torchhys.functional.linear_filter import (  # noqa: E402
     linear_recurrence,
     state_space,
 )
-from torchhys.operator import OPERATORS, make_operator  # noqa: E402
+from torchhys.registry import OPERATORS, make_operator  # noqa: E402
 
 FILTERS = {  # name: (b, a)
     "biquad": ([0.2, 0.3, -0.1], [1.0, -1.5, 0.7]),

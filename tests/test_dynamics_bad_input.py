@@ -9,7 +9,7 @@ import torch
 
 from torchhys.dynamics import StateSpace, TransferFunction
 from torchhys.functional.linear_filter import lfilter, linear_recurrence, state_space
-from torchhys.operator import make_operator
+from torchhys.registry import make_operator
 
 X = torch.randn(2, 20, dtype=torch.float64)
 B = torch.tensor([0.2, 0.3, -0.1], dtype=torch.float64)

@@ -25,8 +25,9 @@ from torchhys.dynamics import (  # noqa: E402
     TransferFunctionMatrix,
 )
 from torchhys.functional.linear_filter import lfilter, state_space, state_space_step  # noqa: E402
-from torchhys.operator import check_operator, make_operator  # noqa: E402
+from torchhys.operator import check_operator  # noqa: E402
 from torchhys.operators.cascade import Cascade  # noqa: E402
+from torchhys.registry import make_operator  # noqa: E402
 
 # a 3 x 2 matrix: mixed orders (common order 2), a[0] != 1, a pure delay, a static gain
 ENTRIES = [

@@ -13,9 +13,9 @@ from pathlib import Path
 import pytest
 import torch
 
-import torchhys.operator as operator_module
+import torchhys.registry as registry_module
 from torchhys import InverseHysteresisNet
-from torchhys.operator import OPERATORS, example_of, load_entry_points, make_operator
+from torchhys.registry import OPERATORS, example_of, load_entry_points, make_operator
 from torchhys.training import InverseHysteresisModule
 from torchhys.cli.train import main
 from torchhys.cli.plugins import (
@@ -25,7 +25,7 @@ from torchhys.cli.plugins import (
     split_import_path_flags,
 )
 
-USER_MODULE = "from torchhys.operator import register_operator\nLOADED = True\n"
+USER_MODULE = "from torchhys.registry import register_operator\nLOADED = True\n"
 
 
 def error_line(capsys: pytest.CaptureFixture, *args: str) -> str:
@@ -138,7 +138,7 @@ def broken_entry_point(tmp_path: Path, monkeypatch) -> None:
     site.mkdir()
     (site / "broken_ep_faults.py").write_text("import no_such_dependency_faults\n")
     (site / "good_ep_faults.py").write_text(
-        "from torchhys.operator import OPERATORS\nGood = OPERATORS['eiho']\n")
+        "from torchhys.registry import OPERATORS\nGood = OPERATORS['eiho']\n")
     info = site / "ep_faults-0.1.dist-info"
     info.mkdir()
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: ep-faults\nVersion: 0.1\n")
@@ -146,8 +146,8 @@ def broken_entry_point(tmp_path: Path, monkeypatch) -> None:
         "[torchhys.operators]\nbroken_op_faults = broken_ep_faults:Op\n"
         "good_op_faults = good_ep_faults:Good\n")
     monkeypatch.syspath_prepend(str(site))
-    monkeypatch.setattr(operator_module, "_entry_points_loaded", False)
-    monkeypatch.setattr(operator_module, "BROKEN_ENTRY_POINTS", {})
+    monkeypatch.setattr(registry_module, "_entry_points_loaded", False)
+    monkeypatch.setattr(registry_module, "BROKEN_ENTRY_POINTS", {})
     for name in ("broken_op_faults", "good_op_faults"):
         monkeypatch.delitem(OPERATORS, name, raising=False)
     yield

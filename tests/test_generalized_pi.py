@@ -22,8 +22,8 @@ from torchhys import Backlash, InverseHysteresisNet, PrandtlIshlinskii
 from torchhys.functional import prandtl_ishlinskii
 from torchhys.identification.fitting import fit_full_batch, fit_prandtl_ishlinskii, play_width_grid
 from torchhys.identification.generalized_pi import fit_generalized_pi
-from torchhys.operator import OPERATORS, make_operator
 from torchhys.operators.generalized_pi import GeneralizedPrandtlIshlinskii
+from torchhys.registry import OPERATORS, make_operator
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -14,7 +14,7 @@ from _gpi_helpers import F64, WIDTHS, model, walks
 
 from torchhys import GeneralizedPIInverse
 from torchhys.functional.generalized_pi import monotone_inverse, monotone_output
-from torchhys.operator import OPERATORS
+from torchhys.registry import OPERATORS
 
 
 def test_inverts_the_forward_model_exactly():

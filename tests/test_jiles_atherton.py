@@ -19,7 +19,7 @@ from torchhys.functional.jiles_atherton import (
     langevin,
     langevin_slope,
 )
-from torchhys.operator import OPERATORS, make_operator
+from torchhys.registry import OPERATORS, make_operator
 
 F64 = torch.float64
 # a MnZn ferrite core, about what fit_jiles_atherton finds on the measured loops

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 import torchhys
-from torchhys.operator import OPERATORS, load_entry_points
+from torchhys.registry import OPERATORS, load_entry_points
 
 PACKAGE = Path(torchhys.__file__).parent
 MAX_LINES = 500

@@ -15,20 +15,13 @@ import torch.nn.functional as F
 from _helpers import RAW
 from torch import Tensor, nn
 
-import torchhys.operator as registry
+import torchhys.registry as registry
 from torchhys import InverseHysteresisNet
 from torchhys._checks import as_batched_sequence
 from torchhys.deploy.export import load_aoti, load_torchscript, to_aoti, to_torchscript
 from torchhys.deploy.streaming import StreamingCompensator
-from torchhys.operator import (
-    OPERATORS,
-    HysteresisOperator,
-    OperatorStep,
-    StateBlock,
-    check_operator,
-    make_operator,
-    register_operator,
-)
+from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, check_operator
+from torchhys.registry import OPERATORS, make_operator, register_operator
 
 
 def dead_zone(x: Tensor, width: Tensor) -> Tensor:

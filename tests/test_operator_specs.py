@@ -9,7 +9,7 @@ import torch
 
 from torchhys import EIHO, Backlash, Cascade, InverseHysteresisNet
 from torchhys.dynamics import TransferFunction
-from torchhys.operator import OPERATORS, make_operator
+from torchhys.registry import OPERATORS, make_operator
 
 WIDTHS = [0.1, 0.4]
 

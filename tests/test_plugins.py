@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 
-import torchhys.operator as operator_module
-from torchhys.operator import OPERATORS, load_entry_points, make_operator
+import torchhys.registry as registry_module
+from torchhys.registry import OPERATORS, load_entry_points, make_operator
 from torchhys.cli.plugins import split_import_flags
 
 OPERATOR_MODULE = '''
@@ -26,7 +26,8 @@ OPERATOR_MODULE = '''
 import torch
 from torch import Tensor
 
-from torchhys.operator import HysteresisOperator, OperatorStep, register_operator
+from torchhys.operator import HysteresisOperator, OperatorStep
+from torchhys.registry import register_operator
 
 
 class SoftZoneStep(OperatorStep):
@@ -143,7 +144,7 @@ def test_entry_point_of_an_installed_package(tmp_path: Path, monkeypatch) -> Non
     (info / "entry_points.txt").write_text(
         "[torchhys.operators]\nsoft_zone_ep = ep_operators:SoftZone\n")
     monkeypatch.syspath_prepend(str(pkg))
-    monkeypatch.setattr(operator_module, "_entry_points_loaded", False)
+    monkeypatch.setattr(registry_module, "_entry_points_loaded", False)
     monkeypatch.delitem(OPERATORS, "soft_zone_ep", raising=False)
     op = make_operator("soft_zone_ep", width=0.25)  # loaded on first use of the registry
     assert type(op).__name__ == "SoftZone" and op.width == 0.25

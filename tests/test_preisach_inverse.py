@@ -24,8 +24,8 @@ from torchhys.functional.preisach_inverse import (
     preisach_inverse_constants,
     preisach_inverse_step,
 )
-from torchhys.operator import OPERATORS, make_operator
 from torchhys.operators.preisach import PreisachInverseStep
+from torchhys.registry import OPERATORS, make_operator
 
 F64 = torch.float64
 

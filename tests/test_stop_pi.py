@@ -19,8 +19,8 @@ from scipy.optimize import nnls
 import torchhys
 from torchhys.functional.stop_pi import stop_characteristic, stop_pi, stop_segments
 from torchhys.identification.stop_pi import fit_stop_pi, select_stop_pi_ridge
-from torchhys.operator import OPERATORS, make_operator
 from torchhys.operators.stop_pi import StopPIStep, StopPrandtlIshlinskii
+from torchhys.registry import OPERATORS, make_operator
 
 F64 = torch.float64
 R = [0.3, 0.8, 1.5]  # thresholds of the forward tests

@@ -18,8 +18,8 @@ import torchhys
 from torchhys.functional.stop_pi import stop_pi, stop_pi_inverse
 from torchhys.identification.fitting import play_width_grid
 from torchhys.identification.stop_pi import fit_stop_pi
-from torchhys.operator import OPERATORS, make_operator
 from torchhys.operators.stop_pi import StopPIInverse, StopPIInverseStep, StopPrandtlIshlinskii
+from torchhys.registry import OPERATORS, make_operator
 
 F64 = torch.float64
 R = [0.3, 0.8, 1.5]

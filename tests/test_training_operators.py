@@ -17,7 +17,7 @@ from torchhys.functional import NonCausalWarning, backlash
 from torchhys.identification.families import FAMILIES
 from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid
 from torchhys.identification.specs import FIT_FAMILIES, build_operators
-from torchhys.operator import OPERATORS
+from torchhys.registry import OPERATORS
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 
 torch.set_num_threads(1)

@@ -23,7 +23,7 @@ from torchhys.identification.jiles_atherton import fit_jiles_atherton
 from torchhys.identification.preisach import fit_preisach, select_penalty
 from torchhys.identification.stop_pi import fit_stop_pi, select_stop_pi_ridge
 from torchhys.networks import InverseHysteresisNet
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, register_operator
+from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
 from torchhys.operators.backlash import Backlash, BacklashCell
 from torchhys.operators.cascade import Cascade
 from torchhys.operators.drift import Drift
@@ -34,6 +34,7 @@ from torchhys.operators.jiles_atherton import JilesAtherton
 from torchhys.operators.prandtl_ishlinskii import PrandtlIshlinskii, PrandtlIshlinskiiInverse
 from torchhys.operators.preisach import Preisach, PreisachInverse
 from torchhys.operators.stop_pi import StopPIInverse, StopPrandtlIshlinskii
+from torchhys.registry import register_operator
 
 __version__ = "0.1.0"
 

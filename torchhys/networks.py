@@ -14,8 +14,9 @@ from torchhys._checks import (
     check_int,
     fitted_samples,
 )
-from torchhys.operator import AtomicLoad, HysteresisOperator, OperatorStep, make_operator
+from torchhys.operator import AtomicLoad, HysteresisOperator, OperatorStep
 from torchhys.protocols import Deployable, Network
+from torchhys.registry import make_operator
 
 __all__ = ["InverseHysteresisNet"]
 
@@ -25,7 +26,7 @@ _ACTIVATIONS = {
 }
 
 Operator = str | Mapping[str, Any] | HysteresisOperator
-"""An operator spec of :func:`torchhys.operator.make_operator`: a registered name, a dict
+"""An operator spec of :func:`torchhys.registry.make_operator`: a registered name, a dict
 ``{"name": NAME, **options}`` or an operator."""
 
 
@@ -39,8 +40,8 @@ class InverseHysteresisNet(AtomicLoad, nn.Module, Network, Deployable):
     plain network of ``x`` alone (multi-valued: the baseline the paper improves on).
 
     Args:
-        operator: an operator spec (:func:`torchhys.operator.make_operator`): a registered
-            name (``"eiho"``, ``"zhao_tan"``, ...: see :data:`torchhys.operator.OPERATORS`),
+        operator: an operator spec (:func:`torchhys.registry.make_operator`): a registered
+            name (``"eiho"``, ``"zhao_tan"``, ...: see :data:`torchhys.registry.OPERATORS`),
             a dict ``{"name": NAME, **options}`` or a
             :class:`~torchhys.HysteresisOperator`; a list of specs (expanded input space,
             e.g. EIHOs with several ``a`` and play operators); or None.

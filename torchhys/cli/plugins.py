@@ -1,9 +1,9 @@
 """Operators from other modules and packages for the ``torchhys`` command.
 
 ``--import MODULE`` (repeatable, on every subcommand) imports a module before the config is
-read, so that an operator it registers with :func:`torchhys.operator.register_operator` can
+read, so that an operator it registers with :func:`torchhys.registry.register_operator` can
 be named in ``model.operator``; installed packages declare theirs as entry points of the
-group ``torchhys.operators`` (:func:`torchhys.operator.load_entry_points`), loaded when a
+group ``torchhys.operators`` (:func:`torchhys.registry.load_entry_points`), loaded when a
 name is first looked up.
 
 ``--import`` adds nothing to ``sys.path``: a module is found where Python finds it (the
@@ -104,7 +104,7 @@ def add_import_paths(paths: Sequence[str]) -> list[str]:
 def import_modules(modules: Sequence[str], paths: Sequence[str] = ()) -> None:
     """Import each module by its dotted name, as Python finds it (``sys.path``: nothing is
     added to it but the folders of ``paths``, appended by :func:`add_import_paths`), so that
-    the operators it registers (:func:`torchhys.operator.register_operator`) can be named in
+    the operators it registers (:func:`torchhys.registry.register_operator`) can be named in
     the config.
 
     Raises:

@@ -21,13 +21,8 @@ from torchhys.dynamics._common import (
     start,
 )
 from torchhys.functional.linear_filter import df2t_step, lfilter
-from torchhys.operator import (
-    Example,
-    HysteresisOperator,
-    OperatorStep,
-    StateBlock,
-    register_operator,
-)
+from torchhys.operator import Example, HysteresisOperator, OperatorStep, StateBlock
+from torchhys.registry import register_operator
 
 __all__ = ["TransferFunctionMatrix", "TransferFunctionMatrixStep"]
 

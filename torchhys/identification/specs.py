@@ -3,11 +3,11 @@ model families fitted on the training data.
 
 A spec of ``model.operator`` is one of:
 
-- an operator spec of :func:`torchhys.operator.make_operator`: a registered name (``"eiho"``,
+- an operator spec of :func:`torchhys.registry.make_operator`: a registered name (``"eiho"``,
   ``"zhao_tan"``: the module's ``operator_kwargs`` apply) or a dict ``{"name": NAME,
-  **kwargs}`` of any operator in :data:`torchhys.operator.OPERATORS` (``"eiho"``,
+  **kwargs}`` of any operator in :data:`torchhys.registry.OPERATORS` (``"eiho"``,
   ``"backlash"``, ``"preisach"``, ``"cascade"``, whatever a user registers with
-  :func:`torchhys.operator.register_operator`), built as it stands;
+  :func:`torchhys.registry.register_operator`), built as it stands;
 - a model family fitted on the training split when fitting starts, ``{"fit": FAMILY,
   **options}`` (:data:`FIT_FAMILIES`):
 
@@ -50,7 +50,8 @@ from torchhys._checks import (
 from torchhys.identification._fit_cache import shared
 from torchhys.identification.families import FAMILIES
 from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid
-from torchhys.operator import HysteresisOperator, make_operator
+from torchhys.operator import HysteresisOperator
+from torchhys.registry import make_operator
 
 __all__ = ["FIT_FAMILIES", "OperatorSpec", "build_operators", "fit_data_dependent"]
 

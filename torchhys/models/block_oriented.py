@@ -44,7 +44,7 @@ from torchhys.dynamics import TransferFunction
 from torchhys.functional.linear_filter import df2t_step
 from torchhys.models._common import check_fs, check_state, scale_buffer
 from torchhys.models.hysteretic_elements import FeedbackElement
-from torchhys.operator import make_operator
+from torchhys.registry import make_operator
 
 __all__ = ["HysteresisFeedback"]
 
@@ -55,7 +55,7 @@ class HysteresisFeedback(nn.Module):
     Args:
         order: order of ``G_u`` and ``G_z``.
         element: the feedback element, as an operator spec
-            (:func:`torchhys.operator.make_operator`), e.g. ``{"name": "duhem", "hidden": 0}``
+            (:func:`torchhys.registry.make_operator`), e.g. ``{"name": "duhem", "hidden": 0}``
             (the default) or ``{"name": "play_hysteresis", "widths": [...], "hidden": 16}``,
             or a :class:`~torchhys.models.hysteretic_elements.FeedbackElement`.
         fs: sampling frequency the model is identified at (Hz).

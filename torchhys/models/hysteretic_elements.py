@@ -20,7 +20,7 @@ they see the path of ``v``, not its timing.
 
 Both are operators of the protocol (:mod:`torchhys.operator`), registered as ``"duhem"`` and
 ``"play_hysteresis"``: a spec ``{"name": "duhem", "hidden": 0}`` builds one
-(:func:`torchhys.operator.make_operator`), :meth:`FeedbackElement.config` gives the spec that
+(:func:`torchhys.registry.make_operator`), :meth:`FeedbackElement.config` gives the spec that
 rebuilds it (load the state dict after), and each streams and exports like any operator.
 Both start from rest (a state of zeros: ``z = 0`` and ``v = 0`` before the first sample).
 
@@ -40,14 +40,9 @@ from torch import Tensor, nn
 from torchhys._checks import as_batched_sequence, check_dtype_of, check_int
 from torchhys.functional.backlash import play_step
 from torchhys.models._common import check_state
-from torchhys.operator import (
-    Example,
-    HysteresisOperator,
-    OperatorStep,
-    StateBlock,
-    register_operator,
-)
+from torchhys.operator import Example, HysteresisOperator, OperatorStep, StateBlock
 from torchhys.operators.backlash import Backlash
+from torchhys.registry import register_operator
 
 __all__ = ["DuhemHysteresis", "DuhemStep", "FeedbackElement", "PlayHysteresis",
            "PlayHysteresisStep"]
@@ -134,7 +129,7 @@ class FeedbackElement(HysteresisOperator):
 
     @abc.abstractmethod
     def config(self) -> dict[str, Any]:
-        """The spec that rebuilds the element (:func:`torchhys.operator.make_operator`; load
+        """The spec that rebuilds the element (:func:`torchhys.registry.make_operator`; load
         the state dict after)."""
 
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:

@@ -1,6 +1,6 @@
 """Hysteresis operators: each family's module, its streaming step(s) and its inverse.
 
 Every operator here subclasses :class:`torchhys.operator.HysteresisOperator` and is
-registered by name in :data:`torchhys.operator.OPERATORS` when its module is imported.
+registered by name in :data:`torchhys.registry.OPERATORS` when its module is imported.
 The pure tensor maths behind each family lives in :mod:`torchhys.functional`.
 """

@@ -12,13 +12,8 @@ from torchhys._checks import (
     check_widths,
 )
 from torchhys.functional.backlash import backlash, check_play_state, play_step
-from torchhys.operator import (
-    Example,
-    HysteresisOperator,
-    OperatorStep,
-    StateBlock,
-    register_operator,
-)
+from torchhys.operator import Example, HysteresisOperator, OperatorStep, StateBlock
+from torchhys.registry import register_operator
 
 __all__ = ["Backlash", "BacklashCell", "PlayStep"]
 

@@ -27,13 +27,14 @@ import torch
 from torch import Tensor
 
 from torchhys._checks import as_batched_sequence
-from torchhys.operator import Example, HysteresisOperator, make_operator, register_operator
+from torchhys.operator import Example, HysteresisOperator
+from torchhys.registry import make_operator, register_operator
 from torchhys.step import STATE_KINDS, OperatorStep, custom_start
 
 __all__ = ["Cascade", "CascadeStep"]
 
 OperatorSpec = HysteresisOperator | str | Mapping[str, Any]
-"""An operator spec of :func:`~torchhys.operator.make_operator`: an operator, a registered
+"""An operator spec of :func:`~torchhys.registry.make_operator`: an operator, a registered
 name, or ``{"name": NAME, **options}``."""
 
 
@@ -114,7 +115,7 @@ class Cascade(HysteresisOperator):
     """Operators in series: ``Cascade(first, second)(x) = second(first(x))``.
 
     ``Cascade(a, b, c)`` and ``Cascade([a, b, c])`` are ``c(b(a(x)))``. Each operator is a
-    spec of :func:`~torchhys.operator.make_operator`: a
+    spec of :func:`~torchhys.registry.make_operator`: a
     :class:`~torchhys.HysteresisOperator`, a registered name or a dict
     ``{"name": NAME, **options}`` (so configs can write
     ``{name: cascade, first: {name: transfer_function, order: 2}, second: {name: eiho}}``).

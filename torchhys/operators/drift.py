@@ -26,13 +26,8 @@ from torchhys.functional.drift import (
     drift,
     drift_step,
 )
-from torchhys.operator import (
-    Example,
-    HysteresisOperator,
-    OperatorStep,
-    StateBlock,
-    register_operator,
-)
+from torchhys.operator import Example, HysteresisOperator, OperatorStep, StateBlock
+from torchhys.registry import register_operator
 
 __all__ = ["Drift", "DriftStep"]
 

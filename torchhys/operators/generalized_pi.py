@@ -79,15 +79,10 @@ from torchhys.functional.prandtl_ishlinskii import (
     prandtl_ishlinskii_inverse_parameters,
 )
 from torchhys.identification._nnls import check_penalty
-from torchhys.operator import (
-    Example,
-    HysteresisOperator,
-    OperatorStep,
-    StateBlock,
-    register_operator,
-)
+from torchhys.operator import Example, HysteresisOperator, OperatorStep, StateBlock
 from torchhys.operators.backlash import _inverse_softplus, _Widths
 from torchhys.operators.prandtl_ishlinskii import PrandtlIshlinskii
+from torchhys.registry import register_operator
 
 __all__ = ["ANALYTIC_ROWS", "GeneralizedPIInverse", "GeneralizedPIInverseStep",
            "GeneralizedPIStep", "GeneralizedPrandtlIshlinskii"]

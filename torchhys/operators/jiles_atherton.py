@@ -24,13 +24,8 @@ from torchhys._checks import (
     check_tensor,
 )
 from torchhys.functional.jiles_atherton import MU0, jiles_atherton, jiles_atherton_step
-from torchhys.operator import (
-    Example,
-    HysteresisOperator,
-    OperatorStep,
-    StateBlock,
-    register_operator,
-)
+from torchhys.operator import Example, HysteresisOperator, OperatorStep, StateBlock
+from torchhys.registry import register_operator
 
 __all__ = ["JilesAtherton", "JilesAthertonStep"]
 

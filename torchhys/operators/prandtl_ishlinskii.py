@@ -19,15 +19,10 @@ from torchhys.functional.prandtl_ishlinskii import (
     pi_output,
     prandtl_ishlinskii_inverse_parameters,
 )
-from torchhys.operator import (
-    Example,
-    HysteresisOperator,
-    OperatorStep,
-    StateBlock,
-    register_operator,
-)
+from torchhys.operator import Example, HysteresisOperator, OperatorStep, StateBlock
 from torchhys.operators.backlash import _Widths
 from torchhys.protocols import Deployable
+from torchhys.registry import register_operator
 
 __all__ = ["PIStep", "PrandtlIshlinskii", "PrandtlIshlinskiiInverse"]
 

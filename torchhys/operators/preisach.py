@@ -58,13 +58,8 @@ from torchhys.functional.preisach_inverse import (
     preisach_inverse_constants,
     preisach_inverse_step,
 )
-from torchhys.operator import (
-    Example,
-    HysteresisOperator,
-    OperatorStep,
-    StateBlock,
-    register_operator,
-)
+from torchhys.operator import Example, HysteresisOperator, OperatorStep, StateBlock
+from torchhys.registry import register_operator
 
 __all__ = ["Preisach", "PreisachInverse", "PreisachInverseStep", "PreisachStep"]
 

@@ -54,13 +54,8 @@ from torchhys.functional.stop_pi import (
     stop_pi_inverse,
     stop_pi_inverse_step,
 )
-from torchhys.operator import (
-    Example,
-    HysteresisOperator,
-    OperatorStep,
-    StateBlock,
-    register_operator,
-)
+from torchhys.operator import Example, HysteresisOperator, OperatorStep, StateBlock
+from torchhys.registry import register_operator
 
 __all__ = ["StopPIInverse", "StopPIInverseStep", "StopPIStep", "StopPrandtlIshlinskii"]
 

@@ -1,0 +1,204 @@
+"""The registry: operators by name, and where specs by name are resolved.
+
+:data:`OPERATORS` holds the operators that specs and configs name (the built-in ones are
+registered by their modules in :mod:`torchhys.operators`, the installed packages' by their
+entry points, a user's by :func:`register_operator`); :func:`make_operator` builds the operator
+of a spec. The protocol the operators implement is :mod:`torchhys.operator`.
+"""
+
+import warnings
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from torch import nn
+
+from torchhys.operator import Example, HysteresisOperator, check_operator
+
+__all__ = [
+    "BROKEN_ENTRY_POINTS",
+    "ENTRY_POINT_GROUP",
+    "EXAMPLES",
+    "OPERATORS",
+    "example_of",
+    "load_entry_points",
+    "make_operator",
+    "register_operator",
+]
+
+
+OPERATORS: dict[str, Callable[..., HysteresisOperator]] = {}
+"""Operators by name: ``OPERATORS[name](**options)`` builds one (see :func:`make_operator`)."""
+
+
+
+EXAMPLES: dict[str, Example] = {}
+"""The examples given to :func:`register_operator`, by name (see :func:`example_of`)."""
+
+
+def register_operator(name: str, factory: Callable[..., HysteresisOperator], *,
+                      example: Example | Callable[[], HysteresisOperator] | None = None
+                      ) -> None:
+    """Register an operator class (or factory) under ``name``, for specs by name.
+
+    Registering the same factory under the same name again is a no-op (it keeps the example
+    given before, unless a new one is given); so is registering a new definition of the same
+    class (the same module and qualified name, as when a notebook cell that defines and
+    registers it runs again), which then replaces the old one.
+
+    Args:
+        name: the name in specs and configs.
+        factory: the class (or a function) that builds the operator from keyword options.
+        example: a small instance for the conformance tests: an :class:`Example`, or a
+            function that builds the instance (an ``Example`` with the default settings);
+            None: ``factory()`` (the default options).
+
+    Raises:
+        ValueError: ``name`` is taken by another factory.
+    """
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"name must be a non-empty str, got {name!r}")
+    if example is not None and not isinstance(example, Example):
+        if not callable(example):
+            raise TypeError(f"example must be an Example or a function that builds the "
+                            f"operator, got {type(example).__name__}")
+        example = Example(example)
+    old = OPERATORS.get(name, factory)
+    if old is not factory and _qualified(old) != _qualified(factory):
+        raise ValueError(f"operator name {name!r} is registered already ({OPERATORS[name]})")
+    OPERATORS[name] = factory
+    if example is not None:
+        EXAMPLES[name] = example
+    elif old is not factory:  # a new definition: the old example built the old class
+        EXAMPLES.pop(name, None)
+
+
+def example_of(name: str) -> Example:
+    """The :class:`Example` of the operator registered as ``name``: the one given to
+    :func:`register_operator`, else ``Example(OPERATORS[name])`` (its default options).
+
+    Raises:
+        KeyError: an unknown name.
+    """
+    if name not in OPERATORS:
+        raise KeyError(f"no operator is registered as {name!r}")
+    return EXAMPLES.get(name) or Example(OPERATORS[name])
+
+
+def _qualified(factory: object) -> tuple[str, str] | None:
+    """``(module, qualified name)`` of a class or function, None for other callables."""
+    module, qualname = getattr(factory, "__module__", None), getattr(factory, "__qualname__", None)
+    if module is None or qualname is None or "<locals>" in qualname:
+        return None
+    return module, qualname
+
+
+ENTRY_POINT_GROUP = "torchhys.operators"
+"""The entry-point group of operators that other packages provide: the entry's name is the
+operator's registered name, its value ``module:Class``."""
+_entry_points_loaded = False
+BROKEN_ENTRY_POINTS: dict[str, str] = {}
+"""The entry points that could not be loaded or registered, by name: why (the message of
+the warning :func:`load_entry_points` gave, and of the error when the name is used)."""
+
+
+def load_entry_points() -> list[str]:
+    """Register the operators of the installed packages' ``torchhys.operators`` entry points
+    (once per process: later calls return ``[]``); called by :func:`make_operator` and by the
+    training side before a name is looked up.
+
+    A package declares one in its ``pyproject.toml``::
+
+        [project.entry-points."torchhys.operators"]
+        my_operator = "my_package.operators:MyOperator"
+
+    An entry point that cannot be loaded (its import fails) or registered (its name is taken
+    by another class) is skipped with one warning that names it and the error; the others
+    are registered. Its name stays unknown: :func:`make_operator` raises a ``ValueError``
+    with the same message where a spec names it (:data:`BROKEN_ENTRY_POINTS`).
+
+    Returns:
+        The names registered by this call.
+    """
+    global _entry_points_loaded
+    if _entry_points_loaded:
+        return []
+    _entry_points_loaded = True
+    from importlib.metadata import entry_points
+
+    names = []
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        try:
+            register_operator(ep.name, ep.load())
+        except Exception as exc:  # noqa: BLE001 (whatever importing another package raises)
+            text = " ".join(f"{type(exc).__name__}: {exc}".split())
+            why = (f"entry point {ep.name!r} = {ep.value!r} of group {ENTRY_POINT_GROUP!r} "
+                   f"cannot be loaded: {text}")
+            BROKEN_ENTRY_POINTS[ep.name] = why
+            warnings.warn(f"{why}; skipped (the other operators are registered)",
+                          stacklevel=2)
+            continue
+        names.append(ep.name)
+    return names
+
+
+def make_operator(spec: Any, /, *, argument: str = "operator", **options: Any
+                  ) -> HysteresisOperator:
+    """The operator of a spec: the one resolver of networks, cascades and configs.
+
+    A spec is one of:
+
+    - a registered name, ``"eiho"``: ``OPERATORS["eiho"](**options)``;
+    - a dict ``{"name": "eiho", **kwargs}``: ``OPERATORS["eiho"](**kwargs, **options)``
+      (options of an operator may be specs themselves, e.g. a cascade's parts);
+    - an operator (a :class:`HysteresisOperator`): itself, checked (no ``options``).
+
+    The installed packages' entry points are registered first (:func:`load_entry_points`).
+
+    Args:
+        spec: the spec.
+        argument: what the spec is called in error messages (``"operator"``,
+            ``"operator[1]"``, ...).
+        **options: keyword options of the operator given by name (or added to a dict's).
+
+    Raises:
+        ValueError: an unknown name (the message lists the registered ones; for the name of
+            an entry point that could not be loaded, why), a dict without
+            a ``name`` or with an option given twice, options the operator does not take
+            (the operator's own checks name the option).
+        TypeError: a spec of another type, an object outside the operator protocol, options
+            given with an operator.
+    """
+    load_entry_points()
+    if isinstance(spec, Mapping):
+        if "name" not in spec:
+            hint = (" ({'fit': ...} is a model family that `torchhys fit` identifies on the "
+                    "training data, not an operator)" if "fit" in spec else "")
+            raise ValueError(f"{argument}: a spec dict needs a 'name' (a registered operator), "
+                             f"got {dict(spec)!r}{hint}")
+        twice = sorted(set(spec) & set(options))
+        if twice:
+            raise ValueError(f"{argument}: option(s) {twice} given in the spec and as "
+                             "keywords")
+        name, options = spec["name"], {**{k: v for k, v in spec.items() if k != "name"},
+                                       **options}
+    elif isinstance(spec, str):
+        name = spec
+    elif isinstance(spec, nn.Module):
+        if options:
+            raise TypeError(f"{argument}: options {sorted(options)} apply to an operator "
+                            f"given by name, not to a {type(spec).__name__} instance")
+        return check_operator(spec, argument)
+    else:
+        raise TypeError(f"{argument} must be a registered operator name, a dict "
+                        f"{{'name': NAME, **options}} or a HysteresisOperator, got "
+                        f"{type(spec).__name__} {spec!r}")
+    if isinstance(name, str) and name not in OPERATORS and name in BROKEN_ENTRY_POINTS:
+        raise ValueError(f"{argument}: {BROKEN_ENTRY_POINTS[name]}")
+    if not isinstance(name, str) or name not in OPERATORS:
+        raise ValueError(f"{argument}: no operator is registered as {name!r}; registered "
+                         f"names: {sorted(OPERATORS)}")
+    try:
+        op = OPERATORS[name](**options)
+    except TypeError as e:
+        raise ValueError(f"{argument} {name!r}: {e}") from e
+    return check_operator(op, f"{argument} {name!r}")
