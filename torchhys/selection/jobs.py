@@ -17,9 +17,14 @@ signal, Ctrl-C, a candidate's error) the running ones are killed, not waited for
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import math
 import multiprocessing
 import os
+import signal
+import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -28,10 +33,8 @@ from typing import Any
 
 import torch
 
-from torchhys.training.interrupts import die_with_parent
-
-__all__ = ["AUTO_JOBS", "SelectionJobError", "check_budget", "check_jobs", "run_candidates",
-           "usable_cores"]
+__all__ = ["AUTO_JOBS", "SelectionJobError", "check_budget", "check_jobs", "die_with_parent",
+           "run_candidates", "usable_cores"]
 
 _SCORE: Callable[[int], Any] | None = None
 """The scoring function of the running selection, inherited by the forked processes."""
@@ -178,7 +181,7 @@ def run_candidates(n: int, score: Callable[[int], Any], skipped: Callable[[int],
 
 def _start_worker(threads: int, parent: int) -> None:
     """A worker's start: its share of torch's threads; it dies with the command's process
-    and ignores SIGINT (:func:`~torchhys.training.interrupts.die_with_parent`)."""
+    and ignores SIGINT (:func:`die_with_parent`)."""
     die_with_parent(parent)
     torch.set_num_threads(threads)
 
@@ -190,3 +193,34 @@ def _stop(pool: ProcessPoolExecutor, workers: set) -> None:
         process.kill()
     for process in workers:
         process.join(timeout=5)
+
+
+_PR_SET_PDEATHSIG = 1
+"""Linux's ``prctl`` option: the signal a process gets when its parent ends."""
+
+
+_POLL_S = 0.5
+"""How often a worker without ``prctl`` looks whether its parent still runs."""
+
+
+def die_with_parent(parent: int) -> None:
+    """In a worker process started by the process ``parent``: end (SIGKILL) as soon as the
+    parent ends, however it ends (Linux: ``prctl(PR_SET_PDEATHSIG)``; elsewhere a thread
+    that looks every :data:`_POLL_S` s whether the parent changed), ignore SIGINT and take
+    SIGTERM as the default does (not a handler inherited from the parent)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    armed = False
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(OSError, AttributeError):
+            libc = ctypes.CDLL(None, use_errno=True)
+            armed = libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0
+    if os.getppid() != parent:  # the parent ended before the above took effect
+        os._exit(1)
+    if not armed:
+        def watch() -> None:
+            while os.getppid() == parent:
+                threading.Event().wait(_POLL_S)
+            os._exit(1)
+
+        threading.Thread(target=watch, name="torchhys-parent-watch", daemon=True).start()

@@ -11,14 +11,13 @@
   ``torchhys fit: interrupted by SIGINT`` (or SIGTERM) and exits with 128 + the signal's
   number (130, 143). A Ctrl-C elsewhere in the command is that line too.
 - The processes of ``model.select_jobs`` die with the command's process however it ends
-  (SIGKILL included: :func:`die_with_parent`), and ignore SIGINT (a Ctrl-C reaches the whole
-  process group; the command ends them).
+  (SIGKILL included: :func:`~torchhys.selection.jobs.die_with_parent`), and ignore SIGINT
+  (a Ctrl-C reaches the whole process group; the command ends them).
 """
 
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import os
 import signal
 import sys
@@ -30,13 +29,7 @@ from lightning.pytorch.callbacks import Callback, ModelCheckpoint
 from lightning.pytorch.utilities import rank_zero_only
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
-__all__ = ["Interrupted", "SigtermCheckpoint", "die_with_parent", "report_interrupt",
-           "signals_raise"]
-
-_PR_SET_PDEATHSIG = 1
-"""Linux's ``prctl`` option: the signal a process gets when its parent ends."""
-_POLL_S = 0.5
-"""How often a worker without ``prctl`` looks whether its parent still runs."""
+__all__ = ["Interrupted", "SigtermCheckpoint", "report_interrupt", "signals_raise"]
 
 
 class Interrupted(BaseException):
@@ -73,29 +66,6 @@ def signals_raise(signums: tuple[int, ...] = (signal.SIGTERM, signal.SIGINT)
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
-
-
-def die_with_parent(parent: int) -> None:
-    """In a worker process started by the process ``parent``: end (SIGKILL) as soon as the
-    parent ends, however it ends (Linux: ``prctl(PR_SET_PDEATHSIG)``; elsewhere a thread
-    that looks every :data:`_POLL_S` s whether the parent changed), ignore SIGINT and take
-    SIGTERM as the default does (not a handler inherited from the parent)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    armed = False
-    if sys.platform.startswith("linux"):
-        with contextlib.suppress(OSError, AttributeError):
-            libc = ctypes.CDLL(None, use_errno=True)
-            armed = libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0
-    if os.getppid() != parent:  # the parent ended before the above took effect
-        os._exit(1)
-    if not armed:
-        def watch() -> None:
-            while os.getppid() == parent:
-                threading.Event().wait(_POLL_S)
-            os._exit(1)
-
-        threading.Thread(target=watch, name="torchhys-parent-watch", daemon=True).start()
 
 
 class SigtermCheckpoint(Callback):
