@@ -1,9 +1,13 @@
-"""The registry: operators by name, and where specs by name are resolved.
+"""The registry: operators and model families by name, and where specs by name are resolved.
 
 :data:`OPERATORS` holds the operators that specs and configs name (the built-in ones are
 registered by their modules in :mod:`torchhys.operators`, the installed packages' by their
 entry points, a user's by :func:`register_operator`); :func:`make_operator` builds the operator
 of a spec. The protocol the operators implement is :mod:`torchhys.operator`.
+
+:data:`FAMILIES` holds the model families that are identified on data (a spec
+``{"fit": name, **options}``), each by the function that builds its placeholder and its fit
+(:func:`register_family`).
 """
 
 import warnings
@@ -18,10 +22,12 @@ __all__ = [
     "BROKEN_ENTRY_POINTS",
     "ENTRY_POINT_GROUP",
     "EXAMPLES",
+    "FAMILIES",
     "OPERATORS",
     "example_of",
     "load_entry_points",
     "make_operator",
+    "register_family",
     "register_operator",
 ]
 
@@ -202,3 +208,35 @@ def make_operator(spec: Any, /, *, argument: str = "operator", **options: Any
     except TypeError as e:
         raise ValueError(f"{argument} {name!r}: {e}") from e
     return check_operator(op, f"{argument} {name!r}")
+
+
+FAMILIES: dict[str, Callable[[Mapping[str, Any]], Any]] = {}
+"""Model families identified on data, by name: ``FAMILIES[name](spec)`` takes the spec
+``{"fit": name, **options}`` and returns ``(placeholder, fit)``: the module that holds the
+identified operator's place until the data are seen, and the function that identifies it
+(see :func:`register_family`)."""
+
+
+def register_family(name: str, builder: Callable[[Mapping[str, Any]], Any]) -> None:
+    """Register a model family identified on data under ``name``, for specs
+    ``{"fit": name, **options}``.
+
+    Registering the same builder under the same name again is a no-op.
+
+    Args:
+        name: the family's name in specs and configs.
+        builder: ``builder(spec) -> (placeholder, fit)`` (see :data:`FAMILIES`).
+
+    Raises:
+        ValueError: ``name`` is not a non-empty str, or is taken by another builder.
+        TypeError: ``builder`` is not callable.
+    """
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"family name must be a non-empty str, got {name!r}")
+    if not callable(builder):
+        raise TypeError(f"family {name!r}: builder must be callable (spec -> (placeholder, "
+                        f"fit)), got {type(builder).__name__} {builder!r}")
+    old = FAMILIES.get(name, builder)
+    if old is not builder:
+        raise ValueError(f"family name {name!r} is registered already ({old!r})")
+    FAMILIES[name] = builder
