@@ -4,8 +4,8 @@ amplitude only (:func:`coverage_warning`); ``torchhys fit`` warns before it trai
 from __future__ import annotations
 
 import warnings
+from typing import Any
 
-import lightning as L
 import torch
 from torch import Tensor
 
@@ -110,7 +110,7 @@ def coverage_warning(x: Tensor, mask: Tensor, *, source: str = "the data") -> st
     return None
 
 
-def warn_coverage(data: L.LightningDataModule, prefix: str = "model.select") -> None:
+def warn_coverage(data: Any, prefix: str = "model.select") -> None:
     """Warn (:func:`coverage_warning`, a ``UserWarning`` starting with ``prefix``) about what
     the training part of a :class:`~torchhys.training.HysteresisDataModule` cannot show
     (other datamodules are not read)."""
