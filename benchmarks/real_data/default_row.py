@@ -12,13 +12,14 @@ import torch
 from torch import Tensor
 
 from torchhys import InverseHysteresisNet
+from torchhys.cli.train import read_config
 from torchhys.deploy.streaming import default_limits
 from torchhys.identification.errors import FitError
 from torchhys.identification.specs import build_operators, fit_data_dependent
 from torchhys.init import initialize
-from torchhys.cli.train import read_config
+from torchhys.optim.named import OPTIMIZERS
 from torchhys.training.folds import RECORDING, fold_masks
-from torchhys.training.module import OPTIMIZERS, InverseHysteresisModule
+from torchhys.training.module import InverseHysteresisModule
 from torchhys.training.selection import CandidateScore, best, standard_error
 
 from .datasets import F64, ROOT, Split

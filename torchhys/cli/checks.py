@@ -14,7 +14,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from torchhys.training.module import (
+from torchhys.optim.named import (
     OPTIMIZERS,
     RESET_OPTIMIZER_KWARGS,
     optimizer_keywords,

@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import inspect
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from typing import Any
 
 import lightning as L
@@ -20,55 +19,12 @@ from torchhys._checks import check_choice
 from torchhys._finite import check_learning_rate, check_normalization, check_training
 from torchhys.identification.specs import build_operators, fit_data_dependent
 from torchhys.init import initialize
-from torchhys.optim import PowellBealeCG
+from torchhys.optim.named import CLOSURE_OPTIMIZERS, OPTIMIZERS, check_optimizer_kwargs
 from torchhys.protocols import check_network
 
-__all__ = ["CLOSURE_OPTIMIZERS", "OPTIMIZERS", "InverseHysteresisModule", "check_optimizer_kwargs"]
+__all__ = ["InverseHysteresisModule"]
 
-OPTIMIZERS: dict[str, type[torch.optim.Optimizer]] = {
-    "adam": torch.optim.Adam,
-    "cg": PowellBealeCG,
-    "lbfgs": torch.optim.LBFGS,
-}
-"""Optimizers by name. ``cg`` is conjugate gradient with Powell-Beale restarts."""
-CLOSURE_OPTIMIZERS = frozenset({"cg", "lbfgs"})
-"""Optimizers that re-evaluate the loss in a line search: trained full-batch, manually."""
 _FULL_PRECISION = ("32-true", "64-true", "32", "64")
-
-RESET_OPTIMIZER_KWARGS = "--model.optimizer_kwargs '{}'"
-"""How the command line resets ``model.optimizer_kwargs`` (in messages)."""
-
-
-def optimizer_keywords(optimizer: str) -> list[str]:
-    """The keyword arguments the optimizer ``optimizer`` (a name of :data:`OPTIMIZERS`)
-    takes besides its parameters."""
-    signature = inspect.signature(OPTIMIZERS[optimizer].__init__)
-    return [n for n, p in signature.parameters.items() if n not in ("self", "params")
-            and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
-
-
-def unknown_optimizer_kwargs(optimizer: str, optimizer_kwargs: Any) -> list[str]:
-    """The keys of ``optimizer_kwargs`` that the optimizer ``optimizer`` does not take,
-    sorted."""
-    known = optimizer_keywords(optimizer)
-    return sorted(str(k) for k in (optimizer_kwargs or {}) if k not in known)
-
-
-def check_optimizer_kwargs(optimizer: str, optimizer_kwargs: Any) -> None:
-    """Raise ``ValueError`` for ``optimizer_kwargs`` that the optimizer ``optimizer`` does
-    not take, naming them, the ones it takes and how the command line resets them (an
-    unknown optimizer name is left to the module's own check)."""
-    if optimizer not in OPTIMIZERS:
-        return
-    if optimizer_kwargs is not None and not isinstance(optimizer_kwargs, Mapping):
-        raise ValueError(f"optimizer_kwargs must be a dict of keyword arguments of the "
-                         f"optimizer, got {type(optimizer_kwargs).__name__}")
-    unknown = unknown_optimizer_kwargs(optimizer, optimizer_kwargs)
-    if unknown:
-        raise ValueError(
-            f"optimizer_kwargs {unknown} are not keyword arguments of optimizer={optimizer!r} "
-            f"({OPTIMIZERS[optimizer].__name__} takes {optimizer_keywords(optimizer)}); kwargs "
-            f"of another optimizer are reset with {RESET_OPTIMIZER_KWARGS}")
 
 
 Batch = tuple[Tensor, ...]

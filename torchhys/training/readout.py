@@ -19,7 +19,8 @@ import torch
 from torch import Tensor
 
 from torchhys.networks import InverseHysteresisNet
-from torchhys.training.module import CLOSURE_OPTIMIZERS, InverseHysteresisModule
+from torchhys.optim.named import CLOSURE_OPTIMIZERS
+from torchhys.training.module import InverseHysteresisModule
 
 __all__ = ["direct_validation", "solvable"]
 
