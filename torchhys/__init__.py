@@ -15,6 +15,7 @@ from torchhys import (
     plants,
     signals,
 )
+from torchhys._version import __version__
 from torchhys.deploy import export, streaming
 from torchhys.identification import fitting
 from torchhys.identification.drift import fit_drift
@@ -35,8 +36,6 @@ from torchhys.operators.prandtl_ishlinskii import PrandtlIshlinskii, PrandtlIshl
 from torchhys.operators.preisach import Preisach, PreisachInverse
 from torchhys.operators.stop_pi import StopPIInverse, StopPrandtlIshlinskii
 from torchhys.registry import register_operator
-
-__version__ = "0.1.0"
 
 __all__ = [
     "__version__",
