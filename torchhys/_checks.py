@@ -22,6 +22,8 @@ __all__ = [
     "check_choice",
     "check_dtype_of",
     "check_finite",
+    "check_penalty",
+    "check_state",
     "check_floating",
     "check_int",
     "check_same_shape",
@@ -248,3 +250,28 @@ def as_batched_sequence(x: Tensor, name: str = "x") -> tuple[Tensor, bool]:
     if x.dim() == 1:
         return x.unsqueeze(0), True
     return x, False
+
+
+def check_penalty(value: object, name: str) -> float:
+    """A finite real number >= 0 (a Python or NumPy number, or a one-element tensor)."""
+    if isinstance(value, Tensor) and value.numel() == 1:
+        value = value.item()
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a real number, got {type(value).__name__}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise ValueError(f"{name} must be finite, got {value}")
+    if v < 0:
+        raise ValueError(f"{name} must be >= 0, got {v}")
+    return v
+
+
+def check_state(state: object, batch: int, size: int, like: Tensor) -> Tensor:
+    """A carried state, (size,) or (batch, size), as (batch, size) in ``like``'s dtype."""
+    check_tensor(state, "state")
+    check_floating(state, "state")
+    if state.shape not in (torch.Size([size]), torch.Size([batch, size])):
+        raise ValueError(f"state must have shape ({size},) or ({batch}, {size}) for batch "
+                         f"{batch}, got shape {tuple(state.shape)}")
+    check_finite(state, "state")
+    return state.to(dtype=like.dtype, device=like.device).expand(batch, size)

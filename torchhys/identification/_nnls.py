@@ -22,9 +22,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchhys._checks import fitted_samples
+from torchhys._checks import check_penalty, fitted_samples
 
-__all__ = ["Moments", "check_penalty", "check_validation", "fit_segments", "holdout_cuts",
+__all__ = ["Moments", "check_validation", "fit_segments", "holdout_cuts",
            "moments", "moments_rmse", "nnls_gram", "select_on_holdout"]
 
 
@@ -53,20 +53,6 @@ def moments_rmse(m: Moments, theta: Tensor) -> float:
     negative)."""
     sse = m.yy - 2.0 * theta @ m.moment + theta @ m.gram @ theta
     return math.sqrt(max(float(sse) / m.count, 0.0))
-
-
-def check_penalty(value: object, name: str) -> float:
-    """A finite real number >= 0 (a Python or NumPy number, or a one-element tensor)."""
-    if isinstance(value, Tensor) and value.numel() == 1:
-        value = value.item()
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise TypeError(f"{name} must be a real number, got {type(value).__name__}")
-    v = float(value)
-    if not math.isfinite(v):
-        raise ValueError(f"{name} must be finite, got {value}")
-    if v < 0:
-        raise ValueError(f"{name} must be >= 0, got {v}")
-    return v
 
 
 def check_validation(validation: object) -> float:

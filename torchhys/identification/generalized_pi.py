@@ -12,10 +12,10 @@ from torch import Tensor
 from torchhys._checks import (
     as_batched_sequence,
     check_int,
+    check_penalty,
     check_same_shape,
     fitted_samples,
 )
-from torchhys.identification._nnls import check_penalty
 from torchhys.identification.fitting import fit_full_batch, fit_prandtl_ishlinskii
 from torchhys.operators.backlash import _inverse_softplus
 from torchhys.operators.generalized_pi import GeneralizedPrandtlIshlinskii

@@ -13,6 +13,7 @@ from torch import Tensor, nn
 
 from torchhys._checks import (
     as_batched_sequence,
+    check_penalty,
     check_warmup,
     fitted_samples,
 )
@@ -24,7 +25,6 @@ from torchhys.functional.preisach import (
 )
 from torchhys.identification._nnls import (
     Moments,
-    check_penalty,
     check_validation,
     fit_segments,
     moments_rmse,

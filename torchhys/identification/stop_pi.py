@@ -13,6 +13,7 @@ from torchhys._checks import (
     as_batched_sequence,
     check_bool,
     check_int,
+    check_penalty,
     check_real,
     check_same_shape,
     check_warmup,
@@ -25,7 +26,6 @@ from torchhys.functional.stop_pi import (
 )
 from torchhys.identification._nnls import (
     Moments,
-    check_penalty,
     check_validation,
     fit_segments,
     moments_rmse,

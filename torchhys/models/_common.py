@@ -7,9 +7,7 @@ import math
 import torch
 from torch import Tensor
 
-from torchhys._checks import check_finite, check_floating, check_tensor
-
-__all__ = ["check_fs", "check_scale", "check_state", "scale_buffer"]
+__all__ = ["check_fs", "check_scale", "scale_buffer"]
 
 
 def check_fs(fs: object, name: str = "fs") -> float:
@@ -18,17 +16,6 @@ def check_fs(fs: object, name: str = "fs") -> float:
             or fs <= 0:
         raise ValueError(f"{name} must be a positive finite float (Hz), got {fs!r}")
     return float(fs)
-
-
-def check_state(state: object, batch: int, size: int, like: Tensor) -> Tensor:
-    """A carried state, (size,) or (batch, size), as (batch, size) in ``like``'s dtype."""
-    check_tensor(state, "state")
-    check_floating(state, "state")
-    if state.shape not in (torch.Size([size]), torch.Size([batch, size])):
-        raise ValueError(f"state must have shape ({size},) or ({batch}, {size}) for batch "
-                         f"{batch}, got shape {tuple(state.shape)}")
-    check_finite(state, "state")
-    return state.to(dtype=like.dtype, device=like.device).expand(batch, size)
 
 
 def check_scale(value: object, name: str) -> float:

@@ -39,10 +39,10 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-from torchhys._checks import as_batched_sequence, check_int
+from torchhys._checks import as_batched_sequence, check_int, check_state
 from torchhys.dynamics import TransferFunction
 from torchhys.functional.linear_filter import df2t_step
-from torchhys.models._common import check_fs, check_state, scale_buffer
+from torchhys.models._common import check_fs, scale_buffer
 from torchhys.models.hysteretic_elements import FeedbackElement
 from torchhys.registry import make_operator
 

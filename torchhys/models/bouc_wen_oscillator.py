@@ -36,8 +36,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor, nn
 
-from torchhys._checks import as_batched_sequence, check_choice, check_int
-from torchhys.models._common import check_fs, check_state
+from torchhys._checks import as_batched_sequence, check_choice, check_int, check_state
+from torchhys.models._common import check_fs
 
 __all__ = ["BENCHMARK", "BoucWenOscillator"]
 

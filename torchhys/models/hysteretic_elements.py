@@ -37,12 +37,12 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from torchhys._checks import as_batched_sequence, check_dtype_of, check_int
+from torchhys._checks import as_batched_sequence, check_dtype_of, check_int, check_state
 from torchhys.functional.backlash import play_step
-from torchhys.models._common import check_state
-from torchhys.operator import Example, HysteresisOperator, OperatorStep, StateBlock
+from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
 from torchhys.operators.backlash import Backlash
 from torchhys.registry import register_operator
+from torchhys.testing import Example
 
 __all__ = ["DuhemHysteresis", "DuhemStep", "FeedbackElement", "PlayHysteresis",
            "PlayHysteresisStep"]

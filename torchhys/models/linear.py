@@ -16,9 +16,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from torchhys._checks import as_batched_sequence, check_int
+from torchhys._checks import as_batched_sequence, check_int, check_state
 from torchhys.dynamics import TransferFunction
-from torchhys.models._common import check_fs, check_state, scale_buffer
+from torchhys.models._common import check_fs, scale_buffer
 
 __all__ = ["LinearModel", "fit_linear"]
 

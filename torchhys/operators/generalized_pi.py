@@ -68,6 +68,7 @@ from torchhys._checks import (
     check_bool,
     check_finite,
     check_int,
+    check_penalty,
     check_real,
     check_same_shape,
     check_tensor,
@@ -78,11 +79,11 @@ from torchhys.functional.prandtl_ishlinskii import (
     pi_output,
     prandtl_ishlinskii_inverse_parameters,
 )
-from torchhys.identification._nnls import check_penalty
-from torchhys.operator import Example, HysteresisOperator, OperatorStep, StateBlock
+from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
 from torchhys.operators.backlash import _inverse_softplus, _Widths
 from torchhys.operators.prandtl_ishlinskii import PrandtlIshlinskii
 from torchhys.registry import register_operator
+from torchhys.testing import Example
 
 __all__ = ["ANALYTIC_ROWS", "GeneralizedPIInverse", "GeneralizedPIInverseStep",
            "GeneralizedPIStep", "GeneralizedPrandtlIshlinskii"]
