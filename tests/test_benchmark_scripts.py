@@ -116,7 +116,7 @@ def test_stop_pi_figure_is_drawn_and_beats_the_line(tmp_path: Path) -> None:
     assert 0 < stop < line
 
 
-@pytest.mark.slow  # a figure script's whole fit (about a minute)
+@pytest.mark.slow  # a figure script's whole fit
 def test_sma_figure_is_drawn_and_the_drift_takes_the_offset(tmp_path: Path) -> None:
     out = run("benchmarks.sma_figure", "--out", str(tmp_path / "fig.png"))
     assert (tmp_path / "fig.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -170,7 +170,7 @@ def test_paper_protocol_benchmark_ranks_the_operators() -> None:
         assert all(math.isfinite(float(c)) for c in r[5:]), r
 
 
-@pytest.mark.slow  # a figure script's whole fit (about a minute)
+@pytest.mark.slow  # a figure script's whole fit
 def test_micromanipulator_figure_is_drawn_and_finds_the_lag(tmp_path: Path) -> None:
     """The micromanipulator's identification loop closes when the sensor is shifted back by
     its lag (a memoryless polynomial then fits it to a fraction of the unshifted error), and

@@ -55,7 +55,7 @@ def test_saved_models_reproduce_their_rows(bench, name: str) -> None:
 
 @pytest.mark.slow
 def test_quick_mode_trains_saves_and_evaluates(bench, tmp_path: Path) -> None:
-    """About 3 minutes to train, 1.5 to evaluate, on one core."""
+    """The quick mode trains every model, saves the rows and evaluates them."""
     rows = bench.main(["--quick", "--save", str(tmp_path)])
     names = [r["label"] for r in rows]
     assert len(rows) == len(bench.MODELS) and names[0] == "linear (order 2)"

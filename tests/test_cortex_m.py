@@ -1,7 +1,7 @@
 """deploy/c/cortex_m4.sh: the generated float32 C cross-compiled for a Cortex-M4 with hardware
 float, run under QEMU (mps2-an386, semihosting through newlib's rdimon) and compared with the
 same files built by the host's cc: the commands within 1e-4 of their scale (the float32 bound
-of docs/deployment.md), the counters and the state's size equal. Slow (about 10 s); skipped
+of docs/deployment.md), the counters and the state's size equal. Slow; skipped
 without the cross tools (apt-get install -y gcc-arm-none-eabi libnewlib-arm-none-eabi
 qemu-system-arm) or a host C compiler."""
 

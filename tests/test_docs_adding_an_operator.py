@@ -127,7 +127,7 @@ def commands(prefix: str) -> list[list[str]]:
 @pytest.mark.slow
 def test_the_command_line_route(tmp_path: Path) -> None:
     """``torchhys fit --import-path . --import`` on the page's config, both exports, and the
-    TorchScript file run where neither torchhys nor the module is imported (about 50 s)."""
+    TorchScript file run where neither torchhys nor the module is imported."""
     write_files(tmp_path)
     (tmp_path / "c_out").mkdir()
     steps = commands("torchhys")
@@ -150,7 +150,7 @@ def test_the_command_line_route(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_the_conformance_suite_covers_the_page_operators(tmp_path: Path) -> None:
-    """The page's pytest line (about 30 s): every check of tests/test_conformance.py runs
+    """The page's pytest line: every check of tests/test_conformance.py runs
     for both names and passes, but for KNOWN_DEFECTS."""
     write_files(tmp_path)
     (args,) = commands("pytest")

@@ -13,7 +13,7 @@ range, NaN and inf; tests/_export_helpers.py).
   compensator (40 stops beside the inverse of a graded 40-level Preisach model); held
   out: the 16 and 40 A/m loops.
 
-Slow: the measured config tries its 11 candidates (about a minute).
+Slow: the measured config tries its 11 candidates.
 """
 
 from __future__ import annotations

@@ -49,6 +49,6 @@ def test_ranking_on_a_small_budget(one_thread: None) -> None:
 
 @pytest.mark.slow
 def test_paper_figure_reached(one_thread: None) -> None:
-    eiho = train("eiho_segment", {}, 2000, 10000)  # about 2 min on one core
+    eiho = train("eiho_segment", {}, 2000, 10000)
     assert eiho <= PAPER_EIHO_MSE
     assert eiho < train("zhao_tan", zhao_tan_kwargs(), 2000, 3000)
