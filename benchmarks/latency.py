@@ -16,7 +16,7 @@ held by the program; AOTI: ``boxed_run``, single-threaded runner). The C rows: t
 step of :func:`torchhys.deploy.c.to_c` in a C harness compiled here (``cc -std=c99 -O2``, the
 compiler's default target, and ``-O3 -march=native``), which times each step with
 ``clock_gettime(CLOCK_MONOTONIC)`` after a warm-up pass; ``--c-only`` runs these alone (no
-libtorch, no AOTI compile of minutes). ONNX Runtime (through ``torchhys.deploy.export_onnx``'s
+libtorch, no AOTI compile). ONNX Runtime (through ``torchhys.deploy.export_onnx``'s
 stepper, from Python, one thread) where that module and onnxruntime are installed. Every
 model is in ``--dtype`` (default float64, the C step's). Every row runs
 ``--rounds`` times, the rows interleaved, so that a change of load on a shared CPU touches
