@@ -58,6 +58,7 @@ import torch
 from torch import Tensor, nn
 
 from torchhys._checks import check_int
+from torchhys._version import __version__
 from torchhys.deploy.export import (
     _METADATA_KEYS,
     _check_path,
@@ -179,11 +180,9 @@ def _translations() -> dict[Any, Any]:
 
 def onnx_metadata(comp: nn.Module, batch: int = 1) -> dict[str, str]:
     """The ``metadata_props`` of :func:`to_onnx` for a built compensator (module docstring)."""
-    import torchhys
-
     state = [t.tolist() for t in comp.initial_state(1)]
     return {**metadata(comp, batch), "initial_state": json.dumps(state),
-            "torchhys_version": torchhys.__version__}
+            "torchhys_version": __version__}
 
 
 def to_onnx(
