@@ -17,8 +17,6 @@ import os
 import uuid
 from collections.abc import Sequence
 
-__all__ = ["PARTIAL", "atomic_write_bytes", "atomic_write_files", "fsync_dir"]
-
 PARTIAL = ".partial"
 """Suffix of the temporary files (their names never hold "last": Lightning's
 ``ckpt_path="last"`` looks for files with "last" in the name)."""

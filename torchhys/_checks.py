@@ -15,25 +15,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = [
-    "check_bool",
-    "check_real",
-    "check_nonnegative",
-    "check_choice",
-    "check_dtype_of",
-    "check_finite",
-    "check_penalty",
-    "check_state",
-    "check_floating",
-    "check_int",
-    "check_same_shape",
-    "check_warmup",
-    "fitted_samples",
-    "check_tensor",
-    "check_widths",
-    "as_batched_sequence",
-]
-
 _T = TypeVar("_T")
 
 

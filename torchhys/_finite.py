@@ -19,9 +19,6 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-__all__ = ["DivergedError", "check_learning_rate", "check_normalization", "check_output",
-           "check_scale", "check_training", "check_weights", "first_nonfinite"]
-
 NORMALIZATION = ("in_mean", "in_std", "out_mean", "out_std")
 """The network's normalization buffers (fitted once on the training data)."""
 

@@ -13,9 +13,6 @@ from __future__ import annotations
 import os
 import re
 
-__all__ = ["MEMORY_ENV", "SAMPLE_BYTES", "check_memory", "check_repeat", "format_bytes",
-           "memory_limit"]
-
 MEMORY_ENV = "TORCHHYS_MAX_MEMORY"
 """The environment variable of the memory limit."""
 

@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import threading
 
-__all__ = ["StepLock"]
-
 
 class StepLock:
     """A context manager holding a :class:`threading.Lock`; copies get a new one."""

@@ -51,12 +51,6 @@ from torchhys._checks import (
 )
 from torchhys.functional.turning_points import resolve_threshold, zigzag
 
-__all__ = [
-    "BranchShape", "BranchState", "SquareRoot", "ZhaoTanShape", "branch_operator", "check_a",
-    "direction_coefficient",
-    "initial_branch_state", "linear_zone_sqrt", "safe_sqrt", "signed_sqrt", "sqrt_constants",
-]
-
 _RULES = ("recent", "dominant")
 
 

@@ -23,8 +23,6 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-__all__ = ["FLAGS", "SUFFIX", "build", "servable"]
-
 FLAGS = ["-O2", "-shared", "-fPIC", "-fno-fast-math", "-ffp-contract=off"]
 """Compiler flags: no fast math, no fused multiply-add contraction (results bit-equal to the
 step-by-step tensor arithmetic)."""

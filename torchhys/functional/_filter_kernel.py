@@ -33,17 +33,6 @@ from torch import Tensor
 from torchhys.functional._compile import SUFFIX as _SUFFIX
 from torchhys.functional._compile import build, servable
 
-__all__ = [
-    "MAX_FUSED_ORDER",
-    "df2t_adjoint_kernel",
-    "df2t_kernel",
-    "filter_kernel_available",
-    "filter_kernel_enabled",
-    "filter_kernel_unavailable_reason",
-    "linrec_adjoint_kernel",
-    "linrec_kernel",
-]
-
 _enabled = True
 
 MAX_FUSED_ORDER = 64

@@ -23,14 +23,6 @@ from torch import Tensor
 from torchhys.functional._compile import SUFFIX as _SUFFIX
 from torchhys.functional._compile import build, servable
 
-__all__ = [
-    "kernel_available",
-    "kernel_enabled",
-    "kernel_unavailable_reason",
-    "play_backward_kernel",
-    "play_forward_kernel",
-]
-
 _enabled = True
 
 

@@ -16,8 +16,6 @@ import math
 import torch
 from torch import Tensor
 
-__all__ = ["df2t_scan", "recurrence_scan"]
-
 
 def recurrence_scan(A: Tensor, w: Tensor, s0: Tensor) -> Tensor:
     """s[t] = A s[t-1] + w[t], s[-1] = s0: A (n, n), w (R, T, n), s0 (R, n) -> (R, T, n)."""

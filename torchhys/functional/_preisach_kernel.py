@@ -28,8 +28,6 @@ from torch import Tensor
 from torchhys.functional._compile import SUFFIX as _SUFFIX
 from torchhys.functional._compile import build, servable
 
-__all__ = ["REFRESH", "inverse_kernel", "inverse_kernel_available"]
-
 REFRESH = 32
 """Samples with a switch between two sums of ``offs`` afresh."""
 

@@ -25,8 +25,6 @@ from torch import Tensor, nn
 from torchhys.identification.errors import FitError
 from torchhys.identification.families import fit_key
 
-__all__ = ["SHARED_FAMILIES", "SIZE", "clear", "shared"]
-
 SHARED_FAMILIES = frozenset({"plays", "pi_ls", "pi_nonneg", "gpi", "preisach", "stop_pi",
                              "drift"})
 """The families whose fit is a function of the spec and the data alone (``jiles_atherton``

@@ -24,9 +24,6 @@ from torch import Tensor
 
 from torchhys._checks import check_penalty, fitted_samples
 
-__all__ = ["Moments", "check_validation", "fit_segments", "holdout_cuts",
-           "moments", "moments_rmse", "nnls_gram", "select_on_holdout"]
-
 
 class Moments(NamedTuple):
     """Second moments of one segment of a least-squares problem, float64."""

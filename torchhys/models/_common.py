@@ -7,8 +7,6 @@ import math
 import torch
 from torch import Tensor
 
-__all__ = ["check_fs", "check_scale", "scale_buffer"]
-
 
 def check_fs(fs: object, name: str = "fs") -> float:
     """A positive, finite sampling frequency (Hz) as a float."""
