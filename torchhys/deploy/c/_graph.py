@@ -84,7 +84,7 @@ def _live(graph: fx.Graph, finite: dict[fx.Node, tuple[list[fx.Node], bool]]) ->
     return live
 
 
-def _translate(ep: torch.export.ExportedProgram, w: Writer, members: list[str]
+def translate(ep: torch.export.ExportedProgram, w: Writer, members: list[str]
                ) -> tuple[CTensor, list[CTensor]]:
     """Write the step's statements into ``w``: returns the command's and the new state's
     tensors."""

@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 from torchhys.deploy.c._files import MEMBERS, files
-from torchhys.deploy.c._graph import _translate
+from torchhys.deploy.c._graph import translate
 from torchhys.deploy.c._writer import Writer
 from torchhys.deploy.export import _compensator, _ExplicitStep, write_outputs
 from torchhys.deploy.streaming import StreamingCompensator
@@ -105,7 +105,7 @@ def to_c(
         ep = torch.export.export(_ExplicitStep(comp), (torch.zeros(1, dtype=dtype), *state),
                                  strict=False)
     w = Writer(prefix)
-    u, outputs = _translate(ep, w, [MEMBERS.get(k, f"s{k}") for k in range(len(state))])
+    u, outputs = translate(ep, w, [MEMBERS.get(k, f"s{k}") for k in range(len(state))])
     options = {"dtype": str(dtype).replace("torch.", ""), "limits": limits,
                "initial_command": initial_command, "input_range": input_range,
                "input_margin": input_margin, "direction": direction}
