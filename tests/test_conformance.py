@@ -2,7 +2,7 @@
 
 The names are read from ``torchhys.registry.OPERATORS`` at import (entry points included): an
 operator registered later is covered without editing this file. Each check builds the
-operator's :class:`~torchhys.operator.Example` in float64 and compares within its ``atol``
+operator's :class:`~torchhys.testing.Example` in float64 and compares within its ``atol``
 (0: bit for bit), relative to the output's scale. The exports: the TorchScript and AOTI
 compensators against the eager one; the C99 step (compiled) and the ONNX step (ONNX
 Runtime) against the TorchScript file's, output and state. Family-specific maths

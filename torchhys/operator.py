@@ -5,9 +5,9 @@ Networks (:class:`~torchhys.InverseHysteresisNet`), the streaming compensator
 compose operators through this protocol only. An operator is one file: a subclass of
 :class:`HysteresisOperator` with its sequence path, and a subclass of :class:`OperatorStep`
 beside it with its per-sample step; both call the same maths. One line registers it by name
-(:func:`torchhys.registry.register_operator`), with a small :class:`Example` that
-``tests/test_conformance.py`` runs through the checks every operator must pass. See
-``docs/adding-an-operator.md`` for a worked example.
+(:func:`torchhys.registry.register_operator`), with a small
+:class:`~torchhys.testing.Example` that ``tests/test_conformance.py`` runs through the checks
+every operator must pass. See ``docs/adding-an-operator.md`` for a worked example.
 
 ``HysteresisOperator`` (an ``nn.Module``)::
 
@@ -50,8 +50,6 @@ fixed when it is built.
 import abc
 import copy
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
-from dataclasses import field as dataclass_field
 from typing import Any, ClassVar
 
 import torch
@@ -68,7 +66,6 @@ from torchhys.step import (
 
 __all__ = [
     "AtomicLoad",
-    "Example",
     "HysteresisOperator",
     "OperatorStep",
     "StateBlock",
@@ -216,27 +213,3 @@ def check_operator(op: object, name: str = "operator") -> HysteresisOperator:
         raise TypeError(f"{name} {type(op).__name__} has n_inputs = {m}: an operator takes one "
                         "input column (x (batch, time)); use a block with n_inputs=1 here")
     return op
-
-
-@dataclass(frozen=True)
-class Example:
-    """A small instance of a registered operator and what the conformance tests
-    (``tests/test_conformance.py``) may expect of it.
-
-    Args:
-        build: returns a new instance: a few widths or levels, for inputs in about
-            ``[-1, 1]``; the tests run it in float64.
-        atol: float64 tolerance between the paths that compute the same output (chunked
-            calls and one call, the step and ``forward``, the exported compensator and the
-            eager one), relative to the output's scale (at least 1); 0: bit for bit.
-        no_gradcheck: why ``torch.autograd.gradcheck`` of ``forward`` with respect to the
-            input does not apply (e.g. an output piecewise constant in it), or None.
-        bad_values: state-dict keys, each with a value that breaks a constraint that
-            ``load_state_dict`` checks (the whole tensor filled with it), e.g.
-            ``{"weights": -1.0}`` for a non-negative density; empty where none is checked.
-    """
-
-    build: Callable[[], HysteresisOperator]
-    atol: float = 0.0
-    no_gradcheck: str | None = None
-    bad_values: Mapping[str, float] = dataclass_field(default_factory=dict)

@@ -16,7 +16,8 @@ from typing import Any
 
 from torch import nn
 
-from torchhys.operator import Example, HysteresisOperator, check_operator
+from torchhys.operator import HysteresisOperator, check_operator
+from torchhys.testing import Example
 
 __all__ = [
     "BROKEN_ENTRY_POINTS",

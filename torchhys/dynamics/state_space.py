@@ -10,8 +10,9 @@ from torch import Tensor, nn
 from torchhys._checks import check_int
 from torchhys.dynamics._common import as_float64, batched_inputs, radius, start
 from torchhys.functional.linear_filter import state_space, state_space_step
-from torchhys.operator import Example, HysteresisOperator, OperatorStep, StateBlock
+from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
 from torchhys.registry import register_operator
+from torchhys.testing import Example
 
 __all__ = ["StateSpace", "StateSpaceStep"]
 

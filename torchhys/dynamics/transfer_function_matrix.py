@@ -21,8 +21,9 @@ from torchhys.dynamics._common import (
     start,
 )
 from torchhys.functional.linear_filter import df2t_step, lfilter
-from torchhys.operator import Example, HysteresisOperator, OperatorStep, StateBlock
+from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
 from torchhys.registry import register_operator
+from torchhys.testing import Example
 
 __all__ = ["TransferFunctionMatrix", "TransferFunctionMatrixStep"]
 

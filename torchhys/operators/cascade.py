@@ -27,9 +27,10 @@ import torch
 from torch import Tensor
 
 from torchhys._checks import as_batched_sequence
-from torchhys.operator import Example, HysteresisOperator
+from torchhys.operator import HysteresisOperator
 from torchhys.registry import make_operator, register_operator
 from torchhys.step import STATE_KINDS, OperatorStep, custom_start
+from torchhys.testing import Example
 
 __all__ = ["Cascade", "CascadeStep"]
 

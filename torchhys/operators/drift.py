@@ -26,8 +26,9 @@ from torchhys.functional.drift import (
     drift,
     drift_step,
 )
-from torchhys.operator import Example, HysteresisOperator, OperatorStep, StateBlock
+from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
 from torchhys.registry import register_operator
+from torchhys.testing import Example
 
 __all__ = ["Drift", "DriftStep"]
 
