@@ -12,10 +12,11 @@ All map a force sequence u to a displacement y with a carried state:
 
 from torchhys.models.block_oriented import HysteresisFeedback
 from torchhys.models.bouc_wen_oscillator import BENCHMARK, BoucWenOscillator
-from torchhys.models.hysteretic_elements import DuhemHysteresis, PlayHysteresis
-from torchhys.models.identification import grey_box_start, init_from_linear
 from torchhys.models.linear import LinearModel, fit_linear
-from torchhys.models.training import WindowFit, check_record, fit_windows, simulate
+from torchhys.models.starting_values import grey_box_start, init_from_linear
+from torchhys.models.windows import WindowFit, check_record, fit_windows, simulate
+from torchhys.operators.duhem import DuhemHysteresis
+from torchhys.operators.play_hysteresis import PlayHysteresis
 
 __all__ = [
     "BENCHMARK",

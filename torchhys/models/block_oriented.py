@@ -9,9 +9,9 @@ output itself::
 
 ``G_u`` and ``G_z`` are :class:`torchhys.dynamics.TransferFunction` blocks (stable, poles in
 second-order sections); ``H`` is a feedback element
-(:class:`~torchhys.models.hysteretic_elements.FeedbackElement`: a
-:class:`~torchhys.models.hysteretic_elements.DuhemHysteresis` or a
-:class:`~torchhys.models.hysteretic_elements.PlayHysteresis`). Signals
+(:class:`~torchhys.operators.feedback_element.FeedbackElement`: a
+:class:`~torchhys.operators.duhem.DuhemHysteresis` or a
+:class:`~torchhys.operators.play_hysteresis.PlayHysteresis`). Signals
 are scaled inside (``u / u_scale``, ``y / y_scale``, so ``H`` sees numbers of order one).
 
 It contains the Bouc-Wen oscillator, ``y = G (u - z)``, ``z = BW[y]``, up to sampling, but
@@ -24,8 +24,8 @@ path), one sample at a time. State ``(batch, n_u + n_z + h)``: the delays of ``G
 ``G_z`` and the element's state. ``None``: at rest.
 
 Identification: start from a linear model with part of its stiffness in the loop
-(:func:`torchhys.models.identification.init_from_linear`), then minimise the simulation
-error by windows (:func:`torchhys.models.training.fit_windows`).
+(:func:`torchhys.models.starting_values.init_from_linear`), then minimise the simulation
+error by windows (:func:`torchhys.models.windows.fit_windows`).
 
 References:
     M. Schoukens, K. Tiels, "Identification of block-oriented nonlinear systems starting from
@@ -43,7 +43,7 @@ from torchhys._checks import as_batched_sequence, check_int, check_state
 from torchhys.dynamics import TransferFunction
 from torchhys.functional.linear_filter import df2t_step
 from torchhys.models._common import check_fs, scale_buffer
-from torchhys.models.hysteretic_elements import FeedbackElement
+from torchhys.operators.feedback_element import FeedbackElement
 from torchhys.registry import make_operator
 
 __all__ = ["HysteresisFeedback"]
@@ -57,7 +57,7 @@ class HysteresisFeedback(nn.Module):
         element: the feedback element, as an operator spec
             (:func:`torchhys.registry.make_operator`), e.g. ``{"name": "duhem", "hidden": 0}``
             (the default) or ``{"name": "play_hysteresis", "widths": [...], "hidden": 16}``,
-            or a :class:`~torchhys.models.hysteretic_elements.FeedbackElement`.
+            or a :class:`~torchhys.operators.feedback_element.FeedbackElement`.
         fs: sampling frequency the model is identified at (Hz).
         u_scale, y_scale: the input and output units (e.g. their standard deviations).
         max_pole_radius: the pole bounds of ``G_u`` and ``G_z`` (:meth:`set_blocks` may

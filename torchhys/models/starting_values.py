@@ -10,7 +10,7 @@ the loop ``y = G_u u + G_z z`` has the transfer function ``B / A``: the model st
 linear one, exactly. ``k`` is ``fraction / G(1)``, a fraction of the static stiffness
 (scaled units); the open loop ``A - k C`` is then the softer plant of which the element
 carries the rest. The simulation error then shapes the element away from linear
-(:func:`~torchhys.models.training.fit_windows`); starting from zero feedback instead leaves
+(:func:`~torchhys.models.windows.fit_windows`); starting from zero feedback instead leaves
 the element's parameters without a gradient.
 """
 
