@@ -11,8 +11,6 @@ from torchhys._checks import check_int
 from torchhys.dynamics._common import as_float64, batched_inputs, radius, start
 from torchhys.functional.linear_filter import state_space, state_space_step
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
-from torchhys.registry import register_operator
-from torchhys.testing import Example
 
 __all__ = ["StateSpace", "StateSpaceStep"]
 
@@ -175,10 +173,3 @@ class StateSpace(HysteresisOperator):
             for name, v in (("W", A / r), ("B", B), ("C", C), ("D", D)):
                 getattr(block, name).copy_(torch.from_numpy(np.ascontiguousarray(v)))
         return block
-
-
-register_operator("state_space", StateSpace, example=Example(
-    # two states, two outputs; the scan of the sequence path (kernel off) rounds otherwise
-    lambda: StateSpace.from_matrices([[0.5, 0.2], [-0.1, 0.7]], [1.0, 0.5],
-                                     [[1.0, 0.0], [0.3, -0.4]], [0.2, 0.0]),
-    atol=1e-12))

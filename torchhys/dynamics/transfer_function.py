@@ -21,8 +21,6 @@ from torchhys.dynamics._common import (
 )
 from torchhys.functional.linear_filter import df2t_step, lfilter
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
-from torchhys.registry import register_operator
-from torchhys.testing import Example
 
 __all__ = ["TransferFunction", "TransferFunctionStep"]
 
@@ -152,8 +150,3 @@ class TransferFunction(HysteresisOperator):
             block.gamma.copy_(gamma)
             block.numerator.copy_(torch.from_numpy(bn))
         return block
-
-
-register_operator("transfer_function", TransferFunction, example=Example(
-    # the scan of the sequence path (kernel off) rounds otherwise than the DF2T step
-    lambda: TransferFunction.from_coefficients([0.2, 0.3, 0.1], [1.0, -0.5, 0.2]), atol=1e-12))

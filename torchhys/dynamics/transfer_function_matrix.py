@@ -22,8 +22,6 @@ from torchhys.dynamics._common import (
 )
 from torchhys.functional.linear_filter import df2t_step, lfilter
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
-from torchhys.registry import register_operator
-from torchhys.testing import Example
 
 __all__ = ["TransferFunctionMatrix", "TransferFunctionMatrixStep"]
 
@@ -224,11 +222,3 @@ def _entries(coefficients: object) -> list[list[tuple[object, object]]]:
                              f"entries, row 0 has {len(rows[0])}")
         rows.append(entries)
     return rows
-
-
-register_operator("transfer_function_matrix", TransferFunctionMatrix, example=Example(
-    # one input (an operator), two outputs of their own poles; the scan of the sequence path
-    # (kernel off) rounds otherwise than the DF2T step
-    lambda: TransferFunctionMatrix.from_coefficients(
-        [[([0.2, 0.3], [1.0, -0.5])], [([0.0, 0.4, 0.1], [1.0, 0.3, 0.2])]]),
-    atol=1e-12))

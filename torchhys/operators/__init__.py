@@ -4,3 +4,5 @@ Every operator here subclasses :class:`torchhys.operator.HysteresisOperator` and
 registered by name in :data:`torchhys.registry.OPERATORS` when its module is imported.
 The pure tensor maths behind each family lives in :mod:`torchhys.functional`.
 """
+
+from torchhys.operators import linear  # noqa: F401 (registers the linear blocks of torchhys.dynamics)
