@@ -106,17 +106,42 @@ def test_no_file_in_the_package_over_500_lines() -> None:
     assert long == {}
 
 
+def registered_names(source: str) -> list[str]:
+    """The names that ``source`` registers with ``register_operator("name", ...)`` (by name
+    or as an attribute; a name that is not a string constant counts as ``"?"``)."""
+    out = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Call) and (
+                getattr(node.func, "id", None) or getattr(node.func, "attr", None)
+        ) == "register_operator":
+            first = node.args[0] if node.args else None
+            out.append(first.value if isinstance(first, ast.Constant) else "?")
+    return out
+
+
+def test_the_registration_finder_finds_every_call() -> None:
+    source = ("from torchhys.registry import register_operator\nimport torchhys.registry as r\n"
+              "register_operator('a', A)\nr.register_operator('b', B, example=None)\n"
+              "def f(name):\n    register_operator(name, C)\n")
+    assert registered_names(source) == ["a", "b", "?"]
+
+
 def test_the_registered_operators_live_in_their_roles_folders() -> None:
-    """Hysteresis operators in torchhys/operators/, linear dynamics in torchhys/dynamics/,
-    element models (Duhem, play hysteresis) in torchhys/models/."""
+    """Every built-in operator is registered from torchhys/operators/ (the linear blocks of
+    torchhys/dynamics/ by operators/linear.py), and its class lives in torchhys/operators/
+    or, for a linear block, torchhys/dynamics/."""
     load_entry_points()
     builtin = {n: f for n, f in OPERATORS.items() if f.__module__.startswith("torchhys.")}
     assert len(builtin) >= 16
-    homes = ("torchhys.operators.", "torchhys.dynamics.", "torchhys.models.")
+    found = {m: names for m, p in modules().items() if (names := registered_names(p.read_text()))}
+    found.pop("torchhys.registry")  # load_entry_points: the installed packages' operators
+    assert sorted(m for m in found if not m.startswith("torchhys.operators.")) == []
+    assert sorted(n for names in found.values() for n in names) == sorted(builtin)
+    homes = ("torchhys.operators.", "torchhys.dynamics.")
     elsewhere = {n: f.__module__ for n, f in builtin.items()
                  if not f.__module__.startswith(homes)}
     assert elsewhere == {}
-    assert sum(f.__module__.startswith("torchhys.operators.") for f in builtin.values()) >= 12
+    assert sum(f.__module__.startswith("torchhys.operators.") for f in builtin.values()) >= 14
 
 
 def test_import_torchhys_imports_no_lightning() -> None:

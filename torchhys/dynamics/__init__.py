@@ -6,7 +6,8 @@
 - :class:`StateSpace`: ``s[t+1] = A s[t] + B x[t]``, ``y[t] = C s[t] + D x[t]``, with one
   or several inputs.
 
-With one input they are operators of the protocol (:mod:`torchhys.operator`): they train
+With one input they are operators of the protocol (:mod:`torchhys.operator`, registered by
+:mod:`torchhys.operators.linear`): they train
 inside an :class:`~torchhys.InverseHysteresisNet`, stream through the
 :class:`~torchhys.deploy.streaming.StreamingCompensator` and export, with a per-sample step that
 calls the same maths as the sequence path (:mod:`torchhys.functional.linear_filter`). With
