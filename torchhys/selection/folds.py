@@ -10,12 +10,15 @@
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 from torch import Tensor
 
-from torchhys._checks import check_int
+from torchhys._checks import check_choice, check_int
 
-__all__ = ["CV_MODES", "RECORDING", "block_split", "describe_cv", "fold_masks", "rolling_split"]
+__all__ = ["CV_MODES", "RECORDING", "Batch", "Fold", "block_split", "describe_cv", "fit_mask",
+           "fold_masks", "make_folds", "rolling_split"]
 
 
 RECORDING = "recording"
@@ -136,3 +139,99 @@ def describe_cv(cv: int | str | None, mode: str | None = None) -> str:
                 else f"rolling-origin cross-validation on {cv} blocks ({cv - 1} folds)")
     return ("leave-one-recording-out cross-validation" if cv == RECORDING else
             f"{cv}-fold blocked cross-validation")
+
+
+class Batch(NamedTuple):
+    """Rows of a record: ``x``, ``y`` (rows, time) and the samples ``mask`` (rows, time)
+    bool that a loss, a fit or a score uses (the states run through the others)."""
+
+    x: Tensor
+    y: Tensor
+    mask: Tensor
+
+
+class Fold(NamedTuple):
+    """One fold of model selection on tensors: the candidate's model families and
+    normalization are fitted on ``fit``, its readout on ``train``, and it is scored on
+    ``val`` (each a :class:`Batch`: rows and the samples
+    used, the states running through the others)."""
+
+    train: Batch
+    fit: Batch
+    val: Batch
+    warmup: int
+    """Leading samples of ``fit``'s rows left out of the families' least squares."""
+
+
+def fit_mask(first: Tensor, end: Tensor, T: int, held: Tensor | None = None) -> Tensor:
+    """The samples a fit may use on rows scored from ``first[r]`` to ``end[r]`` (rows,):
+    all before the end, except those of a warm-up longer than the least ``first`` and those
+    ``held``, (rows, T) bool."""
+    t = torch.arange(T)
+    first, end = first.reshape(-1, 1), end.reshape(-1, 1)
+    w = int(first.min())
+    mask = (t < end) & ((t < w) | (t >= first))
+    return mask & ~held if held is not None else mask
+
+
+def make_folds(x: Tensor, y: Tensor, first: Tensor, mask: Tensor, cv: int | str | None,
+               mode: str | None = None, *, holdout: float = 0.25,
+               source: str = "the data") -> list[Fold]:
+    """The folds of ``cv`` (``mode``: None or ``"blocked"``, ``"rolling"``) on training rows
+    ``x``, ``y`` (rows, time) whose row r is scored on ``mask[r]`` from sample ``first[r]``.
+
+    ``cv=k``: blocked (or rolling-origin) cross-validation on ``k`` blocks of each row's
+    scored samples (:func:`fold_masks`): the families fitted on the whole rows without the
+    held-out block's targets, the readout on the scored samples outside it.
+    ``cv="recording"``: each row held out once (rolling: each row after the first, fitted
+    on those before it). ``cv=None``: one hold-out, the last ``holdout`` of each row's
+    scored samples, fitted on the rows cut before it.
+
+    Raises:
+        ValueError: a ``cv`` or ``mode`` out of range, too few scored samples or rows.
+    """
+    rolling = check_choice(mode or "blocked", "cv_mode", CV_MODES) == "rolling"
+    mask = mask.to(torch.bool)
+    first = first.to(torch.long).reshape(-1)
+    ends, T = _ends(mask), x.shape[-1]
+    w = int(first.min())
+    if cv is None:
+        from torchhys.identification._nnls import holdout_cuts
+
+        idx = [mask[r].nonzero().flatten() for r in range(mask.shape[0])]
+        cuts = [int(i[holdout_cuts(i.numel(), 0, holdout)[1]]) for i in idx]
+        c = min(cuts)  # one cut for all rows keeps them one batch
+        fitted = mask[:, :c]
+        held = mask & (torch.arange(T) >= c)
+        train = Batch(x[:, :c], y[:, :c], fitted)
+        return [Fold(train, Batch(x[:, :c], y[:, :c], fit_mask(first, ends.clamp(max=c), c)),
+                     Batch(x, y, held), w)]
+    if cv == RECORDING:
+        n = x.shape[0]
+        if n < 2:
+            raise ValueError(
+                f"cv={RECORDING!r} holds each training recording out once, but {source} "
+                f"holds {n}: give several recordings, or cross-validate inside the record "
+                "(cv: k)")
+        folds = []
+        for j in range(n - 1 if rolling else n):
+            keep, val = (list(range(j + 1)), j + 1) if rolling else (
+                [r for r in range(n) if r != j], j)
+            T_keep = int(ends[keep].max())  # the others' padding to the held-out one's
+            fx, fy = x[keep, :T_keep], y[keep, :T_keep]
+            folds.append(Fold(Batch(x[keep], y[keep], mask[keep]),
+                              Batch(fx, fy, fit_mask(first[keep], ends[keep], T_keep)),
+                              Batch(x[val:val + 1], y[val:val + 1], mask[val:val + 1]),
+                              int(first[keep].min())))
+        return folds
+    if isinstance(cv, str):
+        raise ValueError(f"cv must be an int >= 2 (blocked cross-validation), {RECORDING!r} "
+                         f"(leave one recording out) or None (a hold-out), got {cv!r}")
+    check_int(cv, "cv", minimum=2)
+    folds = []
+    for j in range(cv - 1 if rolling else cv):
+        fitted, held = fold_masks(mask, cv, j, rolling=rolling, source=source)
+        folds.append(Fold(Batch(x, y, fitted), Batch(x, y, fit_mask(first, ends, T,
+                                                                     mask & ~fitted)),
+                          Batch(x, y, held), w))
+    return folds

@@ -1,0 +1,308 @@
+"""Model selection as one call: :func:`select` scores candidate models on a record by
+cross-validation, chooses one and fits it, on tensors, without Lightning.
+
+``torchhys fit`` with ``model.select`` calls it on its training split, and so does the
+real-data benchmark's ``default`` row; in a notebook::
+
+    from torchhys.selection import select
+    result = select([{"operator": None},
+                     {"operator": [{"fit": "stop_pi", "n_widths": 20, "segments": 4}]}],
+                    x, y, warmup=200, cv=4, rule="1se")
+    print(result.table())
+    command = result.model(response)[0]
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import torch
+from torch import Tensor
+
+from torchhys._checks import check_choice, check_int
+from torchhys.identification.errors import FitError
+from torchhys.networks import InverseHysteresisNet
+from torchhys.selection.candidates import (
+    _mean,
+    candidate_spec,
+    fit_candidate,
+    squared_errors,
+)
+from torchhys.selection.coverage import coverage_warning
+from torchhys.selection.folds import CV_MODES, RECORDING, Batch, describe_cv, fit_mask, make_folds
+from torchhys.selection.jobs import run_candidates
+from torchhys.selection.scores import (
+    RULES,
+    CandidateScore,
+    best,
+    format_table,
+    standard_error,
+    write_table,
+)
+
+__all__ = ["Progress", "Record", "Selection", "record", "score_candidate", "select", "shared_key"]
+
+
+class Progress(Protocol):
+    """What :func:`select` reports while it runs (the command line prints it)."""
+
+    def starts(self, candidate: int, fold: int | None) -> None:
+        """Candidate ``candidate`` starts fold ``fold`` (None: the hold-out)."""
+
+    def scored(self, score: CandidateScore) -> None:
+        """A candidate's score is known (in the candidates' order)."""
+
+
+@dataclass(frozen=True)
+class Record:
+    """Training rows ``x``, ``y`` (rows, time), row r scored on ``mask[r]`` from sample
+    ``first[r]`` (its warm-up before; its padding after ``mask``'s last sample)."""
+
+    x: Tensor
+    y: Tensor
+    first: Tensor
+    mask: Tensor
+    source: str = "the data"
+
+    def whole(self) -> tuple[Batch, Batch, int]:
+        """``(train, fit, warmup)`` of the whole record (the final fit)."""
+        ends = (self.mask * torch.arange(1, self.x.shape[-1] + 1)).amax(-1)
+        return (Batch(self.x, self.y, self.mask),
+                Batch(self.x, self.y, fit_mask(self.first, ends, self.x.shape[-1])),
+                int(self.first.min()))
+
+
+def record(x: Tensor, y: Tensor, *, warmup: int | Sequence[int] = 0,
+           mask: Tensor | None = None, recordings: Tensor | None = None,
+           source: str = "the data") -> Record:
+    """The :class:`Record` of ``x``, ``y``: (time,) or (rows, time), the same shape; with
+    ``recordings`` ((time,) ids of 1-D ``x``) the consecutive samples of one id are a row,
+    rows padded with their last sample; ``warmup`` leading samples of each row (an int, or
+    one per row) and those outside ``mask`` ((rows, time) bool) are not scored.
+
+    Raises:
+        ValueError: shapes that differ, a warm-up that leaves a row no scored sample, NaN
+            or inf where a row is scored.
+        TypeError: tensors that are not floating point.
+    """
+    for name, t in (("x", x), ("y", y)):
+        if not isinstance(t, Tensor) or not t.is_floating_point():
+            raise TypeError(f"{name} must be a floating-point tensor, got "
+                            f"{getattr(t, 'dtype', type(t).__name__)}")
+    if x.shape != y.shape or x.dim() not in (1, 2):
+        raise ValueError(f"x and y must have one shape, (time,) or (rows, time), got "
+                         f"{tuple(x.shape)} and {tuple(y.shape)}")
+    if recordings is not None:
+        if x.dim() != 1 or recordings.shape != x.shape:
+            raise ValueError(f"recordings must be (time,) ids of 1-D x, y, got "
+                             f"{tuple(recordings.shape)} for x {tuple(x.shape)}")
+        cuts = (torch.nonzero(recordings[1:] != recordings[:-1]).flatten() + 1).tolist()
+        parts = [(a, b) for a, b in zip([0, *cuts], [*cuts, x.numel()], strict=True)]
+        T = max(b - a for a, b in parts)
+        rows = [(x[a:b], y[a:b]) for a, b in parts]
+        x = torch.stack([torch.cat([r[0], r[0][-1:].expand(T - r[0].numel())]) for r in rows])
+        y = torch.stack([torch.cat([r[1], r[1][-1:].expand(T - r[1].numel())]) for r in rows])
+        lengths = torch.tensor([b - a for a, b in parts])
+        mask = torch.arange(T) < lengths[:, None]
+    x, y = x.reshape(-1, x.shape[-1]), y.reshape(-1, y.shape[-1])
+    rows, T = x.shape
+    if mask is None:
+        mask = torch.ones(rows, T, dtype=torch.bool)
+    elif mask.shape != x.shape:
+        raise ValueError(f"mask must have the shape of x, {tuple(x.shape)}, got "
+                         f"{tuple(mask.shape)}")
+    first = torch.as_tensor(warmup, dtype=torch.long).reshape(-1).expand(rows).clone()
+    for r in range(rows):
+        check_int(int(first[r]), "warmup", minimum=0)
+    scored = mask.to(torch.bool) & (torch.arange(T) >= first[:, None])
+    empty = (~scored.any(-1)).nonzero().flatten().tolist()
+    if empty:
+        raise ValueError(f"warmup={warmup}: row {empty[0]} of {source} has no scored sample "
+                         f"(a warm-up shorter than the row is needed)")
+    bad = ~(torch.isfinite(x) & torch.isfinite(y)) & scored
+    if bool(bad.any()):
+        r, t = (int(v) for v in bad.nonzero()[0])
+        raise ValueError(f"{source}: x or y is not finite at row {r}, sample {t} (a scored "
+                         f"sample); drop or fill the missing samples first")
+    return Record(x, y, first, scored, source)
+
+
+@dataclass(frozen=True)
+class Selection:
+    """What :func:`select` found."""
+
+    scores: list[CandidateScore]
+    """One score per candidate, in order (NaN: could not be fitted, diverged, or skipped
+    for the time budget; ``error`` says which)."""
+    chosen: CandidateScore
+    """The chosen candidate's score."""
+    spec: dict[str, Any]
+    """The chosen candidate's model arguments (its overrides over the base, completed)."""
+    model: InverseHysteresisNet | None
+    """The chosen candidate fitted on the whole record (None with ``refit=False``)."""
+    cv: int | str | None
+    mode: str | None
+    rule: str
+
+    def table(self) -> str:
+        """The candidates and their validation MSE as a text table (``*``: the choice)."""
+        return format_table(self.scores, self.chosen)
+
+    def write_csv(self, path: str | Path) -> Path:
+        """The table as CSV (:func:`~torchhys.selection.scores.write_table`)."""
+        return write_table(self.scores, self.chosen, path)
+
+    def describe(self) -> str:
+        """How the candidates were scored, in words."""
+        return describe_cv(self.cv, self.mode)
+
+
+def shared_key(overrides: Mapping[str, Any]) -> str | None:
+    """The key of the fit a candidate may share with its neighbours: its first family
+    operator's spec without its iteration counts, or None (candidates of one key run in one
+    process, where the fit is shared: :mod:`torchhys.identification._fit_cache`)."""
+    import json
+
+    ops = overrides.get("operator")
+    first = ops[0] if isinstance(ops, list) and ops else ops
+    if not isinstance(first, dict) or "fit" not in first:
+        return None
+    spec = {k: v for k, v in first.items() if k not in ("epochs", "sample_iterations")}
+    try:
+        return json.dumps(spec, sort_keys=True)
+    except (TypeError, ValueError):
+        return None
+
+
+def score_candidate(i: int, overrides: Mapping[str, Any], spec: Mapping[str, Any],
+                    data: Record, cv: int | str | None, mode: str | None, *,
+                    dtype: torch.dtype = torch.float64, seed: int | None = 0, epochs: int = 10,
+                    seconds: float | None = None, progress: Progress | None = None,
+                    ) -> CandidateScore:
+    """Fit and score candidate ``i`` on every fold of ``cv``: the MSE over all held-out
+    samples, its standard error (batch means), the folds' MSEs; NaN with the reason where a
+    fold cannot be fitted (:class:`~torchhys.identification.errors.FitError`) or its MSE is
+    not finite, the later folds then not run."""
+    start = time.perf_counter()
+    folds = make_folds(data.x, data.y, data.first, data.mask, cv, mode, source=data.source)
+    k, mses, counts, errors, reason = len(folds), [], [], [], ""
+    for j, fold in enumerate(folds):
+        if progress is not None:
+            progress.starts(i, None if cv is None else j)
+        run = f"candidate {i}" if cv is None else f"candidate {i}, fold {j + 1} of {k}"
+        try:
+            net = fit_candidate(spec, fold.train, fold.fit, warmup=fold.warmup, dtype=dtype,
+                                seed=seed, epochs=epochs, seconds=seconds)
+            e = squared_errors(net, fold.val)
+            mse, why = _mean(e), ""
+        except FitError as err:
+            warnings.warn(f"model.select: {run} skipped: {err}", RuntimeWarning, stacklevel=2)
+            e, mse, why = torch.zeros(0, dtype=torch.float64), math.nan, f"FitError: {err}"
+        if not why and not math.isfinite(mse):
+            why = f"validation MSE {mse}: the training diverged"
+            warnings.warn(f"model.select: {run}: {why}", RuntimeWarning, stacklevel=2)
+            mse = math.nan
+        mses.append(mse)
+        counts.append(int(fold.val.mask.sum()))
+        errors.append(e)
+        if math.isnan(mse):
+            reason = why if cv is None else f"fold {j + 1} of {k}: {why}" + (
+                f" (folds {j + 2}-{k} not run)" if j + 1 < k else "")
+            mses += [math.nan] * (k - j - 1)
+            counts += [1] * (k - j - 1)
+            break
+    pooled = sum(m * n for m, n in zip(mses, counts, strict=True)) / sum(counts)
+    se = standard_error(torch.cat(errors)) if math.isfinite(pooled) else math.nan
+    return CandidateScore(i, dict(overrides), pooled, () if cv is None else tuple(mses), se,
+                          reason, time.perf_counter() - start)
+
+
+def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
+           base: Mapping[str, Any] | None = None, warmup: int | Sequence[int] = 0,
+           mask: Tensor | None = None, recordings: Tensor | None = None,
+           cv: int | str | None = 4, mode: str | None = None, rule: str = "min",
+           jobs: int | str = 1, budget_s: float | None = None,
+           dtype: torch.dtype = torch.float64, seed: int | None = 0, epochs: int = 10,
+           seconds: float | None = None, refit: bool = True,
+           progress: Progress | None = None, source: str = "the data",
+           warn_coverage: bool = True) -> Selection:
+    """Score ``candidates`` on the record ``(x, y)``, choose one by ``rule`` and fit it.
+
+    Args:
+        candidates: dicts of model arguments over ``base`` (``{"operator": None}``: the
+            straight line; ``{"operator": [{"fit": "stop_pi", ...}]}``: a model family
+            identified on the training data; keys of
+            :data:`~torchhys.selection.candidates.MODEL_DEFAULTS`).
+        x, y: the record, (time,) or (rows, time): the model maps ``x`` to ``y`` (an inverse
+            model, the response to the command, as a compensator).
+        base: model arguments every candidate starts from (default: an affine readout by
+            L-BFGS, :data:`~torchhys.selection.candidates.MODEL_DEFAULTS`).
+        warmup, mask, recordings: the samples scored, and the rows (:func:`record`).
+        cv: ``k`` for blocked cross-validation on ``k`` blocks of each row, ``"recording"``
+            to hold out each row once, None to hold out the last quarter of each row.
+        mode: ``"blocked"`` (None) or ``"rolling"``: each block (row) validated on a fit of
+            those before it only.
+        rule: ``"min"`` (the lowest validation MSE) or ``"1se"`` (the first candidate when
+            within one standard error of the lowest: :func:`~torchhys.selection.scores.best`).
+        jobs: candidates scored at a time, each in a forked process; ``"auto"``: the usable
+            cores, at most 4 (:mod:`torchhys.selection.jobs`).
+        budget_s: seconds after which no further candidate starts (those not started score
+            NaN, their ``error`` says so).
+        dtype, seed: the candidates' dtype and the seed each is built from.
+        epochs, seconds: training steps (and a time cap) of a candidate whose readout is not
+            solved directly (:func:`~torchhys.selection.candidates.fit_candidate`).
+        refit: fit the chosen candidate on the whole record (:attr:`Selection.model`).
+        progress: told when each fold starts and each score is known (:class:`Progress`).
+        source: the data's name in messages.
+        warn_coverage: warn (``UserWarning``) when the record holds less than one closed
+            loop or loops of one amplitude only
+            (:func:`~torchhys.selection.coverage.coverage_warning`).
+
+    Raises:
+        ValueError: no candidate, a bad option (the message names it), every candidate NaN.
+        FitError: the chosen candidate cannot be fitted on the whole record.
+    """
+    if isinstance(candidates, (str, bytes, Mapping)) or not isinstance(candidates, Sequence):
+        raise TypeError(f"candidates must be a list of dicts of model arguments, got "
+                        f"{type(candidates).__name__}")
+    if not candidates:
+        raise ValueError("candidates is empty: give at least one dict of model arguments")
+    check_choice(rule, "rule", RULES)
+    if mode is not None:
+        check_choice(mode, "mode", CV_MODES)
+    if cv is not None and cv != RECORDING:
+        check_int(cv, "cv", minimum=2)
+    overrides = [dict(c) for c in candidates]
+    specs = [candidate_spec(base, c) for c in overrides]
+    data = record(x, y, warmup=warmup, mask=mask, recordings=recordings, source=source)
+    if warn_coverage:
+        message = coverage_warning(data.x, data.mask, source=source)
+        if message is not None:
+            warnings.warn(f"model.select: {message}", UserWarning, stacklevel=2)
+    make_folds(data.x, data.y, data.first, data.mask, cv, mode, source=source)  # checked now
+
+    def score(i: int) -> CandidateScore:
+        return score_candidate(i, overrides[i], specs[i], data, cv, mode, dtype=dtype,
+                               seed=seed, epochs=epochs, seconds=seconds, progress=progress)
+
+    def skipped(i: int) -> CandidateScore:
+        return CandidateScore(i, overrides[i], math.nan, error=f"skipped: model.select_budget_s="
+                              f"{budget_s:g} spent before it started")
+
+    scores = run_candidates(len(specs), score, skipped,
+                            report=None if progress is None else progress.scored, jobs=jobs,
+                            budget_s=budget_s, together=[shared_key(c) for c in overrides])
+    chosen = best(scores, rule)
+    model = None
+    if refit:
+        train, fit, w = data.whole()
+        model = fit_candidate(specs[chosen.index], train, fit, warmup=w, dtype=dtype, seed=seed,
+                              epochs=epochs, seconds=seconds)
+    return Selection(list(scores), chosen, specs[chosen.index], model, cv, mode, rule)
+
