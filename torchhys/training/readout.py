@@ -20,6 +20,8 @@ from torch import Tensor
 
 from torchhys.networks import InverseHysteresisNet
 from torchhys.optim.named import CLOSURE_OPTIMIZERS
+from torchhys.selection.candidates import solve_readout
+from torchhys.selection.folds import Batch
 from torchhys.training.module import InverseHysteresisModule
 
 __all__ = ["direct_validation", "solvable"]
@@ -68,24 +70,12 @@ def direct_validation(module: InverseHysteresisModule, datamodule: L.LightningDa
     x, y = datamodule.train_tensors()
     module.fit_normalization(x, y, warmup=int(getattr(datamodule, "train_warmup", 0)),
                              mask=getattr(datamodule, "train_mask", None))
-    net, dtype = module.net, module.net.in_mean.dtype
-    rows, targets = [], []
-    for bx, by, mask in _batches(datamodule.train_dataloader()):
-        feats, _ = net.features(bx.to(dtype), target=by.to(dtype))
-        rows.append(((feats - net.in_mean) / net.in_std)[mask])
-        targets.append(((by.to(dtype) - net.out_mean) / net.out_std)[mask])
-    z, t = torch.cat(rows), torch.cat(targets)
-    design = torch.cat([z, torch.ones_like(z[:, :1])], 1).to(torch.float64)
-    theta = torch.linalg.lstsq(design, t.to(torch.float64)[:, None],
-                               driver="gelsd").solution[:, 0].to(dtype)
-    hidden, output = net.hidden, net.output
-    hidden.weight.zero_()
-    hidden.bias.zero_()
-    output.weight.zero_()
-    output.bias.zero_()
-    hidden.weight[0] = theta[:-1]
-    hidden.bias[0] = theta[-1]
-    output.weight[0, 0] = 1.0
+    dtype = module.net.in_mean.dtype
+    train = _batches(datamodule.train_dataloader())
+    if len(train) != 1:
+        raise ValueError(f"a direct readout needs one full training batch, got {len(train)}")
+    bx, by, mask = train[0]
+    solve_readout(module.net, Batch(bx.to(dtype), by.to(dtype), mask))
     errors = []
     for bx, by, mask in _batches(datamodule.val_dataloader()):
         e = module(bx.to(dtype), target=by.to(dtype)).to(torch.float64) - by.to(torch.float64)

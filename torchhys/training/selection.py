@@ -44,7 +44,6 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
-import json
 import math
 import time
 import warnings
@@ -67,6 +66,7 @@ from torchhys.selection.scores import (  # noqa: F401 (the names this module has
     standard_error,
     write_table,
 )
+from torchhys.selection.select import shared_key
 from torchhys.training.folds import CV_MODES, RECORDING, cv_fold
 from torchhys.training.readout import direct_validation, solvable
 
@@ -272,24 +272,6 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
         i, candidates[i], math.nan, error=f"skipped: model.select_budget_s={budget_s:g} "
         "spent before it started"), report=report, jobs=jobs, budget_s=budget_s,
         together=[shared_key(c) for c in candidates])
-
-
-def shared_key(overrides: dict[str, Any]) -> str | None:
-    """The key of the fit a candidate may share with its neighbours in ``model.select``:
-    its first family operator's spec without its iteration counts (``{fit: gpi}`` with and
-    without ``epochs: 200`` run one fit on a long record; the 40 stops of three candidates
-    one fit), or None. Candidates scored in parallel processes
-    (:func:`~torchhys.selection.jobs.run_candidates`) run with their neighbours of the same
-    key in one process, where the fit is shared (:mod:`torchhys.identification._fit_cache`)."""
-    ops = overrides.get("operator")
-    first = ops[0] if isinstance(ops, list) and ops else ops
-    if not isinstance(first, dict) or "fit" not in first:
-        return None
-    spec = {k: v for k, v in first.items() if k not in ("epochs", "sample_iterations")}
-    try:
-        return json.dumps(spec, sort_keys=True)
-    except (TypeError, ValueError):
-        return None
 
 
 def score_candidate(i: int, overrides: dict[str, Any], build: Build, cv: int | str | None,
