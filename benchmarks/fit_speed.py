@@ -56,7 +56,7 @@ def write_record(path: Path, n: int, recordings: int) -> None:
 
 def command(data: Path, root: Path, recordings: int, threads: int | None,
             jobs: int | None = None) -> list[str]:
-    args = [sys.executable, "-m", "torchhys.cli.train", "fit", "--config", str(CONFIG),
+    args = [sys.executable, "-m", "torchhys", "fit", "--config", str(CONFIG),
             f"--data.path={data}", "--data.input_column=displacement_um",
             "--data.target_column=voltage_V", "--data.time_column=null", "--data.warmup=0",
             f"--trainer.default_root_dir={root}", "--trainer.enable_progress_bar=false"]
@@ -161,7 +161,7 @@ def profile(n: int, tmp: Path) -> None:
     total = max(v[3] for v in stats.values())
     for name, suffix, func in STAGES:
         if func == "<start-up>":  # everything before the command's main()
-            seconds = total - cumulative("torchhys/cli/train.py", "main")
+            seconds = total - cumulative("torchhys/cli/main.py", "main")
         else:
             seconds = cumulative(suffix, func)
         print(f"| {name} | {seconds:.1f} |")

@@ -8,7 +8,7 @@ import lightning as L
 import pytest
 import torch
 
-from torchhys.cli.train import main
+from torchhys.cli.main import main
 
 
 def trainer(max_epochs: int = 4, **kwargs) -> L.Trainer:

@@ -15,10 +15,10 @@ import torch
 import yaml
 from _training_helpers import cli
 
+from torchhys.cli.export import main as export_main
 from torchhys.deploy.export import load_torchscript
 from torchhys.identification.specs import build_operators
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
-from torchhys.cli.export import main as export_main
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
@@ -248,7 +248,7 @@ def test_fit_under_ddp_on_two_cpu_processes(monkeypatch, tmp_path: Path) -> None
     cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={single}")
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONWARNINGS": "ignore"}
     proc = subprocess.run(
-        [sys.executable, "-m", "torchhys.cli.train", "fit", "--config", str(cfg),
+        [sys.executable, "-m", "torchhys", "fit", "--config", str(cfg),
          f"--trainer.default_root_dir={ddp}", "--trainer.strategy=ddp",
          "--trainer.devices=2", "--trainer.accelerator=cpu"],
         cwd=ROOT, env=env, capture_output=True, text=True, timeout=600, check=False,

@@ -14,10 +14,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchhys.training import HysteresisDataModule
-from torchhys.cli.train import main
 from torchhys.cli.errors import CheckpointError, read_checkpoint
 from torchhys.cli.export import main as export_main
+from torchhys.cli.main import main
+from torchhys.training import HysteresisDataModule
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -54,7 +54,7 @@ def run(cwd: Path, *args: str, env: dict[str, str] | None = None
     """``torchhys ARGS`` in a fresh process in ``cwd`` (one thread, no traceback setting)."""
     base = {k: v for k, v in os.environ.items() if k != "TORCHHYS_TRACEBACK"}
     return subprocess.run(
-        [sys.executable, "-m", "torchhys.cli.train", *args], cwd=cwd,
+        [sys.executable, "-m", "torchhys", *args], cwd=cwd,
         env={**base, "OMP_NUM_THREADS": "1", **(env or {})}, capture_output=True, text=True,
         timeout=300, check=False)
 
@@ -235,7 +235,7 @@ def test_concurrent_selections_keep_their_tables(tiny, tmp_path) -> None:
     default_root_dir: each table in its own version folder, each printed path real, and
     each run's final fit logged beside its table."""
     base = {k: v for k, v in os.environ.items() if k != "TORCHHYS_TRACEBACK"}
-    args = [sys.executable, "-m", "torchhys.cli.train", *fit(
+    args = [sys.executable, "-m", "torchhys", *fit(
         tiny, "--model.select", "[{hidden: 1}, {hidden: 2}]")]
     procs = [subprocess.Popen(args, cwd=tmp_path, env={**base, "OMP_NUM_THREADS": "1"},
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

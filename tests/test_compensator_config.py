@@ -15,10 +15,10 @@ from _training_helpers import trainer
 from torch import nn
 
 from torchhys import EIHO, Backlash
+from torchhys.cli.export import main as export_main
+from torchhys.cli.main import main
 from torchhys.deploy.export import load_torchscript, to_torchscript
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
-from torchhys.cli.train import main
-from torchhys.cli.export import main as export_main
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "compensator.yaml"

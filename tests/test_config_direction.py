@@ -44,7 +44,7 @@ def _short_copy(path: Path, out: Path, rows: int = 400) -> Path:
 
 def _torchhys(*args: str) -> subprocess.CompletedProcess:
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    return subprocess.run([sys.executable, "-m", "torchhys.cli.train", *args], cwd=ROOT,
+    return subprocess.run([sys.executable, "-m", "torchhys", *args], cwd=ROOT,
                           capture_output=True, text=True, timeout=900, env=env)
 
 

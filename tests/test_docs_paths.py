@@ -77,7 +77,7 @@ def test_the_checker_finds_paths_that_do_not_exist() -> None:
     good = """`torchhys.identification.fitting.fit_full_batch`, `torchhys.Backlash`,
     `torchhys.deploy.export_c`, `torchhys.registry.OPERATORS`, [o](../torchhys/operator.py),
     `torchhys/identification/_nnls.py`, `torchhys/operators/<family>.py`, `torchhys/deploy/`,
-    `torchhys/cli/train.py`, `deploy/c/example_comp.py`, `torchhys.cli.train.main`."""
+    `torchhys/cli/train.py`, `deploy/c/example_comp.py`, `torchhys.cli.main.main`."""
     assert missing(good) == []
 
 

@@ -173,7 +173,7 @@ def run_killed_and_resumed(reference: Reference, tmp_path: Path, kills: list[Kil
         runs = set(root.glob("logs/version_*"))
         log = tmp_path / f"attempt_{i}.log"
         with log.open("wb") as out:
-            proc = subprocess.Popen([sys.executable, "-m", "torchhys.cli.train", *args],
+            proc = subprocess.Popen([sys.executable, "-m", "torchhys", *args],
                                     cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT)
             try:
                 if kill is not None:

@@ -16,10 +16,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchhys.training.checkpoint_io import AtomicCheckpointIO
-from torchhys.cli.train import main
 from torchhys.cli.errors import CheckpointError, read_checkpoint
 from torchhys.cli.export import main as export_main
+from torchhys.cli.main import main
+from torchhys.training.checkpoint_io import AtomicCheckpointIO
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -219,7 +219,7 @@ def _spawn(tmp_path: Path, config: str, *extra: str, session: bool = False
     # a file, not a pipe: orphaned workers would hold a pipe open after the command ends
     with (tmp_path / "stderr.txt").open("wb") as err:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "torchhys.cli.train", "fit", "--config", str(path),
+            [sys.executable, "-m", "torchhys", "fit", "--config", str(path),
              f"--trainer.default_root_dir={tmp_path / 'run'}", *extra],
             cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=err,
             start_new_session=session)

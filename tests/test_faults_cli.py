@@ -15,15 +15,15 @@ import torch
 
 import torchhys.registry as registry_module
 from torchhys import InverseHysteresisNet
-from torchhys.registry import OPERATORS, example_of, load_entry_points, make_operator
-from torchhys.training import InverseHysteresisModule
-from torchhys.cli.train import main
+from torchhys.cli.main import main
 from torchhys.cli.plugins import (
     IMPORT_ENV,
     IMPORT_PATH_ENV,
     import_modules,
     split_import_path_flags,
 )
+from torchhys.registry import OPERATORS, example_of, load_entry_points, make_operator
+from torchhys.training import InverseHysteresisModule
 
 USER_MODULE = "from torchhys.registry import register_operator\nLOADED = True\n"
 

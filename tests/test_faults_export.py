@@ -358,7 +358,7 @@ def test_a_fit_that_stays_finite_is_not_stopped(tmp_path: Path, monkeypatch) -> 
 
 def test_the_cli_reports_a_diverged_fit_in_one_line(tmp_path: Path, monkeypatch,
                                                     capsys) -> None:
-    from torchhys.cli.train import main
+    from torchhys.cli.main import main
 
     cfg = tmp_path / "tiny.yaml"
     cfg.write_text(TINY.format(precision="64-true"))

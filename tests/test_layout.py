@@ -170,3 +170,53 @@ def test_the_c_generator_needs_nothing_from_the_package_face(tmp_path: Path) -> 
         "assert not [k for k in vars(pkg) if k[0].isupper() or k == '__version__']\n")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
+
+
+TRAINING_PACKAGES = ("lightning", "pytorch_lightning", "lightning_fabric", "jsonargparse",
+                     "torchmetrics", "matplotlib")
+NO_TRAINING = (f"import sys\nfor name in {TRAINING_PACKAGES!r}:\n"
+               "    sys.modules[name] = None  # an import of it fails\n")
+"""A prelude that makes the training packages impossible to import."""
+
+
+def test_torchhys_export_runs_without_lightning(tmp_path: Path) -> None:
+    """``torchhys export`` reads a checkpoint as a spec plus weights: no Lightning (nor
+    jsonargparse, torchmetrics, matplotlib) is imported."""
+    import torch
+
+    from torchhys import InverseHysteresisNet
+
+    torch.manual_seed(0)
+    net = InverseHysteresisNet("eiho", 4, operator_kwargs={"a": 1.3})
+    x = 3 * torch.sin(torch.linspace(0, 20, 400, dtype=torch.float64))
+    net = net.double()
+    net.fit_normalization(x, 0.5 * x)
+    hp = {"operator": "eiho", "hidden": 4, "activation": "sigmoid",
+          "operator_kwargs": {"a": 1.3}}
+    torch.save({"state_dict": {f"net.{k}": v for k, v in net.state_dict().items()},
+                "hyper_parameters": hp}, tmp_path / "m.ckpt")
+    out = tmp_path / "m.pt"
+    code = NO_TRAINING + (
+        "from torchhys.cli.main import main\n"
+        "try:\n"
+        f"    main(['export', '--ckpt', {str(tmp_path / 'm.ckpt')!r}, '--format', "
+        f"'torchscript', '--out', {str(out)!r}, '--limits', '-2', '2'])\n"
+        "except SystemExit as exc:\n"
+        "    assert exc.code == 0, exc.code\n"
+        "loaded = [m for m in sys.modules if m.split('.')[0] in "
+        f"{TRAINING_PACKAGES!r} and sys.modules[m] is not None]\n"
+        "assert not loaded, loaded\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert "wrote" in proc.stdout and out.is_file()
+
+
+def test_the_data_package_imports_no_lightning() -> None:
+    """Reading the data (files, tables, splits, the tensors fits read) needs no Lightning."""
+    code = NO_TRAINING + (
+        "import torchhys.data, torchhys.data.files, torchhys.data.tables\n"
+        "import torchhys.data.splits, torchhys.data.tensors, torchhys.data.simulations\n"
+        "from torchhys.data.files import read_recordings\n"
+        "from torchhys.data.tensors import stack_sequences\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr

@@ -19,6 +19,10 @@ import torchhys.cli.main as command
 ROOT = Path(__file__).resolve().parents[1]
 TRAIN = ("lightning", "jsonargparse", "torchmetrics", "matplotlib")
 BLOCKED = (*TRAIN, "pytorch_lightning", "lightning_fabric", "lightning_utilities")
+LIGHTNING_SIDE = {"torchhys.training", "torchhys.reproduce", "torchhys.cli.train",
+                  "torchhys.cli.checks", "torchhys.cli.ckpt_paths", "torchhys.cli.run_dirs",
+                  "torchhys.cli.progress"}
+"""The modules (and packages) that need the train extra."""
 ERROR = ('torchhys: error: the torchhys command needs the training extra: '
          'pip install "torchhys[train]" (missing: {})')
 
@@ -74,7 +78,9 @@ def test_core_dependencies_hold_none_of_the_training_packages() -> None:
 
 
 def test_every_module_but_training_imports_without_the_training_packages(site) -> None:
-    proc = python(site, """
+    """Every module imports without the extra but those of the training side: training/,
+    the paper reproduction and the LightningCLI's modules of the command line."""
+    proc = python(site, f"""
         import importlib, pkgutil, sys
 
         for name in ("lightning", "jsonargparse", "torchmetrics", "matplotlib"):
@@ -83,7 +89,7 @@ def test_every_module_but_training_imports_without_the_training_packages(site) -
             except ModuleNotFoundError:
                 pass
             else:
-                raise AssertionError(f"{name} was not blocked")
+                raise AssertionError(f"{{name}} was not blocked")
 
         import torchhys
 
@@ -91,7 +97,7 @@ def test_every_module_but_training_imports_without_the_training_packages(site) -
 
         def walk(package):
             for info in pkgutil.iter_modules(package.__path__, package.__name__ + "."):
-                if info.name.split(".")[1] in ("training", "cli"):
+                if info.name in {sorted(LIGHTNING_SIDE)!r}:
                     continue
                 module = importlib.import_module(info.name)
                 imported.append(info.name)
@@ -101,7 +107,8 @@ def test_every_module_but_training_imports_without_the_training_packages(site) -
         walk(torchhys)
         assert len(imported) > 30, imported
         for name in ("torchhys.deploy.export", "torchhys.deploy.streaming",
-                     "torchhys.functional.backlash", "torchhys.__main__"):
+                     "torchhys.functional.backlash", "torchhys.__main__", "torchhys.cli.main",
+                     "torchhys.cli.export", "torchhys.data.files", "torchhys.data.tensors"):
             assert name in imported, name
         print(len(imported), "modules")
     """)
@@ -133,8 +140,8 @@ def test_to_torchscript_works_without_the_training_packages(site, tmp_path) -> N
     assert path.is_file()
 
 
-def test_every_subcommand_says_which_extra_to_install(site) -> None:
-    subs = ["fit", "validate", "test", "predict", "export"]
+def test_every_training_subcommand_says_which_extra_to_install(site) -> None:
+    subs = ["fit", "validate", "test", "predict"]
     proc = python(site, f"""
         import sys
         from torchhys.cli.main import main
@@ -147,6 +154,22 @@ def test_every_subcommand_says_which_extra_to_install(site) -> None:
     """)
     assert proc.stdout.split() == [w for sub in subs for w in (sub, "2")], proc.stderr
     assert proc.stderr.splitlines() == [ERROR.format(", ".join(TRAIN))] * len(subs)
+
+
+def test_export_runs_without_the_extra(site) -> None:
+    """``torchhys export`` reads a checkpoint as a spec plus weights (a real export without
+    the extra: tests/test_layout.py)."""
+    proc = python(site, """
+        from torchhys.cli.main import main
+
+        try:
+            main(["export", "--help"])
+        except SystemExit as exc:
+            print("status", exc.code)
+    """)
+    assert proc.returncode == 0, proc.stderr
+    assert "--ckpt" in proc.stdout and proc.stdout.split()[-2:] == ["status", "0"]
+    assert proc.stderr == ""
 
 
 def test_the_message_names_only_what_is_missing(site) -> None:
@@ -166,7 +189,7 @@ def test_the_installed_script_says_which_extra_to_install(site) -> None:
     script = Path(sys.executable).parent / ("torchhys.exe" if os.name == "nt" else "torchhys")
     if not script.exists():
         pytest.skip(f"no installed torchhys script beside {sys.executable}")
-    proc = run(site, [str(script), "export", "--ckpt", "last.ckpt"])
+    proc = run(site, [str(script), "fit", "--config", "c.yaml"])
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.strip() == ERROR.format(", ".join(TRAIN))
 
@@ -175,10 +198,13 @@ def test_with_the_extra_the_command_runs_the_training_cli(monkeypatch) -> None:
     import torchhys.cli.train as cli
 
     seen = []
-    monkeypatch.setattr(cli, "main", seen.append)
-    command.main(["fit", "--config", "c.yaml"])
+    monkeypatch.setattr(cli, "run", lambda args, **kwargs: seen.append((args, kwargs)))
+    command.main(["fit", "--config", "c.yaml", "--traceback"])
+    monkeypatch.setattr(sys, "argv", ["torchhys", "validate", "--config", "c.yaml"])
     command.main(None)
-    assert seen == [["fit", "--config", "c.yaml"], None]
+    assert seen == [(["fit", "--config", "c.yaml"], {"from_sys_argv": False, "traceback": True}),
+                    (["validate", "--config", "c.yaml"],
+                     {"from_sys_argv": True, "traceback": False})]
     assert command.missing_train_packages() == []
 
 

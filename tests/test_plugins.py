@@ -18,8 +18,8 @@ from pathlib import Path
 import pytest
 
 import torchhys.registry as registry_module
-from torchhys.registry import OPERATORS, load_entry_points, make_operator
 from torchhys.cli.plugins import split_import_flags
+from torchhys.registry import OPERATORS, load_entry_points, make_operator
 
 OPERATOR_MODULE = '''
 """A user's operator: a dead zone of fixed width (memoryless), registered on import."""
@@ -84,7 +84,7 @@ def _run(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONSAFEPATH": "1"}
     for key in ("TORCHHYS_IMPORT", "TORCHHYS_IMPORT_PATH", "PYTHONPATH"):
         env.pop(key, None)
-    return subprocess.run([sys.executable, "-m", "torchhys.cli.train", *args], cwd=cwd,
+    return subprocess.run([sys.executable, "-m", "torchhys", *args], cwd=cwd,
                           capture_output=True, text=True, timeout=600, env=env)
 
 

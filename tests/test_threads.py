@@ -45,14 +45,14 @@ def test_choice_flag_then_environment_then_one(monkeypatch, capsys) -> None:
 
 def test_the_command_says_its_threads_and_rejects_a_bad_count(tmp_path) -> None:
     env = {k: v for k, v in os.environ.items() if k != THREADS_ENV}
-    run = subprocess.run([sys.executable, "-m", "torchhys.cli.train", "export", "--threads",
+    run = subprocess.run([sys.executable, "-m", "torchhys", "export", "--threads",
                           "2", "--ckpt", str(tmp_path / "none.ckpt"), "--format",
                           "torchscript", "--out", str(tmp_path / "c.pt")],
                          capture_output=True, text=True, timeout=300, env=env)
     lines = run.stderr.strip().splitlines()
     assert lines[0].startswith("torchhys export: torch threads 2 (--threads")
     assert run.returncode == 2 and "none.ckpt" in lines[-1]
-    bad = subprocess.run([sys.executable, "-m", "torchhys.cli.train", "fit", "--threads",
+    bad = subprocess.run([sys.executable, "-m", "torchhys", "fit", "--threads",
                           "zero"], capture_output=True, text=True, timeout=300, env=env)
     assert bad.returncode == 2
     assert bad.stderr.strip().splitlines()[-1].startswith("torchhys fit: error: --threads")

@@ -27,12 +27,12 @@ from torchhys import (
     Preisach,
     StopPrandtlIshlinskii,
 )
+from torchhys.cli.main import main
 from torchhys.deploy.export import load_torchscript, to_torchscript
 from torchhys.identification.errors import FitError
 from torchhys.identification.families import _substeps
 from torchhys.identification.specs import build_operators, fit_data_dependent
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule, selection
-from torchhys.cli.train import main
 
 F64 = torch.float64
 torch.set_num_threads(1)

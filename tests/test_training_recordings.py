@@ -14,7 +14,7 @@ import pytest
 import torch
 from _training_helpers import trainer
 
-from torchhys.cli.train import main
+from torchhys.cli.main import main
 from torchhys.data.files import DataFileError, read_recordings
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 

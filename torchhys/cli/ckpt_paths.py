@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from torchhys.cli.errors import CheckpointError, read_checkpoint
-from torchhys.cli.progress import quiet_requested
+from torchhys.cli.quiet import quiet_requested
 from torchhys.cli.run_dirs import log_folder
 
 __all__ = ["check_ckpt_path", "last_checkpoint"]

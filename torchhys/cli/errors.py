@@ -9,7 +9,8 @@ An error caused by the user's files, options or data is printed as one line,
   :class:`CheckpointError`, :class:`json.JSONDecodeError` and :class:`UnicodeDecodeError`;
 - :class:`OSError` about a path (its ``filename`` is set, e.g. :class:`FileNotFoundError`
   from ``open``), and :class:`FileNotFoundError` in any case;
-- Lightning's ``MisconfigurationException`` (a trainer setting the machine cannot honour);
+- Lightning's ``MisconfigurationException`` (a trainer setting the machine cannot honour;
+  looked up only where Lightning is loaded: ``torchhys export`` runs without it);
 - a :class:`TypeError` raised while the config is read and its classes are built
   (:func:`config_errors`), not one raised while training.
 
@@ -31,8 +32,6 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from lightning.fabric.utilities.exceptions import MisconfigurationException
-
 __all__ = [
     "CheckpointError", "TRACEBACK_ENV", "TRACEBACK_FLAG", "config_errors", "is_user_error",
     "read_checkpoint", "refuse_url", "report_user_error", "split_traceback_flag",
@@ -44,6 +43,8 @@ TRACEBACK_FLAG = "--traceback"
 TRACEBACK_ENV = "TORCHHYS_TRACEBACK"
 """The environment variable that does the same when set to anything but '', '0' or 'false'."""
 _MARK = "_torchhys_user_error"
+_MISCONFIGURATION = "lightning.fabric.utilities.exceptions"
+"""The module of Lightning's ``MisconfigurationException``."""
 
 
 class CheckpointError(ValueError):
@@ -70,7 +71,8 @@ def is_user_error(exc: BaseException) -> bool:
         return True
     if isinstance(exc, OSError):
         return exc.filename is not None
-    return isinstance(exc, MisconfigurationException)
+    lightning = sys.modules.get(_MISCONFIGURATION)  # raised only where Lightning is loaded
+    return lightning is not None and isinstance(exc, lightning.MisconfigurationException)
 
 
 @contextlib.contextmanager

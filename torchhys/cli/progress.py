@@ -11,7 +11,6 @@ of it; the table of the candidates and the choice are still printed at the end.
 from __future__ import annotations
 
 import math
-import os
 import sys
 import time
 from collections.abc import Sequence
@@ -21,15 +20,7 @@ from lightning.pytorch.utilities import rank_zero_only
 
 from torchhys.training import selection
 
-__all__ = ["QUIET_ENV", "SelectionProgress", "quiet_requested"]
-
-QUIET_ENV = "TORCHHYS_QUIET"
-
-
-def quiet_requested() -> bool:
-    """Whether progress output is off (``--quiet`` sets ``TORCHHYS_QUIET``)."""
-    return os.environ.get(QUIET_ENV, "").strip().lower() not in ("", "0", "false", "no")
-
+__all__ = ["SelectionProgress"]
 
 def _seconds(s: float) -> str:
     return f"{s:.0f} s" if s < 120 else f"{s / 60:.1f} min"

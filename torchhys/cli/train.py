@@ -45,9 +45,8 @@ docs/training.md ("Model selection on validation data"); the code is in
 :mod:`torchhys.training.selection`. ``validate``, ``test`` and ``predict`` ignore
 ``model.select``, and so does a ``fit --ckpt_path`` that resumes.
 
-Options of the command itself, taken out before LightningCLI reads the rest: ``--import
-MODULE`` and ``--import-path DIR`` (:mod:`torchhys.cli.plugins`), ``--threads N``
-(:mod:`torchhys.cli.threads`), ``--quiet``, ``--traceback``.
+The options of the command itself (``--import``, ``--threads``, ``--quiet``,
+``--traceback``) are taken out before LightningCLI reads the rest (:mod:`torchhys.cli.main`).
 """
 
 from __future__ import annotations
@@ -72,27 +71,11 @@ from torchhys.cli.checks import check_config_files, check_optimizer_switch
 from torchhys.cli.ckpt_paths import check_ckpt_path
 from torchhys.cli.config_yaml import check_config_aliases
 from torchhys.cli.config_yaml import install as install_bounded_yaml
-from torchhys.cli.errors import (
-    TRACEBACK_ENV,
-    TRACEBACK_FLAG,
-    config_errors,
-    report_user_error,
-    split_traceback_flag,
-)
+from torchhys.cli.errors import TRACEBACK_ENV, config_errors, report_user_error
 from torchhys.cli.negative_numbers import accept_negative_numbers
-from torchhys.cli.plugins import (
-    IMPORT_ENV,
-    IMPORT_PATH_ENV,
-    add_import_paths,
-    import_modules,
-    modules_from_env,
-    paths_from_env,
-    split_import_flags,
-    split_import_path_flags,
-)
-from torchhys.cli.progress import QUIET_ENV, SelectionProgress, quiet_requested
+from torchhys.cli.progress import SelectionProgress
+from torchhys.cli.quiet import quiet_requested
 from torchhys.cli.run_dirs import RUN_DIR_ENV, reserve_run_dir
-from torchhys.cli.threads import THREADS_ENV, choose_threads, split_threads_flag
 from torchhys.data.files import watch_files
 from torchhys.identification.specs import build_operators
 from torchhys.training import selection
@@ -111,7 +94,7 @@ from torchhys.training.module import InverseHysteresisModule, check_optimizer_kw
 
 install_bounded_yaml()  # aliases in configs expand to a bounded size
 
-__all__ = ["TorchhysCLI", "main", "read_config"]
+__all__ = ["TorchhysCLI", "read_config", "run"]
 
 _DESCRIPTION = (
     "Train and evaluate inverse-hysteresis models. Subcommands: fit, validate, test, "
@@ -386,77 +369,22 @@ def read_config(path: str | Path) -> dict[str, Any]:
     return cfg
 
 
-def main(argv: list[str] | None = None) -> None:
-    """Entry point of the ``torchhys`` console script.
-
-    An error caused by the user's files, options or data is printed as one line,
-    ``torchhys fit: error: <message>``, and exits with status 2; a bug keeps its traceback;
-    ``--traceback`` (anywhere in ``argv``) or ``TORCHHYS_TRACEBACK=1`` shows the traceback
-    of user errors too (:mod:`torchhys.cli.errors`).
-
-    ``--import MODULE`` (repeatable, any subcommand) imports a module before the config is
-    read: an operator it registers can be named in ``model.operator``
-    (:func:`~torchhys.cli.plugins.import_modules`; nothing is added to ``sys.path`` but
-    the folders of ``--import-path DIR``). ``--threads N`` (or
-    ``TORCHHYS_THREADS``) sets torch's threads, one by default
-    (:mod:`torchhys.cli.threads`).
+def run(args: list[str], *, from_sys_argv: bool, traceback: bool) -> None:
+    """Run ``torchhys fit|validate|test|predict`` (:func:`torchhys.cli.main.main` calls it
+    once it has taken out the command's own options).
 
     Args:
-        argv: command-line arguments without the program name (``sys.argv[1:]`` if None).
-
-    The environment variables it sets for the processes of a multi-process run
-    (``TORCHHYS_QUIET``, ``TORCHHYS_THREADS``, ``TORCHHYS_IMPORT``, ``TORCHHYS_IMPORT_PATH``,
-    ``TORCHHYS_TRACEBACK``) are
-    restored when it returns.
+        args: the arguments LightningCLI reads (the subcommand and its options).
+        from_sys_argv: the command runs from ``sys.argv``: LightningCLI reads ``args`` there
+            (DDP relaunches each rank with it), and ``traceback`` is passed to the ranks'
+            processes as ``TORCHHYS_TRACEBACK``.
+        traceback: user errors keep their traceback (``--traceback``).
 
     Raises:
-        SystemExit: 2 on a user error (and as LightningCLI exits: usage errors, ``--help``).
+        SystemExit: 2 on a user error, 128 + the signal's number on an interrupt (model
+            selection), and as LightningCLI exits (usage errors, ``--help``).
     """
-    saved = {k: os.environ.get(k)
-             for k in (QUIET_ENV, THREADS_ENV, IMPORT_ENV, IMPORT_PATH_ENV, TRACEBACK_ENV)}
-    try:
-        _main(argv)
-    finally:
-        for key, value in saved.items():
-            if value is None:
-                os.environ.pop(key, None)
-            else:
-                os.environ[key] = value
-
-
-def _main(argv: list[str] | None) -> None:
-    args, traceback = split_traceback_flag(sys.argv[1:] if argv is None else argv)
-    try:
-        args, modules = split_import_flags(args)
-        args, paths = split_import_path_flags(args)
-        args, threads = split_threads_flag(args)
-        if "--quiet" in args:  # no progress lines (the ranks of a multi-process run too)
-            args = [a for a in args if a != "--quiet"]
-            os.environ[QUIET_ENV] = "1"
-        sub = next((a for a in args if a in (*TorchhysCLI.subcommands(), "export")), None)
-        # an explicit choice is passed to the ranks of a multi-process run as the variable
-        if threads is not None:
-            os.environ[THREADS_ENV] = str(threads)
-        choose_threads(threads, f"torchhys {sub}" if sub else "torchhys",
-                       say=sub is not None and "--help" not in args and "-h" not in args
-                       and not quiet_requested())
-        paths = add_import_paths(paths or paths_from_env())
-        modules = modules or modules_from_env()
-        import_modules(modules)
-    except Exception as exc:
-        if not report_user_error(f"torchhys {args[0] if args else ''}".strip(), exc,
-                                 traceback):
-            raise
-        raise SystemExit(2) from None
-    if modules:
-        os.environ[IMPORT_ENV] = ",".join(modules)  # for the ranks of a multi-process run
-    if paths:
-        os.environ[IMPORT_PATH_ENV] = os.pathsep.join(paths)
-    if args and args[0] == "export":
-        from torchhys.cli.export import main as export_main
-
-        raise SystemExit(export_main(args[1:] + [TRACEBACK_FLAG] * traceback))
-    if argv is None:  # LightningCLI reads sys.argv (DDP relaunches each rank with it)
+    if from_sys_argv:
         sys.argv[1:] = args
         if traceback:
             os.environ[TRACEBACK_ENV] = "1"  # for the ranks' processes
@@ -470,7 +398,7 @@ def _main(argv: list[str] | None) -> None:
         TorchhysCLI(
             InverseHysteresisModule,
             HysteresisDataModule,
-            args=None if argv is None else args,
+            args=None if from_sys_argv else args,
             seed_everything_default=0,
             save_config_kwargs={"overwrite": True},
             trainer_defaults={"log_every_n_steps": 1},
@@ -487,7 +415,3 @@ def _main(argv: list[str] | None) -> None:
     finally:
         os.environ.pop(RUN_DIR_ENV, None)
         watch_files(False)
-
-
-if __name__ == "__main__":
-    main()

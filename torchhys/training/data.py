@@ -1,17 +1,11 @@
-"""``HysteresisDataModule``: a simulated plant, or recorded (command, response) files.
+"""``HysteresisDataModule``: a simulated plant, or recorded (command, response) files, as
+Lightning's data.
 
 Each stage (train, val, test) is one full batch of the stage's sequences, one row per
-recording (``predict``: one batch per recording, unpadded)::
-
-    x, y     (recordings, time)   each row: ``repeat - 1`` whole periods of the recording,
-                                  then its rows up to the stage's end; right-padded with
-                                  the row's last sample to the longest row
-    warmup   (recordings,)        index of each row's first scored sample
-    mask     (recordings, time)   True on the scored samples: from ``warmup`` to the row's
-                                  end (never on padding)
-
-Every row starts from a fresh operator state (the operators are causal, so the padding
-after a row cannot change it); the loss and the metrics cover the masked samples only.
+recording (``predict``: one batch per recording, unpadded): ``(x, y, warmup, mask)``, laid
+out as :mod:`torchhys.data.tensors` draws it; the loss and the metrics cover the masked
+samples only. The reading, the splits and the tensors are :mod:`torchhys.data`'s (no
+Lightning); this module holds the Lightning face over them.
 """
 
 from __future__ import annotations
@@ -19,7 +13,6 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import NamedTuple
 
 import lightning as L
 import numpy as np
@@ -39,43 +32,20 @@ from torchhys.data.files import (
     read_recordings,
     resolve_path,
 )
+from torchhys.data.simulations import SIMULATIONS, simulate
 from torchhys.data.splits import STAGES, Window, assign_recordings, check_split
+from torchhys.data.tensors import (
+    FitTensors,
+    StageBatch,
+    stack_sequences,
+    stage_batch,
+    window_sequence,
+)
 
-__all__ = [
-    "SIMULATIONS", "SPLIT_BY", "STAGES", "HysteresisDataModule", "SequenceDataset", "Window",
-    "FitTensors", "assign_recordings", "fit_tensors", "simulate", "stack_sequences",
-]
+__all__ = ["SPLIT_BY", "HysteresisDataModule", "SequenceDataset"]
 
-SIMULATIONS = ("paper", "fig6", "bouc_wen")
-"""Simulated sources: the paper's Section 5.2 plant, its Fig. 6 plant, a Bouc-Wen plant."""
 SPLIT_BY = ("time", "recording")
 """``time``: each recording split in time order; ``recording``: whole recordings per stage."""
-
-StageBatch = tuple[Tensor, Tensor, Tensor, Tensor]
-"""``(x, y, warmup, mask)`` of a stage, see the module docstring."""
-
-
-def simulate(name: str, *, dt: float = 0.01, t_end: float = 8 * math.pi,
-             seed: int = 0) -> tuple[Tensor, Tensor, Tensor]:
-    """``(t, x, y)`` of a simulated source in float64: model input ``x`` (the plant's
-    output) and target ``y`` (the plant's input), shape (time,).
-
-    ``"bouc_wen"``: the default :class:`torchhys.plants.BoucWen` plant driven by a
-    multisine (band 0.2-3 rad/s, 8 tones, random phases from ``seed``) scaled to +-6.
-    """
-    from torchhys.plants import bouc_wen, fig6_simulation, paper_simulation
-    from torchhys.signals import multisine, time_grid, to_range
-
-    check_choice(name, "simulation", SIMULATIONS)
-    if name == "paper":
-        t, u, h = paper_simulation(dt, t_end, dtype=torch.float64)
-    elif name == "fig6":
-        t, u, h = fig6_simulation(dt, t_end, dtype=torch.float64)
-    else:  # "bouc_wen"
-        t = time_grid(dt=dt, t_end=t_end, dtype=torch.float64)
-        u = to_range(multisine(t, band=(0.2, 3.0), n_tones=8, seed=seed), -6.0, 6.0)
-        h = bouc_wen(u, t)
-    return t, h, u
 
 
 class SequenceDataset(Dataset):
@@ -108,57 +78,6 @@ class _Batches(Dataset):
 def _only(items: list[StageBatch]) -> StageBatch:
     """Collate a batch of one ready batch: the batch itself."""
     return items[0]
-
-
-def _pad(rows: list[Tensor], length: int) -> Tensor:
-    """Rows of different lengths, each right-padded with its last value, (rows, length)."""
-    return torch.stack([torch.cat([r, r[-1:].expand(length - r.numel())]) for r in rows])
-
-
-class FitTensors(NamedTuple):
-    """The training data that normalizations and data-dependent operators are fitted on."""
-
-    x: Tensor
-    """Input, (rows, time): one row per recording, right-padded with its last sample."""
-    y: Tensor
-    """Target, (rows, time), padded as x."""
-    warmup: int
-    """Leading samples of every row left out of the fits (their states still run)."""
-    mask: Tensor | None
-    """None (every sample of every row), or the samples the fits may use, (rows, time)
-    bool: False on a row's padding, on a held-out block, and on the samples of a longer
-    warm-up than ``warmup`` (the targets there are not used; the states run through)."""
-
-
-def fit_tensors(x: Tensor, y: Tensor, first: Tensor | Sequence[int], end: Tensor | Sequence[int],
-                held: Tensor | None = None) -> FitTensors:
-    """:class:`FitTensors` of rows ``x``, ``y`` (rows, time) whose row r is scored from
-    sample ``first[r]`` to ``end[r]`` (exclusive; padding after it), without the samples
-    ``held`` ((rows, time) bool, e.g. a cross-validation block; None: none). ``warmup`` is
-    the least ``first``; the mask is None when every row is whole, scored from ``warmup``
-    and holds nothing out."""
-    first = torch.as_tensor(first, dtype=torch.long).reshape(-1, 1)
-    end = torch.as_tensor(end, dtype=torch.long).reshape(-1, 1)
-    T = x.shape[-1]
-    w = int(first.min())
-    if bool((first == w).all()) and bool((end == T).all()) and (held is None
-                                                                or not bool(held.any())):
-        return FitTensors(x, y, w, None)
-    t = torch.arange(T)
-    mask = (t < end) & ((t < w) | (t >= first))
-    if held is not None:
-        mask &= ~held.to(torch.bool)
-    return FitTensors(x, y, w, mask)
-
-
-def stack_sequences(seqs: list[tuple[Tensor, Tensor, int]]) -> FitTensors:
-    """Training sequences ``(x, y, first scored)``, each (time,), as the tensors that
-    normalizations and data-dependent operators are fitted on (:class:`FitTensors`): one
-    row per sequence, each from its own initial state, right-padded with its last sample
-    to the longest; with a mask when their lengths or warm-ups differ."""
-    length = max(s[0].numel() for s in seqs)
-    return fit_tensors(_pad([s[0] for s in seqs], length), _pad([s[1] for s in seqs], length),
-                       [s[2] for s in seqs], [s[0].numel() for s in seqs])
 
 
 class HysteresisDataModule(L.LightningDataModule):
@@ -392,21 +311,11 @@ class HysteresisDataModule(L.LightningDataModule):
     def _sequence(self, w: Window) -> tuple[Tensor, Tensor, int]:
         """``(x, y, first)`` of a window: (time,) tensors, ``repeat - 1`` whole periods then
         rows ``[0, end)``, and the index of the first scored sample."""
-        rec, k = self.recordings[w.index], int(self.hparams.repeat)
-        x, y = torch.from_numpy(rec.x), torch.from_numpy(rec.y)
-        first = max(int(self.hparams.warmup), (k - 1) * x.numel() + w.start)
-        if k == 1:
-            return x[: w.end], y[: w.end], first
-        x, y = (torch.cat([v.repeat(k - 1), v[: w.end]]) for v in (x, y))
-        return x, y, first
+        return window_sequence(self.recordings[w.index], w, repeat=int(self.hparams.repeat),
+                               warmup=int(self.hparams.warmup))
 
     def _batch(self, windows: list[Window]) -> StageBatch:
-        seqs = [self._sequence(w) for w in windows]
-        length = max(s[0].numel() for s in seqs)
-        steps = torch.arange(length)
-        mask = torch.stack([(steps >= first) & (steps < x.numel()) for x, _, first in seqs])
-        return (_pad([s[0] for s in seqs], length), _pad([s[1] for s in seqs], length),
-                torch.tensor([s[2] for s in seqs]), mask)
+        return stage_batch([self._sequence(w) for w in windows])
 
     def _stage_windows(self, stage: str) -> list[Window]:
         self.setup()

@@ -20,6 +20,7 @@ from torch import Tensor
 from torch.utils.data import DataLoader
 
 from torchhys._checks import check_choice, check_int
+from torchhys.data.tensors import FitTensors, fit_tensors
 from torchhys.selection.folds import (  # noqa: F401 (the names this module has always offered)
     CV_MODES,
     RECORDING,
@@ -29,7 +30,6 @@ from torchhys.selection.folds import (  # noqa: F401 (the names this module has 
     fold_masks,
     rolling_split,
 )
-from torchhys.training.data import FitTensors, fit_tensors
 
 __all__ = [
     "CV_MODES", "RECORDING", "BlockFold", "RecordingFold", "RollingFold", "block_split",
@@ -183,7 +183,7 @@ class RecordingFold(_Fold):
     the recordings; for recordings taken one after another on a device that changes).
 
     :meth:`train_tensors` are the training rows, each from its own initial state
-    (:func:`~torchhys.training.data.fit_tensors`).
+    (:func:`~torchhys.data.tensors.fit_tensors`).
 
     Args:
         data: the datamodule (set up here).
