@@ -91,7 +91,7 @@ def test_auto_jobs_take_the_usable_cores(monkeypatch, tmp_path, capsys) -> None:
     """select_jobs: auto is the usable cores, at most AUTO_JOBS (one where processes cannot
     be forked), at most one per candidate; the command says what it chose; the table is that
     of one process, and each candidate's seconds are its own."""
-    from torchhys.training import jobs
+    from torchhys.selection import jobs
 
     monkeypatch.setattr(jobs, "usable_cores", lambda: 16)
     assert jobs.check_jobs("auto") == jobs.AUTO_JOBS
