@@ -220,3 +220,16 @@ def test_the_data_package_imports_no_lightning() -> None:
         "from torchhys.data.tensors import stack_sequences\n")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
+
+
+def test_make_reproduce_runs_the_reproduction_package() -> None:
+    """``make reproduce`` runs ``python -m torchhys.reproduce`` (its own package, beside the
+    training side), whose usage names that command."""
+    root = PACKAGE.parent
+    recipe = (root / "Makefile").read_text().split("\nreproduce:", 1)[1].split("\n\n")[0]
+    module = recipe.split(" -m ", 1)[1].split()[0]
+    assert module == "torchhys.reproduce"
+    proc = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True,
+                          text=True, cwd=root)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith(f"usage: python -m {module} "), proc.stdout[:80]

@@ -242,7 +242,8 @@ def plot(results: list[dict], out: Path) -> list[Path]:
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m torchhys.reproduce",
+                                     description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("runs/reproduce"))
     parser.add_argument("--quick", action="store_true", help="a few epochs (smoke run)")
     parser.add_argument("--epochs", type=int, default=None, help="epochs of every run")
