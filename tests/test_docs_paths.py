@@ -2,10 +2,10 @@
 
 A dotted path ``torchhys.a.b`` resolves when its longest importable prefix imports and the
 rest are attributes of it; a module reached as an attribute must be that module itself
-(``torchhys.fitting``, the attribute that ``torchhys/__init__.py`` binds to
-``torchhys.identification.fitting``, is no module path). A file path ``torchhys/...`` (also
-as a link, ``../torchhys/...``) must exist in the checkout, and so must a path that starts
-with a folder of the package without the ``torchhys/`` before it (``training/cli.py``).
+(an attribute that binds ``torchhys.identification.fitting`` under a second name is no module
+path). A file path ``torchhys/...`` (also as a link, ``../torchhys/...``) must exist in the
+checkout, and so must a path that starts with a folder of the package without the
+``torchhys/`` before it (``training/cli.py``).
 Placeholders (``torchhys/operators/<family>.py``) are left out.
 """
 

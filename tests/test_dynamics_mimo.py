@@ -161,6 +161,19 @@ def test_entries_start_as_the_siso_block():
     torch.testing.assert_close(y[..., 0], y1, rtol=0, atol=0)
 
 
+def test_the_siso_block_is_the_1x1_case_without_entry_axes():
+    """TransferFunction is a TransferFunctionMatrix whose parameters drop the (1, 1) entry
+    axes: the same values, of a SISO filter's shapes (its saved state dicts)."""
+    tf, block = TransferFunction(3, feedthrough=False), TransferFunctionMatrix(3, feedthrough=False)
+    assert isinstance(tf, TransferFunctionMatrix) and (tf.n_inputs, tf.n_outputs) == (1, 1)
+    siso, mimo = tf.state_dict(), block.state_dict()
+    assert list(siso) == list(mimo) == ["alpha", "beta", "gamma", "numerator", "numerator_mask"]
+    for key in ("alpha", "beta", "gamma", "numerator"):
+        assert mimo[key].shape == (1, 1, *siso[key].shape)
+        torch.testing.assert_close(mimo[key][0, 0], siso[key], rtol=0, atol=0)
+    assert siso["numerator"].shape == (4,) and tf.coefficients()[1].shape == (4,)
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_lfilter_with_one_filter_a_row(backend):
     b = torch.tensor([[0.2, 0.3, -0.1], [1.0, 0.0, 0.0], [0.5, 0.5, 0.0]], dtype=torch.float64)

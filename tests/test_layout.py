@@ -222,6 +222,83 @@ def test_the_data_package_imports_no_lightning() -> None:
     assert proc.returncode == 0, proc.stderr
 
 
+def _private(module: str) -> bool:
+    return any(part.startswith("_") and not part.startswith("__")
+               for part in module.split("."))
+
+
+def test_the_top_level_names_resolve_each_from_its_one_home() -> None:
+    """Every name of ``torchhys.__all__`` resolves and ``dir`` lists it; a module is there by
+    its own name (no second name for a sub-submodule, as ``torchhys.export`` was); a class or
+    function is defined in a public module; a name that is not there is an AttributeError."""
+    import types
+
+    import pytest
+
+    assert len(torchhys.__all__) == len(set(torchhys.__all__))
+    assert set(torchhys.__all__) <= set(dir(torchhys))
+    for name in torchhys.__all__:
+        value = getattr(torchhys, name)
+        if isinstance(value, types.ModuleType):
+            assert value.__name__ == f"torchhys.{name}", (name, value.__name__)
+        elif name != "__version__":
+            assert value.__name__ == name, name
+            assert value.__module__.startswith("torchhys."), (name, value.__module__)
+            assert not _private(value.__module__), (name, value.__module__)
+    for alias in ("export", "streaming", "fitting"):
+        assert alias not in torchhys.__all__
+        with pytest.raises(AttributeError, match=f"has no attribute '{alias}'"):
+            getattr(torchhys, alias)
+    with pytest.raises(AttributeError, match="has no attribute 'Backlsh'"):
+        torchhys.Backlsh  # noqa: B018
+
+
+def test_a_name_loaded_on_first_use_is_its_homes_object() -> None:
+    code = ("import sys, torchhys\n"
+            "assert 'torchhys.identification.preisach' not in sys.modules\n"
+            "assert 'torchhys.plants' not in sys.modules\n"
+            "from torchhys.identification.preisach import fit_preisach\n"
+            "assert torchhys.fit_preisach is fit_preisach\n"
+            "assert torchhys.plants.BoucWen.__module__ == 'torchhys.plants.bouc_wen'\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+
+
+def test_private_modules_define_no_all_and_public_alls_hold_no_private_names() -> None:
+    bad = []
+    for name, path in modules().items():
+        for node in ast.parse(path.read_text()).body:
+            targets = node.targets if isinstance(node, ast.Assign) else [
+                getattr(node, "target", None)]
+            if not any(isinstance(t, ast.Name) and t.id == "__all__" for t in targets):
+                continue
+            if _private(name):
+                bad.append(f"{name} defines __all__")
+            elif node.value is not None:
+                bad += [f"{name}.__all__ holds {n}" for n in ast.literal_eval(node.value)
+                        if _private(n)]
+    assert bad == []
+
+
+MAX_TORCHHYS_MODULES = 60
+"""``import torchhys`` loads at most this many torchhys modules (docs/benchmarks.md)."""
+
+
+def test_import_torchhys_loads_only_what_it_needs() -> None:
+    """The core (the protocol, the operators, the network) and nothing the optional parts
+    need: no SciPy (the plants' ODE solver), no exporter, no fit."""
+    code = ("import sys, torchhys\n"
+            "print(sum(m == 'torchhys' or m.startswith('torchhys.') for m in sys.modules))\n"
+            "print(' '.join(m for m in ('scipy', 'torchdiffeq', 'torchhys.plants', "
+            "'torchhys.deploy', 'torchhys.identification', 'torchhys.models') "
+            "if m in sys.modules))\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    count, loaded = proc.stdout.splitlines()
+    assert int(count) <= MAX_TORCHHYS_MODULES
+    assert loaded == ""
+
+
 def test_make_reproduce_runs_the_reproduction_package() -> None:
     """``make reproduce`` runs ``python -m torchhys.reproduce`` (its own package, beside the
     training side), whose usage names that command."""

@@ -18,6 +18,7 @@ from scipy.optimize import nnls
 
 import torchhys
 from torchhys.functional.stop_pi import stop_characteristic, stop_pi, stop_segments
+from torchhys.identification.fitting import select_pi_ridge
 from torchhys.identification.stop_pi import fit_stop_pi, select_stop_pi_ridge
 from torchhys.operators.stop_pi import StopPIStep, StopPrandtlIshlinskii
 from torchhys.registry import OPERATORS, make_operator
@@ -933,7 +934,7 @@ def test_every_penalty_selection_names_a_bad_validation_share(select, validation
         if select == "stop_pi":
             select_stop_pi_ridge(x, y, T3, [0.0], validation=validation)
         elif select == "pi":
-            torchhys.identification.fitting.select_pi_ridge(x, y, T3, [0.0], validation=validation)
+            select_pi_ridge(x, y, T3, [0.0], validation=validation)
         else:
             torchhys.select_penalty(x, y, [0.0], validation=validation, n=4)
 

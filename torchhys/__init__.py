@@ -1,30 +1,25 @@
 """torchhys: differentiable hysteresis and inverse-hysteresis modelling in PyTorch.
 
 The functional core lives in :mod:`torchhys.functional`; the ``nn.Module`` wrappers
-that hold parameters and state are re-exported here.
+that hold parameters and state are re-exported here, with the operator protocol. Every
+built-in operator is registered (:data:`torchhys.registry.OPERATORS`) when ``torchhys`` is
+imported.
+
+The subpackages that not every user needs (``deploy``, ``dynamics``, ``identification``,
+``models``, ``optim``, ``plants``, ``signals``), and the families' ``fit_*`` and
+``select_*``, are loaded on first use (``torchhys.plants`` or ``import torchhys.plants``):
+``import torchhys`` loads neither SciPy (the plants' ODE solver) nor Lightning
+(:mod:`torchhys.training`, which needs the ``train`` extra, is reached by its own import).
 """
 
-from torchhys import (
-    deploy,
-    dynamics,
-    identification,
-    models,
-    operator,
-    operators,
-    optim,
-    plants,
-    signals,
-)
+import importlib
+import pkgutil
+from typing import TYPE_CHECKING, Any
+
+from torchhys import functional, operator, operators, registry
 from torchhys._version import __version__
-from torchhys.deploy import export, streaming
-from torchhys.identification import fitting
-from torchhys.identification.drift import fit_drift
-from torchhys.identification.generalized_pi import fit_generalized_pi
-from torchhys.identification.jiles_atherton import fit_jiles_atherton
-from torchhys.identification.preisach import fit_preisach, select_penalty
-from torchhys.identification.stop_pi import fit_stop_pi, select_stop_pi_ridge
 from torchhys.networks import InverseHysteresisNet
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
+from torchhys.operator import HysteresisOperator
 from torchhys.operators.backlash import Backlash, BacklashCell
 from torchhys.operators.cascade import Cascade
 from torchhys.operators.drift import Drift
@@ -36,47 +31,97 @@ from torchhys.operators.prandtl_ishlinskii import PrandtlIshlinskii, PrandtlIshl
 from torchhys.operators.preisach import Preisach, PreisachInverse
 from torchhys.operators.stop_pi import StopPIInverse, StopPrandtlIshlinskii
 from torchhys.registry import register_operator
+from torchhys.step import OperatorStep, StateBlock
+
+# the operators' modules register their operators when imported: every one of them, so
+# that OPERATORS names every built-in operator whichever the face re-exports
+for _module in pkgutil.iter_modules(operators.__path__):
+    importlib.import_module(f"{operators.__name__}.{_module.name}")
+del _module
+
+_LAZY_SUBPACKAGES = ("deploy", "dynamics", "identification", "models", "optim", "plants",
+                     "signals")
+"""Subpackages loaded on first use (:func:`__getattr__`)."""
+
+_LAZY_NAMES = {
+    "fit_drift": "torchhys.identification.drift",
+    "fit_generalized_pi": "torchhys.identification.generalized_pi",
+    "fit_jiles_atherton": "torchhys.identification.jiles_atherton",
+    "fit_preisach": "torchhys.identification.preisach",
+    "select_penalty": "torchhys.identification.preisach",
+    "fit_stop_pi": "torchhys.identification.stop_pi",
+    "select_stop_pi_ridge": "torchhys.identification.stop_pi",
+}
+"""Names loaded on first use, and the module each lives in."""
+
+if TYPE_CHECKING:  # what a type checker and an editor see: the same names, eagerly
+    from torchhys import deploy, dynamics, identification, models, optim, plants, signals
+    from torchhys.identification.drift import fit_drift
+    from torchhys.identification.generalized_pi import fit_generalized_pi
+    from torchhys.identification.jiles_atherton import fit_jiles_atherton
+    from torchhys.identification.preisach import fit_preisach, select_penalty
+    from torchhys.identification.stop_pi import fit_stop_pi, select_stop_pi_ridge
 
 __all__ = [
     "__version__",
-    "plants",
+    # subpackages and modules
     "deploy",
-    "identification",
-    "operators",
-    "models",
-    "signals",
-    "optim",
-    "export",
-    "fitting",
-    "streaming",
-    "operator",
     "dynamics",
+    "functional",
+    "identification",
+    "models",
+    "operator",
+    "operators",
+    "optim",
+    "plants",
+    "registry",
+    "signals",
+    # the operator protocol
     "HysteresisOperator",
     "OperatorStep",
     "StateBlock",
     "register_operator",
+    # operators
     "Backlash",
+    "BacklashCell",
     "Cascade",
     "Drift",
-    "fit_drift",
     "EIHO",
-    "SegmentEIHO",
-    "InverseHysteresisNet",
-    "ZhaoTanOperator",
-    "BacklashCell",
+    "GeneralizedPIInverse",
+    "GeneralizedPrandtlIshlinskii",
+    "JilesAtherton",
     "PrandtlIshlinskii",
     "PrandtlIshlinskiiInverse",
     "Preisach",
     "PreisachInverse",
-    "JilesAtherton",
-    "fit_jiles_atherton",
-    "fit_preisach",
-    "select_penalty",
-    "GeneralizedPIInverse",
-    "GeneralizedPrandtlIshlinskii",
-    "fit_generalized_pi",
+    "SegmentEIHO",
     "StopPIInverse",
     "StopPrandtlIshlinskii",
+    "ZhaoTanOperator",
+    # the network
+    "InverseHysteresisNet",
+    # identification
+    "fit_drift",
+    "fit_generalized_pi",
+    "fit_jiles_atherton",
+    "fit_preisach",
     "fit_stop_pi",
+    "select_penalty",
     "select_stop_pi_ridge",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    """Load a subpackage or a family's fit on first use (PEP 562); the value is kept."""
+    if name in _LAZY_SUBPACKAGES:
+        value = importlib.import_module(f"{__name__}.{name}")
+    elif name in _LAZY_NAMES:
+        value = getattr(importlib.import_module(_LAZY_NAMES[name]), name)
+    else:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

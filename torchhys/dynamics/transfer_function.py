@@ -5,22 +5,20 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
-from torchhys._checks import as_batched_sequence, check_int
+from torchhys._checks import as_batched_sequence
 from torchhys.dynamics._common import (
     causal_rational,
-    initial_sections,
     padded,
     pole_radius,
     pole_sections,
-    radius,
-    section_polynomial,
     stable_poles,
     start,
 )
+from torchhys.dynamics.transfer_function_matrix import TransferFunctionMatrix
 from torchhys.functional.linear_filter import df2t_step, lfilter
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
+from torchhys.operator import OperatorStep, StateBlock
 
 __all__ = ["TransferFunction", "TransferFunctionStep"]
 
@@ -46,15 +44,18 @@ class TransferFunctionStep(OperatorStep):
         return y, [z]
 
 
-class TransferFunction(HysteresisOperator):
+class TransferFunction(TransferFunctionMatrix):
     """A SISO discrete-time transfer function ``B(z) / A(z)`` with poles inside radius r.
 
-    ``A(z)`` is a product of stable sections (:mod:`torchhys.dynamics`); ``B(z)`` has
-    ``order + 1`` free coefficients (``b[0] = 0`` without feedthrough). The sequence path is
+    The 1 x 1 case of :class:`~torchhys.dynamics.TransferFunctionMatrix` without its entry
+    axes: the parameters, the coefficients and the state are those of one filter (``alpha``
+    (sections,), ``numerator`` (order + 1,), ``coefficients()`` (order + 1,), the state
+    (order,)), x (time,) or (batch, time) gives y of its shape. ``A(z)`` is a product of
+    stable sections (:mod:`torchhys.dynamics`); ``B(z)`` has ``order + 1`` free coefficients
+    (``b[0] = 0`` without feedthrough). The sequence path is
     :func:`~torchhys.functional.linear_filter.lfilter`; the step is one DF2T step with the
     same coefficients (bit for bit equal on the CPU kernel). Initialised with poles of
-    modulus 0.5 and a DC gain of 1. Several inputs and outputs:
-    :class:`~torchhys.dynamics.TransferFunctionMatrix`.
+    modulus 0.5 and a DC gain of 1.
 
     Args:
         order: number of poles (>= 1).
@@ -68,35 +69,13 @@ class TransferFunction(HysteresisOperator):
         - returns ``(y, state)``: y of x's shape, and the delays after the last sample.
     """
 
-    n_outputs = 1
-
     def __init__(self, order: int = 2, *, feedthrough: bool = True,
                  max_pole_radius: float = 0.999) -> None:
-        super().__init__()
-        self.order = check_int(order, "order", minimum=1)
-        self.feedthrough = bool(feedthrough)
-        self.max_pole_radius = radius(max_pole_radius, "max_pole_radius")
-        alpha, beta, gamma = initial_sections(order, self.max_pole_radius,
-                                              torch.get_default_dtype())
-        self.alpha = nn.Parameter(alpha)
-        self.beta = nn.Parameter(beta)
-        self.gamma = nn.Parameter(gamma)
-        mask = torch.ones(order + 1)
-        mask[0] = float(self.feedthrough)
-        self.register_buffer("numerator_mask", mask)
-        with torch.no_grad():
-            gain = float(self.denominator().sum())
-        self.numerator = nn.Parameter(torch.zeros(order + 1))
-        with torch.no_grad():
-            self.numerator[0 if self.feedthrough else 1] = gain
+        super().__init__(order, feedthrough=feedthrough, max_pole_radius=max_pole_radius)
 
-    def denominator(self) -> Tensor:
-        """``a`` (order + 1,) with ``a[0] = 1``: the product of the sections."""
-        return section_polynomial(self.alpha, self.beta, self.gamma, self.max_pole_radius)
-
-    def coefficients(self) -> tuple[Tensor, Tensor]:
-        """``(b, a)``, both (order + 1,), ``a[0] = 1`` (scipy's lfilter convention)."""
-        return self.numerator * self.numerator_mask, self.denominator()
+    def _entry_shape(self) -> tuple[int, ...]:
+        """No entry axes: the parameters and coefficients of one filter."""
+        return ()
 
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
         xb, squeezed = as_batched_sequence(x, "x")

@@ -68,11 +68,11 @@ class TransferFunctionMatrix(HysteresisOperator):
     Each entry ``H_ij = B_ij(z) / A_ij(z)`` has its own denominator, a product of stable
     sections with poles inside radius r (:mod:`torchhys.dynamics`, as
     :class:`~torchhys.dynamics.TransferFunction`), and its own ``order + 1`` free numerator
-    coefficients (``b[0] = 0`` without feedthrough). A class of its own rather than options of
-    :class:`~torchhys.dynamics.TransferFunction`: that block's parameter shapes, its
-    (time,) -> (time,) input and output and its saved state dicts stay those of a SISO
-    filter, while this one's parameters carry the (p, m) entry axes and its output is
-    (..., time, p) for every p and m.
+    coefficients (``b[0] = 0`` without feedthrough). Its 1 x 1 case without the entry axes is
+    :class:`~torchhys.dynamics.TransferFunction` (a subclass): that block's parameter
+    shapes, its (time,) -> (time,) input and output, its state and its saved state dicts stay
+    those of a SISO filter, while this one's parameters carry the (p, m) entry axes and its
+    output is (..., time, p) for every p and m.
 
     The sequence path filters all ``p * m`` entries in one
     :func:`~torchhys.functional.linear_filter.lfilter` call (one filter per row) and sums over
@@ -103,12 +103,13 @@ class TransferFunctionMatrix(HysteresisOperator):
                  feedthrough: bool = True, max_pole_radius: float = 0.999) -> None:
         super().__init__()
         self.order = check_int(order, "order", minimum=1)
-        self.n_inputs = m = check_int(n_inputs, "n_inputs", minimum=1)
-        self.n_outputs = p = check_int(n_outputs, "n_outputs", minimum=1)
+        self.n_inputs = check_int(n_inputs, "n_inputs", minimum=1)
+        self.n_outputs = check_int(n_outputs, "n_outputs", minimum=1)
         self.feedthrough = bool(feedthrough)
         self.max_pole_radius = radius(max_pole_radius, "max_pole_radius")
+        entries = self._entry_shape()
         sections = initial_sections(order, self.max_pole_radius, torch.get_default_dtype())
-        alpha, beta, gamma = (s.expand(p, m, -1).clone() for s in sections)
+        alpha, beta, gamma = (s.expand(*entries, -1).clone() for s in sections)
         self.alpha = nn.Parameter(alpha)
         self.beta = nn.Parameter(beta)
         self.gamma = nn.Parameter(gamma)
@@ -117,9 +118,13 @@ class TransferFunctionMatrix(HysteresisOperator):
         self.register_buffer("numerator_mask", mask)
         with torch.no_grad():
             gain = self.denominator().sum(-1)
-        self.numerator = nn.Parameter(torch.zeros(p, m, order + 1))
+        self.numerator = nn.Parameter(torch.zeros(*entries, order + 1))
         with torch.no_grad():
             self.numerator[..., 0 if self.feedthrough else 1] = gain
+
+    def _entry_shape(self) -> tuple[int, ...]:
+        """The entry axes of the parameters and coefficients: ``(p, m)``."""
+        return (self.n_outputs, self.n_inputs)
 
     def denominator(self) -> Tensor:
         """``a`` (p, m, order + 1) with ``a[..., 0] = 1``: each entry's product of sections."""
