@@ -20,7 +20,7 @@ from torchhys.selection.candidates import (
     solve_readout,
     train_full_batch,
 )
-from torchhys.selection.folds import Batch, fit_mask
+from torchhys.selection.folds import Batch, make_folds
 
 LINE = {"operator": None}
 STOPS = {"operator": [{"fit": "stop_pi", "n_widths": 8, "power": 2.0, "segments": 2}]}
@@ -111,13 +111,20 @@ def test_rolling_recording_and_holdout_folds_of_the_line_equal_numpy() -> None:
     assert res.scores[0].folds == ()
 
 
-def test_fit_mask_leaves_out_a_longer_warmup_the_padding_and_the_held_samples() -> None:
-    held = torch.zeros(2, 8, dtype=torch.bool)
-    held[0, 5] = True
-    got = fit_mask(torch.tensor([2, 3]), torch.tensor([8, 6]), 8, held)
-    want = torch.tensor([[1, 1, 1, 1, 1, 0, 1, 1],
-                         [1, 1, 0, 1, 1, 1, 0, 0]], dtype=torch.bool)
-    assert torch.equal(got, want)
+def test_the_fit_leaves_out_a_longer_warmup_the_padding_and_the_held_block() -> None:
+    x = torch.randn(2, 40, dtype=torch.float64)
+    mask = torch.zeros(2, 40, dtype=torch.bool)
+    mask[0, 2:] = True
+    mask[1, 3:30] = True  # row 1: a longer warm-up, padding after sample 30
+    fold = make_folds(x, x, torch.tensor([2, 3]), mask, 2)[0]
+    held = fold.val.mask
+    assert bool(held[0, 2]) and bool(held[1, 3]) and not bool(held[:, 25:].any())
+    want = torch.ones(2, 40, dtype=torch.bool)
+    want[1, 2] = False  # the warm-up beyond the least one
+    want[1, 30:] = False  # the padding
+    want &= ~held
+    assert torch.equal(fold.fit.mask, want) and fold.warmup == 2
+    assert torch.equal(fold.train.mask, mask & ~held)
 
 
 def test_the_solved_readout_is_what_lbfgs_training_converges_to() -> None:

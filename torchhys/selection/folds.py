@@ -16,9 +16,10 @@ import torch
 from torch import Tensor
 
 from torchhys._checks import check_choice, check_int
+from torchhys.data.tensors import fit_tensors
 
-__all__ = ["CV_MODES", "RECORDING", "Batch", "Fold", "block_split", "describe_cv", "fit_mask",
-           "fold_masks", "make_folds", "rolling_split"]
+__all__ = ["CV_MODES", "RECORDING", "Batch", "Fold", "block_split", "describe_cv", "fold_masks",
+           "make_folds", "rolling_split"]
 
 
 RECORDING = "recording"
@@ -163,15 +164,14 @@ class Fold(NamedTuple):
     """Leading samples of ``fit``'s rows left out of the families' least squares."""
 
 
-def fit_mask(first: Tensor, end: Tensor, T: int, held: Tensor | None = None) -> Tensor:
-    """The samples a fit may use on rows scored from ``first[r]`` to ``end[r]`` (rows,):
-    all before the end, except those of a warm-up longer than the least ``first`` and those
-    ``held``, (rows, T) bool."""
-    t = torch.arange(T)
-    first, end = first.reshape(-1, 1), end.reshape(-1, 1)
-    w = int(first.min())
-    mask = (t < end) & ((t < w) | (t >= first))
-    return mask & ~held if held is not None else mask
+def _fit_batch(x: Tensor, y: Tensor, first: Tensor, end: Tensor,
+               held: Tensor | None = None) -> tuple[Batch, int]:
+    """The rows the families and normalization fit on, with the samples they may use
+    (:func:`~torchhys.data.tensors.fit_tensors`: a longer warm-up than the least, the
+    padding and ``held`` left out), and the least warm-up."""
+    fit = fit_tensors(x, y, first, end, held)
+    mask = fit.mask if fit.mask is not None else torch.ones(x.shape, dtype=torch.bool)
+    return Batch(fit.x, fit.y, mask), fit.warmup
 
 
 def make_folds(x: Tensor, y: Tensor, first: Tensor, mask: Tensor, cv: int | str | None,
@@ -194,7 +194,6 @@ def make_folds(x: Tensor, y: Tensor, first: Tensor, mask: Tensor, cv: int | str 
     mask = mask.to(torch.bool)
     first = first.to(torch.long).reshape(-1)
     ends, T = _ends(mask), x.shape[-1]
-    w = int(first.min())
     if cv is None:
         from torchhys.identification._nnls import holdout_cuts
 
@@ -203,9 +202,8 @@ def make_folds(x: Tensor, y: Tensor, first: Tensor, mask: Tensor, cv: int | str 
         c = min(cuts)  # one cut for all rows keeps them one batch
         fitted = mask[:, :c]
         held = mask & (torch.arange(T) >= c)
-        train = Batch(x[:, :c], y[:, :c], fitted)
-        return [Fold(train, Batch(x[:, :c], y[:, :c], fit_mask(first, ends.clamp(max=c), c)),
-                     Batch(x, y, held), w)]
+        fit, w = _fit_batch(x[:, :c], y[:, :c], first, ends.clamp(max=c))
+        return [Fold(Batch(x[:, :c], y[:, :c], fitted), fit, Batch(x, y, held), w)]
     if cv == RECORDING:
         n = x.shape[0]
         if n < 2:
@@ -218,11 +216,9 @@ def make_folds(x: Tensor, y: Tensor, first: Tensor, mask: Tensor, cv: int | str 
             keep, val = (list(range(j + 1)), j + 1) if rolling else (
                 [r for r in range(n) if r != j], j)
             T_keep = int(ends[keep].max())  # the others' padding to the held-out one's
-            fx, fy = x[keep, :T_keep], y[keep, :T_keep]
-            folds.append(Fold(Batch(x[keep], y[keep], mask[keep]),
-                              Batch(fx, fy, fit_mask(first[keep], ends[keep], T_keep)),
-                              Batch(x[val:val + 1], y[val:val + 1], mask[val:val + 1]),
-                              int(first[keep].min())))
+            fit, w = _fit_batch(x[keep, :T_keep], y[keep, :T_keep], first[keep], ends[keep])
+            folds.append(Fold(Batch(x[keep], y[keep], mask[keep]), fit,
+                              Batch(x[val:val + 1], y[val:val + 1], mask[val:val + 1]), w))
         return folds
     if isinstance(cv, str):
         raise ValueError(f"cv must be an int >= 2 (blocked cross-validation), {RECORDING!r} "
@@ -231,7 +227,6 @@ def make_folds(x: Tensor, y: Tensor, first: Tensor, mask: Tensor, cv: int | str 
     folds = []
     for j in range(cv - 1 if rolling else cv):
         fitted, held = fold_masks(mask, cv, j, rolling=rolling, source=source)
-        folds.append(Fold(Batch(x, y, fitted), Batch(x, y, fit_mask(first, ends, T,
-                                                                     mask & ~fitted)),
-                          Batch(x, y, held), w))
+        fit, w = _fit_batch(x, y, first, ends, mask & ~fitted)
+        folds.append(Fold(Batch(x, y, fitted), fit, Batch(x, y, held), w))
     return folds

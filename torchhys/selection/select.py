@@ -35,7 +35,15 @@ from torchhys.selection.candidates import (
     squared_errors,
 )
 from torchhys.selection.coverage import coverage_warning
-from torchhys.selection.folds import CV_MODES, RECORDING, Batch, describe_cv, fit_mask, make_folds
+from torchhys.selection.folds import (
+    CV_MODES,
+    RECORDING,
+    Batch,
+    _ends,
+    _fit_batch,
+    describe_cv,
+    make_folds,
+)
 from torchhys.selection.jobs import run_candidates
 from torchhys.selection.scores import (
     RULES,
@@ -72,10 +80,8 @@ class Record:
 
     def whole(self) -> tuple[Batch, Batch, int]:
         """``(train, fit, warmup)`` of the whole record (the final fit)."""
-        ends = (self.mask * torch.arange(1, self.x.shape[-1] + 1)).amax(-1)
-        return (Batch(self.x, self.y, self.mask),
-                Batch(self.x, self.y, fit_mask(self.first, ends, self.x.shape[-1])),
-                int(self.first.min()))
+        fit, warmup = _fit_batch(self.x, self.y, self.first, _ends(self.mask))
+        return Batch(self.x, self.y, self.mask), fit, warmup
 
 
 def record(x: Tensor, y: Tensor, *, warmup: int | Sequence[int] = 0,

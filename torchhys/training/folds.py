@@ -20,14 +20,16 @@ from torch import Tensor
 from torch.utils.data import DataLoader
 
 from torchhys._checks import check_choice, check_int
-from torchhys.data.tensors import FitTensors, fit_tensors
+from torchhys.data.tensors import FitTensors
 from torchhys.selection.folds import (  # noqa: F401 (the names this module has always offered)
     CV_MODES,
     RECORDING,
+    Fold,
     _ends,
     block_split,
     describe_cv,
     fold_masks,
+    make_folds,
     rolling_split,
 )
 
@@ -53,6 +55,20 @@ class _Fold(L.LightningDataModule):
     _train: tuple[Tensor, Tensor, Tensor, Tensor]
     _val: tuple[Tensor, Tensor, Tensor, Tensor]
     _fit: FitTensors
+
+    def _take(self, fold: Fold, warmup: Tensor, keep: list[int] | None = None,
+              val: int | None = None) -> None:
+        """Hold ``fold`` (:func:`~torchhys.selection.folds.make_folds`) as Lightning batches:
+        ``warmup`` the rows' first scored samples, ``keep`` and ``val`` the training and
+        held-out rows of a recording fold (None: every row in both)."""
+        self.n_val = int(fold.val.mask.sum())
+        """Number of held-out (validation) samples."""
+        w_train = warmup if keep is None else warmup[keep]
+        w_val = warmup if val is None else warmup[val:val + 1]
+        self._train = (fold.train.x, fold.train.y, w_train, fold.train.mask)
+        self._val = (fold.val.x, fold.val.y, w_val, fold.val.mask)
+        mask = None if bool(fold.fit.mask.all()) else fold.fit.mask
+        self._fit = FitTensors(fold.fit.x, fold.fit.y, fold.warmup, mask)
 
     def train_tensors(self) -> tuple[Tensor, Tensor]:
         """The fold's training rows ``(x, y)``, (rows, time), to fit the normalization and
@@ -116,12 +132,11 @@ class BlockFold(_Fold):
         self.k = k - 1 if self.rolling else k
         """Number of folds."""
         x, y, warmup, mask, source = _train_batch(data)
-        fitted, held = fold_masks(mask, k, fold, rolling=self.rolling, source=source)
-        self.n_val = int(held.sum())
-        """Number of held-out (validation) samples."""
-        self._train = (x, y, warmup, fitted)
-        self._val = (x, y, warmup, held)
-        self._fit = fit_tensors(x, y, warmup, _ends(mask), mask & ~fitted)
+        if not 0 <= fold < self.k:
+            rolls = f" (k - 1 rolling folds of k={k} blocks)" if self.rolling else ""
+            raise ValueError(f"fold must be in [0, {self.k}){rolls}, got {fold}")
+        self._take(make_folds(x, y, warmup, mask, k, "rolling" if self.rolling else None,
+                              source=source)[fold], warmup)
 
 
 def _train_batch(data: L.LightningDataModule) -> tuple[Tensor, Tensor, Tensor, Tensor, str]:
@@ -213,18 +228,11 @@ class RecordingFold(_Fold):
         """Number of folds: the training recordings (one fewer with ``rolling``)."""
         if not 0 <= fold < self.k:
             raise ValueError(f"fold must be in [0, {self.k}), got {fold}")
-        mask = mask.to(torch.bool)
-        if rolling:
-            keep, val = list(range(fold + 1)), fold + 1
-        else:
-            keep, val = [r for r in range(n) if r != fold], fold
-        self.n_val = int(mask[val].sum())
-        """Number of held-out (validation) samples."""
-        self._train = (x[keep], y[keep], warmup[keep], mask[keep])
-        self._val = (x[val:val + 1], y[val:val + 1], warmup[val:val + 1], mask[val:val + 1])
-        ends = _ends(mask[keep])
-        T = int(ends.max())  # the other rows' padding to the held-out one's length goes
-        self._fit = fit_tensors(x[keep, :T], y[keep, :T], warmup[keep], ends)
+        keep, val = (list(range(fold + 1)), fold + 1) if rolling else (
+            [r for r in range(n) if r != fold], fold)
+        f = make_folds(x, y, warmup, mask, RECORDING, "rolling" if rolling else None,
+                       source=source)[fold]
+        self._take(f, warmup, keep, val)
 
 
 def cv_fold(data: L.LightningDataModule, cv: int | str, fold: int,
