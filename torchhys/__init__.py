@@ -7,8 +7,9 @@ imported.
 
 The subpackages that not every user needs (``deploy``, ``dynamics``, ``identification``,
 ``models``, ``optim``, ``plants``, ``signals``), and the families' ``fit_*`` and
-``select_*``, are loaded on first use (``torchhys.plants`` or ``import torchhys.plants``):
-``import torchhys`` loads neither SciPy (the plants' ODE solver) nor Lightning
+``select_*``, are loaded on first use (``torchhys.plants`` or ``import torchhys.plants``)
+where nothing has loaded them before: ``import torchhys`` loads neither SciPy (the plants'
+ODE solver), nor a fit, nor Lightning
 (:mod:`torchhys.training`, which needs the ``train`` extra, is reached by its own import).
 """
 
