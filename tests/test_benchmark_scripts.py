@@ -213,3 +213,18 @@ def test_fit_speed_prints_each_run_and_the_stages() -> None:
     assert float(stages["model selection (all candidates)"]) > 0
     assert float(stages["start-up: the interpreter and the imports"]) > 0.5
     assert "the chosen candidate's fit (Trainer.fit)" in stages
+
+
+def test_layout_cost_prints_what_each_import_loads() -> None:
+    """benchmarks/layout_cost.py without the walk of ``torchhys fit``: a row per import, each
+    a count of modules, and none of the three loads Lightning (``import torchhys`` within the
+    layout test's bound)."""
+    from tests.test_layout import MAX_TORCHHYS_MODULES
+
+    out = run("layout_cost.py", "--no-walk", "--repeats", "1")
+    rows = {r[0].strip("`"): r for r in table(out, "import")}
+    assert list(rows) == ["torchhys", "torchhys.selection", "torchhys.data.tables"], out
+    for name, (_, ours, every, seconds, lightning) in rows.items():
+        assert 0 < int(ours) < int(every) and float(seconds) > 0, out
+        assert lightning == "no", (name, out)
+    assert int(rows["torchhys"][1]) <= MAX_TORCHHYS_MODULES
