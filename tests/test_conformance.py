@@ -44,7 +44,8 @@ from torchhys.deploy.export import load_aoti, to_aoti, to_torchscript
 from torchhys.deploy.streaming import StreamingCompensator
 from torchhys.functional import _filter_kernel, _kernel
 from torchhys.operator import check_operator
-from torchhys.registry import OPERATORS, example_of, load_entry_points
+from torchhys.registry import OPERATORS, load_entry_points
+from torchhys.testing import example_of
 
 load_entry_points()
 NAMES = sorted(OPERATORS)

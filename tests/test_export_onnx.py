@@ -49,7 +49,7 @@ import torchhys
 from torchhys import Backlash, PrandtlIshlinskii, PrandtlIshlinskiiInverse, Preisach
 from torchhys.deploy.export import to_torchscript
 from torchhys.deploy.streaming import StreamingCompensator
-from torchhys.registry import example_of
+from torchhys.testing import example_of
 
 try:
     import onnx

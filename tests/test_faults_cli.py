@@ -22,7 +22,8 @@ from torchhys.cli.plugins import (
     import_modules,
     split_import_path_flags,
 )
-from torchhys.registry import OPERATORS, example_of, load_entry_points, make_operator
+from torchhys.registry import OPERATORS, load_entry_points, make_operator
+from torchhys.testing import example_of
 from torchhys.training import InverseHysteresisModule
 
 USER_MODULE = "from torchhys.registry import register_operator\nLOADED = True\n"

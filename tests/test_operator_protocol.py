@@ -22,6 +22,7 @@ from torchhys.deploy.export import load_aoti, load_torchscript, to_aoti, to_torc
 from torchhys.deploy.streaming import StreamingCompensator
 from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, check_operator
 from torchhys.registry import OPERATORS, make_operator, register_operator
+from torchhys.testing import example_of
 
 
 def dead_zone(x: Tensor, width: Tensor) -> Tensor:
@@ -127,16 +128,16 @@ def test_a_redefinition_of_the_same_class_replaces_it(monkeypatch) -> None:
     # of the same module and qualified name; the example stays with its class
     monkeypatch.setitem(OPERATORS, "dead_zone", DeadZone)
     monkeypatch.setattr(registry, "EXAMPLES", {})
-    assert isinstance(registry.example_of("dead_zone").build(), DeadZone)  # DeadZone()
+    assert isinstance(example_of("dead_zone").build(), DeadZone)  # DeadZone()
     register_operator("dead_zone", DeadZone, example=lambda: DeadZone(0.2))
     register_operator("dead_zone", DeadZone)  # again without one: the example is kept
-    width = F.softplus(registry.example_of("dead_zone").build().raw.detach())
+    width = F.softplus(example_of("dead_zone").build().raw.detach())
     assert float(width) == pytest.approx(0.2)
     again = type("DeadZone", (DeadZone,), {"__module__": DeadZone.__module__,
                                            "__qualname__": DeadZone.__qualname__})
     register_operator("dead_zone", again)
     assert OPERATORS["dead_zone"] is again
-    assert type(registry.example_of("dead_zone").build()) is again
+    assert type(example_of("dead_zone").build()) is again
     other = type("DeadZone", (DeadZone,), {"__module__": "elsewhere"})
     with pytest.raises(ValueError, match="registered already"):
         register_operator("dead_zone", other)

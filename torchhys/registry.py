@@ -17,7 +17,6 @@ from typing import Any
 from torch import nn
 
 from torchhys.operator import HysteresisOperator, check_operator
-from torchhys.testing import Example
 
 __all__ = [
     "BROKEN_ENTRY_POINTS",
@@ -25,7 +24,6 @@ __all__ = [
     "EXAMPLES",
     "FAMILIES",
     "OPERATORS",
-    "example_of",
     "load_entry_points",
     "make_operator",
     "register_family",
@@ -38,12 +36,14 @@ OPERATORS: dict[str, Callable[..., HysteresisOperator]] = {}
 
 
 
-EXAMPLES: dict[str, Example] = {}
-"""The examples given to :func:`register_operator`, by name (see :func:`example_of`)."""
+EXAMPLES: dict[str, Callable[[], HysteresisOperator]] = {}
+"""The examples given to :func:`register_operator`, by name, as given: a
+:class:`torchhys.testing.Example` or a function that builds the instance (read by
+:func:`torchhys.testing.example_of`)."""
 
 
 def register_operator(name: str, factory: Callable[..., HysteresisOperator], *,
-                      example: Example | Callable[[], HysteresisOperator] | None = None
+                      example: Callable[[], HysteresisOperator] | None = None
                       ) -> None:
     """Register an operator class (or factory) under ``name``, for specs by name.
 
@@ -55,20 +55,19 @@ def register_operator(name: str, factory: Callable[..., HysteresisOperator], *,
     Args:
         name: the name in specs and configs.
         factory: the class (or a function) that builds the operator from keyword options.
-        example: a small instance for the conformance tests: an :class:`Example`, or a
-            function that builds the instance (an ``Example`` with the default settings);
-            None: ``factory()`` (the default options).
+        example: a small instance for the conformance checks: a
+            :class:`torchhys.testing.Example` (which builds it when called), or a function
+            that builds the instance (an ``Example`` with the default settings); None:
+            ``factory()`` (the default options).
 
     Raises:
         ValueError: ``name`` is taken by another factory.
     """
     if not isinstance(name, str) or not name:
         raise ValueError(f"name must be a non-empty str, got {name!r}")
-    if example is not None and not isinstance(example, Example):
-        if not callable(example):
-            raise TypeError(f"example must be an Example or a function that builds the "
-                            f"operator, got {type(example).__name__}")
-        example = Example(example)
+    if example is not None and not callable(example):
+        raise TypeError(f"example must be an Example or a function that builds the operator, "
+                        f"got {type(example).__name__}")
     old = OPERATORS.get(name, factory)
     if old is not factory and _qualified(old) != _qualified(factory):
         raise ValueError(f"operator name {name!r} is registered already ({OPERATORS[name]})")
@@ -77,18 +76,6 @@ def register_operator(name: str, factory: Callable[..., HysteresisOperator], *,
         EXAMPLES[name] = example
     elif old is not factory:  # a new definition: the old example built the old class
         EXAMPLES.pop(name, None)
-
-
-def example_of(name: str) -> Example:
-    """The :class:`Example` of the operator registered as ``name``: the one given to
-    :func:`register_operator`, else ``Example(OPERATORS[name])`` (its default options).
-
-    Raises:
-        KeyError: an unknown name.
-    """
-    if name not in OPERATORS:
-        raise KeyError(f"no operator is registered as {name!r}")
-    return EXAMPLES.get(name) or Example(OPERATORS[name])
 
 
 def _qualified(factory: object) -> tuple[str, str] | None:
