@@ -1,28 +1,65 @@
-"""Test metadata and checks of the operator protocol, for torchhys and its plugins.
+"""The conformance checks of the operator protocol, for torchhys and its plugins.
 
-:class:`Example`: a small instance of a registered operator and what the conformance checks
-may expect of it, given to :func:`torchhys.registry.register_operator`; :func:`example_of`:
-the example of a registered name.
+:func:`check_conformance` runs one operator through the checks that every registered
+operator passes (``tests/test_conformance.py`` runs them over the registry: the suite and this
+function are one code). :class:`Example` is a small instance of an operator and what the
+checks may expect of it, given to :func:`torchhys.registry.register_operator`. A plugin
+author checks an operator with::
+
+    from torchhys.testing import Example, check_conformance
+
+    check_conformance(MyOperator, Example(lambda: MyOperator(0.3), bad_values={"r": -1.0}))
+
+A check that fails raises ``AssertionError`` naming the operator, the check and what differs;
+the result says which checks ran and why the others did not apply. The checks compare paths
+that compute the same output within the example's ``atol`` relative to the output's scale
+(0: bit for bit), on a signal of nested reversals and a walk on a grid with flat stretches
+(turning points, ties, repeated samples), with the compiled kernels where they run and with
+the scans. The C99 and ONNX steps are checked against the TorchScript compensator by the
+suite (they need a C compiler and ONNX Runtime: ``tests/test_conformance.py``).
 """
 
-from collections.abc import Callable, Mapping
+import copy
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from dataclasses import field as dataclass_field
+from typing import Any
+
+import torch
 
 import torchhys.registry as registry
 from torchhys.operator import HysteresisOperator
 
-__all__ = ["Example", "example_of"]
+__all__ = ["CHECKS", "DEFAULT_CHECKS", "Example", "check_conformance", "example_of"]
+
+CHECKS: dict[str, str] = {
+    "protocol": "the example is an operator of its registered class",
+    "chunked": "chunked calls, the state carried, equal one call; a row as (time,) its row "
+               "of a batch",
+    "step": "the per-sample step equals forward",
+    "gradcheck": "gradcheck of forward in the input",
+    "torchscript": "the TorchScript compensator equals the eager one and the network",
+    "aoti": "the AOTInductor compensator equals the eager one and holds a NaN",
+    "nan": "a NaN sample is held, counted, and leaves the state",
+    "wrong_shape": "a state dict with a wrong shape loads nothing, naming the entry",
+    "bad_value": "a value breaking a declared constraint is refused, naming the entry",
+    "bad_input": "bad input (text, integers, 3-d, NaN) is an error naming x",
+    "bad_state": "a state of another batch, or with a NaN, is an error naming state",
+}
+"""The checks by name: what each holds. ``chunked``, ``step`` and ``gradcheck`` run with the
+compiled play and filter kernels (where they run) and with the scans."""
+DEFAULT_CHECKS = tuple(c for c in CHECKS if c != "aoti")
+"""The checks :func:`check_conformance` runs by default: all but ``"aoti"`` (a compile)."""
 
 
 @dataclass(frozen=True)
 class Example:
-    """A small instance of a registered operator and what the conformance tests
-    (``tests/test_conformance.py``) may expect of it. Calling it builds the instance.
+    """A small instance of an operator and what the conformance checks
+    (:func:`check_conformance`) may expect of it. Calling it builds the instance.
 
     Args:
         build: returns a new instance: a few widths or levels, for inputs in about
-            ``[-1, 1]``; the tests run it in float64.
+            ``[-1, 1]``; the checks run it in float64 (or the dtype asked).
         atol: float64 tolerance between the paths that compute the same output (chunked
             calls and one call, the step and ``forward``, the exported compensator and the
             eager one), relative to the output's scale (at least 1); 0: bit for bit.
@@ -54,3 +91,83 @@ def example_of(name: str) -> Example:
         raise KeyError(f"no operator is registered as {name!r}")
     given = registry.EXAMPLES.get(name) or registry.OPERATORS[name]
     return given if isinstance(given, Example) else Example(given)
+
+
+def check_conformance(operator: str | type | HysteresisOperator, example: Any = None, *,
+                      dtype: torch.dtype = torch.float64,
+                      checks: Sequence[str] | None = None) -> dict[str, str | None]:
+    """Run one operator through the conformance checks of the operator protocol.
+
+    Args:
+        operator: a registered name, an operator class (or a function that builds one from
+            no options), or an operator (each check builds a fresh copy of it).
+        example: its :class:`Example` (or a function that builds the instance); None: the
+            registered one for a name (:func:`example_of`), else ``Example(operator)``.
+        dtype: ``torch.float64`` (the examples' tolerances) or ``torch.float32`` (at least
+            1e-4 relative to the output's scale; no gradcheck).
+        checks: names of :data:`CHECKS` to run, in their order; None: :data:`DEFAULT_CHECKS`
+            (all but ``"aoti"``, an AOTInductor compile).
+
+    Returns:
+        Each check run -> None where it held, else why it does not apply (a non-causal
+        operator's forward takes the target: every check is skipped; an example with
+        ``no_gradcheck``; no ``bad_values``; no state).
+
+    Raises:
+        AssertionError: a check that fails, naming the operator, the check and what
+            differs (an exception raised inside a check is chained to it).
+        ValueError: an unknown name or check, a dtype other than float32 or float64.
+        TypeError: ``operator`` or ``example`` of another type.
+    """
+    import torchhys._conformance as conformance  # the exporters, loaded when checks run
+
+    case = _case(operator, example, dtype)
+    names = DEFAULT_CHECKS if checks is None else tuple(checks)
+    unknown = [c for c in names if c not in CHECKS]
+    if isinstance(checks, str) or unknown:
+        raise ValueError(f"checks must be names of torchhys.testing.CHECKS {list(CHECKS)}, "
+                         f"got {checks!r}")
+    if not case.build().causal:
+        why = (f"{case.label} is not causal: its forward takes the target, outside the causal "
+               "protocol these checks cover")
+        return dict.fromkeys(names, why)
+    results: dict[str, str | None] = {}
+    for name in names:
+        for where, call in conformance.run(case, name):
+            try:
+                results[name] = call()
+            except Exception as e:  # noqa: BLE001 (whatever the operator raises fails the check)
+                text = str(e) if isinstance(e, AssertionError) else f"{type(e).__name__}: {e}"
+                raise AssertionError(f"{case.label} fails the check {name!r} ({CHECKS[name]})"
+                                     f"{where}: {text}") from e
+            if results[name] is not None:
+                break
+    return results
+
+
+def _case(operator: Any, example: Any, dtype: torch.dtype) -> Any:
+    import torchhys._conformance as conformance
+
+    if dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype!r}")
+    if example is not None and not callable(example):
+        raise TypeError(f"example must be an Example or a function that builds the operator, "
+                        f"got {type(example).__name__}")
+    if isinstance(operator, str):
+        registry.load_entry_points()
+        if operator not in registry.OPERATORS:
+            raise ValueError(f"operator: no operator is registered as {operator!r}; registered "
+                             f"names: {sorted(registry.OPERATORS)}")
+        given, label, factory = example or example_of(operator), f"operator {operator!r}", \
+            registry.OPERATORS[operator]
+    elif isinstance(operator, HysteresisOperator):
+        label, factory = f"operator {type(operator).__name__}", type(operator)
+        given = example or (lambda: copy.deepcopy(operator))
+    elif callable(operator):
+        label, factory = f"operator {getattr(operator, '__name__', repr(operator))}", operator
+        given = example or operator
+    else:
+        raise TypeError(f"operator must be a registered name, an operator class or an operator, "
+                        f"got {type(operator).__name__}")
+    example = given if isinstance(given, Example) else Example(given)
+    return conformance.Case(label, example, dtype, factory)
