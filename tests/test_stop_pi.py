@@ -1,9 +1,9 @@
 """Stop-type Prandtl-Ishlinskii model with piecewise-linear characteristics: a plain float64
 loop of the definition, the stop's analytic properties (bounds, elasticity, memoryless large
-stops, clockwise dissipating loops of the exact area), chunked calls and the per-sample step,
-autograd, TorchScript export inside a network, identification against numpy.linalg.lstsq and
-scipy.optimize.nnls, the ridge's hold-out choice, bad input, all-or-nothing loading and the
-registry."""
+stops, clockwise dissipating loops of the exact area), the per-sample step (chunked calls:
+tests/test_conformance.py), autograd, TorchScript export inside a network, identification
+against numpy.linalg.lstsq and scipy.optimize.nnls, the ridge's hold-out choice, bad input,
+all-or-nothing loading and the registry."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from _helpers import assert_torchscript_as_eager, random_walk, run_chunked, scripted_run
+from _helpers import assert_torchscript_as_eager, random_walk, scripted_run
 from scipy.optimize import nnls
 
 import torchhys
@@ -280,21 +280,7 @@ def test_nonnegative_slopes_dissipate_on_random_periodic_inputs():
                                    rtol=0, atol=1e-12)
 
 
-# --- 3. chunking and the per-sample step --------------------------------------------------------
-
-
-@pytest.mark.parametrize("sizes", [[1], [7, 1, 30], [64]])
-def test_chunked_calls_equal_one_call(sizes, backend):
-    m = stop_model(3)
-    x = walks()
-    whole, final = m(x)
-    torch.testing.assert_close(run_chunked(m, x, sizes), whole, rtol=0, atol=0)
-    state, outs = None, []
-    for c in torch.split(x[2], sizes[0] if len(sizes) == 1 else 13):
-        y, state = m(c, state)
-        outs.append(y)
-    torch.testing.assert_close(torch.cat(outs), whole[2], rtol=0, atol=0)
-    torch.testing.assert_close(state, final[2], rtol=0, atol=0)
+# --- 3. the per-sample step (chunked calls: tests/test_conformance.py) -------------------------
 
 
 def test_streaming_step_equals_the_sequence_path():
