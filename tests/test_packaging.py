@@ -45,7 +45,7 @@ def test_every_subpackage_is_in_the_wheel(wheel: zipfile.ZipFile) -> None:
 def test_console_script_points_into_the_namespace(wheel: zipfile.ZipFile) -> None:
     (entry,) = [n for n in wheel.namelist() if n.endswith("entry_points.txt")]
     text = wheel.read(entry).decode()
-    # torchhys.cli.main checks for the train extra, then runs torchhys.cli.train:main
+    # torchhys.cli.main: export without the train extra, the training commands with it
     assert "torchhys = torchhys.cli.main:main" in text
 
 

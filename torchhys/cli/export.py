@@ -25,7 +25,8 @@ CKPT is a checkpoint of :class:`torchhys.training.InverseHysteresisModule` (Ligh
 ``operator``, ``hidden``, ``activation`` and ``operator_kwargs``) or a plain ``torch.save``d
 state dict of an :class:`torchhys.InverseHysteresisNet` (then give ``--operator``,
 ``--hidden``, ``--activation`` and ``--operator-kwargs`` as it was built). Loaded with
-``weights_only=True``: no code from the file is run.
+``weights_only=True``: no code from the file is run. The checkpoint is read as a spec plus
+weights, without Lightning: ``torchhys export`` runs without the ``train`` extra.
 """
 
 from __future__ import annotations
