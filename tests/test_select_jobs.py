@@ -124,7 +124,7 @@ def test_neighbours_sharing_a_fit_run_in_one_process() -> None:
     """Consecutive candidates with the same key run one after another in one process (where
     they share their fit); the scores still come back in order."""
     from torchhys.selection.jobs import _groups
-    from torchhys.selection.select import shared_key
+    from torchhys.selection.run import shared_key
 
     stops = {"fit": "stop_pi", "n_widths": 40}
     gpi = {"fit": "gpi", "direction": "inverse"}

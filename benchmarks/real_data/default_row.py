@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import inspect
 import math
-import time
 from pathlib import Path
 
 import torch
@@ -15,15 +14,14 @@ from torchhys import InverseHysteresisNet
 from torchhys.cli.train import read_config
 from torchhys.deploy.streaming import default_limits
 from torchhys.identification.errors import FitError
-from torchhys.identification.specs import build_operators, fit_data_dependent
-from torchhys.init import initialize
-from torchhys.optim.named import OPTIMIZERS
-from torchhys.training.folds import RECORDING, fold_masks
+from torchhys.selection import select
+from torchhys.selection.candidates import MODEL_DEFAULTS, candidate_spec, fit_candidate
+from torchhys.selection.folds import RECORDING
+from torchhys.selection.run import record
 from torchhys.training.module import InverseHysteresisModule
-from torchhys.training.selection import CandidateScore, best, standard_error
 
 from .datasets import F64, ROOT, Split
-from .scoring import Budget, Fitted, holdout
+from .scoring import Budget, Fitted
 
 CONFIG = ROOT / "configs" / "measured.yaml"
 
@@ -40,55 +38,6 @@ def _config_model(path: Path) -> tuple[dict, dict, torch.dtype, int]:
     return {**defaults, **cfg["model"]}, trainer, dtype, int(cfg.get("seed_everything", 0))
 
 
-def _train_config(path: Path, x: Tensor, y: Tensor, w: int, budget: Budget,
-                  overrides: dict | None = None, held: Tensor | None = None,
-                  ) -> tuple[InverseHysteresisNet, int, int]:
-    """Build the config's network (its model section with a candidate's ``overrides``), fit
-    its data-dependent operators and normalization on (x, y) (rows, time) and train it on
-    samples [w, T), without the samples ``held`` ((rows, time) bool: a cross-validation
-    fold's block, the states running through it): the net, epochs done, epochs asked."""
-    m, trainer, dtype, seed = _config_model(path)
-    m = {**m, **(overrides or {})}
-    torch.manual_seed(seed)
-    ops, fitters = build_operators(m["operator"], m["operator_kwargs"])
-    net = InverseHysteresisNet(ops, m["hidden"], activation=m["activation"])
-    initialize(net, m["init"])
-    net.to(dtype)
-    x, y = x.to(dtype), y.to(dtype)
-    known = None if held is None else ~held  # the samples the fits may use
-    fit_data_dependent(net.operators, fitters, x, y, warmup=w, mask=known)
-    net.fit_normalization(x, y, mask=known)
-    mask = torch.zeros_like(x, dtype=torch.bool)
-    mask[:, w:] = True
-    if held is not None:
-        mask &= ~held
-    fixed = not any(p.requires_grad for p in net.operators.parameters())
-    with torch.no_grad():
-        feats = net.features(x)[0] if fixed else None
-    kwargs = dict(m["optimizer_kwargs"] or {})
-    if m["optimizer"] != "cg":
-        kwargs.setdefault("lr", m["lr"])
-    if m["optimizer"] == "lbfgs":
-        kwargs.setdefault("line_search_fn", "strong_wolfe")
-    opt = OPTIMIZERS[m["optimizer"]]([p for p in net.parameters() if p.requires_grad], **kwargs)
-
-    def closure() -> Tensor:
-        opt.zero_grad()
-        out = net.head(feats) if fixed else net(x)[0]
-        loss = (out - y)[mask].square().mean()
-        loss.backward()
-        return loss
-
-    epochs = int(trainer.get("max_epochs") or 1000)
-    if budget.default_epochs is not None:
-        epochs = min(epochs, budget.default_epochs)
-    start, done = time.perf_counter(), 0
-    while done < epochs and time.perf_counter() - start < budget.seconds:
-        opt.step(closure)
-        done += 1
-    return net, done, epochs
-
-
 def _describe(m: dict) -> str:
     specs = m["operator"] if isinstance(m["operator"], list) else [m["operator"]]
     names = "+".join(str(s.get("name", s.get("fit")))
@@ -97,102 +46,90 @@ def _describe(m: dict) -> str:
     return f"{names} + {m['hidden']} {m['activation']}"
 
 
+def _base(m: dict) -> dict:
+    """The model arguments of a config's model section (its selection options left out)."""
+    return {k: m[k] for k in MODEL_DEFAULTS if k in m}
+
+
+def _options(config: Path, budget: Budget) -> dict:
+    """:func:`~torchhys.selection.select`'s options as ``torchhys fit`` runs the config
+    (its dtype, seed and epochs; the budget's caps on them)."""
+    _, trainer, dtype, seed = _config_model(config)
+    epochs = int(trainer.get("max_epochs") or 1000)
+    if budget.default_epochs is not None:
+        epochs = min(epochs, budget.default_epochs)
+    return {"dtype": dtype, "seed": seed, "epochs": epochs, "seconds": budget.seconds,
+            "warn_coverage": False}
+
+
+def _check_rows(x: Tensor, cv: int | str | None) -> None:
+    if cv == RECORDING and x.shape[0] < 2:
+        raise ValueError(f"model.select_cv={RECORDING!r} holds each training recording out "
+                         f"once, but the protocol has {x.shape[0]} training row")
+
+
 def _score(config: Path, overrides: dict, x: Tensor, y: Tensor, w: int, budget: Budget,
            cv: int | str | None, mode: str | None = None) -> tuple[float, float, bool]:
     """A candidate's validation MSE and its standard error, as ``torchhys fit`` scores it
-    with ``model.select_cv`` = ``cv``: None, on the last quarter of the scored samples of
-    every training row, fitted before it; ``k``, by blocked cross-validation inside the
-    training rows (:func:`~torchhys.training.folds.fold_masks`: each fold fitted on
-    the whole rows without its block's targets, the states running through it);
-    ``"recording"``, each training row held out once, fitted on the others; with ``mode``
-    ``"rolling"``, each block (row) after the first scored by a fit of those before it
-    (for blocks, ``fold_masks(..., rolling=True)``). Returns the MSE
-    and its standard error, NaN (never chosen, as ``torchhys fit`` scores it) when a fit
-    fails (``FitError``) or the MSE is not finite, and whether a training stopped at the
-    budget's time cap."""
-    if cv is None:
-        c = holdout(x.shape[1], w)
-        folds = [(x[:, :c], y[:, :c], (slice(None), slice(c, None)), None)]
-    elif cv == RECORDING:
-        if x.shape[0] < 2:
-            raise ValueError(f"model.select_cv={RECORDING!r} holds each training recording out "
-                             f"once, but the protocol has {x.shape[0]} training row")
-        if mode == "rolling":
-            fits = [(list(range(r)), r) for r in range(1, len(x))]
-        else:
-            fits = [([j for j in range(len(x)) if j != r], r) for r in range(len(x))]
-        folds = [(x[rest], y[rest], (slice(r, r + 1), slice(w, None)), None)
-                 for rest, r in fits]
-    else:
-        mask = torch.zeros_like(x, dtype=torch.bool)
-        mask[:, w:] = True
-        folds = []
-        rolling = mode == "rolling"
-        for f in range(cv - 1 if rolling else cv):
-            fitted, held = fold_masks(mask, cv, f, rolling=rolling)
-            folds.append((x, y, held, mask & ~fitted))
-    errors, capped = [], False
-    for fx, fy, scored, held in folds:
-        try:
-            net, done, epochs = _train_config(config, fx, fy, w, budget, overrides, held)
-        except FitError:
-            return math.nan, math.nan, capped
-        capped |= done < epochs
-        dtype = next(net.parameters()).dtype
-        with torch.no_grad():
-            e = net(x.to(dtype))[0].to(F64) - y
-        errors.append(e[scored].square().reshape(-1))
-    e2 = torch.cat(errors)
-    mse = float(e2.mean())
-    if not math.isfinite(mse):
-        return math.nan, math.nan, capped
-    return mse, standard_error(e2), capped
+    with ``model.select_cv`` = ``cv`` (:func:`torchhys.selection.select`; None: on the last
+    quarter of the scored samples of every training row, fitted before it), NaN when a fit
+    fails or the MSE is not finite, and False (a candidate's training is not reported
+    capped)."""
+    _check_rows(x, cv)
+    m = _config_model(config)[0]
+    result = select([overrides], x, y, base=_base(m), warmup=w, cv=cv, mode=mode, refit=False,
+                    **_options(config, budget))
+    return result.scores[0].val_mse, result.scores[0].val_se, False
 
 
 def default_net(split: Split, budget: Budget, config: Path = CONFIG
                 ) -> tuple[InverseHysteresisNet, str, float]:
-    """The network of :func:`default` (trained as it says), its description and its
-    hold-out RMSE."""
+    """The network of :func:`default` (chosen and fitted by
+    :func:`torchhys.selection.run` as ``torchhys fit`` runs the config), its description
+    and its hold-out RMSE."""
     x, y, w = split.x, split.y, split.warmup
     m = _config_model(config)[0]
     candidates = m.pop("select", None) or [{}]
     cv = m.pop("select_cv", None)
     mode = m.pop("select_cv_mode", None)
     rule = m.pop("select_rule", None) or "min"
-    scores, capped_cv = [], False
-    for i, overrides in enumerate(candidates):
-        mse, se, capped = _score(config, overrides, x, y, w, budget, cv, mode)
-        scores.append(CandidateScore(i, overrides, mse, val_se=se))  # NaN: never chosen
-        capped_cv |= capped
-    if all(math.isnan(s.val_mse) for s in scores):
-        raise FitError("no candidate of the config could be fitted")
-    chosen = best(scores, rule)  # as torchhys fit chooses (the first candidate NaN or not)
+    _check_rows(x, cv)
+    options = _options(config, budget)
+    try:
+        result = select(candidates, x, y, base=_base(m), warmup=w, cv=cv, mode=mode, rule=rule,
+                        refit=False, **options)
+    except ValueError as err:
+        if "NaN" in str(err):
+            raise FitError("no candidate of the config could be fitted") from None
+        raise
+    scores, chosen = result.scores, result.chosen
     order = [chosen] + sorted((s for s in scores if s is not chosen
                                and not math.isnan(s.val_mse)), key=lambda s: s.val_mse)
-    failed, refit = 0, None
+    data = record(x, y, warmup=w)
+    train, fit, warmup = data.whole()
+    failed, net = 0, None
     for s in order:  # the chosen candidate, or the best one whose refit succeeds
         try:
-            refit = _train_config(config, x, y, w, budget, candidates[s.index])
+            spec = candidate_spec(_base(m), candidates[s.index])
+            net = fit_candidate(spec, train, fit, warmup=warmup, dtype=options["dtype"],
+                                seed=options["seed"], epochs=options["epochs"],
+                                seconds=options["seconds"])
             i = s.index
             break
         except FitError:
             failed += 1
-    if refit is None:
+    if net is None:
         raise FitError("no candidate of the config could be refitted")
-    net, done, epochs = refit
     validation, score = "", math.sqrt(s.val_mse)
     if cv is not None:  # the row's hold-out RMSE, as the other rows'
         how = f"{cv} rolling" if mode == "rolling" else f"{cv}"
         validation = f", select_cv {how} RMSE {score:.4g}"
         held = _score(config, candidates[i], x, y, w, budget, None)[0]
         score = math.sqrt(held) if math.isfinite(held) else math.inf
-    capped = f" (capped at {budget.seconds:g} s)" if done < epochs else ""
-    if capped_cv:
-        capped += f" (a validation training capped at {budget.seconds:g} s)"
     note = f" ({failed} failed refits)" if failed else ""
     label = f"candidate {i}{note}: " if len(candidates) > 1 else ""
     choice = (f"{config.name}: {label}{_describe({**m, **candidates[i]})}, {m['optimizer']} "
-              f"{done} epochs{capped}{validation}")
+              f"{options['epochs']} epochs{validation}")
     return net, choice, score
 
 

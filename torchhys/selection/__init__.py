@@ -1,7 +1,7 @@
 """Model selection on tensors: which model of a record's device fits it, chosen by
 cross-validation and fitted, without Lightning (:func:`select`).
 
-- :mod:`torchhys.selection.select`: :func:`select`, :class:`Selection`;
+- :mod:`torchhys.selection.run`: :func:`select`, :class:`Selection`;
 - :mod:`torchhys.selection.candidates`: one candidate built, fitted (its readout solved by
   least squares where it is affine) and scored;
 - :mod:`torchhys.selection.folds`: blocked, rolling-origin and leave-one-recording-out folds;
@@ -11,8 +11,8 @@ cross-validation and fitted, without Lightning (:func:`select`).
 """
 
 from torchhys.selection.candidates import MODEL_DEFAULTS
+from torchhys.selection.run import Progress, Selection, select
 from torchhys.selection.scores import RULES, CandidateScore, best, standard_error
-from torchhys.selection.select import Progress, Selection, select
 
 __all__ = ["MODEL_DEFAULTS", "RULES", "CandidateScore", "Progress", "Selection", "best", "select",
            "standard_error"]

@@ -66,7 +66,7 @@ from torchhys.selection.scores import (  # noqa: F401 (the names this module has
     standard_error,
     write_table,
 )
-from torchhys.selection.select import shared_key
+from torchhys.selection.run import shared_key
 from torchhys.training.folds import CV_MODES, RECORDING, cv_fold
 from torchhys.training.readout import direct_validation, solvable
 
