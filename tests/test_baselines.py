@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests._training_helpers import cli, trainer
+from tests._training_helpers import DROP, LINE, cli, small_config, trainer
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 from torchhys.training.baselines import fit_polynomial, holdout_mask, max_degree
 from torchhys.training.callbacks import BaselineComparison
@@ -163,15 +163,10 @@ def test_comparison_scores_the_baselines_on_the_test_split() -> None:
 
 
 def test_torchhys_test_logs_the_comparison(monkeypatch, tmp_path: Path) -> None:
-    config = tmp_path / "c.yaml"
-    config.write_text("""\
-seed_everything: 0
-trainer: {accelerator: cpu, devices: 1, precision: 64-true, max_epochs: 10,
-          enable_progress_bar: false, enable_model_summary: false}
-model: {operator: null, hidden: 1, activation: identity, optimizer: lbfgs,
-        optimizer_kwargs: {max_iter: 20, tolerance_grad: 1.0e-12, tolerance_change: 1.0e-15}}
-data: {simulation: paper, t_end: 6.3, split: [0.6, 0.2, 0.2]}
-""")
+    config = small_config(
+        tmp_path, "c.yaml", trainer={"max_epochs": 10, "check_val_every_n_epoch": DROP},
+        model={**LINE, "optimizer_kwargs": {"max_iter": 20, "tolerance_grad": 1.0e-12,
+                                            "tolerance_change": 1.0e-15}})
     root = tmp_path / "run"
     cli(monkeypatch, "fit", "--config", str(config), f"--trainer.default_root_dir={root}")
     ckpt = root / "logs/version_0/checkpoints/last.ckpt"

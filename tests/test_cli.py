@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from _training_helpers import cli
+from _training_helpers import DROP, cli, small_config
 
 from torchhys.cli.export import main as export_main
 from torchhys.deploy.export import load_torchscript
@@ -23,47 +23,15 @@ from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
 
-TINY = """\
-seed_everything: 0
-trainer:
-  accelerator: cpu
-  devices: 1
-  precision: 64-true
-  max_epochs: 3
-  check_val_every_n_epoch: 1000
-  enable_progress_bar: false
-  enable_model_summary: false
-model:
-  operator: zhao_tan
-  operator_kwargs:
-    scale: 1.8
-  hidden: 8
-  optimizer: cg
-  optimizer_kwargs:
-    minstep: 0.0
-data:
-  simulation: paper
-  t_end: 6.3
-  split: [0.6, 0.2, 0.2]
-"""
-
-PI_TINY = TINY.replace("""  operator: zhao_tan
-  operator_kwargs:
-    scale: 1.8
-""", """  operator:
-    - fit: pi_ls
-      n_widths: 8
-    - fit: plays
-      n: 3
-""")
-"""TINY with data-dependent operators (fitted on the training split at fit start)."""
+PI_TINY = {"operator": [{"fit": "pi_ls", "n_widths": 8}, {"fit": "plays", "n": 3}],
+           "operator_kwargs": DROP}
+"""The small config's model with data-dependent operators (fitted on the training split at
+fit start)."""
 
 
 @pytest.fixture
 def tiny(tmp_path: Path) -> Path:
-    path = tmp_path / "tiny.yaml"
-    path.write_text(TINY)
-    return path
+    return small_config(tmp_path, "tiny.yaml")
 
 
 def checkpoints(root: Path, version: int = 0) -> list[Path]:
@@ -169,7 +137,7 @@ def test_config_typo_is_a_clear_error(monkeypatch, capsys, tiny: Path, typo: str
                                       tmp_path: Path) -> None:
     root = f"--trainer.default_root_dir={tmp_path}"
     if typo == "config":
-        tiny.write_text(TINY.replace("  hidden: 8", "  hiden: 8"))
+        small_config(tmp_path, "tiny.yaml", model={"hidden": DROP, "hiden": 8})
         args = ["fit", "--config", str(tiny), root]
         wrong = "hiden"
     else:
@@ -206,8 +174,7 @@ def test_help_lists_the_subcommands(monkeypatch, capsys) -> None:
 
 
 def test_data_dependent_operators_resume_and_export(monkeypatch, tmp_path: Path) -> None:
-    cfg = tmp_path / "pi.yaml"
-    cfg.write_text(PI_TINY)
+    cfg = small_config(tmp_path, "pi.yaml", model=PI_TINY)
     full, resumed = full_and_resumed(monkeypatch, cfg, tmp_path, epochs=4)
     ca = torch.load(full, weights_only=True)
     cb = torch.load(resumed, weights_only=True)
@@ -242,8 +209,7 @@ def test_measured_config_exports(measured_run: Path, tmp_path: Path) -> None:
 def test_fit_under_ddp_on_two_cpu_processes(monkeypatch, tmp_path: Path) -> None:
     """``--trainer.strategy=ddp --trainer.devices=2``: the CLI relaunches itself per rank;
     full-batch CG ends where a single process ends (data-dependent operators included)."""
-    cfg = tmp_path / "pi.yaml"
-    cfg.write_text(PI_TINY)
+    cfg = small_config(tmp_path, "pi.yaml", model=PI_TINY)
     single, ddp = tmp_path / "single", tmp_path / "ddp"
     cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={single}")
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONWARNINGS": "ignore"}
@@ -352,7 +318,7 @@ def test_magnetic_config_parses_with_the_jiles_atherton_candidate(monkeypatch, c
 
 @pytest.mark.slow
 def test_magnetic_config_runs_on_the_ferrite_loops(monkeypatch, tmp_path: Path) -> None:
-    """configs/magnetic.yaml as is (about a minute): the Jiles-Atherton candidate scored far
+    """configs/magnetic.yaml as is: the Jiles-Atherton candidate scored far
     below the line by cross-validation, the held-out loops predicted far below a straight
     line."""
     monkeypatch.chdir(ROOT)

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from _training_helpers import DROP, small_config
 
 from torchhys.cli.errors import CheckpointError, read_checkpoint
 from torchhys.cli.export import main as export_main
@@ -21,32 +22,10 @@ from torchhys.training import HysteresisDataModule
 
 ROOT = Path(__file__).resolve().parents[1]
 
-TINY = """\
-seed_everything: 0
-trainer:
-  accelerator: cpu
-  devices: 1
-  precision: 64-true
-  max_epochs: 1
-  check_val_every_n_epoch: 1000
-  enable_progress_bar: false
-  enable_model_summary: false
-model:
-  operator: zhao_tan
-  hidden: 2
-  optimizer: cg
-data:
-  simulation: paper
-  t_end: 6.3
-  split: [0.6, 0.2, 0.2]
-"""
-
-
 @pytest.fixture
 def tiny(tmp_path: Path) -> Path:
-    path = tmp_path / "tiny.yaml"
-    path.write_text(TINY)
-    return path
+    return small_config(tmp_path, "tiny.yaml", trainer={"max_epochs": 1},
+                        model={"operator_kwargs": DROP, "hidden": 2, "optimizer_kwargs": DROP})
 
 
 def run(cwd: Path, *args: str, env: dict[str, str] | None = None

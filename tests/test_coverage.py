@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from _training_helpers import cli
+from _training_helpers import DROP, LINE, cli, small_config
 
 from torchhys.functional import reversal_ranges
 from torchhys.selection.coverage import WHAT_TO_RECORD, coverage_warning
@@ -141,37 +141,8 @@ def test_coverage_warning_errors_constant_input_and_empty_mask() -> None:
     assert coverage_warning(x.float(), scored_after(x, 5).float()) is None  # 0/1 mask
 
 
-SELECT = """\
-  select:
-    - {operator: null}
-    - {operator: [{fit: pi_nonneg, n_widths: 4}]}
-  select_cv: 2
-"""
-CONFIG = """\
-seed_everything: 0
-trainer:
-  accelerator: cpu
-  devices: 1
-  precision: 64-true
-  max_epochs: 2
-  enable_progress_bar: false
-  enable_model_summary: false
-model:
-  operator: null
-  hidden: 1
-  activation: identity
-  optimizer: lbfgs
-  select:
-    - {operator: null}
-    - {operator: [{fit: pi_nonneg, n_widths: 4}]}
-  select_cv: 2
-data:
-  path: PATH
-  input_column: u
-  target_column: y
-  split: [0.8, 0.0, 0.2]
-  warmup: 40
-"""
+SELECT = {"select": [{"operator": None}, {"operator": [{"fit": "pi_nonneg", "n_widths": 4}]}],
+          "select_cv": 2}
 
 
 @pytest.mark.parametrize("select", [True, False])
@@ -185,12 +156,13 @@ def test_fit_warns_on_one_amplitude(monkeypatch, tmp_path: Path, amplitudes: lis
     y = u + 0.2 * np.tanh(np.gradient(u) * 10)  # a lagging, loop-shaped response
     data = tmp_path / "loops.csv"
     np.savetxt(data, np.c_[u, y], delimiter=",", header="u,y", comments="")
-    cfg = tmp_path / "fit.yaml"
-    text = CONFIG.replace("PATH", str(data))
-    if not select:
-        text = text.replace(SELECT, "").replace(
-            "  operator: null\n", "  operator: [{fit: pi_ls, n_widths: 4}]\n")
-    cfg.write_text(text)
+    model = {**LINE, **SELECT} if select else {**LINE,
+                                                "operator": [{"fit": "pi_ls", "n_widths": 4}]}
+    cfg = small_config(tmp_path, "fit.yaml",
+                       trainer={"max_epochs": 2, "check_val_every_n_epoch": DROP}, model=model,
+                       data={"simulation": DROP, "t_end": DROP, "path": data,
+                             "input_column": "u", "target_column": "y",
+                             "split": [0.8, 0.0, 0.2], "warmup": 40})
     with warnings.catch_warnings(record=True) as record:
         warnings.simplefilter("always")
         cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={tmp_path}")

@@ -57,7 +57,8 @@ from torch import Tensor
 import torchhys
 from torchhys import Backlash, InverseHysteresisNet
 from torchhys.deploy.c import to_c
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
+from torchhys.operator import HysteresisOperator
+from torchhys.step import OperatorStep, StateBlock
 
 needs_cc = pytest.mark.skipif(CC is None, reason=NO_CC)
 
@@ -333,40 +334,19 @@ def test_a_missing_folder_and_a_compensator_of_another_dtype(tmp_path: Path) -> 
 # --- the command line -------------------------------------------------------------------------
 
 
-TINY = """\
-seed_everything: 0
-trainer:
-  accelerator: cpu
-  devices: 1
-  precision: 64-true
-  max_epochs: 3
-  check_val_every_n_epoch: 1000
-  enable_progress_bar: false
-  enable_model_summary: false
-model:
-  operator:
-    - {name: eiho, a: 1.0, rule: recent, output: branch}
-    - {fit: plays, n: 4, span_fraction: 0.4}
-  hidden: 8
-  optimizer: lbfgs
-  optimizer_kwargs: {max_iter: 5}
-data:
-  simulation: paper
-  t_end: 6.3
-  split: [0.6, 0.2, 0.2]
-"""
-
-
 @needs_cc
 def test_fit_then_export_c_from_the_command_line(monkeypatch: pytest.MonkeyPatch,
                                                  tmp_path: Path, capsys) -> None:
     pytest.importorskip("lightning")
-    from _training_helpers import cli
+    from _training_helpers import DROP, cli, small_config
 
     from torchhys.cli.export import main as export_main
 
-    config = tmp_path / "tiny.yaml"
-    config.write_text(TINY)
+    # a re-based EIHO operator and 4 plays by L-BFGS
+    config = small_config(tmp_path, "tiny.yaml", model={
+        "operator": [{"name": "eiho", "a": 1.0, "rule": "recent", "output": "branch"},
+                     {"fit": "plays", "n": 4, "span_fraction": 0.4}],
+        "operator_kwargs": DROP, "optimizer": "lbfgs", "optimizer_kwargs": {"max_iter": 5}})
     cli(monkeypatch, "fit", "--config", str(config), f"--trainer.default_root_dir={tmp_path}")
     ckpt = tmp_path / "logs/version_0/checkpoints/last.ckpt"
     out = tmp_path / "c"

@@ -8,29 +8,12 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-from _training_helpers import cli
+from _training_helpers import DROP, LINE, cli, small_config
 
-CONFIG = """\
-seed_everything: 0
-trainer:
-  accelerator: cpu
-  devices: 1
-  precision: 64-true
-  max_epochs: 2
-  check_val_every_n_epoch: 1000
-  enable_progress_bar: false
-  enable_model_summary: false
-model:
-  operator: null
-  hidden: 1
-  activation: identity
-  optimizer: lbfgs
-  lr: 1.0
-data:
-  input_column: response
-  target_column: command
-  split: [0.6, 0.2, 0.2]
-"""
+CONFIG = {"trainer": {"max_epochs": 2}, "model": {**LINE, "lr": 1.0},
+          "data": {"simulation": DROP, "t_end": DROP, "input_column": "response",
+                   "target_column": "command"}}
+"""The sections of :func:`small_config`: the straight line, on a file given by --data.path."""
 
 
 def record(path: Path, late_gain: float) -> tuple[np.ndarray, float, float]:
@@ -49,8 +32,7 @@ def run(monkeypatch, tmp_path: Path, late_gain: float) -> tuple[list[str], np.nd
                                                                 float]:
     data = tmp_path / "log.csv"
     x, lo, hi = record(data, late_gain)
-    cfg = tmp_path / "c.yaml"
-    cfg.write_text(CONFIG)
+    cfg = small_config(tmp_path, "c.yaml", **CONFIG)
     root = tmp_path / "run"
     common = ["--config", str(cfg), f"--data.path={data}", f"--trainer.default_root_dir={root}"]
     cli(monkeypatch, "fit", *common)

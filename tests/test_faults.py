@@ -24,7 +24,7 @@ import lightning as L
 import numpy as np
 import pytest
 import torch
-from _training_helpers import cli, trainer
+from _training_helpers import cli, small_config, trainer
 from lightning.pytorch.callbacks import ModelCheckpoint
 
 from torchhys import InverseHysteresisNet
@@ -41,33 +41,11 @@ ROOT = Path(__file__).resolve().parents[1]
 # ------------------------------------------------------------------------------------------
 
 EPOCHS = 100
-FIT = f"""\
-seed_everything: 0
-trainer:
-  accelerator: cpu
-  devices: 1
-  precision: 64-true
-  max_epochs: {EPOCHS}
-  check_val_every_n_epoch: 1000
-  enable_progress_bar: false
-  enable_model_summary: false
-model:
-  operator: zhao_tan
-  operator_kwargs:
-    scale: 1.8
-  hidden: 8
-  optimizer: cg
-  optimizer_kwargs:
-    minstep: 0.0
-data:
-  simulation: paper
-  t_end: 6.3
-  split: [0.6, 0.2, 0.2]
-"""
-"""tests/test_cli.py's TINY (the set-up of its deterministic-resume test: seeded, float64,
-one full batch per epoch) for a hundred epochs: about 10 ms each with two checkpoint files
-written, so that the training lasts about a second after the process's start-up (about 5 s
-of imports) and the kills can land anywhere in it."""
+FIT = {"trainer": {"max_epochs": EPOCHS}}
+"""The small config (tests/_training_helpers.py: the set-up of tests/test_cli.py's
+deterministic-resume test: seeded, float64, one full batch per epoch) for a hundred epochs,
+with two checkpoint files written each, so that the training outlasts the process's
+start-up and the kills can land anywhere in it."""
 
 
 def fit_args(config: Path, root: Path, ckpt_dir: Path, *more: str) -> list[str]:
@@ -106,8 +84,7 @@ class Reference:
 def reference(tmp_path_factory) -> Reference:
     """The uninterrupted fit, in this process, keeping a checkpoint of every epoch."""
     root = tmp_path_factory.mktemp("reference")
-    config = root / "fit.yaml"
-    config.write_text(FIT)
+    config = small_config(root, "fit.yaml", **FIT)
     ckpt_dir = root / "checkpoints"
     with pytest.MonkeyPatch.context() as mp:
         cli(mp, *fit_args(config, root, ckpt_dir, "--checkpoint.save_top_k=-1"))
@@ -154,8 +131,7 @@ def run_killed_and_resumed(reference: Reference, tmp_path: Path, kills: list[Kil
     After each attempt every checkpoint file must load and ``last.ckpt`` must equal the
     uninterrupted run's checkpoint of its epoch. Returns, per attempt, ("killed" or
     "finished", the epoch of last.ckpt before it, after it); -1: no last.ckpt."""
-    config = tmp_path / "fit.yaml"
-    config.write_text(FIT)
+    config = small_config(tmp_path, "fit.yaml", **FIT)
     root, ckpt_dir = tmp_path / "run", tmp_path / "run/checkpoints"
     last = ckpt_dir / "last.ckpt"
     temp = tmp_path / "tmp"  # the processes' TMPDIR (Lightning writes checkpoints there first)
@@ -393,8 +369,7 @@ def test_torchhys_fit_keeps_last_ckpt_when_the_disk_fills(monkeypatch, tmp_path:
     """``torchhys fit`` with TMPDIR on another filesystem and the checkpoints' disk full
     halfway through the next ``last.ckpt``: the previous one survives (with the plugin
     given on the command line, and by default)."""
-    config = tmp_path / "fit.yaml"
-    config.write_text(FIT)
+    config = small_config(tmp_path, "fit.yaml", **FIT)
     ckpt_dir, temp = tmp_path / "checkpoints", tmp_path / "tmp"
     temp.mkdir()
     monkeypatch.setattr(tempfile, "tempdir", str(temp))

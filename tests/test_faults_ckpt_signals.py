@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from _training_helpers import DROP, small_config
 
 from torchhys.cli.errors import CheckpointError, read_checkpoint
 from torchhys.cli.export import main as export_main
@@ -23,25 +24,10 @@ from torchhys.training.checkpoint_io import AtomicCheckpointIO
 
 ROOT = Path(__file__).resolve().parents[1]
 
-TINY = """\
-seed_everything: 0
-trainer:
-  accelerator: cpu
-  devices: 1
-  precision: 64-true
-  max_epochs: 1
-  check_val_every_n_epoch: 1000
-  enable_progress_bar: false
-  enable_model_summary: false
-model:
-  operator: null
-  hidden: 2
-  optimizer: cg
-data:
-  simulation: paper
-  t_end: 6.3
-  split: [0.6, 0.2, 0.2]
-"""
+TINY = {"trainer": {"max_epochs": 1},
+        "model": {"operator": None, "operator_kwargs": DROP, "hidden": 2,
+                  "optimizer_kwargs": DROP}}
+"""The sections of :func:`small_config` for a plain network of 2 sigmoids, one epoch."""
 
 
 class _Payload:
@@ -66,9 +52,7 @@ def evil(tmp_path: Path) -> tuple[Path, Path]:
 
 @pytest.fixture
 def tiny(tmp_path: Path) -> Path:
-    path = tmp_path / "tiny.yaml"
-    path.write_text(TINY)
-    return path
+    return small_config(tmp_path, "tiny.yaml", **TINY)
 
 
 def _one_line(capsys, prog: str, *names: str) -> str:
@@ -195,14 +179,11 @@ def test_ckpt_path_last_resumes_the_newest_earlier_run(monkeypatch, tmp_path, ti
 
 
 # --- 6. signals --------------------------------------------------------------------------------
-FOREVER = TINY.replace("max_epochs: 1", "max_epochs: 1000000")
+FOREVER = {**TINY, "trainer": {"max_epochs": 1000000}}
 """TINY training until a signal stops it."""
 
-SELECT = FOREVER.replace("  optimizer: cg\n", """\
-  optimizer: cg
-  select: [{hidden: 2}, {hidden: 3}]
-  select_jobs: 2
-""")
+SELECT = {**FOREVER, "model": {**TINY["model"], "select": [{"hidden": 2}, {"hidden": 3}],
+                               "select_jobs": 2}}
 """Two candidates of FOREVER, in two processes."""
 
 
@@ -210,10 +191,9 @@ _ERR: dict[int, Path] = {}
 """The file of each spawned command's stderr, by its process id."""
 
 
-def _spawn(tmp_path: Path, config: str, *extra: str, session: bool = False
+def _spawn(tmp_path: Path, config: dict, *extra: str, session: bool = False
            ) -> subprocess.Popen:
-    path = tmp_path / "c.yaml"
-    path.write_text(config)
+    path = small_config(tmp_path, "c.yaml", **config)
     env = {k: v for k, v in os.environ.items() if k != "TORCHHYS_TRACEBACK"}
     env.update(OMP_NUM_THREADS="1", PYTHONWARNINGS="ignore")
     # a file, not a pipe: orphaned workers would hold a pipe open after the command ends

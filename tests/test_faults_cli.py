@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from _training_helpers import DROP, small_config
 
 import torchhys.registry as registry_module
 from torchhys import InverseHysteresisNet
@@ -185,32 +186,17 @@ def test_a_broken_entry_point_used_by_name_is_one_error(broken_entry_point) -> N
 # 10. switching the optimizer on the command line
 # ------------------------------------------------------------------------------------------
 
-LBFGS_CONFIG = """\
-seed_everything: 0
-trainer:
-  accelerator: cpu
-  devices: 1
-  precision: 64-true
-  max_epochs: 1
-  enable_progress_bar: false
-  enable_model_summary: false
-  default_root_dir: run
-model:
-  operator: zhao_tan
-  hidden: 2
-  optimizer: lbfgs
-  optimizer_kwargs: {max_iter: 5, history_size: 3}
-data:
-  simulation: paper
-  t_end: 6.3
-  split: [0.6, 0.2, 0.2]
-"""
+LBFGS_CONFIG = {"trainer": {"max_epochs": 1, "check_val_every_n_epoch": DROP,
+                             "default_root_dir": "run"},
+                 "model": {"operator_kwargs": DROP, "hidden": 2, "optimizer": "lbfgs",
+                           "optimizer_kwargs": {"max_iter": 5, "history_size": 3}}}
+"""The sections of :func:`small_config`: a Zhao-Tan operator and 2 sigmoids by L-BFGS."""
 
 
 @pytest.mark.parametrize(("optimizer", "cls"), [("adam", "Adam"), ("cg", "PowellBealeCG")])
 def test_switching_the_optimizer_keeps_lbfgs_kwargs(clean_path: Path, capsys, optimizer: str,
                                                     cls: str) -> None:
-    (clean_path / "c.yaml").write_text(LBFGS_CONFIG)
+    small_config(clean_path, "c.yaml", **LBFGS_CONFIG)
     line = error_line(capsys, "fit", "--config", "c.yaml", "--model.optimizer", optimizer)
     assert f"--model.optimizer {optimizer} keeps the config's model.optimizer_kwargs" in line
     assert f"{cls} takes no history_size, max_iter" in line
@@ -221,9 +207,8 @@ def test_switching_the_optimizer_keeps_lbfgs_kwargs(clean_path: Path, capsys, op
 def test_a_candidate_that_switches_the_optimizer(clean_path: Path, capsys) -> None:
     """A model.select candidate ``{optimizer: adam}`` on the section's L-BFGS kwargs: one
     line naming the candidate, before any candidate trains."""
-    (clean_path / "c.yaml").write_text(LBFGS_CONFIG.replace(
-        "  optimizer_kwargs: {max_iter: 5, history_size: 3}\n",
-        "  optimizer_kwargs: {max_iter: 5, history_size: 3}\n  select: [{}, {optimizer: adam}]\n"))
+    small_config(clean_path, "c.yaml", **{**LBFGS_CONFIG, "model": {
+        **LBFGS_CONFIG["model"], "select": [{}, {"optimizer": "adam"}]}})
     line = error_line(capsys, "fit", "--config", "c.yaml")
     assert "model.select[1] {'optimizer': 'adam'}: optimizer_kwargs ['history_size', " in line
     assert "--model.optimizer_kwargs '{}'" in line

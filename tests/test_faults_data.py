@@ -153,7 +153,7 @@ def test_watched_file_rewritten_is_refused(tmp_path) -> None:
 def test_fit_stops_when_the_data_file_grows_during_selection(monkeypatch, tmp_path) -> None:
     """A logger still appending to the file: the candidates would be scored on one version
     and the chosen one trained on another. The fit stops with an error naming the file."""
-    from _training_helpers import cli
+    from _training_helpers import DROP, cli, small_config
 
     path = write_csv(tmp_path / "log.csv", rows=120)
     from torchhys.training import data
@@ -168,13 +168,11 @@ def test_fit_stops_when_the_data_file_grows_during_selection(monkeypatch, tmp_pa
         return read_recordings(*args, **kwargs)
 
     monkeypatch.setattr(data, "read_recordings", appending)
-    config = tmp_path / "fit.yaml"
-    config.write_text(f"""\
-trainer: {{accelerator: cpu, devices: 1, precision: 64-true, max_epochs: 1,
-          enable_progress_bar: false, enable_model_summary: false, logger: false}}
-model: {{operator: zhao_tan, hidden: 2, optimizer: cg}}
-data: {{path: {path}, split: [0.6, 0.2, 0.2]}}
-""")
+    config = small_config(
+        tmp_path, "fit.yaml", seed_everything=DROP,
+        trainer={"max_epochs": 1, "check_val_every_n_epoch": DROP, "logger": False},
+        model={"operator_kwargs": DROP, "hidden": 2, "optimizer_kwargs": DROP},
+        data={"simulation": DROP, "t_end": DROP, "path": path})
     monkeypatch.chdir(tmp_path)
     with pytest.raises(DataFileError, match=f"{path}: the file changed after this run first"):
         cli(monkeypatch, "fit", "--config", str(config), "--model.select",

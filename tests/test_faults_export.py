@@ -294,28 +294,13 @@ def test_negative_margin_is_still_refused(ckpt: Path, tmp_path: Path, capsys) ->
 #    refuses non-finite weights
 # ------------------------------------------------------------------------------------------
 
-TINY = """\
-seed_everything: 0
-trainer:
-  accelerator: cpu
-  devices: 1
-  precision: {precision}
-  max_epochs: 4
-  check_val_every_n_epoch: 1000
-  enable_progress_bar: false
-  enable_model_summary: false
-model:
-  operator: zhao_tan
-  operator_kwargs:
-    scale: 1.8
-  hidden: 8
-  optimizer: adam
-data:
-  simulation: paper
-  t_end: 6.3
-  split: [0.6, 0.2, 0.2]
-"""
-"""tests/test_cli.py's TINY with Adam, for a few epochs."""
+def tiny(tmp_path: Path, precision: str = "64-true") -> Path:
+    """The small config (tests/_training_helpers.py) with Adam, for a few epochs."""
+    from _training_helpers import DROP, small_config
+
+    return small_config(tmp_path, "tiny.yaml",
+                        trainer={"precision": precision, "max_epochs": 4},
+                        model={"optimizer": "adam", "optimizer_kwargs": DROP})
 
 
 @pytest.mark.parametrize("precision", ["64-true", "32-true"])
@@ -327,8 +312,7 @@ def test_a_diverged_fit_stops_naming_the_epoch(tmp_path: Path, monkeypatch,
 
     from torchhys._finite import DivergedError
 
-    cfg = tmp_path / "tiny.yaml"
-    cfg.write_text(TINY.format(precision=precision))
+    cfg = tiny(tmp_path, precision)
     ckpts = tmp_path / "ckpts"
     with pytest.raises(DivergedError) as err:
         cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={tmp_path}",
@@ -349,8 +333,7 @@ def test_a_diverged_fit_stops_naming_the_epoch(tmp_path: Path, monkeypatch,
 def test_a_fit_that_stays_finite_is_not_stopped(tmp_path: Path, monkeypatch) -> None:
     from _training_helpers import cli
 
-    cfg = tmp_path / "tiny.yaml"
-    cfg.write_text(TINY.format(precision="64-true"))
+    cfg = tiny(tmp_path)
     cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={tmp_path}",
         f"--checkpoint.dirpath={tmp_path / 'ckpts'}", "--checkpoint.save_last=true")
     assert (tmp_path / "ckpts" / "last.ckpt").is_file()
@@ -360,8 +343,7 @@ def test_the_cli_reports_a_diverged_fit_in_one_line(tmp_path: Path, monkeypatch,
                                                     capsys) -> None:
     from torchhys.cli.main import main
 
-    cfg = tmp_path / "tiny.yaml"
-    cfg.write_text(TINY.format(precision="64-true"))
+    cfg = tiny(tmp_path)
     monkeypatch.setattr("sys.argv", ["torchhys"])
     monkeypatch.delenv("TORCHHYS_TRACEBACK", raising=False)
     torch.set_num_threads(1)
@@ -489,8 +471,7 @@ def test_fit_reads_negative_numbers_in_scientific_notation(tmp_path: Path, monke
     """LightningCLI's parsers (jsonargparse, on argparse) had export's problem too."""
     from _training_helpers import cli
 
-    cfg = tmp_path / "tiny.yaml"
-    cfg.write_text(TINY.format(precision="64-true"))
+    cfg = tiny(tmp_path)
     with pytest.raises(SystemExit) as exit_:
         cli(monkeypatch, "fit", "--config", str(cfg), "--model.lr", "-1e-3",
             "--trainer.gradient_clip_val", "-5E-1", "--print_config")
@@ -533,8 +514,7 @@ def test_export_refuses_the_last_checkpoint_of_a_diverged_fit(tmp_path: Path, mo
 
     from torchhys._finite import DivergedError
 
-    cfg = tmp_path / "tiny.yaml"
-    cfg.write_text(TINY.format(precision="64-true"))
+    cfg = tiny(tmp_path)
     ckpts = tmp_path / "ckpts"
     with pytest.raises(DivergedError):
         cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={tmp_path}",

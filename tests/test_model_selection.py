@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from _training_helpers import cli, trainer
+from _training_helpers import DROP, cli, small_config, trainer
 
 from torchhys.deploy.export import load_torchscript
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
@@ -34,43 +34,27 @@ ROOT = Path(__file__).resolve().parents[1]
 # The paper's plant (a Prandtl-Ishlinskii model of plays) over two slow periods, 503
 # samples: the least-squares PI operator makes a far better inverse than a plain network
 # (a static map) or a few plays, after 20 CG epochs.
-SELECT = """\
-seed_everything: 0
-trainer:
-  accelerator: cpu
-  devices: 1
-  precision: 64-true
-  max_epochs: 20
-  check_val_every_n_epoch: 1000
-  enable_progress_bar: false
-  enable_model_summary: false
-model:
-  operator: null
-  hidden: 4
-  optimizer: cg
-  optimizer_kwargs:
-    minstep: 0.0
-  select:
-    - {operator: null}
-    - {operator: [{fit: pi_ls, n_widths: 8}]}
-    - {operator: [{fit: plays, n: 4}]}
-data:
-  simulation: paper
-  dt: 0.05
-  t_end: 25.2
-  split: [0.5, 0.25, 0.25]
-"""
 DATA = {"dt": 0.05, "t_end": 25.2, "split": [0.5, 0.25, 0.25]}
 PI = [{"fit": "pi_ls", "n_widths": 8}]
+CANDIDATES = [{"operator": None}, {"operator": PI}, {"operator": [{"fit": "plays", "n": 4}]}]
+SELECT = {"trainer": {"max_epochs": 20},
+          "model": {"operator": None, "operator_kwargs": DROP, "hidden": 4,
+                    "select": CANDIDATES},
+          "data": DATA}
+"""The sections of :func:`small_config`: a plain network of 4 sigmoids, the PI operator
+and 4 plays as candidates (CG)."""
 
 
-def config(tmp_path: Path, text: str = SELECT, **replace: str) -> Path:
-    for old, new in replace.items():
-        assert old in text
-        text = text.replace(old, new)
-    path = tmp_path / "select.yaml"
-    path.write_text(text)
-    return path
+def config(tmp_path: Path, **changes: dict) -> Path:
+    """SELECT with ``changes`` applied to each of its sections key by key."""
+    sections = {k: {**v, **changes.pop(k, {})} for k, v in SELECT.items()}
+    assert not changes, changes
+    return small_config(tmp_path, "select.yaml", **sections)
+
+
+def candidates(i: int, candidate: dict) -> list[dict]:
+    """CANDIDATES with candidate ``i`` replaced by ``candidate``."""
+    return [candidate if j == i else c for j, c in enumerate(CANDIDATES)]
 
 
 def table(root: Path) -> list[dict]:
@@ -144,8 +128,7 @@ def test_fit_selects_the_best_candidate_and_fits_it(monkeypatch, capsys, tmp_pat
 
 def test_select_on_the_command_line(monkeypatch, tmp_path) -> None:
     root = tmp_path / "run"
-    base = SELECT[: SELECT.index("  select:")] + SELECT[SELECT.index("data:"):]
-    cfg = config(tmp_path, base)
+    cfg = config(tmp_path, model={"select": DROP})
     cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={root}",
         "--model.select", json.dumps([{"hidden": 2}, {"operator": PI, "hidden": 2}]))
     rows = table(root)
@@ -170,10 +153,8 @@ def test_candidate_runs_print_one_line_each(monkeypatch, capsys, tmp_path) -> No
     """The candidates' runs are quiet: no progress bar, model summary or device and seed
     messages per run (6 runs here), one progress line per candidate instead; the final fit
     keeps the config's bar and summary."""
-    cfg = config(tmp_path, **{"  enable_progress_bar: false\n": "",
-                              "  enable_model_summary: false\n": "",
-                              "split: [0.5, 0.25, 0.25]": "split: [0.6, 0.0, 0.4]",
-                              "  select:\n": "  select_cv: 2\n  select:\n"})
+    cfg = config(tmp_path, trainer={"enable_progress_bar": DROP, "enable_model_summary": DROP},
+                 data={"split": [0.6, 0.0, 0.4]}, model={"select_cv": 2})
     records: list[str] = []
     handler = logging.Handler(logging.INFO)
     handler.emit = lambda record: records.append(record.getMessage())  # type: ignore[method-assign]
@@ -215,8 +196,7 @@ def test_blocked_cross_validation_inside_the_training_part(monkeypatch, tmp_path
     """``select_cv: 3`` on a record without a validation split: each candidate is trained
     three times, the table holds each fold and the MSE over all held-out samples."""
     root = tmp_path / "run"
-    cfg = config(tmp_path, **{"split: [0.5, 0.25, 0.25]": "split: [0.6, 0.0, 0.4]",
-                              "  select:\n": "  select_cv: 3\n  select:\n"})
+    cfg = config(tmp_path, data={"split": [0.6, 0.0, 0.4]}, model={"select_cv": 3})
     cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={root}")
     rows = table(root)
     assert [r["selected"] for r in rows] == ["0", "1", "0"]
@@ -349,7 +329,7 @@ def test_recording_folds_of_recordings_of_different_lengths(tmp_path: Path) -> N
 
 
 def test_leave_one_recording_out_of_one_recording(monkeypatch, tmp_path) -> None:
-    cfg = config(tmp_path, **{"  select:\n": "  select_cv: recording\n  select:\n"})
+    cfg = config(tmp_path, model={"select_cv": "recording"})
     with pytest.raises(ValueError, match=r"select_cv='recording' holds each training recording "
                                          r"out once, but the training split of paper holds 1"):
         cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={tmp_path}")
@@ -373,17 +353,15 @@ def test_leave_one_recording_out_on_the_command_line(monkeypatch, capsys, tmp_pa
     table holds each fold and the MSE pooled over all held-out samples, which is that of an
     independent least-squares line (numpy) for the straight-line candidate."""
     root = tmp_path / "run"
-    text = SELECT.replace("hidden: 4\n", "hidden: 1\n  activation: identity\n").replace(
-        "optimizer: cg\n  optimizer_kwargs:\n    minstep: 0.0\n",
-        "optimizer: lbfgs\n  optimizer_kwargs: {max_iter: 50, tolerance_grad: 1.0e-12, "
-        "tolerance_change: 1.0e-15}\n").replace(
-        "    - {operator: [{fit: plays, n: 4}]}\n", "  select_cv: recording\n")
-    data = "\n".join(["data:", *(f"  {k}: {v}" for k, v in FERRITE.items()),
-                      "  time_column: null", "  train_recordings: [0, 1, 3]",
-                      "  val_recordings: []", "  test_recordings: [2]", "  repeat: 2",
-                      "  warmup: 0", ""])
-    cfg = tmp_path / "loo.yaml"
-    cfg.write_text(text[:text.index("data:")] + data)
+    cfg = small_config(
+        tmp_path, "loo.yaml", trainer=SELECT["trainer"],
+        model={**SELECT["model"], "hidden": 1, "activation": "identity", "optimizer": "lbfgs",
+               "optimizer_kwargs": {"max_iter": 50, "tolerance_grad": 1.0e-12,
+                                    "tolerance_change": 1.0e-15},
+               "select": CANDIDATES[:2], "select_cv": "recording"},
+        data={"simulation": DROP, "t_end": DROP, "split": DROP, **FERRITE,
+              "time_column": None, "train_recordings": [0, 1, 3], "val_recordings": [],
+              "test_recordings": [2], "repeat": 2, "warmup": 0})
     cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={root}")
     assert "leave-one-recording-out cross-validation" in capsys.readouterr().out
     rows = table(root)
@@ -407,29 +385,27 @@ def test_leave_one_recording_out_on_the_command_line(monkeypatch, capsys, tmp_pa
 
 # --- errors ---------------------------------------------------------------------------
 @pytest.mark.parametrize(("change", "error", "match"), [
-    ({"  select:\n    - {operator: null}\n    - {operator: [{fit: pi_ls, n_widths: 8}]}\n"
-      "    - {operator: [{fit: plays, n: 4}]}\n": "  select: []\n"},
+    ({"model": {"select": []}},
      ValueError, r"model.select is empty"),
-    ({"- {operator: null}": "- {hiden: 3}"},
+    ({"model": {"select": candidates(0, {"hiden": 3})}},
      ValueError, r"model.select\[0\]: 'hiden' is not a model argument; valid: \['operator', "
                  r"'hidden'"),
-    ({"- {operator: null}": "- {hidden: many}"},
+    ({"model": {"select": candidates(0, {"hidden": "many"})}},
      ValueError, r"model.select\[0\] .*model.hidden"),
-    ({"split: [0.5, 0.25, 0.25]": "split: [0.8, 0.0, 0.2]"},
+    ({"data": {"split": [0.8, 0.0, 0.2]}},
      ValueError, r"validation split is empty \(data: paper\): .*model.select_cv"),
-    ({"split: [0.5, 0.25, 0.25]": "split: paper"},
+    ({"data": {"split": "paper"}},
      ValueError, r"validation split is the training data \(split='paper'\)"),
-    ({"- {operator: [{fit: plays, n: 4}]}": "- {operator: [{name: playz, n: 4}]}"},
+    ({"model": {"select": candidates(2, {"operator": [{"name": "playz", "n": 4}]})}},
      ValueError, r"model.select\[2\] .*operator\[0\]: no operator is registered as 'playz'"),
-    ({"- {operator: [{fit: plays, n: 4}]}": "- {operator: [{fit: playz, n: 4}]}"},
+    ({"model": {"select": candidates(2, {"operator": [{"fit": "playz", "n": 4}]})}},
      ValueError, r"model.select\[2\] .*operator\[0\]: no model family is called 'playz'"),
-    ({"- {operator: [{fit: plays, n: 4}]}": "- {operator: [{fit: plays, m: 4}]}"},
+    ({"model": {"select": candidates(2, {"operator": [{"fit": "plays", "m": 4}]})}},
      ValueError, r"model.select\[2\] .*fit 'plays': unknown option\(s\) \['m'\]"),
-    ({"  select:\n": "  select_cv: 1\n  select:\n"},
+    ({"model": {"select_cv": 1}},
      ValueError, r"model.select_cv must be an int >= 2, got 1"),
 
-    ({"  select:\n    - {operator: null}\n    - {operator: [{fit: pi_ls, n_widths: 8}]}\n"
-      "    - {operator: [{fit: plays, n: 4}]}\n": "  select_cv: 3\n"},
+    ({"model": {"select": DROP, "select_cv": 3}},
      ValueError, r"model.select_cv=3 needs model.select"),
 ])
 def test_errors(monkeypatch, tmp_path, stages, change, error, match) -> None:
@@ -508,9 +484,7 @@ def test_select_rule_on_the_command_line(monkeypatch, capsys, tmp_path) -> None:
     expected = 0 if mse[0] <= mse[lowest] + se[lowest] else lowest
     assert [int(r["selected"]) for r in rows] == [int(i == expected) for i in range(3)]
     assert "one-standard-error rule" in capsys.readouterr().out
-    bad = config(tmp_path, **{"  select:\n    - {operator: null}\n    - {operator: [{fit: "
-                              "pi_ls, n_widths: 8}]}\n    - {operator: [{fit: plays, n: 4}]}"
-                              "\n": "  select_rule: 1se\n"})
+    bad = config(tmp_path, model={"select": DROP, "select_rule": "1se"})
     with pytest.raises(ValueError, match=r"model.select_rule='1se' needs model.select"):
         cli(monkeypatch, "fit", "--config", str(bad), f"--trainer.default_root_dir={tmp_path}")
 

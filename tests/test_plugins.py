@@ -16,6 +16,7 @@ import textwrap
 from pathlib import Path
 
 import pytest
+from _training_helpers import DROP, small_config
 
 import torchhys.registry as registry_module
 from torchhys.cli.plugins import split_import_flags
@@ -26,8 +27,9 @@ OPERATOR_MODULE = '''
 import torch
 from torch import Tensor
 
-from torchhys.operator import HysteresisOperator, OperatorStep
+from torchhys.operator import HysteresisOperator
 from torchhys.registry import register_operator
+from torchhys.step import OperatorStep
 
 
 class SoftZoneStep(OperatorStep):
@@ -58,24 +60,11 @@ class SoftZone(HysteresisOperator):
 register_operator("{name}", SoftZone)
 '''
 
-CONFIG = """\
-seed_everything: 0
-trainer:
-  accelerator: cpu
-  devices: 1
-  precision: 64-true
-  max_epochs: 2
-  enable_progress_bar: false
-  enable_model_summary: false
-model:
-  operator: [{name: soft_zone_cli, width: 0.4}]
-  hidden: 4
-  optimizer: lbfgs
-data:
-  simulation: paper
-  t_end: 6.3
-  split: [0.6, 0.2, 0.2]
-"""
+CONFIG = {"trainer": {"max_epochs": 2, "check_val_every_n_epoch": DROP},
+          "model": {"operator": [{"name": "soft_zone_cli", "width": 0.4}],
+                    "operator_kwargs": DROP, "hidden": 4, "optimizer": "lbfgs",
+                    "optimizer_kwargs": DROP}}
+"""The sections of :func:`small_config`: the user's operator and 4 sigmoids by L-BFGS."""
 
 
 def _run(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
@@ -97,7 +86,7 @@ def test_split_import_flags() -> None:
 
 def test_fit_and_export_an_operator_of_an_imported_module(tmp_path: Path) -> None:
     (tmp_path / "my_operators.py").write_text(OPERATOR_MODULE.replace("{name}", "soft_zone_cli"))
-    (tmp_path / "c.yaml").write_text(CONFIG)
+    small_config(tmp_path, "c.yaml", **CONFIG)
     # without the module the name is unknown: a one-line error
     bad = _run(["fit", "--config", "c.yaml", "--trainer.default_root_dir=run"], tmp_path)
     assert bad.returncode == 2 and "soft_zone_cli" in bad.stderr.strip().splitlines()[-1]

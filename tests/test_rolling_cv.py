@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from _training_helpers import cli
+from _training_helpers import DROP, LINE, cli, small_config
 
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 from torchhys.training.folds import (
@@ -179,41 +179,22 @@ def test_a_rolling_fold_never_reads_what_comes_after_its_block(tmp_path: Path,
     assert any(not torch.equal(moved[k], v) for k, v in clean.items())
 
 
-SELECT = """\
-seed_everything: 0
-trainer:
-  accelerator: cpu
-  devices: 1
-  precision: 64-true
-  max_epochs: 10
-  check_val_every_n_epoch: 1000
-  enable_progress_bar: false
-  enable_model_summary: false
-model:
-  operator: null
-  hidden: 1
-  activation: identity
-  optimizer: lbfgs
-  optimizer_kwargs: {max_iter: 100, tolerance_grad: 1.0e-12, tolerance_change: 1.0e-15}
-  select:
-    - {operator: null}
-    - {operator: [{fit: pi_ls, n_widths: 8}]}
-  select_cv: 3
-  select_cv_mode: rolling
-data:
-  simulation: paper
-  dt: 0.05
-  t_end: 25.2
-  split: [0.6, 0.0, 0.4]
-"""
+SELECT = {"trainer": {"max_epochs": 10},
+          "model": {**LINE, "optimizer_kwargs": {"max_iter": 100, "tolerance_grad": 1.0e-12,
+                                                 "tolerance_change": 1.0e-15},
+                    "select": [{"operator": None},
+                               {"operator": [{"fit": "pi_ls", "n_widths": 8}]}],
+                    "select_cv": 3, "select_cv_mode": "rolling"},
+          "data": {"dt": 0.05, "t_end": 25.2, "split": [0.6, 0.0, 0.4]}}
+"""The sections of :func:`small_config`: the line or the PI operator, by rolling-origin
+cross-validation."""
 
 
 def test_rolling_cross_validation_on_the_command_line(monkeypatch, capsys, tmp_path) -> None:
     """``select_cv: 3, select_cv_mode: rolling``: two folds per candidate; the straight
     line's fold MSEs are those of numpy least squares on the blocks before each held-out
     block, and the pooled MSE weighs them by their samples."""
-    cfg = tmp_path / "rolling.yaml"
-    cfg.write_text(SELECT)
+    cfg = small_config(tmp_path, "rolling.yaml", **SELECT)
     root = tmp_path / "run"
     cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={root}")
     out = capsys.readouterr().out
@@ -247,8 +228,8 @@ def test_rolling_mode_errors(monkeypatch, tmp_path) -> None:
     with pytest.raises(ValueError, match=r"model.select_cv_mode='rolling' needs "
                                          r"model.select_cv"):
         run_selection([{}], lambda i, fold: None, mode="rolling")
-    cfg = tmp_path / "bad.yaml"
-    cfg.write_text(SELECT.replace("  select_cv: 3\n", ""))
+    cfg = small_config(tmp_path, "bad.yaml",
+                       **{**SELECT, "model": {**SELECT["model"], "select_cv": DROP}})
     with pytest.raises(ValueError, match=r"model.select_cv_mode='rolling' needs "
                                          r"model.select_cv"):
         cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={tmp_path}")

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 import torch
 from _helpers import RAW, sine_loops
-from _training_helpers import trainer
+from _training_helpers import DROP, LINE, small_config, trainer
 
 from torchhys import (
     Drift,
@@ -265,26 +265,17 @@ def test_fitted_in_training_saved_and_exported(tmp_path, spec):
     torch.testing.assert_close(load_torchscript(out)(x).double(), expected, rtol=0, atol=1e-9)
 
 
-def line_or_gpi(tmp_path, select_cv: str = "", split: str = "[0.5, 0.25, 0.25]"):
+def line_or_gpi(tmp_path, select_cv: int | None = None,
+                split: tuple[float, ...] = (0.5, 0.25, 0.25)):
     """A config choosing between the straight line and a small generalized PI model."""
-    cfg = tmp_path / "c.yaml"
-    cfg.write_text(f"""\
-seed_everything: 0
-trainer: {{accelerator: cpu, devices: 1, precision: 64-true, max_epochs: 3,
-          enable_progress_bar: false, enable_model_summary: false,
-          default_root_dir: {tmp_path / 'run'}}}
-model:
-  operator: null
-  hidden: 1
-  activation: identity
-  optimizer: lbfgs
-  lr: 1.0
-  select:
-    - {{operator: null}}
-    - {{operator: [{{fit: gpi, n_widths: 4, units: 2, epochs: 5}}]}}
-{select_cv}data: {{dt: 0.05, t_end: 12.6, split: {split}}}
-""")
-    return cfg
+    return small_config(
+        tmp_path, "c.yaml",
+        trainer={"check_val_every_n_epoch": DROP, "default_root_dir": tmp_path / "run"},
+        model={**LINE, "lr": 1.0, "select": [
+            {"operator": None},
+            {"operator": [{"fit": "gpi", "n_widths": 4, "units": 2, "epochs": 5}]}],
+            "select_cv": DROP if select_cv is None else select_cv},
+        data={"simulation": DROP, "dt": 0.05, "t_end": 12.6, "split": list(split)})
 
 
 def test_selection_skips_a_candidate_that_cannot_be_fitted(monkeypatch, tmp_path, capsys):
@@ -316,7 +307,7 @@ def test_a_candidate_that_fails_a_fold_is_not_trained_on_the_others(monkeypatch,
     """Under cross-validation a candidate that cannot be fitted on one fold scores NaN
     (pooled over the folds it would be NaN anyway): one warning, no fits on later folds,
     NaN in every fold column of its row; the other candidates run every fold."""
-    cfg = line_or_gpi(tmp_path, "  select_cv: 3\n", "[0.6, 0.0, 0.4]")
+    cfg = line_or_gpi(tmp_path, 3, (0.6, 0.0, 0.4))
 
     def refuse(*args, **kwargs):
         raise FitError("gpi: refused for the test")

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from _training_helpers import trainer
+from _training_helpers import DROP, small_config, trainer
 
 from torchhys.cli.main import main
 from torchhys.data.files import DataFileError, read_recordings
@@ -234,29 +234,14 @@ def test_closure_optimizers_see_all_recordings_in_one_batch(tmp_path: Path,
 
 
 # --- the command line on the ferrite loops ------------------------------------------------
-FERRITE_CONFIG = """\
-seed_everything: 0
-trainer:
-  accelerator: cpu
-  devices: 1
-  precision: 64-true
-  max_epochs: 3
-  enable_progress_bar: false
-  enable_model_summary: false
-model:
-  operator:
-    - fit: pi_ls
-      n_widths: 10
-      power: 2.0
-  hidden: 8
-  optimizer: cg
-  optimizer_kwargs:
-    minstep: 0.0
-data:
-  input_column: B_T
-  target_column: H_Apm
-  run_column: loop
-"""
+FERRITE_CONFIG = {
+    "trainer": {"check_val_every_n_epoch": DROP},
+    "model": {"operator": [{"fit": "pi_ls", "n_widths": 10, "power": 2.0}],
+              "operator_kwargs": DROP},
+    "data": {"simulation": DROP, "t_end": DROP, "split": DROP, "input_column": "B_T",
+             "target_column": "H_Apm", "run_column": "loop"}}
+"""The sections of :func:`small_config`: the PI operator and 8 sigmoids on the ferrite loops
+(the files given by --data.path)."""
 
 
 def test_cli_fits_and_tests_the_ferrite_loops_by_recording(monkeypatch, tmp_path: Path) -> None:
@@ -266,8 +251,7 @@ def test_cli_fits_and_tests_the_ferrite_loops_by_recording(monkeypatch, tmp_path
     parts = [tmp_path / "loops01.csv", tmp_path / "loops23.csv"]
     for part, loops in zip(parts, ("01", "23"), strict=True):
         part.write_text(lines[0] + "".join(ln for ln in lines[1:] if ln[0] in loops))
-    cfg = tmp_path / "ferrite.yaml"
-    cfg.write_text(FERRITE_CONFIG)
+    cfg = small_config(tmp_path, "ferrite.yaml", **FERRITE_CONFIG)
     root = tmp_path / "run"
     args = ["--config", str(cfg), f"--data.path=[{parts[0]}, {parts[1]}]",
             "--data.split_by", "recording", "--data.train_recordings=[0, 3]",
