@@ -5,7 +5,7 @@
         [--dtype float64|float32] [--prefix NAME] [--force]
 
 ``--format c`` writes ``DIR/NAME.h`` and ``DIR/NAME.c`` (``--prefix``, default
-``torchhys_comp``), dependency-free C99 (:func:`torchhys.deploy.export_c.to_c`); ``--dtype`` sets
+``torchhys_comp``), dependency-free C99 (:func:`torchhys.deploy.c.to_c`); ``--dtype`` sets
 the exported step's real type (default: the checkpoint's).
 
 The output is checked before anything is read or compiled: its folder exists and is
@@ -43,11 +43,12 @@ import torch
 from torchhys import InverseHysteresisNet
 from torchhys._finite import check_output, check_weights
 from torchhys._memory import check_memory, format_bytes
-from torchhys.cli.errors import config_errors, read_checkpoint, report_user_error
+from torchhys.checkpoints import read_checkpoint
+from torchhys.cli.errors import config_errors, report_user_error
 from torchhys.cli.negative_numbers import accept_negative_numbers
 from torchhys.cli.plugins import import_modules
+from torchhys.deploy.c import DEFAULT_PREFIX, check_prefix, to_c
 from torchhys.deploy.export import to_aoti, to_torchscript
-from torchhys.deploy.export_c import DEFAULT_PREFIX, check_prefix, to_c
 from torchhys.deploy.export_onnx import to_onnx
 from torchhys.deploy.streaming import DIRECTIONS, StreamingCompensator
 from torchhys.identification.specs import build_operators

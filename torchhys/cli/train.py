@@ -78,9 +78,11 @@ from torchhys.cli.quiet import quiet_requested
 from torchhys.cli.run_dirs import RUN_DIR_ENV, reserve_run_dir
 from torchhys.data.files import watch_files
 from torchhys.identification.specs import build_operators
+from torchhys.optim.named import check_optimizer_kwargs
+from torchhys.selection.coverage import warn_coverage
+from torchhys.selection.jobs import check_budget, check_jobs, usable_cores
 from torchhys.training import selection
 from torchhys.training.callbacks import BaselineComparison, PredictionWriter
-from torchhys.training.coverage import warn_coverage
 from torchhys.training.data import HysteresisDataModule
 from torchhys.training.folds import describe_cv
 from torchhys.training.interrupts import (
@@ -89,8 +91,7 @@ from torchhys.training.interrupts import (
     report_interrupt,
     signals_raise,
 )
-from torchhys.training.jobs import check_budget, check_jobs, usable_cores
-from torchhys.training.module import InverseHysteresisModule, check_optimizer_kwargs
+from torchhys.training.module import InverseHysteresisModule
 
 install_bounded_yaml()  # aliases in configs expand to a bounded size
 
@@ -180,7 +181,7 @@ class TorchhysCLI(LightningCLI):
     def before_fit(self) -> None:
         """A plain fit warns as model selection does (once) when the training record holds
         less than one closed loop or loops of one amplitude
-        (:func:`~torchhys.training.coverage.coverage_warning`)."""
+        (:func:`~torchhys.selection.coverage.coverage_warning`)."""
         if not self._selected:
             warn_coverage(self.datamodule, "fit")
 
