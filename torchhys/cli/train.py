@@ -36,7 +36,7 @@ before the module is built)::
       select_budget_s: null                     # s: no candidate starts after s seconds
 
 Every candidate is trained from the same seed with the same trainer settings (one progress
-line before and after each: :mod:`torchhys.cli.progress`) and scored by its validation
+line before and after each: :mod:`torchhys.selection.progress`) and scored by its validation
 MSE; the table goes to ``selection.csv`` in the run's own ``logs/version_<N>`` folder
 (reserved atomically: concurrent runs keep theirs), and the chosen candidate is fitted once
 more as a plain ``fit`` in that folder. The rules (validation split, blocked, rolling and
@@ -73,7 +73,7 @@ from torchhys.cli.config_yaml import check_config_aliases
 from torchhys.cli.config_yaml import install as install_bounded_yaml
 from torchhys.cli.errors import TRACEBACK_ENV, config_errors, report_user_error
 from torchhys.cli.negative_numbers import accept_negative_numbers
-from torchhys.cli.progress import SelectionProgress
+from torchhys.selection.progress import SelectionProgress
 from torchhys.cli.quiet import quiet_requested
 from torchhys.cli.run_dirs import RUN_DIR_ENV, reserve_run_dir
 from torchhys.data.files import watch_files
