@@ -10,17 +10,32 @@ of it; the table of the candidates and the choice are still printed at the end.
 
 from __future__ import annotations
 
+import functools
 import math
+import os
 import sys
 import time
 from collections.abc import Sequence
 from typing import Any
 
-from lightning.pytorch.utilities import rank_zero_only
-
-from torchhys.training import selection
+from torchhys.selection.scores import CandidateScore, config_json
 
 __all__ = ["SelectionProgress"]
+
+_RANK_VARIABLES = ("RANK", "LOCAL_RANK", "SLURM_PROCID", "JSM_NAMESPACE_RANK")
+"""Where a distributed launcher (torchrun, Lightning, SLURM, LSF) gives a process its rank."""
+
+
+def _rank_zero_only(method: Any) -> Any:
+    """Run ``method`` in the process of rank 0 only (each rank of a distributed run selects:
+    one prints)."""
+
+    @functools.wraps(method)
+    def wrapped(*args: Any, **kwargs: Any) -> Any:
+        rank = next((os.environ[v] for v in _RANK_VARIABLES if v in os.environ), "0")
+        return method(*args, **kwargs) if rank == "0" else None
+
+    return wrapped
 
 def _seconds(s: float) -> str:
     return f"{s:.0f} s" if s < 120 else f"{s / 60:.1f} min"
@@ -71,7 +86,7 @@ class SelectionProgress:
         runs_left = (self.n - index) * per_candidate
         return f"about {_seconds(per_run * runs_left)} left"
 
-    @rank_zero_only
+    @_rank_zero_only
     def starts(self, index: int, fold: int | None) -> None:
         """Before each training (each one that starts ends the one before): a line before a
         candidate's first training; the bar moves."""
@@ -83,15 +98,15 @@ class SelectionProgress:
         runs = (f"{self.folds} trainings" if self.folds else "1 training" if fold is None
                 else "one training per training recording")
         self._print(f"candidate {index} ({index + 1} of {self.n}) starts, {runs}, "
-                    f"{self.left(index)}: {selection.config_json(self.candidates[index])}")
+                    f"{self.left(index)}: {config_json(self.candidates[index])}")
 
     def _advance(self) -> None:
         self.runs_done += 1
         if self.bar is not None:
             self.bar.update(1)
 
-    @rank_zero_only
-    def scored(self, score: selection.CandidateScore) -> None:
+    @_rank_zero_only
+    def scored(self, score: CandidateScore) -> None:
         """After each candidate: its validation MSE (or why it failed) and its seconds."""
         now = time.perf_counter()
         if self.quiet:
@@ -104,7 +119,7 @@ class SelectionProgress:
         seconds = score.seconds if math.isfinite(score.seconds) else now - self.last
         self._print(f"candidate {score.index} ({score.index + 1} of {self.n}): val_mse "
                     f"{score.val_mse:.6g}{failed}{folds}, {seconds:.1f} s: "
-                    f"{selection.config_json(score.overrides)}")
+                    f"{config_json(score.overrides)}")
         self.last = now
 
     def close(self) -> None:
