@@ -29,8 +29,9 @@ def backend(request):
 
 ERFINV_OPERATOR = '''
 import torch
-from torchhys.operator import HysteresisOperator, OperatorStep
+from torchhys.operator import HysteresisOperator
 from torchhys.registry import register_operator
+from torchhys.step import OperatorStep
 
 
 class ErfinvStep(OperatorStep):

@@ -38,7 +38,8 @@ from torchhys.deploy.c._files import FAST_MATH_ERROR
 from torchhys.deploy.c._writer import Writer
 from torchhys.deploy.export import to_torchscript
 from torchhys.deploy.streaming import StreamingCompensator
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
+from torchhys.operator import HysteresisOperator
+from torchhys.step import OperatorStep, StateBlock
 
 needs_cc = pytest.mark.skipif(CC is None, reason=NO_CC)
 

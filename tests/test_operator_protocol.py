@@ -20,8 +20,9 @@ from torchhys import InverseHysteresisNet
 from torchhys._checks import as_batched_sequence
 from torchhys.deploy.export import load_aoti, load_torchscript, to_aoti, to_torchscript
 from torchhys.deploy.streaming import StreamingCompensator
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock, check_operator
+from torchhys.operator import HysteresisOperator, check_operator
 from torchhys.registry import OPERATORS, make_operator, register_operator
+from torchhys.step import OperatorStep, StateBlock
 from torchhys.testing import example_of
 
 

@@ -14,9 +14,10 @@ from torchhys._checks import (
     check_int,
     fitted_samples,
 )
-from torchhys.operator import AtomicLoad, HysteresisOperator, OperatorStep
+from torchhys.operator import AtomicLoad, HysteresisOperator
 from torchhys.protocols import Deployable, Network
 from torchhys.registry import make_operator
+from torchhys.step import OperatorStep
 
 __all__ = ["InverseHysteresisNet"]
 

@@ -57,20 +57,12 @@ from torch import Tensor, nn
 
 from torchhys._checks import as_batched_sequence
 from torchhys.constraints import check_constraint
-from torchhys.step import (
-    OperatorStep,
-    StateBlock,
-    _check_step_state,
-    custom_start,
-)
+from torchhys.step import OperatorStep, _check_step_state
 
 __all__ = [
     "AtomicLoad",
     "HysteresisOperator",
-    "OperatorStep",
-    "StateBlock",
     "check_operator",
-    "custom_start",
 ]
 
 

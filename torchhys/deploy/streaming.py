@@ -39,7 +39,7 @@ steps and of their ``state_spec``::
 (``g`` is 1 with the direction guard, ``c`` is 1 with the input clamp, else 0.)
 
 At a row's first finite sample every block column is set to ``start + from_sample * x``
-(its :class:`~torchhys.operator.StateBlock`) before the steps run; a step with a start of
+(its :class:`~torchhys.step.StateBlock`) before the steps run; a step with a start of
 its own (a cascade) starts from its ``initial_state(x)`` instead.
 """
 
@@ -84,7 +84,7 @@ _KIND_INDEX = {kind: i for i, kind in enumerate(STATE_KINDS)}
 
 class _Slot(nn.Module):
     """One step and where its blocks are in the compensator's split state (kind, piece).
-    A step with a start of its own (:func:`~torchhys.operator.custom_start`) starts from
+    A step with a start of its own (:func:`~torchhys.step.custom_start`) starts from
     its ``initial_state(x)`` in the rows that have not started."""
 
     kinds: list[int]

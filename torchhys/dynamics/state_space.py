@@ -10,7 +10,8 @@ from torch import Tensor, nn
 from torchhys._checks import check_int
 from torchhys.dynamics._common import as_float64, batched_inputs, radius, start
 from torchhys.functional.linear_filter import state_space, state_space_step
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
+from torchhys.operator import HysteresisOperator
+from torchhys.step import OperatorStep, StateBlock
 
 __all__ = ["StateSpace", "StateSpaceStep"]
 

@@ -18,7 +18,7 @@ from torchhys.dynamics._common import (
 )
 from torchhys.dynamics.transfer_function_matrix import TransferFunctionMatrix
 from torchhys.functional.linear_filter import df2t_step, lfilter
-from torchhys.operator import OperatorStep, StateBlock
+from torchhys.step import OperatorStep, StateBlock
 
 __all__ = ["TransferFunction", "TransferFunctionStep"]
 

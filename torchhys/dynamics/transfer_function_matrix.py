@@ -21,7 +21,8 @@ from torchhys.dynamics._common import (
     start,
 )
 from torchhys.functional.linear_filter import df2t_step, lfilter
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
+from torchhys.operator import HysteresisOperator
+from torchhys.step import OperatorStep, StateBlock
 
 __all__ = ["TransferFunctionMatrix", "TransferFunctionMatrixStep"]
 

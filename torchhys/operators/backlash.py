@@ -12,8 +12,9 @@ from torchhys._checks import (
     check_widths,
 )
 from torchhys.functional.backlash import backlash, check_play_state, play_step
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
+from torchhys.operator import HysteresisOperator
 from torchhys.registry import register_operator
+from torchhys.step import OperatorStep, StateBlock
 from torchhys.testing import Example
 
 __all__ = ["Backlash", "BacklashCell", "PlayStep"]

@@ -29,7 +29,7 @@ from torchhys.functional._branch import (
     sqrt_constants,
 )
 from torchhys.functional.backlash import play_step
-from torchhys.operator import OperatorStep, StateBlock
+from torchhys.step import OperatorStep, StateBlock
 
 __all__ = ["DominantStep", "RebasedStep", "RecentStep", "branch_step"]
 

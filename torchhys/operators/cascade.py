@@ -13,7 +13,7 @@ is the list of the operators' states; its step runs the steps in series, and its
 ``state_spec`` is the first step's blocks followed by the second's.
 
 Starting state. Each step says how its state starts from a row's first finite sample
-(:meth:`~torchhys.operator.OperatorStep.initial_state`). The cascade's start is built from its
+(:meth:`~torchhys.step.OperatorStep.initial_state`). The cascade's start is built from its
 parts': the first part's from ``x0``, then the second part's from the first part's output
 ``v0`` at that sample (so an anchored block of the second part, e.g. an EIHO's turning point,
 starts at its own first input). Nested cascades compose.

@@ -26,8 +26,9 @@ from torchhys.functional.drift import (
     drift,
     drift_step,
 )
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
+from torchhys.operator import HysteresisOperator
 from torchhys.registry import register_operator
+from torchhys.step import OperatorStep, StateBlock
 from torchhys.testing import Example
 
 __all__ = ["Drift", "DriftStep"]

@@ -22,7 +22,6 @@ import torch
 from torch import Tensor, nn
 
 from torchhys._checks import check_int
-from torchhys.operator import StateBlock
 from torchhys.operators.feedback_element import (
     FeedbackElement,
     _layers,
@@ -32,6 +31,7 @@ from torchhys.operators.feedback_element import (
     _zero_last,
 )
 from torchhys.registry import register_operator
+from torchhys.step import StateBlock
 from torchhys.testing import Example
 
 __all__ = ["DuhemHysteresis", "DuhemStep"]

@@ -14,9 +14,10 @@ from torchhys._checks import as_batched_sequence, check_choice
 from torchhys.functional._branch import BranchState, SquareRoot, ZhaoTanShape
 from torchhys.functional.eiho import eiho, zhao_tan
 from torchhys.functional.turning_points import estimate_threshold
-from torchhys.operator import HysteresisOperator, OperatorStep
+from torchhys.operator import HysteresisOperator
 from torchhys.operators.branch_steps import branch_step
 from torchhys.registry import register_operator
+from torchhys.step import OperatorStep
 from torchhys.testing import Example
 
 __all__ = ["EIHO", "AnchoredCoefficients", "Coefficients", "FixedCoefficients",

@@ -18,9 +18,9 @@ from torch import Tensor
 from torchhys._checks import as_batched_sequence, check_choice
 from torchhys.functional._branch import BranchState
 from torchhys.functional.eiho import NonCausalWarning, eiho, segment_coefficients
-from torchhys.operator import OperatorStep
 from torchhys.operators.eiho import _TurningPointOperator, check_eps
 from torchhys.registry import register_operator
+from torchhys.step import OperatorStep
 from torchhys.testing import Example
 
 __all__ = ["SegmentEIHO"]

@@ -30,7 +30,8 @@ import torch
 from torch import Tensor, nn
 
 from torchhys._checks import as_batched_sequence, check_dtype_of, check_state
-from torchhys.operator import HysteresisOperator, OperatorStep
+from torchhys.operator import HysteresisOperator
+from torchhys.step import OperatorStep
 
 __all__ = ["FeedbackElement"]
 

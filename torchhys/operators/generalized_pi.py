@@ -79,10 +79,11 @@ from torchhys.functional.prandtl_ishlinskii import (
     pi_output,
     prandtl_ishlinskii_inverse_parameters,
 )
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
+from torchhys.operator import HysteresisOperator
 from torchhys.operators.backlash import _inverse_softplus, _Widths
 from torchhys.operators.prandtl_ishlinskii import PrandtlIshlinskii
 from torchhys.registry import register_operator
+from torchhys.step import OperatorStep, StateBlock
 from torchhys.testing import Example
 
 __all__ = ["ANALYTIC_ROWS", "GeneralizedPIInverse", "GeneralizedPIInverseStep",

@@ -24,8 +24,9 @@ from torchhys._checks import (
     check_tensor,
 )
 from torchhys.functional.jiles_atherton import MU0, jiles_atherton, jiles_atherton_step
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
+from torchhys.operator import HysteresisOperator
 from torchhys.registry import register_operator
+from torchhys.step import OperatorStep, StateBlock
 from torchhys.testing import Example
 
 __all__ = ["JilesAtherton", "JilesAthertonStep"]

@@ -19,7 +19,6 @@ from torch import Tensor, nn
 
 from torchhys._checks import check_int
 from torchhys.functional.backlash import play_step
-from torchhys.operator import StateBlock
 from torchhys.operators.backlash import Backlash
 from torchhys.operators.feedback_element import (
     FeedbackElement,
@@ -30,6 +29,7 @@ from torchhys.operators.feedback_element import (
     _zero_last,
 )
 from torchhys.registry import register_operator
+from torchhys.step import StateBlock
 from torchhys.testing import Example
 
 __all__ = ["PlayHysteresis", "PlayHysteresisStep"]

@@ -19,10 +19,11 @@ from torchhys.functional.prandtl_ishlinskii import (
     pi_output,
     prandtl_ishlinskii_inverse_parameters,
 )
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
+from torchhys.operator import HysteresisOperator
 from torchhys.operators.backlash import _Widths
 from torchhys.protocols import Deployable
 from torchhys.registry import register_operator
+from torchhys.step import OperatorStep, StateBlock
 from torchhys.testing import Example
 
 __all__ = ["PIStep", "PrandtlIshlinskii", "PrandtlIshlinskiiInverse"]

@@ -58,8 +58,9 @@ from torchhys.functional.preisach_inverse import (
     preisach_inverse_constants,
     preisach_inverse_step,
 )
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
+from torchhys.operator import HysteresisOperator
 from torchhys.registry import register_operator
+from torchhys.step import OperatorStep, StateBlock
 from torchhys.testing import Example
 
 __all__ = ["Preisach", "PreisachInverse", "PreisachInverseStep", "PreisachStep"]

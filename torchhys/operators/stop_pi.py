@@ -54,8 +54,9 @@ from torchhys.functional.stop_pi import (
     stop_pi_inverse,
     stop_pi_inverse_step,
 )
-from torchhys.operator import HysteresisOperator, OperatorStep, StateBlock
+from torchhys.operator import HysteresisOperator
 from torchhys.registry import register_operator
+from torchhys.step import OperatorStep, StateBlock
 from torchhys.testing import Example
 
 __all__ = ["StopPIInverse", "StopPIInverseStep", "StopPIStep", "StopPrandtlIshlinskii"]
