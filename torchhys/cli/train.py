@@ -73,14 +73,16 @@ from torchhys.cli.config_yaml import check_config_aliases
 from torchhys.cli.config_yaml import install as install_bounded_yaml
 from torchhys.cli.errors import TRACEBACK_ENV, config_errors, report_user_error
 from torchhys.cli.negative_numbers import accept_negative_numbers
-from torchhys.selection.progress import SelectionProgress
 from torchhys.cli.quiet import quiet_requested
 from torchhys.cli.run_dirs import RUN_DIR_ENV, reserve_run_dir
+from torchhys.cli.selection import direct_record, model_base, use_solved
 from torchhys.data.files import watch_files
 from torchhys.identification.specs import build_operators
 from torchhys.optim.named import check_optimizer_kwargs
+from torchhys.selection import select as select_candidates
 from torchhys.selection.coverage import warn_coverage
 from torchhys.selection.jobs import check_budget, check_jobs, usable_cores
+from torchhys.selection.progress import SelectionProgress
 from torchhys.training import selection
 from torchhys.training.callbacks import BaselineComparison, PredictionWriter
 from torchhys.training.data import HysteresisDataModule
@@ -184,6 +186,8 @@ class TorchhysCLI(LightningCLI):
         (:func:`~torchhys.selection.coverage.coverage_warning`)."""
         if not self._selected:
             warn_coverage(self.datamodule, "fit")
+        elif self._solved is not None:  # fitted by the selection: logged, not trained again
+            use_solved(self.model, self._solved)
 
     # --- model selection ------------------------------------------------------------------
     def _select(self) -> None:
@@ -191,6 +195,7 @@ class TorchhysCLI(LightningCLI):
         config; in ``fit``, score the
         candidates and put the chosen one's model section in their place."""
         self._selected = False  # set once run_selection has run (and warned, before_fit)
+        self._solved: torch.nn.Module | None = None  # the chosen network, fitted by select
         sub = self.subcommand
         cfg = self.config[sub] if sub else self.config
         options = _pop_select(cfg)
@@ -243,9 +248,18 @@ class TorchhysCLI(LightningCLI):
 
         try:
             with _quiet_lightning(), signals_raise():  # SIGTERM, Ctrl-C: Interrupted
-                scores = selection.run_selection(candidates, build, cv=cv, mode=mode,
-                                                 jobs=jobs, budget_s=budget,
-                                                 report=progress.scored)
+                direct = direct_record(configs, sub, cv)
+                if direct is not None:  # every readout solved: the library's selection
+                    result = select_candidates(
+                        candidates, direct.x, direct.y, base=model_base(cfg["model"]),
+                        warmup=direct.warmup, mask=direct.mask, cv=cv, mode=mode,
+                        rule=rule or "min", jobs=jobs, budget_s=budget, dtype=direct.dtype,
+                        seed=seed, progress=progress, source=direct.source)
+                    scores, self._solved = result.scores, result.model
+                else:
+                    scores = selection.run_selection(candidates, build, cv=cv, mode=mode,
+                                                     jobs=jobs, budget_s=budget,
+                                                     report=progress.scored)
         except BaseException:
             progress.close()
             with contextlib.suppress(OSError):  # stopped before any candidate logged

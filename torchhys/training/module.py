@@ -165,6 +165,10 @@ class InverseHysteresisModule(L.LightningModule):
         self._feature_cache: dict[str, tuple[Tensor, Tensor, Tensor]] = {}
         self._outside = (0, 0)  # (outside, total) input samples of a test or predict run
         self._last_loss: Tensor | None = None  # of the last training step (check_training)
+        self.readout_solved = False
+        """Set by ``torchhys fit`` after model selection solved the network's affine readout
+        by least squares (:func:`torchhys.selection.select`): a closure optimizer's fit then
+        takes no step (the solution is its optimum), it only logs and checkpoints."""
 
     # --- checks -------------------------------------------------------------------------
     @property
@@ -279,7 +283,8 @@ class InverseHysteresisModule(L.LightningModule):
             self.manual_backward(loss)  # DDP averages the gradients across ranks
             return self._global_mean(loss.detach())
 
-        opt.step(closure=closure)
+        if not self.readout_solved:
+            opt.step(closure=closure)
         with torch.no_grad():
             loss = self._global_mean(F.mse_loss(predict(), y))
         self._last_loss = loss

@@ -1,0 +1,92 @@
+"""``torchhys fit`` with ``model.select``: the candidates of a config scored, chosen and
+fitted by :func:`torchhys.selection.select` on the training split, where every candidate's
+readout is solved by least squares (the fitted model families of ``configs/measured.yaml``).
+
+:func:`direct_record` says whether a run is of that kind and reads its training split once;
+the command then calls :func:`torchhys.selection.select` and hands the fitted network to the
+final fit (:func:`use_solved`), which logs and checkpoints it without training it again.
+Other candidates (a trained network, a hold-out on the validation split) are scored by
+Lightning runs (:func:`torchhys.training.selection.run_selection`).
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchhys.selection.candidates import MODEL_DEFAULTS, build_candidate, candidate_spec, is_direct
+from torchhys.training.data import HysteresisDataModule
+
+__all__ = ["DirectRecord", "direct_record", "model_base", "use_solved"]
+
+_DTYPES = {"64-true": torch.float64, "64": torch.float64, "32-true": torch.float32,
+           "32": torch.float32}
+
+
+class DirectRecord(NamedTuple):
+    """A training split for :func:`torchhys.selection.select`."""
+
+    x: Tensor
+    y: Tensor
+    warmup: Tensor
+    mask: Tensor
+    dtype: torch.dtype
+    source: str
+
+
+def model_base(model: Any) -> dict[str, Any]:
+    """The model arguments of a config's model section that a candidate of
+    :func:`torchhys.selection.select` takes."""
+    return {k: model[k] for k in MODEL_DEFAULTS if k in model}
+
+
+def _one_device(trainer: Any) -> bool:
+    devices = trainer.get("devices")
+    return (str(devices) in ("1", "[0]") and int(trainer.get("num_nodes") or 1) == 1
+            and str(trainer.get("strategy") or "auto") == "auto")
+
+
+def direct_record(configs: list[Any], sub: str, cv: object) -> DirectRecord | None:
+    """The training split of a ``fit`` whose candidates ``configs`` are all solved directly
+    (an identity activation over fixed operators, a closure optimizer: their training a
+    least-squares problem), scored by cross-validation (``cv`` not None), on one device in
+    float32 or float64, from a :class:`~torchhys.training.HysteresisDataModule`; else None."""
+    if cv is None:
+        return None
+    cfg = configs[0][sub]
+    trainer = cfg["trainer"]
+    dtype = _DTYPES.get(str(trainer.get("precision") or "32-true"))
+    epochs = trainer.get("max_epochs")
+    if (dtype is None or not _one_device(trainer) or (epochs is not None and epochs < 1)
+            or trainer.get("limit_train_batches") in (0, 0.0)):
+        return None
+    for config in configs:
+        model = config[sub]["model"]
+        if model.get("net") is not None:
+            return None
+        spec = candidate_spec(model_base(model), {})
+        net, _ = build_candidate(spec, seed=None)
+        if not is_direct(spec, net):
+            return None
+    data = cfg["data"]
+    args = data.as_dict() if hasattr(data, "as_dict") else dict(data)
+    if "class_path" in args:  # a datamodule of its own: not read here
+        return None
+    datamodule = HysteresisDataModule(**args)
+    datamodule.setup("fit")
+    batches = datamodule.batches("train")
+    if not batches:
+        return None
+    x, y, warmup, mask = batches[0]
+    return DirectRecord(x, y, warmup, mask.to(torch.bool), dtype,
+                        getattr(datamodule, "source", "the data"))
+
+
+def use_solved(module: Any, net: torch.nn.Module) -> None:
+    """Give the final fit's module the network model selection fitted: its families,
+    normalization and solved readout kept, its closure optimizer taking no step."""
+    module.net = net
+    module.normalization_fitted.fill_(True)
+    module.readout_solved = True
