@@ -11,6 +11,8 @@ from torch import Tensor, nn
 
 from torchhys._checks import check_choice, check_int
 
+__all__ = ["STATE_KINDS", "OperatorStep", "StateBlock", "check_step", "custom_start"]
+
 STATE_KINDS = ("float", "float64", "int64")
 
 
