@@ -17,7 +17,7 @@ import pytest
 import torch
 from _training_helpers import DROP, small_config
 
-from torchhys.cli.errors import CheckpointError, read_checkpoint
+from torchhys.checkpoints import CheckpointError, read_checkpoint
 from torchhys.cli.export import main as export_main
 from torchhys.cli.main import main
 from torchhys.training.checkpoint_io import AtomicCheckpointIO

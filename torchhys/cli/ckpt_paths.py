@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from torchhys.cli.errors import CheckpointError, read_checkpoint
+from torchhys.checkpoints import CheckpointError, read_checkpoint
 from torchhys.cli.quiet import quiet_requested
 from torchhys.cli.run_dirs import log_folder
 

@@ -31,7 +31,7 @@ from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from lightning.fabric.utilities.cloud_io import _is_local_file_protocol
 
 from torchhys._atomic import atomic_write_bytes
-from torchhys.cli.errors import refuse_url
+from torchhys.checkpoints import refuse_url
 
 __all__ = ["AtomicCheckpointIO", "atomic_write_bytes"]
 
