@@ -310,3 +310,19 @@ def test_make_reproduce_runs_the_reproduction_package() -> None:
                           text=True, cwd=root)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.startswith(f"usage: python -m {module} "), proc.stdout[:80]
+
+
+def test_the_top_level_lists_what_the_readmes_api_table_lists() -> None:
+    """Every ``torchhys.<name>`` of the README's API table is a top-level name (but
+    ``torchhys.training``, which needs the ``train`` extra and is reached by its own import),
+    and every top-level name is in the table."""
+    import re
+
+    text = (PACKAGE.parent / "README.md").read_text()
+    api = text[text.index("\n## API\n"):]
+    api = api[:api.index("\n## ", 1)]
+    named = {m.group(1) for m in re.finditer(r"(?<![\w.])torchhys\.(\w+)", api)}
+    assert named - set(torchhys.__all__) == {"training"}
+    unlisted = [n for n in torchhys.__all__
+                if n != "__version__" and not re.search(rf"(?<!\w){n}(?!\w)", api)]
+    assert unlisted == []

@@ -6,7 +6,7 @@ built-in operator is registered (:data:`torchhys.registry.OPERATORS`) when ``tor
 imported.
 
 The subpackages that not every user needs (``deploy``, ``dynamics``, ``identification``,
-``models``, ``optim``, ``plants``, ``signals``), and the families' ``fit_*`` and
+``models``, ``optim``, ``plants``, ``signals``, ``testing``), and the families' ``fit_*`` and
 ``select_*``, are loaded on first use (``torchhys.plants`` or ``import torchhys.plants``)
 where nothing has loaded them before: ``import torchhys`` loads neither SciPy (the plants'
 ODE solver), nor a fit, nor Lightning
@@ -17,7 +17,7 @@ import importlib
 import pkgutil
 from typing import TYPE_CHECKING, Any
 
-from torchhys import functional, operator, operators, registry
+from torchhys import functional, operator, operators, protocols, registry, step
 from torchhys._version import __version__
 from torchhys.networks import InverseHysteresisNet
 from torchhys.operator import HysteresisOperator
@@ -41,7 +41,7 @@ for _module in pkgutil.iter_modules(operators.__path__):
 del _module
 
 _LAZY_SUBPACKAGES = ("deploy", "dynamics", "identification", "models", "optim", "plants",
-                     "signals")
+                     "signals", "testing")
 """Subpackages loaded on first use (:func:`__getattr__`)."""
 
 _LAZY_NAMES = {
@@ -56,7 +56,7 @@ _LAZY_NAMES = {
 """Names loaded on first use, and the module each lives in."""
 
 if TYPE_CHECKING:  # what a type checker and an editor see: the same names, eagerly
-    from torchhys import deploy, dynamics, identification, models, optim, plants, signals
+    from torchhys import deploy, dynamics, identification, models, optim, plants, signals, testing
     from torchhys.identification.drift import fit_drift
     from torchhys.identification.generalized_pi import fit_generalized_pi
     from torchhys.identification.jiles_atherton import fit_jiles_atherton
@@ -75,8 +75,11 @@ __all__ = [
     "operators",
     "optim",
     "plants",
+    "protocols",
     "registry",
     "signals",
+    "step",
+    "testing",
     # the operator protocol
     "HysteresisOperator",
     "OperatorStep",
