@@ -32,7 +32,8 @@ from torchhys.deploy.export import load_torchscript, to_torchscript
 from torchhys.identification.errors import FitError
 from torchhys.identification.families import _substeps
 from torchhys.identification.specs import build_operators, fit_data_dependent
-from torchhys.training import HysteresisDataModule, InverseHysteresisModule, selection
+from torchhys.selection import run as selection_run
+from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 
 F64 = torch.float64
 torch.set_num_threads(1)
@@ -313,21 +314,21 @@ def test_a_candidate_that_fails_a_fold_is_not_trained_on_the_others(monkeypatch,
         raise FitError("gpi: refused for the test")
 
     runs = []
-    validation = selection._validation
+    fit = selection_run.fit_candidate
 
-    def watched(module, data, trainer, run):  # noqa: ANN001
-        runs.append(run)
-        return validation(module, data, trainer, run)
+    def watched(spec, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003
+        runs.append("gpi" if spec["operator"] else "line")
+        return fit(spec, *args, **kwargs)
 
     monkeypatch.setattr("torchhys.identification.families.fit_generalized_pi", refuse)
-    monkeypatch.setattr(selection, "_validation", watched)
+    monkeypatch.setattr(selection_run, "fit_candidate", watched)
     monkeypatch.setattr(sys, "argv", ["torchhys"])
     with pytest.warns(RuntimeWarning, match="skipped") as record:
         main(["fit", "--config", str(cfg)])
     skipped = [str(w.message) for w in record if "skipped" in str(w.message)]
     assert len(skipped) == 1 and "candidate 1, fold 1 of 3 skipped: gpi" in skipped[0]
-    assert runs == [f"candidate 0, fold {j} of 3" for j in (1, 2, 3)] + [
-        "candidate 1, fold 1 of 3"]
+    # the line on its three folds, the family on its first only, then the line's final fit
+    assert runs == ["line"] * 3 + ["gpi", "line"]
     with (tmp_path / "run/logs/version_0/selection.csv").open() as fh:
         rows = list(csv.DictReader(fh))
     folds = [[float(r[f"fold_{j}"]) for j in (1, 2, 3)] for r in rows]

@@ -11,15 +11,20 @@ Lightning runs (:func:`torchhys.training.selection.run_selection`).
 
 from __future__ import annotations
 
+import csv
+import math
+from collections.abc import Sequence
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
 
 from torchhys.selection.candidates import MODEL_DEFAULTS, build_candidate, candidate_spec, is_direct
+from torchhys.selection.scores import CandidateScore
 from torchhys.training.data import HysteresisDataModule
 
-__all__ = ["DirectRecord", "direct_record", "model_base", "use_solved"]
+__all__ = ["DirectRecord", "direct_record", "model_base", "use_solved", "write_fold_logs"]
 
 _DTYPES = {"64-true": torch.float64, "64": torch.float64, "32-true": torch.float32,
            "32": torch.float32}
@@ -82,6 +87,20 @@ def direct_record(configs: list[Any], sub: str, cv: object) -> DirectRecord | No
     x, y, warmup, mask = batches[0]
     return DirectRecord(x, y, warmup, mask.to(torch.bool), dtype,
                         getattr(datamodule, "source", "the data"))
+
+
+def write_fold_logs(scores: Sequence[CandidateScore], root: Path) -> None:
+    """Each scored fold's ``val_mse`` as the run's logs hold a trained fold's:
+    ``root/candidate_<i>/fold_<j>/version_0/metrics.csv`` (``step,val_mse``); a fold that
+    was not scored (a family that could not be fitted, not run) has none."""
+    for score in scores:
+        for j, mse in enumerate(score.folds):
+            if not math.isfinite(mse):
+                continue
+            folder = root / f"candidate_{score.index}" / f"fold_{j}" / "version_0"
+            folder.mkdir(parents=True, exist_ok=True)
+            with (folder / "metrics.csv").open("w", newline="") as fh:
+                csv.writer(fh).writerows([["step", "val_mse"], [0, repr(mse)]])
 
 
 def use_solved(module: Any, net: torch.nn.Module) -> None:

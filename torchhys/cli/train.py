@@ -75,7 +75,7 @@ from torchhys.cli.errors import TRACEBACK_ENV, config_errors, report_user_error
 from torchhys.cli.negative_numbers import accept_negative_numbers
 from torchhys.cli.quiet import quiet_requested
 from torchhys.cli.run_dirs import RUN_DIR_ENV, reserve_run_dir
-from torchhys.cli.selection import direct_record, model_base, use_solved
+from torchhys.cli.selection import direct_record, model_base, use_solved, write_fold_logs
 from torchhys.data.files import watch_files
 from torchhys.identification.specs import build_operators
 from torchhys.optim.named import check_optimizer_kwargs
@@ -256,6 +256,7 @@ class TorchhysCLI(LightningCLI):
                         rule=rule or "min", jobs=jobs, budget_s=budget, dtype=direct.dtype,
                         seed=seed, progress=progress, source=direct.source)
                     scores, self._solved = result.scores, result.model
+                    write_fold_logs(scores, folder / "selection")
                 else:
                     scores = selection.run_selection(candidates, build, cv=cv, mode=mode,
                                                      jobs=jobs, budget_s=budget,
