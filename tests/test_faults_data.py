@@ -319,7 +319,8 @@ def test_family_fit_refused_before_allocating(monkeypatch, spec, what) -> None:
 
     monkeypatch.setenv(MEMORY_ENV, "64M")
     _, fitters = build_operators([spec], {})
-    monkeypatch.setattr("torchhys.identification.families.play_width_grid", no_grid)
+    home = {"pi_nonneg": "prandtl_ishlinskii", "gpi": "generalized_pi", "stop_pi": "stop_pi"}
+    monkeypatch.setattr(f"torchhys.identification.{home[spec['fit']]}.play_width_grid", no_grid)
     x = torch.sin(torch.linspace(0, 20, 2000, dtype=torch.float64))[None]
     with pytest.raises(ValueError, match=rf"fit '{spec['fit']}': {re.escape(what)} fitted on "
                                          r"2000 samples needs about 18\d\.\d MiB"):

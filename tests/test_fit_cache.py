@@ -27,8 +27,8 @@ def test_the_same_spec_on_the_same_data_is_fitted_once() -> None:
         calls.append(1)
         return inner(*args)
 
-    from torchhys.identification.families import FAMILIES
-    _, inner = FAMILIES["stop_pi"](spec)
+    from torchhys.identification.stop_pi import _stop_pi
+    _, inner = _stop_pi(spec)
     fit = fit_cache.shared(spec, counted)
     a, b = fit(x, y, 10, None), fit(x.clone(), y.clone(), 10, None)
     assert len(calls) == 1 and a is not b
@@ -73,7 +73,7 @@ def test_random_families_are_not_shared() -> None:
 def test_gpi_specs_that_run_the_same_iterations_share_a_fit() -> None:
     """On a long record (here: a small sample_iterations) the gpi spec with ``epochs: 200``
     runs the default spec's iterations: one fit; on a short one they differ: two."""
-    from torchhys.identification.families import fit_key
+    from torchhys.identification.generalized_pi import fit_key
 
     x, y = _data()
     long = {"fit": "gpi", "sample_iterations": 400 * 50}

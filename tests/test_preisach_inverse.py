@@ -328,10 +328,10 @@ def test_fit_of_a_graded_plant_is_exact_and_beats_the_even_grid():
 
 
 def test_preisach_family_in_the_inverse_direction():
-    from torchhys.identification.families import FAMILIES
+    from torchhys.identification.preisach import _preisach
 
     plant, H, B = magnetic_plant(0.15)  # in the family: grid over H's range, 0.1 of 1.5
-    placeholder, fit = FAMILIES["preisach"](
+    placeholder, fit = _preisach(
         {"fit": "preisach", "n": 24, "grading": 0.1, "direction": "inverse"})
     assert isinstance(placeholder, PreisachInverse)
     op = fit(B, H, 96)  # input B, target H: the compensator
@@ -346,7 +346,7 @@ def test_preisach_family_in_the_inverse_direction():
     for bad, match in (({"grading": 0}, "grading"), ({"direction": "up"}, "direction"),
                        ({"levels": 3}, "unknown option")):
         with pytest.raises(ValueError, match=match):
-            FAMILIES["preisach"]({"fit": "preisach", **bad})
+            _preisach({"fit": "preisach", **bad})
 
 
 # --- 4. bad input, loading, the registry --------------------------------------------------------

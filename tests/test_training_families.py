@@ -30,7 +30,7 @@ from torchhys import (
 from torchhys.cli.main import main
 from torchhys.deploy.export import load_torchscript, to_torchscript
 from torchhys.identification.errors import FitError
-from torchhys.identification.families import _substeps
+from torchhys.identification.jiles_atherton import _substeps
 from torchhys.identification.specs import build_operators, fit_data_dependent
 from torchhys.selection import run as selection_run
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
@@ -113,13 +113,13 @@ def test_gpi_both_directions_recover_a_generalized_pi_plant():
     (400, 400, 20),  # at least 20
 ])
 def test_gpi_iterations_bounded_by_sample_iterations(monkeypatch, samples, work, expected):
-    import torchhys.identification.families as families
+    import torchhys.identification.generalized_pi as generalized_pi
     from torchhys.identification import _fit_cache as fit_cache
 
     fit_cache.clear()  # fitted here, not taken from an earlier test's fit
     seen = []
-    real = families.fit_generalized_pi
-    monkeypatch.setattr(families, "fit_generalized_pi",
+    real = generalized_pi.fit_generalized_pi
+    monkeypatch.setattr(generalized_pi, "fit_generalized_pi",
                         lambda *a, **k: seen.append(k["lbfgs_epochs"]) or real(*a, **k))
     x = 1.5 * signal(samples)
     spec = {"fit": "gpi", "n_widths": 6, "units": 2, "epochs": 150}
@@ -286,7 +286,7 @@ def test_selection_skips_a_candidate_that_cannot_be_fitted(monkeypatch, tmp_path
     def refuse(*args, **kwargs):
         raise FitError("gpi: refused for the test")
 
-    monkeypatch.setattr("torchhys.identification.families.fit_generalized_pi", refuse)
+    monkeypatch.setattr("torchhys.identification.generalized_pi.fit_generalized_pi", refuse)
     monkeypatch.setattr(sys, "argv", ["torchhys"])
     with pytest.warns(RuntimeWarning, match="candidate 1 skipped: gpi .*refused"):
         main(["fit", "--config", str(cfg)])
@@ -320,7 +320,7 @@ def test_a_candidate_that_fails_a_fold_is_not_trained_on_the_others(monkeypatch,
         runs.append("gpi" if spec["operator"] else "line")
         return fit(spec, *args, **kwargs)
 
-    monkeypatch.setattr("torchhys.identification.families.fit_generalized_pi", refuse)
+    monkeypatch.setattr("torchhys.identification.generalized_pi.fit_generalized_pi", refuse)
     monkeypatch.setattr(selection_run, "fit_candidate", watched)
     monkeypatch.setattr(sys, "argv", ["torchhys"])
     with pytest.warns(RuntimeWarning, match="skipped") as record:
@@ -511,7 +511,7 @@ def test_gpi_is_not_started_again_when_it_ended_on_the_line(monkeypatch, rmse, s
     """A gpi fit no better than a straight line is started again from the next ridges' PI
     fits (a poor local optimum), unless it ended on the line itself (within ON_THE_LINE)."""
     from torchhys.identification import errors as fit_checks
-    from torchhys.identification import families
+    from torchhys.identification import generalized_pi
 
     calls = []
 
@@ -519,8 +519,8 @@ def test_gpi_is_not_started_again_when_it_ended_on_the_line(monkeypatch, rmse, s
         calls.append(name)
         raise fit_checks.NoBetterThanLine(f"{name}: no better", rmse, 0.5)
 
-    monkeypatch.setattr(families, "_checked", no_better)
-    _, fit = families.FAMILIES["gpi"]({"fit": "gpi", "epochs": 20})
+    monkeypatch.setattr(generalized_pi, "_checked", no_better)
+    _, fit = generalized_pi._gpi({"fit": "gpi", "epochs": 20})
     t = torch.arange(400, dtype=torch.float64)
     x = torch.sin(0.05 * t).reshape(1, -1)
     y = torch.tanh(2 * x) + 0.1 * torch.sin(0.3 * t)

@@ -10,8 +10,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchhys.identification._family_spec import VALIDATION
 from torchhys.identification._nnls import holdout_cuts
-from torchhys.identification.families import VALIDATION
 
 from .datasets import Split
 

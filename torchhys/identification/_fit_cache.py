@@ -4,11 +4,11 @@ Model selection fits every candidate on every fold, and candidates share familie
 stop-type PI model with 40 thresholds is a candidate of its own and a part of two others in
 ``configs/measured.yaml``, fitted on the same fold's data each time. :func:`shared` wraps a
 family's fitter so that a fit of the same spec on the same data (input, target, warm-up and
-mask, compared by content; :func:`~torchhys.identification.families.fit_key`: a ``gpi`` spec by the
-iterations it runs on them) is done once: later calls get a copy of the fitted module, or the
-same :class:`~torchhys.identification.errors.FitError`. Only families whose fit draws no random
-numbers are shared (:data:`SHARED_FAMILIES`), so a run's random state is the same with the
-cache as without it. The last :data:`SIZE` fits are kept.
+mask, compared by content; :func:`~torchhys.identification.generalized_pi.fit_key`: a ``gpi``
+spec by the iterations it runs on them) is done once: later calls get a copy of the fitted
+module, or the same :class:`~torchhys.identification.errors.FitError`. Only families whose fit
+draws no random numbers are shared (:data:`SHARED_FAMILIES`), so a run's random state is the
+same with the cache as without it. The last :data:`SIZE` fits are kept.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from typing import Any
 from torch import Tensor, nn
 
 from torchhys.identification.errors import FitError
-from torchhys.identification.families import fit_key
+from torchhys.identification.generalized_pi import fit_key
 
 SHARED_FAMILIES = frozenset({"plays", "pi_ls", "pi_nonneg", "gpi", "preisach", "stop_pi",
                              "drift"})

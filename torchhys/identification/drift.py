@@ -1,15 +1,27 @@
-"""Identification of the drift operator by non-negative least squares: :func:`fit_drift`."""
+"""Identification of the drift operator by non-negative least squares: :func:`fit_drift`, and
+the ``drift`` family of the configs.
+
+``{"fit": "drift", "scales": [0.5, 1, 2, 4, 8, 16, 32]}``: :func:`torchhys.fit_drift`, a
+monotone, decelerating drift of the target with the input's accumulated variation
+(saturation scales in spans of the scored training input), weights of one sign; beside a
+hysteresis model in one candidate (``[{fit: stop_pi}, {fit: drift}]``, one affine
+readout of both) it shifts the loop as the device is used (the ratcheting of a
+shape-memory alloy). It is fitted beside a free slope in the input (not part of the
+drift), so that a loop's rise and fall with the input is not taken for a drift.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from torchhys._checks import (
     as_batched_sequence,
     check_bool,
+    check_positive,
     check_warmup,
     fitted_samples,
 )
@@ -18,7 +30,9 @@ from torchhys.functional.drift import (
     check_scales,
     drift_features,
 )
+from torchhys.identification._family_spec import Fitter, _keys
 from torchhys.identification._nnls import nnls_gram
+from torchhys.identification.errors import _samples, _standardized
 from torchhys.operators.drift import Drift
 
 __all__ = ["fit_drift"]
@@ -87,3 +101,26 @@ def fit_drift(x: Tensor, y: Tensor, scales: Tensor | Sequence[float], *,
     offset = float(theta[K]) - (float(theta[K + 1] * xs.mean()) if linear else 0.0)
     return Drift(c.to(xb.dtype), sign * theta[:K].to(xb.dtype), offset=sign * offset,
                  min_variation=floor)
+
+
+DRIFT_SCALES = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
+"""Saturation scales of the ``drift`` family, in spans of the scored training input (a full
+cycle over the span adds two spans to the accumulated variation)."""
+
+
+def _drift(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
+    _keys(spec, {"scales"})
+    scales = spec.get("scales", DRIFT_SCALES)
+    if (isinstance(scales, (str, bytes)) or not hasattr(scales, "__len__")
+            or len(scales) == 0):
+        raise ValueError(f"fit 'drift': scales must be a non-empty list of positive "
+                         f"numbers (spans of the training input), got {scales!r}")
+    mult = [check_positive(c, "fit 'drift': scales[]") for c in scales]
+
+    def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
+        scored, _ = _samples(x, warmup, mask)
+        _, t = _standardized(x, y, scored)
+        span = float(x[scored].max() - x[scored].min())
+        return fit_drift(x, t, [span * c for c in mult], mask=scored)
+
+    return Drift(torch.ones(len(mult))).requires_grad_(False), fit

@@ -1,6 +1,7 @@
-"""What every model family's fit checks (:mod:`torchhys.identification.families`): its scored and
-known samples, the standardized target, its RMS error, and that it beats a straight line on
-its training samples (else :class:`FitError`, which model selection scores as failed)."""
+"""What every model family's fit checks (the families of
+:mod:`torchhys.identification.specs`): its scored and known samples, the standardized target,
+its RMS error, and that it beats a straight line on its training samples (else
+:class:`FitError`, which model selection scores as failed)."""
 
 from __future__ import annotations
 

@@ -1,24 +1,61 @@
 """Identification of the generalized Prandtl-Ishlinskii model: :func:`fit_generalized_pi`
-(a least-squares PI start, then full-batch training of the output function)."""
+(a least-squares PI start, then full-batch training of the output function), and the ``gpi``
+family of the configs.
+
+``{"fit": "gpi", "n_widths": 10, "power": 2.0, "ridge": "auto", "units": 4,
+"epochs": 1000, "sample_iterations": 1e7, "direction": "direct"}``:
+:func:`torchhys.fit_generalized_pi` of the target (times the sign that makes it rise with
+the input) from the input, or of the input from it, then
+:class:`torchhys.GeneralizedPIInverse`. Its L-BFGS iterations are at most ``epochs`` and
+at most ``sample_iterations`` over the fitted samples (at least 20): a long record gets
+fewer (100 on 1e5 fitted samples), records up to 1e4 samples all of them. With ``ridge:
+"auto"``, whose fit can stop at a poor local optimum, the next best ridges on the hold-out
+are tried in turn when the fit fails, unless it ended on the straight line itself
+(:attr:`~torchhys.identification.errors.NoBetterThanLine.on_the_line`).
+"""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
+from typing import Any
 
 import torch
 import torch.nn.functional as F
-from torch import Tensor
+from torch import Tensor, nn
 
 from torchhys._checks import (
     as_batched_sequence,
     check_int,
     check_penalty,
+    check_positive,
     check_same_shape,
     fitted_samples,
 )
-from torchhys.identification.fitting import fit_full_batch, fit_prandtl_ishlinskii
+from torchhys.identification._family_spec import (
+    PENALTIES,
+    Fitter,
+    _check_columns,
+    _grid,
+    _holdout,
+    _keys,
+    _penalty,
+)
+from torchhys.identification.errors import (
+    FitError,
+    NoBetterThanLine,
+    _checked,
+    _samples,
+    _standardized,
+)
+from torchhys.identification.fitting import (
+    fit_full_batch,
+    fit_prandtl_ishlinskii,
+    play_width_grid,
+    select_pi_ridge,
+)
 from torchhys.operators.backlash import _inverse_softplus
-from torchhys.operators.generalized_pi import GeneralizedPrandtlIshlinskii
+from torchhys.operators.generalized_pi import GeneralizedPIInverse, GeneralizedPrandtlIshlinskii
 
 __all__ = ["fit_generalized_pi"]
 
@@ -120,3 +157,96 @@ def fit_generalized_pi(
         model.raw_unit_weights.copy_(_inverse_softplus(F.softplus(model.raw_unit_weights) * sy))
         model.offset.mul_(sy)
     return model
+
+
+GPI_SAMPLE_ITERATIONS = 1e7
+"""The ``gpi`` family's bound on L-BFGS iterations times fitted samples (its
+``sample_iterations``)."""
+
+
+def _gpi_iterations(epochs: int, work: float, scored: int) -> int:
+    """The L-BFGS iterations of a ``gpi`` fit on ``scored`` samples."""
+    return min(epochs, max(20, int(work / scored)))
+
+
+def fit_key(spec: Mapping[str, Any], x: Tensor, warmup: int,
+            mask: Tensor | None) -> dict[str, Any]:
+    """The spec as it determines the fit on these data (for sharing fits between
+    candidates, :mod:`torchhys.identification._fit_cache`): a ``gpi`` spec with ``epochs`` the
+    iterations it runs on these samples and no ``sample_iterations`` (on a long record the
+    spec with ``epochs: 200`` and the default one run the same fit); others as given."""
+    key = dict(spec)
+    if key.get("fit") == "gpi":
+        scored, _ = _samples(x.reshape(-1, x.shape[-1]), warmup, mask)
+        work = key.pop("sample_iterations", GPI_SAMPLE_ITERATIONS)
+        key["epochs"] = _gpi_iterations(key.get("epochs", 1000), work, int(scored.sum()))
+    return key
+
+
+def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
+    _keys(spec, {"n_widths", "power", "ridge", "units", "epochs", "sample_iterations",
+                 "direction"})
+    n, power, direction = _grid(spec, 10)
+    ridge = _penalty(spec, "ridge")
+    units = check_int(spec.get("units", 4), "fit 'gpi': units", minimum=0)
+    _check_columns(spec, n + units, f"n_widths={n} + units={units}")
+    epochs = check_int(spec.get("epochs", 1000), "fit 'gpi': epochs", minimum=1)
+    work = check_positive(spec.get("sample_iterations", GPI_SAMPLE_ITERATIONS),
+                          "fit 'gpi': sample_iterations")
+
+    def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
+        _check_columns(spec, n + units, f"n_widths={n} + units={units}", x.numel())
+        scored, known = _samples(x, warmup, mask)
+        sx, t = _standardized(x, y, scored)
+        xs, ts = (x / sx)[scored], t[scored]
+        t = t if float(((xs - xs.mean()) * ts).sum()) >= 0 else -t  # rising with x
+        mx = float(x[scored].mean())  # the inverse route fits the centred input
+        u, out = (x / sx, t) if direction == "direct" else (t, (x - mx) / sx)
+        widths = play_width_grid(u[known], n, power=power)
+        ridges = [ridge]
+        if ridge == "auto":
+            _, scores = select_pi_ridge(u, out, widths, PENALTIES, nonnegative=True,
+                                        validation=_holdout(scored), mask=scored)
+            # the local optimum of the fit depends on its start (the initial PI fit): if the
+            # fit with the best ridge fails, the next best start it elsewhere
+            ridges = sorted(scores, key=lambda r: scores[r])[:3]
+        errors = []
+        for r in ridges:
+            try:
+                return fitted(x, t, u, out, widths, r, sx, mx, scored, known)
+            except (ValueError, FloatingPointError) as err:  # FitError, diverged, no inverse
+                errors.append(f"ridge {r:g}: {err}")
+                if isinstance(err, NoBetterThanLine) and err.on_the_line:
+                    errors.append("the fit ended on the line: no other start tried")
+                    break
+        raise FitError(f"gpi ({direction}): " + "; ".join(errors))
+
+    def fitted(x: Tensor, t: Tensor, u: Tensor, out: Tensor, widths: Tensor, r: float,
+               sx: float, mx: float, scored: Tensor, known: Tensor) -> nn.Module:
+        iterations = _gpi_iterations(epochs, work, int(scored.sum()))
+        m = fit_generalized_pi(u, out, widths, units=units, ridge=r, lbfgs_epochs=iterations,
+                               mask=scored)
+        pw, w, w0, a, c, b, s, off = (v.detach() for v in m.parameters_effective())
+        if direction == "direct":  # the same model of the physical input x
+            return _checked(GeneralizedPrandtlIshlinskii(
+                pw * sx, w / sx, linear_weight=float(w0) / sx, centers=b, slopes=s,
+                unit_weights=c, gain=float(a), offset=float(off)), x, t, scored, "the model")
+        # The same model, rewritten for a well-conditioned inverse: the PI part divided by k
+        # (its training std), g(k v) in its place, scaled by sx and shifted by mx so that it
+        # maps to the physical input. g^-1 is bounded to the PI part's training
+        # range with a margin of half its span on each side.
+        with torch.no_grad():
+            p = m.prandtl_ishlinskii()(u)[0]
+        k = float(p[known].std().clamp_min(1e-300))
+        scaled = GeneralizedPrandtlIshlinskii(
+            pw, w / k, linear_weight=float(w0) / k, centers=b / k, slopes=s * k,
+            unit_weights=c * sx, gain=float(a) * k * sx, offset=float(off) * sx + mx)
+        return _checked(scaled.bounded_inverse(u[known], pi_output=(p / k)[known]), x, t,
+                        scored, "the inverse")
+
+    if direction == "direct":
+        placeholder: nn.Module = GeneralizedPrandtlIshlinskii(
+            torch.arange(1, n + 1) / n, centers=torch.zeros(units))
+    else:
+        placeholder = GeneralizedPIInverse(n, units)
+    return placeholder.requires_grad_(False), fit

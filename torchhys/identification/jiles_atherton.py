@@ -1,12 +1,24 @@
 """Identification of the Jiles-Atherton model: :func:`fit_jiles_atherton`
-(Levenberg-Marquardt from several starts) and the Euler step count, :func:`substeps_for`."""
+(Levenberg-Marquardt from several starts) and the Euler step count, :func:`substeps_for`, and
+the ``jiles_atherton`` family of the configs.
+
+``{"fit": "jiles_atherton", "mu0": 4e-7 pi, "starts": 8, "iterations": 60,
+"substeps": None}``: :func:`torchhys.fit_jiles_atherton`, the inverse Jiles-Atherton model
+of a magnetic core (the input the flux density B, the target the field H), fitted to the
+target in its physical units (``mu0``: input units per target unit of free space, the
+default for B in T and H in A/m). ``substeps`` (Euler steps per sample; None: enough that
+a sample step of the 0.99 quantile moves the input by at most 1/32 of its range, so that
+a few large jumps do not multiply the cost).
+"""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
+from typing import Any
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from torchhys._checks import (
     as_batched_sequence,
@@ -17,6 +29,8 @@ from torchhys._checks import (
     fitted_samples,
 )
 from torchhys.functional.jiles_atherton import MU0, jiles_atherton
+from torchhys.identification._family_spec import Fitter, _keys
+from torchhys.identification.errors import FitError, _checked, _samples, _standardized
 from torchhys.operators.jiles_atherton import JilesAtherton
 
 __all__ = ["fit_jiles_atherton", "substeps_for"]
@@ -141,3 +155,35 @@ def fit_jiles_atherton(x: Tensor, y: Tensor, *, warmup: int = 0, mu0: float = MU
     ms, a, k, alpha = (float(v) for v in theta[best, :4].exp())
     c = float(torch.sigmoid(theta[best, 4]))
     return JilesAtherton(ms, a, k, alpha, min(max(c, 1e-13), 1 - 1e-13), mu0=mu0, substeps=K)
+
+
+def _substeps(x: Tensor) -> int:
+    """Euler steps per sample from the 0.99 quantile of the sample steps
+    (:func:`~torchhys.identification.jiles_atherton.substeps_for`). The largest steps are left
+    out: a few jumps would set the count (and the cost of every fit) for all samples."""
+    return substeps_for(x, quantile=0.99)
+
+
+def _jiles_atherton(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
+    _keys(spec, {"mu0", "starts", "iterations", "substeps"})
+    mu0 = check_positive(spec.get("mu0", MU0), "fit 'jiles_atherton': mu0")
+    starts = check_int(spec.get("starts", 8), "fit 'jiles_atherton': starts", minimum=1)
+    iterations = check_int(spec.get("iterations", 60), "fit 'jiles_atherton': iterations",
+                           minimum=1)
+    substeps = spec.get("substeps")
+    if substeps is not None:
+        substeps = check_int(substeps, "fit 'jiles_atherton': substeps", minimum=1)
+
+    def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
+        scored, _ = _samples(x, warmup, mask)
+        _, t = _standardized(x, y, scored)
+        try:
+            m = fit_jiles_atherton(x, y, warmup=warmup, mask=mask, mu0=mu0, starts=starts,
+                                   iterations=iterations,
+                                   substeps=_substeps(x) if substeps is None else substeps)
+        except (ValueError, torch.linalg.LinAlgError) as err:
+            raise FitError(f"jiles_atherton: {err}") from None
+        ys = y[scored]
+        return _checked(m, x, t, scored, "jiles_atherton", float(ys.mean()), float(ys.std()))
+
+    return JilesAtherton(mu0=mu0).requires_grad_(False), fit

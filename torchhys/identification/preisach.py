@@ -1,19 +1,33 @@
 """Identification of the Preisach operator by penalised non-negative least squares:
-:func:`fit_preisach` and the choice of its penalty on a hold-out, :func:`select_penalty`."""
+:func:`fit_preisach` and the choice of its penalty on a hold-out, :func:`select_penalty`, and
+the ``preisach`` family of the configs.
+
+``{"fit": "preisach", "n": 20, "smoothness": "auto", "grading": None,
+"direction": "direct"}``: :func:`torchhys.fit_preisach` of the target from the input on a
+grid over the input's training range (``direct``), or of the input from the target, then
+its exact inverse (``inverse``, :class:`torchhys.PreisachInverse`: a magnetic core's flux
+density from its field, inverted into the compensator); both signs of the target fitted,
+the better kept. ``grading``: None for an even grid, or a graded one whose ``scale`` is
+that fraction of half the grid's span (:class:`torchhys.Preisach`).
+"""
 
 from __future__ import annotations
 
 import copy
 import functools
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import torch
 from torch import Tensor, nn
 
 from torchhys._checks import (
     as_batched_sequence,
+    check_choice,
+    check_int,
     check_penalty,
+    check_positive,
     check_warmup,
     fitted_samples,
 )
@@ -23,6 +37,14 @@ from torchhys.functional.preisach import (
     _relay_chunks,
     graded_input,
 )
+from torchhys.identification._family_spec import (
+    PENALTIES,
+    VALIDATION,
+    Fitter,
+    _holdout,
+    _keys,
+    _penalty,
+)
 from torchhys.identification._nnls import (
     Moments,
     check_validation,
@@ -31,7 +53,8 @@ from torchhys.identification._nnls import (
     nnls_gram,
     select_on_holdout,
 )
-from torchhys.operators.preisach import Preisach
+from torchhys.identification.errors import FitError, _checked, _rmse, _samples, _standardized
+from torchhys.operators.preisach import Preisach, PreisachInverse
 
 __all__ = ["check_fit_memory", "fit_preisach", "fit_preisach_signs", "select_penalty"]
 
@@ -297,3 +320,58 @@ def _set(model: Preisach, theta: Tensor) -> Preisach:
             model.linear.copy_(theta[K])
         model.offset.copy_(theta[-1])
     return model
+
+
+def _preisach(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
+    _keys(spec, {"n", "smoothness", "grading", "direction"})
+    n = check_int(spec.get("n", 20), "fit 'preisach': n", minimum=2)
+    check_fit_memory(n, "fit 'preisach'")
+    smoothness = _penalty(spec, "smoothness")
+    grading = spec.get("grading")
+    if grading is not None:
+        grading = check_positive(grading, "fit 'preisach': grading (or null)")
+    direction = check_choice(spec.get("direction", "direct"), "fit 'preisach': direction",
+                             ["direct", "inverse"])
+
+    def fitted(u: Tensor, out: Tensor, scored: Tensor, known: Tensor,
+               signs: tuple[float, ...]) -> list[tuple[float, Preisach, float]]:
+        """The Preisach models of ``sign * out`` from ``u`` on a grid over u's (known) range,
+        one pass of the relays for all signs."""
+        lo, hi = float(u[known].min()), float(u[known].max())
+        scale = None if grading is None else grading * 0.5 * (hi - lo)
+        penalties = list(PENALTIES) if smoothness == "auto" else smoothness
+        validation = _holdout(scored) if smoothness == "auto" else VALIDATION
+        return fit_preisach_signs(
+            u, out, penalties, signs=signs, kind="smoothness", validation=validation, lo=lo,
+            hi=hi, n=n, mask=scored, scale=scale)
+
+    def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
+        scored, known = _samples(x, warmup, mask)
+        sx, t = _standardized(x, y, scored)
+        mx = float(x[scored].mean())
+        fits = []
+        direct = fitted(x, t, scored, known, (1.0, -1.0)) if direction == "direct" else None
+        for i, sign in enumerate((1.0, -1.0)):
+            if direct is not None:
+                _, m, rmse = direct[i]  # its RMS error from the fit's moments
+                fits.append((rmse, sign, m))
+                continue
+            # the model of the centred, scaled input from sign x the target, mapped back to
+            # the physical input, then inverted
+            (_, forward, _), = fitted(sign * t, (x - mx) / sx, scored, known, (1.0,))
+            with torch.no_grad():
+                forward.weights.mul_(sx)
+                forward.linear.mul_(sx)
+                forward.offset.mul_(sx).add_(mx)
+            try:
+                m = forward.inverse()
+            except ValueError:
+                continue
+            fits.append((_rmse(m, x, sign * t, scored), sign, m))
+        if not fits:
+            raise FitError(f"preisach ({direction}): no invertible fit of either sign")
+        rmse, sign, m = min(fits, key=lambda f: f[0])
+        return _checked(m, x, sign * t, scored, "preisach", rmse=rmse)
+
+    placeholder = Preisach(0.0, 1.0, n) if direction == "direct" else PreisachInverse(n)
+    return placeholder.requires_grad_(False), fit

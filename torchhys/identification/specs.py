@@ -9,18 +9,15 @@ A spec of ``model.operator`` is one of:
   ``"backlash"``, ``"preisach"``, ``"cascade"``, whatever a user registers with
   :func:`torchhys.registry.register_operator`), built as it stands;
 - a model family fitted on the training split when fitting starts, ``{"fit": FAMILY,
-  **options}`` (:data:`FIT_FAMILIES`):
+  **options}`` (:data:`FIT_FAMILIES`), each documented with its fit:
 
-  - ``{"fit": "plays", "n": 16, "power": 1.0, "span_fraction": 1.0, "learnable": False}``:
-    :class:`torchhys.Backlash` of the input, full widths
-    ``span_fraction * span(x_train) (k / n)^power``, ``k = 1..n`` (or explicit ``widths``:
-    nothing to fit);
-  - ``{"fit": "pi_ls", "n_widths": 30, "power": 3.0, "ridge": 0.0, "learnable": False}``:
-    the least-squares Prandtl-Ishlinskii model of the target from the input
-    (:func:`torchhys.identification.fitting.fit_prandtl_ishlinskii` on
-    :func:`~torchhys.identification.fitting.play_width_grid`);
-  - ``pi_nonneg``, ``gpi``, ``preisach``, ``stop_pi``, ``jiles_atherton``, ``drift``:
-    constrained model families (:mod:`torchhys.identification.families`).
+  - ``plays``, ``pi_ls``, ``pi_nonneg``: the Prandtl-Ishlinskii families
+    (:mod:`torchhys.identification.prandtl_ishlinskii`);
+  - ``gpi``: :mod:`torchhys.identification.generalized_pi`;
+  - ``preisach``: :mod:`torchhys.identification.preisach`;
+  - ``stop_pi``: :mod:`torchhys.identification.stop_pi`;
+  - ``jiles_atherton``: :mod:`torchhys.identification.jiles_atherton`;
+  - ``drift``: :mod:`torchhys.identification.drift`.
 
   ``{"fit": "preisach"}`` is the Preisach model identified on the data; ``{"name":
   "preisach"}`` the registered operator with the options given.
@@ -29,6 +26,20 @@ All of them are causal except ``eiho_segment``. A family is built as a
 placeholder of the right shape and fitted by :func:`fit_data_dependent` on the training
 split; its widths and weights are buffers (or parameters) of the network, so checkpoints and
 exports carry them.
+
+The constrained families (all but ``plays`` and ``pi_ls``) build an operator whose output is
+a fitted model of the target (in standardized units; ``jiles_atherton`` in the target's
+physical units); the network that reads it (``hidden: 1, activation: identity`` for a plain
+affine readout, whose normalization standardizes the operator's output) maps it back. They
+are the candidates of ``configs/measured.yaml`` and ``configs/magnetic.yaml``.
+``ridge``/``smoothness: "auto"`` picks the penalty on a time-ordered hold-out inside the
+training split (the last quarter of each row's scored samples;
+:func:`~torchhys.identification.fitting.select_pi_ridge`,
+:func:`~torchhys.identification.preisach.select_penalty`). Every choice uses the training
+split only. Widths come from :func:`~torchhys.identification.fitting.play_width_grid` of the
+fitted model's input. A fit that cannot exist (no inverse, a target that does not rise, a
+diverged fit) raises :class:`~torchhys.identification.errors.FitError`: model selection
+scores that candidate as failed.
 """
 
 from __future__ import annotations
@@ -39,17 +50,15 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from torchhys import Backlash, PrandtlIshlinskii
-from torchhys._checks import (
-    check_int,
-    check_nonnegative,
-    check_positive,
-    check_warmup,
-    fitted_samples,
-)
+from torchhys._checks import check_warmup, fitted_samples
+from torchhys.identification._family_spec import Fitter
 from torchhys.identification._fit_cache import shared
-from torchhys.identification.families import FAMILIES
-from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid
+from torchhys.identification.drift import _drift
+from torchhys.identification.generalized_pi import _gpi
+from torchhys.identification.jiles_atherton import _jiles_atherton
+from torchhys.identification.prandtl_ishlinskii import _pi_ls, _pi_nonneg, _plays
+from torchhys.identification.preisach import _preisach
+from torchhys.identification.stop_pi import _stop_pi
 from torchhys.operator import HysteresisOperator
 from torchhys.registry import make_operator
 
@@ -59,75 +68,15 @@ OperatorSpec = str | Mapping[str, Any] | HysteresisOperator
 """``"eiho"``, ``{"name": NAME, **kwargs}``, ``{"fit": FAMILY, **options}`` or an
 operator."""
 
-Fitter = Callable[[Tensor, Tensor, int, Tensor | None], nn.Module]
-"""Builds the fitted operator from the training input and target, (batch, time) each, the
-number of leading warm-up samples to leave out of the fit, and the mask of the samples to use
-((batch, time) bool, False: a held-out block or a shorter row's padding, the states running
-through them; None: all)."""
-
-
-def _positive_int(spec: Mapping[str, Any], key: str, default: int) -> int:
-    return check_int(spec.get(key, default), f"fit {spec['fit']!r}: {key}", minimum=1)
-
-
-def _check_keys(spec: Mapping[str, Any], allowed: set[str]) -> None:
-    unknown = sorted(set(spec) - allowed - {"fit"})
-    if unknown:
-        raise ValueError(
-            f"fit {spec['fit']!r}: unknown option(s) {unknown}; valid: {sorted(allowed)}"
-        )
-
-
-def _flag(spec: Mapping[str, Any], key: str) -> bool:
-    value = spec.get(key, False)
-    if not isinstance(value, bool):
-        raise ValueError(f"fit {spec['fit']!r}: {key} must be true or false, got {value!r}")
-    return value
-
-
-def _known(x: Tensor, mask: Tensor | None) -> Tensor:
-    """The samples of x (batch, time) in ``mask`` (None: all)."""
-    return x if mask is None else x[mask]
-
-
-def _plays(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter | None]:
-    _check_keys(spec, {"n", "power", "span_fraction", "learnable", "widths"})
-    learnable = _flag(spec, "learnable")
-    if spec.get("widths") is not None:
-        widths = torch.as_tensor(spec["widths"], dtype=torch.get_default_dtype())
-        return Backlash(widths, learnable=learnable), None
-    n = _positive_int(spec, "n", 16)
-    power = check_positive(spec.get("power", 1.0), "fit 'plays': power")
-    fraction = check_positive(spec.get("span_fraction", 1.0), "fit 'plays': span_fraction")
-
-    def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
-        return Backlash(fraction * play_width_grid(_known(x, mask), n, power=power),
-                        learnable=learnable)
-
-    return Backlash(torch.arange(1, n + 1) / n, learnable=learnable), fit
-
-
-def _pi_ls(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
-    _check_keys(spec, {"n_widths", "power", "ridge", "learnable"})
-    n = _positive_int(spec, "n_widths", 30)
-    power = check_positive(spec.get("power", 3.0), "fit 'pi_ls': power")
-    ridge = check_nonnegative(spec.get("ridge", 0.0), "fit 'pi_ls': ridge")
-    learnable = _flag(spec, "learnable")
-
-    def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
-        widths = play_width_grid(_known(x, mask), n, power=power)
-        return fit_prandtl_ishlinskii(x, y, widths, ridge=ridge, learnable=learnable,
-                                      warmup=warmup, mask=mask)
-
-    placeholder = PrandtlIshlinskii(torch.arange(1, n + 1) / n, torch.zeros(n),
-                                    learnable=learnable)
-    return placeholder, fit
-
-
 FIT_FAMILIES: dict[str, Callable[[Mapping[str, Any]], tuple[nn.Module, Fitter | None]]] = {
     "plays": _plays,
     "pi_ls": _pi_ls,
-    **FAMILIES,
+    "pi_nonneg": _pi_nonneg,
+    "gpi": _gpi,
+    "preisach": _preisach,
+    "stop_pi": _stop_pi,
+    "jiles_atherton": _jiles_atherton,
+    "drift": _drift,
 }
 """The model families of the specs ``{"fit": FAMILY, **options}``, by name: each builder
 takes the spec and returns ``(placeholder module, fitter or None)``."""

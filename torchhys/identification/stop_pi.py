@@ -1,19 +1,30 @@
 """Identification of the stop-type Prandtl-Ishlinskii model by (non-negative) least squares:
-:func:`fit_stop_pi` and its ridge chosen on a hold-out, :func:`select_stop_pi_ridge`."""
+:func:`fit_stop_pi` and its ridge chosen on a hold-out, :func:`select_stop_pi_ridge`, and the
+``stop_pi`` family of the configs.
+
+``{"fit": "stop_pi", "n_widths": 20, "power": 2.0, "segments": 4, "ridge": "auto",
+"nonnegative": True}``: :func:`torchhys.fit_stop_pi`, stop operators with thresholds on
+:func:`~torchhys.identification.fitting.play_width_grid` of the input (up to its span: the
+largest make the memoryless part), each through a piecewise-linear characteristic of
+``segments`` equal segments (non-negative slopes: a friction element with a nonlinear spring,
+whose loops run clockwise); both signs of the target fitted, the better kept.
+"""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from torchhys._checks import (
     as_batched_sequence,
     check_bool,
     check_int,
     check_penalty,
+    check_positive,
     check_real,
     check_same_shape,
     check_warmup,
@@ -24,6 +35,15 @@ from torchhys.functional.stop_pi import (
     check_thresholds,
     stop_segments,
 )
+from torchhys.identification._family_spec import (
+    PENALTIES,
+    VALIDATION,
+    Fitter,
+    _check_columns,
+    _holdout,
+    _keys,
+    _penalty,
+)
 from torchhys.identification._nnls import (
     Moments,
     check_validation,
@@ -32,6 +52,8 @@ from torchhys.identification._nnls import (
     nnls_gram,
     select_on_holdout,
 )
+from torchhys.identification.errors import _checked, _samples, _standardized
+from torchhys.identification.fitting import play_width_grid
 from torchhys.operators.stop_pi import StopPrandtlIshlinskii
 
 __all__ = ["fit_stop_pi", "fit_stop_pi_signs", "select_stop_pi_ridge"]
@@ -318,3 +340,38 @@ def select_stop_pi_ridge(
         return _solve(G, h, ridge, nonnegative, varying, bound)
 
     return select_on_holdout(train, valid, ridges, solve, name="ridges")
+
+
+def _stop_pi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
+    _keys(spec, {"n_widths", "power", "segments", "ridge", "nonnegative"})
+    n = check_int(spec.get("n_widths", 20), "fit 'stop_pi': n_widths", minimum=1)
+    power = check_positive(spec.get("power", 2.0), "fit 'stop_pi': power")
+    segments = check_int(spec.get("segments", 4), "fit 'stop_pi': segments", minimum=1)
+    nonnegative = check_bool(spec.get("nonnegative", True), "fit 'stop_pi': nonnegative")
+    ridge = _penalty(spec, "ridge")
+    _check_columns(spec, n * segments, f"n_widths={n} x segments={segments}")
+
+    def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
+        _check_columns(spec, n * segments, f"n_widths={n} x segments={segments}", x.numel())
+        scored, _ = _samples(x, warmup, mask)
+        sx, t = _standardized(x, y, scored)
+        u = x / sx
+        thresholds = play_width_grid(u[scored], n, power=power)
+        fits = []
+        signs = (1.0, -1.0) if nonnegative else (1.0,)
+        auto = ridge == "auto"
+        models = fit_stop_pi_signs(u, t, thresholds, list(PENALTIES) if auto else ridge,
+                                   signs=signs, segments=segments, nonnegative=nonnegative,
+                                   validation=_holdout(scored) if auto else VALIDATION,
+                                   mask=scored)
+        for sign, (_, m, rmse) in zip(signs, models, strict=True):
+            # the same model of the physical input x, times the sign
+            m = StopPrandtlIshlinskii(
+                m.thresholds * sx, sign * m.weights / sx, center=float(m.center) * sx,
+                linear_weight=sign * float(m.linear_weight) / sx, offset=sign * float(m.offset))
+            fits.append((rmse, m))
+        rmse, m = min(fits, key=lambda f: f[0])
+        return _checked(m, x, t, scored, "stop_pi", rmse=rmse)
+
+    return StopPrandtlIshlinskii(torch.arange(1, n + 1) / n,
+                                 torch.zeros(n, segments)).requires_grad_(False), fit

@@ -23,8 +23,8 @@ import torch
 from torch import Tensor
 
 from torchhys._checks import check_int
+from torchhys.identification._family_spec import VALIDATION
 from torchhys.identification._nnls import check_validation, holdout_cuts
-from torchhys.identification.families import VALIDATION
 
 __all__ = ["MAX_DEGREE", "Polynomial", "fit_polynomial", "holdout_mask", "max_degree"]
 

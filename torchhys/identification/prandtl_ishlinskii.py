@@ -1,0 +1,158 @@
+"""The Prandtl-Ishlinskii families of the configs, identified on the training split (the
+least squares they run: :mod:`torchhys.identification.fitting`):
+
+- ``{"fit": "plays", "n": 16, "power": 1.0, "span_fraction": 1.0, "learnable": False}``:
+  :class:`torchhys.Backlash` of the input, full widths
+  ``span_fraction * span(x_train) (k / n)^power``, ``k = 1..n`` (or explicit ``widths``:
+  nothing to fit);
+- ``{"fit": "pi_ls", "n_widths": 30, "power": 3.0, "ridge": 0.0, "learnable": False}``:
+  the least-squares Prandtl-Ishlinskii model of the target from the input
+  (:func:`torchhys.identification.fitting.fit_prandtl_ishlinskii` on
+  :func:`~torchhys.identification.fitting.play_width_grid`);
+- ``{"fit": "pi_nonneg", "n_widths": 10, "power": 2.0, "ridge": "auto",
+  "direction": "direct"}``: a Prandtl-Ishlinskii model with non-negative weights
+  (:func:`torchhys.identification.fitting.fit_prandtl_ishlinskii` with
+  ``nonnegative=True``) of the target from the input (``direct``), or of the input from the
+  target, then its exact inverse
+  (``inverse``). Such a model draws loops of one orientation only, so the target's sign is
+  chosen by the training fit (both signs are fitted).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from torchhys._checks import check_int, check_nonnegative, check_positive
+from torchhys.identification._family_spec import (
+    PENALTIES,
+    Fitter,
+    _check_columns,
+    _grid,
+    _holdout,
+    _keys,
+    _penalty,
+)
+from torchhys.identification.errors import FitError, _checked, _rmse, _samples, _standardized
+from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
+from torchhys.operators.backlash import Backlash
+from torchhys.operators.generalized_pi import GeneralizedPIInverse, GeneralizedPrandtlIshlinskii
+from torchhys.operators.prandtl_ishlinskii import PrandtlIshlinskii
+
+
+def _positive_int(spec: Mapping[str, Any], key: str, default: int) -> int:
+    return check_int(spec.get(key, default), f"fit {spec['fit']!r}: {key}", minimum=1)
+
+
+def _check_keys(spec: Mapping[str, Any], allowed: set[str]) -> None:
+    unknown = sorted(set(spec) - allowed - {"fit"})
+    if unknown:
+        raise ValueError(
+            f"fit {spec['fit']!r}: unknown option(s) {unknown}; valid: {sorted(allowed)}"
+        )
+
+
+def _flag(spec: Mapping[str, Any], key: str) -> bool:
+    value = spec.get(key, False)
+    if not isinstance(value, bool):
+        raise ValueError(f"fit {spec['fit']!r}: {key} must be true or false, got {value!r}")
+    return value
+
+
+def _known(x: Tensor, mask: Tensor | None) -> Tensor:
+    """The samples of x (batch, time) in ``mask`` (None: all)."""
+    return x if mask is None else x[mask]
+
+
+def _plays(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter | None]:
+    _check_keys(spec, {"n", "power", "span_fraction", "learnable", "widths"})
+    learnable = _flag(spec, "learnable")
+    if spec.get("widths") is not None:
+        widths = torch.as_tensor(spec["widths"], dtype=torch.get_default_dtype())
+        return Backlash(widths, learnable=learnable), None
+    n = _positive_int(spec, "n", 16)
+    power = check_positive(spec.get("power", 1.0), "fit 'plays': power")
+    fraction = check_positive(spec.get("span_fraction", 1.0), "fit 'plays': span_fraction")
+
+    def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
+        return Backlash(fraction * play_width_grid(_known(x, mask), n, power=power),
+                        learnable=learnable)
+
+    return Backlash(torch.arange(1, n + 1) / n, learnable=learnable), fit
+
+
+def _pi_ls(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
+    _check_keys(spec, {"n_widths", "power", "ridge", "learnable"})
+    n = _positive_int(spec, "n_widths", 30)
+    power = check_positive(spec.get("power", 3.0), "fit 'pi_ls': power")
+    ridge = check_nonnegative(spec.get("ridge", 0.0), "fit 'pi_ls': ridge")
+    learnable = _flag(spec, "learnable")
+
+    def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
+        widths = play_width_grid(_known(x, mask), n, power=power)
+        return fit_prandtl_ishlinskii(x, y, widths, ridge=ridge, learnable=learnable,
+                                      warmup=warmup, mask=mask)
+
+    placeholder = PrandtlIshlinskii(torch.arange(1, n + 1) / n, torch.zeros(n),
+                                    learnable=learnable)
+    return placeholder, fit
+
+
+def _pi_fit(u: Tensor, out: Tensor, widths: Tensor, ridge: float | str,
+            scored: Tensor) -> PrandtlIshlinskii:
+    if ridge == "auto":
+        ridge, _ = select_pi_ridge(u, out, widths, PENALTIES, nonnegative=True,
+                                   validation=_holdout(scored), mask=scored)
+    return fit_prandtl_ishlinskii(u, out, widths, ridge=ridge, mask=scored, nonnegative=True)
+
+
+def _pi_nonneg(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
+    _keys(spec, {"n_widths", "power", "ridge", "direction"})
+    n, power, direction = _grid(spec, 10)
+    ridge = _penalty(spec, "ridge")
+
+    def one_sign(x: Tensor, t: Tensor, sx: float, scored: Tensor, known: Tensor) -> nn.Module:
+        """The PI model of t from x (physical input units)."""
+        if direction == "direct":
+            m = _pi_fit(x / sx, t, play_width_grid((x / sx)[known], n, power=power), ridge,
+                        scored)
+            return PrandtlIshlinskii(m.get_widths() * sx, m.weights / sx,
+                                     linear_weight=float(m.linear_weight) / sx)
+        # the forward model of the centred, scaled input (a PI model has no offset), and its
+        # exact inverse after the input map (x - mx) / sx: a GeneralizedPIInverse whose g is
+        # the affine map sx v + mx
+        mx = float(x[scored].mean())
+        forward = _pi_fit(t, (x - mx) / sx, play_width_grid(t[known], n, power=power), ridge,
+                          scored)
+        try:
+            return GeneralizedPrandtlIshlinskii(
+                forward.get_widths(), forward.weights, centers=[], gain=sx, offset=mx,
+                linear_weight=float(forward.linear_weight)).inverse()
+        except ValueError as err:
+            raise FitError(f"pi_nonneg inverse: {err}") from None
+
+    def fit(x: Tensor, y: Tensor, warmup: int, mask: Tensor | None = None) -> nn.Module:
+        _check_columns(spec, n, f"n_widths={n}", x.numel())
+        scored, known = _samples(x, warmup, mask)
+        sx, t = _standardized(x, y, scored)
+        fits = []
+        for sign in (1.0, -1.0):
+            try:
+                m = one_sign(x, sign * t, sx, scored, known)
+            except FitError:
+                continue
+            with torch.no_grad():
+                m.weights.mul_(sign)
+                m.linear_weight.mul_(sign)
+            fits.append((_rmse(m, x, t, scored), sign, m))
+        if not fits:
+            raise FitError(f"pi_nonneg ({direction}): no invertible fit of either sign")
+        rmse, _, m = min(fits, key=lambda f: f[0])
+        return _checked(m, x, t, scored, "pi_nonneg", rmse=rmse)
+
+    placeholder: nn.Module = (PrandtlIshlinskii(torch.arange(1, n + 1) / n, torch.zeros(n))
+                              if direction == "direct" else GeneralizedPIInverse(n, 0))
+    return placeholder, fit
