@@ -17,17 +17,12 @@ import torch
 import yaml
 from _training_helpers import DROP, cli, small_config, trainer
 
-from torchhys.deploy.export import load_torchscript
-from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 from torchhys.cli.export import main as export_main
+from torchhys.cli.selection import check_candidates, model_arguments
+from torchhys.deploy.export import load_torchscript
+from torchhys.selection import CandidateScore, best, standard_error
+from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 from torchhys.training.folds import BlockFold, RecordingFold, block_split
-from torchhys.training.selection import (
-    CandidateScore,
-    best,
-    check_candidates,
-    model_arguments,
-    standard_error,
-)
 
 ROOT = Path(__file__).resolve().parents[1]
 

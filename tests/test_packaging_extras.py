@@ -20,7 +20,8 @@ ROOT = Path(__file__).resolve().parents[1]
 TRAIN = ("lightning", "jsonargparse", "torchmetrics", "matplotlib")
 BLOCKED = (*TRAIN, "pytorch_lightning", "lightning_fabric", "lightning_utilities")
 LIGHTNING_SIDE = {"torchhys.training", "torchhys.reproduce", "torchhys.cli.train",
-                  "torchhys.cli.checks", "torchhys.cli.ckpt_paths", "torchhys.cli.run_dirs"}
+                  "torchhys.cli.checks", "torchhys.cli.ckpt_paths", "torchhys.cli.run_dirs",
+                  "torchhys.cli.selection"}
 """The modules (and packages) that need the train extra."""
 ERROR = ('torchhys: error: the torchhys command needs the training extra: '
          'pip install "torchhys[train]" (missing: {})')

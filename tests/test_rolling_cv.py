@@ -12,6 +12,7 @@ import pytest
 import torch
 from _training_helpers import DROP, LINE, cli, small_config
 
+from torchhys.cli.selection import check_candidates, model_arguments
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 from torchhys.training.folds import (
     RecordingFold,
@@ -21,7 +22,7 @@ from torchhys.training.folds import (
     fold_masks,
     rolling_split,
 )
-from torchhys.training.selection import check_candidates, model_arguments, run_selection
+from torchhys.training.selection import run_selection
 
 ROOT = Path(__file__).resolve().parents[1]
 FERRITE = {"path": str(ROOT / "examples/data/mnzn_ferrite_bh_loops.csv"), "input_column": "B_T",

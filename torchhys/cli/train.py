@@ -67,6 +67,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
 from lightning.pytorch.utilities import rank_zero_only, rank_zero_warn
 
+from torchhys.cli import selection as cli_selection
 from torchhys.cli.checks import check_config_files, check_optimizer_switch
 from torchhys.cli.ckpt_paths import check_ckpt_path
 from torchhys.cli.config_yaml import check_config_aliases
@@ -79,14 +80,14 @@ from torchhys.cli.selection import direct_record, model_base, use_solved, write_
 from torchhys.data.files import watch_files
 from torchhys.identification.specs import build_operators
 from torchhys.optim.named import check_optimizer_kwargs
+from torchhys.selection import scores
 from torchhys.selection import select as select_candidates
 from torchhys.selection.coverage import warn_coverage
+from torchhys.selection.folds import describe_cv
 from torchhys.selection.jobs import check_budget, check_jobs, usable_cores
 from torchhys.selection.progress import SelectionProgress
-from torchhys.training import selection
 from torchhys.training.callbacks import BaselineComparison, PredictionWriter
 from torchhys.training.data import HysteresisDataModule
-from torchhys.training.folds import describe_cv
 from torchhys.training.interrupts import (
     Interrupted,
     SigtermCheckpoint,
@@ -134,7 +135,7 @@ class TorchhysCLI(LightningCLI):
                              "trainer.plugins": [{"class_path": _ATOMIC_IO}]})
         # Arguments of the command kept in the model section, removed before the module is
         # built (see _select).
-        for name, kind, text in selection.ARGUMENTS:
+        for name, kind, text in cli_selection.ARGUMENTS:
             parser.add_argument(f"--model.{name}", type=kind, default=None, help=text)
 
     def parse_arguments(self, parser, args) -> None:  # noqa: ANN001 (LightningCLI's)
@@ -218,8 +219,8 @@ class TorchhysCLI(LightningCLI):
             raise ValueError("model.select builds each candidate's network from the model "
                              "arguments, but model.net gives a ready network: remove it")
         with config_errors():  # a TypeError here is in the candidates, not in training
-            candidates = selection.check_candidates(
-                select, selection.model_arguments(self._model_class), cv=cv, mode=mode)
+            candidates = cli_selection.check_candidates(
+                select, cli_selection.model_arguments(self._model_class), cv=cv, mode=mode)
             jobs, budget = check_jobs(options["select_jobs"]), check_budget(
                 options["select_budget_s"])
             configs = [self._candidate_config(i, c) for i, c in enumerate(candidates)]
@@ -255,12 +256,13 @@ class TorchhysCLI(LightningCLI):
                         warmup=direct.warmup, mask=direct.mask, cv=cv, mode=mode,
                         rule=rule or "min", jobs=jobs, budget_s=budget, dtype=direct.dtype,
                         seed=seed, progress=progress, source=direct.source)
-                    scores, self._solved = result.scores, result.model
-                    write_fold_logs(scores, folder / "selection")
-                else:
-                    scores = selection.run_selection(candidates, build, cv=cv, mode=mode,
-                                                     jobs=jobs, budget_s=budget,
-                                                     report=progress.scored)
+                    scored, self._solved = result.scores, result.model
+                    write_fold_logs(scored, folder / "selection")
+                else:  # trained candidates, or a hold-out: a Lightning run each
+                    from torchhys.training.selection import run_selection
+
+                    scored = run_selection(candidates, build, cv=cv, mode=mode, jobs=jobs,
+                                           budget_s=budget, report=progress.scored)
         except BaseException:
             progress.close()
             with contextlib.suppress(OSError):  # stopped before any candidate logged
@@ -268,8 +270,8 @@ class TorchhysCLI(LightningCLI):
             raise
         progress.close()
         self._selected = True
-        chosen = selection.best(scores, rule or "min")
-        _report(scores, chosen, folder / "selection.csv", describe_cv(cv, mode),
+        chosen = scores.best(scored, rule or "min")
+        _report(scored, chosen, folder / "selection.csv", describe_cv(cv, mode),
                 rule or "min")
         self.config = configs[chosen.index]
         self.__dict__.pop("config_dump", None)  # the module's hyperparameters: the choice
@@ -331,10 +333,10 @@ def _on_gpu(trainer: Any) -> bool:
 
 def _pop_select(cfg: Namespace) -> dict[str, Any]:
     """Remove the options of model selection (``model.select``, ``model.select_cv``, ...:
-    :data:`~torchhys.training.selection.ARGUMENTS`) from a (subcommand's) config; their
+    :data:`~torchhys.cli.selection.ARGUMENTS`) from a (subcommand's) config; their
     values by name."""
     values = {}
-    for name, _, _ in selection.ARGUMENTS:
+    for name, _, _ in cli_selection.ARGUMENTS:
         values[name] = cfg.get(f"model.{name}")
         if f"model.{name}" in cfg:
             del cfg[f"model.{name}"]
@@ -357,13 +359,13 @@ def _quiet_lightning() -> Iterator[None]:
 
 
 @rank_zero_only
-def _report(scores: list[selection.CandidateScore], chosen: selection.CandidateScore,
+def _report(scored: list[scores.CandidateScore], chosen: scores.CandidateScore,
             path: Path, how: str, rule: str) -> None:
-    selection.write_table(scores, chosen, path)
+    scores.write_table(scored, chosen, path)
     if rule == "1se":
         how += " (one-standard-error rule)"
-    print(f"model selection on {how}:\n{selection.format_table(scores, chosen)}\n"
-          f"selected candidate {chosen.index}: {selection.config_json(chosen.overrides)} "
+    print(f"model selection on {how}:\n{scores.format_table(scored, chosen)}\n"
+          f"selected candidate {chosen.index}: {scores.config_json(chosen.overrides)} "
           f"(val_mse {chosen.val_mse:.6g}); table written to {path}", flush=True)
 
 

@@ -43,20 +43,19 @@ error of the lowest, and
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import math
 import time
 import warnings
-from collections.abc import Callable, Mapping, Sequence
-from typing import Any, Literal
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import lightning as L
 import torch
 from torch import Tensor
 
-from torchhys._checks import check_choice, check_int
 from torchhys.identification.errors import FitError
 from torchhys.selection.coverage import warn_coverage
+from torchhys.selection.run import shared_key
 from torchhys.selection.scores import (  # noqa: F401 (the names this module has always offered)
     RULES,
     CandidateScore,
@@ -66,102 +65,19 @@ from torchhys.selection.scores import (  # noqa: F401 (the names this module has
     standard_error,
     write_table,
 )
-from torchhys.selection.run import shared_key
-from torchhys.training.folds import CV_MODES, RECORDING, cv_fold
+from torchhys.training.folds import RECORDING, cv_fold
 from torchhys.training.readout import direct_validation, solvable
 
 __all__ = [
-    "ARGUMENTS", "RULES", "Build", "CandidateScore", "best", "check_candidates", "check_holdout",
-    "config_json", "format_table", "model_arguments", "run_selection", "standard_error",
+    "RULES", "Build", "CandidateScore", "best", "check_holdout",
+    "config_json", "format_table", "run_selection", "standard_error",
     "write_table",
 ]
 
-ARGUMENTS: list[tuple[str, Any, str]] = [
-    ("select", list[dict[str, Any]] | None,
-     "fit: candidate model configurations, each a dict of model arguments that replace the "
-     "model section's; the one of lowest validation MSE is fitted (table in "
-     "<default_root_dir>/logs/version_<N>/selection.csv)"),
-    ("select_cv", int | Literal["recording"] | None,
-     "fit with model.select: score the candidates by blocked cross-validation with this many "
-     "contiguous blocks of the training part, or 'recording': hold each training recording "
-     "out once (default: on the validation split)"),
-    ("select_cv_mode", Literal["blocked", "rolling"] | None,
-     "fit with model.select_cv: 'blocked' (default) holds each block (recording) out once, "
-     "fitted on all the others; 'rolling' validates each block (recording) after the first "
-     "on a fit of those before it only"),
-    ("select_rule", Literal["min", "1se"] | None,
-     "fit with model.select: 'min' (default) chooses the lowest validation MSE, '1se' the "
-     "first candidate (the baseline) when within one standard error of it"),
-    ("select_jobs", int | Literal["auto"] | None,
-     "fit with model.select: candidates scored at a time, each in a process of its own, "
-     "torch's threads divided among them; 'auto': the usable cores, at most 4 (default 1)"),
-    ("select_budget_s", float | None,
-     "fit with model.select: seconds after which no further candidate starts; those not "
-     "started are skipped, said in the table (default: none)"),
-]
-"""The command's options of model selection (``--model.NAME``): name, type, help."""
 
 Build = Callable[[int, int | None], tuple[L.LightningModule, L.LightningDataModule, L.Trainer]]
 """``build(candidate, fold)``: a fresh, seeded ``(module, datamodule, trainer)`` for one run
 of a candidate (``fold`` is None for the hold-out, else the cross-validation fold)."""
-
-
-def model_arguments(model_class: type) -> list[str]:
-    """The arguments a candidate may set: ``model_class.__init__``'s, except ``net`` (a
-    ready network would ignore the others)."""
-    params = inspect.signature(model_class.__init__).parameters.values()
-    return [p.name for p in params if p.name not in ("self", "net")
-            and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
-
-
-def check_candidates(select: object, valid: Sequence[str], *,
-                     cv: object = None, mode: object = None) -> list[dict[str, Any]]:
-    """The candidates as dicts, checked.
-
-    Raises:
-        ValueError: an empty list, a key that is not a model argument (the message names
-            it and lists ``valid``), ``cv`` neither an int >= 2 nor ``"recording"``,
-            ``mode`` not one of :data:`~torchhys.training.folds.CV_MODES` (None:
-            ``"blocked"``) or given without ``cv``.
-        TypeError: ``select`` not a list, a candidate not a dict.
-    """
-    if isinstance(select, (str, bytes, Mapping)) or not isinstance(select, Sequence):
-        raise TypeError(
-            f"model.select must be a list of candidates (dicts of model arguments), got "
-            f"{type(select).__name__} {select!r}"
-        )
-    if not select:
-        raise ValueError(
-            "model.select is empty: list the candidates, each a dict of model arguments "
-            "that replace the model section's (e.g. [{hidden: 4}, {operator: null}]), or "
-            "leave select out"
-        )
-    candidates = []
-    for k, cand in enumerate(select):
-        if not isinstance(cand, Mapping):
-            raise TypeError(
-                f"model.select[{k}] must be a dict of model arguments, got "
-                f"{type(cand).__name__} {cand!r}"
-            )
-        unknown = sorted(set(cand) - set(valid))
-        if unknown:
-            verb = "is not a model argument" if len(unknown) == 1 else "are not model arguments"
-            raise ValueError(
-                f"model.select[{k}]: {', '.join(map(repr, unknown))} {verb}; valid: "
-                f"{list(valid)}"
-            )
-        candidates.append(dict(cand))
-    if cv is not None and cv != RECORDING:
-        if isinstance(cv, str):
-            raise ValueError(f"model.select_cv must be an int >= 2 (blocked cross-validation) "
-                             f"or {RECORDING!r} (leave one recording out), got {cv!r}")
-        check_int(cv, "model.select_cv", minimum=2)
-    if mode is not None:
-        check_choice(mode, "model.select_cv_mode", CV_MODES)
-        if cv is None:
-            raise ValueError(f"model.select_cv_mode={mode!r} needs model.select_cv (k blocks, "
-                             f"or {RECORDING!r})")
-    return candidates
 
 
 def check_holdout(datamodule: L.LightningDataModule) -> None:
@@ -244,7 +160,7 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
     """Train and score every candidate.
 
     Args:
-        candidates: the checked candidates (:func:`check_candidates`).
+        candidates: the checked candidates (:func:`torchhys.cli.selection.check_candidates`).
         build: fresh, seeded ``(module, datamodule, trainer)`` of a candidate's run.
         cv: ``k`` for blocked cross-validation inside the training part,
             ``"recording"`` to hold out each training recording once, None for the
