@@ -7,6 +7,7 @@ import csv
 import math
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -255,3 +256,21 @@ def test_solve_readout_matches_numpy_lstsq_on_two_features() -> None:
     with torch.no_grad():
         got = net(x)[0][mask].numpy()
     assert np.abs(got - a @ c).max() < 1e-9
+
+
+def test_the_training_pages_example_runs(tmp_path, monkeypatch) -> None:
+    """docs/training.md's example of ``select`` runs as written on a record."""
+    import re
+    from pathlib import Path
+
+    page = (Path(__file__).resolve().parents[1] / "docs" / "training.md").read_text()
+    (code,) = [b for b in re.findall(r"```python\n(.*?)```", page, re.S)
+               if "from torchhys.selection import select" in b]
+    x, y = _record(T=600)
+    monkeypatch.chdir(tmp_path)
+    scope = {"x": x, "y": y, "response": x}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        exec(compile(code, "docs/training.md", "exec"), scope)  # noqa: S102
+    assert scope["result"].chosen.index in (0, 1)
+    assert scope["command"].shape == x.shape and (tmp_path / "selection.csv").is_file()
