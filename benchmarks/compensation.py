@@ -65,6 +65,7 @@ from torchhys import (
     PrandtlIshlinskii,
     ZhaoTanOperator,
 )
+from torchhys.cli.train import read_config
 from torchhys.deploy.export import load_torchscript, to_torchscript
 from torchhys.dynamics import TransferFunction
 from torchhys.functional import backlash
@@ -73,7 +74,6 @@ from torchhys.identification.specs import build_operators, fit_data_dependent
 from torchhys.init import initialize
 from torchhys.plants import PiezoStage, bouc_wen, paper_plant_widths
 from torchhys.signals import chirp, decaying_sine, multisine, to_range
-from torchhys.cli.train import read_config
 
 DTYPE = torch.float32
 #: The recommended compensator: the EIHO network's operators, hidden units, activation and

@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from torchhys import InverseHysteresisNet
+from torchhys.cli.export import main
 from torchhys.deploy.export import load_torchscript
 from torchhys.deploy.streaming import StreamingCompensator
-from torchhys.cli.export import main
 
 OPERATOR_KWARGS = {"a": 1.3, "rule": "dominant", "threshold": 0.1}
 

@@ -38,8 +38,8 @@ from _export_helpers import (
 pytest.importorskip("lightning")
 from _training_helpers import cli  # noqa: E402
 
-from torchhys.deploy.export import load_torchscript  # noqa: E402
 from torchhys.cli.export import main as export_main  # noqa: E402
+from torchhys.deploy.export import load_torchscript  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 FERRITE = ROOT / "examples" / "data" / "mnzn_ferrite_bh_loops.csv"
