@@ -144,6 +144,65 @@ def test_the_registered_operators_live_in_their_roles_folders() -> None:
     assert sum(f.__module__.startswith("torchhys.operators.") for f in builtin.values()) >= 14
 
 
+def registered_families(source: str) -> dict[str, str]:
+    """The families that ``source`` registers with ``register_family("name", builder)``: name
+    -> the builder's name (``"?"`` for a name that is not a string constant, a builder that
+    is not a plain name)."""
+    out = {}
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Call) and (
+                getattr(node.func, "id", None) or getattr(node.func, "attr", None)
+        ) == "register_family":
+            name, builder = [*node.args, None, None][:2]
+            out[name.value if isinstance(name, ast.Constant) else "?"] = (
+                builder.id if isinstance(builder, ast.Name) else "?")
+    return out
+
+
+def family_builders(source: str) -> list[str]:
+    """The top-level functions of ``source`` that build a model family: one argument,
+    ``spec``, and a return annotation that names ``Fitter``."""
+    return sorted(node.name for node in ast.parse(source).body
+                  if isinstance(node, ast.FunctionDef)
+                  and [a.arg for a in node.args.args] == ["spec"]
+                  and node.returns is not None and "Fitter" in ast.unparse(node.returns))
+
+
+def test_the_family_finders_find_every_call_and_builder() -> None:
+    source = ("from torchhys.registry import register_family\nimport torchhys.registry as r\n"
+              "def _a(spec: Mapping) -> tuple[nn.Module, Fitter]: ...\n"
+              "def _b(spec, other) -> Fitter: ...\n"
+              "def helper(spec) -> int: ...\n"
+              "register_family('a', _a)\nr.register_family('b', lambda spec: None)\n")
+    assert registered_families(source) == {"a": "_a", "b": "?"}
+    assert family_builders(source) == ["_a"]
+
+
+def test_every_model_family_is_registered_beside_its_fit() -> None:
+    """Every built-in family of ``torchhys.registry.FAMILIES`` is registered by the module of
+    its builder, a family module of torchhys/identification/, and every module that defines
+    a family builder registers it there."""
+    from torchhys.identification import specs  # loads the family modules
+    from torchhys.registry import FAMILIES
+
+    builtin = {n: b for n, b in FAMILIES.items() if b.__module__.startswith("torchhys.")}
+    assert len(builtin) >= 8
+    registered, defined = {}, {}
+    for m, p in modules().items():
+        source = p.read_text()
+        for name, builder in registered_families(source).items():
+            registered[name] = (m, builder)
+        if builders := family_builders(source):
+            defined[m] = builders
+    assert {n: (b.__module__, b.__name__) for n, b in builtin.items()} == registered
+    assert {m: sorted(b for mm, b in registered.values() if mm == m) for m in defined} == defined
+    shared = ("torchhys.identification._family_spec", specs.__name__)
+    homes = {m for m, _ in registered.values()}
+    assert all(m.startswith("torchhys.identification.") and m not in shared for m in homes)
+    assert sorted(m.rpartition(".")[2] for m in homes) == sorted(
+        mod.__name__.rpartition(".")[2] for mod in specs._FAMILY_MODULES)
+
+
 def test_import_torchhys_imports_no_lightning() -> None:
     code = ("import sys, torchhys, torchhys.deploy.c, torchhys.identification.preisach\n"
             "bad = [m for m in ('lightning', 'pytorch_lightning', 'jsonargparse', "

@@ -48,3 +48,34 @@ def test_a_builder_that_is_not_callable_is_one_line(families: dict, builder: obj
 def test_a_name_that_is_not_a_non_empty_str_is_refused(families: dict, name: object) -> None:
     with pytest.raises(ValueError, match="family name must be a non-empty str"):
         register_family(name, lambda spec: None)  # type: ignore[arg-type]
+
+
+def test_a_registered_family_is_built_and_fitted_from_a_spec(families: dict) -> None:
+    """``{"fit": NAME}`` of a family registered by a user builds its placeholder and fits it
+    on the training data, as the built-in ones; an unknown name lists it with them."""
+    import torch
+    from torch import nn
+
+    from torchhys import Backlash
+    from torchhys.identification.specs import build_operators, fit_data_dependent
+
+    def build(spec):
+        n = spec.get("n", 3)
+
+        def fit(x, y, warmup, mask=None):
+            return Backlash(torch.linspace(0.1, 0.2, n) * float(x.abs().max()))
+
+        return Backlash(torch.arange(1, n + 1) / n), fit
+
+    register_family("my_family_reg", build)
+    (op,), fitters = build_operators({"fit": "my_family_reg", "n": 2})
+    assert isinstance(op, Backlash) and list(fitters) == [0]
+    x = 4 * torch.sin(torch.linspace(0, 6, 50))[None]
+    fit_data_dependent(nn.ModuleList([op]), fitters, x, x)
+    expected = Backlash(torch.linspace(0.1, 0.2, 2) * float(x.abs().max())).state_dict()
+    for key, value in op.state_dict().items():
+        torch.testing.assert_close(value, expected[key].to(value.dtype))
+    with pytest.raises(ValueError, match=r"no model family is called 'nope'; families: \[.*"
+                                         r"'my_family_reg'.*'stop_pi'") as info:
+        build_operators({"fit": "nope"})
+    assert "\n" not in str(info.value)

@@ -23,9 +23,10 @@ from torchhys import (
     select_penalty,
     select_stop_pi_ridge,
 )
+from torchhys.identification import specs  # noqa: F401 (loads the families into FAMILIES)
 from torchhys.identification._family_spec import PENALTIES
 from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
-from torchhys.identification.specs import FIT_FAMILIES as FAMILIES
+from torchhys.registry import FAMILIES
 
 from .datasets import F64, Split
 from .scoring import Budget, Fitted, NotApplicable, Scaled, _rmse, holdout, scaled
@@ -199,7 +200,7 @@ def stop_pi(split: Split, budget: Budget) -> Fitted:
 
 
 def _drift(d: Scaled, end: int) -> Drift:
-    """The configs' ``drift`` family (:data:`torchhys.identification.specs.FIT_FAMILIES`:
+    """The configs' ``drift`` family (:data:`torchhys.registry.FAMILIES`:
     :func:`~torchhys.fit_drift`, a free slope, ``DRIFT_SCALES`` spans of the scored input)
     fitted on the samples before ``end``."""
     _, fit = FAMILIES["drift"]({"fit": "drift"})

@@ -34,6 +34,7 @@ from torchhys.identification._family_spec import Fitter, _keys
 from torchhys.identification._nnls import nnls_gram
 from torchhys.identification.errors import _samples, _standardized
 from torchhys.operators.drift import Drift
+from torchhys.registry import register_family
 
 __all__ = ["fit_drift"]
 
@@ -124,3 +125,6 @@ def _drift(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
         return fit_drift(x, t, [span * c for c in mult], mask=scored)
 
     return Drift(torch.ones(len(mult))).requires_grad_(False), fit
+
+
+register_family("drift", _drift)

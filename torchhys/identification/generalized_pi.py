@@ -56,6 +56,7 @@ from torchhys.identification.fitting import (
 )
 from torchhys.operators.backlash import _inverse_softplus
 from torchhys.operators.generalized_pi import GeneralizedPIInverse, GeneralizedPrandtlIshlinskii
+from torchhys.registry import register_family
 
 __all__ = ["fit_generalized_pi"]
 
@@ -250,3 +251,6 @@ def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     else:
         placeholder = GeneralizedPIInverse(n, units)
     return placeholder.requires_grad_(False), fit
+
+
+register_family("gpi", _gpi)

@@ -32,6 +32,7 @@ from torchhys.functional.jiles_atherton import MU0, jiles_atherton
 from torchhys.identification._family_spec import Fitter, _keys
 from torchhys.identification.errors import FitError, _checked, _samples, _standardized
 from torchhys.operators.jiles_atherton import JilesAtherton
+from torchhys.registry import register_family
 
 __all__ = ["fit_jiles_atherton", "substeps_for"]
 
@@ -187,3 +188,6 @@ def _jiles_atherton(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
         return _checked(m, x, t, scored, "jiles_atherton", float(ys.mean()), float(ys.std()))
 
     return JilesAtherton(mu0=mu0).requires_grad_(False), fit
+
+
+register_family("jiles_atherton", _jiles_atherton)

@@ -41,6 +41,7 @@ from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_g
 from torchhys.operators.backlash import Backlash
 from torchhys.operators.generalized_pi import GeneralizedPIInverse, GeneralizedPrandtlIshlinskii
 from torchhys.operators.prandtl_ishlinskii import PrandtlIshlinskii
+from torchhys.registry import register_family
 
 
 def _positive_int(spec: Mapping[str, Any], key: str, default: int) -> int:
@@ -84,6 +85,9 @@ def _plays(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter | None]:
     return Backlash(torch.arange(1, n + 1) / n, learnable=learnable), fit
 
 
+register_family("plays", _plays)
+
+
 def _pi_ls(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     _check_keys(spec, {"n_widths", "power", "ridge", "learnable"})
     n = _positive_int(spec, "n_widths", 30)
@@ -99,6 +103,9 @@ def _pi_ls(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     placeholder = PrandtlIshlinskii(torch.arange(1, n + 1) / n, torch.zeros(n),
                                     learnable=learnable)
     return placeholder, fit
+
+
+register_family("pi_ls", _pi_ls)
 
 
 def _pi_fit(u: Tensor, out: Tensor, widths: Tensor, ridge: float | str,
@@ -156,3 +163,6 @@ def _pi_nonneg(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     placeholder: nn.Module = (PrandtlIshlinskii(torch.arange(1, n + 1) / n, torch.zeros(n))
                               if direction == "direct" else GeneralizedPIInverse(n, 0))
     return placeholder, fit
+
+
+register_family("pi_nonneg", _pi_nonneg)

@@ -55,6 +55,7 @@ from torchhys.identification._nnls import (
 )
 from torchhys.identification.errors import FitError, _checked, _rmse, _samples, _standardized
 from torchhys.operators.preisach import Preisach, PreisachInverse
+from torchhys.registry import register_family
 
 __all__ = ["check_fit_memory", "fit_preisach", "fit_preisach_signs", "select_penalty"]
 
@@ -375,3 +376,6 @@ def _preisach(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
 
     placeholder = Preisach(0.0, 1.0, n) if direction == "direct" else PreisachInverse(n)
     return placeholder.requires_grad_(False), fit
+
+
+register_family("preisach", _preisach)

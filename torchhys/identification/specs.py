@@ -9,7 +9,8 @@ A spec of ``model.operator`` is one of:
   ``"backlash"``, ``"preisach"``, ``"cascade"``, whatever a user registers with
   :func:`torchhys.registry.register_operator`), built as it stands;
 - a model family fitted on the training split when fitting starts, ``{"fit": FAMILY,
-  **options}`` (:data:`FIT_FAMILIES`), each documented with its fit:
+  **options}``, a family of :data:`torchhys.registry.FAMILIES`; the built-in ones are
+  registered and documented beside their fits:
 
   - ``plays``, ``pi_ls``, ``pi_nonneg``: the Prandtl-Ishlinskii families
     (:mod:`torchhys.identification.prandtl_ishlinskii`);
@@ -44,42 +45,35 @@ scores that candidate as failed.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import torch
 from torch import Tensor, nn
 
 from torchhys._checks import check_warmup, fitted_samples
+from torchhys.identification import (
+    drift,
+    generalized_pi,
+    jiles_atherton,
+    prandtl_ishlinskii,
+    preisach,
+    stop_pi,
+)
 from torchhys.identification._family_spec import Fitter
 from torchhys.identification._fit_cache import shared
-from torchhys.identification.drift import _drift
-from torchhys.identification.generalized_pi import _gpi
-from torchhys.identification.jiles_atherton import _jiles_atherton
-from torchhys.identification.prandtl_ishlinskii import _pi_ls, _pi_nonneg, _plays
-from torchhys.identification.preisach import _preisach
-from torchhys.identification.stop_pi import _stop_pi
 from torchhys.operator import HysteresisOperator
-from torchhys.registry import make_operator
+from torchhys.registry import FAMILIES, make_operator
 
-__all__ = ["FIT_FAMILIES", "OperatorSpec", "build_operators", "fit_data_dependent"]
+__all__ = ["OperatorSpec", "build_operators", "fit_data_dependent"]
 
 OperatorSpec = str | Mapping[str, Any] | HysteresisOperator
 """``"eiho"``, ``{"name": NAME, **kwargs}``, ``{"fit": FAMILY, **options}`` or an
 operator."""
 
-FIT_FAMILIES: dict[str, Callable[[Mapping[str, Any]], tuple[nn.Module, Fitter | None]]] = {
-    "plays": _plays,
-    "pi_ls": _pi_ls,
-    "pi_nonneg": _pi_nonneg,
-    "gpi": _gpi,
-    "preisach": _preisach,
-    "stop_pi": _stop_pi,
-    "jiles_atherton": _jiles_atherton,
-    "drift": _drift,
-}
-"""The model families of the specs ``{"fit": FAMILY, **options}``, by name: each builder
-takes the spec and returns ``(placeholder module, fitter or None)``."""
+_FAMILY_MODULES = (prandtl_ishlinskii, generalized_pi, preisach, stop_pi, jiles_atherton, drift)
+"""The modules of the built-in families, loaded here: each registers its families in
+:data:`torchhys.registry.FAMILIES` beside their builders, before a spec is looked up."""
 
 
 def _build(spec: object, argument: str, operator_kwargs: Mapping[str, Any]
@@ -90,21 +84,21 @@ def _build(spec: object, argument: str, operator_kwargs: Mapping[str, Any]
         if "name" in spec:
             raise ValueError(f"{argument}: a spec has either 'name' (a registered operator) "
                              f"or 'fit' (a model family), got both: {dict(spec)!r}")
-        if not isinstance(family, str) or family not in FIT_FAMILIES:
+        if not isinstance(family, str) or family not in FAMILIES:
             raise ValueError(f"{argument}: no model family is called {family!r}; families: "
-                             f"{sorted(FIT_FAMILIES)}")
-        module, fitter = FIT_FAMILIES[family](spec)
+                             f"{sorted(FAMILIES)}")
+        module, fitter = FAMILIES[family](spec)
         return module, None if fitter is None else shared(spec, fitter)
     if isinstance(spec, Mapping) and "name" not in spec:
         raise ValueError(f"{argument}: a spec dict needs a 'name' (a registered operator) or "
-                         f"a 'fit' (a model family: {sorted(FIT_FAMILIES)}), got {dict(spec)!r}")
+                         f"a 'fit' (a model family: {sorted(FAMILIES)}), got {dict(spec)!r}")
     try:
         return make_operator(spec, argument=argument,
                              **operator_kwargs if isinstance(spec, str) else {}), None
     except (ValueError, TypeError) as err:
         name = spec if isinstance(spec, str) else (
             spec.get("name") if isinstance(spec, Mapping) else None)
-        if isinstance(name, str) and name in FIT_FAMILIES:
+        if isinstance(name, str) and name in FAMILIES:
             raise type(err)(f"{err} (the model family fitted on the training data is "
                             f"written {{fit: {name}, ...}})") from None
         raise

@@ -55,6 +55,7 @@ from torchhys.identification._nnls import (
 from torchhys.identification.errors import _checked, _samples, _standardized
 from torchhys.identification.fitting import play_width_grid
 from torchhys.operators.stop_pi import StopPrandtlIshlinskii
+from torchhys.registry import register_family
 
 __all__ = ["fit_stop_pi", "fit_stop_pi_signs", "select_stop_pi_ridge"]
 
@@ -375,3 +376,6 @@ def _stop_pi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
 
     return StopPrandtlIshlinskii(torch.arange(1, n + 1) / n,
                                  torch.zeros(n, segments)).requires_grad_(False), fit
+
+
+register_family("stop_pi", _stop_pi)
