@@ -48,14 +48,6 @@ def _positive_int(spec: Mapping[str, Any], key: str, default: int) -> int:
     return check_int(spec.get(key, default), f"fit {spec['fit']!r}: {key}", minimum=1)
 
 
-def _check_keys(spec: Mapping[str, Any], allowed: set[str]) -> None:
-    unknown = sorted(set(spec) - allowed - {"fit"})
-    if unknown:
-        raise ValueError(
-            f"fit {spec['fit']!r}: unknown option(s) {unknown}; valid: {sorted(allowed)}"
-        )
-
-
 def _flag(spec: Mapping[str, Any], key: str) -> bool:
     value = spec.get(key, False)
     if not isinstance(value, bool):
@@ -69,7 +61,7 @@ def _known(x: Tensor, mask: Tensor | None) -> Tensor:
 
 
 def _plays(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter | None]:
-    _check_keys(spec, {"n", "power", "span_fraction", "learnable", "widths"})
+    _keys(spec, {"n", "power", "span_fraction", "learnable", "widths"})
     learnable = _flag(spec, "learnable")
     if spec.get("widths") is not None:
         widths = torch.as_tensor(spec["widths"], dtype=torch.get_default_dtype())
@@ -89,7 +81,7 @@ register_family("plays", _plays)
 
 
 def _pi_ls(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
-    _check_keys(spec, {"n_widths", "power", "ridge", "learnable"})
+    _keys(spec, {"n_widths", "power", "ridge", "learnable"})
     n = _positive_int(spec, "n_widths", 30)
     power = check_positive(spec.get("power", 3.0), "fit 'pi_ls': power")
     ridge = check_nonnegative(spec.get("ridge", 0.0), "fit 'pi_ls': ridge")
