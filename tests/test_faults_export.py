@@ -18,8 +18,8 @@ import torch
 
 from torchhys import InverseHysteresisNet
 from torchhys.cli.export import main as export_main
+from torchhys.deploy.c import to_c
 from torchhys.deploy.export import load_torchscript, to_torchscript
-from torchhys.deploy.export_c import to_c
 
 OPERATOR_KWARGS = {"a": 1.3, "rule": "dominant", "threshold": 0.1}
 
