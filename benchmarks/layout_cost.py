@@ -15,7 +15,10 @@ final fit run as in a full run). It runs under :func:`sys.setprofile` (and
 :func:`threading.setprofile`) in a subprocess. Counted:
 
 - the torchhys files whose functions are called (a module's top-level code, run when it is
-  imported, is not counted as a function);
+  imported, is not counted as a function), those of them called from inside model selection
+  (with a frame of selection below them, or in selection itself), and those of the top
+  floor (:func:`_top_floor`: not the maths, the operators, their protocol or the families'
+  fits, which any fit walks);
 - the returns to a room already left: a call into a torchhys file ``F`` when the torchhys
   frames below it hold ``F`` lower on the stack with a frame of another torchhys file
   between (frames of other libraries, e.g. Lightning or torch, are looked through). Each is
@@ -135,6 +138,7 @@ def relname(code):
         rel[f] = r
     return r
 files = set()
+in_selection = set()
 returns = set()
 cli_in_selection = []
 def profile(frame, event, arg):
@@ -154,7 +158,10 @@ def profile(frame, event, arg):
         f = f.f_back
     if below and below[0] != here and here in below[1:]:
         returns.add((here, below[0]))
-    if here.startswith(CLI) and any(b.startswith(SELECTION) for b in below):
+    inside = any(b.startswith(SELECTION) for b in below)
+    if inside or here.startswith(SELECTION):
+        in_selection.add(here)
+    if here.startswith(CLI) and inside:
         cli_in_selection.append((here, code.co_name))
 sys.argv = ["torchhys"] + argv
 try:  # the console script's entry point (torchhys._command before the command line's move)
@@ -173,7 +180,8 @@ finally:
     threading.setprofile(None)
 import torchhys
 with open(os.environ["LAYOUT_COST_OUT"], "w") as out:
-    json.dump({"files": sorted(files), "returns": sorted(returns),
+    json.dump({"files": sorted(files), "in_selection": sorted(in_selection),
+               "returns": sorted(returns),
                "cli_in_selection": sorted(set(cli_in_selection)),
                "file": torchhys.__file__}, out)
 """
@@ -198,6 +206,23 @@ def measure_walk(root: Path) -> dict:
     return walk
 
 
+GROUND_FLOORS = ("torchhys/functional/", "torchhys/operators/", "torchhys/optim/",
+                 "torchhys/dynamics/", "torchhys/_checks.py", "torchhys/_memory.py",
+                 "torchhys/constraints.py", "torchhys/operator.py", "torchhys/step.py",
+                 "torchhys/registry.py", "torchhys/protocols.py", "torchhys/__init__.py")
+"""The maths, the operators and their protocol: the files the top floor builds on."""
+FITS = ("fitting.py", "_nnls.py", "stop_pi.py", "preisach.py", "generalized_pi.py",
+        "drift.py", "jiles_atherton.py", "prandtl_ishlinskii.py")
+"""The family fits of ``torchhys/identification/`` (the ground floor of identification)."""
+
+
+def _top_floor(files: list[str]) -> list[str]:
+    """The files of the walk above the ground floors: neither the maths, the operators,
+    their protocol, nor the families' fits."""
+    return [f for f in files if not f.startswith(GROUND_FLOORS)
+            and not (f.startswith("torchhys/identification/") and f.rsplit("/", 1)[1] in FITS)]
+
+
 def _yes(flag: bool) -> str:
     return "yes" if flag else "no"
 
@@ -215,10 +240,12 @@ def report(rows: dict[str, dict], walk: dict | None, *, list_files: bool) -> str
     if walk is not None:
         shown = ["TMP/run" if a.endswith(os.sep + "run") else a for a in walk["argv"]]
         lines += ["", f"`torchhys {' '.join(shown)}` under `sys.setprofile`:", "",
-                  "| torchhys files called | returns to a room already left | "
-                  "command line called from inside selection |",
-                  "|---:|---:|---|",
-                  f"| {len(walk['files'])} | {len(walk['returns'])} | "
+                  "| torchhys files called | of them from inside selection | top-floor files "
+                  "| returns to a room already left | command line called from inside "
+                  "selection |",
+                  "|---:|---:|---:|---:|---|",
+                  f"| {len(walk['files'])} | {len(walk['in_selection'])} | "
+                  f"{len(_top_floor(walk['files']))} | {len(walk['returns'])} | "
                   f"{_yes(bool(walk['cli_in_selection']))} |", "",
                   "Returns (file called back, via):", ""]
         lines += [f"- `{here}` via `{via}`" for here, via in walk["returns"]]
@@ -226,7 +253,10 @@ def report(rows: dict[str, dict], walk: dict | None, *, list_files: bool) -> str
             lines += ["", "Command-line frames called from inside selection:", ""]
             lines += [f"- `{f}`: `{name}`" for f, name in walk["cli_in_selection"]]
         if list_files:
-            lines += ["", "Files called:", ""] + [f"- `{f}`" for f in walk["files"]]
+            lines += ["", "Files called (T: top floor, S: called from inside selection):", ""]
+            top, sel = set(_top_floor(walk["files"])), set(walk["in_selection"])
+            lines += [f"- `{f}` {'T' if f in top else ''}{'S' if f in sel else ''}".rstrip()
+                      for f in walk["files"]]
     return "\n".join(lines)
 
 
