@@ -114,7 +114,7 @@ STAGES = [
     # (stage, file suffix, function): cumulative seconds of the function under cProfile
     ("start-up: the interpreter and the imports", "", "<start-up>"),
     ("reading the data file", "torchhys/data/files.py", "read_recordings"),
-    ("model selection (all candidates)", "torchhys/training/selection.py", "run_selection"),
+    ("model selection (all candidates)", "torchhys/selection/run.py", "select"),
     ("  families fitted on each fold", "torchhys/identification/specs.py",
      "fit_data_dependent"),
     ("    least-squares moments: Preisach relays", "identification/preisach.py",
@@ -127,10 +127,11 @@ STAGES = [
     ("    nonlinear fits: drift", "identification/drift.py", "fit_drift"),
     ("    families' checks against a line", "torchhys/identification/errors.py", "_checked"),
     ("  operators' outputs for the readouts", "torchhys/networks.py", "features"),
-    ("  readouts solved (least squares, validation)", "torchhys/training/readout.py",
-     "direct_validation"),
-    ("  Lightning: building each fold's run", "torchhys/cli/train.py", "_instantiate_run"),
-    ("the chosen candidate's fit (Trainer.fit)", "lightning/pytorch/trainer/trainer.py", "fit"),
+    ("  readouts solved (least squares)", "torchhys/selection/candidates.py",
+     "solve_readout"),
+    ("the chosen candidate fitted once", "torchhys/selection/run.py", "fit_record"),
+    ("its run's logs and checkpoints (Trainer.fit)", "lightning/pytorch/trainer/trainer.py",
+     "fit"),
 ]
 
 

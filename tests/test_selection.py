@@ -274,3 +274,40 @@ def test_the_training_pages_example_runs(tmp_path, monkeypatch) -> None:
         exec(compile(code, "docs/training.md", "exec"), scope)  # noqa: S102
     assert scope["result"].chosen.index in (0, 1)
     assert scope["command"].shape == x.shape and (tmp_path / "selection.csv").is_file()
+
+
+def test_the_holdout_cuts_each_row_at_its_own_last_quarter() -> None:
+    x, y = _record(T=400, rows=2)
+    mask = torch.ones(2, 400, dtype=torch.bool)
+    mask[1, 100:] = False  # a short second recording, padded
+    fold = make_folds(x, y, torch.tensor([0, 0]), mask, None)[0]
+    assert int(fold.val.mask[0].sum()) == 100 and int(fold.val.mask[1].sum()) == 25
+    assert int(fold.train.mask[0].sum()) == 300 and int(fold.train.mask[1].sum()) == 75
+    assert not bool((fold.fit.mask & fold.val.mask).any())
+
+
+def test_a_gap_in_the_mask_is_not_fitted_and_not_finite_there_is_fine() -> None:
+    x, y = _record(T=400)
+    mask = torch.ones(1, 400, dtype=torch.bool)
+    mask[0, 200:220] = False  # samples that do not exist: their targets are not used
+    y_gap = y.clone()
+    y_gap[0, 200:220] = 1e6
+    fold = make_folds(x, y_gap, torch.tensor([10]), mask & (torch.arange(400) >= 10), 2)[0]
+    assert not bool(fold.fit.mask[0, 200:220].any()) and not bool(fold.train.mask[0, 200:220].any())
+    a = select([LINE], x, y, mask=mask, warmup=10, cv=2, warn_coverage=False)
+    b = select([LINE], x, y_gap, mask=mask, warmup=10, cv=2, warn_coverage=False)
+    assert a.scores[0].val_mse == pytest.approx(b.scores[0].val_mse, rel=1e-12)
+
+
+def test_record_options_that_do_not_fit_together_are_one_line_errors() -> None:
+    x, y = _record(T=200)
+    flat = x[0]
+    ids = torch.zeros(200, dtype=torch.long)
+    with pytest.raises(ValueError, match="recordings .* or mask"):
+        select([LINE], flat, y[0], recordings=ids, mask=torch.ones(1, 200, dtype=torch.bool))
+    with pytest.raises(ValueError, match=r"warmup must be an int or one per row \(1\), got 2"):
+        select([LINE], x, y, warmup=[1, 2], warn_coverage=False)
+    with pytest.raises(ValueError, match="warmup must be an int"):
+        select([LINE], x, y, warmup=2.7, warn_coverage=False)
+    with pytest.raises(ValueError, match="mode='rolling' needs cv"):
+        select([LINE], x, y, cv=None, mode="rolling", warn_coverage=False)

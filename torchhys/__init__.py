@@ -41,7 +41,7 @@ for _module in pkgutil.iter_modules(operators.__path__):
 del _module
 
 _LAZY_SUBPACKAGES = ("deploy", "dynamics", "identification", "models", "optim", "plants",
-                     "signals", "testing")
+                     "selection", "signals", "testing")
 """Subpackages loaded on first use (:func:`__getattr__`)."""
 
 _LAZY_NAMES = {
@@ -77,6 +77,7 @@ __all__ = [
     "plants",
     "protocols",
     "registry",
+    "selection",
     "signals",
     "step",
     "testing",

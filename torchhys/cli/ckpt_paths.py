@@ -1,6 +1,6 @@
 """The checkpoint a command's ``--ckpt_path`` names, checked before anything is written.
 
-- a local file: read and checked (:func:`~torchhys.cli.errors.read_checkpoint`,
+- a local file: read and checked (:func:`~torchhys.checkpoints.read_checkpoint`,
   ``weights_only=True``: no code from the file runs);
 - a URL (``http://``, ``file://``, ``s3://`` ...) or Lightning's ``registry:...``: refused,
   one line; torchhys downloads nothing (Lightning's loader would load a URL with
@@ -54,7 +54,7 @@ def check_ckpt_path(path: Any, cfg: Any) -> str | None:
 
     Raises:
         CheckpointError: a URL or a registry, no earlier ``last.ckpt``, or a file that
-            :func:`~torchhys.cli.errors.read_checkpoint` refuses.
+            :func:`~torchhys.checkpoints.read_checkpoint` refuses.
     """
     if path is None:
         return None

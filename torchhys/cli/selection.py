@@ -85,6 +85,7 @@ def direct_record(configs: list[Any], sub: str, cv: object) -> DirectRecord | No
         return None
     datamodule = HysteresisDataModule(**args)
     datamodule.setup("fit")
+    datamodule.train_tensors()  # a constant column is the file's error, naming it
     batches = datamodule.batches("train")
     if not batches:
         return None
@@ -156,7 +157,7 @@ def check_candidates(select: object, valid: Sequence[str], *,
     Raises:
         ValueError: an empty list, a key that is not a model argument (the message names
             it and lists ``valid``), ``cv`` neither an int >= 2 nor ``"recording"``,
-            ``mode`` not one of :data:`~torchhys.training.folds.CV_MODES` (None:
+            ``mode`` not one of :data:`~torchhys.selection.folds.CV_MODES` (None:
             ``"blocked"``) or given without ``cv``.
         TypeError: ``select`` not a list, a candidate not a dict.
     """

@@ -34,7 +34,7 @@ CV_MODES = ("blocked", "rolling")
 
 def _ends(mask: Tensor) -> Tensor:
     """One past each row's last scored sample, (rows,) (the padding starts there)."""
-    t = torch.arange(1, mask.shape[-1] + 1)
+    t = torch.arange(1, mask.shape[-1] + 1, device=mask.device)
     return (mask.to(torch.bool) * t).amax(-1)
 
 
@@ -165,12 +165,19 @@ class Fold(NamedTuple):
 
 
 def _fit_batch(x: Tensor, y: Tensor, first: Tensor, end: Tensor,
-               held: Tensor | None = None) -> tuple[Batch, int]:
+               held: Tensor | None = None, scored: Tensor | None = None) -> tuple[Batch, int]:
     """The rows the families and normalization fit on, with the samples they may use
     (:func:`~torchhys.data.tensors.fit_tensors`: a longer warm-up than the least, the
-    padding and ``held`` left out), and the least warm-up."""
+    padding, ``held``, and the gaps of ``scored`` between a row's first and last scored
+    sample left out), and the least warm-up."""
+    t = torch.arange(x.shape[-1], device=x.device)
+    if scored is not None:  # samples the record says do not exist (a gap in its mask)
+        gaps = ~scored & (t >= first.reshape(-1, 1)) & (t < end.reshape(-1, 1))
+        if bool(gaps.any()):
+            held = gaps if held is None else held | gaps
     fit = fit_tensors(x, y, first, end, held)
-    mask = fit.mask if fit.mask is not None else torch.ones(x.shape, dtype=torch.bool)
+    mask = fit.mask if fit.mask is not None else torch.ones(x.shape, dtype=torch.bool,
+                                                               device=x.device)
     return Batch(fit.x, fit.y, mask), fit.warmup
 
 
@@ -199,11 +206,16 @@ def make_folds(x: Tensor, y: Tensor, first: Tensor, mask: Tensor, cv: int | str 
 
         idx = [mask[r].nonzero().flatten() for r in range(mask.shape[0])]
         cuts = [int(i[holdout_cuts(i.numel(), 0, holdout)[1]]) for i in idx]
-        c = min(cuts)  # one cut for all rows keeps them one batch
-        fitted = mask[:, :c]
-        held = mask & (torch.arange(T) >= c)
-        fit, w = _fit_batch(x[:, :c], y[:, :c], first, ends.clamp(max=c))
-        return [Fold(Batch(x[:, :c], y[:, :c], fitted), fit, Batch(x, y, held), w)]
+        t = torch.arange(T, device=x.device)
+        if len(set(cuts)) == 1:  # one cut for all rows: fitted on the rows cut before it
+            c = cuts[0]
+            fit, w = _fit_batch(x[:, :c], y[:, :c], first, ends.clamp(max=c),
+                                scored=mask[:, :c])
+            return [Fold(Batch(x[:, :c], y[:, :c], mask[:, :c]), fit,
+                         Batch(x, y, mask & (t >= c)), w)]
+        late = t >= torch.tensor(cuts, device=x.device)[:, None]  # each row's own cut
+        fit, w = _fit_batch(x, y, first, ends, mask & late, scored=mask)
+        return [Fold(Batch(x, y, mask & ~late), fit, Batch(x, y, mask & late), w)]
     if cv == RECORDING:
         n = x.shape[0]
         if n < 2:
@@ -216,7 +228,8 @@ def make_folds(x: Tensor, y: Tensor, first: Tensor, mask: Tensor, cv: int | str 
             keep, val = (list(range(j + 1)), j + 1) if rolling else (
                 [r for r in range(n) if r != j], j)
             T_keep = int(ends[keep].max())  # the others' padding to the held-out one's
-            fit, w = _fit_batch(x[keep, :T_keep], y[keep, :T_keep], first[keep], ends[keep])
+            fit, w = _fit_batch(x[keep, :T_keep], y[keep, :T_keep], first[keep], ends[keep],
+                                scored=mask[keep, :T_keep])
             folds.append(Fold(Batch(x[keep], y[keep], mask[keep]), fit,
                               Batch(x[val:val + 1], y[val:val + 1], mask[val:val + 1]), w))
         return folds
@@ -227,6 +240,6 @@ def make_folds(x: Tensor, y: Tensor, first: Tensor, mask: Tensor, cv: int | str 
     folds = []
     for j in range(cv - 1 if rolling else cv):
         fitted, held = fold_masks(mask, cv, j, rolling=rolling, source=source)
-        fit, w = _fit_batch(x, y, first, ends, mask & ~fitted)
+        fit, w = _fit_batch(x, y, first, ends, mask & ~fitted, scored=mask)
         folds.append(Fold(Batch(x, y, fitted), fit, Batch(x, y, held), w))
     return folds

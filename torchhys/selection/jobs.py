@@ -12,7 +12,7 @@ their ``error`` in ``selection.csv`` and the printed table says that they were s
 chosen candidate is the best of those scored. The processes die with the command's process
 however it ends (SIGKILL included) and ignore SIGINT; when the selection stops early (a
 signal, Ctrl-C, a candidate's error) the running ones are killed, not waited for
-(:mod:`torchhys.training.interrupts`).
+(:func:`die_with_parent`, :func:`_stop`).
 """
 
 from __future__ import annotations

@@ -54,7 +54,8 @@ from torchhys.selection.scores import (
     write_table,
 )
 
-__all__ = ["Progress", "Record", "Selection", "record", "score_candidate", "select", "shared_key"]
+__all__ = ["Progress", "Record", "Selection", "fit_record", "record", "score_candidate", "select",
+           "shared_key"]
 
 
 class Progress(Protocol):
@@ -80,7 +81,7 @@ class Record:
 
     def whole(self) -> tuple[Batch, Batch, int]:
         """``(train, fit, warmup)`` of the whole record (the final fit)."""
-        fit, warmup = _fit_batch(self.x, self.y, self.first, _ends(self.mask))
+        fit, warmup = _fit_batch(self.x, self.y, self.first, _ends(self.mask), scored=self.mask)
         return Batch(self.x, self.y, self.mask), fit, warmup
 
 
@@ -105,6 +106,10 @@ def record(x: Tensor, y: Tensor, *, warmup: int | Sequence[int] = 0,
         raise ValueError(f"x and y must have one shape, (time,) or (rows, time), got "
                          f"{tuple(x.shape)} and {tuple(y.shape)}")
     if recordings is not None:
+        if mask is not None:
+            raise ValueError("give recordings (ids that cut a 1-D record into rows) or mask "
+                             "(rows, time), not both: with recordings, each row's samples "
+                             "are its id's")
         if x.dim() != 1 or recordings.shape != x.shape:
             raise ValueError(f"recordings must be (time,) ids of 1-D x, y, got "
                              f"{tuple(recordings.shape)} for x {tuple(x.shape)}")
@@ -115,27 +120,41 @@ def record(x: Tensor, y: Tensor, *, warmup: int | Sequence[int] = 0,
         x = torch.stack([torch.cat([r[0], r[0][-1:].expand(T - r[0].numel())]) for r in rows])
         y = torch.stack([torch.cat([r[1], r[1][-1:].expand(T - r[1].numel())]) for r in rows])
         lengths = torch.tensor([b - a for a, b in parts])
-        mask = torch.arange(T) < lengths[:, None]
+        mask = torch.arange(T, device=x.device) < lengths.to(x.device)[:, None]
     x, y = x.reshape(-1, x.shape[-1]), y.reshape(-1, y.shape[-1])
     rows, T = x.shape
     if mask is None:
-        mask = torch.ones(rows, T, dtype=torch.bool)
+        mask = torch.ones(rows, T, dtype=torch.bool, device=x.device)
     elif mask.shape != x.shape:
         raise ValueError(f"mask must have the shape of x, {tuple(x.shape)}, got "
                          f"{tuple(mask.shape)}")
-    first = torch.as_tensor(warmup, dtype=torch.long).reshape(-1).expand(rows).clone()
-    for r in range(rows):
-        check_int(int(first[r]), "warmup", minimum=0)
-    scored = mask.to(torch.bool) & (torch.arange(T) >= first[:, None])
+    values = warmup.tolist() if isinstance(warmup, Tensor) else warmup
+    if isinstance(values, (int, float)):
+        values = [values]
+    elif not isinstance(values, Sequence):
+        raise TypeError(f"warmup must be an int or a list of ints, one per row, got "
+                        f"{type(warmup).__name__}")
+    values = list(values)
+    if len(values) not in (1, rows):
+        raise ValueError(f"warmup must be an int or one per row ({rows}), got {len(values)} "
+                         "values")
+    for v in values:
+        check_int(v, "warmup", minimum=0)
+    first = torch.tensor(values * (rows if len(values) == 1 else 1), dtype=torch.long,
+                         device=x.device)
+    t = torch.arange(T, device=x.device)
+    scored = mask.to(torch.bool) & (t >= first[:, None])
     empty = (~scored.any(-1)).nonzero().flatten().tolist()
     if empty:
         raise ValueError(f"warmup={warmup}: row {empty[0]} of {source} has no scored sample "
                          f"(a warm-up shorter than the row is needed)")
-    bad = ~(torch.isfinite(x) & torch.isfinite(y)) & scored
+    # the states run through every sample of a row up to its last scored one
+    ends = (scored * (t + 1)).amax(-1, keepdim=True)
+    bad = ~(torch.isfinite(x) & torch.isfinite(y)) & (t < ends)
     if bool(bad.any()):
-        r, t = (int(v) for v in bad.nonzero()[0])
-        raise ValueError(f"{source}: x or y is not finite at row {r}, sample {t} (a scored "
-                         f"sample); drop or fill the missing samples first")
+        r, i = (int(v) for v in bad.nonzero()[0])
+        raise ValueError(f"{source}: x or y is not finite at row {r}, sample {i}; drop or "
+                         "fill the missing samples first")
     return Record(x, y, first, scored, source)
 
 
@@ -166,6 +185,8 @@ class Selection:
 
     def describe(self) -> str:
         """How the candidates were scored, in words."""
+        if self.cv is None:
+            return "a hold-out of the last quarter of each row"
         return describe_cv(self.cv, self.mode)
 
 
@@ -282,6 +303,9 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
     check_choice(rule, "rule", RULES)
     if mode is not None:
         check_choice(mode, "mode", CV_MODES)
+        if cv is None:
+            raise ValueError(f"mode={mode!r} needs cv (k blocks, or {RECORDING!r}); cv=None "
+                             "holds out the last quarter of each row")
     if cv is not None and cv != RECORDING:
         check_int(cv, "cv", minimum=2)
     overrides = [dict(c) for c in candidates]
@@ -307,8 +331,22 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
     chosen = best(scores, rule)
     model = None
     if refit:
-        train, fit, w = data.whole()
-        model = fit_candidate(specs[chosen.index], train, fit, warmup=w, dtype=dtype, seed=seed,
-                              epochs=epochs, seconds=seconds)
+        model = fit_record(specs[chosen.index], data, dtype=dtype, seed=seed, epochs=epochs,
+                           seconds=seconds)
     return Selection(list(scores), chosen, specs[chosen.index], model, cv, mode, rule)
+
+
+def fit_record(spec: Mapping[str, Any], data: Record, *, dtype: torch.dtype = torch.float64,
+               seed: int | None = 0, epochs: int = 10,
+               seconds: float | None = None) -> InverseHysteresisNet:
+    """A candidate's model arguments (:attr:`Selection.spec`) fitted on the whole record
+    (:func:`record`), as :func:`select` fits the chosen one: with ``refit=False``, a caller
+    that writes the table first fits it so.
+
+    Raises:
+        FitError: a model family that cannot be fitted to the record.
+    """
+    train, fit, w = data.whole()
+    return fit_candidate(spec, train, fit, warmup=w, dtype=dtype, seed=seed, epochs=epochs,
+                         seconds=seconds)
 

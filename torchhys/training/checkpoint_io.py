@@ -47,7 +47,7 @@ class AtomicCheckpointIO(TorchCheckpointIO):
         """The checkpoint in the local file ``path`` (Lightning's read of ``ckpt_path``, of
         ``best`` and ``hpc``), loaded with ``weights_only=True`` whatever ``weights_only``
         asks: no code from the file runs. A URL (``http://``, ``file://``, ``s3://`` ...) is
-        refused with a :class:`~torchhys.cli.errors.CheckpointError`: nothing is
+        refused with a :class:`~torchhys.checkpoints.CheckpointError`: nothing is
         downloaded (Lightning's loader would load a URL with ``weights_only=False``)."""
         refuse_url(path, "ckpt_path")
         if not os.path.isfile(path):
