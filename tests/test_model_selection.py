@@ -21,8 +21,9 @@ from torchhys.cli.export import main as export_main
 from torchhys.cli.selection import check_candidates, model_arguments
 from torchhys.deploy.export import load_torchscript
 from torchhys.selection import CandidateScore, best, standard_error
+from torchhys.selection.folds import block_split
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
-from torchhys.training.folds import BlockFold, RecordingFold, block_split
+from torchhys.training.folds import BlockFold, RecordingFold
 
 ROOT = Path(__file__).resolve().parents[1]
 

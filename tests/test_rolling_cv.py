@@ -13,15 +13,9 @@ import torch
 from _training_helpers import DROP, LINE, cli, small_config
 
 from torchhys.cli.selection import check_candidates, model_arguments
+from torchhys.selection.folds import block_split, fold_masks, rolling_split
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
-from torchhys.training.folds import (
-    RecordingFold,
-    RollingFold,
-    block_split,
-    cv_fold,
-    fold_masks,
-    rolling_split,
-)
+from torchhys.training.folds import RecordingFold, RollingFold, cv_fold
 from torchhys.training.selection import run_selection
 
 ROOT = Path(__file__).resolve().parents[1]

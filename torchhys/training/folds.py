@@ -21,22 +21,9 @@ from torch.utils.data import DataLoader
 
 from torchhys._checks import check_choice, check_int
 from torchhys.data.tensors import FitTensors
-from torchhys.selection.folds import (  # noqa: F401 (the names this module has always offered)
-    CV_MODES,
-    RECORDING,
-    Fold,
-    _ends,
-    block_split,
-    describe_cv,
-    fold_masks,
-    make_folds,
-    rolling_split,
-)
+from torchhys.selection.folds import CV_MODES, RECORDING, Fold, make_folds
 
-__all__ = [
-    "CV_MODES", "RECORDING", "BlockFold", "RecordingFold", "RollingFold", "block_split",
-    "cv_fold", "describe_cv", "fold_masks", "rolling_split",
-]
+__all__ = ["BlockFold", "RecordingFold", "RollingFold", "cv_fold"]
 
 
 def _one(items: list[Any]) -> Any:

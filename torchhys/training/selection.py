@@ -20,7 +20,7 @@ MSE at the end of training, either
 
 Either cross-validation may instead roll its origin forward (``select_cv_mode="rolling"``,
 :class:`~torchhys.training.folds.RollingFold`,
-:func:`~torchhys.training.folds.rolling_split`): each block (or recording) is validated on a
+:func:`~torchhys.selection.folds.rolling_split`): each block (or recording) is validated on a
 fit of the blocks (recordings) before it only, never of later ones, as the model will be
 used: fitted on the past, run on what comes next. Blocked folds ask a model of a device
 that drifts as it is used (a shape-memory alloy's ratcheting, a piezo's creep) to predict
@@ -55,24 +55,13 @@ from torch import Tensor
 
 from torchhys.identification.errors import FitError
 from torchhys.selection.coverage import warn_coverage
+from torchhys.selection.folds import RECORDING
 from torchhys.selection.run import shared_key
-from torchhys.selection.scores import (  # noqa: F401 (the names this module has always offered)
-    RULES,
-    CandidateScore,
-    best,
-    config_json,
-    format_table,
-    standard_error,
-    write_table,
-)
-from torchhys.training.folds import RECORDING, cv_fold
+from torchhys.selection.scores import CandidateScore, standard_error
+from torchhys.training.folds import cv_fold
 from torchhys.training.readout import direct_validation, solvable
 
-__all__ = [
-    "RULES", "Build", "CandidateScore", "best", "check_holdout",
-    "config_json", "format_table", "run_selection", "standard_error",
-    "write_table",
-]
+__all__ = ["Build", "check_holdout", "run_selection"]
 
 
 Build = Callable[[int, int | None], tuple[L.LightningModule, L.LightningDataModule, L.Trainer]]
