@@ -132,6 +132,28 @@ def test_measured_config_runs_out_of_the_box(monkeypatch, measured_run: Path) ->
     assert any(r.get("test_mse") for r in metrics(root, 1))
 
 
+def test_the_measured_configs_readout_is_its_least_squares_solution(measured_run: Path) -> None:
+    """The chosen candidate's affine readout, as the final run saved it, is the least-squares
+    solution on the training split's scored samples (numpy, float64): fitted once by the
+    selection, not trained again by the run's L-BFGS steps."""
+    module = InverseHysteresisModule.load_from_checkpoint(
+        measured_run / "logs/version_0/checkpoints/last.ckpt", map_location="cpu",
+        weights_only=True)
+    cfg = yaml.safe_load((ROOT / "configs/measured.yaml").read_text())["data"]
+    cfg["path"] = str(ROOT / cfg["path"])
+    dm = HysteresisDataModule(**cfg)
+    dm.setup("fit")
+    x, y, _, mask = dm.batches("train")[0]
+    net = module.net.double()
+    with torch.no_grad():
+        feats = ((net.features(x.double())[0] - net.in_mean) / net.in_std)[mask].numpy()
+        got = net(x.double())[0][mask].numpy()
+    a = np.concatenate([feats, np.ones((feats.shape[0], 1))], 1)
+    t = ((y.double() - net.out_mean) / net.out_std)[mask].numpy()
+    want = (a @ np.linalg.lstsq(a, t, rcond=None)[0]) * float(net.out_std) + float(net.out_mean)
+    assert np.abs(got - want).max() < 1e-9 * np.abs(want).max()
+
+
 @pytest.mark.parametrize("typo", ["config", "command line"])
 def test_config_typo_is_a_clear_error(monkeypatch, capsys, tiny: Path, typo: str,
                                       tmp_path: Path) -> None:

@@ -37,6 +37,11 @@ def _rank_zero_only(method: Any) -> Any:
 
     return wrapped
 
+def _short(s: float) -> str:
+    """Seconds of one candidate: tenths, or thousandths below a tenth."""
+    return f"{s:.1f}" if s >= 0.1 else f"{s:.3f}"
+
+
 def _seconds(s: float) -> str:
     return f"{s:.0f} s" if s < 120 else f"{s / 60:.1f} min"
 
@@ -118,7 +123,7 @@ class SelectionProgress:
             failed = f" (failed: {score.error})" if score.error else " (failed)"
         seconds = score.seconds if math.isfinite(score.seconds) else now - self.last
         self._print(f"candidate {score.index} ({score.index + 1} of {self.n}): val_mse "
-                    f"{score.val_mse:.6g}{failed}{folds}, {seconds:.1f} s: "
+                    f"{score.val_mse:.6g}{failed}{folds}, {_short(seconds)} s: "
                     f"{config_json(score.overrides)}")
         self.last = now
 

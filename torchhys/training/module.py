@@ -167,8 +167,9 @@ class InverseHysteresisModule(L.LightningModule):
         self._last_loss: Tensor | None = None  # of the last training step (check_training)
         self.readout_solved = False
         """Set by ``torchhys fit`` after model selection solved the network's affine readout
-        by least squares (:func:`torchhys.selection.select`): a closure optimizer's fit then
-        takes no step (the solution is its optimum), it only logs and checkpoints."""
+        by least squares (:func:`torchhys.selection.select`): a closure optimizer's step then
+        evaluates the loss without a gradient and stops there (the solution is its optimum),
+        so the fit logs and checkpoints as a trained one, with the weights unchanged."""
 
     # --- checks -------------------------------------------------------------------------
     @property
@@ -283,8 +284,13 @@ class InverseHysteresisModule(L.LightningModule):
             self.manual_backward(loss)  # DDP averages the gradients across ranks
             return self._global_mean(loss.detach())
 
-        if not self.readout_solved:
-            opt.step(closure=closure)
+        if self.readout_solved:  # solved: the step sees no gradient and stops where it is
+            def closure() -> Tensor:
+                opt.zero_grad()
+                with torch.no_grad():
+                    return self._global_mean(F.mse_loss(predict(), y))
+
+        opt.step(closure=closure)
         with torch.no_grad():
             loss = self._global_mean(F.mse_loss(predict(), y))
         self._last_loss = loss
