@@ -12,7 +12,7 @@ import torch
 from torchhys.optim.powell_beale import PowellBealeCG
 
 __all__ = ["CLOSURE_OPTIMIZERS", "OPTIMIZERS", "RESET_OPTIMIZER_KWARGS", "check_optimizer_kwargs",
-           "optimizer_keywords", "unknown_optimizer_kwargs"]
+           "optimizer_arguments", "optimizer_keywords", "unknown_optimizer_kwargs"]
 
 
 OPTIMIZERS: dict[str, type[torch.optim.Optimizer]] = {
@@ -61,3 +61,17 @@ def check_optimizer_kwargs(optimizer: str, optimizer_kwargs: Any) -> None:
             f"optimizer_kwargs {unknown} are not keyword arguments of optimizer={optimizer!r} "
             f"({OPTIMIZERS[optimizer].__name__} takes {optimizer_keywords(optimizer)}); kwargs "
             f"of another optimizer are reset with {RESET_OPTIMIZER_KWARGS}")
+
+
+def optimizer_arguments(optimizer: str, lr: float,
+                        optimizer_kwargs: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The keyword arguments a model's optimizer is built with: its ``optimizer_kwargs``,
+    the model's ``lr`` unless they give one (not for ``cg``, whose line search sets the step),
+    and L-BFGS's strong Wolfe line search unless they name another."""
+    kwargs = dict(optimizer_kwargs or {})
+    if optimizer != "cg":
+        kwargs.setdefault("lr", lr)
+    if optimizer == "lbfgs":
+        kwargs.setdefault("line_search_fn", "strong_wolfe")
+    return kwargs
+

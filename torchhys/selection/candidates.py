@@ -28,7 +28,12 @@ from torchhys._finite import check_normalization
 from torchhys.identification.specs import build_operators, fit_data_dependent
 from torchhys.init import initialize
 from torchhys.networks import InverseHysteresisNet
-from torchhys.optim.named import CLOSURE_OPTIMIZERS, OPTIMIZERS, check_optimizer_kwargs
+from torchhys.optim.named import (
+    CLOSURE_OPTIMIZERS,
+    OPTIMIZERS,
+    check_optimizer_kwargs,
+    optimizer_arguments,
+)
 from torchhys.selection.folds import Batch
 
 __all__ = ["MODEL_DEFAULTS", "build_candidate", "candidate_spec", "fit_candidate",
@@ -105,11 +110,7 @@ def train_full_batch(net: InverseHysteresisNet, spec: Mapping[str, Any], train: 
     """Train ``net`` full batch on the samples ``train.mask`` by the candidate's optimizer:
     ``epochs`` steps (each of up to ``max_iter`` iterations for a closure optimizer), or
     fewer once ``seconds`` have passed; the steps done."""
-    kwargs = dict(spec["optimizer_kwargs"] or {})
-    if spec["optimizer"] != "cg":
-        kwargs.setdefault("lr", spec["lr"])
-    if spec["optimizer"] == "lbfgs":
-        kwargs.setdefault("line_search_fn", "strong_wolfe")
+    kwargs = optimizer_arguments(spec["optimizer"], spec["lr"], spec["optimizer_kwargs"])
     params = [p for p in net.parameters() if p.requires_grad]
     opt = OPTIMIZERS[spec["optimizer"]](params, **kwargs)
     dtype = net.in_mean.dtype

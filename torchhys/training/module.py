@@ -19,7 +19,12 @@ from torchhys._checks import check_choice
 from torchhys._finite import check_learning_rate, check_normalization, check_training
 from torchhys.identification.specs import build_operators, fit_data_dependent
 from torchhys.init import initialize
-from torchhys.optim.named import CLOSURE_OPTIMIZERS, OPTIMIZERS, check_optimizer_kwargs
+from torchhys.optim.named import (
+    CLOSURE_OPTIMIZERS,
+    OPTIMIZERS,
+    check_optimizer_kwargs,
+    optimizer_arguments,
+)
 from torchhys.protocols import check_network
 
 __all__ = ["InverseHysteresisModule"]
@@ -372,11 +377,8 @@ class InverseHysteresisModule(L.LightningModule):
     def configure_optimizers(self) -> Any:
         if not self.automatic_optimization:
             check_closure_trainer(self.trainer, self.optimizer_name)
-        kwargs = dict(self.hparams.get("optimizer_kwargs") or {})
-        if self.optimizer_name != "cg":
-            kwargs.setdefault("lr", self.hparams.get("lr", 1e-2))
-        if self.optimizer_name == "lbfgs":
-            kwargs.setdefault("line_search_fn", "strong_wolfe")
+        kwargs = optimizer_arguments(self.optimizer_name, self.hparams.get("lr", 1e-2),
+                                     self.hparams.get("optimizer_kwargs"))
         params = [p for p in self.parameters() if p.requires_grad]
         if "lr" in kwargs and params:  # one the weights' dtype holds (else a raw overflow)
             check_learning_rate(kwargs["lr"], params[0].dtype, self.optimizer_name)
