@@ -204,7 +204,10 @@ def test_every_model_family_is_registered_beside_its_fit() -> None:
 
 
 def test_import_torchhys_imports_no_lightning() -> None:
+    """``import torchhys``, the C generator, a family's fit and model selection load none of
+    the train extra's packages."""
     code = ("import sys, torchhys, torchhys.deploy.c, torchhys.identification.preisach\n"
+            "import torchhys.selection, torchhys.selection.run\n"
             "bad = [m for m in ('lightning', 'pytorch_lightning', 'jsonargparse', "
             "'torchmetrics', 'matplotlib') if m in sys.modules]\n"
             "assert not bad, bad")

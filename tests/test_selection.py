@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import csv
 import math
-import subprocess
-import sys
 import warnings
 
 import numpy as np
@@ -231,15 +229,6 @@ def test_a_spent_budget_skips_the_later_candidates() -> None:
     result = select([LINE, LINE], x, y, cv=2, budget_s=1e-9, warn_coverage=False)
     assert math.isnan(result.scores[1].val_mse) and "skipped" in result.scores[1].error
     assert result.chosen.index == 0
-
-
-def test_import_torchhys_selection_loads_no_lightning() -> None:
-    code = ("import sys, torchhys.selection\n"
-            "bad = [m for m in ('lightning', 'pytorch_lightning', 'jsonargparse', "
-            "'torchmetrics', 'matplotlib') if m in sys.modules]\n"
-            "assert not bad, bad")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
-    assert proc.returncode == 0, proc.stderr
 
 
 def test_solve_readout_matches_numpy_lstsq_on_two_features() -> None:

@@ -15,7 +15,7 @@ from torchhys.cli.train import read_config
 from torchhys.deploy.streaming import default_limits
 from torchhys.identification.errors import FitError
 from torchhys.selection import select
-from torchhys.selection.candidates import MODEL_DEFAULTS, candidate_spec, fit_candidate
+from torchhys.selection.candidates import candidate_spec, fit_candidate, model_base
 from torchhys.selection.folds import RECORDING
 from torchhys.selection.run import record
 from torchhys.training.module import InverseHysteresisModule
@@ -46,11 +46,6 @@ def _describe(m: dict) -> str:
     return f"{names} + {m['hidden']} {m['activation']}"
 
 
-def _base(m: dict) -> dict:
-    """The model arguments of a config's model section (its selection options left out)."""
-    return {k: m[k] for k in MODEL_DEFAULTS if k in m}
-
-
 def _options(config: Path, budget: Budget) -> dict:
     """:func:`~torchhys.selection.select`'s options as ``torchhys fit`` runs the config
     (its dtype, seed and epochs; the budget's caps on them)."""
@@ -77,7 +72,7 @@ def _score(config: Path, overrides: dict, x: Tensor, y: Tensor, w: int, budget: 
     capped)."""
     _check_rows(x, cv)
     m = _config_model(config)[0]
-    result = select([overrides], x, y, base=_base(m), warmup=w, cv=cv, mode=mode, refit=False,
+    result = select([overrides], x, y, base=model_base(m), warmup=w, cv=cv, mode=mode, refit=False,
                     **_options(config, budget))
     return result.scores[0].val_mse, result.scores[0].val_se, False
 
@@ -96,7 +91,7 @@ def default_net(split: Split, budget: Budget, config: Path = CONFIG
     _check_rows(x, cv)
     options = _options(config, budget)
     try:
-        result = select(candidates, x, y, base=_base(m), warmup=w, cv=cv, mode=mode, rule=rule,
+        result = select(candidates, x, y, base=model_base(m), warmup=w, cv=cv, mode=mode, rule=rule,
                         refit=False, **options)
     except ValueError as err:
         if "NaN" in str(err):
@@ -110,7 +105,7 @@ def default_net(split: Split, budget: Budget, config: Path = CONFIG
     failed, net = 0, None
     for s in order:  # the chosen candidate, or the best one whose refit succeeds
         try:
-            spec = candidate_spec(_base(m), candidates[s.index])
+            spec = candidate_spec(model_base(m), candidates[s.index])
             net = fit_candidate(spec, train, fit, warmup=warmup, dtype=options["dtype"],
                                 seed=options["seed"], epochs=options["epochs"],
                                 seconds=options["seconds"])

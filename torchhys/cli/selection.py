@@ -22,13 +22,13 @@ import torch
 from torch import Tensor
 
 from torchhys._checks import check_choice, check_int
-from torchhys.selection.candidates import MODEL_DEFAULTS, build_candidate, candidate_spec, is_direct
+from torchhys.selection.candidates import build_candidate, candidate_spec, is_direct, model_base
 from torchhys.selection.folds import CV_MODES, RECORDING
 from torchhys.selection.scores import CandidateScore
 from torchhys.training.data import HysteresisDataModule
 
 __all__ = ["ARGUMENTS", "DirectRecord", "check_candidates", "direct_record", "model_arguments",
-           "model_base", "use_solved", "write_fold_logs"]
+           "use_solved", "write_fold_logs"]
 
 _DTYPES = {"64-true": torch.float64, "64": torch.float64, "32-true": torch.float32,
            "32": torch.float32}
@@ -43,12 +43,6 @@ class DirectRecord(NamedTuple):
     mask: Tensor
     dtype: torch.dtype
     source: str
-
-
-def model_base(model: Any) -> dict[str, Any]:
-    """The model arguments of a config's model section that a candidate of
-    :func:`torchhys.selection.select` takes."""
-    return {k: model[k] for k in MODEL_DEFAULTS if k in model}
 
 
 def _one_device(trainer: Any) -> bool:

@@ -76,12 +76,13 @@ from torchhys.cli.errors import TRACEBACK_ENV, config_errors, report_user_error
 from torchhys.cli.negative_numbers import accept_negative_numbers
 from torchhys.cli.quiet import quiet_requested
 from torchhys.cli.run_dirs import RUN_DIR_ENV, reserve_run_dir
-from torchhys.cli.selection import direct_record, model_base, use_solved, write_fold_logs
+from torchhys.cli.selection import direct_record, use_solved, write_fold_logs
 from torchhys.data.files import watch_files
 from torchhys.identification.specs import build_operators
 from torchhys.optim.named import check_optimizer_kwargs
 from torchhys.selection import scores
 from torchhys.selection import select as select_candidates
+from torchhys.selection.candidates import model_base
 from torchhys.selection.coverage import warn_coverage
 from torchhys.selection.folds import describe_cv
 from torchhys.selection.jobs import check_budget, check_jobs, usable_cores

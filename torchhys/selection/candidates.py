@@ -37,7 +37,7 @@ from torchhys.optim.named import (
 from torchhys.selection.folds import Batch
 
 __all__ = ["MODEL_DEFAULTS", "build_candidate", "candidate_spec", "fit_candidate",
-           "is_direct", "solve_readout", "squared_errors", "train_full_batch"]
+           "is_direct", "model_base", "solve_readout", "squared_errors", "train_full_batch"]
 
 MODEL_DEFAULTS: dict[str, Any] = {
     "operator": None, "hidden": 1, "activation": "identity", "operator_kwargs": None,
@@ -47,6 +47,12 @@ MODEL_DEFAULTS: dict[str, Any] = {
 }
 """A candidate's model arguments where it gives none: an affine readout trained by L-BFGS,
 the model section of ``configs/measured.yaml``."""
+
+
+def model_base(model: Mapping[str, Any]) -> dict[str, Any]:
+    """The model arguments of a config's model section that a candidate takes (the keys of
+    :data:`MODEL_DEFAULTS`; the section's selection options and others left out)."""
+    return {k: model[k] for k in MODEL_DEFAULTS if k in model}
 
 
 def candidate_spec(base: Mapping[str, Any] | None, overrides: Mapping[str, Any]) -> dict:

@@ -19,8 +19,7 @@ import torch
 from torch import Tensor
 
 from torchhys.networks import InverseHysteresisNet
-from torchhys.optim.named import CLOSURE_OPTIMIZERS
-from torchhys.selection.candidates import solve_readout
+from torchhys.selection.candidates import is_direct, solve_readout
 from torchhys.selection.folds import Batch
 from torchhys.training.module import InverseHysteresisModule
 
@@ -35,9 +34,8 @@ def solvable(module: Any, datamodule: Any, trainer: Any) -> bool:
     batches; its trainer trains at least one epoch."""
     return (isinstance(module, InverseHysteresisModule)
             and isinstance(module.net, InverseHysteresisNet)
-            and module.hparams.get("activation") == "identity"
-            and module.optimizer_name in CLOSURE_OPTIMIZERS
-            and module._fixed_operators()
+            and is_direct({"activation": module.hparams.get("activation"),
+                           "optimizer": module.optimizer_name}, module.net)
             and hasattr(datamodule, "train_tensors")
             and getattr(trainer, "world_size", 1) == 1
             and (getattr(trainer, "max_epochs", None) or 0) >= 1
