@@ -43,6 +43,7 @@ from torchhys._checks import (
     check_floating,
     check_real,
     check_tensor,
+    checks_values,
 )
 from torchhys.functional.backlash import backlash, check_play_state, play_step
 
@@ -63,7 +64,7 @@ def check_thresholds(thresholds: Tensor) -> None:
         raise ValueError("thresholds must have shape (N,) with N >= 1, got shape "
                          f"{tuple(thresholds.shape)}")
     check_finite(thresholds, "thresholds")
-    if bool((thresholds <= 0).any()):
+    if checks_values(thresholds) and bool((thresholds <= 0).any()):
         raise ValueError("thresholds must be positive, got minimum "
                          f"{thresholds.min().item():.6g}")
 
@@ -191,6 +192,8 @@ def check_invertible(weights: Tensor, linear_weight: Tensor) -> None:
     """
     hint = ("; fit_stop_pi(..., nonnegative=True, min_linear_weight=m) with m > 0 fits a "
             "model with an inverse")
+    if not checks_values(weights, linear_weight):
+        return
     w0 = float(linear_weight)
     if not math.isfinite(w0):
         raise ValueError(f"linear_weight must be finite, got {w0}")

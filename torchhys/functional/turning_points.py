@@ -20,7 +20,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchhys._checks import as_batched_sequence
+from torchhys._checks import as_batched_sequence, checks_values
 
 __all__ = [
     "Branches", "Zigzag", "branches_between", "estimate_threshold", "reversal_ranges",
@@ -173,8 +173,9 @@ def resolve_threshold(threshold: float | str | Tensor, xb: Tensor) -> Tensor:
         return estimate_threshold(xb).detach()[:, None]
     if isinstance(threshold, Tensor):
         th = threshold.detach().to(xb.dtype)
-        ok = th.numel() in (1, xb.shape[0]) and bool(torch.isfinite(th).all())
-        if not ok or bool((th < 0).any()):
+        values = checks_values(th)
+        ok = th.numel() in (1, xb.shape[0]) and (not values or bool(torch.isfinite(th).all()))
+        if not ok or (values and bool((th < 0).any())):
             raise ValueError(
                 f"threshold must be finite, >= 0, with 1 or batch={xb.shape[0]} values, "
                 f"got {threshold!r}"
