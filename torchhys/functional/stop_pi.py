@@ -92,7 +92,8 @@ def _scalar(value: float | Tensor, name: str, like: Tensor) -> Tensor:
         if value.numel() != 1 or value.is_complex():
             raise ValueError(f"{name} must be a finite real number or a one-element real "
                              f"tensor, got a tensor of shape {tuple(value.shape)}")
-        check_real(value.detach(), name)
+        if checks_values(value):
+            check_real(value.detach(), name)
         return value.reshape(()).to(device=like.device, dtype=like.dtype)
     return torch.tensor(check_real(value, name), dtype=like.dtype, device=like.device)
 
