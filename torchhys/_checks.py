@@ -5,7 +5,7 @@ Every public function validates its arguments once, here, and raises a
 
 Checks of a tensor's type, dtype and shape run everywhere. Checks of its values (finite,
 non-negative, ...) read the values on the host, so they run only where the values are there
-to read (:func:`checks_values`): in eager mode on real tensors, not while ``torch.compile``
+to read (:func:`concrete`): in eager mode on real tensors, not while ``torch.compile``
 or ``torch.export`` traces, under ``torch.func.vmap``, or on meta and fake tensors
 (``docs/design.md``, "Which checks run where").
 """
@@ -27,12 +27,13 @@ from torch._subclasses.fake_tensor import is_fake
 _T = TypeVar("_T")
 
 
-def checks_values(*tensors: object) -> bool:
-    """Whether the value checks (finite, non-negative, ...) run on ``tensors``: False while
+def concrete(*tensors: object) -> bool:
+    """Whether ``tensors`` hold concrete values that can be read on the host: False while
     ``torch.compile`` or ``torch.export`` traces, under ``torch.func.vmap``, and for a meta
-    or fake tensor among them (no host sync there: the values are symbolic or absent); True
-    otherwise (eager mode, ``torch.func.grad`` and ``jvp`` included). Arguments that are not
-    tensors are ignored."""
+    or fake tensor among them (the values are symbolic or absent there); True otherwise
+    (eager mode, ``torch.func.grad`` and ``jvp`` included). Arguments that are not tensors
+    are ignored. The value checks (finite, non-negative, ...) run only where it is True, and
+    so do the compiled C kernels (they read the tensors' memory)."""
     if torch.compiler.is_compiling():
         return False
     if torch._C._functorch.peek_interpreter_stack() is not None and any(
@@ -75,8 +76,8 @@ def check_dtype_of(value: Tensor, name: str, dtype: torch.dtype, owner: str) -> 
 
 def check_finite(value: Tensor, name: str) -> Tensor:
     """Raise ``ValueError`` if ``value`` holds a NaN or an infinity (where values are
-    checked: :func:`checks_values`)."""
-    if value.numel() > 0 and checks_values(value) and not bool(torch.isfinite(value).all()):
+    checked: :func:`concrete`)."""
+    if value.numel() > 0 and concrete(value) and not bool(torch.isfinite(value).all()):
         bad = (~torch.isfinite(value)).nonzero()[0].tolist()
         raise ValueError(
             f"{name} must be finite, but it holds NaN or inf (first at index {tuple(bad)})"
@@ -203,7 +204,7 @@ def check_same_shape(a: Tensor, b: Tensor, name_a: str, name_b: str) -> None:
 
 def check_widths(widths: Tensor, name: str = "widths") -> Tensor:
     """Validate dead-band widths: a finite, non-negative floating tensor of shape (N,) (the
-    values where they are checked: :func:`checks_values`)."""
+    values where they are checked: :func:`concrete`)."""
     check_tensor(widths, name)
     check_floating(widths, name)
     if widths.dim() != 1:
@@ -211,7 +212,7 @@ def check_widths(widths: Tensor, name: str = "widths") -> Tensor:
     if widths.numel() == 0:
         raise ValueError(f"{name} must hold at least one width, got an empty tensor")
     check_finite(widths, name)
-    if checks_values(widths) and bool((widths < 0).any()):
+    if concrete(widths) and bool((widths < 0).any()):
         raise ValueError(
             f"{name} must be non-negative, got minimum {widths.min().item():.6g}"
         )
@@ -222,8 +223,8 @@ def check_nonnegative_weights(w: Tensor, name: str, what: str) -> None:
     """Raise ``ValueError`` naming ``name`` unless the weights ``w`` of a constrained model
     (any shape; empty passes) are finite and non-negative; ``what`` completes "must be
     finite and ..." (``">= 0 (a nonnegative Prandtl-Ishlinskii model)"``); where values are
-    checked (:func:`checks_values`)."""
-    if w.numel() and checks_values(w) and not bool((w.isfinite() & (w >= 0)).all()):
+    checked (:func:`concrete`)."""
+    if w.numel() and concrete(w) and not bool((w.isfinite() & (w >= 0)).all()):
         raise ValueError(f"{name} must be finite and {what}, got minimum "
                          f"{w.min().item():.6g}; call project_() before saving")
 

@@ -48,7 +48,7 @@ from torchhys._checks import (
     check_finite,
     check_floating,
     check_tensor,
-    checks_values,
+    concrete,
 )
 from torchhys.functional.turning_points import resolve_threshold, zigzag
 
@@ -322,6 +322,6 @@ def check_a(a: Tensor, per_segment: bool, batch: int) -> Tensor:
         if a.numel() not in (1, 2) or a.dim() > 1:
             raise ValueError(f"a must be a scalar or (ascending, descending), got {tuple(a.shape)}")
         a = a.reshape(-1).expand(2)
-    if checks_values(a) and bool((a <= 0).any()):
+    if concrete(a) and bool((a <= 0).any()):
         raise ValueError(f"a must be positive, got minimum {a.min().item():.6g}")
     return a

@@ -6,6 +6,12 @@ the source with IEEE-exact flags into ``$TORCHHYS_CACHE/kernels`` (default
 ``~/.cache/torchhys``), and every caller falls back to its pure-torch path, with the reason,
 when the kernel is disabled (``TORCHHYS_DISABLE_KERNEL=1``), no compiler is found or the build
 fails.
+
+Each kernel is also a torch custom op (``torch.ops.torchhys.*``, defined beside its kernel)
+whose implementation makes the same choice, at run time: tracing (``torch.compile``,
+``torch.export``), functorch transforms and fake or meta tensors see one opaque op with a
+fake implementation, never the file-system checks, the build or :mod:`ctypes`. Plain eager
+calls skip the dispatcher and call the implementation directly (:func:`dispatched`).
 """
 
 from __future__ import annotations
@@ -17,11 +23,13 @@ import shutil
 import subprocess
 import tempfile
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import torch
 from torch import Tensor
+
+from torchhys._checks import concrete
 
 FLAGS = ["-O2", "-shared", "-fPIC", "-fno-fast-math", "-ffp-contract=off"]
 """Compiler flags: no fast math, no fused multiply-add contraction (results bit-equal to the
@@ -49,9 +57,11 @@ def _compile(compiler: str, name: str, source: str, lib_path: Path) -> None:
 
 def servable(*tensors: Tensor) -> bool:
     """Whether a kernel is built for these tensors: all on the CPU, in a dtype of
-    :data:`SUFFIX` (float32 or float64). Whether it is switched on and built is the caller's
-    check."""
-    return all(t.device.type == "cpu" and t.dtype in SUFFIX for t in tensors)
+    :data:`SUFFIX` (float32 or float64), with concrete values (not traced, batched by vmap,
+    meta or fake: :func:`torchhys._checks.concrete`). Whether it is switched on and built is
+    the caller's check."""
+    return all(t.device.type == "cpu" and t.dtype in SUFFIX for t in tensors) and concrete(
+        *tensors)
 
 
 def build(name: str, source: str, *, what: str, fallback: str,
@@ -88,3 +98,29 @@ def build(name: str, source: str, *, what: str, fallback: str,
         for suffix in SUFFIX.values():
             getattr(lib, f"{stem}_{suffix}").argtypes = list(types)
     return lib, None
+
+
+def dispatched(*tensors: Tensor) -> bool:
+    """Whether a kernel call must go through its custom op (``torch.ops.torchhys.*``) rather
+    than call the implementation directly: while Dynamo or export traces, under a functorch
+    transform (``vmap``, ``grad``), and for fake, meta or subclassed tensors. Plain eager
+    tensors take the direct call (no dispatcher overhead)."""
+    if torch.compiler.is_compiling():
+        return True
+    wrapped = torch._C._functorch.is_functorch_wrapped_tensor
+    return any(type(t) not in (Tensor, torch.nn.Parameter) or t.is_meta or wrapped(t)
+               for t in tensors)
+
+
+def loop_vmap(op: Callable[..., object]) -> None:
+    """Register a ``vmap`` rule on a custom op that calls it once per batch entry and stacks
+    the results along dim 0 (its tensor arguments are batched any way: inputs, parameters or
+    both)."""
+    def rule(info, in_dims, *args):  # noqa: ANN001, ANN002, ANN202
+        outs = [op(*(a if d is None else a.select(d, v)
+                     for a, d in zip(args, in_dims, strict=True)))
+                for v in range(info.batch_size)]
+        if isinstance(outs[0], tuple):
+            return tuple(torch.stack(o) for o in zip(*outs, strict=True)), (0,) * len(outs[0])
+        return torch.stack(outs), 0
+    op.register_vmap(rule)  # type: ignore[attr-defined]

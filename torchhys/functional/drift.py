@@ -39,7 +39,7 @@ from torchhys._checks import (
     check_finite,
     check_floating,
     check_tensor,
-    checks_values,
+    concrete,
     sequence_batch,
 )
 
@@ -58,7 +58,7 @@ def check_scales(scales: Tensor) -> None:
     if scales.dim() != 1 or scales.shape[0] == 0:
         raise ValueError(f"scales must have shape (K,) with K >= 1, got shape "
                          f"{tuple(scales.shape)}")
-    if checks_values(scales) and not bool((scales.isfinite() & (scales > 0)).all()):
+    if concrete(scales) and not bool((scales.isfinite() & (scales > 0)).all()):
         raise ValueError(f"scales must be finite and positive (saturation scales in input "
                          f"units), got {scales.tolist()}")
 
@@ -81,7 +81,7 @@ def check_drift_state(state: Tensor | None, x: Tensor, name: str = "state") -> N
                          f"accumulated variation) for batch {B}, got shape "
                          f"{tuple(state.shape)}")
     check_finite(state, name)
-    if checks_values(state) and bool((state[..., 1] < 0).any()):
+    if concrete(state) and bool((state[..., 1] < 0).any()):
         raise ValueError(f"{name}: the accumulated variation (column 1) must be >= 0, got "
                          f"{state[..., 1].min().item():.6g}")
 

@@ -47,7 +47,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchhys._checks import check_finite, check_floating, check_tensor, checks_values
+from torchhys._checks import check_finite, check_floating, check_tensor, concrete
 from torchhys.functional._filter_kernel import (
     MAX_FUSED_ORDER,
     df2t_adjoint_kernel,
@@ -188,7 +188,7 @@ def _check_sequence(x: Tensor, name: str, min_dim: int = 1) -> None:
         layout = "(..., time)" if min_dim == 1 else "(..., time, n)"
         raise ValueError(f"{name} must have shape {layout} with time >= 1, got shape "
                          f"{tuple(x.shape)}")
-    if checks_values(x) and not bool(torch.isfinite(x.detach().sum())):  # a NaN or inf
+    if concrete(x) and not bool(torch.isfinite(x.detach().sum())):  # a NaN or inf
         check_finite(x, name)  # makes the sum non-finite: the full check names it (or passes
         # if the sum overflowed)
 
@@ -266,7 +266,7 @@ def lfilter(x: Tensor, b: Tensor, a: Tensor, *, state: Tensor | None = None
     _check_sequence(x, "x")
     b = _filters(b, "b", x)
     a = _filters(a, "a", x)
-    if checks_values(a) and bool((a[:, 0] == 0).any()):
+    if concrete(a) and bool((a[:, 0] == 0).any()):
         bad = a[(a[:, 0] == 0).nonzero()[0, 0]]
         raise ValueError(f"a[0] must be non-zero (it weights the current output y[t]), got "
                          f"a = {bad.tolist()}")

@@ -12,7 +12,7 @@ from torchhys._checks import (
     check_floating,
     check_tensor,
     check_widths,
-    checks_values,
+    concrete,
 )
 from torchhys.functional.backlash import backlash
 
@@ -129,7 +129,7 @@ def prandtl_ishlinskii_inverse_parameters(
     r = 0.5 * widths[order]
     w = weights[order]
     slopes = torch.cat([w0.reshape(1), w0 + torch.cumsum(w, 0)])
-    if checks_values(slopes) and bool((slopes <= 0).any()):
+    if concrete(slopes) and bool((slopes <= 0).any()):
         j = int((slopes <= 0).nonzero()[0])
         raise ValueError(
             "the Prandtl-Ishlinskii model has no inverse: its initial loading curve must be "

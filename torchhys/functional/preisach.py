@@ -60,7 +60,7 @@ from torchhys._checks import (
     check_finite,
     check_floating,
     check_tensor,
-    checks_values,
+    concrete,
     sequence_batch,
 )
 
@@ -390,7 +390,7 @@ def _check_inputs(
     if alpha.shape != beta.shape:
         raise ValueError(f"alpha and beta must have the same shape, got {tuple(alpha.shape)} "
                          f"and {tuple(beta.shape)}")
-    if checks_values(alpha, beta) and bool((alpha < beta).any()):
+    if concrete(alpha, beta) and bool((alpha < beta).any()):
         k = int((alpha < beta).nonzero()[0])
         raise ValueError(f"alpha must be >= beta for every relay, got alpha[{k}]="
                          f"{alpha[k].item():.6g} < beta[{k}]={beta[k].item():.6g}")
@@ -408,7 +408,7 @@ def _check_relays(r0: Tensor, B: int, K: int, name: str) -> None:
     if r0.shape not in ((K,), (B, K)):
         raise ValueError(f"{name} must have shape ({K},) or ({B}, {K}), got shape "
                          f"{tuple(r0.shape)}")
-    if checks_values(r0) and not bool(((r0 == 1) | (r0 == -1)).all()):
+    if concrete(r0) and not bool(((r0 == 1) | (r0 == -1)).all()):
         raise ValueError(f"{name} must hold relay values +1 or -1 only")
 
 

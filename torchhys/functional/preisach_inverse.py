@@ -11,7 +11,7 @@ import math
 import torch
 from torch import Tensor
 
-from torchhys._checks import check_tensor, checks_values
+from torchhys._checks import check_tensor, concrete
 from torchhys.functional._preisach_kernel import inverse_kernel, inverse_kernel_available
 from torchhys.functional.preisach import (
     _check_inputs,
@@ -38,7 +38,7 @@ def check_preisach_invertible(weights: Tensor, linear: Tensor) -> None:
     Raises:
         ValueError: naming ``weights`` or ``linear``.
     """
-    if not checks_values(weights, linear):
+    if not concrete(weights, linear):
         return
     if not bool(torch.isfinite(weights).all()) or bool((weights < 0).any()):
         raise ValueError("weights must be finite and non-negative (a Preisach density) for "

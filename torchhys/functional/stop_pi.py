@@ -43,7 +43,7 @@ from torchhys._checks import (
     check_floating,
     check_real,
     check_tensor,
-    checks_values,
+    concrete,
 )
 from torchhys.functional.backlash import backlash, check_play_state, play_step
 
@@ -64,7 +64,7 @@ def check_thresholds(thresholds: Tensor) -> None:
         raise ValueError("thresholds must have shape (N,) with N >= 1, got shape "
                          f"{tuple(thresholds.shape)}")
     check_finite(thresholds, "thresholds")
-    if checks_values(thresholds) and bool((thresholds <= 0).any()):
+    if concrete(thresholds) and bool((thresholds <= 0).any()):
         raise ValueError("thresholds must be positive, got minimum "
                          f"{thresholds.min().item():.6g}")
 
@@ -92,7 +92,7 @@ def _scalar(value: float | Tensor, name: str, like: Tensor) -> Tensor:
         if value.numel() != 1 or value.is_complex():
             raise ValueError(f"{name} must be a finite real number or a one-element real "
                              f"tensor, got a tensor of shape {tuple(value.shape)}")
-        if checks_values(value):
+        if concrete(value):
             check_real(value.detach(), name)
         return value.reshape(()).to(device=like.device, dtype=like.dtype)
     return torch.tensor(check_real(value, name), dtype=like.dtype, device=like.device)
@@ -193,7 +193,7 @@ def check_invertible(weights: Tensor, linear_weight: Tensor) -> None:
     """
     hint = ("; fit_stop_pi(..., nonnegative=True, min_linear_weight=m) with m > 0 fits a "
             "model with an inverse")
-    if not checks_values(weights, linear_weight):
+    if not concrete(weights, linear_weight):
         return
     w0 = float(linear_weight)
     if not math.isfinite(w0):

@@ -20,7 +20,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchhys._checks import as_batched_sequence, checks_values
+from torchhys._checks import as_batched_sequence, concrete
 
 __all__ = [
     "Branches", "Zigzag", "branches_between", "estimate_threshold", "reversal_ranges",
@@ -173,7 +173,7 @@ def resolve_threshold(threshold: float | str | Tensor, xb: Tensor) -> Tensor:
         return estimate_threshold(xb).detach()[:, None]
     if isinstance(threshold, Tensor):
         th = threshold.detach().to(xb.dtype)
-        values = checks_values(th)
+        values = concrete(th)
         ok = th.numel() in (1, xb.shape[0]) and (not values or bool(torch.isfinite(th).all()))
         if not ok or (values and bool((th < 0).any())):
             raise ValueError(

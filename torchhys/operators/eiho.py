@@ -10,7 +10,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-from torchhys._checks import as_batched_sequence, check_choice, checks_values
+from torchhys._checks import as_batched_sequence, check_choice, concrete
 from torchhys.functional._branch import BranchState, SquareRoot, ZhaoTanShape
 from torchhys.functional.eiho import eiho, zhao_tan
 from torchhys.functional.turning_points import estimate_threshold
@@ -141,7 +141,7 @@ class _TurningPointOperator(HysteresisOperator):
         return th
 
     def _threshold(self) -> Tensor:
-        if checks_values(self.threshold) and bool(torch.isnan(self.threshold)):
+        if concrete(self.threshold) and bool(torch.isnan(self.threshold)):
             raise ValueError(
                 "threshold='auto' is not calibrated yet: call calibrate_threshold(x) on "
                 "representative data first (a per-chunk estimate would break streaming)"
