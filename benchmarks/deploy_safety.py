@@ -10,7 +10,7 @@ is scored on the held-out recordings four ways:
   only (``direction="none"``: the input clamped to the training input range widened by 5 %);
 - ``guard``: with the direction guard only (``input_margin=None``);
 - ``both``: as ``torchhys export`` deploys it by default (the clamp, and the guard where the
-  training data have a clear trend, :data:`~torchhys.deploy.streaming.MIN_TREND`);
+  training data have a clear trend, :data:`~torchhys.deploy.ranges.MIN_TREND`);
 - ``forced guard``: the guard alone forced on in the direction of the trend's sign, however
   weak the trend (``--direction increasing`` or ``decreasing``).
 
@@ -36,7 +36,8 @@ from pathlib import Path
 import torch
 
 from benchmarks import real_data as rd
-from torchhys.deploy.streaming import StreamingCompensator, default_limits
+from torchhys.deploy.ranges import default_limits
+from torchhys.deploy.streaming import StreamingCompensator
 
 VARIANTS = {"clamp": {"direction": "none"}, "guard": {"input_margin": None}, "both": {}}
 """The compensator's options of each scored variant beside ``saturated``."""

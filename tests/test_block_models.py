@@ -14,16 +14,16 @@ from torchhys.dynamics import TransferFunction
 from torchhys.models import (
     BENCHMARK,
     BoucWenOscillator,
-    DuhemHysteresis,
     HysteresisFeedback,
     LinearModel,
-    PlayHysteresis,
     fit_linear,
     fit_windows,
     init_from_linear,
     simulate,
 )
 from torchhys.models.bouc_wen_oscillator import _NODES, _lagrange
+from torchhys.operators.duhem import DuhemHysteresis
+from torchhys.operators.play_hysteresis import PlayHysteresis
 from torchhys.plants import bouc_wen_state
 from torchhys.registry import make_operator
 

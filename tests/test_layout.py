@@ -342,6 +342,79 @@ def test_private_modules_define_no_all_and_public_alls_hold_no_private_names() -
     assert bad == []
 
 
+def second_paths(module: str, package: bool, source: str) -> list[str]:
+    """The names of ``module``'s ``__all__`` that it imports from another torchhys module
+    that is not inside it: a second public path for a name whose home is elsewhere. The
+    top-level face ``torchhys`` and a package that lists its own submodules' names are one
+    home and its package, not a second path."""
+    base = module if package else module.rpartition(".")[0]
+    tree = ast.parse(source)
+    origin: dict[str, str] = {}
+    names: list[str] = []
+    for node in tree.body:
+        if isinstance(node, ast.ImportFrom):
+            src = node.module or ""
+            if node.level:
+                up = base.split(".")[:len(base.split(".")) - node.level + 1]
+                src = ".".join(up + ([src] if src else []))
+            for alias in node.names:
+                origin[alias.asname or alias.name] = src
+        elif isinstance(node, ast.Assign) and any(
+                isinstance(t, ast.Name) and t.id == "__all__" for t in node.targets):
+            names = ast.literal_eval(node.value)
+    if module == "torchhys":
+        return []
+    return [f"{module}.{n} (from {origin[n]})" for n in names
+            if origin.get(n, "").startswith("torchhys")
+            and not (package and origin[n].startswith(f"{module}."))]
+
+
+def test_the_second_path_finder_finds_a_name_from_elsewhere() -> None:
+    source = ("from torchhys.a.b import X, Y as Z\nfrom .c import W\nfrom torchhys.q import V\n"
+              "__all__ = ['V', 'W', 'X', 'Z']\n")
+    assert second_paths("torchhys.a", True, source) == ["torchhys.a.V (from torchhys.q)"]
+    assert second_paths("torchhys.a.m", False, source) == [
+        "torchhys.a.m.V (from torchhys.q)", "torchhys.a.m.W (from torchhys.a.c)",
+        "torchhys.a.m.X (from torchhys.a.b)", "torchhys.a.m.Z (from torchhys.a.b)"]
+
+
+def test_every_public_name_has_one_public_path() -> None:
+    """No public module lists in its ``__all__`` a name whose home is a module outside it
+    (``torchhys.models.DuhemHysteresis`` was a second path to the operator's): beside the
+    top-level face, a name is listed by its home and the packages above it only."""
+    bad = [entry for name, path in modules().items() if not _private(name)
+           for entry in second_paths(name, path.name == "__init__.py", path.read_text())]
+    assert bad == []
+
+
+def test_an_earlier_path_warns_and_names_the_home() -> None:
+    """The earlier public paths of names that moved still give the same object, with a
+    DeprecationWarning that names the one home; a name that never was there is an
+    AttributeError."""
+    import importlib
+
+    import pytest
+
+    moved = {"torchhys.models": {"DuhemHysteresis": "torchhys.operators.duhem",
+                                 "PlayHysteresis": "torchhys.operators.play_hysteresis"},
+             "torchhys.deploy.export_c": {"to_c": "torchhys.deploy.c",
+                                          "check_prefix": "torchhys.deploy.c",
+                                          "DEFAULT_PREFIX": "torchhys.deploy.c"},
+             "torchhys.deploy.streaming": dict.fromkeys(
+                 ("DIRECTIONS", "MIN_TREND", "default_direction", "default_input_range",
+                  "default_limits"), "torchhys.deploy.ranges")}
+    for old, names in moved.items():
+        module = importlib.import_module(old)
+        for name, home in names.items():
+            assert name not in getattr(module, "__all__", [])
+            with pytest.warns(DeprecationWarning, match=rf"^{old}\.{name} is deprecated: "
+                                                        rf"use {home}\.{name} "):
+                value = getattr(module, name)
+            assert value is getattr(importlib.import_module(home), name)
+        with pytest.raises(AttributeError, match=f"module '{old}' has no attribute 'nothing'"):
+            module.nothing  # noqa: B018
+
+
 MAX_TORCHHYS_MODULES = 62
 """``import torchhys`` loads at most this many torchhys modules (docs/benchmarks.md)."""
 

@@ -12,12 +12,8 @@ from _helpers import RAW
 
 from torchhys import InverseHysteresisNet
 from torchhys.deploy.export import load_torchscript, metadata, to_torchscript
-from torchhys.deploy.streaming import (
-    MIN_TREND,
-    StreamingCompensator,
-    default_direction,
-    default_input_range,
-)
+from torchhys.deploy.ranges import MIN_TREND, default_direction, default_input_range
+from torchhys.deploy.streaming import StreamingCompensator
 
 
 def loop(sign: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:

@@ -17,7 +17,8 @@ from torchhys import (
     SegmentEIHO,
     ZhaoTanOperator,
 )
-from torchhys.deploy.streaming import StreamingCompensator, default_limits
+from torchhys.deploy.ranges import default_limits
+from torchhys.deploy.streaming import StreamingCompensator
 from torchhys.functional import NonCausalWarning
 
 

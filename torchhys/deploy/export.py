@@ -128,7 +128,7 @@ def to_torchscript(
         path: output file (conventionally ``.pt``), written atomically: an old file there
             is replaced whole or, on an error (a full disk), left as it was.
         limits: ``(low, high)`` command saturation; default: the training output range
-            (:func:`~torchhys.deploy.streaming.default_limits`).
+            (:func:`~torchhys.deploy.ranges.default_limits`).
         initial_command: command held until the first finite input.
         input_range, input_margin, direction: the input clamp and the direction guard, as
             :class:`~torchhys.deploy.streaming.StreamingCompensator` (defaults: its defaults, the

@@ -17,9 +17,10 @@ default) before the model sees it, and counted when it lay outside
 (:meth:`StreamingCompensator.out_of_range_count`): the model never extrapolates past what it
 was trained on. The command never moves against the model's direction (``direction``: by
 default the sign of the target's trend in the input, recorded when the network's
-normalization was fitted, where that trend is clear: :func:`default_direction`): while the
-(clamped) input rises, the command of a rising compensator does not fall, while it falls the
-command does not rise, and while it stays the command stays. On a model that is monotone in
+normalization was fitted, where that trend is clear:
+:func:`~torchhys.deploy.ranges.default_direction`): while the (clamped) input rises, the
+command of a rising compensator does not fall, while it falls the command does not rise, and
+while it stays the command stays. On a model that is monotone in
 its current input this guard changes nothing; on one that is not, it holds the command where
 the model would turn the wrong way.
 
@@ -51,24 +52,20 @@ import torch
 from torch import Tensor, nn
 
 from torchhys._checks import check_real
+from torchhys._deprecated import moved as _moved
 from torchhys.deploy._threads import StepLock
-from torchhys.deploy.ranges import (
-    DIRECTIONS,
-    MIN_TREND,
-    _check_limits,
-    _direction,
-    _input_bounds,
-    default_direction,
-    default_input_range,
-    default_limits,
-)
+from torchhys.deploy.ranges import _check_limits, _direction, _input_bounds
+from torchhys.deploy.ranges import default_limits as _default_limits
 from torchhys.protocols import check_deployable
 from torchhys.step import STATE_KINDS, OperatorStep, check_step, custom_start
 
-__all__ = [
-    "COUNTER", "DIRECTIONS", "HELD", "MIN_TREND", "STARTED", "STATE_F", "STATE_F64", "STATE_I",
-    "StreamingCompensator", "default_direction", "default_input_range", "default_limits",
-]
+__all__ = ["COUNTER", "HELD", "STARTED", "STATE_F", "STATE_F64", "STATE_I", "StreamingCompensator"]
+
+# the limits, input range and direction of a model live in torchhys.deploy.ranges; their
+# earlier path here still works, with a DeprecationWarning
+__getattr__ = _moved(__name__, dict.fromkeys(
+    ("DIRECTIONS", "MIN_TREND", "default_direction", "default_input_range", "default_limits"),
+    "torchhys.deploy.ranges"))
 
 
 #: index of each state tensor in the state list
@@ -134,16 +131,17 @@ class StreamingCompensator(nn.Module):
         model: a trained :class:`~torchhys.InverseHysteresisNet` (causal operators only), a
             :class:`~torchhys.PrandtlIshlinskiiInverse`, or any module with
             ``streaming_steps(dtype)`` and ``streaming_head(dtype)``. Parameters are copied.
-        limits: ``(low, high)`` saturation of the command; default :func:`default_limits`.
+        limits: ``(low, high)`` saturation of the command; default
+            :func:`~torchhys.deploy.ranges.default_limits`.
         initial_command: command held before the first finite input (saturated).
         input_range: ``(low, high)`` of the training input; default: the model's recorded
-            range (:func:`default_input_range`; none recorded: no clamp).
+            range (:func:`~torchhys.deploy.ranges.default_input_range`; none recorded: no clamp).
         input_margin: the input is clamped to ``input_range`` widened by this share of its
             width on each side (default 0.05); None: no clamp.
         direction: ``"auto"`` (default: the model's recorded direction where the training
-            data have a clear one, :func:`default_direction`; else no guard), ``"increasing"``,
-            ``"decreasing"`` (the command never moves against the input's direction, resp.
-            with it), or ``"none"`` (no guard).
+            data have a clear one, :func:`~torchhys.deploy.ranges.default_direction`; else
+            no guard), ``"increasing"``, ``"decreasing"`` (the command never moves against
+            the input's direction, resp. with it), or ``"none"`` (no guard).
 
     Methods (all exported):
         ``forward(x)``: x (time,) or (batch, time) -> u of the same shape, from a fresh state
@@ -197,7 +195,7 @@ class StreamingCompensator(nn.Module):
         steps = [check_step(s, f"streaming step {i}")
                  for i, s in enumerate(model.streaming_steps(dtype))]
         self.head = model.streaming_head(dtype)
-        low, high = _check_limits(default_limits(model) if limits is None else limits)
+        low, high = _check_limits(_default_limits(model) if limits is None else limits)
         self.register_buffer("low", torch.tensor(low, dtype=dtype))
         self.register_buffer("high", torch.tensor(high, dtype=dtype))
         u0 = min(max(check_real(initial_command, "initial_command"), low), high)
