@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from torchhys.data.files import DataFileError, read_record, read_recordings
+from torchhys.data.files import read_record, read_recordings
+from torchhys.data.tables import DataFileError
 from torchhys.training import HysteresisDataModule
 
 N = 24

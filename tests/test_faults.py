@@ -28,7 +28,8 @@ from _training_helpers import cli, small_config, trainer
 from lightning.pytorch.callbacks import ModelCheckpoint
 
 from torchhys import InverseHysteresisNet
-from torchhys.data.files import DataFileError, read_recordings
+from torchhys.data.files import read_recordings
+from torchhys.data.tables import DataFileError
 from torchhys.deploy.export import load_torchscript, to_torchscript
 from torchhys.deploy.streaming import StreamingCompensator
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule

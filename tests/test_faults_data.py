@@ -16,7 +16,8 @@ import torch
 
 from torchhys import fit_preisach
 from torchhys._memory import MEMORY_ENV, memory_limit
-from torchhys.data.files import DataFileError, read_recordings
+from torchhys.data.files import read_recordings
+from torchhys.data.tables import DataFileError
 from torchhys.identification.specs import build_operators
 from torchhys.training import HysteresisDataModule
 

@@ -360,7 +360,7 @@ def test_the_cli_reports_a_diverged_fit_in_one_line(tmp_path: Path, monkeypatch,
 def test_data_near_1e300_are_refused_when_read(tmp_path: Path) -> None:
     import numpy as np
 
-    from torchhys.data.files import DataFileError
+    from torchhys.data.tables import DataFileError
     from torchhys.training import HysteresisDataModule
 
     t = np.linspace(0, 20, 400)

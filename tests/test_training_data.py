@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from torchhys.data.files import DataFileError, read_record
+from torchhys.data.files import read_record
+from torchhys.data.tables import DataFileError
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples/data/bouc_wen.csv"

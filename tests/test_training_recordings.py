@@ -15,7 +15,8 @@ import torch
 from _training_helpers import DROP, small_config, trainer
 
 from torchhys.cli.main import main
-from torchhys.data.files import DataFileError, read_recordings
+from torchhys.data.files import read_recordings
+from torchhys.data.tables import DataFileError
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 
 torch.set_num_threads(1)

@@ -20,21 +20,14 @@ from typing import NamedTuple
 import numpy as np
 
 from torchhys.data.tables import (
-    DECIMALS,
-    DELIMITERS,
     Column,
     DataFileError,
     RecordingId,
     _Table,
     check_text_options,
-    recording_id,
 )
 
-__all__ = [
-    "DECIMALS", "DELIMITERS", "Column", "DataFileError", "Record", "Recording", "RecordingId",
-    "check_text_options", "read_record", "read_recordings", "recording_id", "resolve_path",
-    "watch_files",
-]
+__all__ = ["Record", "Recording", "read_record", "read_recordings", "resolve_path", "watch_files"]
 
 
 class Record(NamedTuple):

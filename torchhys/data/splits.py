@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import NamedTuple
 
-from torchhys.data.files import RecordingId, recording_id
+from torchhys.data.tables import RecordingId, recording_id
 
 __all__ = ["STAGES", "Window", "assign_recordings", "check_split"]
 

@@ -33,7 +33,7 @@ from lightning.fabric.utilities.cloud_io import _is_local_file_protocol
 from torchhys._atomic import atomic_write_bytes
 from torchhys.checkpoints import refuse_url
 
-__all__ = ["AtomicCheckpointIO", "atomic_write_bytes"]
+__all__ = ["AtomicCheckpointIO"]
 
 
 class AtomicCheckpointIO(TorchCheckpointIO):

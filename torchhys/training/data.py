@@ -23,17 +23,10 @@ from torch.utils.data import DataLoader, Dataset
 from torchhys._checks import check_choice, check_int
 from torchhys._finite import check_scale
 from torchhys._memory import check_repeat
-from torchhys.data.files import (
-    Column,
-    DataFileError,
-    Recording,
-    RecordingId,
-    check_text_options,
-    read_recordings,
-    resolve_path,
-)
+from torchhys.data.files import Recording, read_recordings, resolve_path
 from torchhys.data.simulations import SIMULATIONS, simulate
 from torchhys.data.splits import STAGES, Window, assign_recordings, check_split
+from torchhys.data.tables import Column, DataFileError, RecordingId, check_text_options
 from torchhys.data.tensors import (
     FitTensors,
     StageBatch,
@@ -137,7 +130,7 @@ class HysteresisDataModule(L.LightningDataModule):
             ``delimiter`` or ``decimal`` (named ``data.<option>``); recording lists with
             ``split_by="time"``; ``run_column`` without ``path``; at :meth:`setup`, an
             empty split, an unknown recording id, too few samples in a split.
-        torchhys.data.files.DataFileError: problems in a file (names file, column and
+        torchhys.data.tables.DataFileError: problems in a file (names file, column and
             row or recording), a recording not longer than its warm-up; at
             :meth:`train_tensors`, a constant input or target column over the training
             split (names the files and the column option).
