@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from _training_helpers import DROP, cli, small_config, trainer
+from _training_helpers import DROP, LINE, cli, small_config, trainer
 
 from torchhys.cli.export import main as export_main
 from torchhys.cli.selection import check_candidates, model_arguments
@@ -552,3 +552,63 @@ def test_quiet_prints_no_progress(monkeypatch, capsys, tmp_path) -> None:
     assert not [line for line in out.splitlines() if line.startswith("candidate ")]
     assert "torch threads" not in err
     assert "selected candidate" in out  # the result is still printed
+
+
+# --- a hold-out of solved candidates ------------------------------------------------------
+SOLVED = {"trainer": {"max_epochs": 3},
+          "model": {**LINE, "init": "default", "select_cv": DROP,
+                    "select": [{"operator": None},
+                               {"operator": [{"fit": "stop_pi", "n_widths": 8, "power": 2.0,
+                                              "segments": 2}]}]},
+          "data": {"simulation": "paper", "t_end": 6.3, "split": [0.6, 0.2, 0.2],
+                   "warmup": 10}}
+"""A hold-out (``select_cv`` left out) of two candidates whose affine readouts are solved:
+the line and a stop-type PI model."""
+
+
+def test_a_holdout_of_solved_candidates_is_the_least_squares_reference(monkeypatch,
+                                                                       tmp_path) -> None:
+    """``select_cv: null`` with affine readouts goes through :func:`torchhys.selection.select`
+    (no Lightning run per candidate) on the datamodule's own split: the line's val_mse is
+    numpy's least-squares line on the training samples ``[warmup, round(0.6 n))``, scored on
+    ``[round(0.6 n), round(0.8 n))``; and the final fit saves the chosen readout as the
+    least-squares solution on the training split (not trained again: the normal equations
+    hold to rounding)."""
+    import torchhys.training.selection as lightning_selection
+    from torchhys.data.simulations import simulate
+
+    def refused(*args, **kwargs):
+        raise AssertionError("a Lightning run per candidate")
+
+    monkeypatch.setattr(lightning_selection, "run_selection", refused)
+    root = tmp_path / "run"
+    cfg = small_config(tmp_path, "solved.yaml", **SOLVED)
+    cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={root}")
+    rows = table(root)
+    _, x, y = simulate("paper", dt=0.01, t_end=6.3)
+    xn, yn, n = x.numpy(), y.numpy(), x.numel()
+    a, b = round(0.6 * n), round(0.8 * n)
+    design = np.stack([xn[10:a], np.ones(a - 10)], 1)
+    c = np.linalg.lstsq(design, yn[10:a], rcond=None)[0]
+    errors = (c[0] * xn[a:b] + c[1] - yn[a:b]) ** 2
+    assert float(rows[0]["val_mse"]) == pytest.approx(errors.mean(), rel=1e-10)
+    assert float(rows[0]["val_se"]) == pytest.approx(
+        standard_error(torch.from_numpy(errors)), rel=1e-10)
+    assert all(not r["error"] for r in rows) and "fold_1" not in rows[0]
+    logs = sorted((root / "logs/version_0/selection").rglob("metrics.csv"))
+    assert [p.relative_to(root / "logs/version_0/selection").parts[0] for p in logs] == [
+        "candidate_0", "candidate_1"]
+
+    chosen = int(next(r["candidate"] for r in rows if r["selected"] == "1"))
+    module = InverseHysteresisModule.load_from_checkpoint(
+        root / "logs/version_0/checkpoints/last.ckpt", weights_only=True)
+    assert module.hparams["operator"] == SOLVED["model"]["select"][chosen]["operator"]
+    net = module.net.double()
+    with torch.no_grad():
+        z = ((net.features(x[None, :a])[0] - net.in_mean) / net.in_std)[0, 10:].numpy()
+        got = net(x[None, :a])[0][0, 10:].numpy()
+    design = np.concatenate([z, np.ones((z.shape[0], 1))], 1)
+    t = ((y[10:a] - net.out_mean) / net.out_std).numpy()
+    want = (design @ np.linalg.lstsq(design, t, rcond=None)[0]) * float(net.out_std) + float(
+        net.out_mean)
+    assert np.abs(got - want).max() < 1e-12 * np.abs(want).max()

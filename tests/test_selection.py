@@ -300,3 +300,27 @@ def test_record_options_that_do_not_fit_together_are_one_line_errors() -> None:
         select([LINE], x, y, warmup=2.7, warn_coverage=False)
     with pytest.raises(ValueError, match="mode='rolling' needs cv"):
         select([LINE], x, y, cv=None, mode="rolling", warn_coverage=False)
+
+
+def test_a_validation_record_of_its_own_equals_numpy() -> None:
+    """``val=record(...)``: fitted on the whole training record, scored on the validation
+    rows' own samples, each row running through its training part first (a time split):
+    numpy's least-squares line on ``[w, cut)``, scored on ``[cut, T)``."""
+    from torchhys.selection.run import record
+
+    x, y = _record(T=400)
+    w, cut = 20, 300
+    val_mask = torch.zeros(1, 400, dtype=torch.bool)
+    val_mask[0, cut:] = True
+    res = select([LINE, STOPS], x[:, :cut], y[:, :cut], warmup=w, cv=None,
+                 val=record(x, y, mask=val_mask), warn_coverage=False)
+    xn, yn = x[0].numpy(), y[0].numpy()
+    fit = np.zeros(400, bool)
+    fit[w:cut] = True
+    e = _line_fold_errors(xn, yn, fit, ~fit & (np.arange(400) >= cut))
+    assert res.scores[0].val_mse == pytest.approx(e.mean(), rel=1e-10)
+    assert res.scores[0].folds == () and res.describe() == "the validation split"
+    assert res.scores[1].val_mse < res.scores[0].val_mse  # the loop beats the line
+    with pytest.raises(ValueError, match=r"val .* needs cv=None and mode=None, got cv=4"):
+        select([LINE], x[:, :cut], y[:, :cut], cv=4, val=record(x, y, mask=val_mask),
+               warn_coverage=False)

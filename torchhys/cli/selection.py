@@ -2,11 +2,12 @@
 fitted by :func:`torchhys.selection.select` on the training split, where every candidate's
 readout is solved by least squares (the fitted model families of ``configs/measured.yaml``).
 
-:func:`direct_record` says whether a run is of that kind and reads its training split once;
-the command then calls :func:`torchhys.selection.select` and hands the fitted network to the
-final fit (:func:`use_solved`), which logs and checkpoints it without training it again.
-Other candidates (a trained network, a hold-out on the validation split) are scored by
-Lightning runs (:func:`torchhys.training.selection.run_selection`).
+:func:`direct_record` says whether a run is of that kind and reads its training split once
+(with a hold-out, ``select_cv: null``, also its validation split); the command then calls
+:func:`torchhys.selection.select` and hands the fitted network to the final fit
+(:func:`use_solved`), which logs and checkpoints it without training it again. Other
+candidates (a trained network) are scored by Lightning runs
+(:func:`torchhys.training.selection.run_selection`).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from torch import Tensor
 from torchhys._checks import check_choice, check_int
 from torchhys.selection.candidates import build_candidate, candidate_spec, is_direct, model_base
 from torchhys.selection.folds import CV_MODES, RECORDING
+from torchhys.selection.run import Record, record
 from torchhys.selection.scores import CandidateScore
 from torchhys.training.data import HysteresisDataModule
 
@@ -35,7 +37,8 @@ _DTYPES = {"64-true": torch.float64, "64": torch.float64, "32-true": torch.float
 
 
 class DirectRecord(NamedTuple):
-    """A training split for :func:`torchhys.selection.select`."""
+    """A training split for :func:`torchhys.selection.select`, and with a hold-out
+    (``select_cv: null``) the validation split's batch ``(x, y, warmup, mask)``."""
 
     x: Tensor
     y: Tensor
@@ -43,6 +46,20 @@ class DirectRecord(NamedTuple):
     mask: Tensor
     dtype: torch.dtype
     source: str
+    val: tuple[Tensor, Tensor, Tensor, Tensor] | None = None
+
+    def record(self) -> Record:
+        """The training split as :func:`torchhys.selection.select` reads it."""
+        return record(self.x, self.y, warmup=self.warmup, mask=self.mask, source=self.source)
+
+    def val_record(self) -> Record | None:
+        """The validation split as a record (None under cross-validation): each row runs
+        from its recording's start (a time split: the training part as its warm-up) and is
+        scored on the validation samples only, as a Lightning validation scores it."""
+        if self.val is None:
+            return None
+        x, y, warmup, mask = self.val
+        return record(x, y, warmup=warmup, mask=mask.to(torch.bool), source=self.source)
 
 
 def _one_device(trainer: Any) -> bool:
@@ -54,10 +71,10 @@ def _one_device(trainer: Any) -> bool:
 def direct_record(configs: list[Any], sub: str, cv: object) -> DirectRecord | None:
     """The training split of a ``fit`` whose candidates ``configs`` are all solved directly
     (an identity activation over fixed operators, a closure optimizer: their training a
-    least-squares problem), scored by cross-validation (``cv`` not None), on one device in
-    float32 or float64, from a :class:`~torchhys.training.HysteresisDataModule`; else None."""
-    if cv is None:
-        return None
+    least-squares problem), on one device in float32 or float64, from a
+    :class:`~torchhys.training.HysteresisDataModule`; with ``cv`` None (the hold-out) also
+    its validation split, checked (:func:`~torchhys.training.selection.check_holdout`);
+    else None."""
     cfg = configs[0][sub]
     trainer = cfg["trainer"]
     dtype = _DTYPES.get(str(trainer.get("precision") or "32-true"))
@@ -79,24 +96,32 @@ def direct_record(configs: list[Any], sub: str, cv: object) -> DirectRecord | No
         return None
     datamodule = HysteresisDataModule(**args)
     datamodule.setup("fit")
+    if cv is None:  # the same error as a Lightning hold-out, before the training split's
+        from torchhys.training.selection import check_holdout
+
+        check_holdout(datamodule)
     datamodule.train_tensors()  # a constant column is the file's error, naming it
     batches = datamodule.batches("train")
     if not batches:
         return None
     x, y, warmup, mask = batches[0]
+    val = datamodule.batches("val")[0] if cv is None else None
     return DirectRecord(x, y, warmup, mask.to(torch.bool), dtype,
-                        getattr(datamodule, "source", "the data"))
+                        getattr(datamodule, "source", "the data"), val)
 
 
 def write_fold_logs(scores: Sequence[CandidateScore], root: Path) -> None:
     """Each scored fold's ``val_mse`` as the run's logs hold a trained fold's:
-    ``root/candidate_<i>/fold_<j>/version_0/metrics.csv`` (``step,val_mse``); a fold that
-    was not scored (a family that could not be fitted, not run) has none."""
+    ``root/candidate_<i>/fold_<j>/version_0/metrics.csv`` (``step,val_mse``; a hold-out's,
+    without folds: ``root/candidate_<i>/version_0``); a fold that was not scored (a family
+    that could not be fitted, not run) has none."""
     for score in scores:
-        for j, mse in enumerate(score.folds):
+        runs = ([(f"fold_{j}", m) for j, m in enumerate(score.folds)] if score.folds
+                else [("", score.val_mse)])
+        for name, mse in runs:
             if not math.isfinite(mse):
                 continue
-            folder = root / f"candidate_{score.index}" / f"fold_{j}" / "version_0"
+            folder = root / f"candidate_{score.index}" / name / "version_0"
             folder.mkdir(parents=True, exist_ok=True)
             with (folder / "metrics.csv").open("w", newline="") as fh:
                 csv.writer(fh).writerows([["step", "val_mse"], [0, repr(mse)]])

@@ -87,7 +87,7 @@ from torchhys.selection.coverage import warn_coverage
 from torchhys.selection.folds import describe_cv
 from torchhys.selection.jobs import check_budget, check_jobs, usable_cores
 from torchhys.selection.progress import SelectionProgress
-from torchhys.selection.run import fit_record, record
+from torchhys.selection.run import fit_record
 from torchhys.training.callbacks import BaselineComparison, PredictionWriter
 from torchhys.training.data import HysteresisDataModule
 from torchhys.training.interrupts import (
@@ -257,10 +257,11 @@ class TorchhysCLI(LightningCLI):
                         candidates, direct.x, direct.y, base=model_base(cfg["model"]),
                         warmup=direct.warmup, mask=direct.mask, cv=cv, mode=mode,
                         rule=rule or "min", jobs=jobs, budget_s=budget, dtype=direct.dtype,
-                        seed=seed, progress=progress, source=direct.source, refit=False)
+                        seed=seed, progress=progress, source=direct.source, refit=False,
+                        val=direct.val_record())
                     scored = result.scores
                     write_fold_logs(scored, folder / "selection")
-                else:  # trained candidates, or a hold-out: a Lightning run each
+                else:  # trained candidates: a Lightning run each
                     from torchhys.training.selection import run_selection
 
                     scored = run_selection(candidates, build, cv=cv, mode=mode, jobs=jobs,
@@ -277,10 +278,8 @@ class TorchhysCLI(LightningCLI):
                 rule or "min")
         if direct is not None:  # the chosen candidate fitted once, after its table is written
             with signals_raise():
-                self._solved = fit_record(
-                    result.spec, record(direct.x, direct.y, warmup=direct.warmup,
-                                        mask=direct.mask, source=direct.source),
-                    dtype=direct.dtype, seed=seed)
+                self._solved = fit_record(result.spec, direct.record(), dtype=direct.dtype,
+                                          seed=seed)
         self.config = configs[chosen.index]
         self.__dict__.pop("config_dump", None)  # the module's hyperparameters: the choice
         seed_everything(seed, workers=True)  # the fit starts as the candidate's run did

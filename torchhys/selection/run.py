@@ -39,6 +39,7 @@ from torchhys.selection.folds import (
     CV_MODES,
     RECORDING,
     Batch,
+    Fold,
     _ends,
     _fit_batch,
     describe_cv,
@@ -54,8 +55,8 @@ from torchhys.selection.scores import (
     write_table,
 )
 
-__all__ = ["Progress", "Record", "Selection", "fit_record", "record", "score_candidate", "select",
-           "shared_key"]
+__all__ = ["Progress", "Record", "Selection", "fit_record", "record", "record_folds",
+           "score_candidate", "select", "shared_key"]
 
 
 class Progress(Protocol):
@@ -174,6 +175,8 @@ class Selection:
     cv: int | str | None
     mode: str | None
     rule: str
+    validation: bool = False
+    """Scored on a validation record of its own (``select(val=...)``), not on folds."""
 
     def table(self) -> str:
         """The candidates and their validation MSE as a text table (``*``: the choice)."""
@@ -185,9 +188,35 @@ class Selection:
 
     def describe(self) -> str:
         """How the candidates were scored, in words."""
+        if self.validation:
+            return "the validation split"
         if self.cv is None:
             return "a hold-out of the last quarter of each row"
         return describe_cv(self.cv, self.mode)
+
+
+def record_folds(data: Record, cv: int | str | None = None, mode: str | None = None, *,
+                 val: Record | None = None) -> list[Fold]:
+    """The folds :func:`select` scores the candidates on: those of ``cv`` and ``mode`` on
+    the record ``data`` (:func:`~torchhys.selection.folds.make_folds`), or with ``val`` one
+    fold: fitted on the whole of ``data`` (:meth:`Record.whole`, as the final fit) and
+    scored on ``val``'s rows and samples (a validation record: each row may run through
+    its training part first, as a warm-up outside ``val``'s mask).
+
+    Raises:
+        ValueError: ``val`` with ``cv`` or ``mode``; the errors of ``make_folds``.
+        TypeError: ``val`` not a :class:`Record`.
+    """
+    if val is not None and not isinstance(val, Record):
+        raise TypeError(f"val must be a Record (torchhys.selection.run.record(x, y, ...)), got "
+                        f"{type(val).__name__}")
+    if val is None:
+        return make_folds(data.x, data.y, data.first, data.mask, cv, mode, source=data.source)
+    if cv is not None or mode is not None:
+        raise ValueError(f"val (a validation record of its own) needs cv=None and mode=None, "
+                         f"got cv={cv!r}, mode={mode!r}: score on folds or on val, not both")
+    train, fit, w = data.whole()
+    return [Fold(train, fit, Batch(val.x, val.y, val.mask), w)]
 
 
 def shared_key(overrides: Mapping[str, Any]) -> str | None:
@@ -208,16 +237,17 @@ def shared_key(overrides: Mapping[str, Any]) -> str | None:
 
 
 def score_candidate(i: int, overrides: Mapping[str, Any], spec: Mapping[str, Any],
-                    data: Record, cv: int | str | None, mode: str | None, *,
+                    folds: Sequence[Fold], cv: int | str | None, *,
                     dtype: torch.dtype = torch.float64, seed: int | None = 0, epochs: int = 10,
                     seconds: float | None = None, progress: Progress | None = None,
                     ) -> CandidateScore:
-    """Fit and score candidate ``i`` on every fold of ``cv``: the MSE over all held-out
-    samples, its standard error (batch means), the folds' MSEs; NaN with the reason where a
-    fold cannot be fitted (:class:`~torchhys.identification.errors.FitError`) or its MSE is
-    not finite, the later folds then not run."""
+    """Fit and score candidate ``i`` on every fold of ``folds`` (:func:`make_folds`, or
+    the one fold of a validation record: :func:`record_folds`): the MSE over all held-out
+    samples, its standard error (batch means), the folds' MSEs (none when ``cv`` is None);
+    NaN with the reason where a fold cannot be fitted
+    (:class:`~torchhys.identification.errors.FitError`) or its MSE is not finite, the later
+    folds then not run."""
     start = time.perf_counter()
-    folds = make_folds(data.x, data.y, data.first, data.mask, cv, mode, source=data.source)
     k, mses, counts, errors, reason = len(folds), [], [], [], ""
     for j, fold in enumerate(folds):
         if progress is not None:
@@ -258,7 +288,7 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
            dtype: torch.dtype = torch.float64, seed: int | None = 0, epochs: int = 10,
            seconds: float | None = None, refit: bool = True,
            progress: Progress | None = None, source: str = "the data",
-           warn_coverage: bool = True) -> Selection:
+           warn_coverage: bool = True, val: Record | None = None) -> Selection:
     """Score ``candidates`` on the record ``(x, y)``, choose one by ``rule`` and fit it.
 
     Args:
@@ -290,6 +320,10 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
         warn_coverage: warn (``UserWarning``) when the record holds less than one closed
             loop or loops of one amplitude only
             (:func:`~torchhys.selection.coverage.coverage_warning`).
+        val: a validation record of its own (:func:`record`; with ``cv=None``): the
+            candidates are fitted on the whole of ``x``, ``y`` and scored on ``val``
+            (:func:`record_folds`), as ``torchhys fit`` scores them on its validation
+            split.
 
     Raises:
         ValueError: no candidate, a bad option (the message names it), every candidate NaN.
@@ -315,10 +349,10 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
         message = coverage_warning(data.x, data.mask, source=source)
         if message is not None:
             warnings.warn(f"model.select: {message}", UserWarning, stacklevel=2)
-    make_folds(data.x, data.y, data.first, data.mask, cv, mode, source=source)  # checked now
+    folds = record_folds(data, cv, mode, val=val)  # checked before any candidate runs
 
     def score(i: int) -> CandidateScore:
-        return score_candidate(i, overrides[i], specs[i], data, cv, mode, dtype=dtype,
+        return score_candidate(i, overrides[i], specs[i], folds, cv, dtype=dtype,
                                seed=seed, epochs=epochs, seconds=seconds, progress=progress)
 
     def skipped(i: int) -> CandidateScore:
@@ -333,7 +367,8 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
     if refit:
         model = fit_record(specs[chosen.index], data, dtype=dtype, seed=seed, epochs=epochs,
                            seconds=seconds)
-    return Selection(list(scores), chosen, specs[chosen.index], model, cv, mode, rule)
+    return Selection(list(scores), chosen, specs[chosen.index], model, cv, mode, rule,
+                     val is not None)
 
 
 def fit_record(spec: Mapping[str, Any], data: Record, *, dtype: torch.dtype = torch.float64,
