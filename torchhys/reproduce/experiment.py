@@ -272,7 +272,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     table = write_tables(results, args.out, wall)
     print(table)
     if not args.no_plots and set(args.models) == set(MODELS):
-        from torchhys.reproduce.plant import plot_plant
+        from torchhys.reproduce._plant import plot_plant
 
         paths = plot(results, args.out) + [plot_plant(args.out)]
         if args.docs is not None:
