@@ -6,8 +6,15 @@ with :mod:`ctypes`; no torch headers are needed, so compiling takes well under a
 second. It runs the recurrence sample by sample (forward) and its adjoint in
 reverse (backward) without temporaries. Where no compiler is found, on devices
 other than the CPU, for dtypes other than float32/float64, or with the
-environment variable ``TORCHHYS_DISABLE_KERNEL=1``, the pure-torch blocked scan in
-:mod:`torchhys.functional.backlash` is used instead; both give the same results.
+environment variable ``TORCHHYS_DISABLE_KERNEL=1``, the pure-torch blocked scan of
+:mod:`torchhys.functional._play_scan` is used instead; both give the same results.
+
+The two directions are also the custom ops ``torch.ops.torchhys.play`` (x, r, y0 -> y) and
+``torch.ops.torchhys.play_adjoint`` (g, x, r, y0, y -> gx, gr, gy0), each with a fake
+implementation, an autograd formula and a ``vmap`` rule: :func:`play_forward` and
+:func:`play_adjoint` call them where a call is traced or transformed
+(:func:`~torchhys.functional._compile.dispatched`), and the implementation directly in plain
+eager calls. Either way the kernel-or-scan choice is made when the op runs.
 """
 
 from __future__ import annotations
@@ -21,7 +28,8 @@ import torch
 from torch import Tensor
 
 from torchhys.functional._compile import SUFFIX as _SUFFIX
-from torchhys.functional._compile import build, servable
+from torchhys.functional._compile import build, dispatched, loop_vmap, servable
+from torchhys.functional._play_scan import _scan_backward, _scan_forward, play_tangent
 
 _enabled = True
 
@@ -149,3 +157,82 @@ def play_backward_kernel(
         _ptr(gx), _ptr(gr), _ptr(gy0), _ptr(lam), _ptr(passing), B, T, N,
     )
     return gx, gr.to(x.dtype), gy0
+
+
+def _forward_impl(x: Tensor, r: Tensor, y0: Tensor) -> Tensor:
+    if kernel_available(x, r, y0):
+        return play_forward_kernel(x, r, y0)
+    return _scan_forward(x, r, y0)[:, : x.shape[1]]
+
+
+def _adjoint_impl(g: Tensor, x: Tensor, r: Tensor, y0: Tensor, y: Tensor
+                  ) -> tuple[Tensor, Tensor, Tensor]:
+    if kernel_available(g, x, r, y0, y):
+        return play_backward_kernel(g, x, r, y0, y)
+    return _scan_backward(g, x, r, y0, y)
+
+
+@torch.library.custom_op("torchhys::play", mutates_args=())
+def play_op(x: Tensor, r: Tensor, y0: Tensor) -> Tensor:
+    """Play outputs y (B, T, N) of x (B, T), half-widths r (N,), initial outputs y0 (B, N):
+    the compiled kernel where it can run, else the scan."""
+    return _forward_impl(x, r, y0).contiguous()
+
+
+@play_op.register_fake
+def _(x: Tensor, r: Tensor, y0: Tensor) -> Tensor:
+    return x.new_empty(x.shape[0], x.shape[1], r.shape[0])
+
+
+@torch.library.custom_op("torchhys::play_adjoint", mutates_args=())
+def play_adjoint_op(g: Tensor, x: Tensor, r: Tensor, y0: Tensor, y: Tensor
+                    ) -> tuple[Tensor, Tensor, Tensor]:
+    """Gradients of ``sum(g * y)``, y = play(x, r, y0), with respect to x, r and y0."""
+    gx, gr, gy0 = _adjoint_impl(g, x, r, y0, y)
+    return gx.contiguous(), gr.contiguous(), gy0.contiguous()
+
+
+@play_adjoint_op.register_fake
+def _(g: Tensor, x: Tensor, r: Tensor, y0: Tensor, y: Tensor) -> tuple[Tensor, ...]:
+    return x.new_empty(x.shape), r.new_empty(r.shape), y0.new_empty(y0.shape)
+
+
+def _save_all(ctx, inputs, output) -> None:  # noqa: ANN001
+    ctx.save_for_backward(*inputs, output)
+
+
+def _play_op_backward(ctx, grad_y: Tensor) -> tuple[Tensor, Tensor, Tensor]:  # noqa: ANN001
+    x, r, y0, y = ctx.saved_tensors
+    return play_adjoint_op(grad_y, x, r, y0, y)
+
+
+def _save_adjoint(ctx, inputs, output) -> None:  # noqa: ANN001
+    ctx.save_for_backward(*inputs[1:])
+
+
+def _play_adjoint_op_backward(ctx, ggx, ggr, ggy0):  # noqa: ANN001, ANN202
+    x, r, y0, y = ctx.saved_tensors
+    return play_tangent(x, r, y0, y, ggx, ggr, ggy0), None, None, None, None
+
+
+play_op.register_autograd(_play_op_backward, setup_context=_save_all)
+play_adjoint_op.register_autograd(_play_adjoint_op_backward, setup_context=_save_adjoint)
+loop_vmap(play_op)
+loop_vmap(play_adjoint_op)
+
+
+def play_forward(x: Tensor, r: Tensor, y0: Tensor) -> Tensor:
+    """Play outputs y (B, T, N) of x (B, T), r (N,), y0 (B, N): the op where the call is
+    traced or transformed, else its implementation directly (kernel or scan)."""
+    if dispatched(x, r, y0):
+        return play_op(x, r, y0)
+    return _forward_impl(x, r, y0)
+
+
+def play_adjoint(g: Tensor, x: Tensor, r: Tensor, y0: Tensor, y: Tensor
+                 ) -> tuple[Tensor, Tensor, Tensor]:
+    """Gradients of ``sum(g * y)`` with respect to x, r and y0 (:func:`play_forward`'s
+    dispatch), without a graph."""
+    if dispatched(g, x, r, y0, y):
+        return play_adjoint_op(g, x, r, y0, y)
+    return _adjoint_impl(g, x, r, y0, y)

@@ -92,7 +92,8 @@ def _clamp_signs(xc: Tensor, r: Tensor, y0: Tensor, yc: Tensor) -> Tensor:
 def _scan_backward(
     g: Tensor, x: Tensor, r: Tensor, y0: Tensor, ybuf: Tensor
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Gradients of sum(g * y) with respect to x (B, T), r (N,) and y0 (B, N)."""
+    """Gradients of sum(g * y) with respect to x (B, T), r (N,) and y0 (B, N), given the
+    outputs ybuf: (B, T, N), or the (B, C*K, N) buffer of :func:`_scan_forward`."""
     B, T = x.shape
     N = r.shape[0]
     K, C = _chunking(T)
@@ -100,8 +101,10 @@ def _scan_backward(
     pad = C * K - T
     if pad:
         g = torch.cat([g, g.new_zeros(B, pad, N)], dim=1)
+    if ybuf.shape[1] < C * K:  # the padded samples repeat the last input: the output holds
+        ybuf = torch.cat([ybuf, ybuf[:, -1:].expand(-1, C * K - T, -1)], dim=1)
     gc = g.reshape(B, C, K, N)
-    sign = _clamp_signs(xc, r, y0, ybuf.view(B, C, K, N))  # (K, B, C, N) int8
+    sign = _clamp_signs(xc, r, y0, ybuf.reshape(B, C, K, N))  # (K, B, C, N) int8
 
     if C > 1:
         # pass 1: local adjoint at each chunk start (no inflow) and its inflow gain
@@ -136,3 +139,23 @@ def _scan_backward(
     grad_r = acc_r.sum((0, 1))
     grad_y0 = lam[:, 0] * passing_next[:, 0]
     return grad_x.view(B, C * K)[:, :T], grad_r, grad_y0
+
+
+def play_tangent(x: Tensor, r: Tensor, y0: Tensor, y: Tensor, dx: Tensor, dr: Tensor,
+                 dy0: Tensor) -> Tensor:
+    """The play operator's derivative in the direction (dx (B, T), dr (N,), dy0 (B, N)) at
+    x, r, y0 with outputs y (B, T, N): (B, T, N), in differentiable tensor operations.
+
+    Each output is ``x[s] -+ r`` at the last sample s <= t where a bound was active, or
+    y0 where none was (the tie rule of :func:`_scan_backward`: a tie follows the inactive
+    branch), so its derivative is ``dx[s] -+ dr``, or dy0. Linear in the direction, with
+    coefficients that are piecewise constant in x, r and y0.
+    """
+    T = x.shape[1]
+    prev = torch.cat([y0.unsqueeze(1), y[:, :-1]], dim=1)
+    xe = x.unsqueeze(-1)
+    sign = (prev > xe + r).to(dx.dtype) - (prev < xe - r).to(dx.dtype)  # +1: at x + r
+    t = torch.arange(T, device=x.device).view(1, T, 1)
+    last = torch.where(sign != 0, t, -1).cummax(1).values  # last active sample, or -1
+    source = dx.unsqueeze(-1) + sign * dr
+    return torch.where(last >= 0, source.gather(1, last.clamp_min(0)), dy0.unsqueeze(1))

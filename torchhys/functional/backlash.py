@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import torch
 from torch import Tensor
-from torch.autograd.function import once_differentiable
 
 from torchhys._checks import (
     as_batched_sequence,
@@ -35,12 +34,8 @@ from torchhys._checks import (
     check_widths,
     sequence_batch,
 )
-from torchhys.functional._kernel import (
-    kernel_available,
-    play_backward_kernel,
-    play_forward_kernel,
-)
-from torchhys.functional._play_scan import _scan_backward, _scan_forward
+from torchhys.functional._kernel import play_adjoint, play_forward, play_op
+from torchhys.functional._play_scan import play_tangent
 
 __all__ = ["backlash", "check_play_state", "play_step"]
 
@@ -63,32 +58,93 @@ def play_step(x_t: Tensor, r: Tensor, y_prev: Tensor) -> Tensor:
 
 
 class _PlayScan(torch.autograd.Function):
-    """Autograd function: x (B, T), r (N,), y0 (B, N) -> y (B, T, N)."""
+    """Autograd function: x (B, T), r (N,), y0 (B, N) -> y (B, T, N).
+
+    Works with ``torch.func`` (``grad``, ``vjp``, ``jacrev``, ``jvp``, ``vmap``: the forward and
+    the backward run the ``torchhys::play`` ops, which have ``vmap`` rules). Differentiable
+    twice: the backward is :class:`_PlayAdjoint`, whose own backward is the play operator's
+    directional derivative (:func:`~torchhys.functional._play_scan.play_tangent`). The second
+    derivative with respect to x, r and y0 is zero (each output is ``x[s] -+ r`` or y0 on a
+    set of samples that is piecewise constant in them), exact away from ties.
+    """
+
+    generate_vmap_rule = True
 
     @staticmethod
-    def forward(ctx, x: Tensor, r: Tensor, y0: Tensor) -> Tensor:  # type: ignore[override]
-        ctx.kernel = kernel_available(x, r, y0)
-        if ctx.kernel:
-            y = play_forward_kernel(x, r, y0)
-            ctx.save_for_backward(x, r, y0, y)
-            return y
-        ybuf = _scan_forward(x, r, y0)
-        ctx.save_for_backward(x, r, y0, ybuf)
-        return ybuf[:, : x.shape[1]]
+    def forward(x: Tensor, r: Tensor, y0: Tensor) -> Tensor:  # type: ignore[override]
+        return play_forward(x, r, y0)
 
     @staticmethod
-    @once_differentiable
+    def setup_context(ctx, inputs, output) -> None:  # type: ignore[override]  # noqa: ANN001
+        ctx.save_for_backward(*inputs, output)
+        ctx.save_for_forward(*inputs, output)
+
+    @staticmethod
+    def jvp(ctx, dx: Tensor | None, dr: Tensor | None,  # type: ignore[override]  # noqa: ANN001
+            dy0: Tensor | None) -> Tensor:
+        x, r, y0, y = ctx.saved_tensors
+        return play_tangent(x, r, y0, y, *_zeros_for_none((dx, dr, dy0), (x, r, y0)))
+
+    @staticmethod
     def backward(ctx, grad_y: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
-        x, r, y0, ybuf = ctx.saved_tensors
-        if ctx.kernel:
-            grad_x, grad_r, grad_y0 = play_backward_kernel(grad_y, x, r, y0, ybuf)
+        x, r, y0, y = ctx.saved_tensors
+        if torch.is_grad_enabled():  # a graph of the gradient is asked for
+            grad_x, grad_r, grad_y0 = _PlayAdjoint.apply(grad_y, x, r, y0, y)
         else:
-            grad_x, grad_r, grad_y0 = _scan_backward(grad_y, x, r, y0, ybuf)
+            grad_x, grad_r, grad_y0 = play_adjoint(grad_y, x, r, y0, y)
         return (
             grad_x if ctx.needs_input_grad[0] else None,
             grad_r if ctx.needs_input_grad[1] else None,
             grad_y0 if ctx.needs_input_grad[2] else None,
         )
+
+
+class _PlayAdjoint(torch.autograd.Function):
+    """The play operator's gradient as a function: g (B, T, N), x, r, y0, y -> (gx, gr, gy0).
+
+    Linear in g; its derivative with respect to g is the directional derivative of the
+    play operator (:func:`~torchhys.functional._play_scan.play_tangent`), and with respect
+    to x, r, y0 and y it is zero (the active bounds are piecewise constant in them).
+    """
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(g: Tensor, x: Tensor, r: Tensor, y0: Tensor,  # type: ignore[override]
+                y: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        return play_adjoint(g, x, r, y0, y)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:  # type: ignore[override]  # noqa: ANN001
+        ctx.save_for_backward(*inputs[1:])
+        ctx.save_for_forward(*inputs)
+
+    @staticmethod
+    def jvp(ctx, dg: Tensor | None, *_: Tensor | None  # type: ignore[override]  # noqa: ANN001
+            ) -> tuple[Tensor, Tensor, Tensor]:
+        g, x, r, y0, y = ctx.saved_tensors
+        return play_adjoint(*_zeros_for_none((dg,), (g,)), x, r, y0, y)
+
+    @staticmethod
+    def backward(ctx, ggx: Tensor, ggr: Tensor,  # type: ignore[override]
+                 ggy0: Tensor) -> tuple[Tensor | None, ...]:
+        x, r, y0, y = ctx.saved_tensors
+        return play_tangent(x, r, y0, y, ggx, ggr, ggy0), None, None, None, None
+
+
+def _play(x: Tensor, r: Tensor, y0: Tensor) -> Tensor:
+    """:class:`_PlayScan`; while Dynamo or export traces, the ``torchhys::play`` op with its
+    registered autograd instead (the same formulas; Dynamo traces no ``autograd.Function``
+    with a custom ``jvp``)."""
+    if torch.compiler.is_compiling():
+        return play_op(x, r, y0)
+    return _PlayScan.apply(x, r, y0)
+
+
+def _zeros_for_none(tangents: tuple[Tensor | None, ...], like: tuple[Tensor, ...]
+                    ) -> tuple[Tensor, ...]:
+    return tuple(torch.zeros_like(p) if t is None else t for t, p in zip(tangents, like,
+                                                                        strict=True))
 
 
 def _validate_state(y0: Tensor, B: int, n: int, name: str) -> None:
@@ -136,7 +192,8 @@ def backlash(x: Tensor, widths: Tensor, *, state: Tensor | None = None) -> Tenso
         y_i[t] = min(x[t] + d_i / 2, max(x[t] - d_i / 2, y_i[t-1])),   y_i[-1] = state_i.
 
     A width of zero gives ``y_i = x``. Supports autograd with respect to ``x``,
-    ``widths`` and ``state`` (first order), batches, float32 and float64. Cost: about
+    ``widths`` and ``state`` (twice: the second derivative in them is zero, see
+    :class:`_PlayScan`), ``torch.func`` transforms, batches, float32 and float64. Cost: about
     ``2 sqrt(2 T)`` vectorized steps; memory: the output.
 
     Args:
@@ -159,5 +216,5 @@ def backlash(x: Tensor, widths: Tensor, *, state: Tensor | None = None) -> Tenso
     check_widths(widths, "widths")
     y0 = _check_state(state, xb, widths.shape[0])
     r = 0.5 * widths.to(dtype=xb.dtype, device=xb.device)
-    y = _PlayScan.apply(xb, r, y0)
+    y = _play(xb, r, y0)
     return y.squeeze(0) if squeezed else y
