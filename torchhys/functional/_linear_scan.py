@@ -53,3 +53,16 @@ def df2t_scan(x: Tensor, b: Tensor, a: Tensor, zi: Tensor) -> tuple[Tensor, Tens
     z = recurrence_scan(Ac, x.unsqueeze(-1) * (b[1:] - a * b[0]), zi)
     z0 = torch.cat([zi[:, :1], z[:, :-1, 0]], dim=1)
     return b[0] * x + z0, z[:, -1]
+
+
+def _df2t_scan_filters(x: Tensor, b: Tensor, a: Tensor, zi: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`df2t_scan` for F filters (b (F, n+1), a (F, n), row r uses filter r % F): one
+    scan per filter over all its rows."""
+    F = b.shape[0]
+    if F == 1:
+        return df2t_scan(x, b[0], a[0], zi)
+    R, T = x.shape
+    xs, zs = x.reshape(R // F, F, T), zi.reshape(R // F, F, -1)
+    parts = [df2t_scan(xs[:, f], b[f], a[f], zs[:, f]) for f in range(F)]
+    y = torch.stack([p[0] for p in parts], dim=1).reshape(R, T)
+    return y, torch.stack([p[1] for p in parts], dim=1).reshape(R, -1)

@@ -56,7 +56,7 @@ from torchhys.functional._filter_kernel import (
     linrec_adjoint_kernel,
     linrec_kernel,
 )
-from torchhys.functional._linear_scan import df2t_scan, recurrence_scan
+from torchhys.functional._linear_scan import _df2t_scan_filters, recurrence_scan
 
 __all__ = ["df2t_step", "lfilter", "linear_recurrence", "state_space", "state_space_step"]
 
@@ -98,19 +98,6 @@ def state_space_step(u: Tensor, s: Tensor, A: Tensor, B: Tensor, C: Tensor, D: T
 
 
 # --- autograd functions ------------------------------------------------------------------------
-
-
-def _df2t_scan_filters(x: Tensor, b: Tensor, a: Tensor, zi: Tensor) -> tuple[Tensor, Tensor]:
-    """:func:`df2t_scan` for F filters (b (F, n+1), a (F, n), row r uses filter r % F): one
-    scan per filter over all its rows."""
-    F = b.shape[0]
-    if F == 1:
-        return df2t_scan(x, b[0], a[0], zi)
-    R, T = x.shape
-    xs, zs = x.reshape(R // F, F, T), zi.reshape(R // F, F, -1)
-    parts = [df2t_scan(xs[:, f], b[f], a[f], zs[:, f]) for f in range(F)]
-    y = torch.stack([p[0] for p in parts], dim=1).reshape(R, T)
-    return y, torch.stack([p[1] for p in parts], dim=1).reshape(R, -1)
 
 
 class _DF2T(torch.autograd.Function):
