@@ -217,7 +217,9 @@ def _dominant_stacks(
     D = state.stack_x.shape[1]
     sx, sf, ss, depth = state.stack_x, state.stack_f, state.stack_seg, state.depth
     n_conf = confirm.sum(dim=1)
-    K = int(n_conf.max()) if T > 0 else 0
+    # the most turning points a row confirms; where it cannot be read (traced, batched, meta
+    # or fake tensors) every sample may be one: T steps, the rows past their own count masked
+    K = 0 if T == 0 else int(n_conf.max()) if concrete(n_conf) else T
     order = torch.where(confirm, torch.arange(T, device=v.device), T).sort(dim=1).values[:, :K]
     snaps = [[sx, sf, ss, depth]]
     rows = torch.arange(B, device=v.device)

@@ -324,6 +324,20 @@ class _PreisachRelays(torch.autograd.Function):
         return gx, gw, None, None, None, None
 
 
+def _relays_in_one_chunk(
+    x: Tensor, alpha: Tensor, beta: Tensor, r0: Tensor
+) -> Iterator[tuple[int, int, Tensor]]:
+    """:func:`_relay_chunks` as one chunk over every relay's own levels (no ``unique``, whose
+    output's shape depends on the values, and no loop over the samples): where the values
+    cannot be read. The same states."""
+    T = x.shape[1]
+    t = torch.arange(T, dtype=torch.int32, device=x.device)
+    up, down = relay_events(x, alpha[:, None, None], beta[:, None, None])  # (K, B, T)
+    u = torch.where(up, t, -1).cummax(-1).values
+    d = torch.where(down, t, -1).cummax(-1).values
+    yield 0, T, relay_switch(u >= d.clamp_min(0), d > u, r0.t().unsqueeze(-1))
+
+
 def _relay_chunks(
     x: Tensor, alpha: Tensor, beta: Tensor, r0: Tensor
 ) -> Iterator[tuple[int, int, Tensor]]:
@@ -332,6 +346,10 @@ def _relay_chunks(
     dtype."""
     B, T = x.shape
     K = alpha.shape[0]
+    if not concrete(x, alpha, beta, r0):  # traced, batched, meta or fake: the relays' own
+        # levels (their number is the shape) and one chunk (no Python loop over the samples)
+        yield from _relays_in_one_chunk(x, alpha, beta, r0)
+        return
     ua, ia = torch.unique(alpha, return_inverse=True)
     ub, ib = torch.unique(beta, return_inverse=True)
     ua, ub = ua[:, None, None], ub[:, None, None]
