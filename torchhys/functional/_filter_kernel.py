@@ -18,6 +18,16 @@ float32/float64, inside :func:`filter_kernel_enabled(False) <filter_kernel_enabl
 the environment variable ``TORCHHYS_DISABLE_KERNEL=1``, the callers use the pure-torch
 chunked scan of :mod:`torchhys.functional._linear_scan` and a backward written with tensor
 operations instead.
+
+Each is also a custom op, ``torch.ops.torchhys.df2t``, ``linrec``, ``df2t_adjoint`` and
+``linrec_adjoint``, with a fake implementation and a ``vmap`` rule, making the kernel-or-scan
+choice when it runs; :func:`df2t`, :func:`linrec`, :func:`df2t_adjoint` and
+:func:`linrec_adjoint` call the op where the call is traced or transformed
+(:func:`~torchhys.functional._compile.dispatched`) and the implementation directly in plain
+eager calls. The autograd formula of ``df2t`` and ``linrec`` is their adjoint op (without a
+graph) or, when a graph of the gradient is asked for, the tensor-operation adjoint over the
+op itself (differentiable again); the adjoint ops are first-order only and say so when
+differentiated.
 """
 
 from __future__ import annotations
@@ -31,7 +41,13 @@ import torch
 from torch import Tensor
 
 from torchhys.functional._compile import SUFFIX as _SUFFIX
-from torchhys.functional._compile import build, servable
+from torchhys.functional._compile import build, dispatched, loop_vmap, servable
+from torchhys.functional._linear_scan import (
+    _df2t_scan_filters,
+    df2t_adjoint_torch,
+    linrec_adjoint_torch,
+    recurrence_scan,
+)
 
 _enabled = True
 
@@ -229,3 +245,154 @@ def linrec_adjoint_kernel(gs: Tensor, A: Tensor, s0: Tensor, s: Tensor
     fn(A.data_ptr(), s0.data_ptr(), s.data_ptr(), gs.data_ptr(), lam.data_ptr(), gA.data_ptr(),
        gs0.data_ptr(), R, T, n)
     return gA.to(s.dtype), lam, gs0
+
+
+# --- custom ops ---------------------------------------------------------------------------------
+
+
+def _df2t_impl(x: Tensor, b: Tensor, a: Tensor, zi: Tensor) -> tuple[Tensor, Tensor]:
+    if filter_kernel_available(x, b, a, zi):
+        return df2t_kernel(x, b, a, zi)
+    return _df2t_scan_filters(x, b, a, zi)
+
+
+def _linrec_impl(A: Tensor, w: Tensor, s0: Tensor) -> Tensor:
+    if filter_kernel_available(A, w, s0):
+        return linrec_kernel(A, w, s0)
+    return recurrence_scan(A, w, s0)
+
+
+def _df2t_adjoint_impl(gy: Tensor, gzf: Tensor, x: Tensor, b: Tensor, a: Tensor, y: Tensor
+                       ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    if a.shape[-1] <= MAX_FUSED_ORDER and filter_kernel_available(gy, gzf, x, b, a, y):
+        return df2t_adjoint_kernel(gy, gzf, x, b, a, y)  # one fused pass
+    return df2t_adjoint_torch(gy, gzf, x, b, a, y, _df2t_impl)
+
+
+def _linrec_adjoint_impl(gs: Tensor, A: Tensor, s0: Tensor, s: Tensor
+                         ) -> tuple[Tensor, Tensor, Tensor]:
+    if filter_kernel_available(gs, A, s0, s):
+        return linrec_adjoint_kernel(gs, A, s0, s)
+    return linrec_adjoint_torch(gs, A, s0, s, _linrec_impl)
+
+
+def _fresh(*tensors: Tensor) -> tuple[Tensor, ...]:
+    return tuple(t.contiguous() for t in tensors)
+
+
+@torch.library.custom_op("torchhys::df2t", mutates_args=())
+def df2t_op(x: Tensor, b: Tensor, a: Tensor, zi: Tensor) -> tuple[Tensor, Tensor]:
+    """DF2T filters: x (R, T), b (F, n+1), a (F, n) = a[:, 1:], zi (R, n) -> y (R, T),
+    zf (R, n); row r uses filter r % F."""
+    return _fresh(*_df2t_impl(x, b, a, zi))  # type: ignore[return-value]
+
+
+@df2t_op.register_fake
+def _(x: Tensor, b: Tensor, a: Tensor, zi: Tensor) -> tuple[Tensor, Tensor]:
+    return x.new_empty(x.shape), zi.new_empty(zi.shape)
+
+
+@torch.library.custom_op("torchhys::linrec", mutates_args=())
+def linrec_op(A: Tensor, w: Tensor, s0: Tensor) -> Tensor:
+    """States of s[t] = A s[t-1] + w[t]: A (n, n), w (R, T, n), s0 (R, n) -> (R, T, n)."""
+    return _fresh(_linrec_impl(A, w, s0))[0]
+
+
+@linrec_op.register_fake
+def _(A: Tensor, w: Tensor, s0: Tensor) -> Tensor:
+    return w.new_empty(w.shape)
+
+
+@torch.library.custom_op("torchhys::df2t_adjoint", mutates_args=())
+def df2t_adjoint_op(gy: Tensor, gzf: Tensor, x: Tensor, b: Tensor, a: Tensor, y: Tensor
+                    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Gradients (gx, gb, ga, gzi) of ``<gy, y> + <gzf, zf>`` for ``torchhys::df2t``."""
+    return _fresh(*_df2t_adjoint_impl(gy, gzf, x, b, a, y))  # type: ignore[return-value]
+
+
+@df2t_adjoint_op.register_fake
+def _(gy: Tensor, gzf: Tensor, x: Tensor, b: Tensor, a: Tensor, y: Tensor
+      ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    return x.new_empty(x.shape), b.new_empty(b.shape), a.new_empty(a.shape), gzf.new_empty(
+        gzf.shape)
+
+
+@torch.library.custom_op("torchhys::linrec_adjoint", mutates_args=())
+def linrec_adjoint_op(gs: Tensor, A: Tensor, s0: Tensor, s: Tensor
+                      ) -> tuple[Tensor, Tensor, Tensor]:
+    """Gradients (gA, gw, gs0) of ``<gs, s>`` for ``torchhys::linrec``."""
+    return _fresh(*_linrec_adjoint_impl(gs, A, s0, s))  # type: ignore[return-value]
+
+
+@linrec_adjoint_op.register_fake
+def _(gs: Tensor, A: Tensor, s0: Tensor, s: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    return A.new_empty(A.shape), s.new_empty(s.shape), s0.new_empty(s0.shape)
+
+
+def _save_df2t(ctx, inputs, output) -> None:  # noqa: ANN001
+    x, b, a, _ = inputs
+    ctx.save_for_backward(x, b, a, output[0])
+
+
+def _df2t_backward(ctx, gy: Tensor, gzf: Tensor):  # noqa: ANN001, ANN202
+    x, b, a, y = ctx.saved_tensors
+    if torch.is_grad_enabled():  # a graph of the gradient: the adjoint over the op itself
+        return df2t_adjoint_torch(gy, gzf, x, b, a, y, df2t_op)
+    return df2t_adjoint_op(gy, gzf, x, b, a, y)
+
+
+def _save_linrec(ctx, inputs, output) -> None:  # noqa: ANN001
+    A, _, s0 = inputs
+    ctx.save_for_backward(A, s0, output)
+
+
+def _linrec_backward(ctx, gs: Tensor):  # noqa: ANN001, ANN202
+    A, s0, s = ctx.saved_tensors
+    if torch.is_grad_enabled():
+        return linrec_adjoint_torch(gs, A, s0, s, linrec_op)
+    return linrec_adjoint_op(gs, A, s0, s)
+
+
+def _first_order_only(name: str):  # noqa: ANN202
+    def backward(ctx, *grads):  # noqa: ANN001, ANN002, ANN202
+        raise RuntimeError(
+            f"torchhys::{name} is a first-order gradient without a derivative of its own; "
+            "differentiate torchhys::df2t or torchhys::linrec (or lfilter, linear_recurrence) "
+            "with create_graph=True, whose backward then builds a differentiable graph")
+    return backward
+
+
+df2t_op.register_autograd(_df2t_backward, setup_context=_save_df2t)
+linrec_op.register_autograd(_linrec_backward, setup_context=_save_linrec)
+df2t_adjoint_op.register_autograd(_first_order_only("df2t_adjoint"),
+                                  setup_context=lambda ctx, inputs, output: None)
+linrec_adjoint_op.register_autograd(_first_order_only("linrec_adjoint"),
+                                    setup_context=lambda ctx, inputs, output: None)
+for _op in (df2t_op, linrec_op, df2t_adjoint_op, linrec_adjoint_op):
+    loop_vmap(_op)
+
+
+def df2t(x: Tensor, b: Tensor, a: Tensor, zi: Tensor) -> tuple[Tensor, Tensor]:
+    """``torchhys::df2t`` (traced or transformed) or its implementation (plain eager)."""
+    return df2t_op(x, b, a, zi) if dispatched(x, b, a, zi) else _df2t_impl(x, b, a, zi)
+
+
+def linrec(A: Tensor, w: Tensor, s0: Tensor) -> Tensor:
+    """``torchhys::linrec`` (traced or transformed) or its implementation (plain eager)."""
+    return linrec_op(A, w, s0) if dispatched(A, w, s0) else _linrec_impl(A, w, s0)
+
+
+def df2t_adjoint(gy: Tensor, gzf: Tensor, x: Tensor, b: Tensor, a: Tensor, y: Tensor
+                 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``torchhys::df2t_adjoint`` or its implementation, as :func:`df2t`; no graph."""
+    if dispatched(gy, gzf, x, b, a, y):
+        return df2t_adjoint_op(gy, gzf, x, b, a, y)
+    return _df2t_adjoint_impl(gy, gzf, x, b, a, y)
+
+
+def linrec_adjoint(gs: Tensor, A: Tensor, s0: Tensor, s: Tensor
+                   ) -> tuple[Tensor, Tensor, Tensor]:
+    """``torchhys::linrec_adjoint`` or its implementation, as :func:`df2t`; no graph."""
+    if dispatched(gs, A, s0, s):
+        return linrec_adjoint_op(gs, A, s0, s)
+    return _linrec_adjoint_impl(gs, A, s0, s)

@@ -7,11 +7,16 @@ each chunk with ``A^K``, and one batched product adds ``A^(k+1) s_in`` to positi
 ``2 sqrt(2 T)`` tensor operations, no autograd graph (the callers' backward is their own),
 equal to the sample-by-sample recursion to float rounding. Used where the compiled kernel
 cannot run (no C compiler, a non-CPU device, a dtype other than float32/float64).
+
+The adjoints (:func:`df2t_adjoint_torch`, :func:`linrec_adjoint_torch`) are the backward
+passes in tensor operations, with the recursion a function argument: the autograd function
+(differentiable again) or the kernel-or-scan implementation (no graph).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
@@ -66,3 +71,39 @@ def _df2t_scan_filters(x: Tensor, b: Tensor, a: Tensor, zi: Tensor) -> tuple[Ten
     parts = [df2t_scan(xs[:, f], b[f], a[f], zs[:, f]) for f in range(F)]
     y = torch.stack([p[0] for p in parts], dim=1).reshape(R, T)
     return y, torch.stack([p[1] for p in parts], dim=1).reshape(R, -1)
+
+
+def df2t_adjoint_torch(gy: Tensor, gzf: Tensor, x: Tensor, b: Tensor, a: Tensor, y: Tensor,
+                       df2t: Callable[..., tuple[Tensor, Tensor]]
+                       ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Gradients (gx, gb, ga, gzi) of ``<gy, y> + <gzf, zf>`` for the DF2T filters of
+    x (R, T), b (F, n+1), a (F, n) = a[:, 1:] (row r uses filter r % F), with
+    ``df2t(x, b, a, zi) -> (y, zf)`` running the all-pole adjoint recursion."""
+    R, T = x.shape
+    F, n = a.shape
+    rows = a.repeat(R // F, 1)  # each row's a: (R, n)
+    # lam[T + i] = gzf[i]: the tail input that makes the backward recursion produce it
+    tail = gzf
+    for k in range(1, n):
+        tail = tail + rows[:, k - 1:k] * torch.cat([gzf[:, k:], gzf.new_zeros(R, k)], 1)
+    u = torch.cat([gy, tail], dim=1).flip(1)
+    e0 = torch.cat([b.new_ones(F, 1), b.new_zeros(F, n)], dim=1)
+    lam = df2t(u, e0, a, u.new_zeros(R, n))[0].flip(1)  # (R, T + n)
+    win = torch.stack([lam[:, k: k + T] for k in range(n + 1)], 1)  # lam[t + k]: (R, n+1, T)
+    win = win.reshape(R // F, F, n + 1, T)  # rows as (batch, filter)
+    xs, ys = x.reshape(R // F, F, T), y.reshape(R // F, F, T)
+    gx = torch.einsum("fk,bfkt->bft", b, win).reshape(R, T)
+    gb = torch.einsum("bfkt,bft->fk", win, xs)
+    ga = -torch.einsum("bfkt,bft->fk", win[:, :, 1:], ys)
+    return gx, gb, ga, lam[:, :n]
+
+
+def linrec_adjoint_torch(gs: Tensor, A: Tensor, s0: Tensor, s: Tensor,
+                         linrec: Callable[..., Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+    """Gradients (gA, gw, gs0) of ``<gs, s>`` for s[t] = A s[t-1] + w[t], with
+    ``linrec(A, w, s0) -> s`` running the adjoint recursion."""
+    # lam[t] = gs[t] + A^T lam[t+1]: the same recurrence, backwards in time, with A^T
+    lam = linrec(A.mT, gs.flip(1), torch.zeros_like(s0)).flip(1)
+    prev = torch.cat([s0.unsqueeze(1), s[:, :-1]], dim=1)
+    gA = torch.einsum("rti,rtj->ij", lam, prev)
+    return gA, lam, lam[:, 0] @ A

@@ -48,15 +48,8 @@ import torch
 from torch import Tensor
 
 from torchhys._checks import check_finite, check_floating, check_tensor, concrete
-from torchhys.functional._filter_kernel import (
-    MAX_FUSED_ORDER,
-    df2t_adjoint_kernel,
-    df2t_kernel,
-    filter_kernel_available,
-    linrec_adjoint_kernel,
-    linrec_kernel,
-)
-from torchhys.functional._linear_scan import _df2t_scan_filters, recurrence_scan
+from torchhys.functional._filter_kernel import df2t, df2t_adjoint, linrec, linrec_adjoint
+from torchhys.functional._linear_scan import df2t_adjoint_torch, linrec_adjoint_torch
 
 __all__ = ["df2t_step", "lfilter", "linear_recurrence", "state_space", "state_space_step"]
 
@@ -103,66 +96,55 @@ def state_space_step(u: Tensor, s: Tensor, A: Tensor, B: Tensor, C: Tensor, D: T
 class _DF2T(torch.autograd.Function):
     """x (R, T), b (F, n+1), a (F, n) = a[:, 1:], zi (R, n) -> y (R, T), zf (R, n).
 
-    Row r uses filter ``r % F`` (R a multiple of F)."""
+    Row r uses filter ``r % F`` (R a multiple of F). Works with ``torch.func`` (``grad``,
+    ``vjp``, ``jacrev``, ``vmap``: the forward and the fused backward are the
+    ``torchhys::df2t`` ops, which have ``vmap`` rules). Differentiable twice and more: when a
+    graph of the gradient is asked for, the backward is written in tensor operations over this
+    function itself."""
+
+    generate_vmap_rule = True
 
     @staticmethod
-    def forward(ctx, x: Tensor, b: Tensor, a: Tensor, zi: Tensor  # type: ignore[override]
+    def forward(x: Tensor, b: Tensor, a: Tensor, zi: Tensor  # type: ignore[override]
                 ) -> tuple[Tensor, Tensor]:
-        if filter_kernel_available(x, b, a, zi):
-            y, zf = df2t_kernel(x, b, a, zi)
-        else:
-            y, zf = _df2t_scan_filters(x, b, a, zi)
-        ctx.save_for_backward(x, b, a, y)
-        return y, zf
+        return df2t(x, b, a, zi)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:  # type: ignore[override]  # noqa: ANN001
+        x, b, a, _ = inputs
+        ctx.save_for_backward(x, b, a, output[0])
 
     @staticmethod
     def backward(ctx, gy: Tensor, gzf: Tensor  # type: ignore[override]
                  ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         x, b, a, y = ctx.saved_tensors
-        if (not torch.is_grad_enabled() and a.shape[0] <= MAX_FUSED_ORDER
-                and filter_kernel_available(x, b, a, y, gy, gzf)):
-            return df2t_adjoint_kernel(gy, gzf, x, b, a, y)  # one fused pass, no graph
-        R, T = x.shape
-        F, n = a.shape
-        rows = a.repeat(R // F, 1)  # each row's a: (R, n)
-        # lam[T + i] = gzf[i]: the tail input that makes the backward recursion produce it
-        tail = gzf
-        for k in range(1, n):
-            tail = tail + rows[:, k - 1:k] * torch.cat([gzf[:, k:], gzf.new_zeros(R, k)], 1)
-        u = torch.cat([gy, tail], dim=1).flip(1)
-        e0 = torch.cat([b.new_ones(F, 1), b.new_zeros(F, n)], dim=1)
-        lam = _DF2T.apply(u, e0, a, u.new_zeros(R, n))[0].flip(1)  # (R, T + n)
-        win = torch.stack([lam[:, k: k + T] for k in range(n + 1)], 1)  # lam[t + k]: (R, n+1, T)
-        win = win.reshape(R // F, F, n + 1, T)  # rows as (batch, filter)
-        xs, ys = x.reshape(R // F, F, T), y.reshape(R // F, F, T)
-        gx = torch.einsum("fk,bfkt->bft", b, win).reshape(R, T)
-        gb = torch.einsum("bfkt,bft->fk", win, xs)
-        ga = -torch.einsum("bfkt,bft->fk", win[:, :, 1:], ys)
-        return gx, gb, ga, lam[:, :n]
+        if torch.is_grad_enabled():  # a graph of the gradient is asked for
+            return df2t_adjoint_torch(gy, gzf, x, b, a, y, _DF2T.apply)
+        return df2t_adjoint(gy, gzf, x, b, a, y)  # the fused kernel where it runs, no graph
 
 
 class _LinearRecurrence(torch.autograd.Function):
-    """A (n, n), w (R, T, n), s0 (R, n) -> s (R, T, n), s[t] = A s[t-1] + w[t]."""
+    """A (n, n), w (R, T, n), s0 (R, n) -> s (R, T, n), s[t] = A s[t-1] + w[t].
+
+    ``torch.func`` and higher derivatives as :class:`_DF2T` (the ops ``torchhys::linrec``)."""
+
+    generate_vmap_rule = True
 
     @staticmethod
-    def forward(ctx, A: Tensor, w: Tensor, s0: Tensor) -> Tensor:  # type: ignore[override]
-        if filter_kernel_available(A, w, s0):
-            s = linrec_kernel(A, w, s0)
-        else:
-            s = recurrence_scan(A, w, s0)
-        ctx.save_for_backward(A, s0, s)
-        return s
+    def forward(A: Tensor, w: Tensor, s0: Tensor) -> Tensor:  # type: ignore[override]
+        return linrec(A, w, s0)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:  # type: ignore[override]  # noqa: ANN001
+        A, _, s0 = inputs
+        ctx.save_for_backward(A, s0, output)
 
     @staticmethod
     def backward(ctx, gs: Tensor) -> tuple[Tensor, Tensor, Tensor]:  # type: ignore[override]
         A, s0, s = ctx.saved_tensors
-        if not torch.is_grad_enabled() and filter_kernel_available(A, s0, s, gs):
-            return linrec_adjoint_kernel(gs, A, s0, s)
-        # lam[t] = gs[t] + A^T lam[t+1]: the same recurrence, backwards in time, with A^T
-        lam = _LinearRecurrence.apply(A.mT, gs.flip(1), torch.zeros_like(s0)).flip(1)
-        prev = torch.cat([s0.unsqueeze(1), s[:, :-1]], dim=1)
-        gA = torch.einsum("rti,rtj->ij", lam, prev)
-        return gA, lam, lam[:, 0] @ A
+        if torch.is_grad_enabled():
+            return linrec_adjoint_torch(gs, A, s0, s, _LinearRecurrence.apply)
+        return linrec_adjoint(gs, A, s0, s)
 
 
 # --- public entry points -----------------------------------------------------------------------
