@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from torchhys import InverseHysteresisNet, signals
+from torchhys.init import least_squares_output
 
 if TYPE_CHECKING:  # the streaming module is not imported by tests that do not stream
     from torchhys.deploy.streaming import StreamingCompensator
@@ -237,19 +238,12 @@ def loop_data(T: int = 600) -> tuple[torch.Tensor, torch.Tensor]:
 def loop_net(operators: list, hidden: int = 8, activation: str = "sigmoid"
              ) -> InverseHysteresisNet:
     """A float64 network on ``loop_data`` (normalization, ranges and direction recorded) whose
-    output layer is the ridge least-squares fit of the target: a model that follows it (the
-    C and ONNX exports' parity tests)."""
+    output layer is the ridge least-squares fit of the target
+    (:func:`torchhys.init.least_squares_output`): a model that follows it (the C and ONNX
+    exports' parity tests)."""
     torch.manual_seed(0)
     net = InverseHysteresisNet(operators, hidden=hidden, activation=activation).double()
     x, y = loop_data()
     net.fit_normalization(x, y)
-    with torch.no_grad():
-        f, _ = net.features(x)
-        h = net.activation(net.hidden((f[0] - net.in_mean) / net.in_std))
-        a = torch.cat([h, torch.ones(h.shape[0], 1, dtype=h.dtype)], 1)
-        target = (y[0] - net.out_mean) / net.out_std
-        w = torch.linalg.solve(a.T @ a + 1e-6 * torch.eye(a.shape[1], dtype=a.dtype),
-                               a.T @ target)
-        net.output.weight.copy_(w[:-1][None])
-        net.output.bias.copy_(w[-1:])
+    least_squares_output(net, x, y)
     return net

@@ -60,3 +60,37 @@ def test_not_solvable_where_the_readout_is_not_affine() -> None:
                         fold, run)
     learnable = [{"fit": "pi_ls", "n_widths": 4, "learnable": True}]  # trainable operators
     assert not solvable(InverseHysteresisModule(operator=learnable, **LBFGS), fold, run)
+
+
+def test_least_squares_output_is_numpys_ridge_fit_and_keeps_the_hidden_layer() -> None:
+    """The output layer over the hidden activations: numpy's least squares of the ridge's
+    stacked system ``[A; sqrt(ridge) I] w = [t; 0]`` in float64, on every row of a batch."""
+    import numpy as np
+
+    from torchhys import Backlash, InverseHysteresisNet
+    from torchhys.init import least_squares_output
+
+    torch.manual_seed(0)
+    t = torch.linspace(0, 12, 300, dtype=torch.float64)
+    x = torch.stack([torch.sin(t) * (1 + 0.1 * t), 0.8 * torch.sin(1.3 * t)])
+    y = x + 0.2 * torch.cos(t)
+    net = InverseHysteresisNet([Backlash([0.2, 0.5])], hidden=6, activation="tanh").double()
+    net.fit_normalization(x, y)
+    hidden = net.hidden.weight.detach().clone()
+    ridge = 1e-3
+    least_squares_output(net, x, y, ridge=ridge)
+    f, _ = net.features(x)
+    z = ((f - net.in_mean) / net.in_std).reshape(-1, f.shape[-1]).detach().numpy()
+    h = np.tanh(z @ hidden.numpy().T + net.hidden.bias.detach().numpy())
+    a = np.hstack([h, np.ones((h.shape[0], 1))])
+    target = ((y - net.out_mean) / net.out_std).reshape(-1).detach().numpy()
+    stacked = np.vstack([a, math.sqrt(ridge) * np.eye(a.shape[1])])
+    want = np.linalg.lstsq(stacked, np.concatenate([target, np.zeros(a.shape[1])]),
+                           rcond=None)[0]
+    got = torch.cat([net.output.weight[0], net.output.bias]).detach().numpy()
+    assert np.allclose(got, want, rtol=1e-9, atol=1e-11)
+    assert torch.equal(net.hidden.weight, hidden)
+    with pytest.raises(ValueError, match=r"y must have the shape of x \(2, 300\)"):
+        least_squares_output(net, x, y[:1])
+    with pytest.raises(ValueError, match="ridge must be a finite number >= 0, got -1"):
+        least_squares_output(net, x, y, ridge=-1)

@@ -5,11 +5,11 @@ from __future__ import annotations
 import math
 
 import torch
-from torch import nn
+from torch import Tensor, nn
 
-from torchhys._checks import check_choice
+from torchhys._checks import check_choice, check_nonnegative, check_same_shape, check_tensor
 
-__all__ = ["INITS", "initialize"]
+__all__ = ["INITS", "initialize", "least_squares_output"]
 
 INITS = ("default", "nguyen_widrow")
 
@@ -56,3 +56,28 @@ def initialize(net: nn.Module, init: str) -> None:
             f"got {type(net).__name__}"
         )
     nguyen_widrow(hidden, output)
+
+
+@torch.no_grad()
+def least_squares_output(net: nn.Module, x: Tensor, y: Tensor, *, ridge: float = 1e-6) -> None:
+    """Set the output layer of ``net`` to the ridge least-squares fit of the target over its
+    hidden layer's activations on ``(x, y)``; the hidden layer is kept (a network whose
+    output follows a record without a training run: the C example, the export tests).
+
+    ``net``: an :class:`~torchhys.InverseHysteresisNet` whose normalization is fitted
+    (``fit_normalization``); ``x``, ``y``: (time,) or (batch, time), every sample counted.
+    Over the activations ``h`` of the normalized features and the normalized target ``t`` it
+    solves ``(A^T A + ridge I) w = A^T t`` with ``A = [h 1]``, in the network's dtype. (A
+    network with an identity activation has an affine readout, solved without ridge by
+    :func:`torchhys.selection.candidates.solve_readout`.)"""
+    check_same_shape(check_tensor(y, "y"), check_tensor(x, "x"), "y", "x")
+    ridge = check_nonnegative(ridge, "ridge")
+    feats, _ = net.features(x)
+    f = feats.reshape(-1, feats.shape[-1])
+    h = net.activation(net.hidden((f - net.in_mean) / net.in_std))
+    a = torch.cat([h, torch.ones(h.shape[0], 1, dtype=h.dtype, device=h.device)], 1)
+    target = ((y.to(h.dtype) - net.out_mean) / net.out_std).reshape(-1)
+    eye = torch.eye(a.shape[1], dtype=a.dtype, device=a.device)
+    w = torch.linalg.solve(a.T @ a + ridge * eye, a.T @ target)
+    net.output.weight.copy_(w[:-1][None])
+    net.output.bias.copy_(w[-1:])

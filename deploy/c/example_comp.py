@@ -5,12 +5,13 @@
 
 Without ``--ckpt``: the network of ``configs/compensator.yaml`` (a re-based EIHO and 16 plays,
 64 sigmoid units), its normalization fitted with ``fit_normalization`` on a loop and its
-output layer the ridge least-squares fit of the loop's target, so that it follows the loop
-(no training run). With ``--ckpt``: the checkpoint, exported as ``torchhys export --format c``
-does. Writes ``OUT_DIR/NAME.h``, ``OUT_DIR/NAME.c`` (``torchhys.deploy.c.to_c``) and
-``OUT_DIR/ref.h``: ``static const NAME_real ref[]`` (``REF_N`` samples around the training range:
-nested turning points, ties, excursions beyond the range, one NaN), the reference sequence
-``mcu_main.c`` steps. Prints the paths.
+output layer the ridge least-squares fit of the loop's target
+(``torchhys.init.least_squares_output``), so that it follows the loop (no training run).
+With ``--ckpt``: the checkpoint, exported as ``torchhys export --format c`` does. Writes
+``OUT_DIR/NAME.h``, ``OUT_DIR/NAME.c`` (``torchhys.deploy.c.to_c``) and ``OUT_DIR/ref.h``:
+``static const NAME_real ref[]`` (``REF_N`` samples around the training range: nested turning
+points, ties, excursions beyond the range, one NaN), the reference sequence ``mcu_main.c``
+steps. Prints the paths.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import torch
 
 from torchhys import EIHO, Backlash, InverseHysteresisNet
 from torchhys.deploy.c import to_c
+from torchhys.init import least_squares_output
 
 
 def loop_data(T: int = 600) -> tuple[torch.Tensor, torch.Tensor]:
@@ -44,15 +46,7 @@ def example_network() -> InverseHysteresisNet:
     eiho = EIHO(a=1.0, rule="recent", output="branch", threshold=0.0)
     net = InverseHysteresisNet([eiho, plays], hidden=64, activation="sigmoid").double()
     net.fit_normalization(x, y)
-    with torch.no_grad():
-        f, _ = net.features(x)
-        h = net.activation(net.hidden((f[0] - net.in_mean) / net.in_std))
-        a = torch.cat([h, torch.ones(h.shape[0], 1, dtype=h.dtype)], 1)
-        target = (y[0] - net.out_mean) / net.out_std
-        w = torch.linalg.solve(a.T @ a + 1e-6 * torch.eye(a.shape[1], dtype=a.dtype),
-                               a.T @ target)
-        net.output.weight.copy_(w[:-1][None])
-        net.output.bias.copy_(w[-1:])
+    least_squares_output(net, x, y)
     return net
 
 
