@@ -82,25 +82,47 @@ def monotone_inverse(y: Tensor, gain: Tensor, unit_weights: Tensor, centers: Ten
     return torch.minimum(torch.maximum(v, lower), upper)
 
 
+def _mse_terms(design: Tensor, y: Tensor, w: Tensor, gain: Tensor, unit_weights: Tensor,
+               centers: Tensor, slopes: Tensor, offset: Tensor
+               ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """v = design @ w, z = s (v - b), tanh(z) and the residuals of :func:`monotone_mse`."""
+    v = design @ w
+    z = slopes * (v.unsqueeze(-1) - centers)
+    units = torch.tanh(z)
+    return v, z, units, gain * v + units @ unit_weights + offset - y
+
+
 class _MonotoneMSE(torch.autograd.Function):
     """:func:`monotone_mse` with its gradient written out: one ``tanh`` pass forward, the
     rest matrix-vector products (autograd's graph of the same expression takes about twice
-    the time on long records)."""
+    the time on long records).
+
+    Returns the loss and, not differentiable, the terms of :func:`_mse_terms` (which the
+    backward reads). Works with ``torch.func`` (``generate_vmap_rule``). Differentiable
+    twice: when a graph of the gradient is asked for, the backward recomputes the terms from
+    the inputs, so that the gradient's own derivative is exact (it would miss the terms'
+    dependence on the parameters if it read the saved ones)."""
+
+    generate_vmap_rule = True
 
     @staticmethod
-    def forward(ctx, design: Tensor, y: Tensor, w: Tensor, gain: Tensor,  # type: ignore[override]
+    def forward(design: Tensor, y: Tensor, w: Tensor, gain: Tensor,  # type: ignore[override]
                 unit_weights: Tensor, centers: Tensor, slopes: Tensor,
-                offset: Tensor) -> Tensor:
-        v = design @ w
-        z = slopes * (v.unsqueeze(-1) - centers)
-        units = torch.tanh(z)
-        r = gain * v + units @ unit_weights + offset - y
-        ctx.save_for_backward(design, w, gain, unit_weights, centers, slopes, v, z, units, r)
-        return r.square().mean()
+                offset: Tensor) -> tuple[Tensor, ...]:
+        terms = _mse_terms(design, y, w, gain, unit_weights, centers, slopes, offset)
+        return (terms[3].square().mean(), *terms)
 
     @staticmethod
-    def backward(ctx, grad: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
-        design, w, gain, c, b, s, v, z, units, r = ctx.saved_tensors
+    def setup_context(ctx, inputs, output) -> None:  # type: ignore[override]  # noqa: ANN001
+        ctx.mark_non_differentiable(*output[1:])
+        ctx.save_for_backward(*inputs, *output[1:])
+
+    @staticmethod
+    def backward(ctx, grad: Tensor, *_: Tensor  # type: ignore[override]
+                 ) -> tuple[Tensor | None, ...]:
+        design, y, w, gain, c, b, s, offset, v, z, units, r = ctx.saved_tensors
+        if torch.is_grad_enabled():  # a graph of the gradient: the terms with theirs
+            v, z, units, r = _mse_terms(design, y, w, gain, c, b, s, offset)
         g = r * (2.0 * grad / r.numel())  # d loss / d output, per sample
         sech2 = 1.0 - units.square()  # d tanh(z) / dz
         gs = g @ sech2  # (K,)
@@ -112,10 +134,11 @@ class _MonotoneMSE(torch.autograd.Function):
 def monotone_mse(design: Tensor, y: Tensor, w: Tensor, gain: Tensor, unit_weights: Tensor,
                  centers: Tensor, slopes: Tensor, offset: Tensor) -> Tensor:
     """``mean((g(design @ w) - y)^2)`` (:func:`monotone_output` for g), 0-dim, with an
-    analytic gradient in ``w`` and g's parameters (none in ``design`` and ``y``).
+    analytic gradient in ``w`` and g's parameters (none in ``design`` and ``y``),
+    differentiable again, ``torch.func`` transforms included.
 
     Args:
         design: (M, P); y: (M,); w: (P,); gain, offset: 0-dim; unit_weights, centers,
             slopes: (K,). One dtype.
     """
-    return _MonotoneMSE.apply(design, y, w, gain, unit_weights, centers, slopes, offset)
+    return _MonotoneMSE.apply(design, y, w, gain, unit_weights, centers, slopes, offset)[0]
