@@ -53,7 +53,6 @@ from collections.abc import Iterator
 
 import torch
 from torch import Tensor
-from torch.autograd.function import once_differentiable
 
 from torchhys._checks import (
     as_batched_sequence,
@@ -287,41 +286,56 @@ def preisach_with_state(
 
 
 class _PreisachRelays(torch.autograd.Function):
-    """``relays @ weights`` for x (B, T), weights (K,), r0 (B, K) -> ((B, T), last (B, K))."""
+    """``relays @ weights`` for x (B, T), weights (K,), r0 (B, K) -> ((B, T), last (B, K)).
+
+    Works with ``torch.func`` (``grad``, ``vjp``, ``jacrev``; ``vmap`` through
+    ``generate_vmap_rule``: batched tensors take the one-chunk relays). Differentiable
+    twice: the backward is written in tensor operations (the relay states are recomputed and
+    held constant), so the second derivative is that of the relays' outputs on the branch the
+    input is on: in the weights it is zero, in x (smooth relays) that of ``tanh``; hard relays
+    have none in x (their derivative is zero almost everywhere)."""
+
+    generate_vmap_rule = True
 
     @staticmethod
-    def forward(ctx, x, weights, alpha, beta, r0, smooth):  # type: ignore[override]
-        y = torch.empty_like(x)
+    def forward(x, weights, alpha, beta, r0, smooth):  # type: ignore[override]  # noqa: ANN001, ANN205
         a, b = alpha[:, None, None], beta[:, None, None]
         r = r0.t().unsqueeze(-1)
+        parts = []
         for start, stop, r in _relay_chunks(x, alpha, beta, r0):
             out = relay_output(x[None, :, start:stop], a, b, r, smooth)
-            y[:, start:stop] = (weights @ out.flatten(1)).view(x.shape[0], -1)
-        last = r[:, :, -1].t().contiguous()
-        ctx.mark_non_differentiable(last)
-        ctx.save_for_backward(x, weights, alpha, beta, r0)
-        ctx.smooth = smooth
-        return y, last
+            parts.append((weights @ out.flatten(1)).view(x.shape[0], -1))
+        y = parts[0] if len(parts) == 1 else torch.cat(parts, dim=1)
+        return y, r[:, :, -1].t().contiguous()
 
     @staticmethod
-    @once_differentiable
-    def backward(ctx, grad_y, grad_last):  # type: ignore[override]
+    def setup_context(ctx, inputs, output) -> None:  # type: ignore[override]  # noqa: ANN001
+        x, weights, alpha, beta, r0, smooth = inputs
+        ctx.mark_non_differentiable(output[1])
+        ctx.save_for_backward(x, weights, alpha, beta, r0)
+        ctx.smooth = smooth
+
+    @staticmethod
+    def backward(ctx, grad_y, grad_last):  # type: ignore[override]  # noqa: ANN001, ANN205
         x, weights, alpha, beta, r0 = ctx.saved_tensors
         smooth = ctx.smooth
-        gw = torch.zeros_like(weights) if ctx.needs_input_grad[1] else None
-        gx = torch.zeros_like(x) if ctx.needs_input_grad[0] and smooth is not None else None
-        if gw is None and gx is None:
+        need_w = ctx.needs_input_grad[1]
+        need_x = ctx.needs_input_grad[0] and smooth is not None
+        if not (need_w or need_x):
             return None, None, None, None, None, None
         a, b = alpha[:, None, None], beta[:, None, None]
-        for start, stop, r in _relay_chunks(x, alpha, beta, r0):
+        gw, gx = None, []
+        for start, stop, r in _relay_chunks(x.detach(), alpha, beta, r0):
             out = relay_output(x[None, :, start:stop], a, b, r, smooth).flatten(1)  # (K, B L)
             g = grad_y[:, start:stop]
-            if gw is not None:
-                gw += out @ g.reshape(-1)
-            if gx is not None:  # d/dx tanh((x - theta) / tau) = (1 - out**2) / tau
+            if need_w:
+                part = out @ g.reshape(-1)
+                gw = part if gw is None else gw + part
+            if need_x:  # d/dx tanh((x - theta) / tau) = (1 - out**2) / tau
                 slope = weights @ (1.0 - out * out) / smooth
-                gx[:, start:stop] = g * slope.view_as(g)
-        return gx, gw, None, None, None, None
+                gx.append(g * slope.view_as(g))
+        grad_x = None if not need_x else gx[0] if len(gx) == 1 else torch.cat(gx, dim=1)
+        return grad_x, gw, None, None, None, None
 
 
 def _relays_in_one_chunk(
