@@ -232,3 +232,28 @@ def test_shape_and_dtype_errors_under_tracing(where: str) -> None:
             torch.func.vmap(lambda v: backlash(v, w))(bad)
         else:
             backlash(bad, w.to("meta"))
+
+
+@pytest.mark.parametrize("module, name", [
+    ("torchhys.functional._branch", "eiho"), ("torchhys.functional._branch", "zhao_tan"),
+    ("torchhys.functional.preisach", "preisach"),
+    ("torchhys.functional.preisach_inverse", "preisach_inverse"),
+])
+def test_paths_without_readable_values_equal_eager(monkeypatch: pytest.MonkeyPatch,
+                                                   module: str, name: str) -> None:
+    """The paths taken where the values cannot be read (the branch stack through every
+    sample, the relays in one chunk, the Preisach inverse's loop of steps over levels with
+    their repeats), run on real tensors: eager's output (the windows of the inverse and its
+    loop of steps round apart by an ulp)."""
+    from torchhys._conformance import signal
+    from torchhys.testing import example_of
+
+    torch.manual_seed(0)
+    op = example_of(name).build().to(F64)
+    x = signal(300).requires_grad_()  # with a gradient: the pure-torch paths (no kernel)
+    ref = op(x)[0]
+    monkeypatch.setattr(importlib.import_module(module), "concrete", lambda *a: False)
+    got = op(x)[0]
+    torch.testing.assert_close(got, ref, rtol=0, atol=4 * torch.finfo(F64).eps)
+    if name != "preisach_inverse":
+        assert torch.equal(got, ref)

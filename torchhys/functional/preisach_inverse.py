@@ -71,7 +71,11 @@ def preisach_inverse_constants(
       nearest floats inside the open segment between levels m - 1 and m (-inf and inf at
       the ends).
     """
-    levels = torch.unique(torch.cat([alpha, beta]))
+    both = torch.cat([alpha, beta])
+    # where the values cannot be read (traced, batched, meta, fake) the levels keep their
+    # repeats (unique's size depends on the values): a repeated level's empty segment is
+    # never the one searchsorted finds, so the solutions are the same
+    levels = torch.unique(both) if concrete(both) else both.sort().values
     one = torch.eye(levels.shape[0], dtype=alpha.dtype, device=alpha.device)
     at_a = one[torch.searchsorted(levels, alpha)].cumsum(-1)  # (K, L): alpha <= level
     at_b = one[torch.searchsorted(levels, beta)].cumsum(-1)
@@ -171,6 +175,13 @@ def _inverse_windows(
     Returns:
         ``(x, r)``: x (batch, time), r the relays at the last sample.
     """
+    if not concrete(y, r, alpha, beta):  # no window sizes from the values: the loop itself
+        steps = []
+        for k in range(y.shape[1]):
+            x, r = preisach_inverse_step(y[:, k:k + 1], r, alpha, beta, *tables, linear,
+                                         center, scale)
+            steps.append(x)
+        return torch.cat(steps, 1), r
     xs: list[Tensor] = []
     diagonal = alpha == beta
 
