@@ -15,18 +15,23 @@ rounding (a target within it of a jump may land on the other side of the jump).
 
 Where no compiler is found, on devices other than the CPU, for dtypes other than
 float32/float64, or with ``TORCHHYS_DISABLE_KERNEL=1``, the torch path runs.
+
+The kernel is also the custom op ``torch.ops.torchhys.preisach_inverse`` (a fake
+implementation, a ``vmap`` rule; no gradient: differentiating it raises, the gradient is the
+torch path's).
 """
 
 from __future__ import annotations
 
 import ctypes
 import functools
+from typing import Optional
 
 import torch
 from torch import Tensor
 
 from torchhys.functional._compile import SUFFIX as _SUFFIX
-from torchhys.functional._compile import build, servable
+from torchhys.functional._compile import build, dispatched, loop_vmap, servable
 
 REFRESH = 32
 """Samples with a switch between two sums of ``offs`` afresh."""
@@ -123,9 +128,20 @@ def inverse_kernel(y: Tensor, r: Tensor, alpha: Tensor, beta: Tensor,
     """What :func:`~torchhys.functional.preisach_inverse._inverse_windows` returns, for y
     (B, T) from relays r (B, K) with the tables of
     :func:`~torchhys.functional.preisach_inverse.preisach_inverse_constants`: ``(x, r)``,
-    x (B, T) and the relays at the last sample."""
+    x (B, T) and the relays at the last sample. The op ``torchhys::preisach_inverse`` where
+    the call is traced or transformed, else its implementation directly."""
+    args = (y, r, alpha, beta, *tables)
+    if dispatched(*args):
+        return inverse_op(*args, float(linear), float(center), scale)
+    return _inverse_impl(*args, float(linear), float(center), scale)
+
+
+def _inverse_impl(y: Tensor, r: Tensor, alpha: Tensor, beta: Tensor, *rest: object
+                  ) -> tuple[Tensor, Tensor]:
+    *tables, linear, center, scale = rest
     dtype = y.dtype
-    offs0, doffs, lin_g, cap, level, bounds = (t.detach().to(dtype).contiguous() for t in tables)
+    offs0, doffs, lin_g, cap, level, bounds = (t.detach().to(dtype).contiguous()  # type: ignore[union-attr]
+                                               for t in tables)
     y = y.detach().contiguous()
     r = r.detach().to(dtype).clone().contiguous()
     alpha, beta = alpha.detach().to(dtype).contiguous(), beta.detach().to(dtype).contiguous()
@@ -141,3 +157,32 @@ def inverse_kernel(y: Tensor, r: Tensor, alpha: Tensor, beta: Tensor,
        0 if scale is None else 1, x.data_ptr(), offs.data_ptr(), edge.data_ptr(), B, T, K, L,
        REFRESH)
     return x, r
+
+
+@torch.library.custom_op("torchhys::preisach_inverse", mutates_args=())
+def inverse_op(y: Tensor, r: Tensor, alpha: Tensor, beta: Tensor, offs0: Tensor,
+               doffs: Tensor, lin_g: Tensor, cap: Tensor, level: Tensor, bounds: Tensor,
+               linear: float, center: float, scale: Optional[float]  # noqa: UP045
+               ) -> tuple[Tensor, Tensor]:
+    """:func:`inverse_kernel` with the tables spelled out and ``linear`` a number."""
+    if _load() is None:
+        raise RuntimeError("torchhys::preisach_inverse needs the compiled Preisach-inverse "
+                           "kernel, which is not built here (inverse_kernel_available is "
+                           "False); use torchhys.functional.preisach_inverse")
+    return _inverse_impl(y, r, alpha, beta, offs0, doffs, lin_g, cap, level, bounds, linear,
+                         center, scale)
+
+
+@inverse_op.register_fake
+def _(y: Tensor, r: Tensor, *_: object) -> tuple[Tensor, Tensor]:
+    return y.new_empty(y.shape), y.new_empty(r.shape)
+
+
+def _no_gradient(ctx, *grads):  # noqa: ANN001, ANN002, ANN202
+    raise RuntimeError("torchhys::preisach_inverse has no gradient (it runs where nothing "
+                       "needs one); torchhys.functional.preisach_inverse takes its torch path "
+                       "when a gradient is asked for")
+
+
+inverse_op.register_autograd(_no_gradient, setup_context=lambda ctx, inputs, output: None)
+loop_vmap(inverse_op)
