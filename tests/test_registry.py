@@ -1,17 +1,24 @@
-"""The registry of model families identified on data: FAMILIES and register_family."""
-import pytest
+"""The registry of model families identified on data: FAMILIES, SEARCHES and
+register_family."""
+import math
 
+import pytest
+import torch
+
+import torchhys.identification.specs  # noqa: F401 (registers the built-in families)
 import torchhys.registry as registry
 from torchhys.registry import FAMILIES, register_family
 
 
 @pytest.fixture()
 def families() -> dict:
-    """FAMILIES as it was, restored after the test."""
-    saved = dict(FAMILIES)
+    """FAMILIES (and SEARCHES) as they were, restored after the test."""
+    saved, searches = dict(FAMILIES), dict(registry.SEARCHES)
     yield FAMILIES
     FAMILIES.clear()
     FAMILIES.update(saved)
+    registry.SEARCHES.clear()
+    registry.SEARCHES.update(searches)
 
 
 def test_a_registered_family_is_built_by_name(families: dict) -> None:
@@ -79,3 +86,134 @@ def test_a_registered_family_is_built_and_fitted_from_a_spec(families: dict) -> 
                                          r"'my_family_reg'.*'stop_pi'") as info:
         build_operators({"fit": "nope"})
     assert "\n" not in str(info.value)
+
+
+# --- the families' searches ---------------------------------------------------------------
+F64 = torch.float64
+
+
+def _pi_record(sign: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Loops of a non-negative PI plant (anticlockwise) of growing and shrinking amplitude,
+    times ``sign``, with a little noise: one row of 400 samples."""
+    from torchhys import PrandtlIshlinskii
+
+    t = torch.arange(400, dtype=F64)
+    x = (torch.sin(2 * math.pi * t / 60) * (0.6 + 0.4 * torch.sin(2 * math.pi * t / 370)))[None]
+    plant = PrandtlIshlinskii(torch.tensor([0.1, 0.3, 0.6], dtype=F64),
+                              torch.tensor([1.0, 0.5, 0.25], dtype=F64), linear_weight=0.5)
+    with torch.no_grad():
+        y = plant(x)[0]
+    return x, sign * (y + 0.01 * torch.randn(y.shape, dtype=F64,
+                                              generator=torch.Generator().manual_seed(0)))
+
+
+def _rmse(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a - b).square().mean().sqrt())
+
+
+def test_every_family_with_a_choice_declares_its_search() -> None:
+    from torchhys.identification import generalized_pi, prandtl_ishlinskii, preisach, stop_pi
+
+    assert registry.SEARCHES == {
+        "pi_ls": prandtl_ishlinskii.search_pi_ls, "pi_nonneg": prandtl_ishlinskii.search_pi_nonneg,
+        "gpi": generalized_pi.search_gpi, "preisach": preisach.search_preisach,
+        "stop_pi": stop_pi.search_stop_pi}
+
+
+def test_a_search_registered_with_a_family_is_in_searches(families: dict) -> None:
+    def search(x, y, warmup, cut):
+        return None
+
+    register_family("my_family_reg", lambda spec: None, search=search)
+    assert registry.SEARCHES["my_family_reg"] is search
+    with pytest.raises(TypeError, match="family 'my_family_reg2': search must be callable "
+                                        "or None") as info:
+        register_family("my_family_reg2", lambda spec: None, search=3)  # type: ignore[arg-type]
+    assert "\n" not in str(info.value) and "my_family_reg2" not in families
+
+
+@pytest.mark.slow
+def test_the_pi_ls_search_is_the_best_setting_of_a_plain_loop() -> None:
+    """``pi_ls``'s search (the ridges scored at once from the moments) chooses the setting
+    that fitting and scoring each one in turn on the hold-out chooses, with its RMS error,
+    and refits it on every sample."""
+    from torchhys.identification._family_spec import PENALTIES
+    from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid
+
+    x, y = _pi_record()
+    warmup, cut, grid = 10, 300, {"n_widths": (2, 6), "powers": (1.0, 2.0)}
+    found = registry.SEARCHES["pi_ls"](x, y, warmup, cut, **grid)
+    scores = {}
+    for n in grid["n_widths"]:
+        for power in grid["powers"]:
+            widths = play_width_grid(x, n, power=power)
+            for ridge in PENALTIES:
+                m = fit_prandtl_ishlinskii(x[:, :cut], y[:, :cut], widths, ridge=ridge,
+                                           warmup=warmup)
+                with torch.no_grad():
+                    scores[n, power, ridge] = _rmse(m(x)[0][:, cut:], y[:, cut:])
+    (n, power, ridge), best = min(scores.items(), key=lambda kv: kv[1])
+    assert found.options == {"fit": "pi_ls", "n_widths": n, "power": power, "ridge": ridge}
+    assert found.holdout == pytest.approx(best, rel=1e-6)
+    whole = fit_prandtl_ishlinskii(x, y, play_width_grid(x, n, power=power), ridge=ridge,
+                                   warmup=warmup)
+    with torch.no_grad():
+        torch.testing.assert_close(found.predict(x), whole(x)[0])
+
+
+@pytest.mark.slow
+def test_the_stop_pi_search_is_the_best_setting_of_a_plain_loop() -> None:
+    """``stop_pi``'s search over thresholds, segments and both signs of the target (its
+    ridge from the moments) against fitting and scoring each setting in turn."""
+    from torchhys import fit_stop_pi
+    from torchhys.identification._family_spec import PENALTIES
+    from torchhys.identification.fitting import play_width_grid
+
+    x, y = _pi_record(-1.0)
+    warmup, cut = 10, 300
+    grid = {"n_widths": (3,), "powers": (1.0,), "segments": (1, 2)}
+    found = registry.SEARCHES["stop_pi"](x, y, warmup, cut, **grid)
+    scores = {}
+    for n in grid["n_widths"]:
+        thresholds = play_width_grid(x[:, warmup:], n, power=1.0)
+        for k in grid["segments"]:
+            for sign in (1.0, -1.0):
+                for ridge in PENALTIES:
+                    m = fit_stop_pi(x[:, :cut], sign * y[:, :cut], thresholds, segments=k,
+                                    ridge=ridge, warmup=warmup)
+                    with torch.no_grad():
+                        scores[n, k, sign, ridge] = _rmse(sign * m(x)[0][:, cut:], y[:, cut:])
+    (n, k, sign, ridge), best = min(scores.items(), key=lambda kv: kv[1])
+    assert found.options == {"fit": "stop_pi", "n_widths": n, "power": 1.0, "segments": k,
+                             "sign": sign, "ridge": ridge}
+    assert found.holdout == pytest.approx(best, rel=1e-6)
+
+
+@pytest.mark.parametrize("family, grid", [
+    ("pi_nonneg", {"n_widths": (3,), "powers": (1.0,)}),
+    ("preisach", {"levels": (6,)}),
+])
+def test_a_search_of_the_negated_target_chooses_the_other_sign(family: str, grid: dict) -> None:
+    """The non-negative families draw loops of one orientation: their searches try both signs
+    of the target, so the negated record gives the same hold-out error with the other sign
+    and the negated prediction (the PI plant's anticlockwise loops: sign +1, direct)."""
+    x, y = _pi_record()
+    plain = registry.SEARCHES[family](x, y, 10, 300, **grid)
+    flipped = registry.SEARCHES[family](x, -y, 10, 300, **grid)
+    assert plain.options["sign"] == 1.0 and flipped.options["sign"] == -1.0
+    assert plain.options.get("direction", "direct") == "direct"
+    assert {**flipped.options, "sign": 1.0} == plain.options
+    assert flipped.holdout == pytest.approx(plain.holdout, rel=1e-9)
+    with torch.no_grad():
+        torch.testing.assert_close(flipped.predict(x), -plain.predict(x))
+        assert _rmse(plain.predict(x)[:, 10:], y[:, 10:]) < 0.1 * float(y.std())
+
+
+def test_the_pi_nonneg_search_inverts_where_the_input_is_the_plants_output() -> None:
+    """Where the input is the PI plant's output and the target its input, the input from the
+    target is the plant: the search chooses the inverse of that forward fit."""
+    x, y = _pi_record()
+    found = registry.SEARCHES["pi_nonneg"](y, x, 10, 300, n_widths=(3,), powers=(1.0,))
+    assert found.options["direction"] == "inverse", found.options
+    with torch.no_grad():
+        assert _rmse(found.predict(y)[:, 10:], x[:, 10:]) < 0.1 * float(x.std())

@@ -7,7 +7,8 @@ of a spec. The protocol the operators implement is :mod:`torchhys.operator`.
 
 :data:`FAMILIES` holds the model families that are identified on data (a spec
 ``{"fit": name, **options}``), each by the function that builds its placeholder and its fit
-(:func:`register_family`).
+(:func:`register_family`); :data:`SEARCHES` the families' searches of their own options on a
+hold-out (sign, direction, penalty, size), which the real-data benchmark's rows run.
 """
 
 import warnings
@@ -24,6 +25,7 @@ __all__ = [
     "EXAMPLES",
     "FAMILIES",
     "OPERATORS",
+    "SEARCHES",
     "load_entry_points",
     "make_operator",
     "register_family",
@@ -205,26 +207,45 @@ identified operator's place until the data are seen, and the function that ident
 (see :func:`register_family`)."""
 
 
-def register_family(name: str, builder: Callable[[Mapping[str, Any]], Any]) -> None:
+SEARCHES: dict[str, Callable[..., Any]] = {}
+"""The families' searches of their own options, by family name:
+``SEARCHES[name](x, y, warmup, cut, **grid)`` fits the family on samples before ``cut`` of
+every row of ``x``, ``y`` (rows, time) for each setting of its options (the family's own
+choices, such as the target's sign, the direction and the penalty, over the sizes of
+``grid``), and returns a :class:`torchhys.identification._family_spec.Searched`: the
+setting with the least RMS error on the hold-out ``cut:``, as a spec, and its model refitted
+on every sample (see :func:`register_family`)."""
+
+
+def register_family(name: str, builder: Callable[[Mapping[str, Any]], Any], *,
+                    search: Callable[..., Any] | None = None) -> None:
     """Register a model family identified on data under ``name``, for specs
     ``{"fit": name, **options}``.
 
-    Registering the same builder under the same name again is a no-op.
+    Registering the same builder under the same name again is a no-op (a search given then
+    is added).
 
     Args:
         name: the family's name in specs and configs.
         builder: ``builder(spec) -> (placeholder, fit)`` (see :data:`FAMILIES`).
+        search: the family's search of its options on a hold-out (see :data:`SEARCHES`);
+            None: none.
 
     Raises:
         ValueError: ``name`` is not a non-empty str, or is taken by another builder.
-        TypeError: ``builder`` is not callable.
+        TypeError: ``builder`` or ``search`` is not callable.
     """
     if not isinstance(name, str) or not name:
         raise ValueError(f"family name must be a non-empty str, got {name!r}")
     if not callable(builder):
         raise TypeError(f"family {name!r}: builder must be callable (spec -> (placeholder, "
                         f"fit)), got {type(builder).__name__} {builder!r}")
+    if search is not None and not callable(search):
+        raise TypeError(f"family {name!r}: search must be callable or None, got "
+                        f"{type(search).__name__} {search!r}")
     old = FAMILIES.get(name, builder)
     if old is not builder:
         raise ValueError(f"family name {name!r} is registered already ({old!r})")
     FAMILIES[name] = builder
+    if search is not None:
+        SEARCHES[name] = search

@@ -73,7 +73,9 @@ penalties mean the same on every data set; ``default`` sees physical units, as
 The package: :mod:`.datasets` (the recordings and each protocol's split), :mod:`.protocols`
 (the protocols by name, the files they read), :mod:`.scoring` (budgets, fitted models, the
 hold-out and the held-out RMSE), :mod:`.baselines` (``line``, ``poly``), :mod:`.families`
-(the rows of the hysteresis model families), :mod:`.default_row` (``default``: a
+(the rows of the hysteresis model families: each runs its family's own search,
+:data:`torchhys.registry.SEARCHES`, over the budget's sizes; the EIHO network's row),
+:mod:`.default_row` (``default``: a
 ``torchhys fit`` config trained as it says), :mod:`.rows` (one protocol's table),
 :mod:`.report` (the markdown table, the targets' tally, saved tables) and :mod:`.cli` (the
 command line; ``__main__``).

@@ -35,7 +35,8 @@ class Budget(NamedTuple):
     """Random starts and Levenberg-Marquardt iterations of the Jiles-Atherton fit."""
     stop_n: tuple[int, ...] = (5, 10, 20)
     stop_segments: tuple[int, ...] = (1, 2, 4, 8)
-    """Thresholds and characteristic segments of the stop-type PI model."""
+    stop_powers: tuple[float, ...] = (1.0, 2.0)
+    """Thresholds, characteristic segments and grid powers of the stop-type PI model."""
 
 
 FULL = Budget((5, 10, 20, 40), (1.0, 2.0, 3.0), (10, 20, 30), (2, 4, 8), 1000, 40, None, 60.0)

@@ -1,13 +1,14 @@
 """What the model families' spec builders share (:mod:`torchhys.identification.specs`): the
-option checks, the penalty grid of ``"auto"`` and its hold-out, and the memory check of a
-family's columns."""
+option checks, the penalty grid of ``"auto"`` and its hold-out, the memory check of a
+family's columns, and what a family's search of its options returns (:class:`Searched`)."""
 
 from __future__ import annotations
 
 import re
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import Any, NamedTuple
 
+import torch
 from torch import Tensor, nn
 
 from torchhys._checks import check_choice, check_int, check_nonnegative, check_positive
@@ -86,3 +87,33 @@ def _holdout(scored: Tensor) -> float:
         raise FitError(f"{n} scored training samples are too few to choose a penalty "
                        "on a hold-out; give the penalty as a number")
     return VALIDATION
+
+
+class Searched(NamedTuple):
+    """What a family's search returns (:data:`torchhys.registry.SEARCHES`): the options
+    chosen on a time-ordered hold-out and the model they give."""
+
+    holdout: float
+    """RMS error on the hold-out (samples ``cut:`` of every row) of the chosen options,
+    fitted on the samples before it."""
+    options: dict[str, Any]
+    """The chosen options as a spec, ``{"fit": FAMILY, **options}`` (and ``sign``: the
+    target's sign the model was fitted to, where the family fits both)."""
+    predict: Callable[[Tensor], Tensor]
+    """The chosen options refitted on every sample: input (rows, time) -> output, in the
+    units of the data searched."""
+    skipped: int = 0
+    """Better settings on the hold-out passed over because their refit on every sample
+    failed (diverged)."""
+
+
+def holdout_rmse(predict: Callable[[Tensor], Tensor], x: Tensor, y: Tensor, cut: int) -> float:
+    """RMS error of ``predict(x)`` against ``y`` on samples ``cut:`` of every row."""
+    with torch.no_grad():
+        return float((predict(x)[:, cut:] - y[:, cut:]).square().mean().sqrt())
+
+
+def holdout_share(x: Tensor, cut: int) -> float:
+    """The hold-out ``cut:`` of rows of ``x`` as the share ``select_pi_ridge``,
+    ``select_penalty`` and ``select_stop_pi_ridge`` take (``validation``)."""
+    return (x.shape[1] - cut) / x.shape[1]

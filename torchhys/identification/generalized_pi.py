@@ -12,12 +12,15 @@ fewer (100 on 1e5 fitted samples), records up to 1e4 samples all of them. With `
 "auto"``, whose fit can stop at a poor local optimum, the next best ridges on the hold-out
 are tried in turn when the fit fails, unless it ended on the straight line itself
 (:attr:`~torchhys.identification.errors.NoBetterThanLine.on_the_line`).
+
+Its search (:data:`torchhys.registry.SEARCHES`, the real-data benchmark's row):
+:func:`search_gpi`.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import torch
@@ -35,11 +38,13 @@ from torchhys._checks import (
 from torchhys.identification._family_spec import (
     PENALTIES,
     Fitter,
+    Searched,
     _check_columns,
     _grid,
     _holdout,
     _keys,
     _penalty,
+    holdout_rmse,
 )
 from torchhys.identification.errors import (
     FitError,
@@ -54,11 +59,12 @@ from torchhys.identification.fitting import (
     play_width_grid,
     select_pi_ridge,
 )
+from torchhys.identification.prandtl_ishlinskii import _inverse_pi_choice, _pi_choice
 from torchhys.operators.backlash import _inverse_softplus
 from torchhys.operators.generalized_pi import GeneralizedPIInverse, GeneralizedPrandtlIshlinskii
 from torchhys.registry import register_family
 
-__all__ = ["fit_generalized_pi"]
+__all__ = ["fit_generalized_pi", "search_gpi"]
 
 
 def fit_generalized_pi(
@@ -253,4 +259,72 @@ def _gpi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     return placeholder.requires_grad_(False), fit
 
 
-register_family("gpi", _gpi)
+# --- the search -----------------------------------------------------------------------------
+def _rising(x: Tensor, y: Tensor, warmup: int, end: int) -> float:
+    """+1 if the target rises with the input on the scored samples before ``end``, else -1."""
+    xs, ys = x[:, warmup:end], y[:, warmup:end]
+    return 1.0 if float(((xs - xs.mean()) * ys).sum()) >= 0 else -1.0
+
+
+def _gpi_fit(x: Tensor, y: Tensor, warmup: int, inverse: bool, n: int, power: float,
+             ridge: float, units: int, end: int, epochs: int) -> Callable[[Tensor], Tensor]:
+    """Generalized PI model of t = sign x target from the input, fitted on samples [0, end)
+    of every row, or the inverse of one of the input from t; ``sign`` makes t rise with the
+    input."""
+    sign = _rising(x, y, warmup, end)
+    t = sign * y[:, :end]
+    u, out = (t, x[:, :end]) if inverse else (x[:, :end], t)
+    model = fit_generalized_pi(u, out, play_width_grid(u, n, power=power), units=units,
+                               ridge=ridge, lbfgs_epochs=epochs, warmup=warmup)
+    if not inverse:
+        return lambda v: sign * model(v)[0]
+    exact = model.bounded_inverse(u)  # g^-1 within the PI part's training range +- half
+    return lambda v: sign * exact(v)[0]
+
+
+def search_gpi(x: Tensor, y: Tensor, warmup: int, cut: int, *, n_widths: Sequence[int],
+               powers: Sequence[float], units: Sequence[int], epochs: int) -> Searched:
+    """The ``gpi`` family's search: :func:`fit_generalized_pi` of the target times the sign
+    that makes it rise with the input, in either direction (the inverse: the exact inverse
+    bounded to the PI part's training range plus half its span on each side), on the widths
+    and ridge the ``pi_nonneg`` search chooses for that direction and sign; the direction
+    and the number of tanh ``units`` with the least RMS error on the hold-out, each fitted
+    on the samples before it (a fit that diverges or has no inverse is passed over); then
+    refitted on every sample, the next best setting where that refit diverges.
+
+    Args:
+        x, y, warmup, cut: as
+            :func:`~torchhys.identification.prandtl_ishlinskii.search_pi_nonneg`'s.
+        n_widths, powers: the grids of the PI part's widths.
+        units: the grid of tanh units.
+        epochs: L-BFGS iterations of each fit.
+
+    Raises:
+        FloatingPointError: every setting's refit diverged.
+    """
+    sign = _rising(x, y, warmup, cut)
+    candidates = []
+    for inverse, (_, n, power, ridge) in (
+            (False, _pi_choice(x, y, warmup, cut, n_widths, powers, True, sign)),
+            (True, _inverse_pi_choice(x, y, warmup, cut, n_widths, powers, sign))):
+        for k in units if n else ():
+            try:
+                score = holdout_rmse(_gpi_fit(x, y, warmup, inverse, n, power, ridge, k, cut,
+                                              epochs), x, y, cut)
+            except (FloatingPointError, ValueError):  # diverged, or no inverse
+                continue
+            candidates.append((score, inverse, n, power, ridge, k))
+    end = x.shape[1]
+    for skipped, (score, inverse, n, power, ridge, k) in enumerate(sorted(candidates)):
+        try:  # the best candidate whose refit on every sample converges
+            f = _gpi_fit(x, y, warmup, inverse, n, power, ridge, k, end, epochs)
+        except FloatingPointError:
+            continue
+        options = {"fit": "gpi", "direction": "inverse" if inverse else "direct",
+                   "n_widths": n, "power": power, "ridge": ridge, "units": k,
+                   "epochs": epochs, "sign": _rising(x, y, warmup, end)}
+        return Searched(score, options, f, skipped)
+    raise FloatingPointError("every generalized PI candidate diverged")
+
+
+register_family("gpi", _gpi, search=search_gpi)

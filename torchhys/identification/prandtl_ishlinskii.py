@@ -16,11 +16,17 @@ least squares they run: :mod:`torchhys.identification.fitting`):
   target, then its exact inverse
   (``inverse``). Such a model draws loops of one orientation only, so the target's sign is
   chosen by the training fit (both signs are fitted).
+
+Their searches (:data:`torchhys.registry.SEARCHES`, the real-data benchmark's rows):
+:func:`search_pi_nonneg` chooses the direction, the target's sign, the number of widths, the
+grid power and the ridge on a time-ordered hold-out, :func:`search_pi_ls` the number of
+widths, the power and the ridge.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import math
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import torch
@@ -30,11 +36,14 @@ from torchhys._checks import check_int, check_nonnegative, check_positive
 from torchhys.identification._family_spec import (
     PENALTIES,
     Fitter,
+    Searched,
     _check_columns,
     _grid,
     _holdout,
     _keys,
     _penalty,
+    holdout_rmse,
+    holdout_share,
 )
 from torchhys.identification.errors import FitError, _checked, _rmse, _samples, _standardized
 from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid, select_pi_ridge
@@ -42,6 +51,8 @@ from torchhys.operators.backlash import Backlash
 from torchhys.operators.generalized_pi import GeneralizedPIInverse, GeneralizedPrandtlIshlinskii
 from torchhys.operators.prandtl_ishlinskii import PrandtlIshlinskii
 from torchhys.registry import register_family
+
+__all__ = ["search_pi_ls", "search_pi_nonneg"]
 
 
 def _positive_int(spec: Mapping[str, Any], key: str, default: int) -> int:
@@ -95,9 +106,6 @@ def _pi_ls(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     placeholder = PrandtlIshlinskii(torch.arange(1, n + 1) / n, torch.zeros(n),
                                     learnable=learnable)
     return placeholder, fit
-
-
-register_family("pi_ls", _pi_ls)
 
 
 def _pi_fit(u: Tensor, out: Tensor, widths: Tensor, ridge: float | str,
@@ -157,4 +165,94 @@ def _pi_nonneg(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     return placeholder, fit
 
 
-register_family("pi_nonneg", _pi_nonneg)
+# --- the searches ---------------------------------------------------------------------------
+Choice = tuple[float, int, float, float]
+"""(hold-out RMSE, number of widths, grid power, ridge); n = 0: no candidate."""
+
+
+def _pi_choice(x: Tensor, y: Tensor, warmup: int, cut: int, n_widths: Sequence[int],
+               powers: Sequence[float], nonnegative: bool, sign: float = 1.0) -> Choice:
+    """The best PI model of ``sign`` x target from the input (ridge by ``select_pi_ridge``
+    over :data:`PENALTIES`)."""
+    best = (math.inf, 0, 0.0, 0.0)
+    for n in n_widths:
+        for power in powers:
+            widths = play_width_grid(x, n, power=power)
+            ridge, scores = select_pi_ridge(x, sign * y, widths, PENALTIES,
+                                            nonnegative=nonnegative,
+                                            validation=holdout_share(x, cut), warmup=warmup)
+            best = min(best, (scores[ridge], n, power, ridge))
+    return best
+
+
+def _inverse_pi(x: Tensor, y: Tensor, warmup: int, sign: float, n: int, power: float,
+                ridge: float, end: int) -> Callable[[Tensor], Tensor]:
+    """``sign`` x the exact inverse of the non-negative PI model of the input from ``sign`` x
+    target, fitted on samples [warmup, end) of every row (widths from the span there)."""
+    t = sign * y[:, :end]
+    forward = fit_prandtl_ishlinskii(t, x[:, :end], play_width_grid(t, n, power=power),
+                                     ridge=ridge, warmup=warmup, nonnegative=True)
+    inverse = forward.inverse()
+    return lambda v: sign * inverse(v)[0]
+
+
+def _inverse_pi_choice(x: Tensor, y: Tensor, warmup: int, cut: int, n_widths: Sequence[int],
+                       powers: Sequence[float], sign: float) -> Choice:
+    """The best exact inverse of a non-negative PI model of the input from ``sign`` x target
+    (every ridge of :data:`PENALTIES` scored on the hold-out)."""
+    best = (math.inf, 0, 0.0, 0.0)
+    for n in n_widths:
+        for power in powers:
+            for ridge in PENALTIES:
+                try:
+                    f = _inverse_pi(x, y, warmup, sign, n, power, ridge, cut)
+                except ValueError:  # no strictly increasing loading curve: no inverse
+                    continue
+                best = min(best, (holdout_rmse(f, x, y, cut), n, power, ridge))
+    return best
+
+
+def search_pi_nonneg(x: Tensor, y: Tensor, warmup: int, cut: int, *,
+                     n_widths: Sequence[int], powers: Sequence[float]) -> Searched:
+    """The ``pi_nonneg`` family's search: the direction (``direct``: of the target from the
+    input; ``inverse``: of the input from the target, then its exact inverse), the target's
+    sign (a non-negative model draws loops of one orientation), the number of widths, the
+    grid power and the ridge (:data:`PENALTIES`) with the least RMS error on the hold-out,
+    each fitted on the samples before it; then refitted on every sample.
+
+    Args:
+        x, y: input and target, (rows, time).
+        warmup: leading samples of each row neither fitted nor scored.
+        cut: the hold-out's first sample in every row.
+        n_widths, powers: the grids of the number of widths and of the grid power
+            (:func:`~torchhys.identification.fitting.play_width_grid`).
+    """
+    best = min((_pi_choice(x, y, warmup, cut, n_widths, powers, True, sign), False, sign)
+               for sign in (1.0, -1.0))
+    best = min(best, *((_inverse_pi_choice(x, y, warmup, cut, n_widths, powers, sign), True,
+                        sign) for sign in (1.0, -1.0)))
+    (score, n, power, ridge), inverse, sign = best
+    options = {"fit": "pi_nonneg", "direction": "inverse" if inverse else "direct",
+               "n_widths": n, "power": power, "ridge": ridge, "sign": sign}
+    if inverse:
+        return Searched(score, options, _inverse_pi(x, y, warmup, sign, n, power, ridge,
+                                                    x.shape[1]))
+    model = fit_prandtl_ishlinskii(x, sign * y, play_width_grid(x, n, power=power),
+                                   ridge=ridge, warmup=warmup, nonnegative=True)
+    return Searched(score, options, lambda v: sign * model(v)[0])
+
+
+def search_pi_ls(x: Tensor, y: Tensor, warmup: int, cut: int, *,
+                 n_widths: Sequence[int], powers: Sequence[float]) -> Searched:
+    """The ``pi_ls`` family's search: the number of widths, the grid power and the ridge
+    (:data:`PENALTIES`) with the least RMS error on the hold-out (arguments as
+    :func:`search_pi_nonneg`'s); then refitted on every sample."""
+    score, n, power, ridge = _pi_choice(x, y, warmup, cut, n_widths, powers, nonnegative=False)
+    model = fit_prandtl_ishlinskii(x, y, play_width_grid(x, n, power=power), ridge=ridge,
+                                   warmup=warmup)
+    return Searched(score, {"fit": "pi_ls", "n_widths": n, "power": power, "ridge": ridge},
+                    lambda v: model(v)[0])
+
+
+register_family("pi_ls", _pi_ls, search=search_pi_ls)
+register_family("pi_nonneg", _pi_nonneg, search=search_pi_nonneg)

@@ -9,12 +9,16 @@ its exact inverse (``inverse``, :class:`torchhys.PreisachInverse`: a magnetic co
 density from its field, inverted into the compensator); both signs of the target fitted,
 the better kept. ``grading``: None for an even grid, or a graded one whose ``scale`` is
 that fraction of half the grid's span (:class:`torchhys.Preisach`).
+
+Its search (:data:`torchhys.registry.SEARCHES`, the real-data benchmark's row):
+:func:`search_preisach`.
 """
 
 from __future__ import annotations
 
 import copy
 import functools
+import math
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -41,9 +45,11 @@ from torchhys.identification._family_spec import (
     PENALTIES,
     VALIDATION,
     Fitter,
+    Searched,
     _holdout,
     _keys,
     _penalty,
+    holdout_share,
 )
 from torchhys.identification._nnls import (
     Moments,
@@ -57,7 +63,8 @@ from torchhys.identification.errors import FitError, _checked, _rmse, _samples, 
 from torchhys.operators.preisach import Preisach, PreisachInverse
 from torchhys.registry import register_family
 
-__all__ = ["check_fit_memory", "fit_preisach", "fit_preisach_signs", "select_penalty"]
+__all__ = ["SMOOTHNESS", "check_fit_memory", "fit_preisach", "fit_preisach_signs",
+           "search_preisach", "select_penalty"]
 
 FIT_MATRICES = 10
 """The (relays, relays) float64 matrices a fit holds at its peak, about (measured: the
@@ -378,4 +385,30 @@ def _preisach(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
     return placeholder.requires_grad_(False), fit
 
 
-register_family("preisach", _preisach)
+SMOOTHNESS = (0.0, 1e-8, 1e-6, 1e-4, 1e-2)
+"""The smoothness grid of :func:`search_preisach`."""
+
+
+def search_preisach(x: Tensor, y: Tensor, warmup: int, cut: int, *,
+                    levels: Sequence[int]) -> Searched:
+    """The ``preisach`` family's search: :func:`fit_preisach` (direct) on a grid over the
+    input's range, the number of ``levels``, the smoothness penalty (:data:`SMOOTHNESS`, by
+    :func:`select_penalty`) and the target's sign (a non-negative density draws loops of
+    one orientation; its free linear term lets the negated fit draw the other) with the
+    least RMS error on the hold-out, each fitted on the samples before it; then refitted on
+    every sample (arguments as
+    :func:`~torchhys.identification.prandtl_ishlinskii.search_pi_nonneg`'s).
+    """
+    best = (math.inf, 0, 0.0, 0.0)
+    for n in levels:
+        for sign in (1.0, -1.0):
+            p, scores = select_penalty(x, sign * y, list(SMOOTHNESS), kind="smoothness",
+                                       validation=holdout_share(x, cut), n=n, warmup=warmup)
+            best = min(best, (scores[p], n, sign, p))
+    score, n, sign, p = best
+    model = fit_preisach(x, sign * y, n=n, smoothness=p, warmup=warmup)
+    return Searched(score, {"fit": "preisach", "n": n, "smoothness": p, "sign": sign},
+                    lambda v: sign * model(v)[0])
+
+
+register_family("preisach", _preisach, search=search_preisach)

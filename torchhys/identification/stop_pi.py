@@ -8,13 +8,16 @@
 largest make the memoryless part), each through a piecewise-linear characteristic of
 ``segments`` equal segments (non-negative slopes: a friction element with a nonlinear spring,
 whose loops run clockwise); both signs of the target fitted, the better kept.
+
+Its search (:data:`torchhys.registry.SEARCHES`, the real-data benchmark's rows):
+:func:`search_stop_pi`, over the settings of :func:`stop_pi_settings`.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
-from typing import Any
+from collections.abc import Iterator, Mapping, Sequence
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor, nn
@@ -39,10 +42,12 @@ from torchhys.identification._family_spec import (
     PENALTIES,
     VALIDATION,
     Fitter,
+    Searched,
     _check_columns,
     _holdout,
     _keys,
     _penalty,
+    holdout_share,
 )
 from torchhys.identification._nnls import (
     Moments,
@@ -57,7 +62,8 @@ from torchhys.identification.fitting import play_width_grid
 from torchhys.operators.stop_pi import StopPrandtlIshlinskii
 from torchhys.registry import register_family
 
-__all__ = ["fit_stop_pi", "fit_stop_pi_signs", "select_stop_pi_ridge"]
+__all__ = ["StopSetting", "fit_stop_pi", "fit_stop_pi_signs", "fit_stop_setting",
+           "search_stop_pi", "select_stop_pi_ridge", "stop_pi_settings"]
 
 
 # --- identification -----------------------------------------------------------------------
@@ -378,4 +384,57 @@ def _stop_pi(spec: Mapping[str, Any]) -> tuple[nn.Module, Fitter]:
                                  torch.zeros(n, segments)).requires_grad_(False), fit
 
 
-register_family("stop_pi", _stop_pi)
+# --- the search -----------------------------------------------------------------------------
+class StopSetting(NamedTuple):
+    """A setting of :func:`stop_pi_settings` (ordered as a tuple, for ties)."""
+
+    n_widths: int
+    power: float
+    segments: int
+    sign: float
+    """The target's sign the stops are fitted to (non-negative slopes: clockwise loops)."""
+    ridge: float
+
+
+def stop_pi_settings(x: Tensor, y: Tensor, warmup: int, cut: int, *,
+                     n_widths: Sequence[int], powers: Sequence[float],
+                     segments: Sequence[int]) -> Iterator[tuple[StopSetting, float]]:
+    """Every setting of the ``stop_pi`` family's search (the number of thresholds on
+    :func:`~torchhys.identification.fitting.play_width_grid` of the scored input, the grid
+    power, the segments, the target's sign), each with the ridge of :data:`PENALTIES` that
+    :func:`select_stop_pi_ridge` chooses on the hold-out ``cut:`` and that ridge's hold-out
+    RMS error (arguments as
+    :func:`~torchhys.identification.prandtl_ishlinskii.search_pi_nonneg`'s)."""
+    for n in n_widths:
+        for power in powers:
+            thresholds = play_width_grid(x[:, warmup:], n, power=power)
+            for k in segments:
+                for sign in (1.0, -1.0):
+                    ridge, scores = select_stop_pi_ridge(
+                        x, sign * y, thresholds, PENALTIES, segments=k,
+                        validation=holdout_share(x, cut), warmup=warmup)
+                    yield StopSetting(n, power, k, sign, ridge), scores[ridge]
+
+
+def fit_stop_setting(x: Tensor, y: Tensor, warmup: int, setting: StopSetting,
+                     end: int) -> StopPrandtlIshlinskii:
+    """:func:`fit_stop_pi` of ``setting.sign`` x target on samples [warmup, end) of every
+    row, thresholds from the scored input's span (all samples after ``warmup``)."""
+    thresholds = play_width_grid(x[:, warmup:], setting.n_widths, power=setting.power)
+    return fit_stop_pi(x[:, :end], setting.sign * y[:, :end], thresholds,
+                       segments=setting.segments, ridge=setting.ridge, warmup=warmup)
+
+
+def search_stop_pi(x: Tensor, y: Tensor, warmup: int, cut: int, *,
+                   n_widths: Sequence[int], powers: Sequence[float],
+                   segments: Sequence[int]) -> Searched:
+    """The ``stop_pi`` family's search: the setting of :func:`stop_pi_settings` with the
+    least RMS error on the hold-out, refitted on every sample."""
+    score, setting = min((score, setting) for setting, score in stop_pi_settings(
+        x, y, warmup, cut, n_widths=n_widths, powers=powers, segments=segments))
+    model = fit_stop_setting(x, y, warmup, setting, x.shape[1])
+    return Searched(score, {"fit": "stop_pi", **setting._asdict()},
+                    lambda v: setting.sign * model(v)[0])
+
+
+register_family("stop_pi", _stop_pi, search=search_stop_pi)
