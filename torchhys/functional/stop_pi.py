@@ -176,7 +176,8 @@ def stop_pi(
     w = weights.to(xb.device)
     needs_grad = torch.is_grad_enabled() and any(
         t.requires_grad for t in (p, r, w, w0, b))
-    characteristic = stop_characteristic if needs_grad else _characteristic_in_place
+    in_place = not needs_grad and concrete(p, w)  # batched (vmap) rows: out of place
+    characteristic = _characteristic_in_place if in_place else stop_characteristic
     y = b + w0 * u + characteristic(u.unsqueeze(-1) - p, r, w)
     last = p[:, -1, :]
     return (y[0], last[0]) if squeezed else (y, last)
