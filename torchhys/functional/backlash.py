@@ -116,8 +116,8 @@ class _PlayAdjoint(torch.autograd.Function):
 
     @staticmethod
     def setup_context(ctx, inputs, output) -> None:  # type: ignore[override]  # noqa: ANN001
-        ctx.save_for_backward(*inputs[1:])
-        ctx.save_for_forward(*inputs)
+        ctx.save_for_backward(*inputs)  # the same tensors for both (vmap's generated rule
+        ctx.save_for_forward(*inputs)  # keeps one record of the saved tensors' batch dims)
 
     @staticmethod
     def jvp(ctx, dg: Tensor | None, *_: Tensor | None  # type: ignore[override]  # noqa: ANN001
@@ -128,7 +128,7 @@ class _PlayAdjoint(torch.autograd.Function):
     @staticmethod
     def backward(ctx, ggx: Tensor, ggr: Tensor,  # type: ignore[override]
                  ggy0: Tensor) -> tuple[Tensor | None, ...]:
-        x, r, y0, y = ctx.saved_tensors
+        _, x, r, y0, y = ctx.saved_tensors
         return play_tangent(x, r, y0, y, ggx, ggr, ggy0), None, None, None, None
 
 
