@@ -31,6 +31,7 @@ from torchhys.functional.preisach_inverse import check_preisach_invertible
 from torchhys.functional.stop_pi import _scalar, check_invertible, check_thresholds
 from torchhys.functional.turning_points import resolve_threshold
 from torchhys.operators.eiho import EIHO
+from torchhys.step import StateBlock, _check_step_state
 
 F64 = torch.float64
 preisach_module = importlib.import_module("torchhys.functional.preisach")  # the name is the
@@ -77,6 +78,9 @@ EAGER_ERRORS: list[tuple[str, Callable[[], object], str]] = [
      r"^weights must be finite and non-negative"),
     ("threshold", lambda: resolve_threshold(torch.tensor(-1.0), X), r"^threshold must be "
      r"finite, >= 0"),
+    ("step state", lambda: _check_step_state([t(NAN).reshape(1, 1)], [StateBlock("plays", 1)],
+                                             1),
+     r"^state\[0\] \(block 'plays'\) must be floating point and finite$"),
     ("EIHO auto threshold", lambda: EIHO(threshold="auto").to(F64)(X),
      r"^threshold='auto' is not calibrated yet"),
 ]

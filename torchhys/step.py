@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from torchhys._checks import check_choice, check_int
+from torchhys._checks import check_choice, check_int, concrete
 
 __all__ = ["STATE_KINDS", "OperatorStep", "StateBlock", "check_step", "custom_start"]
 
@@ -139,7 +139,7 @@ def _check_step_state(state: object, spec: Sequence[StateBlock], batch: int) -> 
         if block.kind == "int64":
             if t.dtype != torch.long:
                 raise ValueError(f"{where} must be int64, got {t.dtype}")
-        elif not t.is_floating_point() or not bool(t.isfinite().all()):
+        elif not t.is_floating_point() or (concrete(t) and not bool(t.isfinite().all())):
             raise ValueError(f"{where} must be floating point and finite")
 
 
