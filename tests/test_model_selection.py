@@ -612,3 +612,92 @@ def test_a_holdout_of_solved_candidates_is_the_least_squares_reference(monkeypat
     want = (design @ np.linalg.lstsq(design, t, rcond=None)[0]) * float(net.out_std) + float(
         net.out_mean)
     assert np.abs(got - want).max() < 1e-12 * np.abs(want).max()
+
+
+# --- trained candidates -------------------------------------------------------------------
+TRAINED = {"trainer": {"max_epochs": 6},
+           "model": {"operator": None, "operator_kwargs": DROP, "hidden": 4,
+                     "activation": "tanh", "init": "default", "optimizer": "adam",
+                     "lr": 0.02, "optimizer_kwargs": DROP, "select_cv": DROP,
+                     "select": [{}, {"operator": [{"fit": "plays", "n": 3}]}]},
+           "data": {"simulation": "paper", "t_end": 6.3, "split": [0.6, 0.2, 0.2],
+                    "warmup": 10}}
+"""A hold-out of two candidates of 4 tanh units trained by Adam: no readout solved."""
+
+
+def _lightning_holdout_errors(model: dict, data: dict, epochs: int) -> torch.Tensor:
+    """A candidate trained by hand as a Lightning run of it trains (seeded, one full batch
+    an epoch, float64), and its squared errors on the validation split in float64."""
+    from lightning.pytorch import seed_everything
+
+    seed_everything(0, verbose=False)
+    module = InverseHysteresisModule(**model)
+    dm = HysteresisDataModule(**data)
+    trainer(max_epochs=epochs).fit(module, datamodule=dm)
+    x, y, _, mask = dm.batches("val")[0]
+    with torch.no_grad():
+        return (module(x.double()) - y.double()).square()[mask]
+
+
+def test_trained_candidates_go_through_select_as_their_lightning_runs(monkeypatch,
+                                                                      tmp_path) -> None:
+    """Where the trainer section asks only for steps on the CPU, trained candidates are
+    scored by :func:`torchhys.selection.select` (no Lightning run per candidate), and each
+    scores what a Lightning run of it gives from the same seed (float64 errors, to
+    rounding)."""
+    import torchhys.training.selection as lightning_selection
+
+    def refused(*args, **kwargs):
+        raise AssertionError("a Lightning run per candidate")
+
+    monkeypatch.setattr(lightning_selection, "run_selection", refused)
+    root = tmp_path / "run"
+    cli(monkeypatch, "fit", "--config", str(small_config(tmp_path, "t.yaml", **TRAINED)),
+        f"--trainer.default_root_dir={root}")
+    rows = table(root)
+    base = {k: v for k, v in TRAINED["model"].items()
+            if v is not DROP and not k.startswith("select")}
+    for row, overrides in zip(rows, TRAINED["model"]["select"], strict=True):
+        errors = _lightning_holdout_errors({**base, **overrides}, TRAINED["data"], 6)
+        assert float(row["val_mse"]) == pytest.approx(float(errors.mean()), rel=1e-12)
+        assert float(row["val_se"]) == pytest.approx(standard_error(errors), rel=1e-12)
+
+
+@pytest.mark.parametrize(("option", "value"), [("gradient_clip_val", 1.0), ("max_steps", 3)])
+def test_a_trainer_option_select_cannot_honour_keeps_the_lightning_runs(
+        monkeypatch, tmp_path, option, value) -> None:
+    """A trainer option that changes a candidate's training and that select does not do
+    (clipping, accumulation, a step limit...) trains the candidates by Lightning, as
+    before; trainer_reason names it."""
+    import torchhys.training.selection as lightning_selection
+    from torchhys.cli.selection import trainer_reason
+
+    calls = []
+    run = lightning_selection.run_selection
+    monkeypatch.setattr(lightning_selection, "run_selection",
+                        lambda *a, **k: calls.append(1) or run(*a, **k))
+    sections = {**TRAINED, "trainer": {**TRAINED["trainer"], option: value}}
+    cli(monkeypatch, "fit", "--config", str(small_config(tmp_path, "t.yaml", **sections)),
+        f"--trainer.default_root_dir={tmp_path / 'run'}")
+    assert calls == [1] and len(table(tmp_path / "run")) == 2
+    trainer_section = {"accelerator": "cpu", "devices": 1, "precision": "64-true",
+                       "max_epochs": 3, option: value}
+    assert trainer_reason(trainer_section).startswith(f"trainer.{option}={value!r}")
+
+
+def test_trainer_reason_names_what_select_does_not_do() -> None:
+    from torchhys.cli.selection import trainer_reason
+
+    cpu = {"accelerator": "cpu", "devices": 1, "precision": "64-true", "max_epochs": 3,
+           "max_time": "00:00:01:00", "enable_progress_bar": False, "logger": False,
+           "check_val_every_n_epoch": 7, "plugins": [
+               {"class_path": "torchhys.training.checkpoint_io.AtomicCheckpointIO"}]}
+    assert trainer_reason(cpu) is None
+    assert "precision='bf16-mixed'" in trainer_reason({**cpu, "precision": "bf16-mixed"})
+    assert "accelerator='gpu'" in trainer_reason({**cpu, "accelerator": "gpu"})
+    assert "devices=2" in trainer_reason({**cpu, "devices": 2})
+    assert "callbacks" in trainer_reason({**cpu, "callbacks": [{"class_path": "x"}]})
+    assert "max_epochs=0" in trainer_reason({**cpu, "max_epochs": 0})
+    assert "max_time=3" in trainer_reason({**cpu, "max_time": 3})
+    assert trainer_reason({**cpu, "accumulate_grad_batches": 2}).startswith(
+        "trainer.accumulate_grad_batches=2")

@@ -1,13 +1,15 @@
 """``torchhys fit`` with ``model.select``: the candidates of a config scored, chosen and
-fitted by :func:`torchhys.selection.select` on the training split, where every candidate's
-readout is solved by least squares (the fitted model families of ``configs/measured.yaml``).
+fitted by :func:`torchhys.selection.select` on the training split.
 
-:func:`direct_record` says whether a run is of that kind and reads its training split once
+:func:`select_record` says whether a run is one ``select`` scores as Lightning runs of its
+candidates would (every readout solved by least squares, or a trainer section that asks for
+nothing ``select`` does not do: :func:`trainer_reason`) and reads its training split once
 (with a hold-out, ``select_cv: null``, also its validation split); the command then calls
-:func:`torchhys.selection.select` and hands the fitted network to the final fit
-(:func:`use_solved`), which logs and checkpoints it without training it again. Other
-candidates (a trained network) are scored by Lightning runs
-(:func:`torchhys.training.selection.run_selection`).
+:func:`torchhys.selection.select`, and hands a solved network to the final fit
+(:func:`use_solved`), which logs and checkpoints it without training it again. Other runs
+(callbacks, gradient clipping, a GPU ...) are scored by Lightning runs
+(:func:`torchhys.training.selection.run_selection`): ``select`` would not train their
+candidates as their trainer section does.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import csv
 import inspect
 import math
 from collections.abc import Mapping, Sequence
+from datetime import timedelta
 from pathlib import Path
 from typing import Any, Literal, NamedTuple
 
@@ -23,22 +26,24 @@ import torch
 from torch import Tensor
 
 from torchhys._checks import check_choice, check_int
-from torchhys.selection.candidates import build_candidate, candidate_spec, is_direct, model_base
+from torchhys.selection.candidates import candidate_spec, is_direct, model_base
 from torchhys.selection.folds import CV_MODES, RECORDING
 from torchhys.selection.run import Record, record
 from torchhys.selection.scores import CandidateScore
 from torchhys.training.data import HysteresisDataModule
 
-__all__ = ["ARGUMENTS", "DirectRecord", "check_candidates", "direct_record", "model_arguments",
-           "use_solved", "write_fold_logs"]
+__all__ = ["ARGUMENTS", "SelectRecord", "check_candidates", "model_arguments", "select_record",
+           "trainer_reason", "use_solved", "write_fold_logs"]
 
 _DTYPES = {"64-true": torch.float64, "64": torch.float64, "32-true": torch.float32,
            "32": torch.float32}
 
 
-class DirectRecord(NamedTuple):
+class SelectRecord(NamedTuple):
     """A training split for :func:`torchhys.selection.select`, and with a hold-out
-    (``select_cv: null``) the validation split's batch ``(x, y, warmup, mask)``."""
+    (``select_cv: null``) the validation split's batch ``(x, y, warmup, mask)``; the
+    training steps (``trainer.max_epochs``) and seconds (``trainer.max_time``) of a
+    candidate whose readout is trained."""
 
     x: Tensor
     y: Tensor
@@ -47,6 +52,8 @@ class DirectRecord(NamedTuple):
     dtype: torch.dtype
     source: str
     val: tuple[Tensor, Tensor, Tensor, Tensor] | None = None
+    epochs: int = 1000
+    seconds: float | None = None
 
     def record(self) -> Record:
         """The training split as :func:`torchhys.selection.select` reads it."""
@@ -68,32 +75,111 @@ def _one_device(trainer: Any) -> bool:
             and str(trainer.get("strategy") or "auto") == "auto")
 
 
-def direct_record(configs: list[Any], sub: str, cv: object) -> DirectRecord | None:
-    """The training split of a ``fit`` whose candidates ``configs`` are all solved directly
-    (an identity activation over fixed operators, a closure optimizer: their training a
-    least-squares problem), on one device in float32 or float64, from a
-    :class:`~torchhys.training.HysteresisDataModule`; with ``cv`` None (the hold-out) also
-    its validation split, checked (:func:`~torchhys.training.selection.check_holdout`);
-    else None."""
+_NO_EFFECT = frozenset({
+    "logger", "default_root_dir", "enable_progress_bar", "enable_model_summary",
+    "enable_checkpointing", "check_val_every_n_epoch", "val_check_interval",
+    "limit_val_batches", "limit_test_batches", "limit_predict_batches", "num_sanity_val_steps",
+    "log_every_n_steps", "deterministic", "benchmark", "inference_mode", "barebones",
+    "use_distributed_sampler", "reload_dataloaders_every_n_epochs", "detect_anomaly",
+    "profiler", "max_epochs", "max_time", "precision", "accelerator", "devices", "num_nodes",
+    "strategy", "plugins"})
+"""Trainer options that :func:`torchhys.selection.select` honours (``max_epochs`` as its
+``epochs``, ``max_time`` as its ``seconds``, the precision as its dtype, one CPU device:
+checked by :func:`trainer_reason`) or that do not change a candidate's fitted weights
+(logging, progress, the Lightning run's own validation)."""
+
+_ATOMIC_IO = "torchhys.training.checkpoint_io.AtomicCheckpointIO"
+
+
+def _seconds(max_time: Any) -> float | None:
+    """``trainer.max_time`` in seconds (``"DD:HH:MM:SS"`` or a dict of ``days``,
+    ``hours``, ``minutes``, ``seconds``; None: none); ValueError where it is neither."""
+    if max_time is None:
+        return None
+    if isinstance(max_time, str):
+        parts = [float(p) for p in max_time.split(":")]
+        if len(parts) != 4:
+            raise ValueError(max_time)
+        return float(timedelta(days=parts[0], hours=parts[1], minutes=parts[2],
+                               seconds=parts[3]).total_seconds())
+    if isinstance(max_time, Mapping):
+        return float(timedelta(**dict(max_time)).total_seconds())
+    raise ValueError(max_time)
+
+
+def trainer_reason(trainer: Any) -> str | None:
+    """Why :func:`torchhys.selection.select` cannot train the candidates as the config's
+    trainer section would (one line naming the option), or None: it asks for nothing but
+    the steps (``max_epochs``, default 1000 as Lightning's; ``max_time``), float32 or
+    float64 on one CPU device, and options that change no fitted weight (:data:`_NO_EFFECT`).
+
+    ``select`` trains each candidate full batch by its optimizer, one step an epoch, as the
+    Lightning module does (the same seed gives the same weights); it runs no callbacks (an
+    early stop, a learning-rate monitor, a user's own), no gradient clipping or accumulation,
+    no mixed precision, no step or batch limits, and no device but the CPU: a run that asks
+    for one of those trains its candidates by Lightning."""
+    from lightning.pytorch import Trainer
+
+    if str(trainer.get("precision") or "32-true") not in _DTYPES:
+        return f"trainer.precision={trainer.get('precision')!r} (select trains in float32 " \
+               "or float64)"
+    accelerator = str(trainer.get("accelerator") or "auto")
+    if accelerator != "cpu" and (accelerator != "auto" or torch.cuda.is_available()):
+        return f"trainer.accelerator={accelerator!r} (select trains on the CPU)"
+    if not (_one_device(trainer) or str(trainer.get("devices")) == "auto"):
+        return (f"trainer.devices={trainer.get('devices')!r}, num_nodes="
+                f"{trainer.get('num_nodes')!r}, strategy={trainer.get('strategy')!r} (select "
+                "trains on one device)")
+    epochs = trainer.get("max_epochs")
+    if epochs is not None and epochs < 1:
+        return f"trainer.max_epochs={epochs!r} (select trains a whole number of epochs >= 1)"
+    try:
+        _seconds(trainer.get("max_time"))
+    except (ValueError, TypeError):
+        return f"trainer.max_time={trainer.get('max_time')!r}"
+    for plugin in trainer.get("plugins") or []:
+        path = plugin.get("class_path") if hasattr(plugin, "get") else plugin
+        if path != _ATOMIC_IO:
+            return f"trainer.plugins holds {path!r}"
+    defaults = {name: p.default for name, p in
+                inspect.signature(Trainer.__init__).parameters.items()}
+    for key, value in trainer.items():
+        if key in _NO_EFFECT or key not in defaults:
+            continue
+        default = defaults[key]
+        if value != default and not (value in (None, []) and default in (None, [])):
+            return f"trainer.{key}={value!r} (select runs no {key})"
+    return None
+
+
+def select_record(configs: list[Any], sub: str, cv: object) -> tuple[SelectRecord | None, str]:
+    """The training split of a ``fit`` that :func:`torchhys.selection.select` scores as
+    Lightning runs of its candidates ``configs`` would, from a
+    :class:`~torchhys.training.HysteresisDataModule` (with ``cv`` None, the hold-out, also
+    its validation split, checked: :func:`~torchhys.training.selection.check_holdout`),
+    and ``""``; or None and why not (the candidates then train by Lightning).
+
+    ``select`` takes a run whose candidates are all solved directly (an identity activation
+    over fixed operators, a closure optimizer: their training a least-squares problem), on
+    one device in float32 or float64; or any candidates where the trainer section asks for
+    nothing ``select`` does not do (:func:`trainer_reason`)."""
     cfg = configs[0][sub]
     trainer = cfg["trainer"]
     dtype = _DTYPES.get(str(trainer.get("precision") or "32-true"))
     epochs = trainer.get("max_epochs")
-    if (dtype is None or not _one_device(trainer) or (epochs is not None and epochs < 1)
-            or trainer.get("limit_train_batches") in (0, 0.0)):
-        return None
-    for config in configs:
-        model = config[sub]["model"]
-        if model.get("net") is not None:
-            return None
-        spec = candidate_spec(model_base(model), {})
-        net, _ = build_candidate(spec, seed=None)
-        if not is_direct(spec, net):
-            return None
+    reason = trainer_reason(trainer)
+    if reason is not None:
+        if (dtype is None or not _one_device(trainer) or (epochs is not None and epochs < 1)
+                or trainer.get("limit_train_batches") in (0, 0.0)):
+            return None, reason
+        for i, config in enumerate(configs):
+            if not is_direct(candidate_spec(model_base(config[sub]["model"]), {})):
+                return None, f"{reason}, and model.select[{i}] is trained"
     data = cfg["data"]
     args = data.as_dict() if hasattr(data, "as_dict") else dict(data)
     if "class_path" in args:  # a datamodule of its own: not read here
-        return None
+        return None, f"data.class_path={args['class_path']!r} (select reads the data of a " \
+                     "HysteresisDataModule)"
     datamodule = HysteresisDataModule(**args)
     datamodule.setup("fit")
     if cv is None:  # the same error as a Lightning hold-out, before the training split's
@@ -103,11 +189,24 @@ def direct_record(configs: list[Any], sub: str, cv: object) -> DirectRecord | No
     datamodule.train_tensors()  # a constant column is the file's error, naming it
     batches = datamodule.batches("train")
     if not batches:
-        return None
+        return None, "no training batch"
     x, y, warmup, mask = batches[0]
+    source = getattr(datamodule, "source", "the data")
+    if cv == RECORDING and x.shape[0] < 2:  # the library's error, in the config's names
+        raise ValueError(
+            f"model.select_cv={RECORDING!r} holds each training recording out once, but the "
+            f"training split of {source} holds {x.shape[0]}: give several (data.split_by: "
+            "recording with data.train_recordings, or several data.path files), or use "
+            "blocked cross-validation inside the record (model.select_cv: k)")
     val = datamodule.batches("val")[0] if cv is None else None
-    return DirectRecord(x, y, warmup, mask.to(torch.bool), dtype,
-                        getattr(datamodule, "source", "the data"), val)
+    seconds = _seconds(trainer.get("max_time"))
+    steps = epochs if epochs is not None else (1000 if seconds is None else 2 ** 62)
+    if epochs is None and seconds is not None and any(
+            c[sub]["model"].get("schedule") for c in configs):
+        return None, ("trainer.max_time without trainer.max_epochs, and a model.schedule "
+                      "(Lightning decays it over one epoch)")
+    return SelectRecord(x, y, warmup, mask.to(torch.bool), dtype or torch.float32, source,
+                        val, steps, seconds), ""
 
 
 def write_fold_logs(scores: Sequence[CandidateScore], root: Path) -> None:

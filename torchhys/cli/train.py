@@ -42,7 +42,8 @@ MSE; the table goes to ``selection.csv`` in the run's own ``logs/version_<N>`` f
 more as a plain ``fit`` in that folder. The rules (validation split, blocked, rolling and
 leave-one-recording-out cross-validation, the one-standard-error rule) are stated once, in
 docs/training.md ("Model selection on validation data"); the code is in
-:mod:`torchhys.training.selection`. ``validate``, ``test`` and ``predict`` ignore
+:mod:`torchhys.selection` (:func:`torchhys.cli.selection.select_record`: when; else Lightning
+runs, :mod:`torchhys.training.selection`). ``validate``, ``test`` and ``predict`` ignore
 ``model.select``, and so does a ``fit --ckpt_path`` that resumes.
 
 The options of the command itself (``--import``, ``--threads``, ``--quiet``,
@@ -76,13 +77,13 @@ from torchhys.cli.errors import TRACEBACK_ENV, config_errors, report_user_error
 from torchhys.cli.negative_numbers import accept_negative_numbers
 from torchhys.cli.quiet import quiet_requested
 from torchhys.cli.run_dirs import RUN_DIR_ENV, reserve_run_dir
-from torchhys.cli.selection import direct_record, use_solved, write_fold_logs
+from torchhys.cli.selection import select_record, use_solved, write_fold_logs
 from torchhys.data.files import watch_files
 from torchhys.identification.specs import build_operators
 from torchhys.optim.named import check_optimizer_kwargs
 from torchhys.selection import scores
 from torchhys.selection import select as select_candidates
-from torchhys.selection.candidates import model_base
+from torchhys.selection.candidates import is_direct, model_base
 from torchhys.selection.coverage import warn_coverage
 from torchhys.selection.folds import describe_cv
 from torchhys.selection.jobs import check_budget, check_jobs, usable_cores
@@ -251,17 +252,18 @@ class TorchhysCLI(LightningCLI):
 
         try:
             with _quiet_lightning(), signals_raise():  # SIGTERM, Ctrl-C: Interrupted
-                direct = direct_record(configs, sub, cv)
-                if direct is not None:  # every readout solved: the library's selection
+                direct, _ = select_record(configs, sub, cv)
+                if direct is not None:  # the library's selection (select_record: when)
                     result = select_candidates(
                         candidates, direct.x, direct.y, base=model_base(cfg["model"]),
                         warmup=direct.warmup, mask=direct.mask, cv=cv, mode=mode,
                         rule=rule or "min", jobs=jobs, budget_s=budget, dtype=direct.dtype,
-                        seed=seed, progress=progress, source=direct.source, refit=False,
+                        seed=seed, epochs=direct.epochs, seconds=direct.seconds,
+                        progress=progress, source=direct.source, refit=False,
                         val=direct.val_record())
                     scored = result.scores
                     write_fold_logs(scored, folder / "selection")
-                else:  # trained candidates: a Lightning run each
+                else:  # a trainer section select cannot honour: a Lightning run each
                     from torchhys.training.selection import run_selection
 
                     scored = run_selection(candidates, build, cv=cv, mode=mode, jobs=jobs,
@@ -276,7 +278,8 @@ class TorchhysCLI(LightningCLI):
         chosen = scores.best(scored, rule or "min")
         _report(scored, chosen, folder / "selection.csv", describe_cv(cv, mode),
                 rule or "min")
-        if direct is not None:  # the chosen candidate fitted once, after its table is written
+        if direct is not None and is_direct(result.spec):
+            # a solved readout, fitted once after its table is written: not trained again
             with signals_raise():
                 self._solved = fit_record(result.spec, direct.record(), dtype=direct.dtype,
                                           seed=seed)

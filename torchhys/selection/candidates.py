@@ -24,7 +24,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchhys._finite import check_normalization
+from torchhys._finite import check_learning_rate, check_normalization
 from torchhys.identification.specs import build_operators, fit_data_dependent
 from torchhys.init import initialize
 from torchhys.networks import InverseHysteresisNet
@@ -65,6 +65,10 @@ def candidate_spec(base: Mapping[str, Any] | None, overrides: Mapping[str, Any])
         raise ValueError(f"{', '.join(map(repr, unknown))}: not a model argument of a "
                          f"candidate; valid: {sorted(MODEL_DEFAULTS)}")
     check_optimizer_kwargs(spec["optimizer"], spec["optimizer_kwargs"])
+    if spec["schedule"] not in (None, "cosine") or (spec["schedule"] and spec["optimizer"]
+                                                    in CLOSURE_OPTIMIZERS):
+        raise ValueError(f"schedule must be None or 'cosine' (with optimizer='adam'), got "
+                         f"{spec['schedule']!r} with optimizer={spec['optimizer']!r}")
     return spec
 
 
@@ -81,11 +85,15 @@ def build_candidate(spec: Mapping[str, Any], *, dtype: torch.dtype = torch.float
     return net.to(dtype), fitters
 
 
-def is_direct(spec: Mapping[str, Any], net: InverseHysteresisNet) -> bool:
+def is_direct(spec: Mapping[str, Any], net: InverseHysteresisNet | None = None) -> bool:
     """Whether the candidate's readout is solved by least squares: an identity activation,
-    operators without trainable parameters, a closure optimizer (L-BFGS, CG)."""
-    return (spec["activation"] == "identity" and spec["optimizer"] in CLOSURE_OPTIMIZERS
-            and not any(p.requires_grad for p in net.operators.parameters()))
+    operators without trainable parameters, a closure optimizer (L-BFGS, CG). Without
+    ``net``, only the candidate's operators are built to ask (no network, no seed)."""
+    if spec["activation"] != "identity" or spec["optimizer"] not in CLOSURE_OPTIMIZERS:
+        return False
+    ops = (net.operators if net is not None
+           else build_operators(spec["operator"], spec["operator_kwargs"])[0])
+    return not any(p.requires_grad for op in ops for p in op.parameters())
 
 
 @torch.no_grad()
@@ -115,10 +123,21 @@ def train_full_batch(net: InverseHysteresisNet, spec: Mapping[str, Any], train: 
                      epochs: int, seconds: float | None = None) -> int:
     """Train ``net`` full batch on the samples ``train.mask`` by the candidate's optimizer:
     ``epochs`` steps (each of up to ``max_iter`` iterations for a closure optimizer), or
-    fewer once ``seconds`` have passed; the steps done."""
+    fewer once ``seconds`` have passed; the steps done. The Lightning module's training of
+    one full batch an epoch, step for step (the same loss, the same optimizer, ``schedule:
+    cosine`` over ``epochs``): from the same seed it reaches the same weights.
+
+    Raises:
+        DivergedError: a learning rate the weights' dtype cannot hold
+            (:func:`~torchhys._finite.check_learning_rate`)."""
     kwargs = optimizer_arguments(spec["optimizer"], spec["lr"], spec["optimizer_kwargs"])
     params = [p for p in net.parameters() if p.requires_grad]
+    if "lr" in kwargs and params:  # one the weights' dtype holds, as the Lightning module
+        check_learning_rate(kwargs["lr"], params[0].dtype, spec["optimizer"])
     opt = OPTIMIZERS[spec["optimizer"]](params, **kwargs)
+    # "cosine": lr decays to 0 over the epochs, stepped after each (as Lightning's epochs)
+    sched = (torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(epochs, 1))
+             if spec.get("schedule") == "cosine" else None)
     dtype = net.in_mean.dtype
     x, y, mask = train.x.to(dtype), train.y.to(dtype), train.mask
     fixed = not any(p.requires_grad for p in net.operators.parameters())
@@ -139,6 +158,8 @@ def train_full_batch(net: InverseHysteresisNet, spec: Mapping[str, Any], train: 
         else:
             closure()
             opt.step()
+        if sched is not None:
+            sched.step()
         done += 1
     return done
 

@@ -104,8 +104,9 @@ def _squared_errors(module: L.LightningModule, datamodule: L.LightningDataModule
         for batch in datamodule.val_dataloader():
             if not (isinstance(batch, (tuple, list)) and len(batch) == 4):
                 continue
-            x, y, _, mask = batch
-            e = module(x, target=y).to(torch.float64) - y.to(torch.float64)
+            x, y, _, mask = batch  # the data's float64, to the module's dtype
+            e = (module(x.to(module.dtype), target=y.to(module.dtype)).to(torch.float64)
+                 - y.to(torch.float64))
             errors.append(e.square()[mask.to(torch.bool)])
     return torch.cat(errors) if errors else torch.zeros(0, dtype=torch.float64)
 
