@@ -1,11 +1,12 @@
 """The registry of model families identified on data: FAMILIES, SEARCHES and
 register_family."""
 import math
+import subprocess
+import sys
 
 import pytest
 import torch
 
-import torchhys.identification.specs  # noqa: F401 (registers the built-in families)
 import torchhys.registry as registry
 from torchhys.registry import FAMILIES, register_family
 
@@ -19,6 +20,44 @@ def families() -> dict:
     FAMILIES.update(saved)
     registry.SEARCHES.clear()
     registry.SEARCHES.update(searches)
+
+
+BUILTIN = ["drift", "gpi", "jiles_atherton", "pi_ls", "pi_nonneg", "plays", "preisach",
+           "stop_pi"]
+
+
+def test_the_registry_lists_every_family_on_first_use() -> None:
+    """In a fresh interpreter, ``torchhys.registry.FAMILIES`` and ``SEARCHES`` list every
+    built-in family on their first read, with nothing else imported first; ``import
+    torchhys`` and the registry's import load no family module (that first read does)."""
+    code = ("import sys, torchhys, torchhys.registry as r\n"
+            "print(any(m.startswith('torchhys.identification') for m in sys.modules))\n"
+            "print(sorted(r.FAMILIES))\n"
+            "print(sorted(r.SEARCHES))\n"
+            "print('torchhys.identification.specs' in sys.modules)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    before, families, searches, after = proc.stdout.splitlines()
+    assert before == "False" and after == "True"
+    assert families == str(BUILTIN)
+    assert searches == str(["gpi", "pi_ls", "pi_nonneg", "preisach", "stop_pi"])
+
+
+@pytest.mark.slow
+def test_a_family_module_imported_first_registers_every_family() -> None:
+    """A family module imported on its own (which registers itself as it loads) and then a
+    read of the registry: every built-in family, no error from the half-loaded module."""
+    code = ("import torchhys.identification.generalized_pi\n"
+            "import torchhys.registry as r\n"
+            "print(sorted(r.FAMILIES))\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == str(BUILTIN)
+
+
+def test_a_user_family_named_as_a_built_in_one_is_refused_at_once(families: dict) -> None:
+    with pytest.raises(ValueError, match="family name 'stop_pi' is registered already"):
+        register_family("stop_pi", lambda spec: None)
 
 
 def test_a_registered_family_is_built_by_name(families: dict) -> None:

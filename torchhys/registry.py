@@ -11,9 +11,10 @@ of a spec. The protocol the operators implement is :mod:`torchhys.operator`.
 hold-out (sign, direction, penalty, size), which the real-data benchmark's rows run.
 """
 
+import importlib
 import warnings
-from collections.abc import Callable, Mapping
-from typing import Any
+from collections.abc import Callable, Iterator, Mapping, MutableMapping
+from typing import Any, TypeVar
 
 from torch import nn
 
@@ -21,12 +22,14 @@ from torchhys.operator import HysteresisOperator, check_operator
 
 __all__ = [
     "BROKEN_ENTRY_POINTS",
+    "BUILTIN_FAMILIES",
     "ENTRY_POINT_GROUP",
     "EXAMPLES",
     "FAMILIES",
     "OPERATORS",
     "SEARCHES",
     "load_entry_points",
+    "load_families",
     "make_operator",
     "register_family",
     "register_operator",
@@ -200,21 +203,78 @@ def make_operator(spec: Any, /, *, argument: str = "operator", **options: Any
     return check_operator(op, f"{argument} {name!r}")
 
 
-FAMILIES: dict[str, Callable[[Mapping[str, Any]], Any]] = {}
+BUILTIN_FAMILIES = "torchhys.identification.specs"
+"""The module whose import registers the built-in families (it loads each family's module
+of :mod:`torchhys.identification`, where each registers itself): loaded by name on the first
+read of :data:`FAMILIES` or :data:`SEARCHES` (:func:`load_families`). The registry sits below
+the families it holds and does not import them."""
+_families_loaded = False
+
+V = TypeVar("V")
+
+
+def load_families() -> None:
+    """Register the built-in model families (import :data:`BUILTIN_FAMILIES`), once per
+    process; every read of :data:`FAMILIES` and :data:`SEARCHES` calls it first, so they
+    list every family on first use without ``import torchhys`` loading them."""
+    global _families_loaded
+    if _families_loaded:
+        return
+    _families_loaded = True  # before the import: its registrations read the registry
+    try:
+        importlib.import_module(BUILTIN_FAMILIES)
+    except BaseException:
+        _families_loaded = False
+        raise
+
+
+class _Loaded(MutableMapping[str, V]):
+    """A dict of the registry that registers the built-in families before it is read."""
+
+    def __init__(self) -> None:
+        self._items: dict[str, V] = {}
+
+    def __getitem__(self, name: str) -> V:
+        load_families()
+        return self._items[name]
+
+    def __setitem__(self, name: str, value: V) -> None:
+        load_families()
+        self._items[name] = value
+
+    def __delitem__(self, name: str) -> None:
+        load_families()
+        del self._items[name]
+
+    def __iter__(self) -> Iterator[str]:
+        load_families()
+        return iter(self._items)
+
+    def __len__(self) -> int:
+        load_families()
+        return len(self._items)
+
+    def __repr__(self) -> str:
+        load_families()
+        return repr(self._items)
+
+
+FAMILIES: MutableMapping[str, Callable[[Mapping[str, Any]], Any]] = _Loaded()
 """Model families identified on data, by name: ``FAMILIES[name](spec)`` takes the spec
 ``{"fit": name, **options}`` and returns ``(placeholder, fit)``: the module that holds the
 identified operator's place until the data are seen, and the function that identifies it
-(see :func:`register_family`)."""
+(see :func:`register_family`). The built-in families are registered on its first read
+(:func:`load_families`)."""
 
-
-SEARCHES: dict[str, Callable[..., Any]] = {}
+SEARCHES: MutableMapping[str, Callable[..., Any]] = _Loaded()
 """The families' searches of their own options, by family name:
 ``SEARCHES[name](x, y, warmup, cut, **grid)`` fits the family on samples before ``cut`` of
 every row of ``x``, ``y`` (rows, time) for each setting of its options (the family's own
 choices, such as the target's sign, the direction and the penalty, over the sizes of
 ``grid``), and returns a :class:`torchhys.identification._family_spec.Searched`: the
 setting with the least RMS error on the hold-out ``cut:``, as a spec, and its model refitted
-on every sample (see :func:`register_family`)."""
+on every sample (see :func:`register_family`). The built-in families' searches are
+registered on its first read (:func:`load_families`)."""
 
 
 def register_family(name: str, builder: Callable[[Mapping[str, Any]], Any], *,
@@ -223,7 +283,9 @@ def register_family(name: str, builder: Callable[[Mapping[str, Any]], Any], *,
     ``{"fit": name, **options}``.
 
     Registering the same builder under the same name again is a no-op (a search given then
-    is added).
+    is added). A builder from outside :mod:`torchhys.identification` registers the built-in
+    families first (:func:`load_families`), so a built-in family's name is refused at once;
+    the built-in ones register as their modules load.
 
     Args:
         name: the family's name in specs and configs.
@@ -243,9 +305,12 @@ def register_family(name: str, builder: Callable[[Mapping[str, Any]], Any], *,
     if search is not None and not callable(search):
         raise TypeError(f"family {name!r}: search must be callable or None, got "
                         f"{type(search).__name__} {search!r}")
-    old = FAMILIES.get(name, builder)
+    if not getattr(builder, "__module__", "").startswith("torchhys.identification."):
+        load_families()
+    families, searches = FAMILIES._items, SEARCHES._items  # type: ignore[attr-defined]
+    old = families.get(name, builder)
     if old is not builder:
         raise ValueError(f"family name {name!r} is registered already ({old!r})")
-    FAMILIES[name] = builder
+    families[name] = builder
     if search is not None:
-        SEARCHES[name] = search
+        searches[name] = search

@@ -14,7 +14,6 @@ import torch
 from torch import Tensor
 
 from torchhys import EIHO, Backlash, Drift, InverseHysteresisNet, JilesAtherton, fit_jiles_atherton
-from torchhys.identification import specs  # noqa: F401 (loads the families)
 from torchhys.identification._family_spec import PENALTIES, Searched
 from torchhys.identification.fitting import play_width_grid
 from torchhys.identification.preisach import SMOOTHNESS

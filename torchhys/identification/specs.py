@@ -73,7 +73,8 @@ operator."""
 
 _FAMILY_MODULES = (prandtl_ishlinskii, generalized_pi, preisach, stop_pi, jiles_atherton, drift)
 """The modules of the built-in families, loaded here: each registers its families in
-:data:`torchhys.registry.FAMILIES` beside their builders, before a spec is looked up."""
+:data:`torchhys.registry.FAMILIES` beside their builders, before a spec is looked up (the
+registry loads this module on its first read: :data:`torchhys.registry.BUILTIN_FAMILIES`)."""
 
 
 def _build(spec: object, argument: str, operator_kwargs: Mapping[str, Any]
