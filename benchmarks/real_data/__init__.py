@@ -59,7 +59,7 @@ the states and are neither fitted nor scored):
   ``fit_data_dependent``, trained as the config says (its optimizer, one full-batch step per
   epoch, ``trainer.max_epochs``, the last epoch kept, capped in time) on the whole training
   part, and scored by its output saturated to the training target range
-  (:func:`~torchhys.deploy.streaming.default_limits`, the exported command limits; the exported
+  (:func:`~torchhys.deploy.ranges.default_limits`, the exported command limits; the exported
   compensator's input clamp and direction guard on top of it: ``benchmarks/deploy_safety.py``);
 - ``selected``: the row above with the least hold-out RMSE (for ``default``: its chosen
   candidate's, fitted before the hold-out; a model-family choice made on the training part

@@ -12,7 +12,7 @@ from torch import Tensor
 
 from torchhys import InverseHysteresisNet
 from torchhys.cli.train import read_config
-from torchhys.deploy.streaming import default_limits
+from torchhys.deploy.ranges import default_limits
 from torchhys.identification.errors import FitError
 from torchhys.selection import select
 from torchhys.selection.candidates import candidate_spec, fit_candidate, model_base
