@@ -329,10 +329,12 @@ RUNS: dict[str, tuple[Callable[[Case], str | None], bool]] = {
 compiled kernels and with the scans (:func:`modes`)."""
 
 
-def run(case: Case, name: str) -> list[tuple[str, Callable[[], str | None]]]:
-    """The runs of check ``name`` on ``case``: ``(where, call)``, one per kernel mode for
-    the checks that depend on the kernels (``where``: " with the scans", ...), else one."""
-    check, in_modes = RUNS[name]
+def run(case: Case, name: str, runs: dict | None = None
+        ) -> list[tuple[str, Callable[[], str | None]]]:
+    """The runs of check ``name`` of ``runs`` (None: :data:`RUNS`) on ``case``:
+    ``(where, call)``, one per kernel mode for the checks that depend on the kernels
+    (``where``: " with the scans", ...), else one."""
+    check, in_modes = (RUNS if runs is None else runs)[name]
     if not in_modes:
         return [("", lambda: check(case))]
 

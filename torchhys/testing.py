@@ -17,6 +17,13 @@ that compute the same output within the example's ``atol`` relative to the outpu
 (turning points, ties, repeated samples), with the compiled kernels where they run and with
 the scans. The C99 and ONNX steps are checked against the TorchScript compensator by the
 suite (they need a C compiler and ONNX Runtime: ``tests/test_conformance.py``).
+
+The checks under torch's own tools (:data:`TORCH_CHECKS`: ``torch.compile(fullgraph=True)``,
+``torch.export`` with a dynamic time dimension, ``torch.func.vmap`` over inputs and over
+stacked parameters, meta and fake tensors, ``torch.func.grad``, ``gradgradcheck``) are
+documented in ``docs/torch_integration.md``; the compiling ones run when asked::
+
+    check_conformance("backlash", checks=["compile", "export"])
 """
 
 import copy
@@ -30,7 +37,8 @@ import torch
 import torchhys.registry as registry
 from torchhys.operator import HysteresisOperator
 
-__all__ = ["CHECKS", "DEFAULT_CHECKS", "Example", "check_conformance", "example_of"]
+__all__ = ["CHECKS", "COMPILE_CHECKS", "DEFAULT_CHECKS", "TORCH_CHECKS", "Example",
+           "check_conformance", "example_of"]
 
 CHECKS: dict[str, str] = {
     "protocol": "the example is an operator of its registered class",
@@ -45,11 +53,32 @@ CHECKS: dict[str, str] = {
     "bad_value": "a value breaking a declared constraint is refused, naming the entry",
     "bad_input": "bad input (text, integers, 3-d, NaN) is an error naming x",
     "bad_state": "a state of another batch, or with a NaN, is an error naming state",
+    "compile": "torch.compile(fullgraph=True): output, state and gradients (input and "
+               "parameters) equal eager within 1e-12 (float64)",
+    "export": "torch.export.export with a dynamic time dimension (torch.export.Dim): the "
+              "program's output and state equal eager at the traced length and at others",
+    "vmap": "torch.func.vmap over a batch of inputs equals each input's own call",
+    "vmap_params": "torch.func.vmap over stacked parameters and buffers "
+                   "(torch.func.stack_module_state + functional_call) equals each model's call",
+    "meta": "on the meta device (op.to('meta')) the output and state have eager's shapes "
+            "and dtypes",
+    "fake": "under FakeTensorMode (fake parameters, buffers and input) the output and state "
+            "have eager's shapes and dtypes",
+    "func_grad": "torch.func.grad in the input and the parameters equals torch.autograd.grad",
+    "gradgradcheck": "gradgradcheck of forward in the input (float64), or the example's "
+                     "documented refusal (no_gradgradcheck) raised by double backward",
 }
-"""The checks by name: what each holds. ``chunked``, ``step`` and ``gradcheck`` run with the
-compiled play and filter kernels (where they run) and with the scans."""
-DEFAULT_CHECKS = tuple(c for c in CHECKS if c != "aoti")
-"""The checks :func:`check_conformance` runs by default: all but ``"aoti"`` (a compile)."""
+"""The checks by name: what each holds. ``chunked``, ``step``, ``gradcheck``, ``vmap``,
+``vmap_params``, ``func_grad`` and ``gradgradcheck`` run with the compiled play and filter
+kernels (where they run) and with the scans; ``compile`` and ``export`` with the default
+path. ``docs/torch_integration.md`` says what the torch checks cover."""
+COMPILE_CHECKS = ("aoti", "compile", "export")
+"""The checks that compile or trace a program (tens of seconds each on a CPU)."""
+TORCH_CHECKS = ("compile", "export", "vmap", "vmap_params", "meta", "fake", "func_grad",
+                "gradgradcheck")
+"""The checks of the operator under torch's own tools (``torchhys._conformance_torch``)."""
+DEFAULT_CHECKS = tuple(c for c in CHECKS if c not in COMPILE_CHECKS)
+"""The checks :func:`check_conformance` runs by default: all but :data:`COMPILE_CHECKS`."""
 
 
 @dataclass(frozen=True)
@@ -68,12 +97,16 @@ class Example:
         bad_values: state-dict keys, each with a value that breaks a constraint that
             ``load_state_dict`` checks (the whole tensor filled with it), e.g.
             ``{"weights": -1.0}`` for a non-negative density; empty where none is checked.
+        no_gradgradcheck: where the second derivative does not exist, a regular expression
+            that the error of double backward matches (the check asserts that it is raised
+            instead of running ``gradgradcheck``), or None.
     """
 
     build: Callable[[], HysteresisOperator]
     atol: float = 0.0
     no_gradcheck: str | None = None
     bad_values: Mapping[str, float] = dataclass_field(default_factory=dict)
+    no_gradgradcheck: str | None = None
 
     def __call__(self) -> HysteresisOperator:
         return self.build()
@@ -106,7 +139,8 @@ def check_conformance(operator: str | type | HysteresisOperator, example: Any = 
         dtype: ``torch.float64`` (the examples' tolerances) or ``torch.float32`` (at least
             1e-4 relative to the output's scale; no gradcheck).
         checks: names of :data:`CHECKS` to run, in their order; None: :data:`DEFAULT_CHECKS`
-            (all but ``"aoti"``, an AOTInductor compile).
+            (all but :data:`COMPILE_CHECKS`: AOTInductor, ``torch.compile`` and
+            ``torch.export``).
 
     Returns:
         Each check run -> None where it held, else why it does not apply (a non-causal
@@ -120,6 +154,7 @@ def check_conformance(operator: str | type | HysteresisOperator, example: Any = 
         TypeError: ``operator`` or ``example`` of another type.
     """
     import torchhys._conformance as conformance  # the exporters, loaded when checks run
+    import torchhys._conformance_torch as torch_conformance
 
     case = _case(operator, example, dtype)
     names = DEFAULT_CHECKS if checks is None else tuple(checks)
@@ -133,7 +168,8 @@ def check_conformance(operator: str | type | HysteresisOperator, example: Any = 
         return dict.fromkeys(names, why)
     results: dict[str, str | None] = {}
     for name in names:
-        for where, call in conformance.run(case, name):
+        runs = torch_conformance.RUNS if name in TORCH_CHECKS else None
+        for where, call in conformance.run(case, name, runs):
             try:
                 results[name] = call()
             except Exception as e:  # noqa: BLE001 (whatever the operator raises fails the check)
