@@ -105,6 +105,8 @@ def test_concrete_where() -> None:
     torch.func.vmap(lambda v: (seen.append(concrete(v)), v)[1])(torch.ones(2, 3))
     torch.func.grad(lambda v: (seen.append(concrete(v)), v.sum())[1])(x)
     assert seen == [False, True]
+    with pytest.raises(ValueError, match=r"^v must be finite"):  # grad reads values: checked
+        torch.func.grad(lambda v: check_finite(v, "v").sum())(t(1.0, NAN))
     torch._dynamo.reset()
     traced = torch.compile(lambda v: v + 1 if concrete(v) else v - 1, fullgraph=True,
                            backend="eager")
