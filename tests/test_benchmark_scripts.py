@@ -228,3 +228,23 @@ def test_layout_cost_prints_what_each_import_loads() -> None:
         assert 0 < int(ours) < int(every) and float(seconds) > 0, out
         assert lightning == "no", (name, out)
     assert int(rows["torchhys"][1]) <= MAX_TORCHHYS_MODULES
+
+
+@pytest.mark.slow  # two torch.compile builds
+def test_compile_benchmark_prints_eager_and_compiled_rows() -> None:
+    """benchmarks/compile.py at a tiny size: a row per model and mode, each step timed, the
+    eager row's ratio 1, no graph break inside torchhys, the CUDA rows skipped with a reason
+    where no GPU is present."""
+    import torch
+
+    out = run("compile.py", "--samples", "40", "--repeats", "1", "--dtypes", "float64",
+              "--modes", "eager,compile")
+    rows = table(out, "model")
+    cpu = [r for r in rows if r[2] == "cpu"]
+    assert [(r[0], r[3]) for r in cpu] == [(m, mode) for m in ("operators+lstm", "recommended")
+                                          for mode in ("eager", "compile")], out
+    for r in cpu:
+        assert number(r[4]) > 0 and (r[3] != "eager" or number(r[5]) == 1.0), r
+        assert number(r[6]) > 0 and (r[3] == "eager" or r[7].endswith("/ 0")), r
+    if not torch.cuda.is_available():
+        assert [r[2] for r in rows if r[2] != "cpu"] == ["cuda"] and "skipped" in rows[-1][3]
