@@ -526,6 +526,10 @@ def test_a_block_folds_fits_ignore_its_held_out_targets(tmp_path: Path, fold: in
 
 
 def test_a_diverged_training_scores_nan_with_its_reason() -> None:
+    """A Lightning run whose training diverged (validation logs a NaN MSE) scores NaN with
+    its reason in the loop the library's selection scores by (score_folds), its later folds
+    not run."""
+    from torchhys.selection.run import score_folds
     from torchhys.training import selection
 
     class Trainer:  # a run whose training diverged: validation logs a NaN MSE
@@ -535,11 +539,21 @@ def test_a_diverged_training_scores_nan_with_its_reason() -> None:
         def validate(self, module, datamodule, verbose) -> list[dict]:  # noqa: ANN001
             return [{"val_mse": math.nan}]
 
+    mse, errors = selection._train_and_validate(None, None, Trainer())
+    assert math.isnan(mse) and errors.numel() == 0
     with pytest.warns(RuntimeWarning, match="candidate 3: validation MSE nan: the training "
                                             "diverged"):
-        mse, errors, why = selection._validation(None, None, Trainer(), "candidate 3")
-    assert math.isnan(mse) and errors.numel() == 0
-    assert why == "validation MSE nan: the training diverged"
+        score = score_folds(3, {}, 1, lambda j: (mse, errors, 5), None)
+    assert math.isnan(score.val_mse) and score.folds == ()
+    assert score.error == "validation MSE nan: the training diverged"
+    runs = []
+    with pytest.warns(RuntimeWarning, match="candidate 3, fold 2 of 3: validation MSE nan"):
+        score = score_folds(3, {}, 3, lambda j: runs.append(j) or (
+            (0.5, torch.ones(4, dtype=torch.float64), 4) if j == 0 else (mse, errors, 4)), 3)
+    assert runs == [0, 1] and math.isnan(score.val_mse)
+    assert score.folds[0] == 0.5 and all(math.isnan(f) for f in score.folds[1:])
+    assert score.error == ("fold 2 of 3: validation MSE nan: the training diverged (folds 3-3 "
+                           "not run)")
 
 
 def test_quiet_prints_no_progress(monkeypatch, capsys, tmp_path) -> None:
@@ -663,12 +677,14 @@ def test_trained_candidates_go_through_select_as_their_lightning_runs(monkeypatc
         assert float(row["val_se"]) == pytest.approx(standard_error(errors), rel=1e-12)
 
 
-@pytest.mark.parametrize(("option", "value"), [("gradient_clip_val", 1.0), ("max_steps", 3)])
+@pytest.mark.parametrize(("option", "value", "cv"), [("gradient_clip_val", 1.0, None),
+                                                     ("max_steps", 3, 2)])
 def test_a_trainer_option_select_cannot_honour_keeps_the_lightning_runs(
-        monkeypatch, tmp_path, option, value) -> None:
+        monkeypatch, tmp_path, option, value, cv) -> None:
     """A trainer option that changes a candidate's training and that select does not do
     (clipping, accumulation, a step limit...) trains the candidates by Lightning, as
-    before; trainer_reason names it."""
+    before (scored by the library's loop: folds pooled by their held-out samples);
+    trainer_reason names it."""
     import torchhys.training.selection as lightning_selection
     from torchhys.cli.selection import trainer_reason
 
@@ -676,10 +692,19 @@ def test_a_trainer_option_select_cannot_honour_keeps_the_lightning_runs(
     run = lightning_selection.run_selection
     monkeypatch.setattr(lightning_selection, "run_selection",
                         lambda *a, **k: calls.append(1) or run(*a, **k))
-    sections = {**TRAINED, "trainer": {**TRAINED["trainer"], option: value}}
+    sections = {**TRAINED, "trainer": {**TRAINED["trainer"], option: value},
+                "model": {**TRAINED["model"], "select_cv": cv if cv else DROP}}
     cli(monkeypatch, "fit", "--config", str(small_config(tmp_path, "t.yaml", **sections)),
         f"--trainer.default_root_dir={tmp_path / 'run'}")
-    assert calls == [1] and len(table(tmp_path / "run")) == 2
+    rows = table(tmp_path / "run")
+    assert calls == [1] and len(rows) == 2
+    if cv:
+        dm = HysteresisDataModule(**TRAINED["data"])
+        counts = [BlockFold(dm, cv, j).n_val for j in range(cv)]
+        for r in rows:
+            folds = [float(r[f"fold_{j + 1}"]) for j in range(cv)]
+            pooled = sum(f * n for f, n in zip(folds, counts, strict=True)) / sum(counts)
+            assert float(r["val_mse"]) == pytest.approx(pooled, rel=1e-12)
     trainer_section = {"accelerator": "cpu", "devices": 1, "precision": "64-true",
                        "max_epochs": 3, option: value}
     assert trainer_reason(trainer_section).startswith(f"trainer.{option}={value!r}")
@@ -701,3 +726,20 @@ def test_trainer_reason_names_what_select_does_not_do() -> None:
     assert "max_time=3" in trainer_reason({**cpu, "max_time": 3})
     assert trainer_reason({**cpu, "accumulate_grad_batches": 2}).startswith(
         "trainer.accumulate_grad_batches=2")
+
+
+@pytest.mark.parametrize("max_epochs", [None, -1, 0, 3])
+def test_the_command_and_a_lightning_run_solve_the_same_readouts(max_epochs) -> None:
+    """``torchhys fit`` (its check of the trainer section) and the Lightning path
+    (``solvable``, on the Trainer) solve a readout for the same ``max_epochs``: every value
+    but 0 (None: Lightning's 1000 epochs, -1: unlimited) steps it, and the least-squares
+    solution is what it converges to."""
+    from torchhys.selection.candidates import steps_readout
+    from torchhys.training.readout import solvable
+
+    module = InverseHysteresisModule(operator=None, hidden=1, activation="identity",
+                                     optimizer="lbfgs")
+    fold = BlockFold(HysteresisDataModule(**DATA), 2, 0)
+    run = trainer(max_epochs=max_epochs, max_time="00:00:00:05" if max_epochs == -1 else None)
+    assert steps_readout(max_epochs) is solvable(module, fold, run) is (max_epochs != 0)
+    assert not steps_readout(3, 0) and not solvable(module, fold, trainer(limit_train_batches=0))

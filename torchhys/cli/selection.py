@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from torchhys._checks import check_choice, check_int
-from torchhys.selection.candidates import candidate_spec, is_direct, model_base
+from torchhys.selection.candidates import candidate_spec, is_direct, model_base, steps_readout
 from torchhys.selection.folds import CV_MODES, RECORDING
 from torchhys.selection.run import Record, record
 from torchhys.selection.scores import CandidateScore
@@ -131,12 +131,13 @@ def trainer_reason(trainer: Any) -> str | None:
                 f"{trainer.get('num_nodes')!r}, strategy={trainer.get('strategy')!r} (select "
                 "trains on one device)")
     epochs = trainer.get("max_epochs")
-    if epochs is not None and epochs < 1:
-        return f"trainer.max_epochs={epochs!r} (select trains a whole number of epochs >= 1)"
     try:
-        _seconds(trainer.get("max_time"))
+        seconds = _seconds(trainer.get("max_time"))
     except (ValueError, TypeError):
         return f"trainer.max_time={trainer.get('max_time')!r}"
+    if epochs is not None and not (epochs >= 1 or epochs == -1 and seconds is not None):
+        return (f"trainer.max_epochs={epochs!r} (select trains a whole number of epochs >= 1, "
+                "or with max_time, -1: until then)")
     for plugin in trainer.get("plugins") or []:
         path = plugin.get("class_path") if hasattr(plugin, "get") else plugin
         if path != _ATOMIC_IO:
@@ -169,8 +170,8 @@ def select_record(configs: list[Any], sub: str, cv: object) -> tuple[SelectRecor
     epochs = trainer.get("max_epochs")
     reason = trainer_reason(trainer)
     if reason is not None:
-        if (dtype is None or not _one_device(trainer) or (epochs is not None and epochs < 1)
-                or trainer.get("limit_train_batches") in (0, 0.0)):
+        if (dtype is None or not _one_device(trainer)
+                or not steps_readout(epochs, trainer.get("limit_train_batches"))):
             return None, reason
         for i, config in enumerate(configs):
             if not is_direct(candidate_spec(model_base(config[sub]["model"]), {})):
@@ -200,8 +201,9 @@ def select_record(configs: list[Any], sub: str, cv: object) -> tuple[SelectRecor
             "blocked cross-validation inside the record (model.select_cv: k)")
     val = datamodule.batches("val")[0] if cv is None else None
     seconds = _seconds(trainer.get("max_time"))
-    steps = epochs if epochs is not None else (1000 if seconds is None else 2 ** 62)
-    if epochs is None and seconds is not None and any(
+    steps = (epochs if epochs is not None and epochs >= 1 else
+             1000 if epochs is None and seconds is None else 2 ** 62)  # Lightning's
+    if epochs in (None, -1) and seconds is not None and any(
             c[sub]["model"].get("schedule") for c in configs):
         return None, ("trainer.max_time without trainer.max_epochs, and a model.schedule "
                       "(Lightning decays it over one epoch)")

@@ -37,7 +37,8 @@ from torchhys.optim.named import (
 from torchhys.selection.folds import Batch
 
 __all__ = ["MODEL_DEFAULTS", "build_candidate", "candidate_spec", "fit_candidate",
-           "is_direct", "model_base", "solve_readout", "squared_errors", "train_full_batch"]
+           "is_direct", "model_base", "solve_readout", "squared_errors", "steps_readout",
+           "train_full_batch"]
 
 MODEL_DEFAULTS: dict[str, Any] = {
     "operator": None, "hidden": 1, "activation": "identity", "operator_kwargs": None,
@@ -94,6 +95,14 @@ def is_direct(spec: Mapping[str, Any], net: InverseHysteresisNet | None = None) 
     ops = (net.operators if net is not None
            else build_operators(spec["operator"], spec["operator_kwargs"])[0])
     return not any(p.requires_grad for op in ops for p in op.parameters())
+
+
+def steps_readout(max_epochs: int | None, limit_train_batches: float | int | None = None) -> bool:
+    """Whether a Lightning trainer of these options steps a readout at all (``max_epochs``
+    None: Lightning's default, 1000 or unlimited with ``max_time``; -1: unlimited), so that
+    its least-squares solution (:func:`solve_readout`) is what the run converges to; not
+    with ``max_epochs: 0`` or ``limit_train_batches: 0``."""
+    return max_epochs != 0 and limit_train_batches not in (0, 0.0)
 
 
 @torch.no_grad()

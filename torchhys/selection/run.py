@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -55,8 +55,8 @@ from torchhys.selection.scores import (
     write_table,
 )
 
-__all__ = ["Progress", "Record", "Selection", "fit_record", "record", "record_folds",
-           "score_candidate", "select", "shared_key"]
+__all__ = ["FoldRun", "Progress", "Record", "Selection", "fit_record", "record", "record_folds",
+           "score_candidate", "score_folds", "select", "shared_key"]
 
 
 class Progress(Protocol):
@@ -236,37 +236,40 @@ def shared_key(overrides: Mapping[str, Any]) -> str | None:
         return None
 
 
-def score_candidate(i: int, overrides: Mapping[str, Any], spec: Mapping[str, Any],
-                    folds: Sequence[Fold], cv: int | str | None, *,
-                    dtype: torch.dtype = torch.float64, seed: int | None = 0, epochs: int = 10,
-                    seconds: float | None = None, progress: Progress | None = None,
-                    ) -> CandidateScore:
-    """Fit and score candidate ``i`` on every fold of ``folds`` (:func:`make_folds`, or
-    the one fold of a validation record: :func:`record_folds`): the MSE over all held-out
-    samples, its standard error (batch means), the folds' MSEs (none when ``cv`` is None);
-    NaN with the reason where a fold cannot be fitted
+FoldRun = Callable[[int], tuple[float, Tensor, int]]
+"""``run(j)``: fit a candidate on fold ``j`` and score it: its validation MSE, the squared
+errors of its held-out samples (float64, flat) and their number; raises
+:class:`~torchhys.identification.errors.FitError` where it cannot be fitted."""
+
+
+def score_folds(i: int, overrides: Mapping[str, Any], k: int, run: FoldRun,
+                cv: int | str | None, *, progress: Progress | None = None) -> CandidateScore:
+    """Candidate ``i`` scored on its ``k`` folds, each fitted and scored by ``run``
+    (:func:`score_candidate`'s on tensors, or a Lightning run's:
+    :func:`torchhys.training.selection.run_selection`): the MSE over all held-out samples
+    (a hold-out's, ``cv`` None: its one fold's), its standard error (batch means), the
+    folds' MSEs (none for a hold-out); NaN with the reason where a fold cannot be fitted
     (:class:`~torchhys.identification.errors.FitError`) or its MSE is not finite, the later
-    folds then not run."""
+    folds then not run. Timed."""
     start = time.perf_counter()
-    k, mses, counts, errors, reason = len(folds), [], [], [], ""
-    for j, fold in enumerate(folds):
+    mses, counts, errors, reason = [], [], [], ""
+    for j in range(k):
         if progress is not None:
             progress.starts(i, None if cv is None else j)
-        run = f"candidate {i}" if cv is None else f"candidate {i}, fold {j + 1} of {k}"
+        name = f"candidate {i}" if cv is None else f"candidate {i}, fold {j + 1} of {k}"
         try:
-            net = fit_candidate(spec, fold.train, fold.fit, warmup=fold.warmup, dtype=dtype,
-                                seed=seed, epochs=epochs, seconds=seconds)
-            e = squared_errors(net, fold.val)
-            mse, why = _mean(e), ""
+            mse, e, held = run(j)
+            why = ""
         except FitError as err:
-            warnings.warn(f"model.select: {run} skipped: {err}", RuntimeWarning, stacklevel=2)
-            e, mse, why = torch.zeros(0, dtype=torch.float64), math.nan, f"FitError: {err}"
+            warnings.warn(f"model.select: {name} skipped: {err}", RuntimeWarning, stacklevel=2)
+            e, mse, held = torch.zeros(0, dtype=torch.float64), math.nan, 1
+            why = f"FitError: {err}"
         if not why and not math.isfinite(mse):
             why = f"validation MSE {mse}: the training diverged"
-            warnings.warn(f"model.select: {run}: {why}", RuntimeWarning, stacklevel=2)
-            mse = math.nan
+            warnings.warn(f"model.select: {name}: {why}", RuntimeWarning, stacklevel=2)
+            e, mse = torch.zeros(0, dtype=torch.float64), math.nan
         mses.append(mse)
-        counts.append(int(fold.val.mask.sum()))
+        counts.append(held)
         errors.append(e)
         if math.isnan(mse):
             reason = why if cv is None else f"fold {j + 1} of {k}: {why}" + (
@@ -274,10 +277,30 @@ def score_candidate(i: int, overrides: Mapping[str, Any], spec: Mapping[str, Any
             mses += [math.nan] * (k - j - 1)
             counts += [1] * (k - j - 1)
             break
-    pooled = sum(m * n for m, n in zip(mses, counts, strict=True)) / sum(counts)
+    pooled = mses[0] if k == 1 else sum(
+        m * n for m, n in zip(mses, counts, strict=True)) / sum(counts)
     se = standard_error(torch.cat(errors)) if math.isfinite(pooled) else math.nan
     return CandidateScore(i, dict(overrides), pooled, () if cv is None else tuple(mses), se,
                           reason, time.perf_counter() - start)
+
+
+def score_candidate(i: int, overrides: Mapping[str, Any], spec: Mapping[str, Any],
+                    folds: Sequence[Fold], cv: int | str | None, *,
+                    dtype: torch.dtype = torch.float64, seed: int | None = 0, epochs: int = 10,
+                    seconds: float | None = None, progress: Progress | None = None,
+                    ) -> CandidateScore:
+    """Fit and score candidate ``i`` (model arguments ``spec``) on every fold of ``folds``
+    (:func:`make_folds`, or the one fold of a validation record: :func:`record_folds`), as
+    :func:`score_folds` scores them."""
+
+    def run(j: int) -> tuple[float, Tensor, int]:
+        fold = folds[j]
+        net = fit_candidate(spec, fold.train, fold.fit, warmup=fold.warmup, dtype=dtype,
+                            seed=seed, epochs=epochs, seconds=seconds)
+        e = squared_errors(net, fold.val)
+        return _mean(e), e, int(fold.val.mask.sum())
+
+    return score_folds(i, overrides, len(folds), run, cv, progress=progress)
 
 
 def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,

@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from torchhys.networks import InverseHysteresisNet
-from torchhys.selection.candidates import is_direct, solve_readout
+from torchhys.selection.candidates import is_direct, solve_readout, steps_readout
 from torchhys.selection.folds import Batch
 from torchhys.training.module import InverseHysteresisModule
 
@@ -31,15 +31,16 @@ def solvable(module: Any, datamodule: Any, trainer: Any) -> bool:
     :class:`InverseHysteresisModule` of an identity-activation network with fixed operators,
     trained full-batch by a closure optimizer (its training a least-squares problem it
     solves), on one device, on a datamodule with ``train_tensors`` and (x, y, warmup, mask)
-    batches; its trainer trains at least one epoch."""
+    batches; its trainer steps the readout at all
+    (:func:`~torchhys.selection.candidates.steps_readout`, as ``torchhys fit`` asks)."""
     return (isinstance(module, InverseHysteresisModule)
             and isinstance(module.net, InverseHysteresisNet)
             and is_direct({"activation": module.hparams.get("activation"),
                            "optimizer": module.optimizer_name}, module.net)
             and hasattr(datamodule, "train_tensors")
             and getattr(trainer, "world_size", 1) == 1
-            and (getattr(trainer, "max_epochs", None) or 0) >= 1
-            and not getattr(trainer, "limit_train_batches", 1) == 0)
+            and steps_readout(getattr(trainer, "max_epochs", None),
+                              getattr(trainer, "limit_train_batches", None)))
 
 
 def _batches(loader: Any) -> list[tuple[Tensor, Tensor, Tensor]]:

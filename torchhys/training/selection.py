@@ -1,4 +1,9 @@
-"""Model selection on validation data: the candidates of ``torchhys fit``'s ``model.select``.
+"""Model selection on validation data by Lightning runs: the candidates of ``torchhys fit``'s
+``model.select`` where the trainer section asks for what :func:`torchhys.selection.select`
+does not do (callbacks, gradient clipping or accumulation, step limits, mixed precision, a
+GPU: :func:`torchhys.cli.selection.trainer_reason`), so each candidate trains as its trainer
+says; every other run goes through ``select``. Each fold is scored by the library's loop
+(:func:`torchhys.selection.run.score_folds`).
 
 Each candidate is a dict of model arguments that replace those of the ``model`` section
 (``{"operator": None}``: the plain network; ``{}``: the section as it is). Every candidate
@@ -42,10 +47,7 @@ error of the lowest, and
 
 from __future__ import annotations
 
-import dataclasses
 import math
-import time
-import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -53,11 +55,10 @@ import lightning as L
 import torch
 from torch import Tensor
 
-from torchhys.identification.errors import FitError
 from torchhys.selection.coverage import warn_coverage
 from torchhys.selection.folds import RECORDING
-from torchhys.selection.run import shared_key
-from torchhys.selection.scores import CandidateScore, standard_error
+from torchhys.selection.run import score_folds, shared_key
+from torchhys.selection.scores import CandidateScore
 from torchhys.training.folds import cv_fold
 from torchhys.training.readout import direct_validation, solvable
 
@@ -111,36 +112,28 @@ def _squared_errors(module: L.LightningModule, datamodule: L.LightningDataModule
     return torch.cat(errors) if errors else torch.zeros(0, dtype=torch.float64)
 
 
-def _validation(module: L.LightningModule, datamodule: L.LightningDataModule,
-                trainer: L.Trainer, run: str) -> tuple[float, Tensor, str]:
-    """Train, then the validation MSE of the trained module, its squared errors and why it
-    failed: NaN, none and the reason (with a warning naming the ``run``) when a family
-    operator cannot be fitted to the data (:class:`~torchhys.identification.errors.FitError`)
-    or the validation MSE is not finite (a diverged training); else ``""``."""
-    direct = solvable(module, datamodule, trainer)
-    try:
-        if direct:  # an affine readout: its least-squares solution, no Trainer
-            mse, errors = direct_validation(module, datamodule, trainer)
-            if trainer.logger is not None:
-                trainer.logger.log_metrics({"val_mse": mse}, step=0)
-                trainer.logger.save()
-        else:
-            trainer.fit(module, datamodule=datamodule)
-    except FitError as err:
-        warnings.warn(f"model.select: {run} skipped: {err}", RuntimeWarning, stacklevel=3)
-        return math.nan, torch.zeros(0, dtype=torch.float64), f"FitError: {err}"
-    if not direct:
-        results = trainer.validate(module, datamodule=datamodule, verbose=False)
-        if not results or "val_mse" not in results[0]:
-            raise ValueError(
-                "model.select: validation logged no val_mse (is trainer.limit_val_batches 0?)"
-            )
-        mse = float(results[0]["val_mse"])
-    if not math.isfinite(mse):
-        reason = f"validation MSE {mse}: the training diverged"
-        warnings.warn(f"model.select: {run}: {reason}", RuntimeWarning, stacklevel=3)
-        return math.nan, torch.zeros(0, dtype=torch.float64), reason
-    return mse, errors if direct else _squared_errors(module, datamodule), ""
+def _train_and_validate(module: L.LightningModule, datamodule: L.LightningDataModule,
+                        trainer: L.Trainer) -> tuple[float, Tensor]:
+    """Train (or, for a readout :func:`~torchhys.training.readout.solvable` directly, solve),
+    then the validation MSE of the fitted module and its squared errors on the scored
+    validation samples; raises :class:`~torchhys.identification.errors.FitError` where a
+    family operator cannot be fitted (:func:`~torchhys.selection.run.score_folds` scores
+    it NaN, as a MSE that is not finite)."""
+    if solvable(module, datamodule, trainer):  # an affine readout: its least squares
+        mse, errors = direct_validation(module, datamodule, trainer)
+        if trainer.logger is not None:
+            trainer.logger.log_metrics({"val_mse": mse}, step=0)
+            trainer.logger.save()
+        return mse, errors
+    trainer.fit(module, datamodule=datamodule)
+    results = trainer.validate(module, datamodule=datamodule, verbose=False)
+    if not results or "val_mse" not in results[0]:
+        raise ValueError(
+            "model.select: validation logged no val_mse (is trainer.limit_val_batches 0?)"
+        )
+    mse = float(results[0]["val_mse"])
+    return mse, (_squared_errors(module, datamodule) if math.isfinite(mse)
+                 else torch.zeros(0, dtype=torch.float64))
 
 
 def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
@@ -182,43 +175,31 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
 
 def score_candidate(i: int, overrides: dict[str, Any], build: Build, cv: int | str | None,
                     mode: str | None) -> CandidateScore:
-    """Train and score candidate ``i`` (:func:`run_selection`), timed."""
-    start = time.perf_counter()
-    score = _score(i, overrides, build, cv, mode)
-    return dataclasses.replace(score, seconds=time.perf_counter() - start)
-
-
-def _score(i: int, overrides: dict[str, Any], build: Build, cv: int | str | None,
-           mode: str | None) -> CandidateScore:
+    """Train and score candidate ``i`` (:func:`run_selection`) on each fold, a Lightning run
+    each, by the library's loop (:func:`~torchhys.selection.run.score_folds`: its NaN
+    rules, reasons, pooling and standard error); timed."""
     if cv is None:
         module, data, trainer = build(i, None)
         check_holdout(data)
         if i == 0:
             warn_coverage(data)
-        mse, errors, reason = _validation(module, data, trainer, f"candidate {i}")
-        return CandidateScore(i, overrides, mse, val_se=standard_error(errors), error=reason)
-    folds, counts, errors, reason = [], [], [], ""
-    j, k = 0, None
-    while k is None or j < k:
-        module, data, trainer = build(i, j)
-        fold = cv_fold(data, cv, j, mode)
-        if i == 0 and j == 0:
+        runs = {0: (module, data, trainer)}
+        k = 1
+    else:
+        module, data, trainer = build(i, 0)
+        fold = cv_fold(data, cv, 0, mode)
+        if i == 0:
             warn_coverage(data)
+        runs = {0: (module, fold, trainer)}
         k = fold.k
-        mse, e, why = _validation(module, fold, trainer,
-                                  f"candidate {i}, fold {j + 1} of {k}")
-        folds.append(mse)
-        counts.append(fold.n_val)
-        errors.append(e)
-        j += 1
-        if math.isnan(mse):  # the pooled MSE is NaN whatever the other folds give
-            reason = f"fold {j} of {k}: {why}" + (
-                f" (folds {j + 1}-{k} not run)" if j < k else "")
-            folds += [math.nan] * (k - j)
-            counts += [1] * (k - j)
-            break
-    pooled = sum(m * n for m, n in zip(folds, counts, strict=True)) / sum(counts)
-    se = standard_error(torch.cat(errors)) if math.isfinite(pooled) else math.nan
-    return CandidateScore(i, overrides, pooled, tuple(folds), se, reason)
 
+    def run(j: int) -> tuple[float, Tensor, int]:
+        if j in runs:
+            module, data, trainer = runs.pop(j)
+        else:
+            module, data, trainer = build(i, j)
+            data = cv_fold(data, cv, j, mode)
+        mse, errors = _train_and_validate(module, data, trainer)
+        return mse, errors, getattr(data, "n_val", errors.numel())
 
+    return score_folds(i, overrides, k, run, cv)
