@@ -677,14 +677,14 @@ def test_trained_candidates_go_through_select_as_their_lightning_runs(monkeypatc
         assert float(row["val_se"]) == pytest.approx(standard_error(errors), rel=1e-12)
 
 
-@pytest.mark.parametrize(("option", "value", "cv"), [("gradient_clip_val", 1.0, None),
-                                                     ("max_steps", 3, 2)])
+@pytest.mark.parametrize(("option", "value", "cv", "precision"), [
+    ("gradient_clip_val", 1.0, None, "32-true"), ("max_steps", 3, 2, "64-true")])
 def test_a_trainer_option_select_cannot_honour_keeps_the_lightning_runs(
-        monkeypatch, tmp_path, option, value, cv) -> None:
+        monkeypatch, tmp_path, option, value, cv, precision) -> None:
     """A trainer option that changes a candidate's training and that select does not do
     (clipping, accumulation, a step limit...) trains the candidates by Lightning, as
-    before (scored by the library's loop: folds pooled by their held-out samples);
-    trainer_reason names it."""
+    before (scored by the library's loop: folds pooled by their held-out samples; a
+    float32 hold-out scored in the module's dtype); trainer_reason names it."""
     import torchhys.training.selection as lightning_selection
     from torchhys.cli.selection import trainer_reason
 
@@ -692,7 +692,8 @@ def test_a_trainer_option_select_cannot_honour_keeps_the_lightning_runs(
     run = lightning_selection.run_selection
     monkeypatch.setattr(lightning_selection, "run_selection",
                         lambda *a, **k: calls.append(1) or run(*a, **k))
-    sections = {**TRAINED, "trainer": {**TRAINED["trainer"], option: value},
+    sections = {**TRAINED, "trainer": {**TRAINED["trainer"], option: value,
+                                       "precision": precision},
                 "model": {**TRAINED["model"], "select_cv": cv if cv else DROP}}
     cli(monkeypatch, "fit", "--config", str(small_config(tmp_path, "t.yaml", **sections)),
         f"--trainer.default_root_dir={tmp_path / 'run'}")
