@@ -305,7 +305,8 @@ def register_family(name: str, builder: Callable[[Mapping[str, Any]], Any], *,
     if search is not None and not callable(search):
         raise TypeError(f"family {name!r}: search must be callable or None, got "
                         f"{type(search).__name__} {search!r}")
-    if not getattr(builder, "__module__", "").startswith("torchhys.identification."):
+    if not str(getattr(builder, "__module__", None) or "").startswith(
+            "torchhys.identification."):
         load_families()
     families, searches = FAMILIES._items, SEARCHES._items  # type: ignore[attr-defined]
     old = families.get(name, builder)
