@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import inspect
 import os
 import shutil
 import subprocess
@@ -25,11 +26,12 @@ import tempfile
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from typing import TypeVar
 
 import torch
 from torch import Tensor
 
-from torchhys._checks import concrete
+_F = TypeVar("_F", bound=type)
 
 FLAGS = ["-O2", "-shared", "-fPIC", "-fno-fast-math", "-ffp-contract=off"]
 """Compiler flags: no fast math, no fused multiply-add contraction (results bit-equal to the
@@ -57,11 +59,12 @@ def _compile(compiler: str, name: str, source: str, lib_path: Path) -> None:
 
 def servable(*tensors: Tensor) -> bool:
     """Whether a kernel is built for these tensors: all on the CPU, in a dtype of
-    :data:`SUFFIX` (float32 or float64), with concrete values (not traced, batched by vmap,
-    meta or fake: :func:`torchhys._checks.concrete`). Whether it is switched on and built is
-    the caller's check."""
-    return all(t.device.type == "cpu" and t.dtype in SUFFIX for t in tensors) and concrete(
-        *tensors)
+    :data:`SUFFIX` (float32 or float64), plain tensors with concrete values (not traced,
+    batched by vmap, meta, fake or another subclass: what :func:`dispatched` sends to the
+    custom ops; a cheaper test than :func:`torchhys._checks.concrete`, which it implies).
+    Whether it is switched on and built is the caller's check."""
+    return all(t.device.type == "cpu" and t.dtype in SUFFIX for t in tensors) and not (
+        dispatched(*tensors))
 
 
 def build(name: str, source: str, *, what: str, fallback: str,
@@ -124,3 +127,12 @@ def loop_vmap(op: Callable[..., object]) -> None:
             return tuple(torch.stack(o) for o in zip(*outs, strict=True)), (0,) * len(outs[0])
         return torch.stack(outs), 0
     op.register_vmap(rule)  # type: ignore[attr-defined]
+
+
+def signature_once(cls: _F) -> _F:
+    """Class decorator for an ``autograd.Function`` in ``setup_context`` form: torch binds
+    each call's arguments with ``inspect.signature(forward)``, which computes the signature
+    afresh every call (a good part of a short call's cost); the signature stored once on
+    ``forward`` is read instead."""
+    cls.forward.__signature__ = inspect.signature(cls.forward)  # type: ignore[attr-defined]
+    return cls

@@ -34,6 +34,7 @@ from torchhys._checks import (
     check_widths,
     sequence_batch,
 )
+from torchhys.functional._compile import signature_once
 from torchhys.functional._kernel import play_adjoint, play_forward, play_op
 from torchhys.functional._play_scan import play_tangent
 
@@ -57,6 +58,7 @@ def play_step(x_t: Tensor, r: Tensor, y_prev: Tensor) -> Tensor:
     return torch.minimum(torch.maximum(y_prev, x_t - r), x_t + r)
 
 
+@signature_once
 class _PlayScan(torch.autograd.Function):
     """Autograd function: x (B, T), r (N,), y0 (B, N) -> y (B, T, N).
 
@@ -99,6 +101,7 @@ class _PlayScan(torch.autograd.Function):
         )
 
 
+@signature_once
 class _PlayAdjoint(torch.autograd.Function):
     """The play operator's gradient as a function: g (B, T, N), x, r, y0, y -> (gx, gr, gy0).
 

@@ -11,6 +11,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchhys.functional._compile import signature_once
+
 __all__ = ["BISECTIONS", "NEWTON", "monotone_inverse", "monotone_mse", "monotone_output",
            "monotone_slope"]
 
@@ -92,6 +94,7 @@ def _mse_terms(design: Tensor, y: Tensor, w: Tensor, gain: Tensor, unit_weights:
     return v, z, units, gain * v + units @ unit_weights + offset - y
 
 
+@signature_once
 class _MonotoneMSE(torch.autograd.Function):
     """:func:`monotone_mse` with its gradient written out: one ``tanh`` pass forward, the
     rest matrix-vector products (autograd's graph of the same expression takes about twice

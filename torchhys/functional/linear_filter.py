@@ -48,6 +48,7 @@ import torch
 from torch import Tensor
 
 from torchhys._checks import check_finite, check_floating, check_tensor, concrete
+from torchhys.functional._compile import signature_once
 from torchhys.functional._filter_kernel import df2t, df2t_adjoint, linrec, linrec_adjoint
 from torchhys.functional._linear_scan import df2t_adjoint_torch, linrec_adjoint_torch
 
@@ -93,6 +94,7 @@ def state_space_step(u: Tensor, s: Tensor, A: Tensor, B: Tensor, C: Tensor, D: T
 # --- autograd functions ------------------------------------------------------------------------
 
 
+@signature_once
 class _DF2T(torch.autograd.Function):
     """x (R, T), b (F, n+1), a (F, n) = a[:, 1:], zi (R, n) -> y (R, T), zf (R, n).
 
@@ -123,6 +125,7 @@ class _DF2T(torch.autograd.Function):
         return df2t_adjoint(gy, gzf, x, b, a, y)  # the fused kernel where it runs, no graph
 
 
+@signature_once
 class _LinearRecurrence(torch.autograd.Function):
     """A (n, n), w (R, T, n), s0 (R, n) -> s (R, T, n), s[t] = A s[t-1] + w[t].
 

@@ -62,6 +62,7 @@ from torchhys._checks import (
     concrete,
     sequence_batch,
 )
+from torchhys.functional._compile import signature_once
 
 __all__ = [
     "check_relay_state",
@@ -285,6 +286,7 @@ def preisach_with_state(
     return (y[0], last[0]) if squeeze else (y, last)
 
 
+@signature_once
 class _PreisachRelays(torch.autograd.Function):
     """``relays @ weights`` for x (B, T), weights (K,), r0 (B, K) -> ((B, T), last (B, K)).
 
