@@ -108,18 +108,21 @@ class JilesAtherton(HysteresisOperator):
 
     @property
     def substeps(self) -> int:
-        """Euler steps per sample (an int; kept in the ``saved_substeps`` buffer)."""
-        return int(self.saved_substeps)
+        """Euler steps per sample (an int; kept in the ``saved_substeps`` buffer, read as a
+        Python int when set or loaded: the forward reads no buffer's value, so it traces)."""
+        return self._substeps
 
     @substeps.setter
     def substeps(self, value: int) -> None:
         self.saved_substeps.fill_(check_int(value, "substeps", minimum=1))
+        self._substeps = value
 
     constraints = {"raw": "finite", "saved_mu0": "positive",
                    "saved_substeps": "positive_integer"}
 
     def after_load(self) -> None:
         self.mu0 = float(self.saved_mu0)
+        self._substeps = int(self.saved_substeps)
 
     def parameters_effective(self) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """``(ms, a, k, alpha, c)``, each 0-dim (differentiable)."""
