@@ -263,3 +263,17 @@ def test_paths_without_readable_values_equal_eager(monkeypatch: pytest.MonkeyPat
     torch.testing.assert_close(got, ref, rtol=0, atol=4 * torch.finfo(F64).eps)
     if name != "preisach_inverse":
         assert torch.equal(got, ref)
+
+
+def test_jiles_atherton_reads_no_buffer_value() -> None:
+    """Jiles-Atherton's substeps are a Python int, set or loaded (its saved buffer read
+    then): a meta copy runs, a loaded state dict sets them."""
+    from torchhys.operators.jiles_atherton import JilesAtherton
+
+    op = JilesAtherton(substeps=3).to(F64)
+    loaded = JilesAtherton().to(F64)
+    loaded.load_state_dict(op.state_dict())
+    assert loaded.substeps == 3 and int(loaded.saved_substeps) == 3
+    torch.testing.assert_close(loaded(X)[0], op(X)[0], rtol=0, atol=0)
+    meta = JilesAtherton(substeps=3).to("meta")
+    assert meta(X.to("meta"))[0].shape == X.shape
