@@ -41,7 +41,7 @@ import torch
 from torch import Tensor
 
 from torchhys.functional._compile import SUFFIX as _SUFFIX
-from torchhys.functional._compile import build, dispatched, loop_vmap, servable
+from torchhys.functional._compile import build, cpu_float, dispatched, loop_vmap, servable
 from torchhys.functional._linear_scan import (
     _df2t_scan_filters,
     df2t_adjoint_torch,
@@ -250,28 +250,33 @@ def linrec_adjoint_kernel(gs: Tensor, A: Tensor, s0: Tensor, s: Tensor
 # --- custom ops ---------------------------------------------------------------------------------
 
 
+def _kernel_runs(*tensors: Tensor) -> bool:
+    """:func:`filter_kernel_available` for plain tensors (the implementations' inputs)."""
+    return _enabled and cpu_float(*tensors) and _load()[0] is not None
+
+
 def _df2t_impl(x: Tensor, b: Tensor, a: Tensor, zi: Tensor) -> tuple[Tensor, Tensor]:
-    if filter_kernel_available(x, b, a, zi):
+    if _kernel_runs(x, b, a, zi):
         return df2t_kernel(x, b, a, zi)
     return _df2t_scan_filters(x, b, a, zi)
 
 
 def _linrec_impl(A: Tensor, w: Tensor, s0: Tensor) -> Tensor:
-    if filter_kernel_available(A, w, s0):
+    if _kernel_runs(A, w, s0):
         return linrec_kernel(A, w, s0)
     return recurrence_scan(A, w, s0)
 
 
 def _df2t_adjoint_impl(gy: Tensor, gzf: Tensor, x: Tensor, b: Tensor, a: Tensor, y: Tensor
                        ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    if a.shape[-1] <= MAX_FUSED_ORDER and filter_kernel_available(gy, gzf, x, b, a, y):
+    if a.shape[-1] <= MAX_FUSED_ORDER and _kernel_runs(gy, gzf, x, b, a, y):
         return df2t_adjoint_kernel(gy, gzf, x, b, a, y)  # one fused pass
     return df2t_adjoint_torch(gy, gzf, x, b, a, y, _df2t_impl)
 
 
 def _linrec_adjoint_impl(gs: Tensor, A: Tensor, s0: Tensor, s: Tensor
                          ) -> tuple[Tensor, Tensor, Tensor]:
-    if filter_kernel_available(gs, A, s0, s):
+    if _kernel_runs(gs, A, s0, s):
         return linrec_adjoint_kernel(gs, A, s0, s)
     return linrec_adjoint_torch(gs, A, s0, s, _linrec_impl)
 

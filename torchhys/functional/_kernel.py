@@ -28,7 +28,7 @@ import torch
 from torch import Tensor
 
 from torchhys.functional._compile import SUFFIX as _SUFFIX
-from torchhys.functional._compile import build, dispatched, loop_vmap, servable
+from torchhys.functional._compile import build, cpu_float, dispatched, loop_vmap, servable
 from torchhys.functional._play_scan import _scan_backward, _scan_forward, play_tangent
 
 _enabled = True
@@ -159,15 +159,20 @@ def play_backward_kernel(
     return gx, gr.to(x.dtype), gy0
 
 
+def _kernel_runs(*tensors: Tensor) -> bool:
+    """:func:`kernel_available` for plain tensors (the implementations' inputs)."""
+    return _enabled and cpu_float(*tensors) and _library() is not None
+
+
 def _forward_impl(x: Tensor, r: Tensor, y0: Tensor) -> Tensor:
-    if kernel_available(x, r, y0):
+    if _kernel_runs(x, r, y0):
         return play_forward_kernel(x, r, y0)
     return _scan_forward(x, r, y0)[:, : x.shape[1]]
 
 
 def _adjoint_impl(g: Tensor, x: Tensor, r: Tensor, y0: Tensor, y: Tensor
                   ) -> tuple[Tensor, Tensor, Tensor]:
-    if kernel_available(g, x, r, y0, y):
+    if _kernel_runs(g, x, r, y0, y):
         return play_backward_kernel(g, x, r, y0, y)
     return _scan_backward(g, x, r, y0, y)
 

@@ -34,7 +34,7 @@ from torchhys._checks import (
     check_widths,
     sequence_batch,
 )
-from torchhys.functional._compile import signature_once
+from torchhys.functional._compile import call_function, signature_once
 from torchhys.functional._kernel import play_adjoint, play_forward, play_op
 from torchhys.functional._play_scan import play_tangent
 
@@ -91,7 +91,7 @@ class _PlayScan(torch.autograd.Function):
     def backward(ctx, grad_y: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
         x, r, y0, y = ctx.saved_tensors
         if torch.is_grad_enabled():  # a graph of the gradient is asked for
-            grad_x, grad_r, grad_y0 = _PlayAdjoint.apply(grad_y, x, r, y0, y)
+            grad_x, grad_r, grad_y0 = call_function(_PlayAdjoint, grad_y, x, r, y0, y)
         else:
             grad_x, grad_r, grad_y0 = play_adjoint(grad_y, x, r, y0, y)
         return (
@@ -141,7 +141,7 @@ def _play(x: Tensor, r: Tensor, y0: Tensor) -> Tensor:
     with a custom ``jvp``)."""
     if torch.compiler.is_compiling():
         return play_op(x, r, y0)
-    return _PlayScan.apply(x, r, y0)
+    return call_function(_PlayScan, x, r, y0)
 
 
 def _zeros_for_none(tangents: tuple[Tensor | None, ...], like: tuple[Tensor, ...]

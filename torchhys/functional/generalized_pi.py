@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchhys.functional._compile import signature_once
+from torchhys.functional._compile import call_function, signature_once
 
 __all__ = ["BISECTIONS", "NEWTON", "monotone_inverse", "monotone_mse", "monotone_output",
            "monotone_slope"]
@@ -144,4 +144,5 @@ def monotone_mse(design: Tensor, y: Tensor, w: Tensor, gain: Tensor, unit_weight
         design: (M, P); y: (M,); w: (P,); gain, offset: 0-dim; unit_weights, centers,
             slopes: (K,). One dtype.
     """
-    return _MonotoneMSE.apply(design, y, w, gain, unit_weights, centers, slopes, offset)[0]
+    return call_function(_MonotoneMSE, design, y, w, gain, unit_weights, centers, slopes,
+                         offset)[0]

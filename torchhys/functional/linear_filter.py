@@ -48,7 +48,7 @@ import torch
 from torch import Tensor
 
 from torchhys._checks import check_finite, check_floating, check_tensor, concrete
-from torchhys.functional._compile import signature_once
+from torchhys.functional._compile import call_function, signature_once
 from torchhys.functional._filter_kernel import df2t, df2t_adjoint, linrec, linrec_adjoint
 from torchhys.functional._linear_scan import df2t_adjoint_torch, linrec_adjoint_torch
 
@@ -252,7 +252,7 @@ def lfilter(x: Tensor, b: Tensor, a: Tensor, *, state: Tensor | None = None
     if n == 0:
         gain = b[:, 0] if F == 1 else b[:, :1]
         return gain * x, x.new_zeros(batch + (0,))
-    y, zf = _DF2T.apply(x.reshape(-1, x.shape[-1]), b, a[:, 1:], z0)
+    y, zf = call_function(_DF2T, x.reshape(-1, x.shape[-1]), b, a[:, 1:], z0)
     return y.reshape(x.shape), zf.reshape(batch + (n,))
 
 
@@ -276,7 +276,7 @@ def linear_recurrence(A: Tensor, w: Tensor, *, state: Tensor | None = None) -> T
     A = _coefficients(A, "A", w, (n, n))
     batch = w.shape[:-2]
     start = _initial(state, batch, n, w, "state")
-    s = _LinearRecurrence.apply(A, w.reshape(-1, w.shape[-2], n), start)
+    s = call_function(_LinearRecurrence, A, w.reshape(-1, w.shape[-2], n), start)
     return s.reshape(w.shape)
 
 
@@ -320,7 +320,7 @@ def state_space(u: Tensor, A: Tensor, B: Tensor, C: Tensor, D: Tensor, *,
     T = u.shape[-2] if multi else u.shape[-1]
     start = _initial(state, batch, n, u, "state")
     ur = u.reshape(-1, T, m)
-    s = _LinearRecurrence.apply(A, ur @ B.mT if multi else ur * B, start)
+    s = call_function(_LinearRecurrence, A, ur @ B.mT if multi else ur * B, start)
     entering = torch.cat([start.unsqueeze(1), s[:, :-1]], dim=1)
     y = entering @ C.mT + (ur @ D.mT if multi else ur * D)
     return y.reshape(batch + (T, p)), s[:, -1].reshape(batch + (n,))

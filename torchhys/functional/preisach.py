@@ -62,7 +62,7 @@ from torchhys._checks import (
     concrete,
     sequence_batch,
 )
-from torchhys.functional._compile import signature_once
+from torchhys.functional._compile import call_function, signature_once
 
 __all__ = [
     "check_relay_state",
@@ -281,7 +281,8 @@ def preisach_with_state(
         raise ValueError(f"weights must have shape {tuple(alpha.shape)} (one per relay), got "
                          f"shape {tuple(weights.shape)}")
     check_finite(weights, "weights")
-    relays, last = _PreisachRelays.apply(xb, weights.to(xb.dtype), alpha, beta, r0b, smooth)
+    relays, last = call_function(_PreisachRelays, xb, weights.to(xb.dtype), alpha, beta, r0b,
+                                 smooth)
     y = relays + linear * graded_input(xb, center, check_scale(scale)) + offset
     return (y[0], last[0]) if squeeze else (y, last)
 
