@@ -324,3 +324,17 @@ def test_a_validation_record_of_its_own_equals_numpy() -> None:
     with pytest.raises(ValueError, match=r"val .* needs cv=None and mode=None, got cv=4"):
         select([LINE], x[:, :cut], y[:, :cut], cv=4, val=record(x, y, mask=val_mask),
                warn_coverage=False)
+
+
+def test_every_candidate_nan_names_each_reason() -> None:
+    """When no candidate scores, the error names each candidate's reason (a family that
+    cannot be fitted is not reported as a diverged training)."""
+    from torchhys.selection.scores import CandidateScore, best
+
+    scored = [CandidateScore(0, {}, math.nan, error="fold 1 of 4: FitError: pi_nonneg: no "
+                             "better than a straight line"),
+              CandidateScore(1, {}, math.nan, error="validation MSE nan: the training "
+                             "diverged")]
+    with pytest.raises(ValueError, match=r"candidate 0: fold 1 of 4: FitError: pi_nonneg.*"
+                                         r"candidate 1: validation MSE nan"):
+        best(scored)

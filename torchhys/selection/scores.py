@@ -74,15 +74,14 @@ def best(scores: Sequence[CandidateScore], rule: str = "min") -> CandidateScore:
     candidate must beat the baseline clearly to be chosen.
 
     Raises:
-        ValueError: every score is NaN, an unknown rule.
+        ValueError: every score is NaN (naming each candidate's reason), an unknown rule.
     """
     check_choice(rule, "model.select_rule", RULES)
     finite = [s for s in scores if not math.isnan(s.val_mse)]
     if not finite:
-        raise ValueError(
-            f"model.select: every candidate's validation MSE is NaN ({len(scores)} "
-            "candidates): training diverged"
-        )
+        reasons = "; ".join(f"candidate {s.index}: {s.error or 'not run'}" for s in scores)
+        raise ValueError(f"model.select: every candidate's validation MSE is NaN "
+                         f"({len(scores)} candidates): {reasons}")
     lowest = min(finite, key=lambda s: s.val_mse)
     if rule == "min":
         return lowest
