@@ -39,7 +39,11 @@ def concrete(*tensors: object) -> bool:
     if torch._C._functorch.peek_interpreter_stack() is not None and any(
             i.key() == TransformType.Vmap for i in retrieve_all_functorch_interpreters()):
         return False
-    return not any(isinstance(t, Tensor) and (t.is_meta or is_fake(t)) for t in tensors)
+    for t in tensors:  # a plain tensor is not fake: is_fake only for subclasses (a
+        # parameter may hold a fake tensor)
+        if isinstance(t, Tensor) and (t.is_meta or (type(t) is not Tensor and is_fake(t))):
+            return False
+    return True
 
 
 def check_tensor(value: object, name: str) -> Tensor:
