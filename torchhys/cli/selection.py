@@ -32,8 +32,8 @@ from torchhys.selection.run import Record, record
 from torchhys.selection.scores import CandidateScore
 from torchhys.training.data import HysteresisDataModule
 
-__all__ = ["ARGUMENTS", "SelectRecord", "check_candidates", "model_arguments", "select_record",
-           "trainer_reason", "use_solved", "write_fold_logs"]
+__all__ = ["ARGUMENTS", "ATOMIC_IO", "SelectRecord", "check_candidates", "model_arguments",
+           "select_record", "trainer_reason", "use_solved", "write_fold_logs"]
 
 _DTYPES = {"64-true": torch.float64, "64": torch.float64, "32-true": torch.float32,
            "32": torch.float32}
@@ -88,7 +88,9 @@ _NO_EFFECT = frozenset({
 checked by :func:`trainer_reason`) or that do not change a candidate's fitted weights
 (logging, progress, the Lightning run's own validation)."""
 
-_ATOMIC_IO = "torchhys.training.checkpoint_io.AtomicCheckpointIO"
+ATOMIC_IO = "torchhys.training.checkpoint_io.AtomicCheckpointIO"
+"""The checkpoint plugin the command installs (``trainer.plugins``): it writes files, not
+weights, so a run holding it is still one ``select`` trains."""
 
 
 def _seconds(max_time: Any) -> float | None:
@@ -140,7 +142,7 @@ def trainer_reason(trainer: Any) -> str | None:
                 "or with max_time, -1: until then)")
     for plugin in trainer.get("plugins") or []:
         path = plugin.get("class_path") if hasattr(plugin, "get") else plugin
-        if path != _ATOMIC_IO:
+        if path != ATOMIC_IO:
             return f"trainer.plugins holds {path!r}"
     defaults = {name: p.default for name, p in
                 inspect.signature(Trainer.__init__).parameters.items()}

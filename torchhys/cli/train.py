@@ -110,8 +110,6 @@ _DESCRIPTION = (
 )
 
 
-_ATOMIC_IO = "torchhys.training.checkpoint_io.AtomicCheckpointIO"
-
 
 class TorchhysCLI(LightningCLI):
     """LightningCLI with a CSV logger under ``default_root_dir`` (unless one is configured),
@@ -135,7 +133,7 @@ class TorchhysCLI(LightningCLI):
         # kill while saving leaves the previous last.ckpt whole (torchhys/training/checkpoint_io.py)
         parser.set_defaults({"checkpoint.save_on_train_epoch_end": True,
                              "checkpoint.save_last": True,
-                             "trainer.plugins": [{"class_path": _ATOMIC_IO}]})
+                             "trainer.plugins": [{"class_path": cli_selection.ATOMIC_IO}]})
         # Arguments of the command kept in the model section, removed before the module is
         # built (see _select).
         for name, kind, text in cli_selection.ARGUMENTS:
