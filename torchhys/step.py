@@ -60,24 +60,29 @@ class OperatorStep(nn.Module, abc.ABC):
     """The per-sample step of an operator, for export (see the module docstring).
 
     Subclasses set ``n_outputs`` and ``state_spec`` in ``__init__`` and implement
-    :meth:`forward`.
+    :meth:`forward`. A step of several input columns (a recurrent layer's step, a
+    multi-input block: ``x`` (batch, n_inputs)) sets ``n_inputs``; an operator's step, and
+    every step the streaming compensator runs, has one (the default).
     """
 
     # class annotations are read by TorchScript (this module keeps them unquoted); the spec is
     # Python-level layout, not part of the scripted step
     n_outputs: int
     state_spec: list[StateBlock]
+    n_inputs: int = 1
     __jit_ignored_attributes__ = ["state_spec"]
 
     @abc.abstractmethod
     def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
-        """x (batch, 1), state (one (batch, size) tensor per block) -> (features
+        """x (batch, n_inputs), state (one (batch, size) tensor per block) -> (features
         (batch, n_outputs), new state)."""
 
     def initial_state(self, x0: Tensor) -> list[Tensor]:
-        """The state at a row's first finite sample ``x0`` (batch, 1), before the step runs
-        on it. Default: each block at ``start + from_sample * x0`` (its :class:`StateBlock`),
-        which the compensator computes itself for all such steps at once. A step whose start
+        """The state at a row's first finite sample ``x0`` (batch, n_inputs), before the step
+        runs on it. Default: each block at ``start + from_sample * x0`` (its
+        :class:`StateBlock`), which the compensator computes itself for all such steps at once
+        (with several inputs the default needs ``from_sample`` 0: the blocks start at
+        ``start``). A step whose start
         is not of that form overrides it (in TorchScript- and ``torch.export``-able code,
         e.g. a cascade, whose second part starts from the first part's output); the
         compensator then runs the override at each row's first finite sample."""
@@ -86,30 +91,44 @@ class OperatorStep(nn.Module, abc.ABC):
             dtype = {"float": x0.dtype, "float64": torch.float64, "int64": torch.long}[block.kind]
             start = torch.tensor(block.columns("start"), dtype=torch.float64)
             slope = torch.tensor(block.columns("from_sample"), dtype=torch.float64)
-            value = start + slope * x0.to(torch.float64)
+            if self.n_inputs != 1:
+                if bool(slope.ne(0).any()):
+                    raise ValueError(f"{type(self).__name__}: block {block.name!r} starts "
+                                     "from the sample (from_sample != 0) but the step has "
+                                     f"{self.n_inputs} inputs: override initial_state")
+                value = start.expand(x0.shape[0], block.size)
+            else:
+                value = start + slope * x0.to(torch.float64)
             out.append(value.to(dtype))
         return out
 
     def run(self, x: Tensor) -> Tensor:
-        """Step through a whole sequence from a fresh state: x (batch, time) ->
-        (batch, time, n_outputs). For tests and inspection (a Python loop)."""
-        if x.dim() != 2 or x.shape[1] == 0:
-            raise ValueError(f"x must have shape (batch, time) with time >= 1, got shape "
+        """Step through a whole sequence from a fresh state: x (batch, time) (one input) or
+        (batch, time, n_inputs) -> (batch, time, n_outputs). For tests and inspection (a
+        Python loop)."""
+        m = self.n_inputs
+        want = 2 if m == 1 else 3
+        if x.dim() != want or x.shape[1] == 0 or (m != 1 and x.shape[2] != m):
+            shape = "(batch, time)" if m == 1 else f"(batch, time, {m})"
+            raise ValueError(f"x must have shape {shape} with time >= 1, got shape "
                              f"{tuple(x.shape)}")
-        state = self.initial_state(x[:, :1])
+        xs = x.unsqueeze(2) if m == 1 else x
+        state = self.initial_state(xs[:, 0])
         outs = []
-        for xt in x.unbind(1):
-            f, state = self(xt.unsqueeze(1), state)
+        for xt in xs.unbind(1):
+            f, state = self(xt, state)
             outs.append(f)
         return torch.stack(outs, dim=1)
 
 
-def check_step(step: object, argument: str = "step") -> OperatorStep:
+def check_step(step: object, argument: str = "step", *, n_inputs: int | None = 1
+               ) -> OperatorStep:
     """``step``, checked to be an :class:`OperatorStep` with its ``n_outputs`` and a
-    ``state_spec`` of :class:`StateBlock` (both set in ``__init__``).
+    ``state_spec`` of :class:`StateBlock` (both set in ``__init__``), and ``n_inputs``
+    input columns (default 1, what the streaming compensator feeds; None: any).
 
     Raises:
-        TypeError: naming ``argument`` and what is missing.
+        TypeError: naming ``argument`` and what is missing or of another number of inputs.
     """
     kind = type(step).__name__
     if not isinstance(step, OperatorStep):
@@ -120,6 +139,13 @@ def check_step(step: object, argument: str = "step") -> OperatorStep:
                         "sets both in __init__)")
     if not all(isinstance(b, StateBlock) for b in step.state_spec):
         raise TypeError(f"{argument} ({kind}): state_spec must be a list of StateBlock")
+    m = getattr(step, "n_inputs", 1)
+    if isinstance(m, bool) or not isinstance(m, int) or m < 1:
+        raise TypeError(f"{argument} ({kind}): n_inputs must be an int >= 1, got {m!r}")
+    if n_inputs is not None and m != n_inputs:
+        raise TypeError(f"{argument} ({kind}) takes {m} input column(s), expected {n_inputs} "
+                        "(a step the compensator runs takes x (batch, 1); compose a "
+                        "multi-input layer with torchhys.compose.compose)")
     return step
 
 
