@@ -192,6 +192,33 @@ def _exp(fmt: str, helper: str | None = None) -> Emitter:
     return emit
 
 
+def _elu(w: Writer, spec: CTensor, x: CTensor, alpha: float = 1.0, scale: float = 1.0,
+         input_scale: float = 1.0) -> CTensor:
+    """torch's elu kernel: ``x <= 0 ? expm1(x input_scale) alpha scale : x scale``."""
+    return pointwise(w, spec, "(({0} <= 0) ? expm1{f}({0} * {3}) * {1} : {0} * {2})",
+                     [x, float(alpha) * float(scale), float(scale), float(input_scale)])
+
+
+def _softplus(w: Writer, spec: CTensor, x: CTensor, beta: float = 1.0,
+              threshold: float = 20.0) -> CTensor:
+    """torch's softplus kernel: ``x beta > threshold ? x : log1p(exp(x beta)) / beta``."""
+    return pointwise(w, spec, "(({0} * {1} > {2}) ? {0} : log1p{f}(exp{f}({0} * {1})) / {1})",
+                     [x, beta, threshold])
+
+
+def _hardtanh(w: Writer, spec: CTensor, x: CTensor, min_val: float = -1.0,
+              max_val: float = 1.0) -> CTensor:
+    return _clamp(w, spec, x, min_val, max_val)
+
+
+def _hard(fmt: str) -> Emitter:
+    """hardsigmoid / hardswish over ``R = min(max(x + 3, 0), 6)`` (NaN stays NaN)."""
+    def emit(w: Writer, spec: CTensor, x: CTensor) -> CTensor:
+        r = w.helper("clamp", spec.dtype) + "({0} + 3, ({T})0, ({T})6)"
+        return pointwise(w, spec, fmt.replace("R", r), [x])
+    return emit
+
+
 def _unary_float(name: str) -> Emitter:
     return _op(name + "{f}({0})")
 
@@ -227,6 +254,19 @@ POINTWISE: dict[str, Emitter] = {
     "sigmoid.default": _exp("(({T})1 / (({T})1 + EXP(-{0})))", "sigmoid"),
     "exp.default": _exp("EXP({0})"),
     "relu.default": _op("(({0} < 0) ? ({T})0 : {0})"),
+    "leaky_relu.default": lambda w, s, x, slope=0.01: pointwise(
+        w, s, "(({0} > 0) ? {0} : {0} * {1})", [x, slope]),
+    "silu.default": _op("({0} / (({T})1 + exp{f}(-{0})))"),
+    "mish.default": _op("({0} * tanh{f}(log1p{f}(exp{f}({0}))))"),
+    "log_sigmoid.default": _op("((({0} < 0) ? {0} : ({T})0) - log1p{f}(exp{f}(-fabs{f}({0}))))"),
+    "elu.default": _elu,
+    "selu.default": lambda w, s, x: _elu(w, s, x, 1.6732632423543772848170429916717,
+                                         1.0507009873554804934193349852946),
+    "celu.default": lambda w, s, x, alpha=1.0: _elu(w, s, x, alpha, 1.0, 1.0 / alpha),
+    "softplus.default": _softplus, "hardtanh.default": _hardtanh,
+    "relu6.default": lambda w, s, x: _clamp(w, s, x, 0.0, 6.0),
+    "hardsigmoid.default": _hard("(R / ({T})6)"),
+    "hardswish.default": _hard("({0} * R / ({T})6)"),
     "gelu.default": _gelu,
     **{f"{n}.default": _unary_float(n) for n in (
         "sqrt", "exp2", "expm1", "log", "log1p", "log2", "log10", "sin", "cos", "tan",

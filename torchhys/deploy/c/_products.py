@@ -272,6 +272,8 @@ def _addmm(w: Writer, spec: CTensor, bias: Operand, a: CTensor, b: CTensor, *,
 
 def _linear(w: Writer, spec: CTensor, x: CTensor, weight: CTensor, bias: CTensor | None = None
             ) -> CTensor:
+    if weight.value is not None:  # a constant (a layer's weight): stored transposed
+        return _matmul_core(w, spec, x, constant(weight.value.transpose(-2, -1)), bias)
     return _matmul_core(w, spec, x, _transpose(w, spec, weight, -2, -1), bias)
 
 

@@ -78,6 +78,27 @@ def _split(w: Writer, spec: list, x: CTensor, size: int, dim: int = 0) -> list[C
     return _split_sizes(w, spec, x, [min(size, n - s) for s in range(0, n, size)], dim)
 
 
+def _chunk(w: Writer, spec: list, x: CTensor, chunks: int, dim: int = 0) -> list[CTensor]:
+    """torch.chunk: pieces of ``ceil(n / chunks)`` along ``dim``, the last one shorter (an
+    LSTM's or a GRU's gates)."""
+    n = x.shape[_dim(dim, len(x.shape))]
+    return _split(w, spec, x, max(1, -(-n // chunks)), dim)
+
+
+def _tensor_split(w: Writer, spec: list, x: CTensor, sections: int | Sequence[int],
+                  dim: int = 0) -> list[CTensor]:
+    """torch.tensor_split: ``sections`` pieces (the first ``n % sections`` one longer), or
+    the pieces between the given indices."""
+    n = x.shape[_dim(dim, len(x.shape))]
+    if isinstance(sections, int):
+        q, r = divmod(n, sections)
+        return _split_sizes(w, spec, x, [q + (k < r) for k in range(sections)], dim)
+    bounds = [min(max(i + n if i < 0 else i, 0), n) for i in sections]
+    starts, ends = [0, *bounds], [*bounds, n]
+    return [_narrow(w, spec, x, dim, a, max(0, b - a)) for a, b in zip(starts, ends,
+                                                                        strict=True)]
+
+
 def _unbind(w: Writer, spec: list, x: CTensor, dim: int = 0) -> list[CTensor]:
     d = _dim(dim, len(x.shape))
     return [_select(w, spec, x, d, i) for i in range(x.shape[d])]
@@ -112,6 +133,24 @@ def _flip(w: Writer, spec: CTensor, x: CTensor, dims: Sequence[int]) -> CTensor:
     return x.view(x.shape, strides, offset)
 
 
+def _movedim(w: Writer, spec: CTensor, x: CTensor, source: int | Sequence[int],
+             destination: int | Sequence[int]) -> CTensor:
+    n = len(x.shape)
+    src = [_dim(d, n) for d in ([source] if isinstance(source, int) else source)]
+    dst = [_dim(d, n) for d in ([destination] if isinstance(destination, int) else destination)]
+    rest = iter(d for d in range(n) if d not in src)
+    placed = dict(zip(dst, src, strict=True))
+    return _permute(w, spec, x, [placed[d] if d in placed else next(rest) for d in range(n)])
+
+
+def _dropout(w: Writer, spec: CTensor, x: CTensor, p: float = 0.5, train: bool | None = False
+             ) -> CTensor:
+    """Dropout of a module in eval mode: ``x``; in training mode (random) no template."""
+    if train:
+        raise ValueError("dropout in training mode has no template (call model.eval() first)")
+    return x
+
+
 def copy(w: Writer, x: CTensor) -> CTensor:
     """``x`` into a new contiguous local."""
     out = w.local(x.dtype, x.shape)
@@ -139,6 +178,12 @@ VIEWS: dict[str, Emitter] = {
     "expand.default": _expand, "flip.default": _flip, "view.default": _reshape,
     "reshape.default": _reshape,
     "_unsafe_view.default": _reshape, "flatten.using_ints": _reshape,
+    "unflatten.int": _reshape, "view_as.default": _reshape, "reshape_as.default": _reshape,
+    "expand_as.default": lambda w, s, x, other: _expand(w, s, x, other.shape),
+    "movedim.int": _movedim, "dropout.default": _dropout, "chunk.default": _chunk,
+    "unsafe_chunk.default": _chunk,
+    "unsafe_split.Tensor": _split, "unsafe_split_with_sizes.default": _split_sizes,
+    "tensor_split.sections": _tensor_split, "tensor_split.indices": _tensor_split,
 }
 
 
