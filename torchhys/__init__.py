@@ -5,11 +5,11 @@ that hold parameters and state are re-exported here, with the operator protocol.
 built-in operator is registered (:data:`torchhys.registry.OPERATORS`) when ``torchhys`` is
 imported.
 
-The subpackages that not every user needs (``deploy``, ``dynamics``, ``identification``,
-``models``, ``optim``, ``plants``, ``signals``, ``testing``), and the families' ``fit_*`` and
-``select_*``, are loaded on first use (``torchhys.plants`` or ``import torchhys.plants``)
-where nothing has loaded them before: ``import torchhys`` loads neither SciPy (the plants'
-ODE solver), nor a fit, nor Lightning
+The subpackages that not every user needs (``compose``, ``deploy``, ``dynamics``,
+``identification``, ``models``, ``optim``, ``plants``, ``signals``, ``testing``), and the
+families' ``fit_*`` and ``select_*``, are loaded on first use (``torchhys.plants`` or
+``import torchhys.plants``) where nothing has loaded them before: ``import torchhys`` loads
+neither SciPy (the plants' ODE solver), nor a fit, nor Lightning
 (:mod:`torchhys.training`, which needs the ``train`` extra, is reached by its own import).
 """
 
@@ -40,8 +40,8 @@ for _module in pkgutil.iter_modules(operators.__path__):
     importlib.import_module(f"{operators.__name__}.{_module.name}")
 del _module
 
-_LAZY_SUBPACKAGES = ("deploy", "dynamics", "identification", "models", "optim", "plants",
-                     "selection", "signals", "testing")
+_LAZY_SUBPACKAGES = ("compose", "deploy", "dynamics", "identification", "models", "optim",
+                     "plants", "selection", "signals", "testing")
 """Subpackages loaded on first use (:func:`__getattr__`)."""
 
 _LAZY_NAMES = {
@@ -56,7 +56,17 @@ _LAZY_NAMES = {
 """Names loaded on first use, and the module each lives in."""
 
 if TYPE_CHECKING:  # what a type checker and an editor see: the same names, eagerly
-    from torchhys import deploy, dynamics, identification, models, optim, plants, signals, testing
+    from torchhys import (
+        compose,
+        deploy,
+        dynamics,
+        identification,
+        models,
+        optim,
+        plants,
+        signals,
+        testing,
+    )
     from torchhys.identification.drift import fit_drift
     from torchhys.identification.generalized_pi import fit_generalized_pi
     from torchhys.identification.jiles_atherton import fit_jiles_atherton
@@ -66,6 +76,7 @@ if TYPE_CHECKING:  # what a type checker and an editor see: the same names, eage
 __all__ = [
     "__version__",
     # subpackages and modules
+    "compose",
     "deploy",
     "dynamics",
     "functional",

@@ -1,0 +1,177 @@
+"""A user's module of hysteresis operators, recurrent layers and elementwise maths as one
+deployable model: :func:`compose` and :class:`Composed`.
+
+``compose(module)`` traces ``module`` (x (batch, time) -> y (batch, time)) with ``torch.fx``,
+keeping its stateful layers whole (:mod:`torchhys.compose._leaves`), checks it (one pass on
+an example, then the module against its per-sample step, node by node) and returns a
+:class:`Composed`: an ``nn.Module`` whose ``forward`` is the module's (it trains as the
+module does) and which implements :class:`~torchhys.protocols.Deployable`, so the
+:class:`~torchhys.deploy.streaming.StreamingCompensator` and every export take it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.fx as fx
+from torch import Tensor, nn
+
+from torchhys._checks import as_batched_sequence
+from torchhys.compose._check import _first_line, check_causal, check_graph, shape_pass
+from torchhys.compose._leaves import Tracer
+from torchhys.compose.graph import ComposedStep, build_step
+
+__all__ = ["Composed", "LastFeature", "compose"]
+
+#: the ranges a Composed records (those the compensator reads: torchhys.deploy.ranges)
+RANGES = ("in_min", "in_max", "out_min", "out_max", "trend")
+
+#: the example the checks run on: batch and time
+EXAMPLE = (2, 16)
+
+
+def _dtype(module: nn.Module) -> torch.dtype:
+    for t in (*module.parameters(), *module.buffers()):
+        if t.is_floating_point():
+            return t.dtype
+    return torch.get_default_dtype()
+
+
+class LastFeature(nn.Module):
+    """The compensator's head of a composition: features ``[x, y]`` (batch, 2) -> the
+    composed step's output y (batch, 1), the last column."""
+
+    def forward(self, features: Tensor) -> Tensor:
+        return features.narrow(1, features.shape[1] - 1, 1)
+
+
+def _trace(module: nn.Module) -> fx.Graph:
+    try:
+        return Tracer().trace(module)
+    except Exception as err:  # torch.fx's errors on data-dependent Python code
+        raise ValueError(f"{type(module).__name__} cannot be traced by torch.fx "
+                         f"({type(err).__name__}: {_first_line(err)}): its forward must not "
+                         "branch on or iterate over tensor values") from err
+
+
+class Composed(nn.Module):
+    """A user's module as a deployable model (see the module docstring and
+    ``docs/composing.md``).
+
+    Args:
+        module: the user's ``nn.Module``, x (batch, time) -> y (batch, time); kept (not
+            copied): ``Composed(module)(x) == module(x)`` and its parameters are the module's.
+        x, y: training input and target (batch, time) or (time,), optional: their ranges are
+            recorded (:meth:`record_ranges`) for the compensator's default limits, input clamp
+            and direction guard.
+
+    Members of :class:`~torchhys.protocols.Deployable`: :meth:`streaming_steps` (one
+    :class:`~torchhys.compose.graph.ComposedStep`) and :meth:`streaming_head`
+    (:class:`LastFeature`).
+
+    Raises:
+        ValueError: a module that cannot be traced, a layer that cannot stream (a
+            bidirectional RNN, a non-causal operator, attention), shapes that do not match,
+            a node that is not causal (each naming the node), ``x`` without ``y``.
+        TypeError: ``module`` is not an ``nn.Module``, a stateful layer without a step.
+    """
+
+    def __init__(self, module: nn.Module, *, x: Tensor | None = None,
+                 y: Tensor | None = None) -> None:
+        super().__init__()
+        if not isinstance(module, nn.Module):
+            raise TypeError(f"module must be an nn.Module, got {type(module).__name__}")
+        self.module = module
+        dtype = _dtype(module)
+        for name in RANGES:
+            self.register_buffer(name, torch.full((), math.nan, dtype=dtype))
+        self._graph = _trace(module)
+        check_graph(self._graph, module)
+        self.check()
+        if x is not None or y is not None:
+            if x is None or y is None:
+                raise ValueError("x and y must be given together (training input and target)")
+            self.record_ranges(x, y)
+
+    def forward(self, x: Tensor) -> Tensor:
+        """The module's output: x (batch, time) -> y (batch, time)."""
+        return self.module(x)
+
+    def _example(self, dtype: torch.dtype) -> Tensor:
+        """A random walk of shape :data:`EXAMPLE` in the recorded input range (else [-1, 1])."""
+        g = torch.Generator().manual_seed(0)
+        w = torch.randn(EXAMPLE, generator=g, dtype=torch.float64).cumsum(1)
+        lo, hi = float(self.in_min), float(self.in_max)
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+            lo, hi = -1.0, 1.0
+        return (lo + (hi - lo) * torch.sigmoid(w)).to(dtype)
+
+    def check(self) -> None:
+        """Run the module on an example (:data:`EXAMPLE`, the module's dtype) and its composed
+        step sample by sample, node by node (run when composed; again after training where
+        the weights may have made a layer fail).
+
+        Raises:
+            ValueError: naming the first node whose shape or per-sample value differs.
+        """
+        dtype = _dtype(self.module)
+        x = self._example(dtype)
+        self._shapes = shape_pass(self._graph, self.module, x)
+        step, env = build_step(self._graph, self.module, self._shapes, dtype)
+        check_causal(self._graph, self.module, self._shapes, step, env, x)
+
+    def record_ranges(self, x: Tensor, y: Tensor) -> None:
+        """Record the training data's ranges as the compensator reads them
+        (:mod:`torchhys.deploy.ranges`): ``in_min``, ``in_max`` of x, ``out_min``,
+        ``out_max`` of y and ``trend``, their correlation coefficient (as
+        :meth:`~torchhys.InverseHysteresisNet.fit_normalization` does).
+
+        Args:
+            x, y: (batch, time) or (time,), the same shape, finite, not constant.
+
+        Raises:
+            ValueError: other shapes, fewer than 2 samples, a constant x or y.
+        """
+        xb, _ = as_batched_sequence(x, "x")
+        yb, _ = as_batched_sequence(y, "y")
+        if yb.shape != xb.shape:
+            raise ValueError(f"y must have the shape of x {tuple(xb.shape)}, got {tuple(y.shape)}")
+        xs, ys = xb.detach().double().flatten(), yb.detach().double().flatten()
+        if xs.numel() < 2:
+            raise ValueError(f"x must hold at least 2 samples, got shape {tuple(x.shape)}")
+        for name, v in (("x", xs), ("y", ys)):
+            if float(v.std()) == 0.0:
+                raise ValueError(f"{name} is constant (std 0): it has no range to record")
+        xc, yc = xs - xs.mean(), ys - ys.mean()
+        trend = (xc * yc).sum() / (xc.square().sum() * yc.square().sum()).sqrt()
+        for name, value in zip(RANGES, (xs.min(), xs.max(), ys.min(), ys.max(), trend),
+                               strict=True):
+            getattr(self, name).fill_(float(value))
+
+    def composed_step(self, dtype: torch.dtype) -> ComposedStep:
+        """The composed step with the current weights (detached) in ``dtype``."""
+        step, _ = build_step(self._graph, self.module, self._shapes, dtype)
+        return step
+
+    def streaming_steps(self, dtype: torch.dtype) -> list[ComposedStep]:
+        """``[self.composed_step(dtype)]`` (:class:`~torchhys.protocols.Deployable`)."""
+        return [self.composed_step(dtype)]
+
+    def streaming_head(self, dtype: torch.dtype) -> nn.Module:
+        """:class:`LastFeature`: the compensator's features ``[x, y]`` -> y (batch, 1)."""
+        return LastFeature()
+
+
+def compose(module: nn.Module, *, x: Tensor | None = None,
+            y: Tensor | None = None) -> Composed:
+    """``module`` (x (batch, time) -> y (batch, time)) of hysteresis operators, recurrent
+    layers and elementwise maths as a deployable :class:`Composed` (see its docstring)::
+
+        model = compose(MyModel(), x=x_train, y=y_train)
+        comp = StreamingCompensator(model)
+
+    Raises:
+        ValueError, TypeError: as :class:`Composed`.
+    """
+    return Composed(module, x=x, y=y)
