@@ -5,11 +5,13 @@ fitted by :func:`torchhys.selection.select` on the training split.
 candidates would (every readout solved by least squares, or a trainer section that asks for
 nothing ``select`` does not do: :func:`trainer_reason`) and reads its training split once
 (with a hold-out, ``select_cv: null``, also its validation split); the command then calls
-:func:`torchhys.selection.select`, and hands a solved network to the final fit
-(:func:`use_solved`), which logs and checkpoints it without training it again. Other runs
-(callbacks, gradient clipping, a GPU ...) are scored by Lightning runs
-(:func:`torchhys.training.selection.run_selection`): ``select`` would not train their
-candidates as their trainer section does.
+:func:`torchhys.selection.select`, which scores the candidates and fits the chosen one once
+(its readout solved or trained), and hands that network to the final Lightning run
+(:func:`use_fitted`), which logs, validates and checkpoints it without training it again.
+Other runs (callbacks, gradient clipping, a GPU ...) are scored and fitted by Lightning runs
+(:func:`torchhys.training.selection.run_selection`, then the final fit): ``select`` would not
+train their candidates as their trainer section does; the command says why
+(:func:`say_lightning`).
 """
 
 from __future__ import annotations
@@ -17,15 +19,18 @@ from __future__ import annotations
 import csv
 import inspect
 import math
+import sys
 from collections.abc import Mapping, Sequence
 from datetime import timedelta
 from pathlib import Path
 from typing import Any, Literal, NamedTuple
 
 import torch
+from lightning.pytorch.utilities import rank_zero_only
 from torch import Tensor
 
 from torchhys._checks import check_choice, check_int
+from torchhys.cli.quiet import quiet_requested
 from torchhys.selection.candidates import candidate_spec, is_direct, model_base, steps_readout
 from torchhys.selection.folds import CV_MODES, RECORDING
 from torchhys.selection.run import Record, record
@@ -33,7 +38,8 @@ from torchhys.selection.scores import CandidateScore
 from torchhys.training.data import HysteresisDataModule
 
 __all__ = ["ARGUMENTS", "ATOMIC_IO", "SelectRecord", "check_candidates", "model_arguments",
-           "select_record", "trainer_reason", "use_solved", "write_fold_logs"]
+           "say_lightning", "select_record", "trainer_reason", "use_fitted",
+           "write_fold_logs"]
 
 _DTYPES = {"64-true": torch.float64, "64": torch.float64, "32-true": torch.float32,
            "32": torch.float32}
@@ -230,12 +236,23 @@ def write_fold_logs(scores: Sequence[CandidateScore], root: Path) -> None:
                 csv.writer(fh).writerows([["step", "val_mse"], [0, repr(mse)]])
 
 
-def use_solved(module: Any, net: torch.nn.Module) -> None:
-    """Give the final fit's module the network model selection fitted: its families,
-    normalization and solved readout kept, its closure optimizer taking no step."""
+def use_fitted(module: Any, net: torch.nn.Module) -> None:
+    """Give the final fit's module the network :func:`torchhys.selection.select` fitted: its
+    families, normalization and readout (solved or trained) kept; its optimizer, run by
+    the module's closure without a gradient, takes no step (the module's ``fitted``)."""
     module.net = net
     module.normalization_fitted.fill_(True)
-    module.readout_solved = True
+    module.fitted = True
+    module.automatic_optimization = False  # an Adam step too: the closure, no gradient
+
+
+@rank_zero_only
+def say_lightning(reason: str) -> None:
+    """Say on stderr, unless ``--quiet``, why the candidates train through Lightning runs
+    (:func:`select_record`'s reason): one line."""
+    if reason and not quiet_requested():
+        print(f"torchhys fit: model selection trained through Lightning: {reason}",
+              file=sys.stderr, flush=True)
 
 
 ARGUMENTS: list[tuple[str, Any, str]] = [

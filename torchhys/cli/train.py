@@ -38,9 +38,13 @@ before the module is built)::
 Every candidate is trained from the same seed with the same trainer settings (one progress
 line before and after each: :mod:`torchhys.selection.progress`) and scored by its validation
 MSE; the table goes to ``selection.csv`` in the run's own ``logs/version_<N>`` folder
-(reserved atomically: concurrent runs keep theirs), and the chosen candidate is fitted once
-more as a plain ``fit`` in that folder. The rules (validation split, blocked, rolling and
-leave-one-recording-out cross-validation, the one-standard-error rule) are stated once, in
+(reserved atomically: concurrent runs keep theirs); the chosen candidate is fitted once, by
+:func:`torchhys.selection.select` (its readout solved or trained), and the final Lightning
+``fit`` in that folder logs, validates and checkpoints it without training it again
+(``last.ckpt`` as a plain ``fit``'s). A trainer section that ``select`` cannot honour
+scores every candidate and fits the chosen one by Lightning runs instead, and says why.
+The rules (validation split, blocked, rolling and leave-one-recording-out cross-validation,
+the one-standard-error rule) are stated once, in
 docs/training.md ("Model selection on validation data"); the code is in
 :mod:`torchhys.selection` (:func:`torchhys.cli.selection.select_record`: when; else Lightning
 runs, :mod:`torchhys.training.selection`). ``validate``, ``test`` and ``predict`` ignore
@@ -77,13 +81,13 @@ from torchhys.cli.errors import TRACEBACK_ENV, config_errors, report_user_error
 from torchhys.cli.negative_numbers import accept_negative_numbers
 from torchhys.cli.quiet import quiet_requested
 from torchhys.cli.run_dirs import RUN_DIR_ENV, reserve_run_dir
-from torchhys.cli.selection import select_record, use_solved, write_fold_logs
+from torchhys.cli.selection import say_lightning, select_record, use_fitted, write_fold_logs
 from torchhys.data.files import watch_files
 from torchhys.identification.specs import build_operators
 from torchhys.optim.named import check_optimizer_kwargs
-from torchhys.selection import scores
+from torchhys.selection import Selection, scores
 from torchhys.selection import select as select_candidates
-from torchhys.selection.candidates import is_direct, model_base
+from torchhys.selection.candidates import candidate_spec, is_direct, model_base
 from torchhys.selection.coverage import warn_coverage
 from torchhys.selection.folds import describe_cv
 from torchhys.selection.jobs import check_budget, check_jobs, usable_cores
@@ -188,8 +192,8 @@ class TorchhysCLI(LightningCLI):
         (:func:`~torchhys.selection.coverage.coverage_warning`)."""
         if not self._selected:
             warn_coverage(self.datamodule, "fit")
-        elif self._solved is not None:  # fitted by the selection: logged, not trained again
-            use_solved(self.model, self._solved)
+        elif self._fitted is not None:  # fitted by select: logged, not trained again
+            use_fitted(self.model, self._fitted)
 
     # --- model selection ------------------------------------------------------------------
     def _select(self) -> None:
@@ -197,7 +201,7 @@ class TorchhysCLI(LightningCLI):
         config; in ``fit``, score the
         candidates and put the chosen one's model section in their place."""
         self._selected = False  # set once run_selection has run (and warned, before_fit)
-        self._solved: torch.nn.Module | None = None  # the chosen network, fitted by select
+        self._fitted: torch.nn.Module | None = None  # the chosen network, fitted by select
         sub = self.subcommand
         cfg = self.config[sub] if sub else self.config
         options = _pop_select(cfg)
@@ -248,39 +252,53 @@ class TorchhysCLI(LightningCLI):
             progress.starts(i, fold)
             return self._instantiate_run(configs[i], seed, folder / "selection", i, fold)
 
+        def report(scored: list[scores.CandidateScore]) -> scores.CandidateScore:
+            """The table printed and written (before the chosen candidate's fit)."""
+            progress.close()
+            self._selected = True
+            chosen = scores.best(scored, rule or "min")
+            _report(scored, chosen, folder / "selection.csv", describe_cv(cv, mode),
+                    rule or "min")
+            return chosen
+
         try:
             with _quiet_lightning(), signals_raise():  # SIGTERM, Ctrl-C: Interrupted
-                direct, _ = select_record(configs, sub, cv)
+                direct, reason = select_record(configs, sub, cv)
                 if direct is not None:  # the library's selection (select_record: when)
+                    # a trained readout capped by max_time alone: the final fit trains it
+                    # (fitted here, the final fit would run on for max_time, no step taken)
+                    timed = direct.seconds is not None and not all(
+                        is_direct(candidate_spec(model_base(c[sub]["model"]), {}))
+                        for c in configs)
+
+                    def written(found: Selection) -> None:
+                        write_fold_logs(found.scores, folder / "selection")
+                        report(found.scores)
+
                     result = select_candidates(
                         candidates, direct.x, direct.y, base=model_base(cfg["model"]),
                         warmup=direct.warmup, mask=direct.mask, cv=cv, mode=mode,
                         rule=rule or "min", jobs=jobs, budget_s=budget, dtype=direct.dtype,
                         seed=seed, epochs=direct.epochs, seconds=direct.seconds,
-                        progress=progress, source=direct.source, refit=False,
-                        val=direct.val_record())
-                    scored = result.scores
-                    write_fold_logs(scored, folder / "selection")
+                        progress=progress, source=direct.source, refit=not timed,
+                        val=direct.val_record(), before_refit=written)
+                    chosen = result.chosen
+                    self._fitted = result.model  # fitted once: the final fit records it
+                    if timed and is_direct(result.spec):  # solved: no time to spend
+                        self._fitted = fit_record(result.spec, direct.record(),
+                                                  dtype=direct.dtype, seed=seed)
                 else:  # a trainer section select cannot honour: a Lightning run each
                     from torchhys.training.selection import run_selection
 
-                    scored = run_selection(candidates, build, cv=cv, mode=mode, jobs=jobs,
-                                           budget_s=budget, report=progress.scored)
+                    say_lightning(reason)
+                    chosen = report(run_selection(candidates, build, cv=cv, mode=mode,
+                                                  jobs=jobs, budget_s=budget,
+                                                  report=progress.scored))
         except BaseException:
             progress.close()
             with contextlib.suppress(OSError):  # stopped before any candidate logged
                 folder.rmdir()
             raise
-        progress.close()
-        self._selected = True
-        chosen = scores.best(scored, rule or "min")
-        _report(scored, chosen, folder / "selection.csv", describe_cv(cv, mode),
-                rule or "min")
-        if direct is not None and is_direct(result.spec):
-            # a solved readout, fitted once after its table is written: not trained again
-            with signals_raise():
-                self._solved = fit_record(result.spec, direct.record(), dtype=direct.dtype,
-                                          seed=seed)
         self.config = configs[chosen.index]
         self.__dict__.pop("config_dump", None)  # the module's hyperparameters: the choice
         seed_everything(seed, workers=True)  # the fit starts as the candidate's run did

@@ -14,6 +14,7 @@ real-data benchmark's ``default`` row; in a notebook::
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 import warnings
@@ -171,7 +172,9 @@ class Selection:
     spec: dict[str, Any]
     """The chosen candidate's model arguments (its overrides over the base, completed)."""
     model: InverseHysteresisNet | None
-    """The chosen candidate fitted on the whole record (None with ``refit=False``)."""
+    """The chosen candidate fitted on the whole record, once (None with ``refit=False``;
+    scored on a validation record of its own in this process, the network its score was
+    fitted: the same fit, not run twice)."""
     cv: int | str | None
     mode: str | None
     rule: str
@@ -288,15 +291,18 @@ def score_candidate(i: int, overrides: Mapping[str, Any], spec: Mapping[str, Any
                     folds: Sequence[Fold], cv: int | str | None, *,
                     dtype: torch.dtype = torch.float64, seed: int | None = 0, epochs: int = 10,
                     seconds: float | None = None, progress: Progress | None = None,
+                    keep: Callable[[InverseHysteresisNet], None] | None = None,
                     ) -> CandidateScore:
     """Fit and score candidate ``i`` (model arguments ``spec``) on every fold of ``folds``
     (:func:`make_folds`, or the one fold of a validation record: :func:`record_folds`), as
-    :func:`score_folds` scores them."""
+    :func:`score_folds` scores them; ``keep`` is given each fold's fitted network."""
 
     def run(j: int) -> tuple[float, Tensor, int]:
         fold = folds[j]
         net = fit_candidate(spec, fold.train, fold.fit, warmup=fold.warmup, dtype=dtype,
                             seed=seed, epochs=epochs, seconds=seconds)
+        if keep is not None:
+            keep(net)
         e = squared_errors(net, fold.val)
         return _mean(e), e, int(fold.val.mask.sum())
 
@@ -311,7 +317,8 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
            dtype: torch.dtype = torch.float64, seed: int | None = 0, epochs: int = 10,
            seconds: float | None = None, refit: bool = True,
            progress: Progress | None = None, source: str = "the data",
-           warn_coverage: bool = True, val: Record | None = None) -> Selection:
+           warn_coverage: bool = True, val: Record | None = None,
+           before_refit: Callable[[Selection], None] | None = None) -> Selection:
     """Score ``candidates`` on the record ``(x, y)``, choose one by ``rule`` and fit it.
 
     Args:
@@ -337,7 +344,8 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
         dtype, seed: the candidates' dtype and the seed each is built from.
         epochs, seconds: training steps (and a time cap) of a candidate whose readout is not
             solved directly (:func:`~torchhys.selection.candidates.fit_candidate`).
-        refit: fit the chosen candidate on the whole record (:attr:`Selection.model`).
+        refit: fit the chosen candidate on the whole record, once (:attr:`Selection.model`;
+            scored on ``val`` with ``jobs`` 1, the network its score fitted).
         progress: told when each fold starts and each score is known (:class:`Progress`).
         source: the data's name in messages.
         warn_coverage: warn (``UserWarning``) when the record holds less than one closed
@@ -347,6 +355,9 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
             candidates are fitted on the whole of ``x``, ``y`` and scored on ``val``
             (:func:`record_folds`), as ``torchhys fit`` scores them on its validation
             split.
+        before_refit: called with the scored :class:`Selection` (its ``model`` None) before
+            the chosen candidate is fitted (with ``refit=False``: before it is returned);
+            the command writes its table there, so that a fit that fails leaves it.
 
     Raises:
         ValueError: no candidate, a bad option (the message names it), every candidate NaN.
@@ -374,9 +385,15 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
             warnings.warn(f"model.select: {message}", UserWarning, stacklevel=2)
     folds = record_folds(data, cv, mode, val=val)  # checked before any candidate runs
 
+    # scored on a validation record, a candidate's one fit is the final fit (Record.whole):
+    # the chosen one's is kept where it ran in this process (forked processes keep theirs)
+    fitted: dict[int, InverseHysteresisNet] = {}
+
     def score(i: int) -> CandidateScore:
+        keep = (lambda net: fitted.__setitem__(i, net)) if refit and val is not None else None
         return score_candidate(i, overrides[i], specs[i], folds, cv, dtype=dtype,
-                               seed=seed, epochs=epochs, seconds=seconds, progress=progress)
+                               seed=seed, epochs=epochs, seconds=seconds, progress=progress,
+                               keep=keep)
 
     def skipped(i: int) -> CandidateScore:
         return CandidateScore(i, overrides[i], math.nan, error=f"skipped: model.select_budget_s="
@@ -386,12 +403,18 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
                             report=None if progress is None else progress.scored, jobs=jobs,
                             budget_s=budget_s, together=[shared_key(c) for c in overrides])
     chosen = best(scores, rule)
-    model = None
-    if refit:
+    result = Selection(list(scores), chosen, specs[chosen.index], None, cv, mode, rule,
+                       val is not None)
+    if before_refit is not None:
+        before_refit(result)
+    if not refit:
+        return result
+    model = fitted.get(chosen.index)
+    fitted.clear()
+    if model is None:
         model = fit_record(specs[chosen.index], data, dtype=dtype, seed=seed, epochs=epochs,
                            seconds=seconds)
-    return Selection(list(scores), chosen, specs[chosen.index], model, cv, mode, rule,
-                     val is not None)
+    return dataclasses.replace(result, model=model)
 
 
 def fit_record(spec: Mapping[str, Any], data: Record, *, dtype: torch.dtype = torch.float64,

@@ -170,11 +170,12 @@ class InverseHysteresisModule(L.LightningModule):
         self._feature_cache: dict[str, tuple[Tensor, Tensor, Tensor]] = {}
         self._outside = (0, 0)  # (outside, total) input samples of a test or predict run
         self._last_loss: Tensor | None = None  # of the last training step (check_training)
-        self.readout_solved = False
-        """Set by ``torchhys fit`` after model selection solved the network's affine readout
-        by least squares (:func:`torchhys.selection.select`): a closure optimizer's step then
-        evaluates the loss without a gradient and stops there (the solution is its optimum),
-        so the fit logs and checkpoints as a trained one, with the weights unchanged."""
+        self.fitted = False
+        """Set by ``torchhys fit`` after model selection fitted the network (its readout
+        solved by least squares or trained: :func:`torchhys.selection.select`), with manual
+        optimization: the optimizer's step then evaluates the loss without a gradient and
+        takes no step, so the fit logs, validates and checkpoints the network as a trained
+        one, with the weights unchanged (:func:`torchhys.cli.selection.use_fitted`)."""
 
     # --- checks -------------------------------------------------------------------------
     @property
@@ -289,7 +290,7 @@ class InverseHysteresisModule(L.LightningModule):
             self.manual_backward(loss)  # DDP averages the gradients across ranks
             return self._global_mean(loss.detach())
 
-        if self.readout_solved:  # solved: the step sees no gradient and stops where it is
+        if self.fitted:  # fitted by select: the step sees no gradient and stops where it is
             def closure() -> Tensor:
                 opt.zero_grad()
                 with torch.no_grad():
