@@ -50,7 +50,8 @@ from torchhys.cli.plugins import import_modules
 from torchhys.deploy.c import DEFAULT_PREFIX, check_prefix, to_c
 from torchhys.deploy.export import to_aoti, to_torchscript
 from torchhys.deploy.export_onnx import to_onnx
-from torchhys.deploy.streaming import DIRECTIONS, StreamingCompensator
+from torchhys.deploy.ranges import DIRECTIONS
+from torchhys.deploy.streaming import StreamingCompensator
 from torchhys.identification.specs import build_operators
 
 __all__ = ["build_net", "main"]
