@@ -4,7 +4,7 @@ An error caused by the user's files, options or data is printed as one line,
 ``torchhys fit: error: <message>``, without a traceback, and the command exits with status 2
 (:func:`report_user_error`). The user errors (:func:`is_user_error`) are:
 
-- :class:`ValueError`, which includes :class:`torchhys.data.files.DataFileError`,
+- :class:`ValueError`, which includes :class:`torchhys.data.tables.DataFileError`,
   :class:`torchhys.checkpoints.CheckpointError`, :class:`json.JSONDecodeError` and
   :class:`UnicodeDecodeError`;
 - :class:`OSError` about a path (its ``filename`` is set, e.g. :class:`FileNotFoundError`
