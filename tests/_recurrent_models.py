@@ -179,11 +179,12 @@ int main(int argc, char **argv)
 
 
 def c_step_time(model: nn.Module, *, dtype: torch.dtype = torch.float64,
-                flags: tuple[str, ...] = ("-O2",), steps: int = 200_000,
+                flags: tuple[str, ...] = ("-O2",), steps: int = 100_000, repeats: int = 5,
                 folder: str | os.PathLike | None = None) -> float:
-    """The mean time of one step of ``to_c(model)`` in nanoseconds: the C compiled with
-    ``cc -std=c99 FLAGS`` (benchmarks/latency.py's flags), ``steps`` steps of a triangle
-    wave timed after as many untimed ones. ``model``: a deployable or a built
+    """The time of one step of ``to_c(model)`` in nanoseconds: the C compiled with
+    ``cc -std=c99 FLAGS`` (benchmarks/latency.py's flags); the mean over ``steps`` steps of
+    a triangle wave timed after as many untimed ones, the least of ``repeats`` runs (a
+    shared machine's interruptions only lengthen a run). ``model``: a deployable or a built
     StreamingCompensator (in ``dtype``)."""
     from torchhys.deploy.c import to_c
 
@@ -197,8 +198,9 @@ def c_step_time(model: nn.Module, *, dtype: torch.dtype = torch.float64,
         subprocess.run([os.environ.get("CC", "cc"), "-std=c99", *flags, "-I", str(where),
                         "-o", str(exe), str(where / "timer.c"), str(where / "comp.c"), "-lm"],
                        check=True)
-        out = subprocess.run([str(exe), str(steps)], capture_output=True, text=True, check=True)
-        return float(out.stdout.split()[0])
+        runs = [subprocess.run([str(exe), str(steps)], capture_output=True, text=True,
+                               check=True) for _ in range(repeats)]
+        return min(float(r.stdout.split()[0]) for r in runs)
 
 
 def check_cells(step: PlayLSTMGRUStep, lstm: nn.LSTM, gru: nn.GRU, out: nn.Linear,

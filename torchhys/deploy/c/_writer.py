@@ -119,7 +119,7 @@ _INT_HELPERS = {
     "floordiv": "T q = a / b;\n    if (a % b != 0 && ((a < 0) != (b < 0))) q -= 1;\n    return q;",
     "remainder": "T m = a % b;\n    if (m != 0 && ((b < 0) != (m < 0))) m += b;\n    return m;",
 }
-_ARGS = {"clamp": "T a, T lo, T hi", "exp": "double x"}
+_ARGS = {"clamp": "T a, T lo, T hi"}
 
 # isfinite / isnan / isinf of a float told from its bits (the magnitude's bits against
 # those of inf), not by arithmetic: -ffinite-math-only (in -ffast-math) folds x != x and
@@ -174,6 +174,40 @@ _SIGMOID_DOUBLE = (
     .replace("    p = 1.0 - ((lo - (r * c) / (2.0 - c)) - hi);",
              "    d = 1.0 - 0.5 * c;\n    n = (1.0 + r) - 0.5 * c;")
     .replace("    return p * s1 * s2;", "    return d / (d + n * s1 * s2);"))
+
+# tanh of a double without libm (a loop of it vectorizes, as the exp's): tanh |x| =
+# e / (e + 2), e = expm1(2 |x|), with the exp's reduction of y = 2 |x| (k >= 0) and its
+# rational form: expm1(r) = hi - (lo - r c / (2 - c)) (no cancellation: r, not 1 + r, is
+# formed), expm1(y) = 2^k expm1(r) + (2^k - 1). |x| > 20 is replaced by +-20 (tanh rounds to
+# 1 from 19.1 on: 2^k stays finite; GCC if-converts this one select of the argument, as the
+# exp's clamp, but no second one); the sign is copied from x (tanh is odd: -0 stays -0); a
+# NaN goes through as NaN; a tiny x gives x within 2 ulp (e / (e + 2) rounds twice). Within
+# 3 ulp of glibc's tanh and 2 of torch's (tests/test_tanh_c.py).
+_TANH_DOUBLE = """double a, kd, hi, lo, r, t, c, s, e;
+    uint64_t bits, kb;
+    x = (fabs(x) > 20.0) ? copysign(20.0, x) : x;
+    a = fabs(x);
+    a = a + a;
+    kd = a * 1.4426950408889634 + 6755399441055744.0;
+    memcpy(&bits, &kd, sizeof bits);
+    kb = bits & UINT64_C(0xFFFFFFFFFFFFF); /* k + 2^51 */
+    bits = kb | UINT64_C(0x4330000000000000); /* 1.5 2^52 + k */
+    memcpy(&kd, &bits, sizeof kd);
+    kd -= 6755399441055744.0;
+    hi = a - kd * 6.93147180369123816490e-01;
+    lo = kd * 1.90821492927058770002e-10;
+    r = hi - lo;
+    t = r * r;
+    c = r - t * (1.66666666666666019037e-01 + t * (-2.77777777770155933842e-03
+        + t * (6.61375632143793436117e-05 + t * (-1.65339022054652515390e-06
+        + t * 4.13813679705723846039e-08))));
+    bits = ((kb - (UINT64_C(1) << 51) + 1023) & UINT64_C(0x7FF)) << 52;
+    memcpy(&s, &bits, sizeof s);
+    e = s * (hi - (lo - (r * c) / (2.0 - c))) + (s - 1.0);
+    return copysign(e / (e + 2.0), x);"""
+
+#: the libm-free helpers of a double (``x`` their argument)
+_DOUBLE_ONLY = {"exp": _EXP_DOUBLE, "sigmoid": _SIGMOID_DOUBLE, "tanh": _TANH_DOUBLE}
 
 
 class Writer:
@@ -383,9 +417,9 @@ class Writer:
 
     def helper(self, kind: str, dtype: torch.dtype) -> str:
         """The name of a shared helper function (``max``, ``min``, ``clamp``, ``fmax``,
-        ``fmin``, ``floordiv``, ``remainder``; ``exp`` and ``sigmoid``: vectorizable ones of
-        a double; ``isfinite``, ``isnan``, ``isinf``: tests of a float's bits) for ``dtype``,
-        defined on first use."""
+        ``fmin``, ``floordiv``, ``remainder``; ``exp``, ``sigmoid`` and ``tanh``:
+        vectorizable ones of a double; ``isfinite``, ``isnan``, ``isinf``: tests of a float's
+        bits) for ``dtype``, defined on first use."""
         t = self.ctype(dtype)
         if kind in _BIT_TESTS:
             if not dtype.is_floating_point:
@@ -396,11 +430,11 @@ class Writer:
                 f"static int {name}({t} a)\n{{\n    {unsigned} b;\n    memcpy(&b, &a, sizeof b);"
                 f"\n    return (b & {magnitude}) {_BIT_TESTS[kind]} {inf};\n}}"))
             return name
-        if kind in ("exp", "sigmoid") and dtype != torch.float64:
-            raise ValueError(f"no {kind} helper for {dtype} (libm's expf is used)")
+        if kind in _DOUBLE_ONLY and dtype != torch.float64:
+            raise ValueError(f"no {kind} helper for {dtype} (libm's is used)")
         name = f"{self.prefix}_{kind}_{t.split('_')[0]}"
-        if kind in ("exp", "sigmoid") and name not in self.helpers:
-            body = _EXP_DOUBLE if kind == "exp" else _SIGMOID_DOUBLE
+        if kind in _DOUBLE_ONLY and name not in self.helpers:
+            body = _DOUBLE_ONLY[kind]
             self.helpers[name] = f"static inline double {name}(double x)\n{{\n    {body}\n}}"
         if name not in self.helpers:
             table = _FLOAT_HELPERS if dtype.is_floating_point else _INT_HELPERS
