@@ -1,0 +1,90 @@
+"""Users' modules of the compose tests: the compositions of issue 46, as a user writes them
+(plain nn.Modules of torchhys operators, torch layers and elementwise maths)."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+import torchhys
+from torchhys.dynamics import TransferFunction
+
+
+class BacklashLSTM(nn.Module):
+    """A play operator, then an LSTM on [x, play(x)], then a linear readout."""
+
+    def __init__(self, hidden: int = 8) -> None:
+        super().__init__()
+        self.bl = torchhys.Backlash(torch.tensor([0.3]))
+        self.lstm = nn.LSTM(2, hidden, batch_first=True)
+        self.lin = nn.Linear(hidden, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        f = torch.cat([x.unsqueeze(-1), self.bl(x)[0]], -1)
+        out, _ = self.lstm(f)
+        return self.lin(out).squeeze(-1)
+
+
+class ParallelGRU(nn.Module):
+    """Three plays and a GRU of x side by side, into an MLP."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.pi = torchhys.Backlash(torch.tensor([0.0, 0.2, 0.6]))
+        self.gru = nn.GRU(1, 6, batch_first=True)
+        self.mlp = nn.Sequential(nn.Linear(9, 8), nn.Tanh(), nn.Linear(8, 1))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h, _ = self.gru(x.unsqueeze(-1))
+        return self.mlp(torch.cat([self.pi(x)[0], h], -1)).squeeze(-1) + 0.5 * x
+
+
+class FilterEIHOGRU(nn.Module):
+    """A transfer function, an EIHO operator of its output (an anchored start: it starts
+    from its own first input) and a two-layer time-first GRU on [x, eiho]."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.tf = TransferFunction(order=2)
+        self.eiho = torchhys.EIHO(a=0.7)
+        self.gru = nn.GRU(2, 5, num_layers=2)
+        self.out = nn.Linear(5, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        v = self.tf(x)[0]
+        e = self.eiho(v)[0]
+        f = torch.stack([x, e], -1).transpose(0, 1)  # (time, batch, 2)
+        h, _ = self.gru(f)
+        return torch.tanh(self.out(h)).squeeze(-1).transpose(0, 1)
+
+
+class FilterLSTM(nn.Module):
+    """A smooth composition (for gradcheck): a filter, an LSTM of [x, filtered x], a readout."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.tf = TransferFunction(order=1)
+        self.lstm = nn.LSTM(2, 3, batch_first=True)
+        self.lin = nn.Linear(3, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        f = torch.stack([x, self.tf(x)[0]], -1)
+        return torch.sigmoid(self.lin(self.lstm(f)[0])).squeeze(-1) * 2.0 - 1.0
+
+
+MODELS = {"backlash_lstm": BacklashLSTM, "parallel_gru": ParallelGRU,
+          "filter_eiho_gru": FilterEIHOGRU}
+
+
+def make(name: str, seed: int = 0, dtype: torch.dtype = torch.float64) -> nn.Module:
+    """A freshly initialised model of ``MODELS`` (seeded) in ``dtype``."""
+    torch.manual_seed(seed)
+    return MODELS[name]().to(dtype)
+
+
+def signal(batch: int = 3, time: int = 120, seed: int = 1,
+           dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """A smooth random input in about [-1.5, 1.5] (batch, time)."""
+    g = torch.Generator().manual_seed(seed)
+    w = torch.randn(batch, time, generator=g, dtype=torch.float64).cumsum(1) * 0.2
+    return (1.5 * torch.tanh(w)).to(dtype)

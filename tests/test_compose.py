@@ -1,0 +1,157 @@
+"""torchhys.compose: a user's module streams as it computes. The composed step against the
+module itself over a sequence (float64, 1e-12), chunked == one call, the state layout and
+start, gradcheck, training through the Composed, the recorded ranges."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from _compose_models import MODELS, FilterLSTM, make, signal
+
+import torchhys
+from torchhys.compose import Composed, ComposedStartStep, ComposedStep, compose
+
+LAYOUTS = {
+    "backlash_lstm": (ComposedStep, [("bl.plays", 1), ("lstm.h", 8), ("lstm.c", 8)]),
+    "parallel_gru": (ComposedStep, [("gru.h", 6), ("pi.plays", 3)]),
+    "filter_eiho_gru": (ComposedStartStep, [("tf.filter", 2), ("eiho.turning", 4),
+                                            ("eiho.level", 1), ("gru.h", 10)]),
+}
+
+
+@pytest.mark.parametrize("name", MODELS)
+def test_step_equals_the_module(name):
+    model = make(name)
+    x = signal()
+    composed = compose(model)
+    step = composed.composed_step(torch.float64)
+    kind, layout = LAYOUTS[name]
+    assert type(step) is kind
+    assert [(b.name, b.size) for b in step.state_spec] == layout
+    with torch.no_grad():
+        want = model(x)
+    torch.testing.assert_close(step.run(x)[..., 0], want, rtol=0, atol=1e-12)
+    torch.testing.assert_close(composed(x), model(x), rtol=0, atol=0)  # forward is the module
+
+
+@pytest.mark.parametrize("name", MODELS)
+def test_chunked_equals_one_call(name):
+    step = compose(make(name)).composed_step(torch.float64)
+    x = signal(time=60)
+    whole = step.run(x)
+    state = step.initial_state(x[:, :1])
+    outs = []
+    for chunk in (x[:, :17], x[:, 17:18], x[:, 18:]):
+        for xt in chunk.unbind(1):
+            f, state = step(xt.unsqueeze(1), state)
+            outs.append(f)
+    torch.testing.assert_close(torch.stack(outs, 1), whole, rtol=0, atol=0)
+
+
+def test_a_leaf_after_a_layer_starts_from_its_own_input():
+    """The EIHO after the filter starts from the filter's first output (as the module's
+    sequence path does), not from x0: the custom start of ComposedStartStep."""
+    model = make("filter_eiho_gru")
+    step = compose(model).composed_step(torch.float64)
+    x = signal()
+    x0 = x[:, :1]
+    start = step.initial_state(x0)
+    names = [b.name for b in step.state_spec]
+    tf_step = model.tf.streaming_step(torch.float64)
+    v0, _ = tf_step(x0, tf_step.initial_state(x0))
+    eiho_start = model.eiho.streaming_step(torch.float64).initial_state(v0)
+    torch.testing.assert_close(start[names.index("eiho.turning")], eiho_start[0])
+    assert not torch.allclose(start[names.index("eiho.turning")][:, :1], x0)
+
+
+def test_a_leaf_fed_by_the_input_keeps_its_affine_start():
+    """An anchored operator on x itself needs no custom start: its blocks keep from_sample."""
+
+    class EIHOLSTM(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.eiho = torchhys.EIHO()
+            self.lstm = torch.nn.LSTM(1, 4, batch_first=True)
+
+        def forward(self, x):
+            return self.lstm(self.eiho(x)[0].unsqueeze(-1))[0].sum(-1)
+
+    torch.manual_seed(0)
+    model = EIHOLSTM().double()
+    step = compose(model).composed_step(torch.float64)
+    assert type(step) is ComposedStep
+    assert step.state_spec[0].name == "eiho.turning"
+    assert step.state_spec[0].columns("from_sample") == [1.0, 1.0, 0.0, 1.0]
+    x = signal()
+    torch.testing.assert_close(step.run(x)[..., 0], model(x).detach(), rtol=0, atol=1e-12)
+
+
+def test_gradcheck_of_a_composed_step():
+    torch.manual_seed(0)
+    step = compose(FilterLSTM().double()).composed_step(torch.float64)
+    x = torch.randn(2, 1, dtype=torch.float64, requires_grad=True)
+    state = [torch.randn(2, b.size, dtype=torch.float64, requires_grad=True)
+             for b in step.state_spec]
+
+    def f(x, *state):
+        y, new = step(x, list(state))
+        return (y, *new)
+
+    assert torch.autograd.gradcheck(f, (x, *state))
+
+
+def test_a_composed_trains_as_the_module_and_streams_its_new_weights():
+    model = make("backlash_lstm")
+    x = signal()
+    y = torch.sin(2.0 * x)
+    composed = compose(model, x=x, y=y)
+    assert {p for p in composed.parameters()} == set(model.parameters())
+    opt = torch.optim.Adam(composed.parameters(), lr=0.02)
+    losses = []
+    for _ in range(30):
+        opt.zero_grad()
+        loss = (composed(x) - y).square().mean()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+    assert losses[-1] < 0.5 * losses[0]
+    step = composed.streaming_steps(torch.float64)[0]
+    torch.testing.assert_close(step.run(x)[..., 0], model(x).detach(), rtol=0, atol=1e-12)
+
+
+def test_recorded_ranges_are_the_datas():
+    model = make("parallel_gru")
+    x = signal()
+    y = model(x).detach() + 0.1 * x
+    composed = Composed(model, x=x, y=y)
+    xs, ys = x.numpy().ravel(), y.numpy().ravel()
+    assert float(composed.in_min) == xs.min() and float(composed.in_max) == xs.max()
+    assert float(composed.out_min) == ys.min() and float(composed.out_max) == ys.max()
+    assert math.isclose(float(composed.trend), np.corrcoef(xs, ys)[0, 1], rel_tol=1e-12)
+    # without data: nothing recorded
+    bare = compose(make("parallel_gru"))
+    assert all(math.isnan(float(getattr(bare, n)))
+               for n in ("in_min", "in_max", "out_min", "out_max", "trend"))
+
+
+def test_compose_leaves_the_module_as_it_was():
+    model = make("backlash_lstm")
+    model.train()
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    compose(model)
+    assert model.training
+    after = model.state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before)
+
+
+def test_a_module_of_no_stateful_layer_composes():
+    mlp = torch.nn.Sequential(torch.nn.Unflatten(-1, (-1, 1)), torch.nn.Linear(1, 4),
+                              torch.nn.Tanh(), torch.nn.Linear(4, 1), torch.nn.Flatten(-2))
+    mlp.double()
+    step = compose(mlp).composed_step(torch.float64)
+    assert step.state_spec == []
+    x = signal()
+    torch.testing.assert_close(step.run(x)[..., 0], mlp(x).detach(), rtol=0, atol=1e-12)
