@@ -14,9 +14,9 @@ hold-out (sign, direction, penalty, size), which the real-data benchmark's rows 
 import importlib
 import warnings
 from collections.abc import Callable, Iterator, Mapping, MutableMapping
-from typing import Any, TypeVar
+from typing import Any, NamedTuple, TypeVar
 
-from torch import nn
+from torch import Tensor, nn
 
 from torchhys.operator import HysteresisOperator, check_operator
 
@@ -28,6 +28,7 @@ __all__ = [
     "FAMILIES",
     "OPERATORS",
     "SEARCHES",
+    "Searched",
     "load_entry_points",
     "load_families",
     "make_operator",
@@ -266,19 +267,37 @@ identified operator's place until the data are seen, and the function that ident
 (see :func:`register_family`). The built-in families are registered on its first read
 (:func:`load_families`)."""
 
-SEARCHES: MutableMapping[str, Callable[..., Any]] = _Loaded()
+class Searched(NamedTuple):
+    """What a family's search returns (:data:`SEARCHES`): the options
+    chosen on a time-ordered hold-out and the model they give."""
+
+    holdout: float
+    """RMS error on the hold-out (samples ``cut:`` of every row) of the chosen options,
+    fitted on the samples before it."""
+    options: dict[str, Any]
+    """The chosen options as a spec, ``{"fit": FAMILY, **options}`` (and ``sign``: the
+    target's sign the model was fitted to, where the family fits both)."""
+    predict: Callable[[Tensor], Tensor]
+    """The chosen options refitted on every sample: input (rows, time) -> output, in the
+    units of the data searched."""
+    skipped: int = 0
+    """Better settings on the hold-out passed over because their refit on every sample
+    failed (diverged)."""
+
+
+SEARCHES: MutableMapping[str, Callable[..., Searched]] = _Loaded()
 """The families' searches of their own options, by family name:
 ``SEARCHES[name](x, y, warmup, cut, **grid)`` fits the family on samples before ``cut`` of
 every row of ``x``, ``y`` (rows, time) for each setting of its options (the family's own
 choices, such as the target's sign, the direction and the penalty, over the sizes of
-``grid``), and returns a :class:`torchhys.identification._family_spec.Searched`: the
+``grid``), and returns a :class:`Searched`: the
 setting with the least RMS error on the hold-out ``cut:``, as a spec, and its model refitted
 on every sample (see :func:`register_family`). The built-in families' searches are
 registered on its first read (:func:`load_families`)."""
 
 
 def register_family(name: str, builder: Callable[[Mapping[str, Any]], Any], *,
-                    search: Callable[..., Any] | None = None) -> None:
+                    search: Callable[..., Searched] | None = None) -> None:
     """Register a model family identified on data under ``name``, for specs
     ``{"fit": name, **options}``.
 
@@ -290,8 +309,8 @@ def register_family(name: str, builder: Callable[[Mapping[str, Any]], Any], *,
     Args:
         name: the family's name in specs and configs.
         builder: ``builder(spec) -> (placeholder, fit)`` (see :data:`FAMILIES`).
-        search: the family's search of its options on a hold-out (see :data:`SEARCHES`);
-            None: none.
+        search: the family's search of its options on a hold-out, returning a
+            :class:`Searched` (see :data:`SEARCHES`); None: none.
 
     Raises:
         ValueError: ``name`` is not a non-empty str, or is taken by another builder.

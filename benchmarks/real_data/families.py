@@ -14,11 +14,11 @@ import torch
 from torch import Tensor
 
 from torchhys import EIHO, Backlash, Drift, InverseHysteresisNet, JilesAtherton, fit_jiles_atherton
-from torchhys.identification._family_spec import PENALTIES, Searched
+from torchhys.identification._family_spec import PENALTIES
 from torchhys.identification.fitting import play_width_grid
 from torchhys.identification.preisach import SMOOTHNESS
 from torchhys.identification.stop_pi import StopSetting, fit_stop_setting, stop_pi_settings
-from torchhys.registry import FAMILIES, SEARCHES
+from torchhys.registry import FAMILIES, SEARCHES, Searched
 
 from .datasets import F64, Split
 from .scoring import Budget, Fitted, NotApplicable, Scaled, _rmse, holdout, scaled

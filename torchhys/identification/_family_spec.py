@@ -1,12 +1,13 @@
 """What the model families' spec builders share (:mod:`torchhys.identification.specs`): the
 option checks, the penalty grid of ``"auto"`` and its hold-out, the memory check of a
-family's columns, and what a family's search of its options returns (:class:`Searched`)."""
+family's columns. What a family's search of its options returns is
+:class:`torchhys.registry.Searched`."""
 
 from __future__ import annotations
 
 import re
 from collections.abc import Callable, Mapping
-from typing import Any, NamedTuple
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -87,24 +88,6 @@ def _holdout(scored: Tensor) -> float:
         raise FitError(f"{n} scored training samples are too few to choose a penalty "
                        "on a hold-out; give the penalty as a number")
     return VALIDATION
-
-
-class Searched(NamedTuple):
-    """What a family's search returns (:data:`torchhys.registry.SEARCHES`): the options
-    chosen on a time-ordered hold-out and the model they give."""
-
-    holdout: float
-    """RMS error on the hold-out (samples ``cut:`` of every row) of the chosen options,
-    fitted on the samples before it."""
-    options: dict[str, Any]
-    """The chosen options as a spec, ``{"fit": FAMILY, **options}`` (and ``sign``: the
-    target's sign the model was fitted to, where the family fits both)."""
-    predict: Callable[[Tensor], Tensor]
-    """The chosen options refitted on every sample: input (rows, time) -> output, in the
-    units of the data searched."""
-    skipped: int = 0
-    """Better settings on the hold-out passed over because their refit on every sample
-    failed (diverged)."""
 
 
 def holdout_rmse(predict: Callable[[Tensor], Tensor], x: Tensor, y: Tensor, cut: int) -> float:

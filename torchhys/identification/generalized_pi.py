@@ -38,7 +38,6 @@ from torchhys._checks import (
 from torchhys.identification._family_spec import (
     PENALTIES,
     Fitter,
-    Searched,
     _check_columns,
     _grid,
     _holdout,
@@ -62,7 +61,7 @@ from torchhys.identification.fitting import (
 from torchhys.identification.prandtl_ishlinskii import _inverse_pi_choice, _pi_choice
 from torchhys.operators.backlash import _inverse_softplus
 from torchhys.operators.generalized_pi import GeneralizedPIInverse, GeneralizedPrandtlIshlinskii
-from torchhys.registry import register_family
+from torchhys.registry import Searched, register_family
 
 __all__ = ["fit_generalized_pi", "search_gpi"]
 

@@ -36,7 +36,6 @@ from torchhys._checks import check_int, check_nonnegative, check_positive
 from torchhys.identification._family_spec import (
     PENALTIES,
     Fitter,
-    Searched,
     _check_columns,
     _grid,
     _holdout,
@@ -50,7 +49,7 @@ from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_g
 from torchhys.operators.backlash import Backlash
 from torchhys.operators.generalized_pi import GeneralizedPIInverse, GeneralizedPrandtlIshlinskii
 from torchhys.operators.prandtl_ishlinskii import PrandtlIshlinskii
-from torchhys.registry import register_family
+from torchhys.registry import Searched, register_family
 
 __all__ = ["search_pi_ls", "search_pi_nonneg"]
 

@@ -45,7 +45,6 @@ from torchhys.identification._family_spec import (
     PENALTIES,
     VALIDATION,
     Fitter,
-    Searched,
     _holdout,
     _keys,
     _penalty,
@@ -61,7 +60,7 @@ from torchhys.identification._nnls import (
 )
 from torchhys.identification.errors import FitError, _checked, _rmse, _samples, _standardized
 from torchhys.operators.preisach import Preisach, PreisachInverse
-from torchhys.registry import register_family
+from torchhys.registry import Searched, register_family
 
 __all__ = ["SMOOTHNESS", "check_fit_memory", "fit_preisach", "fit_preisach_signs",
            "search_preisach", "select_penalty"]

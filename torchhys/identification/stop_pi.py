@@ -42,7 +42,6 @@ from torchhys.identification._family_spec import (
     PENALTIES,
     VALIDATION,
     Fitter,
-    Searched,
     _check_columns,
     _holdout,
     _keys,
@@ -60,7 +59,7 @@ from torchhys.identification._nnls import (
 from torchhys.identification.errors import _checked, _samples, _standardized
 from torchhys.identification.fitting import play_width_grid
 from torchhys.operators.stop_pi import StopPrandtlIshlinskii
-from torchhys.registry import register_family
+from torchhys.registry import Searched, register_family
 
 __all__ = ["StopSetting", "fit_stop_pi", "fit_stop_pi_signs", "fit_stop_setting",
            "search_stop_pi", "select_stop_pi_ridge", "stop_pi_settings"]
