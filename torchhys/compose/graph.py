@@ -30,7 +30,7 @@ import torch.fx as fx
 from torch import Tensor, nn
 
 from torchhys.compose._leaves import LeafStep, is_leaf, leaf_step
-from torchhys.step import OperatorStep, StateBlock, _check_step_state, custom_start
+from torchhys.step import OperatorStep, StateBlock, custom_start
 
 __all__ = ["ComposedStep", "ComposedStartStep", "Shapes", "build_step", "describe"]
 
@@ -85,7 +85,20 @@ class ComposedStep(OperatorStep):
         if not isinstance(x, Tensor) or x.dim() != 2 or x.shape[1] != 1:
             got = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
             raise ValueError(f"{type(self).__name__}: x must have shape (batch, 1), got {got}")
-        _check_step_state(state, self.state_spec, x.shape[0])
+        spec, batch = self.state_spec, x.shape[0]
+        if not isinstance(state, list) or len(state) != len(spec):
+            got = f"{len(state)} item(s)" if isinstance(state, list) else type(state).__name__
+            raise ValueError(f"{type(self).__name__}: state must be the list of {len(spec)} "
+                             f"tensor(s) of its state_spec, got {got}")
+        for i, (t, block) in enumerate(zip(state, spec, strict=True)):
+            if not isinstance(t, Tensor) or tuple(t.shape) != (batch, block.size):
+                got = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
+                raise ValueError(f"{type(self).__name__}: state[{i}] (block {block.name!r}) "
+                                 f"must have shape ({batch}, {block.size}), got {got}")
+            if (block.kind == "int64") != (t.dtype == torch.long):
+                want = "int64" if block.kind == "int64" else "floating point"
+                raise ValueError(f"{type(self).__name__}: state[{i}] (block {block.name!r}) "
+                                 f"must be {want}, got {t.dtype}")
 
 
 class ComposedStartStep(ComposedStep):
