@@ -32,7 +32,7 @@ final fit run as in a full run). It runs under :func:`sys.setprofile` (and
 Run from the repository (or pass ``--root`` a checkout of another commit: its ``torchhys``
 must be the one imported, which the script checks)::
 
-    python benchmarks/layout_cost.py [--repeats 5] [--root .] [--no-walk] [--list]
+    python benchmarks/layout_cost.py [--repeats 5] [--root .] [--no-walk | --no-imports] [--list]
 """
 
 from __future__ import annotations
@@ -230,7 +230,7 @@ def _yes(flag: bool) -> str:
 def report(rows: dict[str, dict], walk: dict | None, *, list_files: bool) -> str:
     """The tables, as markdown."""
     lines = ["| import | torchhys modules | all modules | median s | loads Lightning |",
-             "|---|---:|---:|---:|---|"]
+             "|---|---:|---:|---:|---|"] if rows else []
     for row in rows.values():
         if row["absent"]:
             lines.append(f"| `{row['module']}` | absent | | | |")
@@ -239,7 +239,8 @@ def report(rows: dict[str, dict], walk: dict | None, *, list_files: bool) -> str
                          f"{row['seconds']:.2f} | {_yes(row['lightning'])} |")
     if walk is not None:
         shown = ["TMP/run" if a.endswith(os.sep + "run") else a for a in walk["argv"]]
-        lines += ["", f"`torchhys {' '.join(shown)}` under `sys.setprofile`:", "",
+        lines += [""] * bool(lines) + [
+                  f"`torchhys {' '.join(shown)}` under `sys.setprofile`:", "",
                   "| torchhys files called | of them from inside selection | top-floor files "
                   "| returns to a room already left | command line called from inside "
                   "selection |",
@@ -267,12 +268,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--repeats", type=int, default=5,
                         help="fresh interpreters per import (the median time is printed)")
     parser.add_argument("--no-walk", action="store_true", help="skip the walk of torchhys fit")
+    parser.add_argument("--no-imports", action="store_true",
+                        help="skip the imports' table: the walk of torchhys fit only")
     parser.add_argument("--list", action="store_true", help="also list the files the walk calls")
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error(f"--repeats must be at least 1, got {args.repeats}")
+    if args.no_walk and args.no_imports:
+        parser.error("--no-walk and --no-imports together measure nothing: give one")
     root = args.root.resolve()
-    rows = {key: measure_import(root, names, args.repeats) for key, names in IMPORTS.items()}
+    rows = {} if args.no_imports else {
+        key: measure_import(root, names, args.repeats) for key, names in IMPORTS.items()}
     walk = None if args.no_walk else measure_walk(root)
     print(report(rows, walk, list_files=args.list))
 

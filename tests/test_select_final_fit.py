@@ -152,3 +152,51 @@ def test_the_final_run_takes_no_step(monkeypatch, tmp_path) -> None:
     # and a module not handed one trains (the check can fail)
     trainer(max_epochs=3).fit(fresh, datamodule=dm)
     assert any(not torch.equal(v, before[k]) for k, v in fresh.net.state_dict().items())
+
+
+# --- the library: Selection.fit ------------------------------------------------------------
+TANH = {"operator": None, "hidden": 3, "activation": "tanh", "optimizer": "adam", "lr": 0.05,
+        "optimizer_kwargs": {}}
+"""A trained readout (no least-squares solution)."""
+
+
+def _loop(T: int = 300) -> tuple[torch.Tensor, torch.Tensor]:
+    """A play of width 0.3 (a loop), as plain Python: (1, T) float64."""
+    import math
+
+    t = torch.linspace(0, 4 * math.pi, T, dtype=torch.float64)
+    x = torch.sin(t) * (0.6 + 0.4 * torch.cos(t / 3))
+    y, state = torch.empty_like(x), 0.0
+    for i, v in enumerate(x.tolist()):
+        state = min(max(state, v - 0.3), v + 0.3)
+        y[i] = state
+    return x[None], y[None]
+
+
+@pytest.mark.parametrize("cv", [None, 2])
+def test_selection_fit_is_the_chosen_candidate_fitted_once(fits, cv) -> None:
+    """``refit=False`` then :meth:`Selection.fit` gives the network ``refit=True`` gives
+    (every weight), the same one on each call; on a validation record of its own the chosen
+    one's fit is its score's (no fit more than the candidates'), under cross-validation one
+    fit more."""
+    from torchhys.selection import select
+    from torchhys.selection.run import Selection, record
+
+    x, y = _loop()
+    cut = 200
+    options = {"warmup": 10, "warn_coverage": False, "epochs": 4, "seconds": None}
+    if cv is None:
+        mask = torch.zeros_like(x, dtype=torch.bool)
+        mask[:, cut:] = True
+        options["val"] = record(x, y, mask=mask)
+    late = select([{}, TANH], x[:, :cut], y[:, :cut], cv=cv, refit=False, **options)
+    assert late.model is None and len(fits) == 2 * (cv or 1)
+    net = late.fit()
+    assert late.fit() is net and len(fits) == 2 * (cv or 1) + (cv is not None)
+    now = select([{}, TANH], x[:, :cut], y[:, :cut], cv=cv, **options)
+    assert now.fit() is now.model and now.chosen.index == late.chosen.index
+    for (key, a), b in zip(net.state_dict().items(), now.model.state_dict().values(),
+                           strict=True):
+        assert torch.equal(a, b), key
+    with pytest.raises(ValueError, match="no record to fit on"):
+        Selection(late.scores, late.chosen, late.spec, None, cv, None, "min").fit()

@@ -85,14 +85,13 @@ from torchhys.cli.selection import say_lightning, select_record, use_fitted, wri
 from torchhys.data.files import watch_files
 from torchhys.identification.specs import build_operators
 from torchhys.optim.named import check_optimizer_kwargs
-from torchhys.selection import Selection, scores
+from torchhys.selection import scores
 from torchhys.selection import select as select_candidates
-from torchhys.selection.candidates import candidate_spec, is_direct, model_base
+from torchhys.selection.candidates import is_direct, model_base
 from torchhys.selection.coverage import warn_coverage
 from torchhys.selection.folds import describe_cv
 from torchhys.selection.jobs import check_budget, check_jobs, usable_cores
 from torchhys.selection.progress import SelectionProgress
-from torchhys.selection.run import fit_record
 from torchhys.training.callbacks import BaselineComparison, PredictionWriter
 from torchhys.training.data import HysteresisDataModule
 from torchhys.training.interrupts import (
@@ -252,53 +251,41 @@ class TorchhysCLI(LightningCLI):
             progress.starts(i, fold)
             return self._instantiate_run(configs[i], seed, folder / "selection", i, fold)
 
-        def report(scored: list[scores.CandidateScore]) -> scores.CandidateScore:
-            """The table printed and written (before the chosen candidate's fit)."""
-            progress.close()
-            self._selected = True
-            chosen = scores.best(scored, rule or "min")
-            _report(scored, chosen, folder / "selection.csv", describe_cv(cv, mode),
-                    rule or "min")
-            return chosen
-
         try:
             with _quiet_lightning(), signals_raise():  # SIGTERM, Ctrl-C: Interrupted
                 direct, reason = select_record(configs, sub, cv)
                 if direct is not None:  # the library's selection (select_record: when)
-                    # a trained readout capped by max_time alone: the final fit trains it
-                    # (fitted here, the final fit would run on for max_time, no step taken)
-                    timed = direct.seconds is not None and not all(
-                        is_direct(candidate_spec(model_base(c[sub]["model"]), {}))
-                        for c in configs)
-
-                    def written(found: Selection) -> None:
-                        write_fold_logs(found.scores, folder / "selection")
-                        report(found.scores)
-
                     result = select_candidates(
                         candidates, direct.x, direct.y, base=model_base(cfg["model"]),
                         warmup=direct.warmup, mask=direct.mask, cv=cv, mode=mode,
                         rule=rule or "min", jobs=jobs, budget_s=budget, dtype=direct.dtype,
                         seed=seed, epochs=direct.epochs, seconds=direct.seconds,
-                        progress=progress, source=direct.source, refit=not timed,
-                        val=direct.val_record(), before_refit=written)
-                    chosen = result.chosen
-                    self._fitted = result.model  # fitted once: the final fit records it
-                    if timed and is_direct(result.spec):  # solved: no time to spend
-                        self._fitted = fit_record(result.spec, direct.record(),
-                                                  dtype=direct.dtype, seed=seed)
+                        progress=progress, source=direct.source, refit=False,
+                        val=direct.val_record())
+                    scored = result.scores
+                    write_fold_logs(scored, folder / "selection")
                 else:  # a trainer section select cannot honour: a Lightning run each
                     from torchhys.training.selection import run_selection
 
                     say_lightning(reason)
-                    chosen = report(run_selection(candidates, build, cv=cv, mode=mode,
-                                                  jobs=jobs, budget_s=budget,
-                                                  report=progress.scored))
+                    scored = run_selection(candidates, build, cv=cv, mode=mode, jobs=jobs,
+                                           budget_s=budget, report=progress.scored)
         except BaseException:
             progress.close()
             with contextlib.suppress(OSError):  # stopped before any candidate logged
                 folder.rmdir()
             raise
+        progress.close()
+        self._selected = True
+        chosen = scores.best(scored, rule or "min")
+        _report(scored, chosen, folder / "selection.csv", describe_cv(cv, mode),
+                rule or "min")
+        # fitted once by select after its table is written (a trained readout limited by
+        # max_time is left to the final fit: recording it, that would run on for
+        # max_time without a step); the final fit records it without training it again
+        if direct is not None and (direct.seconds is None or is_direct(result.spec)):
+            with signals_raise():
+                self._fitted = result.fit()
         self.config = configs[chosen.index]
         self.__dict__.pop("config_dump", None)  # the module's hyperparameters: the choice
         seed_everything(seed, workers=True)  # the fit starts as the candidate's run did

@@ -14,12 +14,11 @@ real-data benchmark's ``default`` row; in a notebook::
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -172,14 +171,33 @@ class Selection:
     spec: dict[str, Any]
     """The chosen candidate's model arguments (its overrides over the base, completed)."""
     model: InverseHysteresisNet | None
-    """The chosen candidate fitted on the whole record, once (None with ``refit=False``;
-    scored on a validation record of its own in this process, the network its score was
-    fitted: the same fit, not run twice)."""
+    """The chosen candidate fitted on the whole record (None with ``refit=False``:
+    :meth:`fit`)."""
     cv: int | str | None
     mode: str | None
     rule: str
     validation: bool = False
     """Scored on a validation record of its own (``select(val=...)``), not on folds."""
+    refit: Callable[[], InverseHysteresisNet] | None = field(default=None, repr=False,
+                                                             compare=False)
+    """What :meth:`fit` runs (:func:`select` sets it)."""
+
+    def fit(self) -> InverseHysteresisNet:
+        """The chosen candidate fitted on the whole record, once: :attr:`model`, or with
+        ``select(refit=False)`` fitted now (a caller writes its table first), the same
+        network on every call. Scored on a validation record of its own in this process,
+        it is the network its score fitted (the same fit: not run twice).
+
+        Raises:
+            FitError: a model family that cannot be fitted to the whole record.
+            ValueError: a :class:`Selection` built without :func:`select` (no record).
+        """
+        if self.model is not None:
+            return self.model
+        if self.refit is None:
+            raise ValueError("this Selection holds no record to fit on: build it with "
+                             "torchhys.selection.select")
+        return self.refit()
 
     def table(self) -> str:
         """The candidates and their validation MSE as a text table (``*``: the choice)."""
@@ -317,8 +335,7 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
            dtype: torch.dtype = torch.float64, seed: int | None = 0, epochs: int = 10,
            seconds: float | None = None, refit: bool = True,
            progress: Progress | None = None, source: str = "the data",
-           warn_coverage: bool = True, val: Record | None = None,
-           before_refit: Callable[[Selection], None] | None = None) -> Selection:
+           warn_coverage: bool = True, val: Record | None = None) -> Selection:
     """Score ``candidates`` on the record ``(x, y)``, choose one by ``rule`` and fit it.
 
     Args:
@@ -345,7 +362,8 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
         epochs, seconds: training steps (and a time cap) of a candidate whose readout is not
             solved directly (:func:`~torchhys.selection.candidates.fit_candidate`).
         refit: fit the chosen candidate on the whole record, once (:attr:`Selection.model`;
-            scored on ``val`` with ``jobs`` 1, the network its score fitted).
+            scored on ``val`` with ``jobs`` 1, the network its score fitted); False: later,
+            by :meth:`Selection.fit`.
         progress: told when each fold starts and each score is known (:class:`Progress`).
         source: the data's name in messages.
         warn_coverage: warn (``UserWarning``) when the record holds less than one closed
@@ -355,9 +373,6 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
             candidates are fitted on the whole of ``x``, ``y`` and scored on ``val``
             (:func:`record_folds`), as ``torchhys fit`` scores them on its validation
             split.
-        before_refit: called with the scored :class:`Selection` (its ``model`` None) before
-            the chosen candidate is fitted (with ``refit=False``: before it is returned);
-            the command writes its table there, so that a fit that fails leaves it.
 
     Raises:
         ValueError: no candidate, a bad option (the message names it), every candidate NaN.
@@ -390,7 +405,7 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
     fitted: dict[int, InverseHysteresisNet] = {}
 
     def score(i: int) -> CandidateScore:
-        keep = (lambda net: fitted.__setitem__(i, net)) if refit and val is not None else None
+        keep = (lambda net: fitted.__setitem__(i, net)) if val is not None else None
         return score_candidate(i, overrides[i], specs[i], folds, cv, dtype=dtype,
                                seed=seed, epochs=epochs, seconds=seconds, progress=progress,
                                keep=keep)
@@ -403,26 +418,24 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
                             report=None if progress is None else progress.scored, jobs=jobs,
                             budget_s=budget_s, together=[shared_key(c) for c in overrides])
     chosen = best(scores, rule)
-    result = Selection(list(scores), chosen, specs[chosen.index], None, cv, mode, rule,
-                       val is not None)
-    if before_refit is not None:
-        before_refit(result)
-    if not refit:
-        return result
-    model = fitted.get(chosen.index)
+    done = [fitted[chosen.index]] if chosen.index in fitted else []
     fitted.clear()
-    if model is None:
-        model = fit_record(specs[chosen.index], data, dtype=dtype, seed=seed, epochs=epochs,
-                           seconds=seconds)
-    return dataclasses.replace(result, model=model)
+
+    def fit() -> InverseHysteresisNet:
+        if not done:
+            done.append(fit_record(specs[chosen.index], data, dtype=dtype, seed=seed,
+                                   epochs=epochs, seconds=seconds))
+        return done[0]
+
+    return Selection(list(scores), chosen, specs[chosen.index], fit() if refit else None, cv,
+                     mode, rule, val is not None, fit)
 
 
 def fit_record(spec: Mapping[str, Any], data: Record, *, dtype: torch.dtype = torch.float64,
                seed: int | None = 0, epochs: int = 10,
                seconds: float | None = None) -> InverseHysteresisNet:
     """A candidate's model arguments (:attr:`Selection.spec`) fitted on the whole record
-    (:func:`record`), as :func:`select` fits the chosen one: with ``refit=False``, a caller
-    that writes the table first fits it so.
+    (:func:`record`), as :func:`select` (or :meth:`Selection.fit`) fits the chosen one.
 
     Raises:
         FitError: a model family that cannot be fitted to the record.
