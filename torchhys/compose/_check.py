@@ -30,6 +30,11 @@ def _first_line(err: BaseException) -> str:
     return text.splitlines()[0] if text else type(err).__name__
 
 
+class _NodeError(ValueError):
+    """An error of one node's call, named (torch.fx adds lines to it: :meth:`_Recorder.go`
+    keeps the first)."""
+
+
 class _Recorder(fx.Interpreter):
     """Runs a graph and keeps every node's value; an error names the node."""
 
@@ -40,9 +45,18 @@ class _Recorder(fx.Interpreter):
     def run_node(self, n: fx.Node) -> Any:
         try:
             return super().run_node(n)
+        except _NodeError:
+            raise
         except Exception as err:  # the user's maths: any error, named by its node
-            raise ValueError(f"{describe(n, self.module)} failed {self.what}: "
+            raise _NodeError(f"{describe(n, self.module)} failed {self.what}: "
                              f"{type(err).__name__}: {_first_line(err)}") from err
+
+    def go(self, *args: Any) -> Any:
+        """:meth:`run`, its error one line."""
+        try:
+            return self.run(*args)
+        except _NodeError as err:
+            raise ValueError(_first_line(err)) from err.__cause__
 
 
 def check_graph(graph: fx.Graph, module: nn.Module) -> None:
@@ -104,13 +118,9 @@ def shape_pass(graph: fx.Graph, module: nn.Module, x: Tensor) -> Shapes:
     module.eval()
     try:
         with torch.no_grad():
-            y = rec.run(x)
+            y = rec.go(x)
     finally:
         module.train(was)
-    if not isinstance(y, Tensor) or tuple(y.shape) != (B, T):
-        got = tuple(y.shape) if isinstance(y, Tensor) else type(y).__name__
-        raise ValueError(f"{type(module).__name__} must map x (batch, time) to y (batch, time): "
-                         f"on x of shape ({B}, {T}) it returned {got}")
     for node in leaf_nodes(graph, module):
         desc, sub = describe(node, module), module.get_submodule(str(node.target))
         u, out = rec.env[node.args[0]], rec.env[node]
@@ -127,6 +137,10 @@ def shape_pass(graph: fx.Graph, module: nn.Module, x: Tensor) -> Shapes:
             got = tuple(f.shape) if isinstance(f, Tensor) else type(out).__name__
             raise ValueError(f"{desc} must return (features, state) with features of leading "
                              f"shape {lead} on x of shape ({B}, {T}), got {got}")
+    if not isinstance(y, Tensor) or tuple(y.shape) != (B, T):
+        got = tuple(y.shape) if isinstance(y, Tensor) else type(y).__name__
+        raise ValueError(f"{type(module).__name__} must map x (batch, time) to y (batch, time): "
+                         f"on x of shape ({B}, {T}) it returned {got}")
     return Shapes(B, T, dict(rec.env))
 
 
@@ -158,7 +172,7 @@ def check_causal(graph: fx.Graph, module: nn.Module, shapes: Shapes, step: Compo
     for t in range(T):
         rec = _Recorder(step.graph, f"on one sample (time length 1) at sample {t}")
         with torch.no_grad():
-            y_t, state = rec.run(x[:, t:t + 1], state, False)
+            y_t, state = rec.go(x[:, t:t + 1], state, False)
         if not isinstance(y_t, Tensor) or tuple(y_t.shape) != (B, 1):
             raise ValueError(f"{type(module).__name__} returned shape {tuple(y_t.shape)} on one "
                              f"sample x of shape ({B}, 1), expected ({B}, 1)")

@@ -43,9 +43,12 @@ def leaf_step(module: nn.Module, dtype: torch.dtype, where: str) -> OperatorStep
             step = recurrent_step(module, dtype)
         else:
             step = module.streaming_step(dtype)
+    except NotImplementedError as err:
+        raise TypeError(f"{where} has no step ({kind}.streaming_step is not implemented): "
+                        "give it streaming_step(dtype) -> torchhys.step.OperatorStep") from err
     except (TypeError, ValueError) as err:
-        raise type(err)(f"{where} ({kind}) cannot stream: {err}") from err
-    return check_step(step, f"{where} ({kind}): its step", n_inputs=None)
+        raise type(err)(f"{where} cannot stream: {err}") from err
+    return check_step(step, f"{where}: its step", n_inputs=None)
 
 
 class LeafStep(nn.Module):

@@ -53,7 +53,8 @@ def describe(node: fx.Node, root: nn.Module) -> str:
         target = node.target
         mod = getattr(target, "__module__", None) or ""
         name = getattr(target, "__name__", str(target))
-        what = f"{'torch' if mod.startswith('torch') else mod}.{name}".lstrip(".")
+        mod = "torch" if mod.startswith("torch") else "operator" if mod == "_operator" else mod
+        what = f"{mod}.{name}".lstrip(".")
     elif node.op == "call_method":
         what = f"Tensor.{node.target}"
     else:

@@ -38,16 +38,16 @@ from torchhys.step import OperatorStep, StateBlock
 __all__ = ["GRUStep", "LSTMStep", "RNNStep", "recurrent_step"]
 
 
-def _check_layer(layer: nn.RNNBase, kind: type, name: str) -> None:
+def _check_layer(layer: nn.RNNBase, kind: type) -> None:
+    name = type(layer).__name__
     if not isinstance(layer, kind):
-        raise TypeError(f"{name} must be a torch.nn.{kind.__name__}, got {type(layer).__name__}")
+        raise TypeError(f"layer must be a torch.nn.{kind.__name__}, got {name}")
     if layer.bidirectional:
-        raise ValueError(f"{name} ({type(layer).__name__}) is bidirectional: it reads the whole "
-                         "sequence backwards, which is not causal; use bidirectional=False")
+        raise ValueError(f"{name} is bidirectional: it reads the whole sequence backwards, "
+                         "which is not causal; use bidirectional=False")
     if getattr(layer, "proj_size", 0):
-        raise ValueError(f"{name} ({type(layer).__name__}) has proj_size={layer.proj_size}: "
-                         "LSTMs with projections are not supported; use proj_size=0 and an "
-                         "nn.Linear after the layer")
+        raise ValueError(f"{name} has proj_size={layer.proj_size}: LSTMs with projections "
+                         "are not supported; use proj_size=0 and an nn.Linear after the layer")
 
 
 class _Cell(nn.Module):
@@ -115,7 +115,7 @@ class _RecurrentStep(OperatorStep):
     def __init__(self, layer: nn.RNNBase, kind: type, cell: type, blocks: tuple[str, ...],
                  dtype: torch.dtype | None) -> None:
         super().__init__()
-        _check_layer(layer, kind, "layer")
+        _check_layer(layer, kind)
         dtype = layer.weight_ih_l0.dtype if dtype is None else dtype
         self.n_inputs = int(layer.input_size)
         self.n_outputs = self.hidden = int(layer.hidden_size)
