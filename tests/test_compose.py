@@ -155,3 +155,37 @@ def test_a_module_of_no_stateful_layer_composes():
     assert step.state_spec == []
     x = signal()
     torch.testing.assert_close(step.run(x)[..., 0], mlp(x).detach(), rtol=0, atol=1e-12)
+
+
+class _Encoder(torch.nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.rnn = torch.nn.RNN(2, 3, batch_first=True, nonlinearity="relu")
+
+    def forward(self, f):
+        return self.rnn(f)[0]
+
+
+class _Twice(torch.nn.Module):
+    """One operator called on two signals (two states), and a recurrent layer inside a
+    submodule of the user's."""
+
+    def __init__(self):
+        super().__init__()
+        self.bl = torchhys.Backlash(torch.tensor([0.25]))
+        self.enc = _Encoder()
+        self.lin = torch.nn.Linear(3, 1)
+
+    def forward(self, x):
+        a = self.bl(x)[0]
+        b = self.bl(-2.0 * x)[0]
+        return self.lin(self.enc(torch.cat([a, b], -1))).squeeze(-1)
+
+
+def test_a_leaf_called_twice_has_two_states_and_submodules_are_traced_through():
+    torch.manual_seed(0)
+    model = _Twice().double()
+    step = compose(model).composed_step(torch.float64)
+    assert [b.name for b in step.state_spec] == ["bl.plays", "bl_1.plays", "enc_rnn.h"]
+    x = signal()
+    torch.testing.assert_close(step.run(x)[..., 0], model(x).detach(), rtol=0, atol=1e-12)

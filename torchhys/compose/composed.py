@@ -88,11 +88,11 @@ class Composed(nn.Module):
             self.register_buffer(name, torch.full((), math.nan, dtype=dtype))
         self._graph = _trace(module)
         check_graph(self._graph, module)
-        self.check()
         if x is not None or y is not None:
             if x is None or y is None:
                 raise ValueError("x and y must be given together (training input and target)")
             self.record_ranges(x, y)
+        self.check()
 
     def forward(self, x: Tensor) -> Tensor:
         """The module's output: x (batch, time) -> y (batch, time)."""
