@@ -220,4 +220,31 @@ def check_cells(step: PlayLSTMGRUStep, lstm: nn.LSTM, gru: nn.GRU, out: nn.Linea
 
 
 __all__ = ["GRUStep", "LSTMStep", "LastColumn", "PlayLSTMGRUStep", "StepModel", "c_step_time",
-           "check_cells", "gru_cell", "lstm_cell", "modules", "play_lstm_gru"]
+           "check_cells", "composed_layer", "gru_cell", "lstm_cell", "modules",
+           "play_lstm_gru"]
+
+
+class _Layer(nn.Module):
+    """x (batch, time) -> an ``nn.LSTM`` / ``nn.GRU`` of ``hidden`` units -> a linear read-out
+    (a user's module, for :func:`composed_layer`)."""
+
+    def __init__(self, kind: str, hidden: int) -> None:
+        super().__init__()
+        self.rnn = {"lstm": nn.LSTM, "gru": nn.GRU}[kind](1, hidden, batch_first=True)
+        self.out = nn.Linear(hidden, 1)
+
+    def forward(self, x: Tensor) -> Tensor:
+        h, _ = self.rnn(x.unsqueeze(-1))
+        return self.out(h).squeeze(-1)
+
+
+def composed_layer(kind: str, hidden: int, seed: int = 0,
+                   dtype: torch.dtype = torch.float64) -> nn.Module:
+    """``torchhys.compose.compose`` of one ``nn.LSTM`` (``kind="lstm"``) or ``nn.GRU``
+    (``"gru"``) layer of ``hidden`` units and a linear read-out, in ``dtype``: the model
+    whose C step :func:`c_step_time` times for the latency table (1 input, 1 output, the
+    layer's weights torch's initialisation)."""
+    from torchhys.compose import compose
+
+    torch.manual_seed(seed)
+    return compose(_Layer(kind, hidden).to(dtype))

@@ -6,8 +6,9 @@ harness that uses only the contract's names (``NAME_real``, ``NAME_state``, ``NA
 tests/_export_helpers.py) and run over a record (nested turning points, ties, signed zeros,
 samples outside the training range, NaN and inf) beside the TorchScript file's ``step``:
 the recommended compensator's network under several export options, an analytic inverse,
-the B-H compensator, a step of many aten operations, and a checkpoint of the ``torchhys``
-command. Every registered operator's example network (output and state): in
+the B-H compensator, a step of many aten operations, a step of the splits and activations
+of recurrent and MLP layers (against the eager compensator), and a checkpoint of the
+``torchhys`` command. Every registered operator's example network (output and state): in
 tests/test_conformance.py, with the same bounds.
 
 float64 (1e4 samples): the commands (and in the conformance suite the final state) within
@@ -408,3 +409,52 @@ def test_bad_inputs_of_the_command_are_one_line(erfinv_module, tmp_path: Path,
         err = capsys.readouterr().err
         assert err.startswith("torchhys export: error: ") and message in err, err
         assert err.count("\n") == 1
+
+
+class ActivationsStep(OperatorStep):
+    """The templates a recurrent or MLP layer's step uses (against the eager compensator):
+    the gates' splits (``chunk``, ``tensor_split``, unsafe splits), ``view_as``,
+    ``expand_as``, ``unflatten``, ``movedim``, eval-mode dropout and the activations, on a
+    state s that follows x."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.n_outputs = 1
+        self.state_spec = [StateBlock("s", 6, from_sample=[1.0, 0.5, -0.5, 2.0, -3.0, 0.1])]
+        self.register_buffer("w", torch.linspace(-2.0, 2.0, 36, dtype=torch.float64)
+                             .reshape(6, 6) / 3)
+
+    def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
+        s = state[0]
+        z = F.linear(x - s, self.w) * 4.0  # wide: both sides of every activation's knee
+        a, b, c = z.chunk(3, 1)
+        d, e = z.tensor_split(2, 1)
+        f, g = torch.tensor_split(z, [2], 1)
+        p, q = z.unsafe_chunk(2, 1)
+        acts = (F.silu(z) + F.elu(z) + F.elu(z, 0.5) + F.selu(z) + F.celu(z, 1.5)
+                + F.leaky_relu(z, 0.1) + F.softplus(z) + F.softplus(z, 2.0, 3.0)
+                + F.hardtanh(z) + F.hardtanh(z, -0.5, 2.0) + F.relu6(z) + F.hardsigmoid(z)
+                + F.hardswish(z) + F.mish(z) + F.logsigmoid(z) + torch.tanh(z)
+                + F.dropout(z, 0.3, training=False))
+        mixed = (torch.cat([a * b, c, a - c], 1) + torch.cat([d, e * 0.5], 1)
+                 + torch.cat([f, g.tanh()], 1) + torch.cat([p, q.sigmoid()], 1))
+        r = z.unflatten(1, (2, 3)).movedim(2, 1).flatten(1) + s.view_as(z)
+        out = (acts + mixed + r + x.expand_as(z)).sum(1, keepdim=True)
+        new = torch.clamp(s + 0.3 * (x - s), -5.0, 5.0)
+        return out, [new]
+
+
+@needs_cc
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_the_templates_of_recurrent_and_mlp_layers(dtype: torch.dtype, tmp_path: Path) -> None:
+    from _recurrent_models import StepModel
+
+    from torchhys.deploy.streaming import StreamingCompensator
+
+    model = StepModel(ActivationsStep())
+    options = {"limits": (-1e3, 1e3), "input_range": (-1.0, 1.0)}
+    x = record(-1.0, 1.0, n=N32)
+    to_c(model, tmp_path, dtype=dtype, **options)
+    c = run_c(compile_harness(tmp_path), x)
+    ref = stepped(StreamingCompensator(model.to(dtype), **options), x, dtype)
+    assert_equal_runs(c, ref, FLOAT64_RTOL if dtype == torch.float64 else FLOAT32_RTOL)
