@@ -189,3 +189,25 @@ def test_a_leaf_called_twice_has_two_states_and_submodules_are_traced_through():
     assert [b.name for b in step.state_spec] == ["bl.plays", "bl_1.plays", "enc_rnn.h"]
     x = signal()
     torch.testing.assert_close(step.run(x)[..., 0], model(x).detach(), rtol=0, atol=1e-12)
+
+
+def test_copies_pickles_and_state_dicts_stream_the_same():
+    import copy
+    import io
+
+    model = make("filter_eiho_gru")
+    x = signal()
+    with torch.no_grad():
+        y = model(x)
+    composed = compose(model, x=x, y=y)
+    buffer = io.BytesIO()
+    torch.save(composed, buffer)
+    buffer.seek(0)
+    loaded = torch.load(buffer, weights_only=False)
+    other = compose(make("filter_eiho_gru", seed=5))
+    other.load_state_dict(composed.state_dict())
+    for twin in (copy.deepcopy(composed), loaded, other):
+        assert twin.module is not model
+        assert float(twin.out_max) == float(y.max())
+        step = twin.composed_step(torch.float64)
+        torch.testing.assert_close(step.run(x)[..., 0], y, rtol=0, atol=1e-12)

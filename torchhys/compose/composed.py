@@ -20,7 +20,7 @@ from torch import Tensor, nn
 from torchhys._checks import as_batched_sequence
 from torchhys.compose._check import _first_line, check_causal, check_graph, shape_pass
 from torchhys.compose._leaves import Tracer
-from torchhys.compose.graph import ComposedStep, build_step
+from torchhys.compose.graph import ComposedStep, build_step, leaf_tails
 
 __all__ = ["Composed", "LastFeature", "compose"]
 
@@ -98,6 +98,17 @@ class Composed(nn.Module):
         """The module's output: x (batch, time) -> y (batch, time)."""
         return self.module(x)
 
+    def __getstate__(self) -> dict:
+        """Pickled (``torch.save``, ``copy.deepcopy``) without the traced graph, which
+        :meth:`__setstate__` traces again."""
+        state = dict(self.__dict__)
+        state.pop("_graph", None)
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        super().__setstate__(state)
+        self._graph = _trace(self.module)
+
     def _example(self, dtype: torch.dtype) -> Tensor:
         """A random walk of shape :data:`EXAMPLE` in the recorded input range (else [-1, 1])."""
         g = torch.Generator().manual_seed(0)
@@ -117,9 +128,10 @@ class Composed(nn.Module):
         """
         dtype = _dtype(self.module)
         x = self._example(dtype)
-        self._shapes = shape_pass(self._graph, self.module, x)
-        step, env = build_step(self._graph, self.module, self._shapes, dtype)
-        check_causal(self._graph, self.module, self._shapes, step, env, x)
+        shapes = shape_pass(self._graph, self.module, x)
+        self._tails = leaf_tails(self._graph, self.module, shapes)
+        step, env = build_step(self._graph, self.module, self._tails, dtype)
+        check_causal(self._graph, self.module, shapes, step, env, x)
 
     def record_ranges(self, x: Tensor, y: Tensor) -> None:
         """Record the training data's ranges as the compensator reads them
@@ -151,7 +163,7 @@ class Composed(nn.Module):
 
     def composed_step(self, dtype: torch.dtype) -> ComposedStep:
         """The composed step with the current weights (detached) in ``dtype``."""
-        step, _ = build_step(self._graph, self.module, self._shapes, dtype)
+        step, _ = build_step(self._graph, self.module, self._tails, dtype)
         return step
 
     def streaming_steps(self, dtype: torch.dtype) -> list[ComposedStep]:

@@ -32,7 +32,7 @@ from torch import Tensor, nn
 from torchhys.compose._leaves import LeafStep, is_leaf, leaf_step
 from torchhys.step import OperatorStep, StateBlock, custom_start
 
-__all__ = ["ComposedStep", "ComposedStartStep", "Shapes", "build_step", "describe"]
+__all__ = ["ComposedStartStep", "ComposedStep", "Shapes", "build_step", "describe", "leaf_tails"]
 
 
 @dataclasses.dataclass
@@ -128,16 +128,27 @@ def _tail(value: Tensor, time_first: bool) -> list[int]:
     return ([1, -1] if time_first else [-1, 1]) + list(value.shape[2:])
 
 
+def leaf_tails(graph: fx.Graph, module: nn.Module, shapes: Shapes) -> dict[str, list[int]]:
+    """Each leaf node's (by name) features shape for one sample, -1 for the batch."""
+    out = {}
+    for node in leaf_nodes(graph, module):
+        sub = module.get_submodule(str(node.target))
+        time_first = isinstance(sub, nn.RNNBase) and not sub.batch_first
+        out[node.name] = _tail(shapes.values[node][0], time_first)
+    return out
+
+
 def leaf_nodes(graph: fx.Graph, root: nn.Module) -> list[fx.Node]:
     """The graph's calls of stateful leaves, in graph order."""
     return [n for n in graph.nodes
             if n.op == "call_module" and is_leaf(root.get_submodule(str(n.target)))]
 
 
-def build_step(graph: fx.Graph, module: nn.Module, shapes: Shapes, dtype: torch.dtype
-               ) -> tuple[ComposedStep, dict[fx.Node, fx.Node]]:
+def build_step(graph: fx.Graph, module: nn.Module, tails: dict[str, list[int]],
+               dtype: torch.dtype) -> tuple[ComposedStep, dict[fx.Node, fx.Node]]:
     """The composed step of ``module``'s traced ``graph`` in ``dtype``, and the map of the
-    graph's nodes to the step graph's (for the causality check).
+    graph's nodes to the step graph's (for the causality check). ``tails``: each leaf's
+    features shape for one sample (:func:`leaf_tails`).
 
     Raises:
         ValueError, TypeError: a leaf that cannot stream (named).
@@ -161,8 +172,7 @@ def build_step(graph: fx.Graph, module: nn.Module, shapes: Shapes, dtype: torch.
         elif node in leaves:
             sub = module.get_submodule(str(node.target))
             step = leaf_step(sub, dtype, describe(node, module))
-            time_first = isinstance(sub, nn.RNNBase) and not sub.batch_first
-            tail = _tail(shapes.values[node][0], time_first)
+            tail = tails[node.name]
             name = f"_step_{node.name}"
             root.add_module(name, LeafStep(step, len(spec), tail))
             fed_by_x = node.args[0].op == "placeholder"
