@@ -211,3 +211,32 @@ def test_copies_pickles_and_state_dicts_stream_the_same():
         assert float(twin.out_max) == float(y.max())
         step = twin.composed_step(torch.float64)
         torch.testing.assert_close(step.run(x)[..., 0], y, rtol=0, atol=1e-12)
+
+
+class _StateSpaceMix(torch.nn.Module):
+    """A two-input state-space layer (torchhys.dynamics.StateSpace) on [x, play(x)], a layer
+    norm and dropout (eval: identity) before the readout."""
+
+    def __init__(self):
+        super().__init__()
+        self.bl = torchhys.Backlash(torch.tensor([0.2]))
+        self.ss = torchhys.dynamics.StateSpace(3, 2, n_inputs=2)
+        self.norm = torch.nn.LayerNorm(2)
+        self.drop = torch.nn.Dropout(0.3)
+        self.lin = torch.nn.Linear(2, 1)
+
+    def forward(self, x):
+        s = self.ss(torch.cat([x.unsqueeze(-1), self.bl(x)[0]], -1))[0]
+        return self.lin(self.drop(self.norm(s))).squeeze(-1)
+
+
+def test_a_multi_input_state_space_layer_and_normalization():
+    torch.manual_seed(0)
+    model = _StateSpaceMix().double()
+    composed = compose(model)
+    assert model.training  # compose ran the check in eval mode and left the mode as it was
+    step = composed.composed_step(torch.float64)
+    assert [(b.name, b.size) for b in step.state_spec] == [("bl.plays", 1), ("ss.state", 3)]
+    x = signal()
+    model.eval()
+    torch.testing.assert_close(step.run(x)[..., 0], model(x).detach(), rtol=0, atol=1e-12)
