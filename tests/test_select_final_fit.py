@@ -112,6 +112,16 @@ def test_the_chosen_candidate_is_fitted_once_as_the_lightning_path_fits_it(
         assert {p.name for p in folder.iterdir()} >= {
             "checkpoints", "config.yaml", "hparams.yaml", "metrics.csv", "selection.csv"}
         assert len(list((folder / "checkpoints").glob("epoch=*.ckpt"))) == 1
+    # resumed, it trains on from its epoch and step count (Lightning's own loop state)
+    epochs = CASES[case][1]
+    with pytest.warns(UserWarning, match="resumes the checkpoint's model"):
+        _fit(monkeypatch, _config(tmp_path, case), tmp_path / "select",
+             f"--trainer.max_epochs={epochs + 2}", f"--ckpt_path={ours}")
+    resumed = torch.load(tmp_path / "select/logs/version_1/checkpoints/last.ckpt",
+                         weights_only=True)
+    assert (resumed["epoch"], resumed["global_step"]) == (epochs + 1, epochs + 2)
+    assert any(not torch.equal(v, resumed["state_dict"][k])
+               for k, v in a["state_dict"].items() if k.endswith("weight"))
 
 
 def test_the_lightning_path_reason_is_quiet_with_quiet(monkeypatch, capfd, tmp_path) -> None:
@@ -200,3 +210,42 @@ def test_selection_fit_is_the_chosen_candidate_fitted_once(fits, cv) -> None:
         assert torch.equal(a, b), key
     with pytest.raises(ValueError, match="no record to fit on"):
         Selection(late.scores, late.chosen, late.spec, None, cv, None, "min").fit()
+
+
+@pytest.mark.slow
+def test_the_measured_config_fits_as_its_lightning_path(monkeypatch, tmp_path) -> None:
+    """``configs/measured.yaml`` on ``examples/data/bouc_wen.csv``: the select path (the
+    readout solved) and the Lightning path (``trainer.strategy: single_device``, refused by
+    select: every candidate and fold a Lightning run, the readout trained by L-BFGS) choose
+    the same candidate, fit the same family and normalization, and the same affine readout
+    (the product of the hidden and output layers: L-BFGS trains the two factors) to
+    rounding; their val_mse agree to 1e-6."""
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(root)  # the config's data path is the repository's
+    args = ("--model.select_jobs=1",)
+    ours = _fit(monkeypatch, root / "configs/measured.yaml", tmp_path / "select", *args)
+    theirs = _fit(monkeypatch, root / "configs/measured.yaml", tmp_path / "lightning", *args,
+                  "--trainer.strategy=single_device")
+    a = torch.load(ours, weights_only=True)
+    b = torch.load(theirs, weights_only=True)
+    assert a["hyper_parameters"] == b["hyper_parameters"]
+    sa, sb = a["state_dict"], b["state_dict"]
+    assert sa.keys() == sb.keys()
+    layers = ("net.hidden.", "net.output.")
+    for key in sa:
+        if not key.startswith(layers):  # the family, the normalization: fitted alike
+            torch.testing.assert_close(sa[key], sb[key], rtol=1e-10, atol=1e-12, msg=key)
+
+    def affine(s: dict) -> torch.Tensor:
+        w = s["net.output.weight"] @ s["net.hidden.weight"]
+        c = s["net.output.weight"] @ s["net.hidden.bias"] + s["net.output.bias"]
+        return torch.cat([w.flatten(), c.flatten()])
+
+    torch.testing.assert_close(affine(sa), affine(sb), rtol=1e-5, atol=1e-7)
+
+    def val_mse(root: Path) -> float:
+        with (root / "logs/version_0/metrics.csv").open() as fh:
+            return [float(r["val_mse"]) for r in csv.DictReader(fh) if r["val_mse"]][-1]
+
+    assert val_mse(tmp_path / "select") == pytest.approx(val_mse(tmp_path / "lightning"),
+                                                         rel=1e-6)

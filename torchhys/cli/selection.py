@@ -137,7 +137,7 @@ def trainer_reason(trainer: Any) -> str | None:
     if not (_one_device(trainer) or str(trainer.get("devices")) == "auto"):
         return (f"trainer.devices={trainer.get('devices')!r}, num_nodes="
                 f"{trainer.get('num_nodes')!r}, strategy={trainer.get('strategy')!r} (select "
-                "trains on one device)")
+                "trains on one device, strategy 'auto')")
     epochs = trainer.get("max_epochs")
     try:
         seconds = _seconds(trainer.get("max_time"))
@@ -238,12 +238,11 @@ def write_fold_logs(scores: Sequence[CandidateScore], root: Path) -> None:
 
 def use_fitted(module: Any, net: torch.nn.Module) -> None:
     """Give the final fit's module the network :func:`torchhys.selection.select` fitted: its
-    families, normalization and readout (solved or trained) kept; its optimizer, run by
-    the module's closure without a gradient, takes no step (the module's ``fitted``)."""
+    families, normalization and readout (solved or trained) kept; its optimizer sees no
+    gradient and takes no step (the module's ``fitted``)."""
     module.net = net
     module.normalization_fitted.fill_(True)
     module.fitted = True
-    module.automatic_optimization = False  # an Adam step too: the closure, no gradient
 
 
 @rank_zero_only

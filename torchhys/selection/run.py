@@ -178,8 +178,8 @@ class Selection:
     rule: str
     validation: bool = False
     """Scored on a validation record of its own (``select(val=...)``), not on folds."""
-    refit: Callable[[], InverseHysteresisNet] | None = field(default=None, repr=False,
-                                                             compare=False)
+    _refit: Callable[[], InverseHysteresisNet] | None = field(default=None, repr=False,
+                                                              compare=False)
     """What :meth:`fit` runs (:func:`select` sets it)."""
 
     def fit(self) -> InverseHysteresisNet:
@@ -194,10 +194,10 @@ class Selection:
         """
         if self.model is not None:
             return self.model
-        if self.refit is None:
+        if self._refit is None:
             raise ValueError("this Selection holds no record to fit on: build it with "
                              "torchhys.selection.select")
-        return self.refit()
+        return self._refit()
 
     def table(self) -> str:
         """The candidates and their validation MSE as a text table (``*``: the choice)."""

@@ -172,10 +172,12 @@ class InverseHysteresisModule(L.LightningModule):
         self._last_loss: Tensor | None = None  # of the last training step (check_training)
         self.fitted = False
         """Set by ``torchhys fit`` after model selection fitted the network (its readout
-        solved by least squares or trained: :func:`torchhys.selection.select`), with manual
-        optimization: the optimizer's step then evaluates the loss without a gradient and
-        takes no step, so the fit logs, validates and checkpoints the network as a trained
-        one, with the weights unchanged (:func:`torchhys.cli.selection.use_fitted`)."""
+        solved by least squares or trained: :func:`torchhys.selection.select`): the
+        optimizer's step then sees no gradient and takes none (a closure optimizer's
+        closure evaluates the loss without one; Adam's gradient is dropped before its step:
+        :meth:`optimizer_step`), so the fit logs, validates and checkpoints the network as
+        a trained one, with the weights unchanged
+        (:func:`torchhys.cli.selection.use_fitted`)."""
 
     # --- checks -------------------------------------------------------------------------
     @property
@@ -374,6 +376,22 @@ class InverseHysteresisModule(L.LightningModule):
         self._count_outside(scored(x).reshape(-1))
         with torch.no_grad():
             return self._predict(x, y, "predict")()
+
+    def optimizer_step(self, epoch: int, batch_idx: int, optimizer: Any,
+                       optimizer_closure: Callable[[], Any] | None = None) -> None:
+        """Lightning's, except for a network fitted by model selection (:attr:`fitted`,
+        automatic optimization): the closure runs (the step's loss is logged), its gradient
+        is dropped, and the optimizer's step sees none: every weight is kept."""
+        if not self.fitted or optimizer_closure is None:
+            super().optimizer_step(epoch, batch_idx, optimizer, optimizer_closure)
+            return
+
+        def closure() -> Any:
+            loss = optimizer_closure()
+            optimizer.zero_grad(set_to_none=True)
+            return loss
+
+        optimizer.step(closure=closure)
 
     def configure_optimizers(self) -> Any:
         if not self.automatic_optimization:
