@@ -21,6 +21,7 @@ to 2.7e-5 from the float64 ones, the most for the filter -> EIHO -> GRU)."""
 
 from __future__ import annotations
 
+import copy
 import importlib.util
 from pathlib import Path
 
@@ -190,3 +191,16 @@ def test_every_recurrent_layer_in_c_and_onnx(kind: str, dtype: torch.dtype, tmp_
         to_onnx(layer_model(kind, dtype), tmp_path / "comp.onnx")
         assert_equal_runs(stepped(load_onnx(tmp_path / "comp.onnx"), x, dtype), ref,
                           tolerance(dtype))
+
+
+def test_a_float64_composition_converts_to_a_float32_c_step(tmp_path: Path) -> None:
+    """``to_c(model, dtype=float32)`` copies and converts a float64 Composed (as
+    ``model.to(float32)``): its C step runs as the eager float32 compensator of that copy."""
+    model = composed("parallel_gru")
+    x = samples(model, 1000)
+    to_c(model, tmp_path, dtype=torch.float32)
+    got = run_c(compile_harness(tmp_path), x)
+    ref = stepped(StreamingCompensator(copy.deepcopy(model).to(torch.float32)), x,
+                  torch.float32)
+    assert_equal_runs(got, ref, FLOAT32_RTOL)
+    assert model.in_min.dtype == torch.float64  # the model itself is left as it was
