@@ -1,7 +1,8 @@
-"""The two roles a model plays besides its operators': a network and a deployable.
+"""The roles a model plays besides its operators': a network, a sequence model and a
+deployable.
 
 The operator protocol (:mod:`torchhys.operator`, :mod:`torchhys.step`) is what an operator
-implements. A model built of operators plays up to two more roles, declared here:
+implements. A model built of operators plays more roles, declared here:
 
 * :class:`Network`: what the training side fits (:class:`~torchhys.training.module.
   InverseHysteresisModule`, the full-batch fits): its operators, the features of an input,
@@ -9,13 +10,17 @@ implements. A model built of operators plays up to two more roles, declared here
 * :class:`Deployable`: what the streaming compensator runs
   (:class:`~torchhys.deploy.streaming.StreamingCompensator`, and through it every export):
   its per-sample steps and the head on their features.
+* :class:`SequenceModel`: the training side's other kind, a model of x -> y trained end to
+  end on its output that records its training data's ranges (no features nor head to
+  fit apart).
 
-:class:`~torchhys.InverseHysteresisNet` plays both; a
-:class:`~torchhys.PrandtlIshlinskiiInverse` is deployable on its own. A model of another
-class plays a role by being an ``nn.Module`` with the members of its protocol (both are
-``typing.Protocol``\\ s, checkable with ``isinstance``); :func:`check_network` and
-:func:`check_deployable` are the one check of each, a ``TypeError`` naming the argument
-and every member it lacks.
+:class:`~torchhys.InverseHysteresisNet` plays the first two; a
+:class:`~torchhys.PrandtlIshlinskiiInverse` is deployable on its own; a
+:class:`~torchhys.compose.Composed` is a sequence model and deployable. A model of another
+class plays a role by being an ``nn.Module`` with the members of its protocol (each is a
+``typing.Protocol``, checkable with ``isinstance``); :func:`check_network`,
+:func:`check_sequence_model` and :func:`check_deployable` are the one check of each, a
+``TypeError`` naming the argument and every member it lacks.
 
 Besides its members, a model may record its training data's ranges as buffers (``in_min``,
 ``in_max``, ``out_min``, ``out_max``, ``trend``: :meth:`InverseHysteresisNet.fit_normalization
@@ -31,7 +36,10 @@ from torch import Tensor, nn
 
 from torchhys.step import OperatorStep
 
-__all__ = ["Deployable", "Network", "check_deployable", "check_network", "missing_members"]
+__all__ = [
+    "Deployable", "Network", "SequenceModel", "check_deployable", "check_network",
+    "check_sequence_model", "missing_members",
+]
 
 
 @runtime_checkable
@@ -86,6 +94,24 @@ class Deployable(Protocol):
         ...
 
 
+@runtime_checkable
+class SequenceModel(Protocol):
+    """What the training side fits besides a :class:`Network`: a sequence model x (batch,
+    time) -> y (batch, time), trained end to end on its output, which records its training
+    data's ranges (``in_min``, ``in_max``, ``out_min``, ``out_max``, ``trend``) for the
+    compensator (a :class:`~torchhys.compose.Composed`: a user's module through
+    :func:`~torchhys.compose.compose`)."""
+
+    def forward(self, x: Tensor) -> Tensor:
+        """The output y (batch, time) of x (batch, time), in physical units."""
+        ...
+
+    def record_ranges(self, x: Tensor, y: Tensor, *, mask: Tensor | None = None) -> None:
+        """Record the ranges of training data x, y (batch, time), over the samples of
+        ``mask`` (bool, (batch, time); None: all)."""
+        ...
+
+
 P = TypeVar("P")
 
 
@@ -117,6 +143,17 @@ def check_network(obj: Any, argument: str = "net") -> Network:
     return _check(obj, argument, Network,
                   "operators, features, head and fit_normalization, as an "
                   "InverseHysteresisNet has")
+
+
+def check_sequence_model(obj: Any, argument: str = "model") -> SequenceModel:
+    """``obj``, checked to be a :class:`SequenceModel` (an ``nn.Module`` with its members).
+
+    Raises:
+        TypeError: naming ``argument`` and every member ``obj`` lacks.
+    """
+    return _check(obj, argument, SequenceModel,
+                  "forward(x) and record_ranges(x, y, mask=), as a torchhys.compose.Composed "
+                  "has")
 
 
 def check_deployable(obj: Any, argument: str = "model") -> Deployable:

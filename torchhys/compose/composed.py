@@ -17,7 +17,7 @@ import torch
 import torch.fx as fx
 from torch import Tensor, nn
 
-from torchhys._checks import as_batched_sequence
+from torchhys._checks import as_batched_sequence, fitted_samples
 from torchhys.compose._check import _first_line, check_causal, check_graph, shape_pass
 from torchhys.compose._leaves import Tracer
 from torchhys.compose.graph import ComposedStep, build_step, leaf_tails
@@ -133,25 +133,34 @@ class Composed(nn.Module):
         step, env = build_step(self._graph, self.module, self._tails, dtype)
         check_causal(self._graph, self.module, shapes, step, env, x)
 
-    def record_ranges(self, x: Tensor, y: Tensor) -> None:
+    def record_ranges(self, x: Tensor, y: Tensor, *, mask: Tensor | None = None) -> None:
         """Record the training data's ranges as the compensator reads them
         (:mod:`torchhys.deploy.ranges`): ``in_min``, ``in_max`` of x, ``out_min``,
         ``out_max`` of y and ``trend``, their correlation coefficient (as
-        :meth:`~torchhys.InverseHysteresisNet.fit_normalization` does).
+        :meth:`~torchhys.InverseHysteresisNet.fit_normalization` does); the member of
+        :class:`~torchhys.protocols.SequenceModel` that the full-batch fit and the Lightning
+        module call on the training data.
 
         Args:
             x, y: (batch, time) or (time,), the same shape, finite, not constant.
+            mask: the samples the ranges are taken over, bool, the shape of x (batch, time)
+                (False: left out, e.g. a held-out block or a row's padding); None: all.
 
         Raises:
-            ValueError: other shapes, fewer than 2 samples, a constant x or y.
+            ValueError: other shapes, fewer than 2 samples, a constant x or y, a bad mask.
         """
         xb, _ = as_batched_sequence(x, "x")
         yb, _ = as_batched_sequence(y, "y")
         if yb.shape != xb.shape:
             raise ValueError(f"y must have the shape of x {tuple(xb.shape)}, got {tuple(y.shape)}")
-        xs, ys = xb.detach().double().flatten(), yb.detach().double().flatten()
+        xs, ys = xb.detach().double(), yb.detach().double()
+        if mask is not None:
+            m = fitted_samples(mask, tuple(xb.shape), 0).to(xb.device)
+            xs, ys = xs[m], ys[m]
+        xs, ys = xs.flatten(), ys.flatten()
         if xs.numel() < 2:
-            raise ValueError(f"x must hold at least 2 samples, got shape {tuple(x.shape)}")
+            raise ValueError(f"x must hold at least 2 samples, got shape {tuple(x.shape)}"
+                             + ("" if mask is None else f" with {xs.numel()} in its mask"))
         for name, v in (("x", xs), ("y", ys)):
             if float(v.std()) == 0.0:
                 raise ValueError(f"{name} is constant (std 0): it has no range to record")

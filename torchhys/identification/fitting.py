@@ -1,4 +1,5 @@
-"""Fitting: full-batch training of inverse-hysteresis networks (Adam, then L-BFGS), and the
+"""Fitting: full-batch training of inverse-hysteresis networks and sequence models (Adam,
+then L-BFGS), and the
 least-squares identification of Prandtl-Ishlinskii models (a causal inverse model of a
 hysteretic plant, or a feature for the network)."""
 
@@ -34,6 +35,7 @@ from torchhys.identification._nnls import (
 from torchhys.networks import InverseHysteresisNet
 from torchhys.operator import HysteresisOperator, check_operator
 from torchhys.operators.prandtl_ishlinskii import PrandtlIshlinskii
+from torchhys.protocols import SequenceModel
 
 __all__ = [
     "FitResult", "LINEAR_FLOOR", "fit_full_batch", "fit_prandtl_ishlinskii", "play_width_grid",
@@ -53,7 +55,7 @@ class FitResult(NamedTuple):
 
 
 def fit_full_batch(
-    model: InverseHysteresisNet | HysteresisOperator, x: Tensor, y: Tensor, *,
+    model: InverseHysteresisNet | HysteresisOperator | SequenceModel, x: Tensor, y: Tensor, *,
     adam_epochs: int = 2000, lbfgs_epochs: int = 500, lr: float = 1e-2, tolerance: float = 0.0,
     warmup: int = 0, penalty: Callable[[], Tensor] | None = None, mask: Tensor | None = None,
 ) -> FitResult:
@@ -66,10 +68,14 @@ def fit_full_batch(
     is fitted as a model of ``y`` itself: the loss is ``mean((op(x) - y)^2)``, computed through
     ``op.mse_closure(x, y, samples)`` (:meth:`torchhys.HysteresisOperator.mse_closure`: a
     faster closure of the loss on this fixed input where the operator has one, e.g.
-    :meth:`~torchhys.GeneralizedPrandtlIshlinskii.mse_closure`).
+    :meth:`~torchhys.GeneralizedPrandtlIshlinskii.mse_closure`). A
+    :class:`~torchhys.protocols.SequenceModel` (a :class:`~torchhys.compose.Composed`: a
+    user's module through :func:`~torchhys.compose.compose`) records its ranges on (x, y)
+    first (``record_ranges``, over ``mask``), then its output ``model(x)`` is fitted to
+    ``y``, end to end.
 
     Args:
-        model: the network, or a causal operator with ``n_outputs == 1``.
+        model: the network, a causal operator with ``n_outputs == 1``, or a sequence model.
         x: input, (time,) or (batch, time).
         y: target, same shape.
         adam_epochs: Adam steps.
@@ -100,9 +106,12 @@ def fit_full_batch(
     if mask is not None:
         rows = x.shape[0] if x.dim() == 2 else 1
         mask = fitted_samples(mask, (rows, x.shape[-1]), warmup).to(x.device)
-    loss_fn = (_network_loss(model, x, y, warmup, mask)
-               if isinstance(model, InverseHysteresisNet)
-               else _operator_loss(model, x, y, warmup, mask))
+    if isinstance(model, InverseHysteresisNet):
+        loss_fn = _network_loss(model, x, y, warmup, mask)
+    elif isinstance(model, SequenceModel) and not isinstance(model, HysteresisOperator):
+        loss_fn = _sequence_loss(model, x, y, warmup, mask)
+    else:
+        loss_fn = _operator_loss(model, x, y, warmup, mask)
     objective = loss_fn if penalty is None else (lambda: loss_fn() + penalty())
     params = [p for p in model.parameters() if p.requires_grad]
     if not params:
@@ -159,6 +168,21 @@ def _network_loss(model: InverseHysteresisNet, x: Tensor, y: Tensor, warmup: int
             feats, _ = model.features(x, target=y)
         return lambda: _mse(model.head(feats).reshape(yb.shape) - yb, warmup, mask)
     return lambda: _mse(model(x.reshape(yb.shape), target=yb)[0] - yb, warmup, mask)
+
+
+def _sequence_loss(model: SequenceModel, x: Tensor, y: Tensor, warmup: int,
+                   mask: Tensor | None) -> Callable[[], Tensor]:
+    xb, _ = as_batched_sequence(x, "x")
+    yb, _ = as_batched_sequence(y, "y")
+    check_same_shape(yb, xb, "y", "x")
+    model.record_ranges(xb, yb, mask=mask)
+    with torch.no_grad():
+        out = model(xb)
+    if not isinstance(out, Tensor) or out.shape != yb.shape:
+        got = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__
+        raise ValueError(f"model {type(model).__name__} must map x (batch, time) to y (batch, "
+                         f"time): its output for x {tuple(xb.shape)} is {got}")
+    return lambda: _mse(model(xb) - yb, warmup, mask)
 
 
 def _operator_loss(op: object, x: Tensor, y: Tensor, warmup: int,
