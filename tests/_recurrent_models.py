@@ -155,7 +155,9 @@ _TIMER = r"""
 #include <time.h>
 #include "comp.h"
 
-/* timer N: N steps of a sine, after N untimed; prints the mean ns a step */
+/* timer N: N steps of a triangle wave, after N untimed; prints the mean ns a step (CLOCK:
+   wall time, or the process's CPU time, which a loaded machine's other processes do not
+   lengthen) */
 int main(int argc, char **argv)
 {
     comp_state s;
@@ -167,10 +169,10 @@ int main(int argc, char **argv)
     comp_init(&s);
     for (i = 0; i < n; ++i)
         sink += (double)comp_step(&s, (comp_real)(0.8 * (double)(i % 200) / 200.0 - 0.4));
-    clock_gettime(CLOCK_MONOTONIC, &a);
+    clock_gettime(CLOCK, &a);
     for (i = 0; i < n; ++i)
         sink += (double)comp_step(&s, (comp_real)(0.8 * (double)(i % 200) / 200.0 - 0.4));
-    clock_gettime(CLOCK_MONOTONIC, &b);
+    clock_gettime(CLOCK, &b);
     printf("%.3f\n", ((double)(b.tv_sec - a.tv_sec) * 1e9 + (double)(b.tv_nsec - a.tv_nsec))
            / (double)n);
     return sink == 12345.0;
@@ -180,11 +182,13 @@ int main(int argc, char **argv)
 
 def c_step_time(model: nn.Module, *, dtype: torch.dtype = torch.float64,
                 flags: tuple[str, ...] = ("-O2",), steps: int = 100_000, repeats: int = 5,
-                folder: str | os.PathLike | None = None) -> float:
+                cpu_time: bool = False, folder: str | os.PathLike | None = None) -> float:
     """The time of one step of ``to_c(model)`` in nanoseconds: the C compiled with
     ``cc -std=c99 FLAGS`` (benchmarks/latency.py's flags); the mean over ``steps`` steps of
     a triangle wave timed after as many untimed ones, the least of ``repeats`` runs (a
-    shared machine's interruptions only lengthen a run). ``model``: a deployable or a built
+    shared machine's interruptions only lengthen a run); ``cpu_time``: the process's CPU
+    time instead of the wall time (``CLOCK_PROCESS_CPUTIME_ID``: the time the other
+    processes of a loaded machine take is left out). ``model``: a deployable or a built
     StreamingCompensator (in ``dtype``)."""
     from torchhys.deploy.c import to_c
 
@@ -195,7 +199,9 @@ def c_step_time(model: nn.Module, *, dtype: torch.dtype = torch.float64,
              direction="none")
         (where / "timer.c").write_text(_TIMER)
         exe = where / "timer"
-        subprocess.run([os.environ.get("CC", "cc"), "-std=c99", *flags, "-I", str(where),
+        clock = "CLOCK_PROCESS_CPUTIME_ID" if cpu_time else "CLOCK_MONOTONIC"
+        subprocess.run([os.environ.get("CC", "cc"), "-std=c99", *flags, f"-DCLOCK={clock}",
+                        "-I", str(where),
                         "-o", str(exe), str(where / "timer.c"), str(where / "comp.c"), "-lm"],
                        check=True)
         runs = [subprocess.run([str(exe), str(steps)], capture_output=True, text=True,

@@ -157,12 +157,7 @@ def _matmul_core(w: Writer, spec: CTensor, a: CTensor, b: CTensor,
     if diff is not None:
         _sparse_cumsum(w, spec, out, a2, *diff)
     else:
-        w.assign(out, lambda idx: w.literal(0, spec.dtype))
-        with (w.loop(full[:-1]) as rows, w.loop([a2.shape[-1]]) as (p,),
-              w.loop(full[-1:]) as (j,)):
-            lhs = _read_aligned(w, a2, [*rows, p], spec.dtype)
-            rhs = _read_aligned(w, b2, [*rows[:-1], p, j], spec.dtype)
-            w.emit(f"{w.read(out, [*rows, j])} += {lhs} * {rhs};")
+        _blocked(w, spec, out, a2, b2, full)
     if alpha != 1 or (bias is not None and beta != 0):
         def element(idx: list[str]) -> str:
             value = w.read(out, idx)
@@ -174,6 +169,47 @@ def _matmul_core(w: Writer, spec: CTensor, a: CTensor, b: CTensor,
             return value
         w.assign(out, element)
     return out.view(spec.shape, contiguous_strides(spec.shape), 0)
+
+
+#: a matrix product of a larger inner dimension runs over blocks of this many output columns
+#: (their sums in registers)
+BLOCK = 16
+
+
+def _blocked(w: Writer, spec: CTensor, out: CTensor, a: CTensor, b: CTensor,
+             full: list[int]) -> None:
+    """``out = a @ b`` (2-d or more, ``full`` its shape) over blocks of :data:`BLOCK` output
+    columns: each block's sums in a local array (registers), the inner dimension looped over
+    once a block, each product added in index order from 0 (the rounding of the plain
+    loop's). Where an LSTM's or a GRU's recurrent matrix has 64 rows, a third less time than
+    sums kept in ``out`` (a load and a store a product)."""
+    t, k, n = w.ctype(spec.dtype), a.shape[-1], full[-1]
+    zero = w.literal(0, spec.dtype)
+    with w.loop(full[:-1]) as rows:
+        def block(first: str, width: int) -> None:
+            w.emit(f"{t} acc[{width}] = {{{', '.join([zero] * width)}}};")
+            with w.loop([k]) as (p,):
+                lhs = _read_aligned(w, a, [*rows, p], spec.dtype)
+                for c in range(width):
+                    col = f"{first} + {c}" if c else first
+                    rhs = _read_aligned(w, b, [*rows[:-1], p, col], spec.dtype)
+                    w.emit(f"acc[{c}] += {lhs} * {rhs};")
+            for c in range(width):
+                col = f"{first} + {c}" if c else first
+                w.emit(f"{w.read(out, [*rows, col])} = acc[{c}];")
+
+        whole = n - n % BLOCK
+        if whole:
+            var = f"i{w._loops}"
+            w._loops += 1
+            w.emit(f"for (int {var} = 0; {var} < {whole}; {var} += {BLOCK}) {{")
+            w._depth += 1
+            block(var, BLOCK)
+            w._depth -= 1
+            w.emit("}")
+            w._loops -= 1
+        if n % BLOCK:
+            _block(w, lambda: block(str(whole), n % BLOCK))
 
 
 #: a constant matrix of at least this many elements is multiplied through its column
