@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -25,7 +26,7 @@ from torchhys.optim.named import (
     check_optimizer_kwargs,
     optimizer_arguments,
 )
-from torchhys.protocols import check_network
+from torchhys.protocols import Network, SequenceModel, check_network, check_sequence_model
 
 __all__ = ["InverseHysteresisModule"]
 
@@ -123,9 +124,12 @@ class InverseHysteresisModule(L.LightningModule):
     Args:
         net: a ready network (an ``nn.Module`` with the members of
             :class:`torchhys.protocols.Network`, as :class:`torchhys.InverseHysteresisNet`
-            has); when given,
+            has), or a sequence model (:class:`torchhys.protocols.SequenceModel`: a
+            :class:`torchhys.compose.Composed`, trained end to end on its output, its
+            ranges recorded in :meth:`setup`); when given,
             ``operator``, ``hidden``, ``activation``, ``operator_kwargs`` are ignored and
-            ``load_from_checkpoint`` needs it passed again.
+            ``load_from_checkpoint`` needs it passed again (a sequence model given by the
+            command's config, ``class_path`` and ``init_args``, is saved as that spec).
         operator: ``"eiho"``, ``"zhao_tan"``, a spec dict such as ``{"name": "eiho",
             "rule": "dominant"}``, ``{"fit": "pi_ls", "n_widths": 30}`` or ``{"fit": "plays",
             "n": 16}``, a list of those, or None (plain network).
@@ -156,13 +160,20 @@ class InverseHysteresisModule(L.LightningModule):
                 f"schedule must be None or 'cosine' (with optimizer='adam'), got {schedule!r} "
                 f"with optimizer={optimizer!r}"
             )
-        self.save_hyperparameters(ignore=["net"])
+        self._sequence = isinstance(net, SequenceModel) and not isinstance(net, Network)
+        with warnings.catch_warnings():  # a sequence model's spec: saved where it is one
+            warnings.filterwarnings("ignore", message="Attribute 'net' is an instance")
+            self.save_hyperparameters(ignore=[] if self._sequence else ["net"])
+        if isinstance(self.hparams.get("net"), nn.Module):  # passed in built: no spec
+            self.save_hyperparameters(ignore=["net"])
         self._fitters: dict = {}
-        if net is None:
+        if self._sequence:
+            net = check_sequence_model(net, "net")
+        elif net is None:
             ops, self._fitters = build_operators(operator, operator_kwargs)
             net = InverseHysteresisNet(ops, hidden, activation=activation)
             initialize(net, init)
-        self.net = check_network(net, "net")
+        self.net = net if self._sequence else check_network(net, "net")
         self.optimizer_name = optimizer
         self.automatic_optimization = optimizer not in CLOSURE_OPTIMIZERS
         self.register_buffer("normalization_fitted", torch.tensor(False))
@@ -214,7 +225,12 @@ class InverseHysteresisModule(L.LightningModule):
         """Fit the data-dependent operators (``plays``, ``pi_ls``, the families; without the
         first ``warmup`` samples), then the network's normalization, to training data
         (physical units), (batch, time); with ``mask`` ((batch, time) bool) on its samples
-        only (the states run through the others: a held-out block, a row's padding)."""
+        only (the states run through the others: a held-out block, a row's padding). A
+        sequence model (:class:`~torchhys.protocols.SequenceModel`) records its ranges."""
+        if self._sequence:
+            self.net.record_ranges(x, y, mask=mask)
+            self.normalization_fitted.fill_(True)
+            return
         fit_data_dependent(self.net.operators, self._fitters, x, y, warmup=warmup, mask=mask)
         ref = next(iter(self.net.buffers()), None)
         dtype = ref.dtype if ref is not None else torch.get_default_dtype()
@@ -234,6 +250,8 @@ class InverseHysteresisModule(L.LightningModule):
 
     # --- the model ----------------------------------------------------------------------
     def _fixed_operators(self) -> bool:
+        if self._sequence:
+            return False
         return not any(p.requires_grad for p in self.net.operators.parameters())
 
     def _features(self, x: Tensor, y: Tensor, key: str) -> Tensor:
@@ -252,7 +270,7 @@ class InverseHysteresisModule(L.LightningModule):
 
     def forward(self, x: Tensor, target: Tensor | None = None) -> Tensor:
         """Model output for ``x`` (batch, time) or (time,); ``target`` for per-segment EIHOs."""
-        return self.net(x, target=target)[0]
+        return self.net(x) if self._sequence else self.net(x, target=target)[0]
 
     def _predict(self, x: Tensor, y: Tensor, key: str) -> Callable[[], Tensor]:
         """A function computing the prediction for the whole batch, (batch, time)."""
@@ -261,7 +279,7 @@ class InverseHysteresisModule(L.LightningModule):
         if self._fixed_operators():
             feats = self._features(x, y, key)
             return lambda: self.net.head(feats)
-        return lambda: self.net(x, target=y)[0]
+        return lambda: self.forward(x, y)
 
     def _global_mean(self, value: Tensor) -> Tensor:
         if self.trainer.world_size > 1:
