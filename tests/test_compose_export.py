@@ -110,3 +110,15 @@ def test_aoti(dtype: torch.dtype, tmp_path: Path) -> None:
     to_aoti(model.to(dtype), tmp_path / "comp.pt2", **OPTIONS)
     got = stepped(load_aoti(tmp_path / "comp.pt2"), x, dtype)
     assert_equal_runs(got, reference(model, x, dtype), tolerance(dtype))
+
+
+@needs_cc
+@pytest.mark.parametrize("kind", ["lstm", "gru"])
+def test_the_c_step_time_of_a_layer(kind: str) -> None:
+    """tests/_recurrent_models.c_step_time (for the latency benchmark) compiles and times the
+    C step of a composed layer: a positive time, longer for more units."""
+    from _recurrent_models import c_step_time, composed_layer
+
+    small = c_step_time(composed_layer(kind, 4), steps=2000, repeats=3, cpu_time=True)
+    large = c_step_time(composed_layer(kind, 48), steps=2000, repeats=3, cpu_time=True)
+    assert 0 < small < large
