@@ -321,6 +321,8 @@ def state_space(u: Tensor, A: Tensor, B: Tensor, C: Tensor, D: Tensor, *,
     start = _initial(state, batch, n, u, "state")
     ur = u.reshape(-1, T, m)
     s = call_function(_LinearRecurrence, A, ur @ B.mT if multi else ur * B, start)
-    entering = torch.cat([start.unsqueeze(1), s[:, :-1]], dim=1)
+    # the state entering each sample; sliced from T + 1 states, not cat with s[:, :-1], whose
+    # size T - 1 makes torch.export with a dynamic time dimension guard on T != 2
+    entering = torch.cat([start.unsqueeze(1), s], dim=1)[:, :T]
     y = entering @ C.mT + (ur @ D.mT if multi else ur * D)
     return y.reshape(batch + (T, p)), s[:, -1].reshape(batch + (n,))
