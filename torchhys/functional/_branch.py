@@ -265,9 +265,11 @@ def branch_operator(
     th = resolve_threshold(threshold, xb)
     z = zigzag(xb, th, state.play, state.direction)
     d = z.direction
-    d_prev = torch.cat([state.direction[:, None], d[:, :-1]], dim=1)
+    # the previous sample's values: shifted in and cut to T (a slice of size T - 1 makes
+    # torch.export with a dynamic time dimension guard on T != 2)
+    d_prev = torch.cat([state.direction[:, None], d], dim=1)[:, :T]
     last = z.extremum
-    last_prev = torch.cat([last.new_full((B, 1), -1), last[:, :-1]], dim=1)
+    last_prev = torch.cat([last.new_full((B, 1), -1), last], dim=1)[:, :T]
     M = torch.where(last >= 0, xb.gather(1, last.clamp(min=0)), state.extremum[:, None])
     v = torch.where(last_prev >= 0, xb.gather(1, last_prev.clamp(min=0)), state.extremum[:, None])
     seg_local = z.confirm.long().cumsum(dim=1)
@@ -276,7 +278,7 @@ def branch_operator(
         idx = torch.arange(T, device=xb.device).expand(B, T)
         lc = torch.where(z.confirm, idx, -1).cummax(dim=1).values
         x_a = torch.where(lc >= 0, v.gather(1, lc.clamp(min=0)), state.stack_x[:, :1])
-        x_a_prev = torch.cat([state.stack_x[:, :1], x_a[:, :-1]], dim=1)
+        x_a_prev = torch.cat([state.stack_x[:, :1], x_a], dim=1)[:, :T]
         coef = _coef(a, d_prev, segment - 1, per_segment, x_a_prev, anchor_slope)
         g = shape((v - x_a_prev).abs(), coef)
         inc = torch.where(z.confirm, d_prev * g, 0.0)

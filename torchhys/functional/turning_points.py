@@ -51,18 +51,29 @@ def _prefix_clamp(lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
 
     ``clamp(clamp(y, a1, b1), a2, b2) = clamp(y, clamp(a1, a2, b2), clamp(b1, a2, b2))``;
     the result holds only copies of the inputs (min/max are exact). O(T log T) time, O(T)
-    memory (used without autograd: the detector output is discrete).
+    memory (used without autograd: the detector output is discrete). Each doubling composes
+    with the maps ``k`` samples earlier, shifted in behind the identity map
+    ``clamp(y, -inf, inf)`` (no slice of size ``T - k``, so ``torch.export`` keeps a dynamic
+    time dimension; a symbolic ``T`` runs the doublings of the largest length it may take).
     """
     T = lo.shape[-1]
     k = 1
-    while k < T:
-        lo_cur, hi_cur = lo[..., k:], hi[..., k:]
-        new_lo = torch.minimum(torch.maximum(lo[..., :-k], lo_cur), hi_cur)
-        new_hi = torch.minimum(torch.maximum(hi[..., :-k], lo_cur), hi_cur)
-        lo = torch.cat([lo[..., :k], new_lo], dim=-1)
-        hi = torch.cat([hi[..., :k], new_hi], dim=-1)
+    while k < _largest(T):
+        shift = torch.sym_min(k, T)
+        lo_prev = torch.nn.functional.pad(lo, (shift, 0), value=-math.inf)[..., :T]
+        hi_prev = torch.nn.functional.pad(hi, (shift, 0), value=math.inf)[..., :T]
+        lo, hi = (torch.minimum(torch.maximum(lo_prev, lo), hi),
+                  torch.minimum(torch.maximum(hi_prev, lo), hi))
         k *= 2
     return lo, hi
+
+
+def _largest(n: int | torch.SymInt) -> int:
+    """``n``, or for a symbolic size the largest value it may take (2 ** 62 if unbounded)."""
+    if isinstance(n, int):
+        return n
+    upper = n.node.shape_env.bound_sympy(n.node.expr).upper
+    return int(upper) if upper.is_finite and upper < 1 << 62 else 1 << 62
 
 
 def zigzag(x: Tensor, threshold: Tensor, play0: Tensor, direction0: Tensor) -> Zigzag:
@@ -83,13 +94,13 @@ def zigzag(x: Tensor, threshold: Tensor, play0: Tensor, direction0: Tensor) -> Z
         r = 0.5 * threshold.to(x.dtype)
         lo, hi = _prefix_clamp(x - r, x + r)
         p = torch.minimum(torch.maximum(play0.to(x.dtype)[:, None], lo), hi)
-        prev = torch.cat([play0.to(x.dtype)[:, None], p[:, :-1]], dim=1)
+        prev = torch.cat([play0.to(x.dtype)[:, None], p], dim=1)[:, :T]  # no size T - 1
         move = torch.sign(p - prev).to(torch.long)
         idx = torch.arange(T, device=x.device).expand(B, T)
         last = torch.where(move != 0, idx, -1).cummax(dim=1).values
         moved = move.gather(1, last.clamp(min=0))
         direction = torch.where(last >= 0, moved, direction0[:, None])
-        d_prev = torch.cat([direction0[:, None], direction[:, :-1]], dim=1)
+        d_prev = torch.cat([direction0[:, None], direction], dim=1)[:, :T]
         confirm = (move != 0) & (d_prev != 0) & (move != d_prev)
     return Zigzag(move, direction, confirm, last, p[:, -1])
 
