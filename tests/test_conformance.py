@@ -57,6 +57,28 @@ KNOWN_DEFECTS: dict[tuple[str, str, str | None], str] = {
         "the generalized PI inverse's backward is not differentiable again: gradgradcheck's "
         "Jacobian of the gradient in x differs from the numerical one (a wrong second "
         "derivative, not an error)"),
+    **dict.fromkeys((("export", "eiho", None), ("export", "cascade", None)), (
+        "the EIHO operator's 'dominant' rule updates its stack of nested loops in a Python "
+        "loop over the confirmed turning points (functional/_branch.py, _dominant_stacks; "
+        "every sample under tracing), which torch.export unrolls: the program is "
+        "specialized to the traced length (time = 24), not a dynamic time dimension (the "
+        "cascade's example holds an EIHO stage)")),
+    **dict.fromkeys((("export", "duhem", None), ("export", "play_hysteresis", None)), (
+        "the feedback element (operators/feedback_element.py) integrates its ODE in a "
+        "Python loop over samples that torch.export unrolls: the program is specialized "
+        "to the traced length (time = 24), not a dynamic time dimension")),
+    ("export", "jiles_atherton", None): (
+        "functional/jiles_atherton.py steps the model in a Python loop over samples that "
+        "torch.export unrolls: the program is specialized to the traced length (time = 24), "
+        "not a dynamic time dimension"),
+    ("export", "preisach_inverse", None): (
+        "functional/preisach_inverse.py inverts sample by sample in a Python loop where the "
+        "values cannot be read (tracing), which torch.export unrolls: the program is "
+        "specialized to the traced length (time = 24), not a dynamic time dimension"),
+    ("export", "stop_pi_inverse", None): (
+        "functional/stop_pi.py's stop_pi_inverse inverts sample by sample in a Python loop "
+        "that torch.export unrolls: the program is specialized to the traced length "
+        "(time = 24), not a dynamic time dimension"),
 }
 """``(check, name, case)`` -> the defect that makes an operator fail a check (xfail, strict:
 the mark goes when the defect is fixed)."""
