@@ -123,8 +123,9 @@ def to_torchscript(
 
     Args:
         model: an :class:`~torchhys.InverseHysteresisNet` with causal operators, a
-            :class:`~torchhys.PrandtlIshlinskiiInverse`, or a built
-            :class:`~torchhys.deploy.streaming.StreamingCompensator`.
+            :class:`~torchhys.PrandtlIshlinskiiInverse`, a composition of operators and
+            recurrent layers (:func:`torchhys.compose.compose`), any model with streaming
+            steps, or a built :class:`~torchhys.deploy.streaming.StreamingCompensator`.
         path: output file (conventionally ``.pt``), written atomically: an old file there
             is replaced whole or, on an error (a full disk), left as it was.
         limits: ``(low, high)`` command saturation; default: the training output range

@@ -6,7 +6,12 @@ graph, one small template per aten operation (:mod:`torchhys.deploy.c._templates
 fixed-size array, parameters and buffers ``static const`` arrays, the state a struct the
 caller owns. No operator has C of its own: a new operator whose step exports with
 ``torch.export`` gets C without new code, or :func:`to_c` names the operation without a
-template and the step it came from.
+template and the step it came from. So do compositions of operators, recurrent layers
+(``nn.LSTM``, ``nn.GRU``, ``nn.RNN``) and MLPs (:func:`torchhys.compose.compose`): their
+gates are ``linear``, ``chunk``, ``sigmoid``, ``tanh`` and elementwise templates, the
+``exp``, ``sigmoid`` and ``tanh`` of a double libm-free functions whose loops vectorize,
+and a matrix product of a long inner dimension runs over blocks of output columns whose
+sums stay in registers.
 
 The generated ``PREFIX.h`` declares (C99; the files include only ``<math.h>``,
 ``<stdint.h>`` and ``<string.h>``; no dynamic allocation, no global mutable state, no

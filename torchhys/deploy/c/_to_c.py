@@ -72,8 +72,10 @@ def to_c(
 
     Args:
         model: an :class:`~torchhys.InverseHysteresisNet` with causal operators, a
-            :class:`~torchhys.PrandtlIshlinskiiInverse`, any model with streaming steps, or a
-            built :class:`~torchhys.deploy.streaming.StreamingCompensator` (then in ``dtype``).
+            :class:`~torchhys.PrandtlIshlinskiiInverse`, a composition of operators and
+            recurrent layers (:func:`torchhys.compose.compose`), any model with streaming
+            steps, or a built :class:`~torchhys.deploy.streaming.StreamingCompensator` (then
+            in ``dtype``).
         out_dir: an existing folder. The two files are written atomically: both are
             complete on the disk before either replaces an old file of its name; on an error
             (a full disk) the old pair is left as it was.
