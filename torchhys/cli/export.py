@@ -47,6 +47,7 @@ from torchhys.checkpoints import read_checkpoint
 from torchhys.cli.errors import config_errors, report_user_error
 from torchhys.cli.negative_numbers import accept_negative_numbers
 from torchhys.cli.plugins import import_modules
+from torchhys.compose.spec import build_composed, is_composed_spec
 from torchhys.deploy.c import DEFAULT_PREFIX, check_prefix, to_c
 from torchhys.deploy.export import to_aoti, to_torchscript
 from torchhys.deploy.export_onnx import to_onnx
@@ -205,11 +206,15 @@ def check_size(arch: dict, state: dict) -> None:
                  "check the checkpoint's hyper_parameters (or --hidden)")
 
 
-def build_net(ckpt: dict, arch: dict | None = None) -> InverseHysteresisNet:
+def build_net(ckpt: dict, arch: dict | None = None) -> torch.nn.Module:
     """Rebuild the network of a Lightning checkpoint (or of a plain state dict + ``arch``),
-    after :func:`check_size`."""
+    after :func:`check_size`; a composed model from its spec (``hyper_parameters["net"]``:
+    :func:`torchhys.compose.spec.build_composed`)."""
     if "state_dict" in ckpt:
         hp = ckpt.get("hyper_parameters") or {}
+        if is_composed_spec(hp.get("net")):
+            state = {k[4:]: v for k, v in ckpt["state_dict"].items() if k.startswith("net.")}
+            return build_composed(hp["net"], state, "the checkpoint's model.net")
         missing = [k for k in ("operator", "hidden") if k not in hp]
         if missing:
             raise ValueError(
@@ -267,7 +272,8 @@ def main(argv: list[str]) -> int:
         with config_errors():  # a TypeError here is in the options or the checkpoint
             net = build_net(ckpt, None if "state_dict" in ckpt else _plain_arch(args))
             check_weights(net, f"--ckpt {args.ckpt}")  # a diverged fit's NaN weights
-            check_output(net, f"--ckpt {args.ckpt}")  # or its overflowing ones
+            if isinstance(net, InverseHysteresisNet):
+                check_output(net, f"--ckpt {args.ckpt}")  # or its overflowing ones
             if args.dtype is not None:
                 net = net.to(_DTYPES[args.dtype])
             comp = StreamingCompensator(net, **options)
