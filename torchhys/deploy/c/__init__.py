@@ -36,7 +36,8 @@ bits too, so that a build that bypasses the check still holds NaN samples
 float64 results equal the TorchScript file's to about 1e-15.
 
 The generator's parts, one concept a file: the entry (``_to_c.py``), the graph's walk
-(``_graph.py``), the C primitives (``_writer.py``), one template per aten operation
+(``_graph.py``), the C primitives (``_writer.py``) and its libm-free ``exp``, ``sigmoid``
+and ``tanh`` (``_libm.py``), one template per aten operation
 (``_templates.py``, over ``_pointwise.py``, ``_views.py``, ``_products.py`` and
 ``_indexing.py``), the tests of non-finite samples (``_finite.py``) and the two written files
 (``_files.py``).
