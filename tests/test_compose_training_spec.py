@@ -84,3 +84,11 @@ def test_load_from_checkpoint_restores_a_composed_net(tmp_path: Path) -> None:
                                strict=True):
         assert k == k2 and torch.equal(a, b), k
     assert bool(restored.normalization_fitted)
+    # without a spec (built in Python) torchhys export says how to export it instead
+    from torchhys.cli.export import build_net
+
+    saved = torch.load(tmp_path / "m.ckpt", weights_only=True)
+    assert saved["hyper_parameters"]["net"] is None
+    with pytest.raises(ValueError, match=r"^the checkpoint's model \(a sequence model\) was "
+                                         r"passed in built, .* export it from Python"):
+        build_net(saved)

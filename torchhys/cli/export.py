@@ -215,6 +215,11 @@ def build_net(ckpt: dict, arch: dict | None = None) -> torch.nn.Module:
         if is_composed_spec(hp.get("net")):
             state = {k[4:]: v for k, v in ckpt["state_dict"].items() if k.startswith("net.")}
             return build_composed(hp["net"], state, "the checkpoint's model.net")
+        if "net" in hp:
+            raise ValueError("the checkpoint's model (a sequence model) was passed in built, "
+                             "without its class in hyper_parameters: export it from Python "
+                             "(torchhys.deploy.export, torchhys.deploy.c.to_c), or fit it from "
+                             "a config whose model.net names its class (docs/composing.md)")
         missing = [k for k in ("operator", "hidden") if k not in hp]
         if missing:
             raise ValueError(

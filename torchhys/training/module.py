@@ -166,6 +166,7 @@ class InverseHysteresisModule(L.LightningModule):
             self.save_hyperparameters(ignore=[] if self._sequence else ["net"])
         if isinstance(self.hparams.get("net"), nn.Module):  # passed in built: no spec
             self.save_hyperparameters(ignore=["net"])
+            self.hparams["net"] = None  # the checkpoint says so (torchhys export)
         self._fitters: dict = {}
         if self._sequence:
             net = check_sequence_model(net, "net")
