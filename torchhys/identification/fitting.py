@@ -96,8 +96,9 @@ def fit_full_batch(
         :class:`FitResult`.
 
     Raises:
-        TypeError, ValueError: a model that is neither, or an operator with several
-            outputs or one that needs the target; a warmup out of range, a bad mask.
+        TypeError, ValueError: a model that is none of these, an operator with several
+            outputs or one that needs the target, a sequence model whose output is not of
+            y's shape; a warmup out of range, a bad mask.
     """
     start = time.perf_counter()
     check_int(adam_epochs, "adam_epochs", minimum=0)
