@@ -102,6 +102,15 @@ def test_the_ranges_and_the_loss_take_the_mask_and_warmup() -> None:
     assert result.mse == pytest.approx(reference, rel=1e-12)
 
 
+def test_a_plain_module_is_refused_with_what_to_do() -> None:
+    x, y = inverse_data(50)
+    with pytest.raises(TypeError, match=r"^model must be an InverseHysteresisNet, a "
+                                        r"torchhys.HysteresisOperator or a .*SequenceModel "
+                                        r"\(a user's module through torchhys.compose.compose\), "
+                                        r"got BacklashGRU$"):
+        fit_full_batch(BacklashGRU().double(), x, y, adam_epochs=1, lbfgs_epochs=0)
+
+
 def test_a_sequence_model_of_the_wrong_output_shape_is_named() -> None:
     class Wide(nn.Module):
         def __init__(self) -> None:

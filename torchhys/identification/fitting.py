@@ -111,6 +111,10 @@ def fit_full_batch(
         loss_fn = _network_loss(model, x, y, warmup, mask)
     elif isinstance(model, SequenceModel) and not isinstance(model, HysteresisOperator):
         loss_fn = _sequence_loss(model, x, y, warmup, mask)
+    elif not isinstance(model, HysteresisOperator):
+        raise TypeError(f"model must be an InverseHysteresisNet, a torchhys.HysteresisOperator "
+                        f"or a torchhys.protocols.SequenceModel (a user's module through "
+                        f"torchhys.compose.compose), got {type(model).__name__}")
     else:
         loss_fn = _operator_loss(model, x, y, warmup, mask)
     objective = loss_fn if penalty is None else (lambda: loss_fn() + penalty())
