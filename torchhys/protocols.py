@@ -142,7 +142,8 @@ def check_network(obj: Any, argument: str = "net") -> Network:
     """
     return _check(obj, argument, Network,
                   "operators, features, head and fit_normalization, as an "
-                  "InverseHysteresisNet has")
+                  "InverseHysteresisNet has; a user's module trains through "
+                  "torchhys.compose.compose, as a SequenceModel")
 
 
 def check_sequence_model(obj: Any, argument: str = "model") -> SequenceModel:
