@@ -47,6 +47,9 @@ def number(cell: str) -> float:
     return float(cell.rstrip("x"))
 
 
+# a benchmark script run in a process of its own: its methods are checked against references by
+# tests/test_preisach*.py and tests/test_stop_pi*.py in the default run
+@pytest.mark.slow
 @pytest.mark.parametrize(("script", "methods"), [
     ("preisach.py", ("chunked", "smooth", "materialised", "fit", "step", "inverse",
                      "inverse_loop", "inverse_slow", "inverse_step")),
@@ -63,6 +66,7 @@ def test_benchmark_prints_a_row_per_method(script: str, methods: tuple[str, ...]
     assert "T=10000" in out
 
 
+@pytest.mark.slow  # the script's fits; the compensators: tests/test_compensator_config.py
 def test_compensation_benchmark_tracks_better_than_no_compensation() -> None:
     rows = table(run("compensation.py", "--quick", "--plants", "paper"), "plant")
     by = {r[1]: [number(c) for c in r[2:]] for r in rows}
@@ -91,6 +95,7 @@ def test_compensation_benchmark_reads_its_config_as_torchhys_fit(tmp_path: Path)
         bench.load_model_config(path)
 
 
+@pytest.mark.slow  # naive, scan and kernel against each other: tests/test_backlash_reference.py
 def test_play_operator_benchmark_prints_each_method() -> None:
     rows = table(run("backlash.py", "--quick", "--repeats", "1"), "T")
     assert [(r[0], r[1]) for r in rows] == [("1e+04", m) for m in ("naive", "scan", "kernel")]
@@ -130,6 +135,7 @@ def test_sma_figure_is_drawn_and_the_drift_takes_the_offset(tmp_path: Path) -> N
         assert abs(float(bias[model])) < 0.5 * abs(float(bias["stop_pi"])), out
 
 
+@pytest.mark.slow  # C and C++ builds; the paths: tests/test_export_c.py, test_cpp_controller.py
 def test_latency_benchmark_times_every_path() -> None:
     if shutil.which(os.environ.get("CXX", "g++")) is None:
         pytest.skip("no C++ compiler found (set CXX or install g++): the C++ rows need it")
@@ -186,6 +192,7 @@ def test_micromanipulator_figure_is_drawn_and_finds_the_lag(tmp_path: Path) -> N
     assert 0 < model < 0.5 * line, out
 
 
+@pytest.mark.slow  # a figure script's whole fit; the Preisach fit: tests/test_preisach_fit.py
 def test_forc_figure_is_drawn_and_the_density_finds_the_coercive_field(tmp_path: Path) -> None:
     """The Preisach model fitted on the even reversal curves predicts the odd ones well
     below the memoryless baseline, and its density is centered at the half-width of the
