@@ -222,6 +222,10 @@ def test_the_default_row_is_scored_within_the_exported_command_limits(tmp_path):
     np.testing.assert_allclose(got, want, atol=1e-6)
 
 
+# a whole cross-validated default row on a data set: the row's folds, scoring and selection
+# are checked in the default run above (test_the_default_row_*), its accuracy on a data set by
+# tests/test_real_data_cli.py::test_the_default_inverts_a_preisach_model_on_the_ferrite_loops
+@pytest.mark.slow
 def test_the_default_holds_below_the_line_beyond_the_training_range():
     """friction_damper_sines: a fifth to a third of the 1.5 in tests lie beyond the 1 in
     training range; the default, scored as exported (within the command limits), stays well
@@ -235,6 +239,7 @@ def test_the_default_holds_below_the_line_beyond_the_training_range():
     assert default < 0.8 * line
 
 
+@pytest.mark.slow  # a whole cross-validated default row (see the test above)
 def test_the_default_follows_the_sma_records_drift():
     """sma_actuator: fitted on cycles 1-4, the line predicts cycles 5-7 about 2 mm short on
     average (the extension ratchets up from cycle to cycle); the default's cross-validation
