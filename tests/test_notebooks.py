@@ -27,7 +27,15 @@ def test_committed_notebook_has_no_outputs(path: Path) -> None:
             assert cell.get("execution_count") is None, f"{path.name}: cell {i} was executed"
 
 
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
+SLOW_NOTEBOOKS = {"paper_reproduction"}
+"""Notebooks executed with the slow tests only: the paper reproduction runs the protocol's
+fits (checked in the default run by tests/test_paper_protocol.py and
+tests/test_paper_simulation.py; the quickstart keeps a notebook's execution there)."""
+
+
+@pytest.mark.parametrize("path", [
+    pytest.param(p, marks=[pytest.mark.slow] * (p.stem in SLOW_NOTEBOOKS)) for p in NOTEBOOKS],
+    ids=lambda p: p.stem)
 def test_notebook_executes(path: Path, tmp_path: Path) -> None:
     nb = nbformat.read(path, as_version=4)
     # ipykernel's native "python3" kernel is this interpreter: checked by the first cell
