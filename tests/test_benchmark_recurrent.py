@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from benchmarks.recurrent import accuracy, latency
+from benchmarks.recurrent import accuracy, cli, latency
 
 ROOT = Path(__file__).resolve().parents[1]
 CC = shutil.which("cc") or shutil.which("gcc")
@@ -77,6 +77,7 @@ def test_tasks_split_training_from_validation_as_their_protocols_do() -> None:
         accuracy.task("nope")
 
 
+@pytest.mark.slow  # a subprocess that imports torch and trains (about 5 s)
 def test_accuracy_quick_prints_every_row() -> None:
     p = run("accuracy", "--quick", "--data", "mr_damper_3.21V", "--models",
             "8 plays + GRU 8", "GRU 8")
@@ -89,10 +90,11 @@ def test_accuracy_quick_prints_every_row() -> None:
         assert 0 < rmse < 1e4  # force in N; the line scores about 610
 
 
-def test_bad_data_name_is_one_line_error() -> None:
-    p = run("accuracy", "--data", "nope")
-    assert p.returncode == 2
-    assert "--data: expected 'bouc_wen'" in p.stderr.splitlines()[-1]
+def test_bad_data_name_is_one_line_error(capsys: pytest.CaptureFixture) -> None:
+    with pytest.raises(SystemExit) as err:
+        cli.main(["accuracy", "--data", "nope"])
+    assert err.value.code == 2
+    assert "--data: expected 'bouc_wen'" in capsys.readouterr().err.splitlines()[-1]
 
 
 @pytest.mark.slow  # three exports to C and compiles

@@ -30,13 +30,13 @@ def main(argv: list[str] | None = None) -> dict:
                         help=f"hidden sizes timed (default {latency.SIZES})")
     args = parser.parse_args(argv)
     parts = args.parts or ["accuracy", "latency"]
+    for name in args.data if "accuracy" in parts else ():  # before any training
+        if name != "bouc_wen" and name not in accuracy.DATASETS:
+            parser.error(f"--data: expected 'bouc_wen' or a protocol of "
+                         f"benchmarks/real_data, got {name!r}")
     torch.set_num_threads(1)
     out: dict = {}
     if "accuracy" in parts:
-        for name in args.data:  # a bad name fails before any training
-            if name != "bouc_wen" and name not in accuracy.DATASETS:
-                parser.error(f"--data: expected 'bouc_wen' or a protocol of "
-                             f"benchmarks/real_data, got {name!r}")
         budget = accuracy.QUICK_BUDGET if args.quick else accuracy.FULL
         start = time.perf_counter()
         out["accuracy"] = accuracy.run(args.data, budget, args.models,

@@ -10,11 +10,12 @@ DenseT<double, H, 1>>`` with the torch module's weights (loaded as RTNeural's
 swapped, the LSTM's two biases summed), compiled with ``c++ -std=c++17 FLAGS`` against the
 STL backend (no Eigen or xsimd: ``RTNEURAL_USE_EIGEN`` and ``RTNEURAL_USE_XSIMD`` unset) and,
 where the checkout holds ``modules/Eigen``, the Eigen backend (``-DRTNEURAL_USE_EIGEN=1``,
-RTNeural's default in its CMake build). The torchhys step is
-:func:`torchhys.deploy.c.to_c` of the module composed by :func:`torchhys.compose.compose`
-(the compensator's saturation and NaN guard included; no input clamp, no direction guard),
-compiled with ``cc -std=c99 FLAGS``. The flags: ``-O2`` and ``-O3 -march=native``, as
-benchmarks/latency.py builds the generated C.
+RTNeural's default in its CMake build; ``-DEIGEN_STACK_ALLOCATION_LIMIT=0``: Eigen's check
+of fixed-size matrices on the stack stops the 64-unit LSTM in double otherwise). The
+torchhys step is :func:`torchhys.deploy.c.to_c` of the module composed by
+:func:`torchhys.compose.compose` (the compensator's saturation and NaN guard included; no
+input clamp, no direction guard), compiled with ``cc -std=c99 FLAGS``. The flags: ``-O2``
+and ``-O3 -march=native``, as benchmarks/latency.py builds the generated C.
 
 Both programs step the same triangle wave (0.8 (i mod 200) / 200 - 0.4), ``steps`` steps
 untimed, then ``rounds`` rounds of ``steps`` timed steps each, and print the median round's
@@ -180,8 +181,9 @@ def build_rtneural(rnn: nn.LSTM | nn.GRU, out: nn.Linear, root: Path, folder: Pa
     src = folder / "driver.cpp"
     src.write_text(rtneural_source(rnn, out))
     exe = folder / ("rtneural" + ("_eigen" if eigen else "_stl") + _tag(flags))
-    backend = (["-DRTNEURAL_USE_EIGEN=1", "-I", str(root / "modules" / "Eigen")] if eigen
-               else [])
+    # Eigen refuses fixed-size matrices over 128 KiB on the stack (the LSTM 64's in double)
+    backend = (["-DRTNEURAL_USE_EIGEN=1", "-DEIGEN_STACK_ALLOCATION_LIMIT=0", "-I",
+                str(root / "modules" / "Eigen")] if eigen else [])
     subprocess.run([os.environ.get("CXX", "c++"), "-std=c++17", *flags,
                     "-DRTNEURAL_DEFAULT_ALIGNMENT=16", *backend, "-I", str(root),
                     "-o", str(exe), str(src)], check=True, capture_output=True, text=True)
@@ -322,7 +324,7 @@ def time_all(entries: list[Entry], steps: int, rounds: int, repeats: int,
     """Build and check every program, then time them, interleaved, ``repeats`` times."""
     built: list[tuple[Entry, Path, float]] = []
     results = []
-    for e in entries:
+    for e in entries:  # the failed ones first, then the timed ones: markdown orders them
         try:
             exe = e.build()
         except (ImportError, ValueError, TypeError, NotImplementedError,
@@ -384,8 +386,18 @@ def entries(root: Path | None, tmp: Path, sizes: Sequence[int], flags: dict[str,
 
 def markdown(results: list[Result]) -> str:
     """Rows: the models; columns: ns per step, and torchhys / RTNeural for each flag set."""
+    def order(r: Result) -> tuple:
+        flag = next((i for i, f in enumerate(FLAGS) if r.column.endswith(f)), len(FLAGS))
+        who = next((i for i, w in enumerate(("torchhys", "RTNeural STL", "RTNeural Eigen"))
+                    if r.column.startswith(w)), 3)
+        kind, _, size = r.row.partition(" ")
+        model = (KINDS.index(kind.lower()), int(size)) if kind.lower() in KINDS else (9, 0)
+        return model, flag, who
+
+    results = sorted(results, key=order)
     rows = list(dict.fromkeys(r.row for r in results))
-    cols = list(dict.fromkeys(r.column for r in results))
+    cols = sorted(dict.fromkeys(r.column for r in results),
+                  key=lambda c: order(Result("LSTM 0", c, None, None))[1:])
     cell = {(r.row, r.column): r for r in results}
     ratios = []
     for fname in FLAGS:
@@ -413,7 +425,7 @@ def markdown(results: list[Result]) -> str:
 
 
 def run(rtneural: str | None, sizes: Sequence[int] = SIZES, steps: int = 20000,
-        rounds: int = 7, repeats: int = 3, flags: dict[str, tuple] | None = None,
+        rounds: int = 7, repeats: int = 7, flags: dict[str, tuple] | None = None,
         log: Callable[[str], None] = print, keep: Path | None = None) -> list[Result]:
     """Build, check and time every program; print why RTNeural is skipped where it is."""
     root, why = rtneural_dir(rtneural)
