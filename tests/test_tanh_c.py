@@ -10,8 +10,8 @@ gcc 12 and glibc 2.36: 78 % of the inputs the same double, 1.5 % 2 ulp apart and
 (between 7e-6 and 0.55, where the division by e + 2 and the reduction's rounding add up);
 +-1, +-0 and NaN exactly where libm gives them, -0 kept, x within 2 ulp below 1e-9); and
 within 2 ulp of ``torch.tanh`` (float64; 84 % the same double; torch's own tanh is 2 ulp
-from libm's at most). The float32 step keeps libm's ``tanhf``: within 2 ulp of
-``torch.tanh`` in float32. Skipped without a C compiler.
+from libm's at most). The float32 step's tanh: tests/test_libm_float_c.py. Skipped without
+a C compiler.
 """
 
 from __future__ import annotations
@@ -125,24 +125,6 @@ def test_the_tanh_helper_is_within_two_ulp_of_torch(results: tuple) -> None:
     nan = np.isnan(ref)
     assert np.array_equal(np.isnan(y[:, 0]), nan)
     assert ulps(y[~nan, 0], ref[~nan]).max() <= 2
-
-
-@needs_cc
-def test_the_float32_step_s_tanhf_is_within_two_ulp_of_torch(results: tuple) -> None:
-    """The float32 step's tanh (libm's tanhf) against ``torch.tanh`` in float32: within 2
-    ulp of float32, +-1, +-0 and NaN the same (measured: 2 ulp at most, 89 % the same
-    float)."""
-    x, y = results
-    with np.errstate(over="ignore", invalid="ignore"):
-        x32 = x.astype(np.float32)
-        ours = y[:, 2].astype(np.float32)
-    ref = torch.tanh(torch.from_numpy(x32)).numpy()
-    nan = np.isnan(ref)
-    assert np.array_equal(np.isnan(ours), nan)
-    assert np.array_equal(np.signbit(ours[~nan]), np.signbit(ref[~nan]))
-    d = np.abs(np.abs(ours[~nan]).view(np.int32).astype(np.int64)
-               - np.abs(ref[~nan]).view(np.int32).astype(np.int64))
-    assert d.max() <= 2, d.max()
 
 
 @needs_cc

@@ -81,5 +81,58 @@ _TANH_DOUBLE = """double a, kd, hi, lo, r, t, c, s, e;
     e = s * (hi - (lo - (r * c) / (2.0 - c))) + (s - 1.0);
     return copysign(e / (e + 2.0), x);"""
 
-#: the libm-free helpers of a double (``x`` their argument)
-_DOUBLE_ONLY = {"exp": _EXP_DOUBLE, "sigmoid": _SIGMOID_DOUBLE, "tanh": _TANH_DOUBLE}
+# the exp and the tanh of a float, in float arithmetic (uint32_t bits: no mixed element
+# widths): fdlibm's expf constants (ln2 hi and lo, the same P), |x| > 104 replaced by +-104
+# (expf: inf, resp. 0) in the exp, |x| > 10 by +-10 in the tanh (tanhf rounds to 1 from
+# 9.01 on). Within 1 ulp of glibc's expf and 4 of tanhf (tests/test_libm_float_c.py). The
+# float32 sigmoid is 1 / (1 + exp(-x)) with this exp (one division in the sigmoid's way, as
+# the double's, would be 5 ulp from it: more than a float32 network's bound allows).
+_EXP_FLOAT = """float kd, hi, lo, r, t, c, p, s1, s2;
+    uint32_t bits, kb;
+    x = (fabsf(x) > 104.0f) ? copysignf(104.0f, x) : x;
+    kd = x * 1.44269502f + 12582912.0f;
+    memcpy(&bits, &kd, sizeof bits);
+    kb = bits & UINT32_C(0x7FFFFF); /* k + 2^22 */
+    bits = kb | UINT32_C(0x4B000000); /* 1.5 2^23 + k */
+    memcpy(&kd, &bits, sizeof kd);
+    kd -= 12582912.0f;
+    hi = x - kd * 6.9314575195e-01f;
+    lo = kd * 1.4286067653e-06f;
+    r = hi - lo;
+    t = r * r;
+    c = r - t * (1.6666667163e-01f + t * (-2.7777778450e-03f
+        + t * (6.6137559770e-05f + t * (-1.6533901999e-06f
+        + t * 4.1381369442e-08f))));
+    p = 1.0f - ((lo - (r * c) / (2.0f - c)) - hi);
+    bits = ((kb >> 1) - (UINT32_C(1) << 21) + 127) << 23;
+    memcpy(&s1, &bits, sizeof s1);
+    bits = ((kb - (kb >> 1)) - (UINT32_C(1) << 21) + 127) << 23;
+    memcpy(&s2, &bits, sizeof s2);
+    return p * s1 * s2;"""
+
+_TANH_FLOAT = """float a, kd, hi, lo, r, t, c, s, e;
+    uint32_t bits, kb;
+    x = (fabsf(x) > 10.0f) ? copysignf(10.0f, x) : x;
+    a = fabsf(x);
+    a = a + a;
+    kd = a * 1.44269502f + 12582912.0f;
+    memcpy(&bits, &kd, sizeof bits);
+    kb = bits & UINT32_C(0x7FFFFF); /* k + 2^22 */
+    bits = kb | UINT32_C(0x4B000000); /* 1.5 2^23 + k */
+    memcpy(&kd, &bits, sizeof kd);
+    kd -= 12582912.0f;
+    hi = a - kd * 6.9314575195e-01f;
+    lo = kd * 1.4286067653e-06f;
+    r = hi - lo;
+    t = r * r;
+    c = r - t * (1.6666667163e-01f + t * (-2.7777778450e-03f
+        + t * (6.6137559770e-05f + t * (-1.6533901999e-06f
+        + t * 4.1381369442e-08f))));
+    bits = ((kb - (UINT32_C(1) << 22) + 127) & UINT32_C(0xFF)) << 23;
+    memcpy(&s, &bits, sizeof s);
+    e = s * (hi - (lo - (r * c) / (2.0f - c))) + (s - 1.0f);
+    return copysignf(e / (e + 2.0f), x);"""
+
+#: the libm-free helpers (``x`` their argument), by C type
+LIBM_FREE = {"double": {"exp": _EXP_DOUBLE, "sigmoid": _SIGMOID_DOUBLE, "tanh": _TANH_DOUBLE},
+             "float": {"exp": _EXP_FLOAT, "tanh": _TANH_FLOAT}}

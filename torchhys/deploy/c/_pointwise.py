@@ -4,8 +4,9 @@
 Each reproduces torch's CPU kernel, NaN included: ``maximum``, ``minimum`` and ``clamp``
 propagate NaN (unlike C's ``fmax``), ``sign(NaN)`` is 0, ``pow`` takes torch's special
 exponents (2, 3, -2, 0.5, -0.5, -1), ``sigmoid`` is ``1 / (1 + exp(-x))``; ``exp``,
-``sigmoid`` and ``tanh`` of a double are the writer's vectorizable ones (within 1, 4 and 3 ulp
-of libm's).
+``sigmoid`` and ``tanh`` are the writer's vectorizable ones (within 1, 4 and 3 ulp of libm's
+in float64; in float32 ``exp`` and ``tanh`` within 1 and 4, ``sigmoid`` computed with that
+``exp``).
 Operands are cast to the op's compute dtype first (torch's type promotion), as torch's
 kernels do.
 """
@@ -181,13 +182,11 @@ def _gelu(w: Writer, spec: CTensor, x: CTensor, *, approximate: str = "none") ->
 
 
 def _exp(fmt: str, helper: str | None = None) -> Emitter:
-    """``fmt`` with ``EXP`` libm's ``expf`` in float32; in float64 the writer's vectorizable
-    ``exp`` (within 1 ulp of libm's; a loop of libm calls does not vectorize), or its
-    ``helper`` of the whole expression (``sigmoid``: one division, within 4 ulp)."""
+    """``fmt`` with ``EXP`` the writer's vectorizable ``exp`` of a double or a float (within
+    1 ulp of libm's; a loop of libm calls does not vectorize), or in float64 its ``helper``
+    of the whole expression (``sigmoid``: one division, within 4 ulp)."""
     def emit(w: Writer, spec: CTensor, x: CTensor) -> CTensor:
-        if spec.dtype != torch.float64:
-            return pointwise(w, spec, fmt.replace("EXP", "exp{f}"), [x])
-        if helper is not None:
+        if helper is not None and spec.dtype == torch.float64:
             return pointwise(w, spec, w.helper(helper, spec.dtype) + "({0})", [x])
         return pointwise(w, spec, fmt.replace("EXP", w.helper("exp", spec.dtype)), [x])
     return emit
@@ -221,10 +220,8 @@ def _hard(fmt: str) -> Emitter:
 
 
 def _tanh(w: Writer, spec: CTensor, x: CTensor) -> CTensor:
-    """libm's ``tanhf`` in float32; in float64 the writer's vectorizable ``tanh`` (within 3
-    ulp of libm's, 2 of torch's; an LSTM's or a GRU's gates)."""
-    if spec.dtype != torch.float64:
-        return pointwise(w, spec, "tanh{f}({0})", [x])
+    """The writer's vectorizable ``tanh`` (within 3 ulp of libm's in float64, 4 in float32;
+    an LSTM's or a GRU's gates)."""
     return pointwise(w, spec, w.helper("tanh", spec.dtype) + "({0})", [x])
 
 

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchhys.deploy.c._libm import _DOUBLE_ONLY
+from torchhys.deploy.c._libm import LIBM_FREE
 
 #: C type of each tensor dtype (a bool is a uint8_t holding 0 or 1)
 CTYPES = {torch.float64: "double", torch.float32: "float", torch.int64: "int64_t",
@@ -338,9 +338,10 @@ class Writer:
 
     def helper(self, kind: str, dtype: torch.dtype) -> str:
         """The name of a shared helper function (``max``, ``min``, ``clamp``, ``fmax``,
-        ``fmin``, ``floordiv``, ``remainder``; ``exp``, ``sigmoid`` and ``tanh``:
-        vectorizable ones of a double; ``isfinite``, ``isnan``, ``isinf``: tests of a float's
-        bits) for ``dtype``, defined on first use."""
+        ``fmin``, ``floordiv``, ``remainder``; ``exp``, ``tanh`` (and ``sigmoid``, double
+        only): vectorizable ones of a double or a float (:mod:`torchhys.deploy.c._libm`);
+        ``isfinite``, ``isnan``, ``isinf``: tests of a float's bits) for ``dtype``, defined
+        on first use."""
         t = self.ctype(dtype)
         if kind in _BIT_TESTS:
             if not dtype.is_floating_point:
@@ -351,12 +352,12 @@ class Writer:
                 f"static int {name}({t} a)\n{{\n    {unsigned} b;\n    memcpy(&b, &a, sizeof b);"
                 f"\n    return (b & {magnitude}) {_BIT_TESTS[kind]} {inf};\n}}"))
             return name
-        if kind in _DOUBLE_ONLY and dtype != torch.float64:
-            raise ValueError(f"no {kind} helper for {dtype} (libm's is used)")
+        if kind in LIBM_FREE["double"] and kind not in LIBM_FREE.get(t, {}):
+            raise ValueError(f"no {kind} helper for {dtype}")
         name = f"{self.prefix}_{kind}_{t.split('_')[0]}"
-        if kind in _DOUBLE_ONLY and name not in self.helpers:
-            body = _DOUBLE_ONLY[kind]
-            self.helpers[name] = f"static inline double {name}(double x)\n{{\n    {body}\n}}"
+        if kind in LIBM_FREE["double"] and name not in self.helpers:
+            body = LIBM_FREE[t][kind]
+            self.helpers[name] = f"static inline {t} {name}({t} x)\n{{\n    {body}\n}}"
         if name not in self.helpers:
             table = _FLOAT_HELPERS if dtype.is_floating_point else _INT_HELPERS
             if kind not in table:
