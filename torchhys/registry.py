@@ -8,7 +8,8 @@ of a spec. The protocol the operators implement is :mod:`torchhys.operator`.
 :data:`FAMILIES` holds the model families that are identified on data (a spec
 ``{"fit": name, **options}``), each by the function that builds its placeholder and its fit
 (:func:`register_family`); :data:`SEARCHES` the families' searches of their own options on a
-hold-out (sign, direction, penalty, size), which the real-data benchmark's rows run.
+hold-out (sign, direction, penalty, size), which the real-data benchmark's rows run, each
+returning a :class:`Searched`.
 """
 
 import importlib
@@ -267,9 +268,10 @@ identified operator's place until the data are seen, and the function that ident
 (see :func:`register_family`). The built-in families are registered on its first read
 (:func:`load_families`)."""
 
+
 class Searched(NamedTuple):
-    """What a family's search returns (:data:`SEARCHES`): the options
-    chosen on a time-ordered hold-out and the model they give."""
+    """What a family's search returns (:data:`SEARCHES`): the options chosen on a
+    time-ordered hold-out and the model they give."""
 
     holdout: float
     """RMS error on the hold-out (samples ``cut:`` of every row) of the chosen options,
@@ -290,10 +292,10 @@ SEARCHES: MutableMapping[str, Callable[..., Searched]] = _Loaded()
 ``SEARCHES[name](x, y, warmup, cut, **grid)`` fits the family on samples before ``cut`` of
 every row of ``x``, ``y`` (rows, time) for each setting of its options (the family's own
 choices, such as the target's sign, the direction and the penalty, over the sizes of
-``grid``), and returns a :class:`Searched`: the
-setting with the least RMS error on the hold-out ``cut:``, as a spec, and its model refitted
-on every sample (see :func:`register_family`). The built-in families' searches are
-registered on its first read (:func:`load_families`)."""
+``grid``), and returns a :class:`Searched`: the setting with the least RMS error on the
+hold-out ``cut:``, as a spec, and its model refitted on every sample (see
+:func:`register_family`). The built-in families' searches are registered on its first read
+(:func:`load_families`)."""
 
 
 def register_family(name: str, builder: Callable[[Mapping[str, Any]], Any], *,
