@@ -95,3 +95,28 @@ def test_single_sample_and_float32() -> None:
 def test_bad_input(x: object, kwargs: dict, error: type, match: str) -> None:
     with pytest.raises(error, match=match):
         turning_points(x, **kwargs)  # type: ignore[arg-type]
+
+
+def test_the_prefix_clamp_of_a_symbolic_length_equals_the_eager_loop() -> None:
+    """The detector's prefix clamp exported with a dynamic time dimension (its shifted-in
+    form, torch.export) equals, bit for bit, the eager loop over slices at lengths below,
+    at and above the traced one, ties and 2 included, and a plain loop of clamps."""
+    from torchhys.functional.turning_points import _prefix_clamp
+
+    class Clamp(torch.nn.Module):
+        def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            return _prefix_clamp(x - 0.3, x + 0.3)
+
+    time = torch.export.Dim("time", min=2, max=1 << 12)
+    x = torch.stack([random_walk(3, 24), random_walk(4, 24)])
+    program = torch.export.export(Clamp(), (x,), dynamic_shapes={"x": {1: time}}).module()
+    for n in (2, 3, 24, 37, 100):
+        v = torch.stack([random_walk(n, n), -random_walk(n + 1, n)])  # quantized: ties
+        got, ref = program(v), Clamp()(v)
+        assert all(torch.equal(a, b) for a, b in zip(got, ref, strict=True)), n
+        lo, hi = v - 0.3, v + 0.3  # y -> clamp(y, lo_t, hi_t) composed from the first sample
+        a, b = lo[:, 0], hi[:, 0]
+        for t in range(1, n):
+            a, b = (torch.minimum(torch.maximum(a, lo[:, t]), hi[:, t]),
+                    torch.minimum(torch.maximum(b, lo[:, t]), hi[:, t]))
+        assert torch.equal(ref[0][:, -1], a) and torch.equal(ref[1][:, -1], b), n

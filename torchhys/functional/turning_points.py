@@ -51,14 +51,33 @@ def _prefix_clamp(lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
 
     ``clamp(clamp(y, a1, b1), a2, b2) = clamp(y, clamp(a1, a2, b2), clamp(b1, a2, b2))``;
     the result holds only copies of the inputs (min/max are exact). O(T log T) time, O(T)
-    memory (used without autograd: the detector output is discrete). Each doubling composes
-    with the maps ``k`` samples earlier, shifted in behind the identity map
-    ``clamp(y, -inf, inf)`` (no slice of size ``T - k``, so ``torch.export`` keeps a dynamic
-    time dimension; a symbolic ``T`` runs the doublings of the largest length it may take).
+    memory (used without autograd: the detector output is discrete). A symbolic ``T``
+    (``torch.export`` with a dynamic time dimension) takes :func:`_prefix_clamp_symbolic`.
     """
     T = lo.shape[-1]
+    if not isinstance(T, int):
+        return _prefix_clamp_symbolic(lo, hi)
     k = 1
-    while k < _largest(T):
+    while k < T:
+        lo_cur, hi_cur = lo[..., k:], hi[..., k:]
+        new_lo = torch.minimum(torch.maximum(lo[..., :-k], lo_cur), hi_cur)
+        new_hi = torch.minimum(torch.maximum(hi[..., :-k], lo_cur), hi_cur)
+        lo = torch.cat([lo[..., :k], new_lo], dim=-1)
+        hi = torch.cat([hi[..., :k], new_hi], dim=-1)
+        k *= 2
+    return lo, hi
+
+
+def _prefix_clamp_symbolic(lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`_prefix_clamp` for a symbolic length ``T``, the same values: each doubling
+    composes with the maps ``k`` samples earlier, shifted in behind the identity map
+    ``clamp(y, -inf, inf)`` (no slice of size ``T - k``, on which export would guard), over
+    the doublings of the largest length ``T`` may take (2 ** 62 if unbounded)."""
+    T = lo.shape[-1]
+    upper = T.node.shape_env.bound_sympy(T.node.expr).upper
+    largest = int(upper) if upper.is_finite and upper < 1 << 62 else 1 << 62
+    k = 1
+    while k < largest:
         shift = torch.sym_min(k, T)
         lo_prev = torch.nn.functional.pad(lo, (shift, 0), value=-math.inf)[..., :T]
         hi_prev = torch.nn.functional.pad(hi, (shift, 0), value=math.inf)[..., :T]
@@ -66,14 +85,6 @@ def _prefix_clamp(lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
                   torch.minimum(torch.maximum(hi_prev, lo), hi))
         k *= 2
     return lo, hi
-
-
-def _largest(n: int | torch.SymInt) -> int:
-    """``n``, or for a symbolic size the largest value it may take (2 ** 62 if unbounded)."""
-    if isinstance(n, int):
-        return n
-    upper = n.node.shape_env.bound_sympy(n.node.expr).upper
-    return int(upper) if upper.is_finite and upper < 1 << 62 else 1 << 62
 
 
 def zigzag(x: Tensor, threshold: Tensor, play0: Tensor, direction0: Tensor) -> Zigzag:
