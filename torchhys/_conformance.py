@@ -199,40 +199,60 @@ def _torchscript(case: Case) -> str | None:
     x = signal(dtype=case.dtype)
     net = _network(case.build(), x)
     eager = StreamingCompensator(net, limits=LIMITS, **RAW)(x)
-    with torch.no_grad(), tempfile.TemporaryDirectory() as folder:
+    with torch.no_grad():
         for on, mode in modes():
             with compiled(on):
                 assert_close(eager, net(x)[0], case.export_atol,
                              f"the eager compensator against the network (with {mode})")
-        scripted = to_torchscript(net, Path(folder) / "comp.pt", limits=LIMITS, **RAW)(x)
-        assert_close(scripted, eager, case.export_atol,
-                     "the TorchScript compensator against the eager one")
-        assert_close(scripted, net(x)[0], case.export_atol,
-                     "the TorchScript compensator against the network")
+        scripted_against(net, x, eager, net(x)[0], case.export_atol, "the network")
     return PASSED
+
+
+def scripted_against(model: Any, x: Tensor, eager: Tensor, reference: Tensor, atol: float,
+                     what: str) -> None:
+    """The TorchScript compensator of ``model`` (limits that never act, no guard or clamp)
+    on ``x`` against the eager compensator's commands ``eager`` and ``reference`` (the
+    model's own output, named ``what``), within ``atol`` of their scale."""
+    with torch.no_grad(), tempfile.TemporaryDirectory() as folder:
+        scripted = to_torchscript(model, Path(folder) / "comp.pt", limits=LIMITS, **RAW)(x)
+    assert_close(scripted, eager, atol, "the TorchScript compensator against the eager one")
+    assert_close(scripted, reference, atol, f"the TorchScript compensator against {what}")
 
 
 def _aoti(case: Case) -> str | None:
     x = signal(40, case.dtype)[1]
     net = _network(case.build(), x[None])
-    eager = StreamingCompensator(net, limits=LIMITS, **RAW)(x)
+    with torch.no_grad():
+        reference = net(x)[0]
+    aoti_against(net, x, reference, case.export_atol, "the network")
+    return PASSED
+
+
+def aoti_against(model: Any, x: Tensor, reference: Tensor, atol: float, what: str) -> None:
+    """The AOTInductor compensator of ``model`` stepped over ``x`` (time,) against the eager
+    compensator and ``reference`` (named ``what``), within ``atol``; a NaN sample then held
+    and counted."""
+    eager = StreamingCompensator(model, limits=LIMITS, **RAW)(x)
     with tempfile.TemporaryDirectory() as folder:
-        stepper = load_aoti(to_aoti(net, Path(folder) / "comp.pt2", limits=LIMITS, **RAW))
+        stepper = load_aoti(to_aoti(model, Path(folder) / "comp.pt2", limits=LIMITS, **RAW))
         got = torch.cat([stepper.step(v.reshape(1)) for v in x])
-        assert_close(got, eager, case.export_atol, "the AOTI compensator against the eager one")
-        with torch.no_grad():
-            assert_close(got, net(x)[0], case.export_atol,
-                         "the AOTI compensator against the network")
-        held = stepper.step(torch.tensor([float("nan")], dtype=case.dtype))
+        assert_close(got, eager, atol, "the AOTI compensator against the eager one")
+        assert_close(got, reference, atol, f"the AOTI compensator against {what}")
+        held = stepper.step(torch.tensor([float("nan")], dtype=x.dtype))
         if not (torch.equal(held, got[-1:]) and int(stepper.nonfinite_count()) == 1):
             raise AssertionError("the AOTI compensator does not hold and count a NaN sample")
-    return PASSED
 
 
 def _nan(case: Case) -> str | None:
     x = signal(dtype=case.dtype)[0]
-    comp = StreamingCompensator(_network(case.build(), x[None]), limits=LIMITS, **RAW)
-    ref, k = comp(x), 37
+    nan_held(StreamingCompensator(_network(case.build(), x[None]), limits=LIMITS, **RAW), x)
+    return PASSED
+
+
+def nan_held(comp: StreamingCompensator, x: Tensor, k: int = 37) -> None:
+    """A NaN sample inserted at ``k`` into ``x`` (time,): ``comp`` holds the command before
+    it, counts it, and the commands after it are those without it (the state held)."""
+    ref = comp(x)
     nan = torch.tensor([float("nan")], dtype=x.dtype)
     got = torch.cat([comp.step(v.reshape(1)) for v in torch.cat([x[:k], nan, x[k:]])])
     if not torch.equal(got[k], got[k - 1]) or comp.nonfinite_count().tolist() != [1]:
@@ -241,7 +261,6 @@ def _nan(case: Case) -> str | None:
     if not torch.equal(torch.cat([got[:k], got[k + 1:]]), ref):
         raise AssertionError("the commands after a NaN sample differ from those without it: "
                              "the state was not held")
-    return PASSED
 
 
 def _wrong_shape(case: Case) -> str | None:
