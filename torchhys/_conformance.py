@@ -72,6 +72,13 @@ def signal(T: int = 90, dtype: torch.dtype = torch.float64) -> Tensor:
                         (steps.cumsum(0).clamp(-1.0, 1.0) * 8).round() / 8]).to(dtype)
 
 
+def smooth_signal(T: int = 12) -> Tensor:
+    """(2, T) float64 in about [-1, 1]: two smooth waves without ties (gradcheck's input)."""
+    t = torch.arange(T, dtype=torch.float64)
+    return torch.stack([0.8 * torch.sin(0.61 * t + 0.3) + 0.05 * t ** 0.5,
+                        0.7 * torch.cos(0.83 * t + 0.1) - 0.013 * t])
+
+
 def assert_close(got: Tensor, ref: Tensor, atol: float, what: str) -> None:
     """Equal within ``atol`` relative to ``ref``'s scale (at least 1); 0: bit for bit."""
     atol = atol and atol * max(1.0, float(ref.abs().max()))
@@ -188,9 +195,7 @@ def _gradcheck(case: Case) -> str | None:
         return case.example.no_gradcheck
     if case.dtype != torch.float64:
         return "gradcheck runs in float64"
-    op, t = case.build(), torch.arange(12, dtype=torch.float64)
-    x = torch.stack([0.8 * torch.sin(0.61 * t + 0.3) + 0.05 * t ** 0.5,
-                     0.7 * torch.cos(0.83 * t + 0.1) - 0.013 * t]).requires_grad_()
+    op, x = case.build(), smooth_signal().requires_grad_()
     torch.autograd.gradcheck(lambda v: op(v)[0], (x,), raise_exception=True)
     return PASSED
 
