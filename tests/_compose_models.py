@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from torch import nn
 
@@ -88,3 +90,78 @@ def signal(batch: int = 3, time: int = 120, seed: int = 1,
     g = torch.Generator().manual_seed(seed)
     w = torch.randn(batch, time, generator=g, dtype=torch.float64).cumsum(1) * 0.2
     return (1.5 * torch.tanh(w)).to(dtype)
+
+
+class Layers(nn.Module):
+    """One recurrent layer of torch (``layer``: any number of layers, time first or batch
+    first, with or without bias), then an MLP."""
+
+    def __init__(self, layer: nn.RNNBase) -> None:
+        super().__init__()
+        self.rnn = layer
+        self.mlp = nn.Sequential(nn.Linear(layer.hidden_size, 4), nn.SiLU(), nn.Linear(4, 1))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        f = x.unsqueeze(-1) if self.rnn.batch_first else x.transpose(0, 1).unsqueeze(-1)
+        h, _ = self.rnn(f)
+        y = self.mlp(h).squeeze(-1)
+        return y if self.rnn.batch_first else y.transpose(0, 1)
+
+
+class StateSpaceMLP(nn.Module):
+    """A two-input state-space layer (torchhys.dynamics.StateSpace) on [x, tanh(x)], then a
+    readout."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.ss = torchhys.dynamics.StateSpace(3, 2, n_inputs=2)
+        self.lin = nn.Linear(2, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        s = self.ss(torch.stack([x, torch.tanh(x)], -1))[0]
+        return self.lin(s).squeeze(-1)
+
+
+def mlp() -> nn.Module:
+    """Stateless layers only: nn.Sequential of Linear, Tanh, SiLU, Sigmoid, ReLU (x (batch,
+    time) -> y (batch, time))."""
+    return nn.Sequential(nn.Unflatten(-1, (-1, 1)), nn.Linear(1, 6), nn.Tanh(),
+                         nn.Linear(6, 5), nn.SiLU(), nn.Linear(5, 4), nn.Sigmoid(),
+                         nn.Linear(4, 3), nn.ReLU(), nn.Linear(3, 1), nn.Flatten(-2))
+
+
+_KINDS = {"lstm": nn.LSTM, "gru": nn.GRU, "rnn_tanh": nn.RNN,
+          "rnn_relu": lambda *a, **k: nn.RNN(*a, nonlinearity="relu", **k)}
+
+
+def _layer(kind: str, layers: int, batch_first: bool) -> Layers:
+    return Layers(_KINDS[kind](1, 5, num_layers=layers, batch_first=batch_first))
+
+
+CONFORMANCE: dict[str, Callable[[], nn.Module]] = {
+    **{f"{kind}_{n}_{'batch_first' if bf else 'time_first'}":
+       (lambda kind=kind, n=n, bf=bf: _layer(kind, n, bf).double())
+       for kind in _KINDS for n in (1, 2) for bf in (True, False)},
+    "state_space": lambda: StateSpaceMLP().double(),
+    "mlp": lambda: mlp().double(),
+    **{name: (lambda name=name: MODELS[name]().double()) for name in MODELS},
+}
+"""The compositions of the conformance suite, each a function building the module
+(tests/test_conformance.py runs torchhys.testing.check_composed on each): every layer kind
+(nn.LSTM, nn.GRU, nn.RNN tanh and relu, 1 and 2 layers, batch first and time first;
+StateSpace; Linear and activations in nn.Sequential) and the three compositions of
+:data:`MODELS`."""
+
+
+def with_ranges(build: Callable[[], nn.Module]) -> nn.Module:
+    """``compose`` of the module ``build`` makes (seed 0) with its ranges recorded on
+    :func:`signal` and the module's own output there: the compensator's default limits,
+    input clamp and direction guard then act."""
+    from torchhys.compose import compose
+
+    torch.manual_seed(0)
+    module = build()
+    x = signal()
+    with torch.no_grad():
+        y = module(x)
+    return compose(module, x=x, y=y)

@@ -23,6 +23,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from _compose_models import CONFORMANCE as COMPOSITIONS
+from _compose_models import MODELS as NAMED_COMPOSITIONS
+from _compose_models import with_ranges
 from _export_helpers import (
     CC,
     FLOAT32_RTOL,
@@ -40,7 +43,15 @@ from _export_helpers import (
 from _helpers import loop_net
 
 from torchhys.registry import OPERATORS, load_entry_points
-from torchhys.testing import CHECKS, COMPILE_CHECKS, check_conformance, example_of
+from torchhys.testing import (
+    CHECKS,
+    COMPILE_CHECKS,
+    COMPOSED_CHECKS,
+    COMPOSED_COMPILE_CHECKS,
+    check_composed,
+    check_conformance,
+    example_of,
+)
 
 load_entry_points()
 NAMES = sorted(OPERATORS)
@@ -123,6 +134,41 @@ def test_conformance(check: str, name: str) -> None:
         pytest.skip(why)
 
 
+@pytest.mark.parametrize("check, name", [
+    pytest.param(check, name, id=f"{check}-{name}",
+                 marks=[pytest.mark.slow] * (check in COMPOSED_COMPILE_CHECKS))
+    for check in COMPOSED_CHECKS for name in COMPOSITIONS])
+def test_composed_conformance(check: str, name: str) -> None:
+    """The check of a composed model (torchhys.testing.COMPOSED_CHECKS) on each composition
+    of tests/_compose_models.CONFORMANCE: every layer kind and the three compositions
+    (AOTInductor with the slow tests)."""
+    why = check_composed(COMPOSITIONS[name], checks=[check])[check]
+    if why is not None:
+        pytest.skip(why)
+
+
+COMPOSED = "composed:"
+"""The prefix of a composition's name in the C and ONNX checks (beside the operators')."""
+
+
+def composed_names(dtypes: dict[str, tuple]) -> list:
+    """``(COMPOSED + name, dtype)`` for every composition of CONFORMANCE and every dtype of
+    ``dtypes``: those of ``dtypes[name]`` in the default run (a named composition's), the
+    others with the slow tests."""
+    return [pytest.param(COMPOSED + name, dtype, id=f"composed-{name}-{dtype}",
+                         marks=[pytest.mark.slow] * (dtype not in dtypes.get(name, ())))
+            for name in COMPOSITIONS for dtype in ("float64", "float32")]
+
+
+def deployable(name: str) -> torch.nn.Module:
+    """The model of a name of the C and ONNX checks: a composition with its ranges recorded
+    (``COMPOSED + name``), else the operator's example in a network fitted to follow a loop
+    (``_helpers.loop_net``)."""
+    if name.startswith(COMPOSED):
+        return with_ranges(COMPOSITIONS[name[len(COMPOSED):]])
+    return loop_net([build(name)])
+
+
 def build(name: str) -> torch.nn.Module:
     """The example in float64; a non-causal operator (its forward needs the target) cannot
     stream or be exported: skipped, with the reason."""
@@ -149,7 +195,7 @@ def torchscript_runs(tmp_path_factory: pytest.TempPathFactory
 
     def run(name: str, dtype: str) -> tuple[torch.nn.Module, np.ndarray, dict]:
         if (name, dtype) not in runs:
-            net = loop_net([build(name)])
+            net = deployable(name)
             x = record(*training_range(net), **({"n": N32} if dtype == "float32" else {}))
             path = tmp_path_factory.mktemp(f"{name}-{dtype}") / "comp.pt"
             runs[name, dtype] = net, x, run_torchscript(net, x, path, getattr(torch, dtype))
@@ -163,7 +209,9 @@ def assert_as_torchscript(got: dict, x: np.ndarray, ts: dict, dtype: str) -> Non
 
 
 @pytest.mark.skipif(CC is None, reason=NO_CC)
-@pytest.mark.parametrize("name, dtype", names("c", dict.fromkeys(NAMES, ["float64", "float32"])))
+@pytest.mark.parametrize("name, dtype", [
+    *names("c", dict.fromkeys(NAMES, ["float64", "float32"])),
+    *composed_names(dict.fromkeys(NAMED_COMPOSITIONS, ("float64", "float32")))])
 def test_c_equals_torchscript(name: str, dtype: str, torchscript_runs: Callable,
                               tmp_path: Path) -> None:
     """The C99 step (``to_c``, compiled with ``cc -std=c99 -O2 -Wall -Wextra -Werror
@@ -179,8 +227,9 @@ def test_c_equals_torchscript(name: str, dtype: str, torchscript_runs: Callable,
 
 @pytest.mark.skipif(bool(ONNX_MISSING), reason=f"{', '.join(ONNX_MISSING)} missing: pip "
                     'install "torchhys[onnx]"')
-@pytest.mark.parametrize("name, dtype", names("onnx", dict.fromkeys(NAMES, ["float64", "float32"]),
-                                              slow=("float32",)))
+@pytest.mark.parametrize("name, dtype", [
+    *names("onnx", dict.fromkeys(NAMES, ["float64", "float32"]), slow=("float32",)),
+    *composed_names({"backlash_lstm": ("float64",)})])
 def test_onnx_equals_torchscript(name: str, dtype: str, torchscript_runs: Callable,
                                  tmp_path: Path) -> None:
     """The ONNX step under ONNX Runtime: the commands and the final state tensors within

@@ -24,6 +24,14 @@ stacked parameters, meta and fake tensors, ``torch.func.grad``, ``gradgradcheck`
 documented in ``docs/torch_integration.md``; the compiling ones run when asked::
 
     check_conformance("backlash", checks=["compile", "export"])
+
+:func:`check_composed` runs a composed model (:func:`torchhys.compose.compose` of a user's
+module of operators, recurrent layers and elementwise maths) through the checks of
+:data:`COMPOSED_CHECKS`, the same code as the operators' where a check is the same::
+
+    from torchhys.testing import check_composed
+
+    check_composed(lambda: MyModel().double())  # every check but AOTInductor's
 """
 
 import copy
@@ -37,8 +45,9 @@ import torch
 import torchhys.registry as registry
 from torchhys.operator import HysteresisOperator
 
-__all__ = ["CHECKS", "COMPILE_CHECKS", "DEFAULT_CHECKS", "TORCH_CHECKS", "Example",
-           "check_conformance", "example_of"]
+__all__ = ["CHECKS", "COMPILE_CHECKS", "COMPOSED_ATOL", "COMPOSED_CHECKS",
+           "COMPOSED_COMPILE_CHECKS", "DEFAULT_CHECKS", "TORCH_CHECKS", "Example",
+           "check_composed", "check_conformance", "example_of"]
 
 CHECKS: dict[str, str] = {
     "protocol": "the example is an operator of its registered class",
@@ -79,6 +88,36 @@ TORCH_CHECKS = ("compile", "export", "vmap", "vmap_params", "meta", "fake", "fun
 """The checks of the operator under torch's own tools (``torchhys._conformance_torch``)."""
 DEFAULT_CHECKS = tuple(c for c in CHECKS if c not in COMPILE_CHECKS)
 """The checks :func:`check_conformance` runs by default: all but :data:`COMPILE_CHECKS`."""
+
+COMPOSED_CHECKS: dict[str, str] = {
+    "protocol": "the model is a Composed of one composed step that passes "
+                "torchhys.step.check_step, its state blocks named '<node>.<block>'",
+    "chunked": "the composed step, and the compensator's step, in chunks of 1, 1, 2, 27 and "
+               "the rest (the state carried) equal one run bit for bit; a row alone its row "
+               "of a batch",
+    "step": "the composed step sample by sample equals the module on the whole sequence "
+            "(within atol), and the compensator's commands the step bit for bit",
+    "state": "the compensator's state saved and restored continues as it did, reset() starts "
+             "afresh, step_explicit equals step (commands and state, bit for bit), a state "
+             "of another layout is an error naming the block",
+    "gradcheck": "gradcheck of the composed step over a sequence in the input, and of one "
+                 "step in the input and a reached state (float64)",
+    "nan": "a NaN sample is held, counted, and leaves the state",
+    "torchscript": "the TorchScript compensator equals the eager one and the module within "
+                   "1e-12 (float64)",
+    "aoti": "the AOTInductor compensator equals the eager one and the module within 1e-12 "
+            "(float64) and holds a NaN",
+    "float32": "the float32 compensator equals the float64 module within 1e-4 of the "
+               "output's scale (docs/composing.md)",
+}
+"""The checks of a composed model by name (:func:`check_composed`): what each holds. The C99
+and ONNX steps of the compositions are checked against the TorchScript compensator by the
+suite (``tests/test_conformance.py``)."""
+COMPOSED_COMPILE_CHECKS = ("aoti",)
+"""The checks of a composed model that compile a program (tens of seconds on a CPU)."""
+COMPOSED_ATOL = 1e-12
+"""The default tolerance of the composed step against the module (float64, relative to the
+output's scale): torch's fused recurrent kernels sum in another order than the step."""
 
 
 @dataclass(frozen=True)
@@ -179,6 +218,74 @@ def check_conformance(operator: str | type | HysteresisOperator, example: Any = 
             if results[name] is not None:
                 break
     return results
+
+
+def check_composed(model: Any, *, atol: float = COMPOSED_ATOL, no_gradcheck: str | None = None,
+                   dtype: torch.dtype = torch.float64,
+                   checks: Sequence[str] | None = None) -> dict[str, str | None]:
+    """Run a composed model through the conformance checks of :data:`COMPOSED_CHECKS`.
+
+    Args:
+        model: a function that builds it (called after ``torch.manual_seed(0)`` for each
+            check: a :class:`~torchhys.compose.Composed`, or a module that
+            :func:`~torchhys.compose.compose` takes), an :class:`Example` of one (its
+            ``build``, ``atol`` and ``no_gradcheck``), or the module itself (each check
+            composes a copy). Inputs in about ``[-1, 1]``, or in the Composed's recorded
+            input range.
+        atol: the composed step against the module, relative to the output's scale (at
+            least 1); 0: bit for bit (an Example's ``atol`` instead).
+        no_gradcheck: why gradcheck does not apply, or None.
+        dtype: ``torch.float64`` or ``torch.float32`` (at least 1e-4; no gradcheck).
+        checks: names of :data:`COMPOSED_CHECKS`, in their order; None: all but
+            :data:`COMPOSED_COMPILE_CHECKS`.
+
+    Returns:
+        Each check run -> None where it held, else why it does not apply.
+
+    Raises:
+        AssertionError: a check that fails, naming the model, the check and what differs.
+        ValueError: an unknown check, a dtype other than float32 or float64.
+        TypeError: ``model`` of another type.
+    """
+    import torchhys._conformance_compose as compose_conformance
+
+    if dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype!r}")
+    names = (tuple(c for c in COMPOSED_CHECKS if c not in COMPOSED_COMPILE_CHECKS)
+             if checks is None else tuple(checks))
+    if isinstance(checks, str) or any(c not in COMPOSED_CHECKS for c in names):
+        raise ValueError(f"checks must be names of torchhys.testing.COMPOSED_CHECKS "
+                         f"{list(COMPOSED_CHECKS)}, got {checks!r}")
+    if isinstance(model, Example):
+        build, atol, no_gradcheck = model.build, model.atol, model.no_gradcheck
+    elif isinstance(model, torch.nn.Module):
+        build = lambda module=model: copy.deepcopy(module)  # noqa: E731
+    elif callable(model):
+        build = model
+    else:
+        raise TypeError(f"model must be an nn.Module, an Example or a function that builds "
+                        f"one, got {type(model).__name__}")
+    label = f"composed model {_name(build)}"
+    case = compose_conformance.ComposedCase(label, build, atol, no_gradcheck, dtype)
+    results: dict[str, str | None] = {}
+    for name in names:
+        try:
+            results[name] = compose_conformance.RUNS[name](case)
+        except Exception as e:  # noqa: BLE001 (whatever the model raises fails the check)
+            text = str(e) if isinstance(e, AssertionError) else f"{type(e).__name__}: {e}"
+            raise AssertionError(f"{case.label} fails the check {name!r} "
+                                 f"({COMPOSED_CHECKS[name]}): {text}") from e
+    return results
+
+
+def _name(build: Callable[[], Any]) -> str:
+    """The class of the module ``build`` makes (a Composed's: its module's), else its name."""
+    name = getattr(build, "__name__", "<lambda>")
+    if name != "<lambda>":
+        return name
+    torch.manual_seed(0)
+    built = build()
+    return type(getattr(built, "module", built)).__name__
 
 
 def _case(operator: Any, example: Any, dtype: torch.dtype) -> Any:
