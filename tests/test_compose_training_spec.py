@@ -5,6 +5,7 @@ with the net passed again; refusals are one line naming what to give."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -92,3 +93,32 @@ def test_load_from_checkpoint_restores_a_composed_net(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match=r"^the checkpoint's model \(a sequence model\) was "
                                          r"passed in built, .* export it from Python"):
         build_net(saved)
+
+
+def test_export_refuses_a_composed_model_whose_output_is_not_finite(tmp_path: Path,
+                                                                     capsys) -> None:
+    """Finite float64 weights near 1e308 (a fit stopped as it diverged): the composed model's
+    output across its recorded input range is infinite; ``torchhys export`` refuses it in
+    one line, as it refuses such a network, and writes nothing."""
+    from torchhys.cli.export import main
+
+    model = _trained()
+    x, _ = inverse_data(60)
+    with torch.no_grad():  # the readout's terms all of one sign: its sum overflows
+        f = torch.cat([x.unsqueeze(-1), model.module.bl(x)[0]], -1)
+        h = model.module.gru(f)[0]
+        model.module.lin.weight.copy_(1e308 * h.mean((0, 1)).sign()[None])
+        model.module.lin.bias.fill_(1.7e308)
+        assert not model(x).isfinite().all()
+    ckpt = {"state_dict": {f"net.{k}": v for k, v in model.state_dict().items()},
+            "hyper_parameters": {"net": SPEC}}
+    torch.save(ckpt, tmp_path / "big.ckpt")
+    out = tmp_path / "m.pt"
+    assert main(["--ckpt", str(tmp_path / "big.ckpt"), "--format", "torchscript", "--out",
+                 str(out), "--import", "test_compose_training"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    assert re.search(r"^torchhys export: error: --ckpt .*big\.ckpt: the model's output is not "
+                     r"finite at \d+ of 128 inputs across its training input range \(weights "
+                     r"up to 1.7e\+308", err), err
+    assert not out.exists()

@@ -147,15 +147,18 @@ def check_output(net: nn.Module, where: str, samples: int = 64) -> None:
     """Refuse a network whose output over its training input range is not finite (weights
     finite but so large that the output overflows) or lies more than :data:`OUTPUT_BOUND`
     of the training output's standard deviations (``out_std``) from its mean (``out_mean``):
-    a fit stopped as it diverged. Nothing is checked for a network that records no input
-    range."""
+    a fit stopped as it diverged. A sequence model (a :class:`~torchhys.compose.Composed`,
+    no ``out_std``) is run on the range as one sequence (batch 1); only its finiteness is
+    checked. Nothing is checked for a model that records no input range."""
     lo, hi = float(net.in_min), float(net.in_max)
     if not (math.isfinite(lo) and math.isfinite(hi)):
         return
-    dtype = net.in_mean.dtype
+    dtype = net.in_min.dtype
     x = torch.linspace(lo, hi, samples, dtype=torch.float64).to(dtype)
+    x = torch.cat([x, x.flip(0)])
+    sequence = not hasattr(net, "out_std")  # a sequence model (a Composed): y = net(x)
     with torch.no_grad():
-        y = net(torch.cat([x, x.flip(0)]))[0]
+        y = net(x[None])[0] if sequence else net(x)[0]
     bad = int((~torch.isfinite(y)).sum())
     if not bad and hasattr(net, "out_mean") and hasattr(net, "out_std"):
         mean, std = float(net.out_mean), float(net.out_std)
@@ -167,7 +170,8 @@ def check_output(net: nn.Module, where: str, samples: int = 64) -> None:
                              "fit again (a smaller model.lr, data in other units)")
     if bad:
         big = max(float(p.detach().abs().max()) for p in net.parameters())
-        raise ValueError(f"{where}: the network's output is not finite at {bad} of "
+        raise ValueError(f"{where}: the {'model' if sequence else 'network'}'s output is not "
+                         f"finite at {bad} of "
                          f"{y.numel()} inputs across its training input range (weights up to "
                          f"{big:.3g} in magnitude: a diverged fit); fit again (a smaller "
                          "model.lr, data in other units)")

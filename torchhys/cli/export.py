@@ -47,6 +47,7 @@ from torchhys.checkpoints import read_checkpoint
 from torchhys.cli.errors import config_errors, report_user_error
 from torchhys.cli.negative_numbers import accept_negative_numbers
 from torchhys.cli.plugins import import_modules
+from torchhys.compose import Composed
 from torchhys.compose.spec import build_composed, is_composed_spec
 from torchhys.deploy.c import DEFAULT_PREFIX, check_prefix, to_c
 from torchhys.deploy.export import to_aoti, to_torchscript
@@ -277,7 +278,7 @@ def main(argv: list[str]) -> int:
         with config_errors():  # a TypeError here is in the options or the checkpoint
             net = build_net(ckpt, None if "state_dict" in ckpt else _plain_arch(args))
             check_weights(net, f"--ckpt {args.ckpt}")  # a diverged fit's NaN weights
-            if isinstance(net, InverseHysteresisNet):
+            if isinstance(net, (InverseHysteresisNet, Composed)):
                 check_output(net, f"--ckpt {args.ckpt}")  # or its overflowing ones
             if args.dtype is not None:
                 net = net.to(_DTYPES[args.dtype])
