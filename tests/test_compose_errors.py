@@ -184,3 +184,66 @@ def test_a_step_of_several_inputs_needs_its_own_start_from_the_sample():
     with pytest.raises(ValueError, match=r"block 's' starts from the sample .* 2 inputs: "
                        r"override initial_state"):
         Anchored().initial_state(torch.zeros(1, 2))
+
+
+class _OffBacklash(torchhys.Backlash):
+    """A play whose step's half-width is 1e-9 wider than its forward's: the module and its
+    step differ by up to 1e-9 (inside compose's own check, outside the suite's 1e-12)."""
+
+    def streaming_step(self, dtype: torch.dtype) -> OperatorStep:
+        step = super().streaming_step(dtype)
+        with torch.no_grad():
+            step.r.add_(1e-9)
+        return step
+
+
+class _Off(nn.Module):
+    def __init__(self) -> None:
+        super().__init__()
+        self.bl = _OffBacklash(torch.tensor([0.3]))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.bl(x)[0].squeeze(-1)
+
+
+def test_check_composed_fails_a_step_that_is_not_the_module() -> None:
+    from torchhys.testing import check_composed
+
+    with pytest.raises(AssertionError, match=r"^composed model _Off fails the check 'step' "
+                                             r"\(.*\): the composed step sample by sample "
+                                             r"against the module"):
+        check_composed(lambda: _Off().double(), checks=["step"])
+    assert check_composed(lambda: _Off().double(), checks=["chunked"]) == {"chunked": None}
+
+
+def test_check_composed_float32_and_a_module_given_built() -> None:
+    """A module given built (each check composes a copy), in float32: gradcheck does not
+    apply; the module itself is left as it was."""
+    from _compose_models import make
+
+    from torchhys.testing import COMPOSED_CHECKS, COMPOSED_COMPILE_CHECKS, check_composed
+
+    module = make("parallel_gru")
+    before = {k: v.clone() for k, v in module.state_dict().items()}
+    result = check_composed(module, dtype=torch.float32)
+    assert list(result) == [c for c in COMPOSED_CHECKS if c not in COMPOSED_COMPILE_CHECKS]
+    assert result["gradcheck"] == "gradcheck runs in float64"
+    assert all(why is None for c, why in result.items() if c != "gradcheck")
+    assert all(torch.equal(v, before[k]) for k, v in module.state_dict().items())
+    assert next(module.parameters()).dtype == torch.float64
+
+
+@pytest.mark.parametrize("kwargs, error, message", [
+    ({"checks": ["nope"]}, ValueError, r"^checks must be names of torchhys.testing."
+                                       r"COMPOSED_CHECKS \[.*\], got \['nope'\]$"),
+    ({"checks": "step"}, ValueError, r"^checks must be names of .*, got 'step'$"),
+    ({"dtype": torch.float16}, ValueError, r"^dtype must be torch.float32 or torch.float64"),
+    ({"model": 3}, TypeError, r"^model must be an nn.Module, an Example or a function that "
+                              r"builds one, got int$"),
+])
+def test_check_composed_refuses_bad_arguments(kwargs: dict, error: type, message: str) -> None:
+    from torchhys.testing import check_composed
+
+    args = {"model": lambda: _Off().double(), **kwargs}
+    with pytest.raises(error, match=message):
+        check_composed(args.pop("model"), **args)
