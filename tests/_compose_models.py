@@ -61,7 +61,7 @@ class FilterEIHOGRU(nn.Module):
 
 
 class FilterLSTM(nn.Module):
-    """A smooth composition (for gradcheck): a filter, an LSTM of [x, filtered x], a readout."""
+    """A smooth composition: a filter, an LSTM of [x, filtered x], a sigmoid readout."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -142,15 +142,18 @@ CONFORMANCE: dict[str, Callable[[], nn.Module]] = {
     **{f"{kind}_{n}_{'batch_first' if bf else 'time_first'}":
        (lambda kind=kind, n=n, bf=bf: _layer(kind, n, bf).double())
        for kind in _KINDS for n in (1, 2) for bf in (True, False)},
+    "lstm_2_time_first_no_bias": lambda: Layers(nn.LSTM(1, 6, num_layers=2, bias=False)).double(),
+    "gru_3_batch_first": lambda: Layers(nn.GRU(1, 5, num_layers=3, batch_first=True)).double(),
     "state_space": lambda: StateSpaceMLP().double(),
+    "filter_lstm": lambda: FilterLSTM().double(),
     "mlp": lambda: mlp().double(),
     **{name: (lambda name=name: MODELS[name]().double()) for name in MODELS},
 }
 """The compositions of the conformance suite, each a function building the module
 (tests/test_conformance.py runs torchhys.testing.check_composed on each): every layer kind
-(nn.LSTM, nn.GRU, nn.RNN tanh and relu, 1 and 2 layers, batch first and time first;
-StateSpace; Linear and activations in nn.Sequential) and the three compositions of
-:data:`MODELS`."""
+(nn.LSTM, nn.GRU, nn.RNN tanh and relu, 1 and 2 layers, batch first and time first; an
+LSTM without bias, a three-layer GRU; StateSpace; a transfer function into an LSTM; Linear
+and activations in nn.Sequential) and the three compositions of :data:`MODELS`."""
 
 
 def with_ranges(build: Callable[[], nn.Module]) -> nn.Module:

@@ -81,19 +81,6 @@ def test_step_reads_the_weights_and_does_not_train_them():
     assert check_step(step, n_inputs=None) is step
 
 
-def test_gradcheck_of_the_lstm_step():
-    step = LSTMStep(nn.LSTM(2, 3, num_layers=2).double())
-    x = torch.randn(2, 2, dtype=torch.float64, requires_grad=True)
-    h = torch.randn(2, 6, dtype=torch.float64, requires_grad=True)
-    c = torch.randn(2, 6, dtype=torch.float64, requires_grad=True)
-
-    def f(x, h, c):
-        y, (h1, c1) = step(x, [h, c])
-        return y, h1, c1
-
-    assert torch.autograd.gradcheck(f, (x, h, c))
-
-
 def test_refused_layers():
     with pytest.raises(ValueError, match=r"bidirectional.*not causal"):
         recurrent_step(nn.GRU(2, 3, bidirectional=True))

@@ -1,7 +1,9 @@
-"""A Composed through the StreamingCompensator and TorchScript: commands equal the module's
-output inside the range (float64, 1e-12), and saturation, NaN held and counted, the input
-clamp, the direction guard, reset() and the explicit state behave as for the
-InverseHysteresisNet (tests/test_streaming_safety.py, tests/test_streaming_direction.py)."""
+"""A Composed through the StreamingCompensator with its recorded ranges: commands equal the
+module's output inside the range (float64, 1e-12), and saturation, NaN and inf held and
+counted, the input clamp, the direction guard and the layout behave as for the
+InverseHysteresisNet (tests/test_streaming_safety.py, tests/test_streaming_direction.py).
+TorchScript, float32, reset() and the explicit state: torchhys.testing.check_composed's
+checks (tests/test_conformance.py)."""
 
 from __future__ import annotations
 
@@ -12,7 +14,6 @@ import torch
 from _compose_models import MODELS, make, signal
 
 from torchhys.compose import compose
-from torchhys.deploy.export import to_torchscript
 from torchhys.deploy.streaming import StreamingCompensator
 
 RAW = {"input_margin": None, "direction": "none"}
@@ -35,20 +36,6 @@ def test_commands_equal_the_module_inside_the_range(name):
     with torch.no_grad():
         steps = torch.stack([comp.step(xt) for xt in x.unbind(1)], 1)
     torch.testing.assert_close(steps, y, rtol=0, atol=1e-12)
-
-
-@pytest.mark.parametrize("name", MODELS)
-def test_float32_commands_within_a_bound_of_float64(name):
-    """A float32 model's compensator against the float64 module: within 1e-4 of the
-    command's scale (docs/composing.md)."""
-    model = make(name)
-    x = signal(time=400)
-    with torch.no_grad():
-        y = model(x)
-    c32 = compose(make(name, dtype=torch.float32), x=x.float(), y=y.float())
-    u32 = StreamingCompensator(c32, **RAW)(x.float())
-    assert u32.dtype == torch.float32
-    assert float((u32.double() - y).abs().max()) < 1e-4 * float(y.abs().max())
 
 
 def test_saturation_to_limits():
@@ -109,29 +96,6 @@ def test_direction_guard():
     assert not torch.equal(u, free)
 
 
-def test_reset_and_explicit_state_save_and_restore():
-    composed, _, x, y = _composed("parallel_gru")
-    comp = StreamingCompensator(composed, **RAW, limits=(-1e3, 1e3))
-    with torch.no_grad():
-        first = torch.stack([comp.step(xt) for xt in x[:, :40].unbind(1)], 1)
-        saved = [t.clone() for t in comp.state]
-        rest = torch.stack([comp.step(xt) for xt in x[:, 40:].unbind(1)], 1)
-        comp.state = saved
-        again = torch.stack([comp.step(xt) for xt in x[:, 40:].unbind(1)], 1)
-        comp.reset()
-        fresh = torch.stack([comp.step(xt) for xt in x[:, :40].unbind(1)], 1)
-        # explicit state, continued across two calls
-        state = comp.initial_state(x.shape[0])
-        explicit = []
-        for xt in x.unbind(1):
-            u, state = comp.step_explicit(xt, state)
-            explicit.append(u)
-    torch.testing.assert_close(rest, again, rtol=0, atol=0)
-    torch.testing.assert_close(fresh, first, rtol=0, atol=0)
-    torch.testing.assert_close(torch.cat([first, rest], 1), y, rtol=0, atol=1e-12)
-    torch.testing.assert_close(torch.stack(explicit, 1), y, rtol=0, atol=1e-12)
-
-
 def test_layout_names_the_leaves_blocks():
     composed, _, _, _ = _composed()
     rows = StreamingCompensator(composed, **RAW, limits=(-1.0, 1.0)).layout()
@@ -148,19 +112,3 @@ def test_no_ranges_no_clamp_no_guard_and_limits_needed():
         StreamingCompensator(composed)
     comp = StreamingCompensator(composed, limits=(-1.0, 1.0))
     assert not comp.clamp_input and not comp.guard
-
-
-@pytest.mark.filterwarnings("ignore::DeprecationWarning")
-@pytest.mark.parametrize("name", MODELS)
-def test_torchscript_equals_eager(name, tmp_path):
-    composed, _, x, y = _composed(name)
-    scripted = to_torchscript(composed, tmp_path / "model.pt", direction="none")
-    loaded = torch.jit.load(str(tmp_path / "model.pt"))
-    eager = StreamingCompensator(composed, direction="none")
-    torch.testing.assert_close(loaded(x), y, rtol=0, atol=1e-12)
-    torch.testing.assert_close(scripted(x), eager(x), rtol=0, atol=1e-12)
-    steps = torch.stack([loaded.step(xt) for xt in x.unbind(1)], 1)
-    torch.testing.assert_close(steps, y, rtol=0, atol=1e-12)
-    xn = x.clone()
-    xn[:, 7] = math.nan
-    torch.testing.assert_close(loaded(xn), eager(xn), rtol=0, atol=1e-12)
