@@ -1,5 +1,6 @@
-"""docs/composing.md runs as written: its Python block runs in a temporary folder, its
-assert holds and it prints the state's blocks the page says."""
+"""docs/composing.md runs as written: its Python blocks run in a temporary folder, in one
+namespace and in order (the worked example, then the conformance check of its model), their
+asserts hold and the first prints the state's blocks the page says."""
 
 from __future__ import annotations
 
@@ -18,14 +19,17 @@ PAGE = Path(__file__).resolve().parents[1] / "docs" / "composing.md"
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")
 def test_the_worked_example_runs_as_written(tmp_path):
     text = PAGE.read_text()
-    (code,) = re.findall(r"^```python\n(.*?)^```", text, flags=re.M | re.S)
+    blocks = re.findall(r"^```python\n(.*?)^```", text, flags=re.M | re.S)
+    assert len(blocks) == 2, len(blocks)
     printed = re.search(r"It prints the state's blocks, `(\[.*?\])`", text, flags=re.S)
     cwd = os.getcwd()
     out = io.StringIO()
     try:
         os.chdir(tmp_path)
+        namespace = {"__name__": "composing"}
         with contextlib.redirect_stdout(out):
-            exec(compile(code, str(PAGE), "exec"), {"__name__": "composing"})
+            exec(compile(blocks[0], str(PAGE), "exec"), namespace)
+        exec(compile(blocks[1], str(PAGE), "exec"), namespace)
     finally:
         os.chdir(cwd)
     assert ast.literal_eval(out.getvalue().strip()) == ast.literal_eval(

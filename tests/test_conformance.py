@@ -9,7 +9,10 @@ plugin author runs are one code; ``docs/torch_integration.md`` lists the checks 
 own tools. Each builds the operator's
 :class:`~torchhys.testing.Example` in float64 and compares within its ``atol`` (0: bit for
 bit), relative to the output's scale. Here besides: the C99 step (compiled) and the ONNX step
-(ONNX Runtime) against the TorchScript file's, output and state. Family-specific maths
+(ONNX Runtime) against the TorchScript file's, output and state. The compositions of
+``tests/_compose_models.CONFORMANCE`` (every layer kind and the compositions of issue 46)
+go through :func:`torchhys.testing.check_composed`, one test a check and a composition, and
+through the same C99 and ONNX checks. Family-specific maths
 (references, analytic values, ties at turning points, other settings, float32) stay in the
 families' test files.
 """
