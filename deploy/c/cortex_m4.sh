@@ -1,12 +1,15 @@
 #!/usr/bin/env bash
 # The generated C on a Cortex-M4 with hardware float, under QEMU, against the host's build.
 #
-#   deploy/c/cortex_m4.sh OUT_DIR [CKPT]
+#   deploy/c/cortex_m4.sh OUT_DIR [CKPT] [--model paper|composed]
 #
-# 1. Writes the float32 C files of a small example compensator into OUT_DIR/gen
-#    (deploy/c/example_comp.py: the network of configs/compensator.yaml, normalization fitted
-#    on a loop; or CKPT, a checkpoint of the torchhys command) and ref.h, the reference
-#    sequence compiled in as a const array.
+# 1. Writes the float32 C files of a small example compensator into OUT_DIR/gen and ref.h,
+#    the reference sequence compiled in as a const array. --model paper (the default):
+#    deploy/c/example_comp.py, the network of configs/compensator.yaml, normalization fitted
+#    on a loop; or CKPT, a checkpoint of the torchhys command. --model composed:
+#    deploy/c/example_composed.py, a plain module (4 play operators beside the input -> an
+#    nn.GRU of 8 units -> nn.Linear, seeded, trained briefly on the same loop) through
+#    torchhys.compose.compose, and torch64.txt, the float64 compensator's commands.
 # 2. Cross-compiles mcu_main.c, the two generated files and the start-up (cortex_m4_startup.c,
 #    cortex_m4.ld: a 16-entry vector table, flash at 0x0, RAM at 0x20000000, FPU on, .data
 #    copied, .bss zeroed, then newlib's _start) with
@@ -16,7 +19,9 @@
 #    weights, its step's stack from -fstack-usage) and the whole image (newlib's printf in it).
 # 4. Runs the image under QEMU (mps2-an386, semihosting), the same files built with the host's
 #    cc, and compares the commands: within 1e-4 of their scale (the float32 bound of
-#    docs/deployment.md), the counters equal. Exit status 0 when they agree.
+#    docs/deployment.md), the counters equal. --model composed also compares the QEMU
+#    commands with the float64 torch compensator's (torch64.txt), within 1e-4 of their scale.
+#    Exit status 0 when they agree.
 #
 # Needs: apt-get install -y gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm
 # Environment: PYTHON (an interpreter with torchhys, default: python3), CC (the host's, cc),
@@ -24,8 +29,25 @@
 set -euo pipefail
 HERE=$(cd "$(dirname "$0")" && pwd)
 PY=${PYTHON:-python3}
-OUT=${1:?usage: cortex_m4.sh OUT_DIR [CKPT]}
-CKPT=${2:-}
+USAGE="usage: cortex_m4.sh OUT_DIR [CKPT] [--model paper|composed]"
+MODEL=paper
+POS=()
+while (($#)); do
+  case $1 in
+    --model) MODEL=${2:?$USAGE}; shift 2 ;;
+    --model=*) MODEL=${1#--model=}; shift ;;
+    -*) echo "cortex_m4.sh: unknown option $1: $USAGE" >&2; exit 2 ;;
+    *) POS+=("$1"); shift ;;
+  esac
+done
+OUT=${POS[0]:?$USAGE}
+CKPT=${POS[1]:-}
+case $MODEL in
+  paper) ;;
+  composed) [[ -z $CKPT ]] || { echo "cortex_m4.sh: --model composed takes no CKPT" >&2; exit 2; } ;;
+  *) echo "cortex_m4.sh: --model must be paper or composed, got '$MODEL'" >&2; exit 2 ;;
+esac
+((${#POS[@]} <= 2)) || { echo "cortex_m4.sh: too many arguments: $USAGE" >&2; exit 2; }
 for tool in arm-none-eabi-gcc arm-none-eabi-size qemu-system-arm; do
   command -v "$tool" >/dev/null || {
     echo "cortex_m4.sh: $tool not found: apt-get install -y gcc-arm-none-eabi" \
@@ -38,7 +60,12 @@ GEN=$(cd "$OUT/gen" && pwd)
 OUT=$(cd "$OUT" && pwd)
 
 # 1. the C files and the reference sequence
-"$PY" "$HERE/example_comp.py" "$GEN" --dtype float32 ${CKPT:+--ckpt "$CKPT"} >/dev/null
+rm -f "$GEN/torch64.txt"
+if [[ $MODEL == composed ]]; then
+  "$PY" "$HERE/example_composed.py" "$GEN" --dtype float32 >/dev/null
+else
+  "$PY" "$HERE/example_comp.py" "$GEN" --dtype float32 ${CKPT:+--ckpt "$CKPT"} >/dev/null
+fi
 
 # 2. the Cortex-M4 image
 MCU=(-mcpu=cortex-m4 -mthumb -mfloat-abi=hard -mfpu=fpv4-sp-d16 -O2)
@@ -69,7 +96,8 @@ timeout "${QEMU_TIMEOUT:-120}" qemu-system-arm -M mps2-an386 -cpu cortex-m4 -nog
   -kernel "$OUT/mcu.elf" >"$OUT/qemu.txt"
 "${CC:-cc}" -std=c99 -O2 -I "$GEN" -o "$OUT/host" "$HERE/mcu_main.c" "$GEN/torchhys_comp.c" -lm
 "$OUT/host" >"$OUT/host.txt"
-"$PY" - "$OUT/qemu.txt" "$OUT/host.txt" <<'PYEOF'
+"$PY" - "$OUT/qemu.txt" "$OUT/host.txt" "$GEN/torch64.txt" <<'PYEOF'
+import os
 import sys
 
 def read(path):
@@ -87,5 +115,14 @@ ok = gap <= 1e-4 and qc == hc and qh == hh
 print(f"QEMU against host cc: {len(qu)} commands, {same} bit-equal, largest difference "
       f"{gap:.3g} of the scale (bound 1e-4); {' '.join(qc)} (host: {' '.join(hc)}); "
       f"{' '.join(qh)} (host: {' '.join(hh)}): {'agree' if ok else 'DIFFER'}")
+if os.path.exists(sys.argv[3]):  # --model composed: the float64 torch compensator
+    tu = [float(line.split()[1]) for line in open(sys.argv[3]) if line.strip()]
+    assert len(tu) == len(qu), (len(tu), len(qu))
+    tscale = max(1.0, max(abs(v) for v in tu))
+    tgap = max(abs(a - b) for a, b in zip(qu, tu)) / tscale
+    tok = tgap <= 1e-4
+    print(f"QEMU against torch float64: {len(qu)} commands, largest difference {tgap:.3g} of "
+          f"the scale (bound 1e-4): {'agree' if tok else 'DIFFER'}")
+    ok = ok and tok
 sys.exit(0 if ok else 1)
 PYEOF
