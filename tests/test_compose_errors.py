@@ -247,3 +247,14 @@ def test_check_composed_refuses_bad_arguments(kwargs: dict, error: type, message
     args = {"model": lambda: _Off().double(), **kwargs}
     with pytest.raises(error, match=message):
         check_composed(args.pop("model"), **args)
+
+
+def test_check_composed_takes_an_example() -> None:
+    """An Example of a composition: its atol and no_gradcheck (the reason returned)."""
+    from _compose_models import CONFORMANCE
+
+    from torchhys.testing import Example, check_composed
+
+    example = Example(CONFORMANCE["parallel_gru"], atol=1e-12, no_gradcheck="not smooth")
+    assert check_composed(example, checks=["step", "gradcheck"]) == {
+        "step": None, "gradcheck": "not smooth"}
