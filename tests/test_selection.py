@@ -326,6 +326,34 @@ def test_a_validation_record_of_its_own_equals_numpy() -> None:
                warn_coverage=False)
 
 
+@pytest.mark.skipif("fork" not in __import__("multiprocessing").get_all_start_methods(),
+                    reason="select_jobs > 1 needs processes started by fork")
+def test_a_validation_record_scored_in_processes_keeps_the_network_its_score_fitted(
+        monkeypatch) -> None:
+    """With ``val`` and ``jobs=2`` the chosen candidate's one fit comes back from the
+    process that scored it: no second fit (``fit_record`` is never called), the network
+    equals the one process's, and the scores are plain :class:`CandidateScore` s."""
+    from torchhys.selection import run
+    from torchhys.selection.run import record
+    from torchhys.selection.scores import CandidateScore
+
+    x, y = _record(T=400)
+    val_mask = torch.zeros(1, 400, dtype=torch.bool)
+    val_mask[0, 300:] = True
+    args = dict(warmup=20, cv=None, val=record(x, y, mask=val_mask), warn_coverage=False)
+    one = select([LINE, STOPS], x[:, :300], y[:, :300], **args)
+
+    def refit(*a, **k):  # noqa: ANN002, ANN003
+        raise AssertionError("the chosen candidate was fitted a second time")
+
+    monkeypatch.setattr(run, "fit_record", refit)
+    two = select([LINE, STOPS], x[:, :300], y[:, :300], jobs=2, **args)
+    assert [s.val_mse for s in two.scores] == [s.val_mse for s in one.scores]
+    assert all(type(s) is CandidateScore for s in two.scores) and two.chosen.index == 1
+    want, got = one.model.state_dict(), two.model.state_dict()
+    assert want.keys() == got.keys() and all(torch.equal(want[k], got[k]) for k in want)
+
+
 def test_every_candidate_nan_names_each_reason() -> None:
     """When no candidate scores, the error names each candidate's reason (a family that
     cannot be fitted is not reported as a diverged training)."""

@@ -18,7 +18,7 @@ import math
 import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -401,14 +401,14 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
     folds = record_folds(data, cv, mode, val=val)  # checked before any candidate runs
 
     # scored on a validation record, a candidate's one fit is the final fit (Record.whole):
-    # the chosen one's is kept where it ran in this process (forked processes keep theirs)
-    fitted: dict[int, InverseHysteresisNet] = {}
-
+    # its network comes back with its score (from a forked process too: pickled with it)
     def score(i: int) -> CandidateScore:
-        keep = (lambda net: fitted.__setitem__(i, net)) if val is not None else None
-        return score_candidate(i, overrides[i], specs[i], folds, cv, dtype=dtype,
-                               seed=seed, epochs=epochs, seconds=seconds, progress=progress,
-                               keep=keep)
+        nets: list[InverseHysteresisNet] = []
+        keep = nets.append if val is not None else None
+        s = score_candidate(i, overrides[i], specs[i], folds, cv, dtype=dtype, seed=seed,
+                            epochs=epochs, seconds=seconds, progress=progress, keep=keep)
+        return _Fitted(**{f.name: getattr(s, f.name) for f in fields(CandidateScore)},
+                       network=nets[-1]) if nets else s
 
     def skipped(i: int) -> CandidateScore:
         return CandidateScore(i, overrides[i], math.nan, error=f"skipped: model.select_budget_s="
@@ -417,9 +417,11 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
     scores = run_candidates(len(specs), score, skipped,
                             report=None if progress is None else progress.scored, jobs=jobs,
                             budget_s=budget_s, together=[shared_key(c) for c in overrides])
+    kept = getattr(scores[best(scores, rule).index], "network", None)
+    scores = [CandidateScore(**{f.name: getattr(s, f.name) for f in fields(CandidateScore)})
+              if isinstance(s, _Fitted) else s for s in scores]
     chosen = best(scores, rule)
-    done = [fitted[chosen.index]] if chosen.index in fitted else []
-    fitted.clear()
+    done = [] if kept is None else [kept]
 
     def fit() -> InverseHysteresisNet:
         if not done:
@@ -429,6 +431,14 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
 
     return Selection(list(scores), chosen, specs[chosen.index], fit() if refit else None, cv,
                      mode, rule, val is not None, fit)
+
+
+@dataclass(frozen=True)
+class _Fitted(CandidateScore):
+    """A score with the network its one fit made (scored on a validation record), carried
+    back from the process that scored it; :func:`select` keeps the chosen one's."""
+
+    network: InverseHysteresisNet | None = None
 
 
 def fit_record(spec: Mapping[str, Any], data: Record, *, dtype: torch.dtype = torch.float64,
