@@ -53,11 +53,12 @@ from torch import Tensor, nn
 
 from torchhys._checks import check_real
 from torchhys._deprecated import moved as _moved
+from torchhys.deploy._slots import _KIND_INDEX, _dtype_name, _model_dtype, _Slot
 from torchhys.deploy._threads import StepLock
 from torchhys.deploy.ranges import _check_limits, _direction, _input_bounds
 from torchhys.deploy.ranges import default_limits as _default_limits
 from torchhys.protocols import check_deployable
-from torchhys.step import STATE_KINDS, OperatorStep, check_step, custom_start
+from torchhys.step import OperatorStep, check_step
 
 __all__ = ["COUNTER", "HELD", "STARTED", "STATE_F", "STATE_F64", "STATE_I", "StreamingCompensator"]
 
@@ -74,55 +75,6 @@ STATE_F, STATE_I, STATE_STARTED, STATE_F64 = 0, 1, 2, 3
 HELD = (STATE_F, 0)
 COUNTER = (STATE_I, 0)
 STARTED = (STATE_STARTED, 0)
-
-#: position of each block kind in the per-kind lists (the order of STATE_KINDS)
-_KIND_INDEX = {kind: i for i, kind in enumerate(STATE_KINDS)}
-
-
-class _Slot(nn.Module):
-    """One step and where its blocks are in the compensator's split state (kind, piece).
-    A step with a start of its own (:func:`~torchhys.step.custom_start`) starts from
-    its ``initial_state(x)`` in the rows that have not started."""
-
-    kinds: list[int]
-    pieces: list[int]
-    custom: Final[bool]
-
-    def __init__(self, step: OperatorStep, kinds: list[int], pieces: list[int]) -> None:
-        super().__init__()
-        self.step = step
-        self.kinds, self.pieces = kinds, pieces
-        self.custom = custom_start(step)
-
-    def forward(self, x: Tensor, parts: list[list[Tensor]], new: list[list[Tensor]],
-                started: Tensor) -> Tensor:
-        state: list[Tensor] = []
-        for j in range(len(self.kinds)):
-            state.append(parts[self.kinds[j]][self.pieces[j]])
-        if self.custom:
-            start = self.step.initial_state(x)
-            for j in range(len(self.kinds)):
-                state[j] = torch.where(started, state[j], start[j].to(state[j].dtype))
-        features, out = self.step(x, state)
-        for j in range(len(self.kinds)):
-            new[self.kinds[j]].append(out[j])
-        return features
-
-
-
-def _dtype_name(dtype: torch.dtype) -> str:
-    """The name of a state dtype, for messages (a scripted dtype is a number)."""
-    if dtype == torch.float32 or dtype == torch.float64:
-        return "float32" if dtype == torch.float32 else "float64"
-    return "int64" if dtype == torch.int64 else "bool" if dtype == torch.bool else "another"
-
-
-def _model_dtype(model: nn.Module) -> torch.dtype:
-    for t in (*model.parameters(), *model.buffers()):
-        if t.is_floating_point():
-            return t.dtype
-    return torch.get_default_dtype()
-
 
 class StreamingCompensator(nn.Module):
     """A causal feedforward compensator, one sample at a time, in physical units.

@@ -1,0 +1,58 @@
+"""The compensator's pieces that are not its step: one step's place in the packed state
+(:class:`_Slot`) and the dtype helpers (see :mod:`torchhys.deploy.streaming`)."""
+
+# no `from __future__ import annotations`: TorchScript reads _Slot's class annotations
+from typing import Final
+
+import torch
+from torch import Tensor, nn
+
+from torchhys.step import STATE_KINDS, OperatorStep, custom_start
+
+#: position of each block kind in the per-kind lists (the order of STATE_KINDS)
+_KIND_INDEX = {kind: i for i, kind in enumerate(STATE_KINDS)}
+
+
+class _Slot(nn.Module):
+    """One step and where its blocks are in the compensator's split state (kind, piece).
+    A step with a start of its own (:func:`~torchhys.step.custom_start`) starts from
+    its ``initial_state(x)`` in the rows that have not started."""
+
+    kinds: list[int]
+    pieces: list[int]
+    custom: Final[bool]
+
+    def __init__(self, step: OperatorStep, kinds: list[int], pieces: list[int]) -> None:
+        super().__init__()
+        self.step = step
+        self.kinds, self.pieces = kinds, pieces
+        self.custom = custom_start(step)
+
+    def forward(self, x: Tensor, parts: list[list[Tensor]], new: list[list[Tensor]],
+                started: Tensor) -> Tensor:
+        state: list[Tensor] = []
+        for j in range(len(self.kinds)):
+            state.append(parts[self.kinds[j]][self.pieces[j]])
+        if self.custom:
+            start = self.step.initial_state(x)
+            for j in range(len(self.kinds)):
+                state[j] = torch.where(started, state[j], start[j].to(state[j].dtype))
+        features, out = self.step(x, state)
+        for j in range(len(self.kinds)):
+            new[self.kinds[j]].append(out[j])
+        return features
+
+
+
+def _dtype_name(dtype: torch.dtype) -> str:
+    """The name of a state dtype, for messages (a scripted dtype is a number)."""
+    if dtype == torch.float32 or dtype == torch.float64:
+        return "float32" if dtype == torch.float32 else "float64"
+    return "int64" if dtype == torch.int64 else "bool" if dtype == torch.bool else "another"
+
+
+def _model_dtype(model: nn.Module) -> torch.dtype:
+    for t in (*model.parameters(), *model.buffers()):
+        if t.is_floating_point():
+            return t.dtype
+    return torch.get_default_dtype()
