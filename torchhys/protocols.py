@@ -37,8 +37,8 @@ from torch import Tensor, nn
 from torchhys.step import OperatorStep
 
 __all__ = [
-    "Deployable", "Network", "SequenceModel", "check_deployable", "check_network",
-    "check_sequence_model", "missing_members",
+    "Conditioned", "Deployable", "Network", "SequenceModel", "check_deployable",
+    "check_network", "check_sequence_model", "missing_members", "n_conditions",
 ]
 
 
@@ -92,6 +92,37 @@ class Deployable(Protocol):
         """A module of the steps' features (batch, n) -> the command (batch, 1), physical
         units, in ``dtype``; written for TorchScript and ``torch.export``."""
         ...
+
+
+@runtime_checkable
+class Conditioned(Protocol):
+    """A deployable whose command also depends on measured operating conditions (a coil
+    voltage, a supply pressure, a temperature): ``n_conditions`` further inputs per sample.
+
+    The compensator then takes ``step(x_t, conditions)`` with conditions (batch,
+    n_conditions); a step of ``n_inputs == 1 + n_conditions`` gets ``[x, conditions]``
+    (batch, 1 + n_conditions), a step of one input gets x alone; the head's features are
+    ``[x, conditions..., step features...]``. The model records its training conditions'
+    ranges as buffers ``cond_min``, ``cond_max`` (n_conditions,), which the compensator's
+    condition clamp reads (:func:`torchhys.deploy.ranges.default_condition_ranges`).
+    """
+
+    n_conditions: int
+    """Number of condition inputs per sample (>= 1)."""
+
+
+def n_conditions(model: object) -> int:
+    """The model's :attr:`Conditioned.n_conditions` (0 for a model without conditions).
+
+    Raises:
+        TypeError: ``n_conditions`` is not an int >= 0.
+    """
+    if not isinstance(model, Conditioned):
+        return 0
+    n = model.n_conditions
+    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+        raise TypeError(f"{type(model).__name__}.n_conditions must be an int >= 0, got {n!r}")
+    return n
 
 
 @runtime_checkable

@@ -16,17 +16,20 @@ _KIND_INDEX = {kind: i for i, kind in enumerate(STATE_KINDS)}
 class _Slot(nn.Module):
     """One step and where its blocks are in the compensator's split state (kind, piece).
     A step with a start of its own (:func:`~torchhys.step.custom_start`) starts from
-    its ``initial_state(x)`` in the rows that have not started."""
+    its ``initial_state(x)`` in the rows that have not started. A step of several inputs
+    (``conditioned``) is given ``[x, conditions]``, a step of one input x alone."""
 
     kinds: list[int]
     pieces: list[int]
     custom: Final[bool]
+    conditioned: Final[bool]
 
     def __init__(self, step: OperatorStep, kinds: list[int], pieces: list[int]) -> None:
         super().__init__()
         self.step = step
         self.kinds, self.pieces = kinds, pieces
         self.custom = custom_start(step)
+        self.conditioned = step.n_inputs > 1
 
     def forward(self, x: Tensor, parts: list[list[Tensor]], new: list[list[Tensor]],
                 started: Tensor) -> Tensor:
@@ -56,3 +59,25 @@ def _model_dtype(model: nn.Module) -> torch.dtype:
         if t.is_floating_point():
             return t.dtype
     return torch.get_default_dtype()
+
+
+def conditions_of(x: Tensor, conditions: Tensor | None, n: int, dtype: torch.dtype, where: str,
+                  dims: int) -> Tensor:
+    """A compensator's conditions checked against x: (batch, n) for a sample (``dims`` 2),
+    (batch, time, n) for a sequence (3), in ``dtype``; an empty tensor for a model without
+    conditions (``n`` 0). ``where`` names the method in the messages."""
+    if conditions is None:
+        if n > 0:
+            raise ValueError(where + ": this compensator takes " + str(n) + " condition(s) "
+                             "per sample: pass conditions of shape (batch, "
+                             + ("time, " if dims == 3 else "") + str(n) + ")")
+        return x.new_zeros([0])
+    if n == 0:
+        raise ValueError(where + ": conditions given, but the model takes none "
+                         "(n_conditions is 0)")
+    want = list(x.shape) + [n]
+    if list(conditions.shape) != want:
+        raise ValueError(where + ": conditions must have shape " + str(want) + " (x's "
+                         "shape and one column per condition), got "
+                         + str(list(conditions.shape)))
+    return conditions.to(dtype)

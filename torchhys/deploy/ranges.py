@@ -5,11 +5,15 @@ the input range of the clamp and the direction of the guard (see
 import math
 from collections.abc import Sequence
 
+import torch
 from torch import Tensor, nn
 
 from torchhys._checks import check_real
 
-__all__ = ["DIRECTIONS", "MIN_TREND", "default_direction", "default_input_range", "default_limits"]
+__all__ = [
+    "DIRECTIONS", "MIN_TREND", "default_condition_ranges", "default_direction",
+    "default_input_range", "default_limits",
+]
 
 #: values of ``StreamingCompensator(direction=...)``
 DIRECTIONS = ("auto", "increasing", "decreasing", "none")
@@ -103,3 +107,44 @@ def _input_bounds(model: nn.Module, input_range: Sequence[float] | None,
         return None
     lo, hi = rng
     return lo - margin * (hi - lo), hi + margin * (hi - lo)
+
+
+def default_condition_ranges(model: nn.Module, n: int) -> list[tuple[float, float]] | None:
+    """The training conditions' ranges recorded by a conditioned model (buffers ``cond_min``,
+    ``cond_max`` of ``n`` values, :class:`~torchhys.protocols.Conditioned`), or None when it
+    records none (then a compensator does not clamp the conditions unless given
+    ``condition_ranges``)."""
+    lo, hi = getattr(model, "cond_min", None), getattr(model, "cond_max", None)
+    if not (isinstance(lo, Tensor) and isinstance(hi, Tensor)
+            and lo.numel() == n and hi.numel() == n):
+        return None
+    pairs = [(float(a), float(b)) for a, b in zip(lo.reshape(-1).tolist(),
+                                                    hi.reshape(-1).tolist(), strict=True)]
+    if all(math.isfinite(a) and math.isfinite(b) and a < b for a, b in pairs):
+        return pairs
+    return None
+
+
+def _condition_bounds(model: nn.Module, n: int, condition_ranges: Sequence | None,
+                      input_margin: float | None) -> tuple[Tensor, Tensor] | None:
+    """The condition clamp's bounds, (n,) float64 each: each range widened by the margin on
+    each side, or None (no margin, or no ranges recorded nor given)."""
+    if n == 0:
+        if condition_ranges is not None:
+            raise ValueError("condition_ranges given, but the model takes no conditions "
+                             "(n_conditions is 0)")
+        return None
+    if condition_ranges is None:
+        ranges = default_condition_ranges(model, n)
+    else:
+        if isinstance(condition_ranges, (str, bytes)) or len(condition_ranges) != n:
+            raise ValueError(f"condition_ranges must be {n} pair(s) (low, high), one per "
+                             f"condition, got {condition_ranges!r}")
+        ranges = [_check_limits(r, f"condition_ranges[{i}]")
+                  for i, r in enumerate(condition_ranges)]
+    if input_margin is None or ranges is None:
+        return None
+    margin = check_real(input_margin, "input_margin")
+    lo = torch.tensor([a - margin * (b - a) for a, b in ranges], dtype=torch.float64)
+    hi = torch.tensor([b + margin * (b - a) for a, b in ranges], dtype=torch.float64)
+    return lo, hi

@@ -53,11 +53,11 @@ from torch import Tensor, nn
 
 from torchhys._checks import check_real
 from torchhys._deprecated import moved as _moved
-from torchhys.deploy._slots import _KIND_INDEX, _dtype_name, _model_dtype, _Slot
+from torchhys.deploy._slots import _KIND_INDEX, _dtype_name, _model_dtype, _Slot, conditions_of
 from torchhys.deploy._threads import StepLock
-from torchhys.deploy.ranges import _check_limits, _direction, _input_bounds
+from torchhys.deploy.ranges import _check_limits, _condition_bounds, _direction, _input_bounds
 from torchhys.deploy.ranges import default_limits as _default_limits
-from torchhys.protocols import check_deployable
+from torchhys.protocols import check_deployable, n_conditions
 from torchhys.step import OperatorStep, check_step
 
 __all__ = ["COUNTER", "HELD", "STARTED", "STATE_F", "STATE_F64", "STATE_I", "StreamingCompensator"]
@@ -125,6 +125,8 @@ class StreamingCompensator(nn.Module):
     COUNTER_COLUMN: Final[int] = COUNTER[1]
     clamp_input: bool
     guard: bool
+    n_conditions: Final[int]
+    clamp_conditions: Final[bool]
     # one step at a time: a Python lock in eager mode (not scripted), and in the scripted
     # module a flag and a ticket that tell a step begun while another runs (see step)
     __jit_ignored_attributes__ = ["_step_lock"]
@@ -140,12 +142,13 @@ class StreamingCompensator(nn.Module):
         self, model: nn.Module, *, limits: Sequence[float] | None = None,
         initial_command: float = 0.0, input_range: Sequence[float] | None = None,
         input_margin: float | None = 0.05, direction: str = "auto",
+        condition_ranges: Sequence[Sequence[float]] | None = None,
     ) -> None:
         super().__init__()
         check_deployable(model, "model")
         dtype = _model_dtype(model)
-        steps = [check_step(s, f"streaming step {i}")
-                 for i, s in enumerate(model.streaming_steps(dtype))]
+        self.n_conditions = n_conditions(model)
+        steps = [self._checked_step(s, i) for i, s in enumerate(model.streaming_steps(dtype))]
         self.head = model.streaming_head(dtype)
         low, high = _check_limits(_default_limits(model) if limits is None else limits)
         self.register_buffer("low", torch.tensor(low, dtype=dtype))
@@ -160,6 +163,14 @@ class StreamingCompensator(nn.Module):
         lo_in, hi_in = (-math.inf, math.inf) if bounds is None else bounds
         self.register_buffer("in_low", torch.tensor(lo_in, dtype=dtype))
         self.register_buffer("in_high", torch.tensor(hi_in, dtype=dtype))
+        cbounds = _condition_bounds(model, self.n_conditions, condition_ranges, input_margin)
+        self.clamp_conditions = cbounds is not None
+        n = self.n_conditions
+        lo_c, hi_c = (torch.full((n,), -math.inf), torch.full((n,), math.inf)) if (
+            cbounds is None) else cbounds
+        self.register_buffer("cond_low", lo_c.to(dtype))
+        self.register_buffer("cond_high", hi_c.to(dtype))
+        self.clamp_input = self.clamp_input or self.clamp_conditions
         sign = _direction(model, direction)
         self.guard = sign != 0
         self.register_buffer("direction", torch.tensor(float(sign), dtype=dtype))
@@ -170,6 +181,18 @@ class StreamingCompensator(nn.Module):
         self.stepping, self.calls = False, 0
         self.state_names = ["F (the float columns)", "I (the int64 counters)",
                             "started", "F64 (the float64 columns)"]
+
+    def _checked_step(self, step: object, i: int) -> OperatorStep:
+        """A streaming step of the protocol, of one input or of ``1 + n_conditions``."""
+        if self.n_conditions == 0:
+            return check_step(step, f"streaming step {i}")
+        step = check_step(step, f"streaming step {i}", n_inputs=None)
+        m, n = step.n_inputs, self.n_conditions
+        if m != 1 and m != 1 + n:
+            raise TypeError(f"streaming step {i} ({type(step).__name__}) takes {m} input "
+                            f"columns, expected 1 (x) or {1 + n} (x and the {n} "
+                            "condition(s))")
+        return step
 
     def _layout(self, steps: list[OperatorStep], dtype: torch.dtype) -> None:
         """Pack the steps' blocks by kind (see the module docstring) and record, for each
@@ -232,12 +255,15 @@ class StreamingCompensator(nn.Module):
         return torch.where(started, t, torch.addcmul(start, sample, x))
 
     @torch.jit.export
-    def step_explicit(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
-        """One sample with an explicit state: x (batch,) -> (u (batch,), new state).
+    def step_explicit(self, x: Tensor, state: list[Tensor],
+                      conditions: Tensor | None = None) -> tuple[Tensor, list[Tensor]]:
+        """One sample with an explicit state: x (batch,) (and the conditions (batch,
+        n_conditions) of a conditioned model) -> (u (batch,), new state).
 
         Raises:
             ValueError: ``state`` has another number of tensors than :meth:`initial_state`,
-                or a tensor of another dtype (the message names it and the dtype expected).
+                or a tensor of another dtype (the message names it and the dtype expected);
+                conditions missing, given to a model without, or of another shape.
         """
         if len(state) != len(self.templates):
             raise ValueError("step_explicit: state has " + str(len(state)) + " tensors, "
@@ -247,14 +273,23 @@ class StreamingCompensator(nn.Module):
                 raise ValueError("step_explicit: state[" + str(i) + "], " + self.state_names[i]
                                  + ", has dtype " + _dtype_name(state[i].dtype) + ", expected "
                                  + _dtype_name(self.templates[i].dtype))
-        return self._advance(x, state)
+        c = conditions_of(x, conditions, self.n_conditions, self.low.dtype, "step_explicit", 2)
+        return self._advance(x, state, c)
 
-    def _advance(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
-        """:meth:`step_explicit` of a state known to be of the layout."""
+    def _advance(self, x: Tensor, state: list[Tensor],
+                 conditions: Tensor) -> tuple[Tensor, list[Tensor]]:
+        """:meth:`step_explicit` of a state known to be of the layout (conditions (batch,
+        n_conditions), or empty without conditions)."""
         F, I, started = state[self.STATE_F], state[self.STATE_I], state[self.STATE_STARTED]
         G = state[self.STATE_F64] if self.has_f64 else F
         xr = x.unsqueeze(1)
         xc = torch.clamp(xr, self.in_low, self.in_high) if self.clamp_input else xr
+        xs = xc  # what a step of several inputs and the head see: x and the conditions
+        cc = conditions
+        if self.n_conditions > 0:
+            if self.clamp_conditions:
+                cc = torch.clamp(conditions, self.cond_low, self.cond_high)
+            xs = torch.cat([xc, cc], 1)
         split_int = self.has_int or self.clamp_input
         parts = [
             self._anchored(F, started, xc, 0, self.start_f, self.sample_f).split_with_sizes(
@@ -265,16 +300,19 @@ class StreamingCompensator(nn.Module):
                 self.sizes[2], 1) if split_int else [I],
         ]
         new: list[list[Tensor]] = [[], [], []]
-        features = [xc]
+        features = [xs]
         for slot in self.slots:
-            features.append(slot(xc, parts, new, started))
+            features.append(slot(xs if slot.conditioned else xc, parts, new, started))
         u = self.head(torch.cat(features, 1))
         # anything but a finite sample with a finite command holds the whole state (a
         # non-finite sample may still give a finite command through a saturating activation);
         # t - t is 0 exactly where t is finite (NaN for NaN and +/-inf): cheaper than isfinite.
         # (TorchScript: compared with a Python 0 the interpreter would wrap the 0 into a new
         # tensor at every step; self.zero is a constant of the frozen module.)
-        bad = (xr - xr) + (u - u) != self.zero
+        if self.n_conditions > 0:  # a non-finite condition holds too
+            bad = (xr - xr) + (u - u) + (conditions - conditions).sum(1, keepdim=True) != self.zero
+        else:
+            bad = (xr - xr) + (u - u) != self.zero
         u = torch.clamp(u, self.low, self.high)
         if self.guard:
             # the command may not move against the input's direction: d (u - held) has the
@@ -301,6 +339,10 @@ class StreamingCompensator(nn.Module):
                 pieces.append(torch.where(bad, I.narrow(1, 1, self.n_int), torch.cat(new[2], 1)))
             if self.clamp_input:  # finite samples outside the clamp's bounds
                 outside = torch.ne(xr, xc) & torch.eq(xr - xr, self.zero)
+                if self.clamp_conditions:  # a finite condition outside its bounds
+                    c_out = torch.ne(conditions, cc) & torch.eq(conditions - conditions,
+                                                                 self.zero)
+                    outside = outside | c_out.any(1, keepdim=True)
                 pieces.append(I.narrow(1, I.shape[1] - 1, 1) + outside)
             I_new = torch.cat(pieces, 1)
         else:  # the counter is all of I
@@ -312,8 +354,9 @@ class StreamingCompensator(nn.Module):
         return u_out, [F_new, I_new, started_new]
 
     @torch.jit.export
-    def step(self, x_t: Tensor) -> Tensor:
-        """Advance the stored state by one sample: x_t (batch,) -> command (batch,).
+    def step(self, x_t: Tensor, conditions: Tensor | None = None) -> Tensor:
+        """Advance the stored state by one sample: x_t (batch,) (and the conditions (batch,
+        n_conditions) of a conditioned model) -> command (batch,).
 
         Threads: in Python (not scripted) a lock makes the steps of several threads run one
         at a time. The scripted module holds no lock: use one per thread (``step_explicit``
@@ -322,23 +365,24 @@ class StreamingCompensator(nn.Module):
         state to the other step.
         """
         if torch.jit.is_scripting():
-            return self._step(x_t)
-        return self._locked(x_t, True)
+            return self._step(x_t, conditions)
+        return self._locked(x_t, True, conditions)
 
     @torch.jit.unused
-    def _locked(self, x_t: Tensor, step: bool) -> Tensor:
+    def _locked(self, x_t: Tensor, step: bool, conditions: Tensor | None = None) -> Tensor:
         with self._step_lock:
             try:
-                return self._step(x_t) if step else self._reset(x_t)
+                return self._step(x_t, conditions) if step else self._reset(x_t)
             except BaseException:
                 self.stepping = False  # under the lock no other step runs: a failed one ended
                 raise
 
-    def _step(self, x_t: Tensor) -> Tensor:
+    def _step(self, x_t: Tensor, conditions: Tensor | None) -> Tensor:
         if x_t.dim() != 1:
             raise ValueError(
                 "step expects one sample per row, shape (batch,), got shape " + str(x_t.shape)
             )
+        c = conditions_of(x_t, conditions, self.n_conditions, self.low.dtype, "step", 2)
         if self.stepping:
             raise RuntimeError(self.CONCURRENT)
         self.stepping = True  # read before the state is: no read while another step writes
@@ -352,7 +396,7 @@ class StreamingCompensator(nn.Module):
                     + str(self.state[0].shape[0]) + "; call reset() first"
                 )
             self.state = self.initial_state(x_t.shape[0])
-        u, s = self._advance(x_t.to(self.low.dtype), self.state)
+        u, s = self._advance(x_t.to(self.low.dtype), self.state, c)
         if self.calls != ticket:  # a step begun meanwhile: that one writes the state
             raise RuntimeError(self.CONCURRENT)
         self.state = s
@@ -387,19 +431,25 @@ class StreamingCompensator(nn.Module):
             return I[:, I.shape[1] - 1]
         return torch.zeros_like(I[:, self.COUNTER_COLUMN])
 
-    def forward(self, x: Tensor) -> Tensor:
-        """Commands for a whole sequence from a fresh state: (time,) or (batch, time)."""
+    def forward(self, x: Tensor, conditions: Tensor | None = None) -> Tensor:
+        """Commands for a whole sequence from a fresh state: x (time,) or (batch, time); the
+        conditions of a conditioned model (time, n_conditions) or (batch, time,
+        n_conditions)."""
         if x.dim() not in (1, 2):
             raise ValueError(
                 "x must have shape (time,) or (batch, time), got shape " + str(x.shape)
             )
         xb = x.to(self.low.dtype)
+        c = conditions_of(x, conditions, self.n_conditions, self.low.dtype, "forward",
+                          x.dim() + 1)
         if x.dim() == 1:
             xb = xb.unsqueeze(0)
+            c = c.unsqueeze(0) if self.n_conditions > 0 else c
         state = self.initial_state(xb.shape[0])
         outs: list[Tensor] = []
-        for xt in xb.unbind(1):
-            u, state = self._advance(xt, state)
+        for t, xt in enumerate(xb.unbind(1)):
+            ct = c[:, t] if self.n_conditions > 0 else c
+            u, state = self._advance(xt, state, ct)
             outs.append(u)
         if len(outs) == 0:
             return x.to(self.low.dtype)

@@ -1,0 +1,8 @@
+"""Models whose hysteresis depends on measured operating conditions (a coil voltage, a supply
+pressure, a temperature): :class:`ScheduledReadout`. A conditioned model declares
+``n_conditions`` (:class:`torchhys.protocols.Conditioned`); the compensator and the exports
+then take the conditions beside the input."""
+
+from torchhys.conditions.scheduled import ScheduledReadout, legendre_basis
+
+__all__ = ["ScheduledReadout", "legendre_basis"]
