@@ -25,6 +25,12 @@ _REFUSED: tuple[tuple[type, str], ...] = (
 )
 
 
+#: why a batch norm without running statistics cannot stream
+_BATCH_STATISTICS = ("a batch norm without running statistics (track_running_stats=False) "
+                     "normalises by the batch's own statistics, over the whole sequence: give "
+                     "it running statistics (track_running_stats=True), train, and call .eval()")
+
+
 def _first_line(err: BaseException) -> str:
     text = str(err).strip()
     return text.splitlines()[0] if text else type(err).__name__
@@ -61,7 +67,8 @@ class _Recorder(fx.Interpreter):
 
 def check_graph(graph: fx.Graph, module: nn.Module) -> None:
     """The module's graph: one input, leaves called on their input alone, only their
-    features used, no layer known not to stream.
+    features used, no layer known not to stream (attention, cells, a batch norm without
+    running statistics).
 
     Raises:
         ValueError: naming the node and what was expected.
@@ -77,6 +84,8 @@ def check_graph(graph: fx.Graph, module: nn.Module) -> None:
         for kind, why in _REFUSED:
             if isinstance(sub, kind):
                 raise ValueError(f"{describe(node, module)} cannot stream: {why}")
+        if isinstance(sub, nn.modules.batchnorm._BatchNorm) and sub.running_mean is None:
+            raise ValueError(f"{describe(node, module)} cannot stream: {_BATCH_STATISTICS}")
     for node in leaf_nodes(graph, module):
         desc, sub = describe(node, module), module.get_submodule(str(node.target))
         if not getattr(sub, "causal", True):

@@ -59,6 +59,7 @@ from torch import Tensor, nn
 
 from torchhys._checks import check_int
 from torchhys._version import __version__
+from torchhys.deploy._onnx_norms import norm_translations
 from torchhys.deploy.export import (
     _METADATA_KEYS,
     _check_path,
@@ -104,6 +105,9 @@ def _translations() -> dict[Any, Any]:
       below 0.1 and ``(e^t - e^-t) / 2`` above, ``asinh`` as ``log1p(t + t^2 / (1 +
       sqrt(1 + t^2)))`` with an accurate ``log1p``; both odd (``-0`` kept), within a few ulp
       of libm.
+    * layer norm and eval-mode batch norm in primitive ops, their ``eps`` in float64 (ONNX's
+      ``LayerNormalization`` and ``BatchNormalization`` take a float32 one), see
+      :mod:`torchhys.deploy._onnx_norms`.
     """
     import numpy as np
     from onnxscript import ir
@@ -175,7 +179,8 @@ def _translations() -> dict[Any, Any]:
             torch.ops.aten.copysign.Tensor: copysign,
             torch.ops.aten.copysign.Scalar: copysign_scalar,
             torch.ops.aten.searchsorted.Tensor: searchsorted,
-            torch.ops.aten.sinh.default: sinh, torch.ops.aten.asinh.default: asinh}
+            torch.ops.aten.sinh.default: sinh, torch.ops.aten.asinh.default: asinh,
+            **norm_translations(const)}
 
 
 def onnx_metadata(comp: nn.Module, batch: int = 1) -> dict[str, str]:

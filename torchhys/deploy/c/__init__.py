@@ -8,7 +8,9 @@ caller owns. No operator has C of its own: a new operator whose step exports wit
 ``torch.export`` gets C without new code, or :func:`to_c` names the operation without a
 template and the step it came from. So do compositions of operators, recurrent layers
 (``nn.LSTM``, ``nn.GRU``, ``nn.RNN``) and MLPs (:func:`torchhys.compose.compose`): their
-gates are ``linear``, ``chunk``, ``sigmoid``, ``tanh`` and elementwise templates, the
+gates are ``linear``, ``chunk``, ``sigmoid``, ``tanh`` and elementwise templates (a layer or
+RMS norm, softmax and log-softmax are templates too; an eval-mode batch norm is folded into
+a per-channel scale and shift when the C is written, and one in training mode refused), the
 ``exp``, ``sigmoid`` and ``tanh`` of a double libm-free functions whose loops vectorize,
 and a matrix product of a long inner dimension runs over blocks of output columns whose
 sums stay in registers.
@@ -38,8 +40,8 @@ float64 results equal the TorchScript file's to about 1e-15.
 The generator's parts, one concept a file: the entry (``_to_c.py``), the graph's walk
 (``_graph.py``), the C primitives (``_writer.py``) and its libm-free ``exp``, ``sigmoid``
 and ``tanh`` (``_libm.py``), one template per aten operation
-(``_templates.py``, over ``_pointwise.py``, ``_views.py``, ``_products.py`` and
-``_indexing.py``), the tests of non-finite samples (``_finite.py``) and the two written files
+(``_templates.py``, over ``_pointwise.py``, ``_views.py``, ``_products.py``, ``_norms.py``
+and ``_indexing.py``), the tests of non-finite samples (``_finite.py``) and the two written files
 (``_files.py``).
 """
 

@@ -1,7 +1,9 @@
 """The exported step's graph written as C, node by node: a template per aten operation
 (:mod:`torchhys.deploy.c._templates`), nodes whose tensors are all known folded to constants,
 the step's ``t - t`` tests of non-finite values written as tests of bits
-(:mod:`torchhys.deploy.c._finite`), and every operation without a template named at once."""
+(:mod:`torchhys.deploy.c._finite`), and every operation without a template named at once
+(a node a template refuses, such as a batch norm in training mode, is named alone, with
+what to do)."""
 
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ from torch import fx
 from torch.export.graph_signature import InputKind
 
 import torchhys.deploy.c._finite as _finite
+from torchhys.deploy.c._norms import Refused
 from torchhys.deploy.c._templates import POINTWISE_OPS, SHAPE_ONLY, TEMPLATES, VIEW_OPS
 from torchhys.deploy.c._writer import CTensor, Writer, constant, contiguous_strides
 
@@ -172,6 +175,9 @@ def _emit(w: Writer, node: fx.Node, env: dict, missing: dict[str, str],
                 (args, kwargs), lambda x: w.materialize(x) if isinstance(x, CTensor) else x)
         try:
             out = emit(w, spec, *args, **kwargs)
+        except Refused as e:  # not a missing template: what to do, at once
+            raise ValueError(f"to_c: node {node.name!r} ({node.target}, from "
+                             f"{_origin(node)}): {e}") from None
         except ValueError as e:
             missing.setdefault(f"{node.target} ({e})", _origin(node))
         else:

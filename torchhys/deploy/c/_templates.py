@@ -7,8 +7,8 @@ or a list of them), the arguments are the node's, tensors as
 :class:`~torchhys.deploy.c._writer.CTensor`. It writes C and returns the output's CTensor(s).
 The templates, one concept a file: pointwise (:mod:`torchhys.deploy.c._pointwise`), views and
 joins (:mod:`torchhys.deploy.c._views`), reductions and matrix products
-(:mod:`torchhys.deploy.c._products`), sorting and indexing
-(:mod:`torchhys.deploy.c._indexing`).
+(:mod:`torchhys.deploy.c._products`), normalisation and softmax
+(:mod:`torchhys.deploy.c._norms`), sorting and indexing (:mod:`torchhys.deploy.c._indexing`).
 """
 
 from __future__ import annotations
@@ -19,11 +19,12 @@ from typing import Any
 import torch
 
 from torchhys.deploy.c._indexing import INDEXING
+from torchhys.deploy.c._norms import NORMS
 from torchhys.deploy.c._pointwise import POINTWISE
 from torchhys.deploy.c._products import PRODUCTS
 from torchhys.deploy.c._views import JOINS, VIEWS, Emitter, _identity
 
-OTHERS: dict[str, Emitter] = {**JOINS, **PRODUCTS, **INDEXING}
+OTHERS: dict[str, Emitter] = {**JOINS, **PRODUCTS, **NORMS, **INDEXING}
 
 
 def _resolve(table: dict[str, Emitter]) -> dict[Any, Emitter]:
