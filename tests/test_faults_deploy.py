@@ -258,8 +258,9 @@ def test_a_python_compensator_steps_one_thread_at_a_time() -> None:
     order: list[tuple[float, float]] = []
     advance = comp._advance
 
-    def recorded(x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
-        u, new = advance(x, state)
+    def recorded(x: Tensor, state: list[Tensor], conditions: Tensor
+                 ) -> tuple[Tensor, list[Tensor]]:
+        u, new = advance(x, state, conditions)
         order.append((float(x[0]), float(u[0])))  # inside the lock: the serial order
         return u, new
 
