@@ -47,8 +47,8 @@ from torchhys._checks import check_int
 from torchhys.deploy.streaming import COUNTER, HELD, STATE_I, StreamingCompensator
 
 __all__ = [
-    "AOTIStepper", "load_aoti", "load_torchscript", "metadata", "state_spec_string", "to_aoti",
-    "to_torchscript",
+    "CONDITION_KEYS", "AOTIStepper", "load_aoti", "load_torchscript", "metadata",
+    "state_spec_string", "to_aoti", "to_torchscript",
 ]
 
 _DTYPE_NAMES = {torch.bool: "bool", torch.long: "int64", torch.float32: "float32",
@@ -167,14 +167,15 @@ def load_torchscript(path: str | os.PathLike) -> torch.jit.ScriptModule:
     works as well (no torchhys needed). The module's :func:`metadata` is attached as the
     dict ``module.torchhys_metadata`` (Python attribute, not scripted).
     """
-    files = dict.fromkeys(_METADATA_KEYS, "")
+    files = dict.fromkeys((*_METADATA_KEYS, *CONDITION_KEYS), "")
     with warnings.catch_warnings():
         warnings.filterwarnings(
             "ignore", message=r"`torch\.jit\.load` is deprecated", category=DeprecationWarning
         )
         module = torch.jit.load(os.fspath(path), map_location="cpu", _extra_files=files)
     module.torchhys_metadata = {k: v.decode() if isinstance(v, bytes) else v
-                                for k, v in files.items()}
+                                for k, v in files.items()
+                                if k not in CONDITION_KEYS or v not in ("", b"")}
     return module
 
 
@@ -188,6 +189,9 @@ def state_spec_string(comp: StreamingCompensator, batch: int = 1) -> str:
 
 _METADATA_KEYS = ("state_spec", "n_state", "counter", "held", "low", "high", "input_low",
                   "input_high", "out_of_range", "direction", "dtype", "batch")
+#: the metadata keys a conditioned compensator adds: the number of conditions and the
+#: clamp's bounds of each (comma-separated; -inf/inf without a clamp)
+CONDITION_KEYS = ("n_conditions", "condition_low", "condition_high")
 
 
 def metadata(comp: StreamingCompensator, batch: int = 1) -> dict[str, str]:
@@ -201,6 +205,10 @@ def metadata(comp: StreamingCompensator, batch: int = 1) -> dict[str, str]:
         "input_low": repr(float(comp.in_low)), "input_high": repr(float(comp.in_high)),
         "out_of_range": oor, "direction": str(int(comp.direction)),
         "dtype": _DTYPE_NAMES[comp.low.dtype], "batch": str(batch),
+        **({} if comp.n_conditions == 0 else {
+            "n_conditions": str(comp.n_conditions),
+            "condition_low": ",".join(repr(float(v)) for v in comp.cond_low),
+            "condition_high": ",".join(repr(float(v)) for v in comp.cond_high)}),
     }
 
 
@@ -233,8 +241,12 @@ class _ExplicitStep(nn.Module):
         super().__init__()
         self.comp = comp
 
-    def forward(self, x: Tensor, *state: Tensor) -> tuple[Tensor, ...]:
-        u, new = self.comp.step_explicit(x, list(state))
+    def forward(self, x: Tensor, *inputs: Tensor) -> tuple[Tensor, ...]:
+        """``(x, *state)``, or ``(x, conditions, *state)`` for a conditioned model."""
+        if self.comp.n_conditions > 0:
+            u, new = self.comp.step_explicit(x, list(inputs[1:]), inputs[0])
+        else:
+            u, new = self.comp.step_explicit(x, list(inputs))
         return (u, *new)
 
 
@@ -270,6 +282,10 @@ def to_aoti(
     comp = _compensator(model, limits, initial_command,
                         {"input_range": input_range, "input_margin": input_margin,
                          "direction": direction}).eval()
+    if comp.n_conditions > 0:
+        raise ValueError(f"to_aoti: the model takes {comp.n_conditions} condition(s), which "
+                         "the AOTI package does not carry yet: use to_torchscript, to_onnx "
+                         "or to_c")
     state = comp.initial_state(batch)
     x = torch.zeros(batch, dtype=comp.low.dtype)
     with torch.no_grad():

@@ -62,6 +62,7 @@ from torchhys._version import __version__
 from torchhys.deploy._onnx_norms import norm_translations
 from torchhys.deploy.export import (
     _METADATA_KEYS,
+    CONDITION_KEYS,
     _check_path,
     _compensator,
     _ExplicitStep,
@@ -76,6 +77,7 @@ __all__ = ["ONNX_METADATA_KEYS", "ONNXStepper", "load_onnx", "onnx_metadata", "t
 _INSTALL = 'pip install "torchhys[onnx]"'
 #: the metadata keys of an ONNX file: those of the libtorch formats and two more
 ONNX_METADATA_KEYS = (*_METADATA_KEYS, "initial_state", "torchhys_version")
+# (a conditioned compensator's file has the CONDITION_KEYS of torchhys.deploy.export too)
 
 
 def _require(*modules: str) -> None:
@@ -226,12 +228,17 @@ def to_onnx(
     state = comp.initial_state(batch)
     x = torch.zeros(batch, dtype=comp.low.dtype)
     names = [f"state_{i}" for i in range(len(state))]
+    # a conditioned model's step takes its conditions (batch, n) after x
+    cond = ([torch.zeros(batch, comp.n_conditions, dtype=comp.low.dtype)]
+            if comp.n_conditions > 0 else [])
+    inputs = (x, *cond, *state)
     with torch.no_grad(), _quiet_exporter():
-        program = torch.export.export(_ExplicitStep(comp).eval(), (x, *state), strict=False)
+        program = torch.export.export(_ExplicitStep(comp).eval(), inputs, strict=False)
         try:
             onnx_program = torch.onnx.export(
-                program, (x, *state), dynamo=True, opset_version=opset,
-                input_names=["x", *names], output_names=["u", *(f"new_{n}" for n in names)],
+                program, inputs, dynamo=True, opset_version=opset,
+                input_names=["x", *(["conditions"] if cond else []), *names],
+                output_names=["u", *(f"new_{n}" for n in names)],
                 custom_translation_table=_translations(), verbose=False, optimize=True,
             )
         except Exception as err:
@@ -339,7 +346,8 @@ class ONNXStepper:
         if missing:
             raise ValueError(f"{os.fspath(path)}: not a torchhys ONNX compensator (its "
                              f"metadata lacks {', '.join(missing)})")
-        self.metadata = {k: meta[k] for k in ONNX_METADATA_KEYS if k in meta}
+        self.metadata = {k: meta[k] for k in (*ONNX_METADATA_KEYS, *CONDITION_KEYS)
+                         if k in meta}
         self.spec = meta["state_spec"]
         self.counter = _position(meta["counter"])
         oor = meta.get("out_of_range", "")
@@ -350,26 +358,41 @@ class ONNXStepper:
         self.reset()
         self.batch = int(self.state[0].shape[0])
         self.dtype = self.state[0].dtype
+        self.n_conditions = int(meta.get("n_conditions", "0"))
 
     def reset(self) -> None:
         """Back to the fresh (all-zero) state."""
         with self._lock:
             self.state = _parse_state_spec(self.spec)
 
-    def step(self, x_t: Tensor) -> Tensor:
-        """One sample, x_t (batch,) -> command (batch,).
+    def step(self, x_t: Tensor, conditions: Tensor | None = None) -> Tensor:
+        """One sample, x_t (batch,) (and, for a file with conditions, their values
+        (batch, n_conditions)) -> command (batch,).
 
         Raises:
-            ValueError: ``x_t`` is not of shape ``(batch,)`` with the exported batch.
+            ValueError: ``x_t`` is not of shape ``(batch,)`` with the exported batch;
+                conditions missing, given to a file without, or of another shape.
         """
         x_t = torch.as_tensor(x_t)
         if x_t.dim() != 1 or x_t.shape[0] != self.batch:
             raise ValueError(f"step expects shape ({self.batch},) (the exported batch), got "
                              f"shape {tuple(x_t.shape)}")
         x_t = x_t.to(self.dtype).contiguous()
+        extra = []
+        if self.n_conditions > 0 or conditions is not None:
+            n = self.n_conditions
+            if conditions is None or n == 0:
+                raise ValueError("step: conditions given, but the file takes none" if n == 0
+                                 else f"step: this file takes {n} condition(s): pass "
+                                 f"conditions of shape ({self.batch}, {n})")
+            c = torch.as_tensor(conditions)
+            if tuple(c.shape) != (self.batch, n):
+                raise ValueError(f"step: conditions must have shape ({self.batch}, {n}), got "
+                                 f"{tuple(c.shape)}")
+            extra = [c.to(self.dtype).contiguous()]
         with self._lock:  # the state read, stepped and replaced by one thread at a time
             feed = {name: t.numpy() for name, t in
-                    zip(self.input_names, [x_t, *self.state], strict=True)}
+                    zip(self.input_names, [x_t, *extra, *self.state], strict=True)}
             out = self.session.run(None, feed)
             self.state = [torch.from_numpy(a) for a in out[1:]]
         return torch.from_numpy(out[0])

@@ -342,7 +342,7 @@ class StreamingCompensator(nn.Module):
                 if self.clamp_conditions:  # a finite condition outside its bounds
                     c_out = torch.ne(conditions, cc) & torch.eq(conditions - conditions,
                                                                  self.zero)
-                    outside = outside | c_out.any(1, keepdim=True)
+                    outside = outside | (c_out.sum(1, keepdim=True) > 0)
                 pieces.append(I.narrow(1, I.shape[1] - 1, 1) + outside)
             I_new = torch.cat(pieces, 1)
         else:  # the counter is all of I

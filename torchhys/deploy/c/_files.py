@@ -15,6 +15,7 @@ from torchhys._version import __version__
 from torchhys.deploy.c._views import copy as copy_to_local
 from torchhys.deploy.c._writer import CTensor, Writer
 from torchhys.deploy.export import metadata
+from torchhys.deploy.ranges import default_condition_ranges
 from torchhys.deploy.streaming import (
     STATE_F,
     STATE_F64,
@@ -44,6 +45,33 @@ def files(prefix: str, w: Writer, model: nn.Module, comp: StreamingCompensator,
     fields, n_bytes = _struct(w, state, members)
     header = _header(prefix, model, comp, options, fields, n_bytes)
     return header, _source(prefix, w, comp, members, u, outputs)
+
+
+def _condition_macros(prefix: str, model: nn.Module, comp: StreamingCompensator) -> list[str]:
+    """``PREFIX_N_CONDITIONS`` and the conditions' ranges, for a conditioned model: the
+    training ranges (``PREFIX_CONDITION_RANGES``, as the model recorded them) and the clamp's
+    bounds (``PREFIX_CONDITION_CLAMP``: widened by the margin), each an initializer of
+    ``PREFIX_real [PREFIX_N_CONDITIONS][2]``."""
+    n = comp.n_conditions
+    if n == 0:
+        return []
+    real, lit = Writer.ctype(comp.low.dtype), Writer(prefix).literal
+
+    def pairs(lo: list[float], hi: list[float]) -> str:
+        return "{" + ", ".join(f"{{{lit(a, comp.low.dtype)}, {lit(b, comp.low.dtype)}}}"
+                               for a, b in zip(lo, hi, strict=True)) + "}"
+
+    ranges = default_condition_ranges(model, n)
+    lines = ["", f"/* the {n} condition(s) of {prefix}_step, in the order of its conditions "
+             f"array: ({real} [{prefix}_N_CONDITIONS][2] initializers) */",
+             f"#define {prefix}_N_CONDITIONS {n}"]
+    if ranges is not None:
+        lines.append(f"#define {prefix}_CONDITION_RANGES "
+                     + pairs([a for a, _ in ranges], [b for _, b in ranges]))
+    if comp.clamp_conditions:
+        lines.append(f"#define {prefix}_CONDITION_CLAMP "
+                     + pairs(comp.cond_low.tolist(), comp.cond_high.tolist()))
+    return lines
 
 
 def _struct(w: Writer, state: list[torch.Tensor], members: list[str]
@@ -108,8 +136,12 @@ def _header(prefix: str, model: nn.Module, comp: StreamingCompensator, options: 
             "edit.", "", *_describe(model), f"export options: {opts}",
             f"command limits [{float(comp.low)!r}, {float(comp.high)!r}], input clamp "
             f"{clamp}, direction guard {guard}", "",
-            f"Use: {prefix}_state s; {prefix}_init(&s); then u = {prefix}_step(&s, x) once a "
-            "sample. x is the desired output in physical units, u the saturated command. A "
+            f"Use: {prefix}_state s; {prefix}_init(&s); then u = {prefix}_step(&s, x"
+            + (", conditions" if comp.n_conditions else "") + ") once a "
+            "sample. x is the desired output in physical units, u the saturated command"
+            + (f" (conditions: the {comp.n_conditions} measured operating condition(s) of "
+               "the sample, clamped to their training ranges widened by the margin and "
+               "counted as the input is)" if comp.n_conditions else "") + ". A "
             "NaN or inf sample holds the last command (the initial command before the first "
             "finite sample) and is counted; a finite sample outside the training input range "
             "(widened by the margin) is clamped and counted. Compile without -ffast-math or "
@@ -131,13 +163,15 @@ def _header(prefix: str, model: nn.Module, comp: StreamingCompensator, options: 
         f"#define {prefix}_LOW (({prefix}_real){float(comp.low)!r})",
         f"#define {prefix}_HIGH (({prefix}_real){float(comp.high)!r})",
         f"#define {prefix}_STATE_BYTES {n_bytes}",
+        *_condition_macros(prefix, model, comp),
         "",
         "typedef struct {",
         *[f"    {f.replace('REAL', prefix + '_real')}" for f in fields],
         f"}} {prefix}_state;",
         "",
         f"void {prefix}_init({prefix}_state *s);",
-        f"{prefix}_real {prefix}_step({prefix}_state *s, {prefix}_real x);",
+        f"{prefix}_real {prefix}_step({prefix}_state *s, {prefix}_real x"
+        + (f", const {prefix}_real *conditions);" if comp.n_conditions else ");"),
         f"int64_t {prefix}_nonfinite_count(const {prefix}_state *s);",
         f"int64_t {prefix}_out_of_range_count(const {prefix}_state *s);",
         "",
@@ -205,7 +239,8 @@ def _source(prefix: str, w: Writer, comp: StreamingCompensator, members: list[st
         "    memset(s, 0, sizeof *s);",
         "}",
         "",
-        f"{real} {prefix}_step({prefix}_state *s, {real} x)",
+        f"{real} {prefix}_step({prefix}_state *s, {real} x"
+        + (f", const {real} *conditions)" if comp.n_conditions else ")"),
         "{",
         *[f"    {d}" for d in decls],
         f"    {real} u;",

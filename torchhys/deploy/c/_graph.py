@@ -87,10 +87,11 @@ def _live(graph: fx.Graph, finite: dict[fx.Node, tuple[list[fx.Node], bool]]) ->
     return live
 
 
-def translate(ep: torch.export.ExportedProgram, w: Writer, members: list[str]
-               ) -> tuple[CTensor, list[CTensor]]:
+def translate(ep: torch.export.ExportedProgram, w: Writer, members: list[str],
+              conditioned: bool = False) -> tuple[CTensor, list[CTensor]]:
     """Write the step's statements into ``w``: returns the command's and the new state's
-    tensors."""
+    tensors. The step's inputs are ``x``, the ``conditions`` array where ``conditioned``,
+    then the state's members."""
     sig = ep.graph_signature
     known = {}
     for spec in sig.input_specs:
@@ -113,7 +114,9 @@ def translate(ep: torch.export.ExportedProgram, w: Writer, members: list[str]
             else:
                 k = users.index(node.name)
                 val = node.meta["val"]
-                base = "x" if k == 0 else f"s->{members[k - 1]}"
+                names = ["x", *(["conditions"] if conditioned else []),
+                         *(f"s->{m}" for m in members)]
+                base = names[k]
                 env[node] = CTensor(val.dtype, tuple(val.shape),
                                     contiguous_strides(val.shape), base)
         elif node.op == "call_function":

@@ -104,10 +104,14 @@ def to_c(
                    "direction": direction})
     state = comp.initial_state(1)
     with torch.no_grad():
-        ep = torch.export.export(_ExplicitStep(comp), (torch.zeros(1, dtype=dtype), *state),
+        conditions = ([torch.zeros(1, comp.n_conditions, dtype=dtype)]
+                      if comp.n_conditions > 0 else [])
+        ep = torch.export.export(_ExplicitStep(comp),
+                                 (torch.zeros(1, dtype=dtype), *conditions, *state),
                                  strict=False)
     w = Writer(prefix)
-    u, outputs = translate(ep, w, [MEMBERS.get(k, f"s{k}") for k in range(len(state))])
+    u, outputs = translate(ep, w, [MEMBERS.get(k, f"s{k}") for k in range(len(state))],
+                           conditioned=comp.n_conditions > 0)
     options = {"dtype": str(dtype).replace("torch.", ""), "limits": limits,
                "initial_command": initial_command, "input_range": input_range,
                "input_margin": input_margin, "direction": direction}

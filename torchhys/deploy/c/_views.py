@@ -7,7 +7,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from torchhys.deploy.c._writer import CTensor, Writer, contiguous_strides
+from torchhys.deploy.c._writer import CTensor, Writer, constant, contiguous_strides
 
 Emitter = Callable[..., Any]
 Operand = CTensor | float | int | bool
@@ -204,7 +204,9 @@ def _cat(w: Writer, spec: CTensor, tensors: Sequence[CTensor], dim: int = 0) -> 
 
 def _stack(w: Writer, spec: CTensor, tensors: Sequence[CTensor], dim: int = 0) -> CTensor:
     d = _dim(dim, len(spec.shape))
-    return _cat(w, spec, [_unsqueeze(w, spec, x, d) for x in tensors], d)
+    # a constant stays one (a view of it would lose its values)
+    return _cat(w, spec, [constant(x.value.unsqueeze(d)) if x.value is not None
+                          else _unsqueeze(w, spec, x, d) for x in tensors], d)
 
 
 JOINS: dict[str, Emitter] = {"cat.default": _cat, "stack.default": _stack}
