@@ -5,7 +5,7 @@ that hold parameters and state are re-exported here, with the operator protocol.
 built-in operator is registered (:data:`torchhys.registry.OPERATORS`) when ``torchhys`` is
 imported.
 
-The subpackages that not every user needs (``compose``, ``deploy``, ``dynamics``,
+The subpackages that not every user needs (``compose``, ``conditions``, ``deploy``, ``dynamics``,
 ``identification``, ``models``, ``optim``, ``plants``, ``signals``, ``testing``), and the
 families' ``fit_*`` and ``select_*``, are loaded on first use (``torchhys.plants`` or
 ``import torchhys.plants``) where nothing has loaded them before: ``import torchhys`` loads
@@ -40,8 +40,8 @@ for _module in pkgutil.iter_modules(operators.__path__):
     importlib.import_module(f"{operators.__name__}.{_module.name}")
 del _module
 
-_LAZY_SUBPACKAGES = ("compose", "deploy", "dynamics", "identification", "models", "optim",
-                     "plants", "selection", "signals", "testing")
+_LAZY_SUBPACKAGES = ("compose", "conditions", "deploy", "dynamics", "identification", "models",
+                     "optim", "plants", "selection", "signals", "testing")
 """Subpackages loaded on first use (:func:`__getattr__`)."""
 
 _LAZY_NAMES = {
@@ -58,6 +58,7 @@ _LAZY_NAMES = {
 if TYPE_CHECKING:  # what a type checker and an editor see: the same names, eagerly
     from torchhys import (
         compose,
+        conditions,
         deploy,
         dynamics,
         identification,
@@ -77,6 +78,7 @@ __all__ = [
     "__version__",
     # subpackages and modules
     "compose",
+    "conditions",
     "deploy",
     "dynamics",
     "functional",
