@@ -67,10 +67,6 @@ KNOWN_DEFECTS: dict[tuple[str, str, str | None], str] = {
         "PreisachInverse reads its grading buffer into Python floats (center, scale) when "
         "it is built or loaded (after_load): functional_call with other buffers, and so "
         "vmap over stacked ones, runs with the loaded grading"),
-    ("gradgradcheck", "generalized_pi_inverse", None): (
-        "the generalized PI inverse's backward is not differentiable again: gradgradcheck's "
-        "Jacobian of the gradient in x differs from the numerical one (a wrong second "
-        "derivative, not an error)"),
     **dict.fromkeys((("export", "eiho", None), ("export", "cascade", None)), (
         "the EIHO operator's 'dominant' rule updates its stack of nested loops in a Python "
         "loop over the confirmed turning points (functional/_branch.py, _dominant_stacks; "

@@ -56,9 +56,9 @@ def monotone_inverse(y: Tensor, gain: Tensor, unit_weights: Tensor, centers: Ten
 
     Bisection on ``[(y - offset - C) / gain, (y - offset + C) / gain]`` (``C`` the sum of
     ``unit_weights``) cut to ``[lower, upper]`` (0-dim, may be infinite), then ``newton``
-    Newton steps kept inside the final bracket, all detached, then one more Newton step
-    (the gradient with respect to y and the parameters is the implicit-function one),
-    clamped to the bounds.
+    Newton steps kept inside the final bracket, all detached, then two more Newton steps on
+    the graph (the gradient with respect to y and the parameters is the implicit-function
+    one, and so is its derivative: ``gradgradcheck`` passes), clamped to the bounds.
     """
     if unit_weights.numel() == 0:  # g is affine: its inverse in closed form
         return torch.minimum(torch.maximum((y - offset) / gain, lower), upper)
@@ -79,8 +79,12 @@ def monotone_inverse(y: Tensor, gain: Tensor, unit_weights: Tensor, centers: Ten
     for _ in range(newton):
         step = (monotone_output(v, a, c, b, s, off) - target) / monotone_slope(v, a, c, b, s)
         v = torch.minimum(torch.maximum(v - step, lo), hi)
-    residual = monotone_output(v, gain, unit_weights, centers, slopes, offset) - y
-    v = v - residual / monotone_slope(v, gain, unit_weights, centers, slopes)
+    # two Newton steps on the graph: the first gives the implicit-function gradient, the
+    # second its derivative too (the second derivative of a single step from a detached
+    # point misses g''s curvature)
+    for _ in range(2):
+        residual = monotone_output(v, gain, unit_weights, centers, slopes, offset) - y
+        v = v - residual / monotone_slope(v, gain, unit_weights, centers, slopes)
     return torch.minimum(torch.maximum(v, lower), upper)
 
 
