@@ -25,11 +25,7 @@ PAGE = ROOT / "docs" / "adding-an-operator.md"
 MODULE = "my_operators"
 CONFIG = "my_play.yaml"
 CC = shutil.which("cc")
-KNOWN_DEFECTS: dict[str, str] = {
-    "test_conformance[meta-my_fixed_play]": (
-        "the page's FixedPlay defines no forward: the base class's forward, which runs the "
-        "step over the samples, fails on the meta device (not yet diagnosed)"),
-}
+KNOWN_DEFECTS: dict[str, str] = {}
 """Conformance checks that the page's operators may fail because of a defect outside the
 page (the entry goes when the defect is fixed)."""
 

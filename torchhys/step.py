@@ -89,10 +89,11 @@ class OperatorStep(nn.Module, abc.ABC):
         out = []
         for block in self.state_spec:
             dtype = {"float": x0.dtype, "float64": torch.float64, "int64": torch.long}[block.kind]
-            start = torch.tensor(block.columns("start"), dtype=torch.float64)
-            slope = torch.tensor(block.columns("from_sample"), dtype=torch.float64)
+            start = torch.tensor(block.columns("start"), dtype=torch.float64, device=x0.device)
+            slope = torch.tensor(block.columns("from_sample"), dtype=torch.float64,
+                                 device=x0.device)
             if self.n_inputs != 1:
-                if bool(slope.ne(0).any()):
+                if any(v != 0.0 for v in block.columns("from_sample")):
                     raise ValueError(f"{type(self).__name__}: block {block.name!r} starts "
                                      "from the sample (from_sample != 0) but the step has "
                                      f"{self.n_inputs} inputs: override initial_state")
