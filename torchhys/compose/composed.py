@@ -21,11 +21,10 @@ from torchhys._checks import as_batched_sequence, fitted_samples
 from torchhys.compose._check import _first_line, check_causal, check_graph, shape_pass
 from torchhys.compose._leaves import Tracer
 from torchhys.compose.graph import ComposedStep, build_step, leaf_tails
+from torchhys.deploy.ranges import RANGES, training_ranges
 
 __all__ = ["Composed", "LastFeature", "compose"]
 
-#: the ranges a Composed records (those the compensator reads: torchhys.deploy.ranges)
-RANGES = ("in_min", "in_max", "out_min", "out_max", "trend")
 
 #: the example the checks run on: batch and time
 EXAMPLE = (2, 16)
@@ -164,11 +163,8 @@ class Composed(nn.Module):
         for name, v in (("x", xs), ("y", ys)):
             if float(v.std()) == 0.0:
                 raise ValueError(f"{name} is constant (std 0): it has no range to record")
-        xc, yc = xs - xs.mean(), ys - ys.mean()
-        trend = (xc * yc).sum() / (xc.square().sum() * yc.square().sum()).sqrt()
-        for name, value in zip(RANGES, (xs.min(), xs.max(), ys.min(), ys.max(), trend),
-                               strict=True):
-            getattr(self, name).fill_(float(value))
+        for name, value in zip(RANGES, training_ranges(xs, ys), strict=True):
+            getattr(self, name).fill_(value)
 
     def composed_step(self, dtype: torch.dtype) -> ComposedStep:
         """The composed step with the current weights (detached) in ``dtype``."""

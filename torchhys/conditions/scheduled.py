@@ -31,6 +31,7 @@ from torchhys._checks import (
     concrete,
     fitted_samples,
 )
+from torchhys.deploy.ranges import RANGES, training_ranges
 from torchhys.operator import HysteresisOperator
 from torchhys.step import OperatorStep
 
@@ -123,7 +124,7 @@ class ScheduledReadout(nn.Module):
         n = self.n_conditions
         for name in ("cond_min", "cond_max"):
             self.register_buffer(name, torch.full((n,), float("nan")))
-        for name in ("in_min", "in_max", "out_min", "out_max", "trend"):
+        for name in RANGES:
             self.register_buffer(name, torch.full((), float("nan")))
 
     @property
@@ -209,13 +210,8 @@ class ScheduledReadout(nn.Module):
         sol = torch.linalg.lstsq(lhs, rhs.unsqueeze(1), driver="gelsd").solution
         w = sol.squeeze(1) / scale
         self.weight.copy_(w.reshape(self.weight.shape))
-        self.in_min.copy_(xs.min())
-        self.in_max.copy_(xs.max())
-        self.out_min.copy_(ys.min())
-        self.out_max.copy_(ys.max())
-        xc, yc = xs - xs.mean(), ys - ys.mean()
-        self.trend.fill_(float((xc * yc).sum() / (xc.square().sum()
-                                                  * yc.square().sum()).sqrt()))
+        for name, value in zip(RANGES, training_ranges(xs, ys), strict=True):
+            getattr(self, name).fill_(value)
         return self
 
     def streaming_steps(self, dtype: torch.dtype) -> list[OperatorStep]:

@@ -11,8 +11,8 @@ from torch import Tensor, nn
 from torchhys._checks import check_real
 
 __all__ = [
-    "DIRECTIONS", "MIN_TREND", "default_condition_ranges", "default_direction",
-    "default_input_range", "default_limits",
+    "DIRECTIONS", "MIN_TREND", "RANGES", "default_condition_ranges", "default_direction",
+    "default_input_range", "default_limits", "training_ranges",
 ]
 
 #: values of ``StreamingCompensator(direction=...)``
@@ -148,3 +148,17 @@ def _condition_bounds(model: nn.Module, n: int, condition_ranges: Sequence | Non
     lo = torch.tensor([a - margin * (b - a) for a, b in ranges], dtype=torch.float64)
     hi = torch.tensor([b + margin * (b - a) for a, b in ranges], dtype=torch.float64)
     return lo, hi
+
+
+#: the buffers a model records its training data's ranges in (what this module reads)
+RANGES = ("in_min", "in_max", "out_min", "out_max", "trend")
+
+
+def training_ranges(xs: Tensor, ys: Tensor) -> tuple[float, float, float, float, float]:
+    """The :data:`RANGES` of flat training samples xs, ys (the fitted ones, not constant):
+    the min and max of each and ``trend``, their correlation coefficient, in float64."""
+    xs, ys = xs.detach().double().flatten(), ys.detach().double().flatten()
+    xc, yc = xs - xs.mean(), ys - ys.mean()
+    trend = (xc * yc).sum() / (xc.square().sum() * yc.square().sum()).sqrt()
+    return (float(xs.min()), float(xs.max()), float(ys.min()), float(ys.max()),
+            float(trend))
