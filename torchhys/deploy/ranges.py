@@ -105,6 +105,11 @@ def _input_bounds(model: nn.Module, input_range: Sequence[float] | None,
            else _check_limits(input_range, "input_range"))
     if rng is None:
         return None
+    return _widened(rng, margin)
+
+
+def _widened(rng: tuple[float, float], margin: float) -> tuple[float, float]:
+    """``(lo, hi)`` widened by ``margin`` of its width on each side (the clamp's bounds)."""
     lo, hi = rng
     return lo - margin * (hi - lo), hi + margin * (hi - lo)
 
@@ -144,10 +149,9 @@ def _condition_bounds(model: nn.Module, n: int, condition_ranges: Sequence | Non
                   for i, r in enumerate(condition_ranges)]
     if input_margin is None or ranges is None:
         return None
-    margin = check_real(input_margin, "input_margin")
-    lo = torch.tensor([a - margin * (b - a) for a, b in ranges], dtype=torch.float64)
-    hi = torch.tensor([b + margin * (b - a) for a, b in ranges], dtype=torch.float64)
-    return lo, hi
+    bounds = [_widened(r, check_real(input_margin, "input_margin")) for r in ranges]
+    return (torch.tensor([lo for lo, _ in bounds], dtype=torch.float64),
+            torch.tensor([hi for _, hi in bounds], dtype=torch.float64))
 
 
 #: the buffers a model records its training data's ranges in (what this module reads)
