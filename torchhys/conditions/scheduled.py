@@ -17,7 +17,6 @@ conditions..., features...]``; every export carries the conditions.
 """
 
 # no `from __future__ import annotations`: TorchScript reads the head's class annotations
-import itertools
 from collections.abc import Sequence
 
 import torch
@@ -31,38 +30,12 @@ from torchhys._checks import (
     concrete,
     fitted_samples,
 )
+from torchhys.conditions.basis import legendre_basis, total_degree
 from torchhys.deploy.ranges import RANGES, training_ranges
 from torchhys.operator import HysteresisOperator
 from torchhys.step import OperatorStep
 
 __all__ = ["ScheduledReadout", "legendre_basis"]
-
-
-def _exponents(n: int, degree: int) -> list[tuple[int, ...]]:
-    """The multi-indices of total degree <= ``degree`` in ``n`` variables, by degree."""
-    out = [e for e in itertools.product(range(degree + 1), repeat=n) if sum(e) <= degree]
-    return sorted(out, key=lambda e: (sum(e), tuple(-v for v in e)))
-
-
-def legendre_basis(c: Tensor, exponents: list[list[int]], degree: int) -> Tensor:
-    """The tensor-product Legendre basis of scaled conditions ``c`` (..., n) in [-1, 1]:
-    (..., len(exponents)), column k the product over i of ``P_{exponents[k][i]}(c_i)``
-    (Bonnet's recurrence; multiplications and additions only, so the C and ONNX steps have
-    it)."""
-    per: list[list[Tensor]] = []
-    for i in range(c.shape[-1]):
-        ci = c[..., i]
-        ps = [torch.ones_like(ci), ci]
-        for k in range(1, degree):
-            ps.append(((2 * k + 1) * ci * ps[k] - k * ps[k - 1]) / (k + 1))
-        per.append(ps)
-    cols: list[Tensor] = []
-    for e in exponents:
-        col = per[0][e[0]]
-        for i in range(1, len(e)):
-            col = col * per[i][e[i]]
-        cols.append(col)
-    return torch.stack(cols, -1)
 
 
 class _ScheduledHead(nn.Module):
@@ -118,7 +91,7 @@ class ScheduledReadout(nn.Module):
         self.n_conditions = check_int(n_conditions, "n_conditions", minimum=1)
         self.degree = check_int(degree, "degree", minimum=0)
         self.ridge = check_nonnegative(ridge, "ridge")
-        self.exponents = [list(e) for e in _exponents(self.n_conditions, self.degree)]
+        self.exponents = total_degree(self.n_conditions, self.degree)
         n_features = 2 + sum(op.n_outputs for op in ops)
         self.register_buffer("weight", torch.zeros(n_features, len(self.exponents)))
         n = self.n_conditions
