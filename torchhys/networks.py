@@ -14,12 +14,13 @@ from torchhys._checks import (
     check_int,
     fitted_samples,
 )
+from torchhys.conditions.basis import condition_products, scaled_conditions, total_degree
 from torchhys.operator import AtomicLoad, HysteresisOperator
 from torchhys.protocols import Deployable, Network
 from torchhys.registry import make_operator
 from torchhys.step import OperatorStep
 
-__all__ = ["InverseHysteresisNet"]
+__all__ = ["ConditionedHead", "FoldedHead", "InverseHysteresisNet"]
 
 _ACTIVATIONS = {
     "sigmoid": nn.Sigmoid, "tanh": nn.Tanh, "relu": nn.ReLU, "gelu": nn.GELU,
@@ -52,6 +53,16 @@ class InverseHysteresisNet(AtomicLoad, nn.Module, Network, Deployable):
             combination of the input and the operators' outputs).
         operator_kwargs: keyword arguments of the operators given by name alone (e.g.
             ``a=...``).
+        n_conditions: measured operating conditions (a coil voltage, a supply pressure, a
+            temperature) the network also takes, per sample (0: none). The features are then
+            the products ``phi_j(x) b_k(c)`` of ``phi = [1, x, f_1(x), ...]`` and a
+            tensor-product Legendre basis ``b`` of total degree ``condition_degree`` in the
+            conditions (each scaled to [-1, 1] over its training range), the constant
+            left out: the hidden layer sees the conditions and how they scale each feature;
+            with ``activation="identity"`` and ``hidden=1`` it is the affine readout whose
+            weights are polynomials in the conditions
+            (:class:`~torchhys.conditions.ScheduledReadout`'s model).
+        condition_degree: the basis's total degree (>= 1) with conditions.
 
     Raises:
         ValueError: an unknown operator name, bad operator options, bad ``hidden`` or
@@ -61,7 +72,8 @@ class InverseHysteresisNet(AtomicLoad, nn.Module, Network, Deployable):
 
     Shapes:
         ``forward(x)``: x (time,) or (batch, time) -> y of the same shape, and the list of
-        operator states.
+        operator states; with conditions ``forward(x, conditions=c)``, c (time, n) or
+        (batch, time, n).
 
     References:
         Eq. (17) of "A neural networks based model of inverse hysteresis" (2011).
@@ -70,9 +82,13 @@ class InverseHysteresisNet(AtomicLoad, nn.Module, Network, Deployable):
     def __init__(
         self, operator: Operator | Sequence[Operator] | None = "eiho", hidden: int = 168, *,
         activation: str = "sigmoid", operator_kwargs: dict | None = None,
+        n_conditions: int = 0, condition_degree: int = 1,
     ) -> None:
         super().__init__()
         check_int(hidden, "hidden", minimum=1)
+        self.n_conditions = check_int(n_conditions, "n_conditions", minimum=0)
+        self.condition_degree = check_int(condition_degree, "condition_degree", minimum=1)
+        self.exponents = total_degree(self.n_conditions, self.condition_degree)
         check_choice(activation, "activation", sorted(_ACTIVATIONS))
         several = isinstance(operator, (list, tuple))
         specs = [] if operator is None else list(operator) if several else [operator]
@@ -81,6 +97,12 @@ class InverseHysteresisNet(AtomicLoad, nn.Module, Network, Deployable):
                           **(operator_kwargs or {}) if isinstance(s, str) else {})
             for i, s in enumerate(specs)])
         n_features = 1 + sum(op.n_outputs for op in self.operators)
+        if self.n_conditions:
+            # the training conditions' ranges (NaN until fitted): the basis's scaling and
+            # the compensator's condition clamp
+            for name in ("cond_min", "cond_max"):
+                self.register_buffer(name, torch.full((self.n_conditions,), float("nan")))
+            n_features = (n_features + 1) * len(self.exponents) - 1
         self.register_buffer("in_mean", torch.zeros(n_features))
         self.register_buffer("in_std", torch.ones(n_features))
         self.register_buffer("out_mean", torch.zeros(()))
@@ -100,16 +122,42 @@ class InverseHysteresisNet(AtomicLoad, nn.Module, Network, Deployable):
         self.activation = _ACTIVATIONS[activation]()
         self.output = nn.Linear(hidden, 1)
 
+    def _conditions(self, xb: Tensor, conditions: Tensor | None, squeezed: bool) -> Tensor | None:
+        """``conditions`` as (batch, time, n) in x's dtype, checked against x (batch, time)."""
+        n = self.n_conditions
+        if n == 0:
+            if conditions is not None:
+                raise ValueError("conditions given to a network without conditions "
+                                 "(n_conditions=0)")
+            return None
+        if conditions is None:
+            raise ValueError(f"conditions missing: the network takes {n} condition "
+                             f"input(s) per sample, conditions (batch, time, {n})")
+        if not isinstance(conditions, Tensor) or not conditions.is_floating_point():
+            raise TypeError(f"conditions must be a floating-point tensor, got "
+                            f"{getattr(conditions, 'dtype', type(conditions).__name__)}")
+        cb = conditions.unsqueeze(0) if squeezed else conditions
+        want = (*xb.shape, n)
+        if tuple(cb.shape) != want:
+            raise ValueError(f"conditions must have shape {want[int(squeezed):]} (x's shape "
+                             f"and {n} condition column(s)), got {tuple(conditions.shape)}")
+        return cb.to(xb.dtype)
+
     def features(
         self, x: Tensor, state: list | None = None, *,
         target: Tensor | None = None, segment_a: Tensor | None = None,
+        conditions: Tensor | None = None,
     ) -> tuple[Tensor, list]:
-        """Physical-unit input space ``[x, f_1(x), ...]``: (batch, time, features), states.
+        """Physical-unit input space ``[x, f_1(x), ...]``: (batch, time, features), states;
+        with conditions, its products with their basis (see ``n_conditions``).
 
         Raises:
             TypeError: ``x`` (or ``target``) of a wider float dtype than the network's (a
-                narrower one is widened)."""
-        xb, _ = as_batched_sequence(x, "x")
+                narrower one is widened).
+            ValueError: conditions missing, given to a network without, or of another
+                shape than x's with ``n_conditions`` columns."""
+        xb, squeezed = as_batched_sequence(x, "x")
+        cb = self._conditions(xb, conditions, squeezed)
         xb = check_dtype_of(xb, "x", self.hidden.weight.dtype, "network")
         if state is not None and len(state) != len(self.operators):
             raise ValueError(f"state must hold {len(self.operators)} states, got {len(state)}")
@@ -124,7 +172,11 @@ class InverseHysteresisNet(AtomicLoad, nn.Module, Network, Deployable):
                 f, s = op(xb, prev, target=yb, segment_a=segment_a)
             feats.append(f.unsqueeze(-1) if f.dim() == 2 else f)
             states.append(s)
-        return torch.cat(feats, dim=-1), states
+        out = torch.cat(feats, dim=-1)
+        if cb is not None:
+            c = scaled_conditions(cb, self.cond_min, self.cond_max)
+            out = condition_products(out, c, self.exponents, self.condition_degree)
+        return out, states
 
     def head(self, features: Tensor) -> Tensor:
         """Network of physical-unit features (..., features) -> physical output (...)."""
@@ -135,17 +187,21 @@ class InverseHysteresisNet(AtomicLoad, nn.Module, Network, Deployable):
     def forward(
         self, x: Tensor, state: list | None = None, *,
         target: Tensor | None = None, segment_a: Tensor | None = None,
+        conditions: Tensor | None = None,
     ) -> tuple[Tensor, list]:
-        """Inverse-model output for ``x`` (time,) or (batch, time), continuing from ``state``.
+        """Inverse-model output for ``x`` (time,) or (batch, time), continuing from ``state``
+        (and the conditions (time, n) or (batch, time, n) of a network with conditions).
 
         ``target`` / ``segment_a`` are only used by per-segment (non-causal) EIHOs.
         """
-        feats, states = self.features(x, state, target=target, segment_a=segment_a)
+        feats, states = self.features(x, state, target=target, segment_a=segment_a,
+                                      conditions=conditions)
         y = self.head(feats)
         return (y[0] if x.dim() == 1 else y), states
 
     @torch.no_grad()
-    def fit_normalization(self, x: Tensor, y: Tensor, *, mask: Tensor | None = None) -> None:
+    def fit_normalization(self, x: Tensor, y: Tensor, *, mask: Tensor | None = None,
+                          conditions: Tensor | None = None) -> None:
         """Fit the input/output normalization buffers to training data (physical units).
 
         Args:
@@ -154,15 +210,20 @@ class InverseHysteresisNet(AtomicLoad, nn.Module, Network, Deployable):
             mask: the samples the statistics are taken over, bool, the shape of ``x``
                 (False: left out, e.g. a held-out block or a shorter row's padding; the
                 operators still run through them); None: every sample.
+            conditions: the conditions of a network with conditions, (time, n) or (batch,
+                time, n); their ranges over the masked samples are recorded first
+                (``cond_min``, ``cond_max``: the basis's scaling).
 
         Each operator's data-dependent settings are calibrated on ``x`` first
         (:meth:`~torchhys.HysteresisOperator.calibrate`, e.g. a ``threshold="auto"``).
 
         Raises:
             ValueError: mismatched shapes, fewer than 2 samples, a constant ``x`` or ``y``,
-                a bad ``mask``.
+                a bad ``mask``; conditions missing, non-finite in the masked samples or
+                constant over them (a constant condition schedules nothing).
         """
-        xb, _ = as_batched_sequence(x, "x")
+        xb, squeezed = as_batched_sequence(x, "x")
+        cb = self._conditions(xb, conditions, squeezed)
         yb, _ = as_batched_sequence(y, "y")
         if yb.shape != xb.shape:
             raise ValueError(f"y must have the shape of x {tuple(xb.shape)}, got {tuple(y.shape)}")
@@ -176,9 +237,21 @@ class InverseHysteresisNet(AtomicLoad, nn.Module, Network, Deployable):
         for name, v in (("x", xs), ("y", ys)):
             if float(v.std()) == 0.0:
                 raise ValueError(f"{name} is constant (std 0): cannot fit a normalization")
+        if cb is not None:
+            cs = cb.reshape(-1, self.n_conditions) if m is None else cb[m]
+            if not bool(torch.isfinite(cs).all()):
+                raise ValueError("conditions must be finite in the fitted samples")
+            lo, hi = cs.amin(0), cs.amax(0)
+            flat = [i for i in range(self.n_conditions) if not bool(hi[i] > lo[i])]
+            if flat:
+                raise ValueError(f"condition {flat[0]} is constant over the fitted samples "
+                                 f"({float(lo[flat[0]])}): it cannot schedule the network "
+                                 "(drop it, or fit on several conditions)")
+            self.cond_min.copy_(lo)
+            self.cond_max.copy_(hi)
         for op in self.operators:
             op.calibrate(xb)
-        feats, _ = self.features(xb, target=yb)
+        feats, _ = self.features(xb, target=yb, conditions=cb)
         flat = feats.reshape(-1, feats.shape[-1]) if m is None else feats[m]
         std = flat.std(dim=0)
         self.in_mean.copy_(flat.mean(dim=0))
@@ -200,7 +273,13 @@ class InverseHysteresisNet(AtomicLoad, nn.Module, Network, Deployable):
 
     def streaming_head(self, dtype: torch.dtype) -> nn.Module:
         """The network on a step's features (batch, features) -> (batch, 1), physical units,
-        with the normalization folded into its two layers (:class:`FoldedHead`)."""
+        with the normalization folded into its two layers (:class:`FoldedHead`); with
+        conditions, on ``[x, conditions..., features...]`` (:class:`ConditionedHead`)."""
+        if self.n_conditions:
+            if not bool(torch.isfinite(self.cond_min).all()):
+                raise ValueError("the network's condition ranges are not fitted: call "
+                                 "fit_normalization(x, y, conditions=...) before streaming")
+            return ConditionedHead(self, dtype)
         return FoldedHead(self, dtype)
 
 
@@ -231,3 +310,28 @@ class FoldedHead(nn.Module):
     def forward(self, features: Tensor) -> Tensor:
         h = self.activation(torch.addmm(self.b1, features, self.w1t))
         return torch.addmm(self.b2, h, self.w2t)
+
+
+class ConditionedHead(nn.Module):
+    """The head of a network with conditions on ``[x, conditions..., features...]`` (batch,
+    1 + n + nf): the features' products with the conditions' basis, then
+    :class:`FoldedHead` (the compensator gives the conditions after its clamp)."""
+
+    exponents: list[list[int]]
+    n: int
+    degree: int
+
+    def __init__(self, net: InverseHysteresisNet, dtype: torch.dtype) -> None:
+        super().__init__()
+        lo, hi = net.cond_min.double(), net.cond_max.double()
+        scale = 2.0 / (hi - lo)  # c~ = c * scale + shift maps [lo, hi] to [-1, 1]
+        self.register_buffer("scale", scale.to(dtype))
+        self.register_buffer("shift", (-1.0 - lo * scale).to(dtype))
+        self.exponents, self.n = net.exponents, net.n_conditions
+        self.degree = net.condition_degree
+        self.folded = FoldedHead(net, dtype)
+
+    def forward(self, z: Tensor) -> Tensor:
+        c = z[:, 1:1 + self.n] * self.scale + self.shift
+        f = torch.cat([z[:, :1], z[:, 1 + self.n:]], 1)
+        return self.folded(condition_products(f, c, self.exponents, self.degree))

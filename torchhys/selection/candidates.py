@@ -44,10 +44,13 @@ MODEL_DEFAULTS: dict[str, Any] = {
     "operator": None, "hidden": 1, "activation": "identity", "operator_kwargs": None,
     "init": "default", "optimizer": "lbfgs", "lr": 1.0,
     "optimizer_kwargs": {"max_iter": 20, "tolerance_grad": 1e-12, "tolerance_change": 1e-15},
-    "schedule": None,
+    "schedule": None, "condition_degree": None,
 }
 """A candidate's model arguments where it gives none: an affine readout trained by L-BFGS,
-the model section of ``configs/measured.yaml``."""
+the model section of ``configs/measured.yaml``. ``condition_degree``: None, a model that does
+not see the record's operating conditions; k >= 1, a network that takes them, its features'
+products with their Legendre basis of total degree k
+(:class:`~torchhys.InverseHysteresisNet`'s ``n_conditions``)."""
 
 
 def model_base(model: Mapping[str, Any]) -> dict[str, Any]:
@@ -70,18 +73,31 @@ def candidate_spec(base: Mapping[str, Any] | None, overrides: Mapping[str, Any])
                                                     in CLOSURE_OPTIMIZERS):
         raise ValueError(f"schedule must be None or 'cosine' (with optimizer='adam'), got "
                          f"{spec['schedule']!r} with optimizer={spec['optimizer']!r}")
+    degree = spec["condition_degree"]
+    if degree is not None and (isinstance(degree, bool) or not isinstance(degree, int)
+                               or degree < 1):
+        raise ValueError(f"condition_degree must be None (the conditions not seen) or an int "
+                         f">= 1, got {degree!r}")
     return spec
 
 
 def build_candidate(spec: Mapping[str, Any], *, dtype: torch.dtype = torch.float64,
-                    seed: int | None = 0) -> tuple[InverseHysteresisNet, dict]:
+                    seed: int | None = 0, n_conditions: int = 0,
+                    ) -> tuple[InverseHysteresisNet, dict]:
     """The candidate's network, initialized from ``seed`` (None: the generator as it is),
     and the fitters of its model families
-    (:func:`~torchhys.identification.specs.build_operators`)."""
+    (:func:`~torchhys.identification.specs.build_operators`); with ``condition_degree``,
+    a network of the record's ``n_conditions``."""
     if seed is not None:
         torch.manual_seed(seed)
     ops, fitters = build_operators(spec["operator"], spec["operator_kwargs"])
-    net = InverseHysteresisNet(ops, spec["hidden"], activation=spec["activation"])
+    degree = spec.get("condition_degree")
+    n = n_conditions if degree is not None else 0
+    if degree is not None and n == 0:
+        raise ValueError(f"condition_degree={degree}: the candidate takes operating conditions, "
+                         "but the record has none (data.condition_columns)")
+    net = InverseHysteresisNet(ops, spec["hidden"], activation=spec["activation"],
+                               n_conditions=n, condition_degree=degree or 1)
     initialize(net, spec["init"])
     return net.to(dtype), fitters
 
@@ -114,7 +130,7 @@ def solve_readout(net: InverseHysteresisNet, train: Batch) -> None:
     t||`` in float64 (``gelsd``: the minimum-norm solution where features are collinear)."""
     dtype = net.in_mean.dtype
     x, y = train.x.to(dtype), train.y.to(dtype)
-    feats, _ = net.features(x, target=y)
+    feats, _ = net.features(x, target=y, conditions=_seen(net, train))
     z = ((feats - net.in_mean) / net.in_std)[train.mask]
     t = ((y - net.out_mean) / net.out_std)[train.mask]
     design = torch.cat([z, torch.ones_like(z[:, :1])], 1).to(torch.float64)
@@ -149,13 +165,14 @@ def train_full_batch(net: InverseHysteresisNet, spec: Mapping[str, Any], train: 
              if spec.get("schedule") == "cosine" else None)
     dtype = net.in_mean.dtype
     x, y, mask = train.x.to(dtype), train.y.to(dtype), train.mask
+    c = _seen(net, train)
     fixed = not any(p.requires_grad for p in net.operators.parameters())
     with torch.no_grad():
-        feats = net.features(x, target=y)[0] if fixed else None
+        feats = net.features(x, target=y, conditions=c)[0] if fixed else None
 
     def closure() -> Tensor:
         opt.zero_grad()
-        out = net.head(feats) if fixed else net(x, target=y)[0]
+        out = net.head(feats) if fixed else net(x, target=y, conditions=c)[0]
         loss = (out - y)[mask].square().mean()
         loss.backward()
         return loss
@@ -185,12 +202,13 @@ def fit_candidate(spec: Mapping[str, Any], train: Batch, fit: Batch, *, warmup: 
         FitError: a model family that cannot be fitted to the data
             (:class:`~torchhys.identification.errors.FitError`).
     """
-    net, fitters = build_candidate(spec, dtype=dtype, seed=seed)
+    n = 0 if fit.conditions is None else int(fit.conditions.shape[-1])
+    net, fitters = build_candidate(spec, dtype=dtype, seed=seed, n_conditions=n)
     full = bool(fit.mask.all())
     mask = None if full else fit.mask
     fx, fy = fit.x.to(torch.float64), fit.y.to(torch.float64)
     fit_data_dependent(net.operators, fitters, fx, fy, warmup=warmup, mask=mask)
-    net.fit_normalization(fx.to(dtype), fy.to(dtype), mask=mask)
+    net.fit_normalization(fx.to(dtype), fy.to(dtype), mask=mask, conditions=_seen(net, fit))
     check_normalization(net)
     if is_direct(spec, net):
         solve_readout(net, train)
@@ -204,9 +222,19 @@ def squared_errors(net: InverseHysteresisNet, val: Batch) -> Tensor:
     """The squared errors of ``net`` on the samples ``val.mask``, float64, flat in time
     order (row by row)."""
     dtype = net.in_mean.dtype
-    out = net(val.x.to(dtype), target=val.y.to(dtype))[0]
+    out = net(val.x.to(dtype), target=val.y.to(dtype), conditions=_seen(net, val))[0]
     e = out.to(torch.float64) - val.y.to(torch.float64)
     return e.square()[val.mask]
+
+
+def _seen(net: InverseHysteresisNet, batch: Batch) -> Tensor | None:
+    """The batch's conditions in the network's dtype where the network takes them (None
+    where it does not: a candidate that does not see the conditions)."""
+    if not net.n_conditions:
+        return None
+    if batch.conditions is None:
+        raise ValueError("the network takes operating conditions, the batch has none")
+    return batch.conditions.to(net.in_mean.dtype)
 
 
 def _mean(errors: Tensor) -> float:

@@ -4,6 +4,9 @@
   ``k`` contiguous blocks, each held out once;
 - leave one recording out (``cv="recording"``): each training row held out once, whole, the
   candidate fitted on the others;
+- leave one condition out (``cv="condition"``, with conditions): the rows of each operating
+  condition held out together, the candidate fitted on the other conditions (a choice that
+  rewards interpolating between conditions, not memorising them);
 - either with a rolling origin (``mode="rolling"``, :func:`rolling_split`): each block (or
   recording) validated on a fit of those before it only.
 """
@@ -18,12 +21,17 @@ from torch import Tensor
 from torchhys._checks import check_choice, check_int
 from torchhys.data.tensors import fit_tensors
 
-__all__ = ["CV_MODES", "RECORDING", "Batch", "Fold", "block_split", "describe_cv", "fold_masks",
-           "make_folds", "rolling_split"]
+__all__ = ["CONDITION", "CV_MODES", "RECORDING", "Batch", "Fold", "block_split",
+           "condition_groups", "describe_cv", "fold_masks", "make_folds", "rolling_split"]
 
 
 RECORDING = "recording"
 """``select_cv`` of leave-one-recording-out cross-validation (:class:`RecordingFold`)."""
+
+
+CONDITION = "condition"
+"""``select_cv`` of leave-one-condition-out cross-validation: the rows of each operating
+condition (a row's conditions constant over its scored samples) held out together."""
 
 
 CV_MODES = ("blocked", "rolling")
@@ -138,17 +146,52 @@ def describe_cv(cv: int | str | None, mode: str | None = None) -> str:
     if mode == "rolling":
         return ("rolling-origin cross-validation over the training recordings" if cv == RECORDING
                 else f"rolling-origin cross-validation on {cv} blocks ({cv - 1} folds)")
+    if cv == CONDITION:
+        return "leave-one-condition-out cross-validation"
     return ("leave-one-recording-out cross-validation" if cv == RECORDING else
             f"{cv}-fold blocked cross-validation")
 
 
 class Batch(NamedTuple):
     """Rows of a record: ``x``, ``y`` (rows, time) and the samples ``mask`` (rows, time)
-    bool that a loss, a fit or a score uses (the states run through the others)."""
+    bool that a loss, a fit or a score uses (the states run through the others); the
+    operating conditions (rows, time, n) where the record has them."""
 
     x: Tensor
     y: Tensor
     mask: Tensor
+    conditions: Tensor | None = None
+
+
+def _take(c: Tensor | None, rows: object = slice(None), end: int | None = None) -> Tensor | None:
+    """The conditions of the rows ``rows`` and samples ``:end`` (None: none)."""
+    return None if c is None else c[rows, :end]
+
+
+def condition_groups(conditions: Tensor, mask: Tensor, *, source: str = "the data"
+                     ) -> list[list[int]]:
+    """The rows of each operating condition, in the order of the conditions: rows whose
+    conditions (rows, time, n) are one value over their scored samples (``mask``), grouped
+    by it.
+
+    Raises:
+        ValueError: a row whose conditions vary over its scored samples, fewer than three
+            conditions (a fold must leave two, to fit a scheduling)."""
+    values = []
+    for r in range(conditions.shape[0]):
+        c = conditions[r][mask[r].to(torch.bool)]
+        if bool((c != c[:1]).any()):
+            raise ValueError(f"model.select_cv={CONDITION!r}: the conditions of training row "
+                             f"{r} of {source} vary over the row; leaving one condition out "
+                             "needs each recording at one condition (use select_cv: "
+                             f"{RECORDING!r} or k blocks)")
+        values.append(tuple(float(v) for v in c[0]))
+    keys = sorted(set(values))
+    if len(keys) < 3:
+        raise ValueError(f"model.select_cv={CONDITION!r}: {source} holds {len(keys)} "
+                         "operating condition(s) in its training rows, at least 3 are "
+                         "needed (each fold fits on the others)")
+    return [[r for r, v in enumerate(values) if v == k] for k in keys]
 
 
 class Fold(NamedTuple):
@@ -165,7 +208,8 @@ class Fold(NamedTuple):
 
 
 def _fit_batch(x: Tensor, y: Tensor, first: Tensor, end: Tensor,
-               held: Tensor | None = None, scored: Tensor | None = None) -> tuple[Batch, int]:
+               held: Tensor | None = None, scored: Tensor | None = None,
+               conditions: Tensor | None = None) -> tuple[Batch, int]:
     """The rows the families and normalization fit on, with the samples they may use
     (:func:`~torchhys.data.tensors.fit_tensors`: a longer warm-up than the least, the
     padding, ``held``, and the gaps of ``scored`` between a row's first and last scored
@@ -178,12 +222,12 @@ def _fit_batch(x: Tensor, y: Tensor, first: Tensor, end: Tensor,
     fit = fit_tensors(x, y, first, end, held)
     mask = fit.mask if fit.mask is not None else torch.ones(x.shape, dtype=torch.bool,
                                                                device=x.device)
-    return Batch(fit.x, fit.y, mask), fit.warmup
+    return Batch(fit.x, fit.y, mask, conditions), fit.warmup
 
 
 def make_folds(x: Tensor, y: Tensor, first: Tensor, mask: Tensor, cv: int | str | None,
                mode: str | None = None, *, holdout: float = 0.25,
-               source: str = "the data") -> list[Fold]:
+               source: str = "the data", conditions: Tensor | None = None) -> list[Fold]:
     """The folds of ``cv`` (``mode``: None or ``"blocked"``, ``"rolling"``) on training rows
     ``x``, ``y`` (rows, time) whose row r is scored on ``mask[r]`` from sample ``first[r]``.
 
@@ -192,7 +236,10 @@ def make_folds(x: Tensor, y: Tensor, first: Tensor, mask: Tensor, cv: int | str 
     held-out block's targets, the readout on the scored samples outside it.
     ``cv="recording"``: each row held out once (rolling: each row after the first, fitted
     on those before it). ``cv=None``: one hold-out, the last ``holdout`` of each row's
-    scored samples, fitted on the rows cut before it.
+    scored samples, fitted on the rows cut before it. ``cv="condition"`` (with
+    ``conditions``, (rows, time, n)): the rows of each condition held out together
+    (:func:`condition_groups`; rolling: each condition after the first, in increasing
+    order, fitted on those before it). The conditions go with their rows into every batch.
 
     Raises:
         ValueError: a ``cv`` or ``mode`` out of range, too few scored samples or rows.
@@ -209,13 +256,32 @@ def make_folds(x: Tensor, y: Tensor, first: Tensor, mask: Tensor, cv: int | str 
         t = torch.arange(T, device=x.device)
         if len(set(cuts)) == 1:  # one cut for all rows: fitted on the rows cut before it
             c = cuts[0]
+            cc = _take(conditions, end=c)
             fit, w = _fit_batch(x[:, :c], y[:, :c], first, ends.clamp(max=c),
-                                scored=mask[:, :c])
-            return [Fold(Batch(x[:, :c], y[:, :c], mask[:, :c]), fit,
-                         Batch(x, y, mask & (t >= c)), w)]
+                                scored=mask[:, :c], conditions=cc)
+            return [Fold(Batch(x[:, :c], y[:, :c], mask[:, :c], cc), fit,
+                         Batch(x, y, mask & (t >= c), conditions), w)]
         late = t >= torch.tensor(cuts, device=x.device)[:, None]  # each row's own cut
-        fit, w = _fit_batch(x, y, first, ends, mask & late, scored=mask)
-        return [Fold(Batch(x, y, mask & ~late), fit, Batch(x, y, mask & late), w)]
+        fit, w = _fit_batch(x, y, first, ends, mask & late, scored=mask, conditions=conditions)
+        return [Fold(Batch(x, y, mask & ~late, conditions), fit,
+                     Batch(x, y, mask & late, conditions), w)]
+    if cv == CONDITION:
+        if conditions is None:
+            raise ValueError(f"cv={CONDITION!r} holds each operating condition out once, but "
+                             f"{source} has no conditions (data.condition_columns)")
+        groups = condition_groups(conditions, mask, source=source)
+        folds = []
+        for j in range(1, len(groups)) if rolling else range(len(groups)):
+            keep = sorted(r for g in (groups[:j] if rolling else groups[:j] + groups[j + 1:])
+                          for r in g)
+            val = groups[j]
+            T_keep = int(ends[keep].max())
+            fit, w = _fit_batch(x[keep, :T_keep], y[keep, :T_keep], first[keep], ends[keep],
+                                scored=mask[keep, :T_keep],
+                                conditions=_take(conditions, keep, T_keep))
+            folds.append(Fold(Batch(x[keep], y[keep], mask[keep], _take(conditions, keep)),
+                              fit, Batch(x[val], y[val], mask[val], _take(conditions, val)), w))
+        return folds
     if cv == RECORDING:
         n = x.shape[0]
         if n < 2:
@@ -229,17 +295,22 @@ def make_folds(x: Tensor, y: Tensor, first: Tensor, mask: Tensor, cv: int | str 
                 [r for r in range(n) if r != j], j)
             T_keep = int(ends[keep].max())  # the others' padding to the held-out one's
             fit, w = _fit_batch(x[keep, :T_keep], y[keep, :T_keep], first[keep], ends[keep],
-                                scored=mask[keep, :T_keep])
-            folds.append(Fold(Batch(x[keep], y[keep], mask[keep]), fit,
-                              Batch(x[val:val + 1], y[val:val + 1], mask[val:val + 1]), w))
+                                scored=mask[keep, :T_keep],
+                                conditions=_take(conditions, keep, T_keep))
+            folds.append(Fold(Batch(x[keep], y[keep], mask[keep], _take(conditions, keep)), fit,
+                              Batch(x[val:val + 1], y[val:val + 1], mask[val:val + 1],
+                                    _take(conditions, slice(val, val + 1))), w))
         return folds
     if isinstance(cv, str):
         raise ValueError(f"cv must be an int >= 2 (blocked cross-validation), {RECORDING!r} "
-                         f"(leave one recording out) or None (a hold-out), got {cv!r}")
+                         f"(leave one recording out), {CONDITION!r} (leave one condition out) "
+                         f"or None (a hold-out), got {cv!r}")
     check_int(cv, "cv", minimum=2)
     folds = []
     for j in range(cv - 1 if rolling else cv):
         fitted, held = fold_masks(mask, cv, j, rolling=rolling, source=source)
-        fit, w = _fit_batch(x, y, first, ends, mask & ~fitted, scored=mask)
-        folds.append(Fold(Batch(x, y, fitted), fit, Batch(x, y, held), w))
+        fit, w = _fit_batch(x, y, first, ends, mask & ~fitted, scored=mask,
+                            conditions=conditions)
+        folds.append(Fold(Batch(x, y, fitted, conditions), fit,
+                          Batch(x, y, held, conditions), w))
     return folds

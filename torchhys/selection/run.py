@@ -36,6 +36,7 @@ from torchhys.selection.candidates import (
 )
 from torchhys.selection.coverage import coverage_warning
 from torchhys.selection.folds import (
+    CONDITION,
     CV_MODES,
     RECORDING,
     Batch,
@@ -79,33 +80,43 @@ class Record:
     first: Tensor
     mask: Tensor
     source: str = "the data"
+    conditions: Tensor | None = None
+    """The operating conditions (rows, time, n), or None."""
 
     def whole(self) -> tuple[Batch, Batch, int]:
         """``(train, fit, warmup)`` of the whole record (the final fit)."""
-        fit, warmup = _fit_batch(self.x, self.y, self.first, _ends(self.mask), scored=self.mask)
-        return Batch(self.x, self.y, self.mask), fit, warmup
+        fit, warmup = _fit_batch(self.x, self.y, self.first, _ends(self.mask), scored=self.mask,
+                                 conditions=self.conditions)
+        return Batch(self.x, self.y, self.mask, self.conditions), fit, warmup
 
 
 def record(x: Tensor, y: Tensor, *, warmup: int | Sequence[int] = 0,
            mask: Tensor | None = None, recordings: Tensor | None = None,
-           source: str = "the data") -> Record:
+           source: str = "the data", conditions: Tensor | None = None) -> Record:
     """The :class:`Record` of ``x``, ``y``: (time,) or (rows, time), the same shape; with
     ``recordings`` ((time,) ids of 1-D ``x``) the consecutive samples of one id are a row,
     rows padded with their last sample; ``warmup`` leading samples of each row (an int, or
     one per row) and those outside ``mask`` ((rows, time) bool) are not scored.
+    ``conditions``: the operating conditions, x's shape and n columns ((time, n) or (rows,
+    time, n)), cut into rows as x is.
 
     Raises:
         ValueError: shapes that differ, a warm-up that leaves a row no scored sample, NaN
-            or inf where a row is scored.
+            or inf where a row is scored (in x, y or the conditions).
         TypeError: tensors that are not floating point.
     """
-    for name, t in (("x", x), ("y", y)):
+    named = [("x", x), ("y", y)] + ([] if conditions is None else [("conditions", conditions)])
+    for name, t in named:
         if not isinstance(t, Tensor) or not t.is_floating_point():
             raise TypeError(f"{name} must be a floating-point tensor, got "
                             f"{getattr(t, 'dtype', type(t).__name__)}")
     if x.shape != y.shape or x.dim() not in (1, 2):
         raise ValueError(f"x and y must have one shape, (time,) or (rows, time), got "
                          f"{tuple(x.shape)} and {tuple(y.shape)}")
+    c = conditions
+    if c is not None and (c.dim() != x.dim() + 1 or c.shape[:-1] != x.shape or c.shape[-1] < 1):
+        raise ValueError(f"conditions must have x's shape {tuple(x.shape)} and n >= 1 "
+                         f"condition columns, got {tuple(c.shape)}")
     if recordings is not None:
         if mask is not None:
             raise ValueError("give recordings (ids that cut a 1-D record into rows) or mask "
@@ -120,9 +131,14 @@ def record(x: Tensor, y: Tensor, *, warmup: int | Sequence[int] = 0,
         rows = [(x[a:b], y[a:b]) for a, b in parts]
         x = torch.stack([torch.cat([r[0], r[0][-1:].expand(T - r[0].numel())]) for r in rows])
         y = torch.stack([torch.cat([r[1], r[1][-1:].expand(T - r[1].numel())]) for r in rows])
+        if c is not None:
+            c = torch.stack([torch.cat([c[a:b], c[b - 1:b].expand(T - (b - a), -1)])
+                             for a, b in parts])
         lengths = torch.tensor([b - a for a, b in parts])
         mask = torch.arange(T, device=x.device) < lengths.to(x.device)[:, None]
     x, y = x.reshape(-1, x.shape[-1]), y.reshape(-1, y.shape[-1])
+    if c is not None:
+        c = c.reshape(*x.shape, c.shape[-1])
     rows, T = x.shape
     if mask is None:
         mask = torch.ones(rows, T, dtype=torch.bool, device=x.device)
@@ -151,12 +167,16 @@ def record(x: Tensor, y: Tensor, *, warmup: int | Sequence[int] = 0,
                          f"(a warm-up shorter than the row is needed)")
     # the states run through every sample of a row up to its last scored one
     ends = (scored * (t + 1)).amax(-1, keepdim=True)
-    bad = ~(torch.isfinite(x) & torch.isfinite(y)) & (t < ends)
+    finite = torch.isfinite(x) & torch.isfinite(y)
+    if c is not None:
+        finite &= torch.isfinite(c).all(-1)
+    bad = ~finite & (t < ends)
     if bool(bad.any()):
         r, i = (int(v) for v in bad.nonzero()[0])
-        raise ValueError(f"{source}: x or y is not finite at row {r}, sample {i}; drop or "
+        what = "x or y" if c is None else "x, y or a condition"
+        raise ValueError(f"{source}: {what} is not finite at row {r}, sample {i}; drop or "
                          "fill the missing samples first")
-    return Record(x, y, first, scored, source)
+    return Record(x, y, first, scored, source, c)
 
 
 @dataclass(frozen=True)
@@ -232,12 +252,16 @@ def record_folds(data: Record, cv: int | str | None = None, mode: str | None = N
         raise TypeError(f"val must be a Record (torchhys.selection.run.record(x, y, ...)), got "
                         f"{type(val).__name__}")
     if val is None:
-        return make_folds(data.x, data.y, data.first, data.mask, cv, mode, source=data.source)
+        return make_folds(data.x, data.y, data.first, data.mask, cv, mode, source=data.source,
+                          conditions=data.conditions)
     if cv is not None or mode is not None:
         raise ValueError(f"val (a validation record of its own) needs cv=None and mode=None, "
                          f"got cv={cv!r}, mode={mode!r}: score on folds or on val, not both")
+    if (val.conditions is None) != (data.conditions is None):
+        raise ValueError("val must have conditions where the record has them, and none "
+                         "where it has none")
     train, fit, w = data.whole()
-    return [Fold(train, fit, Batch(val.x, val.y, val.mask), w)]
+    return [Fold(train, fit, Batch(val.x, val.y, val.mask, val.conditions), w)]
 
 
 def shared_key(overrides: Mapping[str, Any]) -> str | None:
@@ -335,7 +359,8 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
            dtype: torch.dtype = torch.float64, seed: int | None = 0, epochs: int = 10,
            seconds: float | None = None, refit: bool = True,
            progress: Progress | None = None, source: str = "the data",
-           warn_coverage: bool = True, val: Record | None = None) -> Selection:
+           warn_coverage: bool = True, val: Record | None = None,
+           conditions: Tensor | None = None) -> Selection:
     """Score ``candidates`` on the record ``(x, y)``, choose one by ``rule`` and fit it.
 
     Args:
@@ -349,7 +374,9 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
             L-BFGS, :data:`~torchhys.selection.candidates.MODEL_DEFAULTS`).
         warmup, mask, recordings: the samples scored, and the rows (:func:`record`).
         cv: ``k`` for blocked cross-validation on ``k`` blocks of each row, ``"recording"``
-            to hold out each row once, None to hold out the last quarter of each row.
+            to hold out each row once, ``"condition"`` to hold out each operating
+            condition's rows once (with ``conditions``), None to hold out the last quarter
+            of each row.
         mode: ``"blocked"`` (None) or ``"rolling"``: each block (row) validated on a fit of
             those before it only.
         rule: ``"min"`` (the lowest validation MSE) or ``"1se"`` (the first candidate when
@@ -373,6 +400,10 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
             candidates are fitted on the whole of ``x``, ``y`` and scored on ``val``
             (:func:`record_folds`), as ``torchhys fit`` scores them on its validation
             split.
+        conditions: operating conditions, x's shape and n columns (:func:`record`): a
+            candidate with ``condition_degree`` is a network that takes them
+            (:class:`~torchhys.InverseHysteresisNet`'s ``n_conditions``), the others do not
+            see them.
 
     Raises:
         ValueError: no candidate, a bad option (the message names it), every candidate NaN.
@@ -389,11 +420,12 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
         if cv is None:
             raise ValueError(f"mode={mode!r} needs cv (k blocks, or {RECORDING!r}); cv=None "
                              "holds out the last quarter of each row")
-    if cv is not None and cv != RECORDING:
+    if cv is not None and cv not in (RECORDING, CONDITION):
         check_int(cv, "cv", minimum=2)
     overrides = [dict(c) for c in candidates]
     specs = [candidate_spec(base, c) for c in overrides]
-    data = record(x, y, warmup=warmup, mask=mask, recordings=recordings, source=source)
+    data = record(x, y, warmup=warmup, mask=mask, recordings=recordings, source=source,
+                  conditions=conditions)
     if warn_coverage:
         message = coverage_warning(data.x, data.mask, source=source)
         if message is not None:
