@@ -7,8 +7,14 @@ deployed EIHO network (``EIHO(a, rule="recent", output="branch")`` + 16 play ope
 input, 64 sigmoid units), the same with the level dominant-rule EIHO (its configuration before
 ``output="branch"``), a network of the 16 play operators alone, and the B-H compensator of
 ``configs/measured.yaml``'s last candidate (40 stops through 4-segment characteristics beside
-the exact inverse of a 40-level graded Preisach model, one affine readout; ``--nets`` picks
-some).
+the exact inverse of a 40-level graded Preisach model, one affine readout), and that B-H
+compensator's operators under a :class:`~torchhys.conditions.ScheduledReadout` of degree 2 in
+one and in two operating conditions (its conditioned form, fitted on a synthetic record whose
+loop moves with the conditions; C rows only, the conditions a slow signal inside their
+training ranges, passed to the step at every sample). ``--nets`` picks some (indices in this
+order, 0 to 5); with the unconditioned B-H compensator in the run, each conditioned row's
+median is also printed as a ratio to its, path by path (the ratio of the medians, and the
+range of the rounds' ratios).
 Each path runs ``step`` on a batch of one, one thread;
 the C++ rows use deploy/cpp/controller (built on first use, ``--rate 0``), which times each
 step with a steady clock (TorchScript: the module frozen, ``step_explicit`` with the state
@@ -45,6 +51,7 @@ from torchhys import (
     PreisachInverse,
     StopPrandtlIshlinskii,
 )
+from torchhys.conditions import ScheduledReadout
 from torchhys.deploy.export import load_aoti, load_torchscript, to_aoti, to_torchscript
 from torchhys.deploy.streaming import StreamingCompensator
 
@@ -116,19 +123,81 @@ int main(int argc, char **argv)
 }
 """
 
+C_TIMER_CONDITIONS = r"""
+#define _POSIX_C_SOURCE 199309L
+#include <stdio.h>
+#include <stdlib.h>
+#include <time.h>
+#include "comp.h"
+
+static int cmp(const void *a, const void *b)
+{
+    double x = *(const double *)a, y = *(const double *)b;
+    return (x > y) - (x < y);
+}
+
+static double now_ns(void)
+{
+    struct timespec t;
+    clock_gettime(CLOCK_MONOTONIC, &t);
+    return (double)t.tv_sec * 1e9 + (double)t.tv_nsec;
+}
+
+/* timer REF.bin: the unconditioned timer's loops, the reference's samples being x and its
+   comp_N_CONDITIONS conditions (binary doubles, interleaved); the conditions are converted
+   to comp_real before the loops and passed to each step */
+int main(int argc, char **argv)
+{
+    FILE *in;
+    long n, i, j;
+    const long w = 1 + comp_N_CONDITIONS;
+    double *x, *t, t0, sink = 0;
+    comp_real *c;
+    comp_state s;
+    if (argc != 2 || !(in = fopen(argv[1], "rb")))
+        return 2;
+    fseek(in, 0, SEEK_END);
+    n = ftell(in) / (long)(w * sizeof(double));
+    rewind(in);
+    x = malloc((size_t)(n * w) * sizeof *x);
+    c = malloc((size_t)(n * comp_N_CONDITIONS) * sizeof *c);
+    t = malloc((size_t)n * sizeof *t);
+    if (!x || !c || !t || fread(x, sizeof *x, (size_t)(n * w), in) != (size_t)(n * w))
+        return 3;
+    for (i = 0; i < n; ++i)
+        for (j = 0; j < comp_N_CONDITIONS; ++j)
+            c[i * comp_N_CONDITIONS + j] = (comp_real)x[i * w + 1 + j];
+    comp_init(&s);
+    for (i = 0; i < n; ++i)
+        sink += (double)comp_step(&s, (comp_real)x[i * w], c + i * comp_N_CONDITIONS);
+    comp_init(&s);
+    for (i = 0; i < n; ++i) {
+        t0 = now_ns();
+        sink += (double)comp_step(&s, (comp_real)x[i * w], c + i * comp_N_CONDITIONS);
+        t[i] = now_ns() - t0;
+    }
+    qsort(t, (size_t)n, sizeof *t, cmp);
+    printf("median_us %.4f p99_us %.4f sink %g\n", t[n / 2] / 1e3, t[(long)(0.99 * n)] / 1e3,
+           sink);
+    return 0;
+}
+"""
+
 #: the C rows' compiler flags
 C_FLAGS = {"C, cc -O2": ["-O2"], "C, cc -O3 -march=native": ["-O3", "-march=native"]}
 
 
 def c_timer(comp: StreamingCompensator, folder: Path, flags: list[str]) -> Path:
-    """The compensator's C step (``to_c``, prefix ``comp``) in the timing harness, compiled
-    with ``cc -std=c99 FLAGS`` into ``folder``."""
+    """The compensator's C step (``to_c``, prefix ``comp``) in the timing harness (that of
+    the conditions for a conditioned compensator), compiled with ``cc -std=c99 FLAGS`` into
+    ``folder``."""
     from torchhys.deploy.c import to_c
 
     folder.mkdir(parents=True, exist_ok=True)
     if not (folder / "comp.c").exists():
         to_c(comp, folder, prefix="comp", dtype=comp.low.dtype)
-        (folder / "timer.c").write_text(C_TIMER)
+        (folder / "timer.c").write_text(C_TIMER if comp.n_conditions == 0
+                                        else C_TIMER_CONDITIONS)
     exe = folder / ("timer" + "".join(flags).replace("=", "_").replace("-", "_"))
     subprocess.run([os.environ.get("CC", "cc"), "-std=c99", *flags, "-I", str(folder), "-o",
                     str(exe), str(folder / "timer.c"), str(folder / "comp.c"), "-lm"],
@@ -136,9 +205,16 @@ def c_timer(comp: StreamingCompensator, folder: Path, flags: list[str]) -> Path:
     return exe
 
 
-def time_c(exe: Path, x: torch.Tensor, tmp: Path) -> tuple[float, float]:
+def time_c(exe: Path, x: torch.Tensor, tmp: Path,
+           conditions: torch.Tensor | None = None) -> tuple[float, float]:
+    """The harness's median and p99 (us) over x (time,), and the conditions (time, n) of a
+    conditioned compensator beside each sample."""
     ref = tmp / "ref.bin"
-    ref.write_bytes(x.to(torch.float64).numpy().tobytes())
+    if conditions is None:
+        ref.write_bytes(x.to(torch.float64).numpy().tobytes())
+    else:
+        rows = torch.cat([x.unsqueeze(1), conditions], 1)
+        ref.write_bytes(rows.to(torch.float64).contiguous().numpy().tobytes())
     res = subprocess.run([str(exe), str(ref)], capture_output=True, text=True, check=True)
     fields = res.stdout.split()
     values = dict(zip(fields[::2], fields[1::2], strict=False))
@@ -186,8 +262,47 @@ def models() -> dict[str, InverseHysteresisNet]:
     return nets
 
 
+#: the conditioned nets, after those of :func:`models` (C rows only): name, conditions
+CONDITIONED = (("40 stops + graded Preisach inverse, 1 condition", 1),
+               ("40 stops + graded Preisach inverse, 2 conditions", 2))
+#: the index of the unconditioned net the conditioned ones are compared with
+UNCONDITIONED = 3
+
+
+#: the conditions' training ranges (a coil voltage in V, a temperature in C, say)
+CONDITION_RANGES = ((0.0, 2.0), (20.0, 60.0))
+
+
+def condition_signal(t: torch.Tensor, n: int, phase: float = 0.0) -> torch.Tensor:
+    """n slow conditions at times t (time,), each sweeping its range: (time, n)."""
+    cols = [lo + (hi - lo) * (0.5 + 0.5 * torch.sin(0.05 * (k + 1) * t + phase + k))
+            for k, (lo, hi) in enumerate(CONDITION_RANGES[:n])]
+    return torch.stack(cols, 1)
+
+
+def scheduled(n: int) -> ScheduledReadout:
+    """The B-H compensator's operators (fresh ones) under a readout scheduled on n
+    conditions (degree 2), fitted on three rows of the models' input whose target's gain,
+    offset and play width move with the conditions."""
+    t = torch.linspace(0, 60, 2000)
+    x = (70 * torch.sin(t) * torch.exp(-t / 60)).repeat(3, 1)
+    c = torch.stack([condition_signal(t, n, phase=2.0 * r) for r in range(3)])
+    s = [(c[..., k] - lo) / (hi - lo) for k, (lo, hi) in enumerate(CONDITION_RANGES[:n])]
+    s2 = s[1] if n > 1 else torch.zeros_like(s[0])
+    play = Backlash(torch.tensor([8.0]))(x)[0][..., 0]
+    y = ((1 + 0.3 * s[0] - 0.2 * s2) * x + (0.5 + 0.5 * s[0]) * play) / 24 + 0.5 * s[0] * s2
+    ops = [StopPrandtlIshlinskii(torch.linspace(1.75, 70.0, 40), torch.full((40, 4), 0.01)),
+           preisach_inverse()]
+    return ScheduledReadout(ops, n, degree=2).fit(x, c, y)
+
+
+def reference_times(n: int) -> torch.Tensor:
+    """The reference's n sample times."""
+    return torch.linspace(0, 100, n)
+
+
 def reference(n: int) -> torch.Tensor:
-    t = torch.linspace(0, 100, n)
+    t = reference_times(n)
     return 60 * torch.sin(t) * torch.cos(0.13 * t)
 
 
@@ -224,7 +339,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--skip-aoti", action="store_true", help="skip the (slow) AOTI compile")
     parser.add_argument("--skip-python", action="store_true", help="C++ rows only")
     parser.add_argument("--nets", type=int, nargs="*", default=None,
-                        help="indices of the compensators to time (default: all)")
+                        help="indices of the compensators to time (default: all): 0-3 the "
+                        "unconditioned ones, 4 and 5 the B-H compensator scheduled on 1 and 2 "
+                        "conditions (C rows only)")
     parser.add_argument("--c-only", action="store_true",
                         help="the C rows only (no libtorch, no AOTI compile)")
     parser.add_argument("--skip-onnx", action="store_true", help="no ONNX Runtime row")
@@ -279,6 +396,14 @@ def main(argv: list[str] | None = None) -> None:
 
                     runs.append((name, "AOTI, Python", run_aoti))
                 runs.append((name, "AOTI, C++", lambda p=aoti_path: time_cpp(binary, p, x, tmp)))
+        for k, (name, n) in enumerate(CONDITIONED, start=len(models())):
+            if args.nets is not None and k not in args.nets:
+                continue
+            comp = StreamingCompensator(scheduled(n).to(dtype), limits=(-10.0, 10.0))
+            c = condition_signal(reference_times(args.samples), n).to(dtype)
+            for path, flags in C_FLAGS.items():
+                exe = c_timer(comp, tmp / f"c{k}", flags)
+                runs.append((name, path, lambda e=exe, c=c: time_c(e, x, tmp, c)))
         results: list[list[tuple[float, float]]] = [[] for _ in runs]
         for _ in range(args.rounds):
             for j, (_, _, run) in enumerate(runs):
@@ -296,6 +421,33 @@ def main(argv: list[str] | None = None) -> None:
                   else "")
         print(f"| {name} | {path} | {meds[len(meds) // 2]:.{digits}f}{spread} | "
               f"{p99:.{digits}f} |")
+    ratios(runs, results)
+
+
+def ratios(runs: list[tuple[str, str, object]],
+           results: list[list[tuple[float, float]]]) -> None:
+    """Print each conditioned C row's median over the unconditioned B-H compensator's on the
+    same path (the ratio of the medians of the round medians; the range of the rounds'
+    ratios), where both are in the run."""
+    base_name = list(models())[UNCONDITIONED]
+    base = {path: [r[0] for r in res] for (name, path, _), res in zip(runs, results, strict=True)
+            if name == base_name}
+    names = {name for name, _ in CONDITIONED}
+    lines = []
+    for (name, path, _), res in zip(runs, results, strict=True):
+        if name not in names or path not in base:
+            continue
+        meds = [r[0] for r in res]
+        per_round = sorted(m / b for m, b in zip(meds, base[path], strict=True))
+        ratio = sorted(meds)[len(meds) // 2] / sorted(base[path])[len(meds) // 2]
+        spread = (f" (rounds {per_round[0]:.2f} to {per_round[-1]:.2f})" if len(meds) > 1
+                  else "")
+        lines.append(f"| {name} | {path} | {ratio:.2f}{spread} |")
+    if lines:
+        print(f"\nconditioned over unconditioned ({base_name}), medians of the same run\n")
+        print("| compensator | path | ratio |")
+        print("|---|---|---|")
+        print("\n".join(lines))
 
 
 if __name__ == "__main__":

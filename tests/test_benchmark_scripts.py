@@ -146,9 +146,64 @@ def test_latency_benchmark_times_every_path() -> None:
     paths = ("C, cc -O2", "C, cc -O3 -march=native", *(("ONNX Runtime, Python",) if onnx
                                                       else ()),
              "eager Python", "TorchScript, Python", "TorchScript, C++")
-    assert [r[1] for r in rows] == list(paths) * 4
+    c_paths = ("C, cc -O2", "C, cc -O3 -march=native")
+    assert [r[1] for r in rows] == list(paths) * 4 + list(c_paths) * 2  # conditioned: C only
     for r in rows:
         assert all(math.isfinite(number(c)) and number(c) > 0 for c in r[2:]), r
+
+
+def test_latency_benchmark_times_the_conditioned_c_steps_beside_the_unconditioned() -> None:
+    if shutil.which(os.environ.get("CC", "cc")) is None:
+        pytest.skip("no C compiler found (set CC or install cc): the C rows need it")
+    out = run("latency.py", "--c-only", "--nets", "3", "4", "5", "--samples", "200",
+              "--rounds", "2")
+    base = "40 stops + graded Preisach inverse"
+    names = [base, f"{base}, 1 condition", f"{base}, 2 conditions"]
+    c_paths = ["C, cc -O2", "C, cc -O3 -march=native"]
+    rows = table(out, "compensator")
+    timed = [r for r in rows if len(r) == 4]
+    assert [(r[0], r[1]) for r in timed] == [(n, p) for n in names for p in c_paths]
+    medians = {(r[0], r[1]): number(r[2].split()[0]) for r in timed}
+    ratios = [r for r in rows if len(r) == 3]
+    assert [(r[0], r[1]) for r in ratios] == [(n, p) for n in names[1:] for p in c_paths]
+    for name, path, cell in ratios:
+        # the ratio of the printed medians (each rounded to 2 digits)
+        want = medians[name, path] / medians[base, path]
+        assert number(cell.split()[0]) == pytest.approx(want, abs=0.02), (name, path, out)
+    # without the unconditioned net there is nothing to compare with: no ratio table
+    out = run("latency.py", "--c-only", "--nets", "4", "--samples", "200", "--rounds", "1")
+    assert "| ratio |" not in out
+    assert [r[0] for r in table(out, "compensator")] == [names[1]] * 2
+
+
+@pytest.mark.parametrize("n", [1, 2])
+def test_latency_conditioned_harness_steps_the_torch_compensator(tmp_path: Path, n: int) -> None:
+    if shutil.which(os.environ.get("CC", "cc")) is None:
+        pytest.skip("no C compiler found (set CC or install cc): the C rows need it")
+    import torch
+
+    from torchhys.deploy.streaming import StreamingCompensator
+
+    bench = load_benchmark("latency.py")
+    model = bench.scheduled(n).double()
+    # the scheduled readout is not degenerate: every condition moves the command
+    assert model.weight.shape == (4, {1: 3, 2: 6}[n])
+    assert float(model.weight[:, 1:].abs().amax(0).min()) > 1e-4
+    comp = StreamingCompensator(model, limits=(-10.0, 10.0))
+    exe = bench.c_timer(comp, tmp_path / "c", ["-O2"])
+    x = bench.reference(300).double()
+    c = bench.condition_signal(bench.reference_times(300), n).double()
+    assert c.shape == (300, n)
+    median, p99 = bench.time_c(exe, x, tmp_path, c)
+    assert 0 < median <= p99
+    # the harness's sink: the commands of its two passes summed, printed with %g
+    ref = tmp_path / "ref.bin"
+    sink = float(subprocess.run([str(exe), str(ref)], capture_output=True, text=True,
+                                check=True).stdout.split()[5])
+    with torch.no_grad():
+        u = torch.stack([comp.step(x[k:k + 1], c[k:k + 1]) for k in range(300)])
+    assert int(comp.out_of_range_count()) == 0
+    assert sink == pytest.approx(2 * float(u.sum()), rel=1e-5)
 
 
 @pytest.mark.slow
