@@ -13,8 +13,8 @@ one and in two operating conditions (its conditioned form, fitted on a synthetic
 loop moves with the conditions; C rows only, the conditions a slow signal inside their
 training ranges, passed to the step at every sample). ``--nets`` picks some (indices in this
 order, 0 to 5); with the unconditioned B-H compensator in the run, each conditioned row's
-median is also printed as a ratio to its, path by path (the ratio of the medians, and the
-range of the rounds' ratios).
+median is also printed as a ratio to the unconditioned one's, path by path (the ratio of the
+medians, and the range of the rounds' ratios).
 Each path runs ``step`` on a batch of one, one thread;
 the C++ rows use deploy/cpp/controller (built on first use, ``--rate 0``), which times each
 step with a steady clock (TorchScript: the module frozen, ``step_explicit`` with the state
