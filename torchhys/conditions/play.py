@@ -1,0 +1,262 @@
+"""A play (backlash) operator whose thresholds move with measured operating conditions:
+:class:`ConditionedBacklash`, its step :class:`ConditionedPlayStep` and the pure tensor maths
+(:func:`conditioned_thresholds`, :func:`varying_play`).
+
+Each play i follows ``p_i[t] = clamp(p_i[t-1], x[t] - r_i(c[t]), x[t] + r_i(c[t]))`` with
+
+    r_i(c) = r_i * exp(theta_i . b(c~)),
+
+``b`` the tensor-product Legendre basis of total degree ``degree`` without its constant term
+(:func:`~torchhys.conditions.basis.legendre_basis`), ``c~`` the conditions scaled to
+[-1, 1] over their calibrated range. ``theta`` starts at 0, so the operator starts as the
+ordinary play of thresholds ``r`` (:class:`~torchhys.Backlash` of widths ``2 r``).
+"""
+
+# no `from __future__ import annotations`: TorchScript reads the step's class annotations
+import torch
+from torch import Tensor, nn
+
+from torchhys._checks import (
+    as_batched_sequence,
+    check_finite,
+    check_floating,
+    check_int,
+    check_tensor,
+    check_widths,
+    concrete,
+)
+from torchhys.conditions.basis import legendre_basis, total_degree
+from torchhys.functional.backlash import _check_state, _play, play_step
+from torchhys.operator import HysteresisOperator
+from torchhys.step import OperatorStep, StateBlock
+
+__all__ = ["ConditionedBacklash", "ConditionedPlayStep", "conditioned_thresholds",
+           "varying_play"]
+
+
+def conditioned_thresholds(c: Tensor, thresholds: Tensor, theta: Tensor, scale: Tensor,
+                           shift: Tensor, exponents: list[list[int]], degree: int) -> Tensor:
+    """``r_i(c) = r_i exp(theta_i . b(c * scale + shift))``: (..., N) of conditions c (...,
+    n); ``thresholds`` (N,), ``theta`` (N, len(exponents)), ``scale`` and ``shift`` (n,) map
+    the calibrated range to [-1, 1]. Without exponents (no conditions): ``thresholds``."""
+    if len(exponents) == 0:
+        return thresholds
+    b = legendre_basis(c * scale + shift, exponents, degree)  # (..., K)
+    return thresholds * torch.exp((b.unsqueeze(-2) * theta).sum(-1))
+
+
+def varying_play(x: Tensor, r: Tensor, y0: Tensor) -> Tensor:
+    """Plays of time-varying half-widths: ``y[t] = min(max(y[t-1], x[t] - r[t]), x[t] +
+    r[t])``, ``y[-1] = y0``; x (B, T), r (B, T, N) >= 0, y0 (B, N) -> y (B, T, N).
+
+    Composed clamps are clamps, so the time axis is cut into C chunks of K samples
+    (:func:`~torchhys.functional._play_scan._chunking`, K near sqrt(T / 2)): one pass over
+    the K positions composes each chunk's clamps, one over the chunks carries the state, a
+    last one over the K positions writes the outputs (about ``2 sqrt(2 T)`` vectorized steps
+    instead of T). Minima and maxima only, so the values are the plain loop's bit for bit and
+    autograd differentiates them (in x, r and y0; at a tie torch splits the gradient).
+    """
+    from torchhys.functional._play_scan import _chunking
+
+    B, T, N = r.shape
+    lo = x.unsqueeze(-1) - r
+    hi = x.unsqueeze(-1) + r
+    K, C = _chunking(T)
+    pad = C * K - T
+    if pad:  # repeat the last clamp (idempotent); those outputs are dropped
+        lo = torch.cat([lo, lo[:, -1:].expand(B, pad, N)], 1)
+        hi = torch.cat([hi, hi[:, -1:].expand(B, pad, N)], 1)
+    lo, hi = lo.reshape(B, C, K, N), hi.reshape(B, C, K, N)
+    if C > 1:
+        a, b = lo[:, :, 0], hi[:, :, 0]
+        for k in range(1, K):
+            a = torch.minimum(torch.maximum(a, lo[:, :, k]), hi[:, :, k])
+            b = torch.minimum(torch.maximum(b, lo[:, :, k]), hi[:, :, k])
+        carries, s = [y0], y0
+        for j in range(C - 1):
+            s = torch.minimum(torch.maximum(s, a[:, j]), b[:, j])
+            carries.append(s)
+        s = torch.stack(carries, 1)  # (B, C, N): the state entering each chunk
+    else:
+        s = y0.unsqueeze(1)
+    outs = []
+    for k in range(K):
+        s = torch.minimum(torch.maximum(s, lo[:, :, k]), hi[:, :, k])
+        outs.append(s)
+    return torch.stack(outs, 2).reshape(B, C * K, N)[:, :T]
+
+
+class ConditionedPlayStep(OperatorStep):
+    """The plays one sample at a time: :func:`conditioned_thresholds` of the sample's
+    conditions, then :func:`~torchhys.functional.play_step`.
+
+    State: ``plays`` (N columns, 0 at the first sample, as the sequence path starts).
+    Features: the N plays. Input: x (batch, 1 + n): the driving input, then the n conditions
+    (n = 0: x (batch, 1), the ordinary play).
+    """
+
+    exponents: list[list[int]]
+    degree: int
+    n: int
+
+    def __init__(self, thresholds: Tensor, theta: Tensor, scale: Tensor, shift: Tensor,
+                 exponents: list[list[int]], degree: int) -> None:
+        super().__init__()
+        for name, value in (("r", thresholds), ("theta", theta), ("scale", scale),
+                            ("shift", shift)):
+            self.register_buffer(name, value.detach().clone())
+        self.exponents, self.degree, self.n = exponents, int(degree), int(scale.numel())
+        self.n_inputs = 1 + self.n
+        self.n_outputs = int(thresholds.shape[0])
+        self.state_spec = [StateBlock("plays", self.n_outputs)]
+
+    def forward(self, x: Tensor, state: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
+        r = conditioned_thresholds(x[:, 1:], self.r, self.theta, self.scale, self.shift,
+                                   self.exponents, self.degree)
+        y = play_step(x[:, :1], r, state[0])
+        return y, [y]
+
+
+class ConditionedBacklash(HysteresisOperator):
+    """N plays whose thresholds are scaled by a learned positive function of the conditions.
+
+    ``p_i[t] = clamp(p_i[t-1], x[t] - r_i(c[t]), x[t] + r_i(c[t]))``, ``r_i(c) = r_i
+    exp(theta_i . b(c~))`` (the module docstring): the loop's width moves with the condition,
+    its shape between reversals stays a play's. ``theta`` (N, K), K the basis' size
+    (``C(n + degree, degree) - 1``), is a parameter starting at 0; the thresholds ``r`` are
+    fixed. :meth:`calibrate` records the conditions' range (``cond_min``, ``cond_max``) that
+    scales them to [-1, 1]; forward and the step need it (with conditions). The plays start
+    at 0, as :class:`~torchhys.Backlash`'s. With ``n_conditions = 0`` it is the ordinary
+    play of thresholds r, an operator of the protocol on x (batch, time); with conditions its
+    step takes ``[x, conditions]`` (``n_inputs = 1 + n_conditions``: a conditioned model's
+    step, see docs/conditions.md) and it cannot stand where an operator is expected
+    (:func:`~torchhys.operator.check_operator` names ``n_inputs``).
+
+    Args:
+        thresholds: half-widths r_i >= 0, shape (N,) (``Backlash(2 * thresholds)`` is the
+            same play at ``theta = 0``).
+        n_conditions: conditions per sample (>= 0).
+        degree: total degree of the basis in the conditions (>= 1).
+
+    Shape:
+        - x: (batch, time, 1 + n_conditions) or (time, 1 + n_conditions): column 0 the
+          driving input, the others the conditions ((batch, time) or (time,) without
+          conditions)
+        - state: the plays before the first sample, (N,) or (batch, N); zeros if None
+        - returns ``(p, final_state)``: p (batch, time, N) (or (time, N)), the plays at the
+          last sample.
+
+    Raises:
+        ValueError: bad ``thresholds``, ``n_conditions`` or ``degree``; x of another shape,
+            or with NaN or inf (the compensator holds a NaN sample instead); not calibrated.
+    """
+
+    constraints = {"thresholds": "nonnegative", "theta": "finite"}
+
+    def __init__(self, thresholds: Tensor | list[float], n_conditions: int = 1, *,
+                 degree: int = 1) -> None:
+        super().__init__()
+        r = torch.as_tensor(thresholds)
+        if not r.is_floating_point():
+            r = r.to(torch.get_default_dtype())
+        check_widths(r, "thresholds")
+        self.n_conditions = check_int(n_conditions, "n_conditions", minimum=0)
+        self.degree = check_int(degree, "degree", minimum=1)
+        self.exponents = total_degree(self.n_conditions, self.degree)[1:]  # no constant
+        self.theta = nn.Parameter(torch.zeros(r.shape[0], len(self.exponents), dtype=r.dtype))
+        self.register_buffer("thresholds", r.detach().clone())
+        n = self.n_conditions
+        for name in ("cond_min", "cond_max"):
+            self.register_buffer(name, torch.full((n,), float("nan"), dtype=r.dtype))
+
+    @property
+    def n_outputs(self) -> int:
+        """One feature per play (N)."""
+        return int(self.thresholds.shape[0])
+
+    @property
+    def n_inputs(self) -> int:
+        """Input columns per sample: the driving input and the conditions."""
+        return 1 + self.n_conditions
+
+    def _inputs(self, x: Tensor) -> tuple[Tensor, bool]:
+        """x as (batch, time, 1 + n) (n >= 1) or (batch, time), checked; whether a batch
+        dimension was added."""
+        n = self.n_conditions
+        if n == 0:
+            return as_batched_sequence(x, "x")
+        check_tensor(x, "x")
+        check_floating(x, "x")
+        if x.dim() not in (2, 3) or x.shape[-1] != 1 + n or x.shape[-2] == 0 or (
+                x.dim() == 3 and x.shape[0] == 0):
+            raise ValueError(f"x must have shape (time, {1 + n}) or (batch, time, {1 + n}) (the "
+                             f"input, then {n} condition column(s)) with time >= 1, got shape "
+                             f"{tuple(x.shape)}")
+        check_finite(x, "x")
+        return (x.unsqueeze(0), True) if x.dim() == 2 else (x, False)
+
+    def _scaling(self, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+        """``(scale, shift)`` (n,) in ``dtype``: ``c * scale + shift`` maps [cond_min,
+        cond_max] to [-1, 1] (computed in float64)."""
+        lo, hi = self.cond_min.double(), self.cond_max.double()
+        if self.n_conditions and concrete(lo, hi) and not bool(
+                (torch.isfinite(lo) & torch.isfinite(hi)).all()):
+            raise ValueError("ConditionedBacklash is not calibrated: call calibrate(x) with x "
+                             f"(batch, time, {1 + self.n_conditions}) first (it records the "
+                             "conditions' range cond_min, cond_max)")
+        scale = 2.0 / (hi - lo)
+        return scale.to(dtype), (-1.0 - lo * scale).to(dtype)
+
+    def radii(self, conditions: Tensor) -> Tensor:
+        """``r_i(c)`` (..., N) of conditions (..., n_conditions)."""
+        scale, shift = self._scaling(conditions.dtype)
+        return conditioned_thresholds(conditions, self.thresholds.to(conditions.dtype),
+                                      self.theta.to(conditions.dtype), scale, shift,
+                                      self.exponents, self.degree)
+
+    def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        xb, squeezed = self._inputs(x)
+        drive = xb if self.n_conditions == 0 else xb[..., 0]
+        y0 = _check_state(state, drive, self.n_outputs, "state")
+        if self.n_conditions == 0:  # constant thresholds: the play's own scan
+            y = _play(drive, self.thresholds.to(xb.dtype), y0)
+        else:
+            y = varying_play(drive, self.radii(xb[..., 1:]), y0)
+        return (y[0], y[0, -1]) if squeezed else (y, y[:, -1])
+
+    @torch.no_grad()
+    def calibrate(self, x: Tensor) -> None:
+        """Record the conditions' range (``cond_min``, ``cond_max``) from the condition
+        columns of x (batch, time, 1 + n_conditions); nothing without conditions.
+
+        Raises:
+            ValueError: x of another shape or not finite, a condition constant over x.
+        """
+        if self.n_conditions == 0:
+            return
+        xb, _ = self._inputs(x)
+        c = xb[..., 1:].reshape(-1, self.n_conditions)
+        lo, hi = c.amin(0), c.amax(0)
+        flat = [i for i in range(self.n_conditions) if not bool(hi[i] > lo[i])]
+        if flat:
+            raise ValueError(f"x: condition column {flat[0]} is constant ({float(lo[flat[0]])}) "
+                             "over the calibration samples: it cannot scale the thresholds")
+        self.cond_min.copy_(lo)
+        self.cond_max.copy_(hi)
+
+    def check_loaded(self, values: dict, prefix: str) -> None:
+        """A recorded range (finite ``cond_min``) must have ``cond_max > cond_min``."""
+        lo, hi = values.get("cond_min"), values.get("cond_max")
+        if isinstance(lo, Tensor) and isinstance(hi, Tensor) and lo.shape == hi.shape:
+            known = torch.isfinite(lo) | torch.isfinite(hi)
+            if bool((known & ~(hi > lo)).any()):
+                raise ValueError(f"{prefix}cond_max must be above {prefix}cond_min (a recorded "
+                                 "range) or both NaN (not calibrated)")
+
+    def streaming_step(self, dtype: torch.dtype) -> ConditionedPlayStep:
+        """The per-sample step with the current theta and range, in ``dtype``."""
+        scale, shift = self._scaling(dtype)
+        return ConditionedPlayStep(self.thresholds.detach().to(dtype),
+                                   self.theta.detach().to(dtype), scale, shift,
+                                   self.exponents, self.degree)
+
