@@ -164,6 +164,39 @@ def test_gradcheck_in_x_and_theta() -> None:
     assert float(gth.abs().max()) > 0.1 and float(gx[..., 1:].abs().max()) > 0.01
 
 
+def test_second_derivative_in_x_and_theta() -> None:
+    """gradgradcheck: the play's selection is piecewise constant, exp(theta . b) is not."""
+    t = torch.arange(30, dtype=DT)
+    x = torch.stack([0.8 * torch.sin(0.41 * t + 0.3), 0.3 * torch.cos(0.13 * t)], -1)[None]
+    op = ConditionedBacklash(torch.tensor([0.1, 0.3], dtype=DT), 1, degree=2)
+    op.calibrate(x)
+    theta = torch.tensor([[0.2, -0.3], [0.4, 0.1]], dtype=DT, requires_grad=True)
+    xv = x.clone().requires_grad_()
+    assert torch.autograd.gradgradcheck(
+        lambda v, th: torch.func.functional_call(op, {"theta": th}, (v,))[0], (xv, theta))
+
+
+def test_gradients_at_ties_follow_the_backlash() -> None:
+    """A walk on a grid of 1/8 with flat stretches and thresholds on the grid (ties): at
+    theta = 0 the gradient in x is Backlash's (the inactive branch at a tie), and the one in
+    theta is the width's times ``2 r_i c~`` for a constant scaled condition c~ = 0.5."""
+    from torchhys._conformance import signal
+    x = signal(300)
+    r = torch.tensor([0.0, 0.125, 0.25, 0.375], dtype=DT)
+    g = torch.randn(2, 300, 4, generator=torch.Generator().manual_seed(0), dtype=DT)
+    widths = (2 * r).requires_grad_()
+    xb = x.clone().requires_grad_()
+    gx_ref, gw = torch.autograd.grad((torchhys.functional.backlash(xb, widths) * g).sum(),
+                                     (xb, widths))
+    op = ConditionedBacklash(r, 1, degree=1)
+    op.calibrate(torch.tensor([[[0.0, -1.0], [0.0, 3.0]]], dtype=DT))  # c~ = (c - 1) / 2
+    xc = torch.stack([x, torch.full_like(x, 2.0)], -1).requires_grad_()
+    gx, gth = torch.autograd.grad((op(xc)[0] * g).sum(), (xc, op.theta))
+    torch.testing.assert_close(gx[..., 0], gx_ref, rtol=0, atol=1e-12)
+    assert float(gx_ref.abs().max()) > 1.0
+    torch.testing.assert_close(gth[:, 0], gw * 2 * r * 0.5, rtol=0, atol=1e-12)
+
+
 def test_theta_is_learned_from_a_conditioned_loop() -> None:
     """Plays whose width doubles over the condition's range: least squares on theta (Adam)
     recovers the log-slope, which theta = 0 misses."""

@@ -49,18 +49,39 @@ def varying_play(x: Tensor, r: Tensor, y0: Tensor) -> Tensor:
     """Plays of time-varying half-widths: ``y[t] = min(max(y[t-1], x[t] - r[t]), x[t] +
     r[t])``, ``y[-1] = y0``; x (B, T), r (B, T, N) >= 0, y0 (B, N) -> y (B, T, N).
 
+    The values come from :func:`_clamp_scan` (without a graph). Each output is then the
+    bound of the last sample s <= t at which the clamp was active (``y[s-1] < x[s] - r[s]``
+    or ``y[s-1] > x[s] + r[s]``, strictly), or ``y0`` where none was: a gather of those
+    bounds, through which autograd returns the gradients of x, r and y0. At a tie the
+    gradient follows the inactive branch (``y[t] = y[t-1]``), as
+    :func:`~torchhys.functional.backlash` does. The second derivative is zero (the active
+    samples are piecewise constant in the inputs).
+    """
+    lo = x.unsqueeze(-1) - r
+    hi = x.unsqueeze(-1) + r
+    with torch.no_grad():
+        y = _clamp_scan(lo.detach(), hi.detach(), y0.detach())
+        prev = torch.cat([y0.detach().unsqueeze(1), y[:, :-1]], 1)
+        below = prev < lo.detach()
+        active = below | (prev > hi.detach())
+        t = torch.arange(1, y.shape[1] + 1, device=y.device).view(1, -1, 1)
+        last = torch.where(active, t, torch.zeros_like(t)).cummax(1).values  # 0: y0
+    bounds = torch.cat([y0.unsqueeze(1), torch.where(below, lo, hi)], 1)  # (B, T + 1, N)
+    return bounds.gather(1, last)
+
+
+def _clamp_scan(lo: Tensor, hi: Tensor, y0: Tensor) -> Tensor:
+    """``y[t] = min(max(y[t-1], lo[t]), hi[t])`` for lo <= hi (B, T, N), y0 (B, N).
+
     Composed clamps are clamps, so the time axis is cut into C chunks of K samples
     (:func:`~torchhys.functional._play_scan._chunking`, K near sqrt(T / 2)): one pass over
     the K positions composes each chunk's clamps, one over the chunks carries the state, a
     last one over the K positions writes the outputs (about ``2 sqrt(2 T)`` vectorized steps
-    instead of T). Minima and maxima only, so the values are the plain loop's bit for bit and
-    autograd differentiates them (in x, r and y0; at a tie torch splits the gradient).
+    instead of T). Minima and maxima only: the values are the plain loop's bit for bit.
     """
     from torchhys.functional._play_scan import _chunking
 
-    B, T, N = r.shape
-    lo = x.unsqueeze(-1) - r
-    hi = x.unsqueeze(-1) + r
+    B, T, N = lo.shape
     K, C = _chunking(T)
     pad = C * K - T
     if pad:  # repeat the last clamp (idempotent); those outputs are dropped
