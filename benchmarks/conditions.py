@@ -17,7 +17,8 @@ read the *same* operator features of the input (plays, :class:`torchhys.Backlash
 
 The plays' number and grid power and the conditioned model's degree are chosen by
 leave-one-condition-out cross-validation over the training conditions only (pooled RMSE of
-the left-out condition's training recordings; a degree is a candidate only where every fold
+the left-out condition's training recordings, each fold's plays over its own training
+input; a degree is a candidate only where every fold
 still has ``degree + 1`` conditions to fit it). The baseline is the best memoryless model that
 sees the same inputs: a tensor-product Legendre polynomial in the input (degree 1..7) and the
 condition (degree 0..2 under the same rule), chosen by the same cross-validation.
@@ -225,9 +226,9 @@ def batch(recs: list[Recording]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     return x, y, c, m
 
 
-def plays(case: Case, choice: Choice) -> list[Backlash]:
-    """The plays of ``choice`` over the training input's range (fresh modules)."""
-    x = torch.cat([r.x for r in case.train])
+def plays(recs: list[Recording], choice: Choice) -> list[Backlash]:
+    """The plays of ``choice`` over the input's range in ``recs`` (fresh modules)."""
+    x = torch.cat([r.x for r in recs])
     return [Backlash(play_width_grid(x, choice.n, power=choice.power))]
 
 
@@ -242,8 +243,10 @@ def rmse(predict: Predict, recs: list[Recording]) -> float:
 
 
 def affine(recs: list[Recording], choice: Choice, case: Case) -> Predict:
-    """The affine least-squares readout of the plays (and x) fitted on ``recs``."""
-    net = InverseHysteresisNet(plays(case, choice), hidden=1, activation="identity").double()
+    """The affine least-squares readout of the plays (over the training input's range) and
+    x fitted on ``recs``."""
+    net = InverseHysteresisNet(plays(case.train, choice), hidden=1,
+                               activation="identity").double()
     x, y, _, m = batch(recs)
     net.fit_normalization(x, y, mask=m)
     with torch.no_grad():
@@ -268,9 +271,11 @@ def per_condition(case: Case, choice: Choice) -> Predict:
 
 def conditioned(case: Case, choice: Choice, train: list[Recording] | None = None) -> Predict:
     """(c) The scheduled readout: weights Legendre polynomials of ``choice.degree`` in the
-    condition (fitted on ``train``, default the training recordings)."""
-    model = ScheduledReadout(plays(case, choice), 1, degree=choice.degree)
-    x, y, c, m = batch(case.train if train is None else train)
+    condition, fitted on ``train`` (default: the training recordings; a fold's in the
+    cross-validation), the plays over its input's range."""
+    recs = case.train if train is None else train
+    model = ScheduledReadout(plays(recs, choice), 1, degree=choice.degree)
+    x, y, c, m = batch(recs)
     model.fit(x, c, y, mask=m)
     return lambda xt, cv: model(xt, torch.full((xt.numel(), 1), cv, dtype=F64))
 
@@ -378,7 +383,7 @@ def evaluate(case: Case, quick: bool) -> list[dict[str, str]]:
         out.append({"dataset": f"{case.name} ({held_c:.3g} {case.unit} held out)"
                     if protocol == "held-out condition" else case.name,
                     "protocol": protocol, "baseline RMSE": f"{b:.3g}", **cells,
-                    "ratio": f"{ratio:.2f}", "target": f"<= {target}",
+                    "ratio": f"{ratio:.3f}", "target": f"<= {target}",
                     "met": "PASS" if ratio <= target else "MISS", "own / unconditioned": bound,
                     "choice": f"{choice.n} plays p={choice.power:g}, degree {choice.degree} "
                               f"(CV {cv:.3g}); baseline {base_choice}"})
