@@ -16,18 +16,10 @@ ordinary play of thresholds ``r`` (:class:`~torchhys.Backlash` of widths ``2 r``
 import torch
 from torch import Tensor, nn
 
-from torchhys._checks import (
-    as_batched_sequence,
-    check_finite,
-    check_floating,
-    check_int,
-    check_tensor,
-    check_widths,
-    concrete,
-)
-from torchhys.conditions.basis import legendre_basis, total_degree
+from torchhys._checks import check_int, check_widths
+from torchhys.conditions._base import ConditionedOperator, schedule
+from torchhys.conditions.basis import total_degree
 from torchhys.functional.backlash import _check_state, _play, play_step
-from torchhys.operator import HysteresisOperator
 from torchhys.step import OperatorStep, StateBlock
 
 __all__ = ["ConditionedBacklash", "ConditionedPlayStep", "conditioned_thresholds",
@@ -41,8 +33,7 @@ def conditioned_thresholds(c: Tensor, thresholds: Tensor, theta: Tensor, scale: 
     the calibrated range to [-1, 1]. Without exponents (no conditions): ``thresholds``."""
     if len(exponents) == 0:
         return thresholds
-    b = legendre_basis(c * scale + shift, exponents, degree)  # (..., K)
-    return thresholds * torch.exp((b.unsqueeze(-2) * theta).sum(-1))
+    return thresholds * torch.exp(schedule(c, theta, scale, shift, exponents, degree))
 
 
 def varying_play(x: Tensor, r: Tensor, y0: Tensor) -> Tensor:
@@ -138,7 +129,7 @@ class ConditionedPlayStep(OperatorStep):
         return y, [y]
 
 
-class ConditionedBacklash(HysteresisOperator):
+class ConditionedBacklash(ConditionedOperator):
     """N plays whose thresholds are scaled by a learned positive function of the conditions.
 
     ``p_i[t] = clamp(p_i[t-1], x[t] - r_i(c[t]), x[t] + r_i(c[t]))``, ``r_i(c) = r_i
@@ -173,6 +164,7 @@ class ConditionedBacklash(HysteresisOperator):
     """
 
     constraints = {"thresholds": "nonnegative", "theta": "finite"}
+    _scales = "the thresholds"
 
     def __init__(self, thresholds: Tensor | list[float], n_conditions: int = 1, *,
                  degree: int = 1) -> None:
@@ -181,52 +173,16 @@ class ConditionedBacklash(HysteresisOperator):
         if not r.is_floating_point():
             r = r.to(torch.get_default_dtype())
         check_widths(r, "thresholds")
-        self.n_conditions = check_int(n_conditions, "n_conditions", minimum=0)
-        self.degree = check_int(degree, "degree", minimum=1)
-        self.exponents = total_degree(self.n_conditions, self.degree)[1:]  # no constant
-        self.theta = nn.Parameter(torch.zeros(r.shape[0], len(self.exponents), dtype=r.dtype))
+        n = check_int(n_conditions, "n_conditions", minimum=0)
+        k = len(total_degree(n, check_int(degree, "degree", minimum=1))) - 1
+        self.theta = nn.Parameter(torch.zeros(r.shape[0], max(k, 0), dtype=r.dtype))
         self.register_buffer("thresholds", r.detach().clone())
-        n = self.n_conditions
-        for name in ("cond_min", "cond_max"):
-            self.register_buffer(name, torch.full((n,), float("nan"), dtype=r.dtype))
+        self._init_conditions(n, degree, r.dtype)
 
     @property
     def n_outputs(self) -> int:
         """One feature per play (N)."""
         return int(self.thresholds.shape[0])
-
-    @property
-    def n_inputs(self) -> int:
-        """Input columns per sample: the driving input and the conditions."""
-        return 1 + self.n_conditions
-
-    def _inputs(self, x: Tensor) -> tuple[Tensor, bool]:
-        """x as (batch, time, 1 + n) (n >= 1) or (batch, time), checked; whether a batch
-        dimension was added."""
-        n = self.n_conditions
-        if n == 0:
-            return as_batched_sequence(x, "x")
-        check_tensor(x, "x")
-        check_floating(x, "x")
-        if x.dim() not in (2, 3) or x.shape[-1] != 1 + n or x.shape[-2] == 0 or (
-                x.dim() == 3 and x.shape[0] == 0):
-            raise ValueError(f"x must have shape (time, {1 + n}) or (batch, time, {1 + n}) (the "
-                             f"input, then {n} condition column(s)) with time >= 1, got shape "
-                             f"{tuple(x.shape)}")
-        check_finite(x, "x")
-        return (x.unsqueeze(0), True) if x.dim() == 2 else (x, False)
-
-    def _scaling(self, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
-        """``(scale, shift)`` (n,) in ``dtype``: ``c * scale + shift`` maps [cond_min,
-        cond_max] to [-1, 1] (computed in float64)."""
-        lo, hi = self.cond_min.double(), self.cond_max.double()
-        if self.n_conditions and concrete(lo, hi) and not bool(
-                (torch.isfinite(lo) & torch.isfinite(hi)).all()):
-            raise ValueError("ConditionedBacklash is not calibrated: call calibrate(x) with x "
-                             f"(batch, time, {1 + self.n_conditions}) first (it records the "
-                             "conditions' range cond_min, cond_max)")
-        scale = 2.0 / (hi - lo)
-        return scale.to(dtype), (-1.0 - lo * scale).to(dtype)
 
     def radii(self, conditions: Tensor) -> Tensor:
         """``r_i(c)`` (..., N) of conditions (..., n_conditions)."""
@@ -244,35 +200,6 @@ class ConditionedBacklash(HysteresisOperator):
         else:
             y = varying_play(drive, self.radii(xb[..., 1:]), y0)
         return (y[0], y[0, -1]) if squeezed else (y, y[:, -1])
-
-    @torch.no_grad()
-    def calibrate(self, x: Tensor) -> None:
-        """Record the conditions' range (``cond_min``, ``cond_max``) from the condition
-        columns of x (batch, time, 1 + n_conditions); nothing without conditions.
-
-        Raises:
-            ValueError: x of another shape or not finite, a condition constant over x.
-        """
-        if self.n_conditions == 0:
-            return
-        xb, _ = self._inputs(x)
-        c = xb[..., 1:].reshape(-1, self.n_conditions)
-        lo, hi = c.amin(0), c.amax(0)
-        flat = [i for i in range(self.n_conditions) if not bool(hi[i] > lo[i])]
-        if flat:
-            raise ValueError(f"x: condition column {flat[0]} is constant ({float(lo[flat[0]])}) "
-                             "over the calibration samples: it cannot scale the thresholds")
-        self.cond_min.copy_(lo)
-        self.cond_max.copy_(hi)
-
-    def check_loaded(self, values: dict, prefix: str) -> None:
-        """A recorded range (finite ``cond_min``) must have ``cond_max > cond_min``."""
-        lo, hi = values.get("cond_min"), values.get("cond_max")
-        if isinstance(lo, Tensor) and isinstance(hi, Tensor) and lo.shape == hi.shape:
-            known = torch.isfinite(lo) | torch.isfinite(hi)
-            if bool((known & ~(hi > lo)).any()):
-                raise ValueError(f"{prefix}cond_max must be above {prefix}cond_min (a recorded "
-                                 "range) or both NaN (not calibrated)")
 
     def streaming_step(self, dtype: torch.dtype) -> ConditionedPlayStep:
         """The per-sample step with the current theta and range, in ``dtype``."""
