@@ -27,7 +27,8 @@ from torchhys.data.tables import (
     check_text_options,
 )
 
-__all__ = ["Record", "Recording", "read_record", "read_recordings", "resolve_path", "watch_files"]
+__all__ = ["Record", "Recording", "check_condition_columns", "read_record", "read_recordings",
+           "resolve_path", "watch_files"]
 
 
 class Record(NamedTuple):
@@ -57,6 +58,8 @@ class Recording(NamedTuple):
     """The inverse model's target, float64, (time,)."""
     t: np.ndarray | None
     """Sample times (strictly increasing within the recording), or None."""
+    conditions: np.ndarray | None = None
+    """The operating conditions (``condition_columns``), float64, (time, n), or None."""
 
 
 
@@ -93,11 +96,15 @@ def _check_time(table: _Table, t: np.ndarray, start: int, column: Column) -> Non
 
 def _file_recordings(
     table: _Table, roles: dict[str, Column], run_column: Column | None, index: int | None,
-    min_samples: int,
+    min_samples: int, condition_columns: Sequence[Column] = (),
 ) -> list[Recording]:
     """The recordings of one file; ``index``: its place in a list of files (None: alone)."""
     path = table.path
     cols = {r: table.column(c, r) for r, c in roles.items()}
+    for k, c in enumerate(condition_columns):
+        cols[f"condition_columns[{k}]"] = table.column(c, f"condition_columns[{k}]")
+    conds = (np.stack([cols[f"condition_columns[{k}]"] for k in range(len(condition_columns))],
+                      -1) if condition_columns else None)
     lengths = {r: len(v) for r, v in cols.items()}
     if len(set(lengths.values())) != 1:
         raise DataFileError(f"{path}: columns differ in length: {lengths}")
@@ -125,7 +132,8 @@ def _file_recordings(
         if t is not None:
             _check_time(table, t[a:b], a, roles["time_column"])
         out.append(Recording(rid, label, cols["input_column"][a:b], cols["target_column"][a:b],
-                             None if t is None else t[a:b]))
+                             None if t is None else t[a:b],
+                             None if conds is None else conds[a:b]))
     return out
 
 
@@ -133,6 +141,7 @@ def read_recordings(
     path: str | Path | Sequence[str | Path], *, input_column: Column, target_column: Column,
     time_column: Column | None = None, run_column: Column | None = None, min_samples: int = 2,
     encoding: str | None = None, delimiter: str | None = None, decimal: str = ".",
+    condition_columns: Sequence[Column] | None = None,
 ) -> list[Recording]:
     """Read and check recorded experiments: one file or several, each whole or split into
     recordings by a run column.
@@ -156,10 +165,13 @@ def read_recordings(
             more than one; ``,`` first, never the decimal mark).
         decimal: the decimal mark of numbers in CSV files, ``"."`` or ``","`` (``1,5`` is
             1.5; the delimiter is then ``;`` or a tab).
+        condition_columns: optional columns of measured operating conditions (a coil
+            voltage, a supply pressure, a temperature), constant within a recording or
+            varying sample by sample: each recording's ``conditions`` (time, n).
 
     Returns:
         The recordings in the order of the files and of their rows, each with float64 arrays
-        of shape (time,).
+        of shape (time,) (the conditions (time, n)).
 
     Raises:
         ValueError: an empty list of files; input_column equal to target_column; a bad
@@ -175,6 +187,8 @@ def read_recordings(
             the line) or the recording.
     """
     delimiter = check_text_options(encoding, delimiter, decimal)
+    conds = check_condition_columns(condition_columns, input_column, target_column,
+                                    time_column, run_column)
     if str(input_column) == str(target_column):
         raise ValueError(
             f"input_column (data.input_column) and target_column (data.target_column) are both "
@@ -184,7 +198,7 @@ def read_recordings(
     if not paths:
         raise ValueError("path must name a file or a non-empty list of files, got []")
     options = (input_column, target_column, time_column, run_column, min_samples, encoding,
-               delimiter, decimal)
+               delimiter, decimal, conds)
     for p in paths:
         resolve_path(p)
     try:  # the files as they are now: a file written again is read again
@@ -204,8 +218,32 @@ def read_recordings(
         if key is not None:
             _READ.clear()  # the last file read only (a fit reads it once per candidate run)
             _READ[key] = recordings
-    return [r._replace(x=r.x.copy(), y=r.y.copy(), t=None if r.t is None else r.t.copy())
+    return [r._replace(x=r.x.copy(), y=r.y.copy(), t=None if r.t is None else r.t.copy(),
+                       conditions=None if r.conditions is None else r.conditions.copy())
             for r in recordings]
+
+
+def check_condition_columns(columns: object, *others: Column | None) -> tuple[Column, ...]:
+    """``condition_columns`` as a tuple of columns (names or indices; None: none).
+
+    Raises:
+        ValueError: not a list of column names or indices, a column listed twice or also
+            the input, target, time or run column."""
+    if columns is None:
+        return ()
+    if isinstance(columns, (str, int)) or not isinstance(columns, Sequence) or not all(
+            isinstance(c, (str, int)) and not isinstance(c, bool) for c in columns):
+        raise ValueError(f"condition_columns (data.condition_columns) must be a list of column "
+                         f"names or indices, e.g. [voltage_V], got {columns!r}")
+    names = [str(c) for c in columns]
+    taken = {str(o) for o in others if o is not None}
+    for c in names:
+        if names.count(c) > 1 or c in taken:
+            why = "twice" if names.count(c) > 1 else (
+                "which is also the input, target, time or run column")
+            raise ValueError(f"condition_columns (data.condition_columns) lists {c!r} {why}: "
+                             "each condition is a column of its own")
+    return tuple(columns)
 
 
 _READ: dict[tuple, list[Recording]] = {}
@@ -283,7 +321,8 @@ def _check_unchanged(path: Path, read_at: tuple[int, int] | None = None) -> None
 
 def _read(paths: list[str | Path], input_column: Column, target_column: Column,
           time_column: Column | None, run_column: Column | None, min_samples: int,
-          encoding: str | None, delimiter: str | None, decimal: str) -> list[Recording]:
+          encoding: str | None, delimiter: str | None, decimal: str,
+          condition_columns: tuple[Column, ...] = ()) -> list[Recording]:
     """:func:`read_recordings` of checked options, uncached."""
     roles = {"input_column": input_column, "target_column": target_column}
     if time_column is not None:
@@ -301,7 +340,8 @@ def _read(paths: list[str | Path], input_column: Column, target_column: Column,
                 f"of {first.path}; every file in path must have the same columns"
             )
         index = None if len(paths) == 1 else k
-        for rec in _file_recordings(table, roles, run_column, index, min_samples):
+        for rec in _file_recordings(table, roles, run_column, index, min_samples,
+                                    condition_columns):
             if rec.id in owner:
                 raise DataFileError(
                     f"{table.path}: recording {rec.id!r} (run_column {run_column!r}) is also "

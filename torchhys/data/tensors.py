@@ -10,6 +10,10 @@ A stage is one full batch of its sequences, one row per recording::
     mask     (recordings, time)   True on the scored samples: from ``warmup`` to the row's
                                   end (never on padding)
 
+With operating conditions (``data.condition_columns``) a stage's batch has a fifth member::
+
+    conditions  (recordings, time, n)  the rows' conditions, padded as x
+
 Every row starts from a fresh operator state (the operators are causal, so the padding
 after a row cannot change it).
 """
@@ -26,15 +30,18 @@ from torchhys.data.files import Recording
 from torchhys.data.splits import Window
 
 __all__ = ["FitTensors", "StageBatch", "fit_tensors", "pad_rows", "stack_sequences",
-           "stage_batch", "window_sequence"]
+           "stage_batch", "window_conditions", "window_sequence"]
 
-StageBatch = tuple[Tensor, Tensor, Tensor, Tensor]
-"""``(x, y, warmup, mask)`` of a stage, see the module docstring."""
+StageBatch = tuple[Tensor, ...]
+"""``(x, y, warmup, mask)`` of a stage, and ``conditions`` with operating conditions (see
+the module docstring)."""
 
 
 def pad_rows(rows: list[Tensor], length: int) -> Tensor:
-    """Rows of different lengths, each right-padded with its last value, (rows, length)."""
-    return torch.stack([torch.cat([r, r[-1:].expand(length - r.numel())]) for r in rows])
+    """Rows of different lengths, each right-padded with its last value, (rows, length); rows
+    of (time, n) to (rows, length, n)."""
+    return torch.stack([torch.cat([r, r[-1:].expand(length - r.shape[0], *r.shape[1:])])
+                        for r in rows])
 
 
 def window_sequence(rec: Recording, w: Window, *, repeat: int = 1,
@@ -50,13 +57,26 @@ def window_sequence(rec: Recording, w: Window, *, repeat: int = 1,
     return x, y, first
 
 
-def stage_batch(seqs: list[tuple[Tensor, Tensor, int]]) -> StageBatch:
-    """Sequences ``(x, y, first scored)``, each (time,), as one batch (module docstring)."""
+def window_conditions(rec: Recording, w: Window, *, repeat: int = 1) -> Tensor | None:
+    """The conditions (time, n) of :func:`window_sequence`'s sequence (None: none)."""
+    if rec.conditions is None:
+        return None
+    c = torch.from_numpy(rec.conditions)
+    if repeat == 1:
+        return c[: w.end]
+    return torch.cat([c.repeat(repeat - 1, 1), c[: w.end]])
+
+
+def stage_batch(seqs: list[tuple[Tensor, Tensor, int]],
+                conditions: list[Tensor] | None = None) -> StageBatch:
+    """Sequences ``(x, y, first scored)``, each (time,), as one batch (module docstring);
+    with their ``conditions`` (each (time, n)) as its fifth member."""
     length = max(s[0].numel() for s in seqs)
     steps = torch.arange(length)
     mask = torch.stack([(steps >= first) & (steps < x.numel()) for x, _, first in seqs])
-    return (pad_rows([s[0] for s in seqs], length), pad_rows([s[1] for s in seqs], length),
-            torch.tensor([s[2] for s in seqs]), mask)
+    batch = (pad_rows([s[0] for s in seqs], length), pad_rows([s[1] for s in seqs], length),
+             torch.tensor([s[2] for s in seqs]), mask)
+    return batch if conditions is None else (*batch, pad_rows(conditions, length))
 
 
 class FitTensors(NamedTuple):

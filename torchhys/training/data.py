@@ -23,15 +23,22 @@ from torch.utils.data import DataLoader, Dataset
 from torchhys._checks import check_choice, check_int
 from torchhys._finite import check_scale
 from torchhys._memory import check_repeat
-from torchhys.data.files import Recording, read_recordings, resolve_path
+from torchhys.data.files import (
+    Recording,
+    check_condition_columns,
+    read_recordings,
+    resolve_path,
+)
 from torchhys.data.simulations import SIMULATIONS, simulate
 from torchhys.data.splits import STAGES, Window, assign_recordings, check_split
 from torchhys.data.tables import Column, DataFileError, RecordingId, check_text_options
 from torchhys.data.tensors import (
     FitTensors,
     StageBatch,
+    pad_rows,
     stack_sequences,
     stage_batch,
+    window_conditions,
     window_sequence,
 )
 
@@ -124,6 +131,11 @@ class HysteresisDataModule(L.LightningDataModule):
         decimal: the decimal mark of numbers in CSV files, ``"."`` or ``","`` (the
             delimiter is then ``;`` or a tab). The three are those of
             :func:`torchhys.data.files.read_recordings`; NPZ files ignore them.
+        condition_columns: columns of measured operating conditions (a coil voltage, a
+            supply pressure, a temperature; constant within a recording or varying sample
+            by sample): each stage's batch then carries them as its fifth member, (rows,
+            time, n) (:mod:`torchhys.data.tensors`), and a network with ``n_conditions``
+            takes them.
 
     Raises:
         ValueError: a bad split, ``split_by``, ``repeat``, ``warmup``, ``encoding``,
@@ -146,6 +158,7 @@ class HysteresisDataModule(L.LightningDataModule):
         test_recordings: list[RecordingId] | None = None, repeat: int = 1,
         min_samples: int = 16, warmup: int = 0, encoding: str | None = None,
         delimiter: str | None = None, decimal: str = ".",
+        condition_columns: list[Column] | None = None,
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
@@ -167,6 +180,11 @@ class HysteresisDataModule(L.LightningDataModule):
         check_int(hp.repeat, "repeat", minimum=1)
         check_choice(hp.split_by, "split_by", SPLIT_BY)
         check_text_options(hp.encoding, hp.delimiter, hp.decimal, prefix="data.")
+        check_condition_columns(hp.condition_columns, hp.input_column, hp.target_column,
+                                hp.time_column, hp.run_column)
+        if hp.path is None and hp.condition_columns:
+            raise ValueError(f"condition_columns={list(hp.condition_columns)!r} needs recorded "
+                             "data: set path to the file(s)")
         if hp.path is None:
             check_choice(hp.simulation, "simulation", SIMULATIONS)
             if hp.run_column is not None:
@@ -204,7 +222,7 @@ class HysteresisDataModule(L.LightningDataModule):
                 hp.path, input_column=hp.input_column, target_column=hp.target_column,
                 time_column=hp.time_column, run_column=hp.run_column,
                 min_samples=hp.min_samples, encoding=hp.encoding, delimiter=hp.delimiter,
-                decimal=hp.decimal)
+                decimal=hp.decimal, condition_columns=hp.condition_columns)
         recs = self.recordings
         check_repeat(hp.repeat, sum(len(r.x) for r in recs))  # memory, before it is taken
         self.x = torch.from_numpy(np.concatenate([r.x for r in recs]))
@@ -291,6 +309,19 @@ class HysteresisDataModule(L.LightningDataModule):
                     f"samples, {spread}); the normalization needs a "
                     "varying input and target: check the column (is it the right one?) and "
                     "the split")
+        for k, column in enumerate(hp.condition_columns or ()):
+            values = np.concatenate([self.recordings[w.index].conditions[: w.end, k]
+                                     for w in windows])
+            if not np.std(values) > 0:
+                raise DataFileError(
+                    f"{where}: data.condition_columns[{k}] {column!r} is constant over the "
+                    f"training split (all {float(values[0]):.10g}): a condition that does not "
+                    "vary cannot schedule a model; train on several conditions, or drop it")
+
+    @property
+    def n_conditions(self) -> int:
+        """Operating conditions per sample (``condition_columns``; 0: none)."""
+        return len(self.hparams.condition_columns or ())
 
     def prepare_data(self) -> None:
         """Nothing to download: data are simulated or read in :meth:`setup`."""
@@ -307,8 +338,13 @@ class HysteresisDataModule(L.LightningDataModule):
         return window_sequence(self.recordings[w.index], w, repeat=int(self.hparams.repeat),
                                warmup=int(self.hparams.warmup))
 
+    def _conditions(self, w: Window) -> Tensor | None:
+        """The conditions (time, n) of a window's sequence (None: no condition columns)."""
+        return window_conditions(self.recordings[w.index], w, repeat=int(self.hparams.repeat))
+
     def _batch(self, windows: list[Window]) -> StageBatch:
-        return stage_batch([self._sequence(w) for w in windows])
+        conds = [self._conditions(w) for w in windows] if self.n_conditions else None
+        return stage_batch([self._sequence(w) for w in windows], conds)
 
     def _stage_windows(self, stage: str) -> list[Window]:
         self.setup()
@@ -346,6 +382,15 @@ class HysteresisDataModule(L.LightningDataModule):
         """
         fit = self._train_fit()
         return fit.x, fit.y
+
+    def train_conditions(self) -> Tensor | None:
+        """The conditions (recordings, time, n) of :meth:`train_tensors`' rows, padded as
+        they are (None: no condition columns)."""
+        if not self.n_conditions:
+            return None
+        fit = self._train_fit()
+        return pad_rows([self._conditions(w) for w in self._stage_windows("train")],
+                        fit.x.shape[-1])
 
     @property
     def train_warmup(self) -> int:
