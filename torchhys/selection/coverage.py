@@ -121,7 +121,7 @@ def warn_coverage(data: Any, prefix: str = "model.select") -> None:
     train = batches("train")
     if not train:
         return
-    x, _, _, mask = train[0]
+    x, mask = train[0][0], train[0][3]
     message = coverage_warning(x, mask, source=getattr(data, "source", "the data"))
     if message is not None:
         warnings.warn(f"{prefix}: {message}", UserWarning, stacklevel=3)

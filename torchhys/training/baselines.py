@@ -26,7 +26,8 @@ from torchhys._checks import check_int
 from torchhys.identification._family_spec import VALIDATION
 from torchhys.identification._nnls import check_validation, holdout_cuts
 
-__all__ = ["MAX_DEGREE", "Polynomial", "fit_polynomial", "holdout_mask", "max_degree"]
+__all__ = ["MAX_DEGREE", "ConditionPolynomial", "Polynomial", "fit_condition_polynomial",
+           "fit_polynomial", "holdout_mask", "max_degree"]
 
 MAX_DEGREE = 9
 """The highest degree :func:`fit_polynomial` tries by default."""
@@ -146,3 +147,88 @@ def fit_polynomial(
     scores = {d: float(np.sqrt(np.mean((_fit(fx, fy, d)(hx) - hy) ** 2))) for d in degrees}
     best = min(scores, key=lambda d: (not math.isfinite(scores[d]), scores[d]))
     return Polynomial(_fit(xs[mask].numpy(), ys[mask].numpy(), best), best, scores[best])
+
+
+class ConditionPolynomial(NamedTuple):
+    """A memoryless polynomial ``y = p(x, c)`` of the input and the operating conditions,
+    fitted by :func:`fit_condition_polynomial`: a tensor-product Legendre basis of total
+    degree ``degree`` in the variables, each scaled to [-1, 1] over its fitted range.
+
+    Call it on x (...) and conditions (..., n): the outputs, x's shape and dtype.
+    """
+
+    coef: Tensor
+    exponents: list[list[int]]
+    low: Tensor
+    high: Tensor
+    degree: int
+    validation_rmse: float
+
+    def __call__(self, x: Tensor, conditions: Tensor) -> Tensor:
+        z = torch.cat([x.detach().to(torch.float64).cpu()[..., None],
+                       conditions.detach().to(torch.float64).cpu()], -1)
+        out = _condition_design(z, self.low, self.high, self.exponents, self.degree) @ self.coef
+        return out.to(dtype=x.dtype, device=x.device)
+
+
+def _condition_design(z: Tensor, low: Tensor, high: Tensor, exponents: list[list[int]],
+                      degree: int) -> Tensor:
+    from torchhys.conditions.basis import legendre_basis, scaled_conditions
+
+    span = torch.where(high > low, high - low, torch.ones_like(high))
+    return legendre_basis(scaled_conditions(z, low, low + span), exponents, degree)
+
+
+def fit_condition_polynomial(
+    x: Tensor, conditions: Tensor, y: Tensor, mask: Tensor | None = None, *,
+    degrees: Iterable[int] = range(1, 6), validation: float = VALIDATION,
+) -> ConditionPolynomial:
+    """The least-squares polynomial of y in x and the conditions over the scored samples
+    (float64), of the total degree (among ``degrees``) with the least RMSE on the hold-out
+    (:func:`holdout_mask`) when fitted before it, refitted on all scored samples: the
+    memoryless baseline of a model that sees the conditions.
+
+    Args:
+        x, y: input and target, (time,) or (rows, time); conditions: (..., n), x's shape
+            and n columns.
+        mask, degrees, validation: as :func:`fit_polynomial`'s.
+
+    Raises:
+        ValueError: shapes that differ, NaN or inf among the scored samples, no degree,
+            fewer scored samples before the hold-out than the highest degree's terms.
+    """
+    from torchhys.conditions.basis import total_degree
+
+    xs, ys, mask = _samples(x, y, mask)
+    c = torch.as_tensor(conditions).detach().to(torch.float64).cpu()
+    c = c[None] if c.dim() == 2 and xs.shape[0] == 1 and c.shape[0] != 1 else c
+    if c.shape[:-1] != xs.shape:
+        raise ValueError(f"conditions must have x's shape {tuple(xs.shape)} and n columns, "
+                         f"got {tuple(torch.as_tensor(conditions).shape)}")
+    if not bool(c[mask].isfinite().all()):
+        raise ValueError("conditions hold NaN or inf among the scored samples")
+    degrees = sorted({check_int(d, "degrees", minimum=1) for d in degrees})
+    if not degrees:
+        raise ValueError("degrees must hold at least one degree >= 1")
+    z = torch.cat([xs[..., None], c], -1)
+    held = holdout_mask(mask, validation)
+    fit = mask & ~held
+    lo, hi = z[mask].amin(0), z[mask].amax(0)
+
+    def solve(rows: Tensor, d: int) -> tuple[Tensor, list[list[int]]]:
+        e = total_degree(z.shape[-1], d)
+        a = _condition_design(z[rows], lo, hi, e, d)
+        if a.shape[0] < a.shape[1]:
+            raise ValueError(f"a polynomial of total degree {d} in {z.shape[-1]} variables "
+                             f"needs at least {a.shape[1]} scored samples before the "
+                             f"hold-out, got {a.shape[0]}")
+        return torch.linalg.lstsq(a, ys[rows][:, None], driver="gelsd").solution[:, 0], e
+
+    scores = {}
+    for d in degrees:
+        coef, e = solve(fit, d)
+        pred = _condition_design(z[held], lo, hi, e, d) @ coef
+        scores[d] = float((pred - ys[held]).square().mean().sqrt())
+    best = min(scores, key=lambda d: (not math.isfinite(scores[d]), scores[d]))
+    coef, e = solve(mask, best)
+    return ConditionPolynomial(coef, e, lo, hi, best, scores[best])

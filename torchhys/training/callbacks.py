@@ -14,7 +14,12 @@ from lightning.pytorch.callbacks import BasePredictionWriter
 from lightning.pytorch.utilities import rank_zero_warn
 
 from torchhys._checks import check_int
-from torchhys.training.baselines import MAX_DEGREE, fit_polynomial, max_degree
+from torchhys.training.baselines import (
+    MAX_DEGREE,
+    fit_condition_polynomial,
+    fit_polynomial,
+    max_degree,
+)
 
 __all__ = ["BaselineComparison", "PredictionWriter"]
 
@@ -26,7 +31,10 @@ class BaselineComparison(L.Callback):
     scored on the samples the test scored. Logged (and so printed in the test table and
     returned by ``trainer.test``):
 
-    - ``test_line_mse``, ``test_poly_mse``: the baselines' test MSE;
+    - ``test_line_mse``, ``test_poly_mse``: the baselines' test MSE (with operating
+      conditions, ``data.condition_columns``, the polynomial is one of the input and the
+      conditions: :func:`~torchhys.training.baselines.fit_condition_polynomial`, the
+      baseline that sees what the model sees);
     - ``test_ratio``: the model's test RMSE over the better baseline's (below 1: the model
       earns its place; the ``ratio`` of docs/real-data.md; 1 when both are 0).
 
@@ -61,8 +69,10 @@ class BaselineComparison(L.Callback):
                           outputs: Any, batch: Any, batch_idx: int,
                           dataloader_idx: int = 0) -> None:
         if isinstance(outputs, Mapping) and all(k in outputs for k in self.KEYS):
-            self._tested.append(tuple(outputs[k].detach().reshape(-1).to("cpu", torch.float64)
-                                      for k in self.KEYS))
+            got = [outputs[k].detach().reshape(-1).to("cpu", torch.float64) for k in self.KEYS]
+            c = outputs.get("conditions")
+            got.append(None if c is None else c.detach().to("cpu", torch.float64))
+            self._tested.append(tuple(got))
 
     def on_test_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         dm = getattr(trainer, "datamodule", None)
@@ -78,13 +88,20 @@ class BaselineComparison(L.Callback):
                            "a straight line before its hold-out; no comparison")
             return
         line = fit_polynomial(x, y, mask, degrees=(1,))
-        poly = fit_polynomial(x, y, mask, degrees=range(1, top + 1))
-        tx, ty, pred = (torch.cat(v) for v in zip(*self._tested, strict=True))
+        tx, ty, pred = (torch.cat(v) for v in list(zip(*self._tested, strict=True))[:3])
+        conds = [t[3] for t in self._tested]
+        if all(c is not None for c in conds) and len(train[0]) == 5:
+            cx = _condition_rows(train, x.shape[-1])
+            poly = fit_condition_polynomial(x, cx, y, mask, degrees=range(1, min(5, top) + 1))
+            poly_out = poly(tx, torch.cat(conds))
+        else:
+            poly = fit_polynomial(x, y, mask, degrees=range(1, top + 1))
+            poly_out = poly(tx)
 
         def mse(p: torch.Tensor) -> float:
             return float((p - ty).square().mean())
 
-        model, line_mse, poly_mse = mse(pred), mse(line(tx)), mse(poly(tx))
+        model, line_mse, poly_mse = mse(pred), mse(line(tx)), mse(poly_out)
         best = min(line_mse, poly_mse)
         ratio = math.sqrt(model / best) if best > 0 else (1.0 if model == 0 else math.inf)
         self.results = {"test_mse": model, "test_line_mse": line_mse,
@@ -94,9 +111,18 @@ class BaselineComparison(L.Callback):
             pl_module.log(key, self.results[key], on_step=False, on_epoch=True, sync_dist=True)
 
 
+def _condition_rows(batches: list, T: int) -> torch.Tensor:
+    """The conditions (rows, T, n) of every batch's rows as :func:`_rows` pads them."""
+    def pad(c: torch.Tensor) -> torch.Tensor:
+        c = c.detach().to("cpu", torch.float64)
+        return torch.cat([c, c[:, -1:].expand(-1, T - c.shape[1], -1)], 1)
+
+    return torch.cat([pad(b[4]) for b in batches])
+
+
 def _rows(batches: list) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The rows of every ``(x, y, ..., mask)`` batch as one ``(x, y, mask)``, each row padded
-    at its end to the longest (padding not scored)."""
+    """The rows of every ``(x, y, warmup, mask[, conditions])`` batch as one ``(x, y,
+    mask)``, each row padded at its end to the longest (padding not scored)."""
     T = max(int(b[0].shape[-1]) for b in batches)
 
     def pad(t: torch.Tensor, value: float | bool) -> torch.Tensor:
@@ -105,7 +131,7 @@ def _rows(batches: list) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
 
     x = torch.cat([pad(b[0].double(), 0.0) for b in batches])
     y = torch.cat([pad(b[1].double(), 0.0) for b in batches])
-    mask = torch.cat([pad(b[-1].bool(), False) for b in batches])
+    mask = torch.cat([pad(b[3].bool(), False) for b in batches])
     return x, y, mask
 
 
@@ -113,7 +139,8 @@ class PredictionWriter(BasePredictionWriter):
     """Write ``predict`` results to ``<default_root_dir>/<filename>``.
 
     Columns: ``sequence`` (the batch row), ``sample``, ``input``, ``target``, ``prediction``
-    (physical units). Only rank 0 writes.
+    (physical units), and the operating conditions under their column names where the data
+    has them (``data.condition_columns``). Only rank 0 writes.
 
     Args:
         filename: name of the CSV file under the trainer's ``default_root_dir``.
@@ -134,19 +161,28 @@ class PredictionWriter(BasePredictionWriter):
         batches = list(loader) if loader is not None else []
         rows = []
         seq = 0
+        n_cond = 0
         for batch, pred in zip(batches, predictions, strict=False):
             x, y = batch[0], batch[1]
-            for xb, yb, pb in zip(x, y, pred.reshape(x.shape), strict=True):
+            conds = batch[4] if len(batch) == 5 else None
+            n_cond = 0 if conds is None else int(conds.shape[-1])
+            for r, (xb, yb, pb) in enumerate(zip(x, y, pred.reshape(x.shape), strict=True)):
                 n = xb.numel()
-                rows.append(np.column_stack([
-                    np.full(n, seq), np.arange(n), xb.double().numpy(), yb.double().numpy(),
-                    pb.detach().to(torch.float64).cpu().numpy(),
-                ]))
+                cols = [np.full(n, seq), np.arange(n), xb.double().numpy(),
+                        yb.double().numpy(), pb.detach().to(torch.float64).cpu().numpy()]
+                if conds is not None:
+                    cols += [conds[r, :, k].double().numpy() for k in range(n_cond)]
+                rows.append(np.column_stack(cols))
                 seq += 1
         if not rows:
             return
+        names = list(getattr(getattr(trainer.datamodule, "hparams", None), "condition_columns",
+                             None) or []) if n_cond else []
+        names = [str(c) for c in names] if len(names) == n_cond else [
+            f"condition_{k}" for k in range(n_cond)]
         self.path = Path(trainer.default_root_dir) / self.filename
         self.path.parent.mkdir(parents=True, exist_ok=True)
         np.savetxt(self.path, np.concatenate(rows), delimiter=",", comments="",
-                   header="sequence,sample,input,target,prediction",
-                   fmt=["%d", "%d", "%.10g", "%.10g", "%.10g"])
+                   header=",".join(["sequence", "sample", "input", "target", "prediction",
+                                    *names]),
+                   fmt=["%d", "%d", "%.10g", "%.10g", "%.10g"] + ["%.10g"] * n_cond)

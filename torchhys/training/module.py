@@ -44,17 +44,18 @@ Scorer = Callable[[Tensor], Tensor]
 """Selects the scored samples of a (batch, time) tensor."""
 
 
-def _unpack(batch: Batch) -> tuple[Tensor, Tensor, Scorer]:
-    """``(x, y, scored)``: ``scored`` picks the samples of the loss and the metrics."""
+def _unpack(batch: Batch) -> tuple[Tensor, Tensor, Scorer, Tensor | None]:
+    """``(x, y, scored, conditions)``: ``scored`` picks the samples of the loss and the
+    metrics; the batch's operating conditions (its fifth member) or None."""
     if len(batch) == 2:
-        return batch[0], batch[1], lambda v: v
-    if len(batch) == 4:
-        x, y, _, mask = batch
+        return batch[0], batch[1], lambda v: v, None
+    if len(batch) in (4, 5):
+        x, y, _, mask = batch[:4]
         mask = mask.to(torch.bool)
-        return x, y, lambda v: v[mask]
+        return x, y, lambda v: v[mask], batch[4] if len(batch) == 5 else None
     x, y, warmup = batch
     first = int(warmup.reshape(-1)[0]) if isinstance(warmup, Tensor) else int(warmup)
-    return x, y, lambda v: v[..., first:]
+    return x, y, lambda v: v[..., first:], None
 
 
 def check_closure_trainer(trainer: Any, optimizer: str) -> None:
@@ -138,6 +139,11 @@ class InverseHysteresisModule(L.LightningModule):
         operator_kwargs: keyword arguments of the operators given by name only (e.g.
             ``{"a_formula": "sqrt"}``); spec dicts carry their own.
         init: ``"nguyen_widrow"`` or ``"default"`` (PyTorch's initialization).
+        n_conditions: operating conditions per sample of the data (the datamodule's
+            ``condition_columns``; the command line links them).
+        condition_degree: None, a network that does not see the conditions; k >= 1, a
+            network that takes them (:class:`~torchhys.InverseHysteresisNet`'s
+            ``n_conditions``, ``condition_degree``).
         optimizer: ``"adam"``, ``"cg"`` or ``"lbfgs"``.
         lr: learning rate of Adam and LBFGS (CG has no learning rate).
         optimizer_kwargs: further keyword arguments of the optimizer.
@@ -151,8 +157,12 @@ class InverseHysteresisModule(L.LightningModule):
         hidden: int = 168, activation: str = "sigmoid", operator_kwargs: dict | None = None,
         init: str = "nguyen_widrow", optimizer: str = "cg", lr: float = 1e-2,
         optimizer_kwargs: dict | None = None, schedule: str | None = None,
+        n_conditions: int = 0, condition_degree: int | None = None,
     ) -> None:
         super().__init__()
+        if condition_degree is not None and not n_conditions:
+            raise ValueError(f"condition_degree={condition_degree}: the network takes operating "
+                             "conditions, but the data has none (data.condition_columns)")
         check_choice(optimizer, "optimizer", sorted(OPTIMIZERS))
         check_optimizer_kwargs(optimizer, optimizer_kwargs)
         if schedule not in (None, "cosine") or (schedule and optimizer in CLOSURE_OPTIMIZERS):
@@ -172,7 +182,10 @@ class InverseHysteresisModule(L.LightningModule):
             net = check_sequence_model(net, "net")
         elif net is None:
             ops, self._fitters = build_operators(operator, operator_kwargs)
-            net = InverseHysteresisNet(ops, hidden, activation=activation)
+            net = InverseHysteresisNet(
+                ops, hidden, activation=activation,
+                n_conditions=n_conditions if condition_degree is not None else 0,
+                condition_degree=condition_degree or 1)
             initialize(net, init)
         self.net = net if self._sequence else check_network(net, "net")
         self.optimizer_name = optimizer
@@ -218,11 +231,25 @@ class InverseHysteresisModule(L.LightningModule):
         if str(getattr(self.trainer, "precision", "")).startswith("64"):
             self.net.double()  # as the precision plugin will: fit in float64 from the start
         x, y = dm.train_tensors()
+        conditions = dm.train_conditions() if hasattr(dm, "train_conditions") else None
         self.fit_normalization(x, y, warmup=int(getattr(dm, "train_warmup", 0)),
-                               mask=getattr(dm, "train_mask", None))
+                               mask=getattr(dm, "train_mask", None), conditions=conditions)
+
+    def _takes_conditions(self) -> bool:
+        return not self._sequence and bool(getattr(self.net, "n_conditions", 0))
+
+    def _seen(self, conditions: Tensor | None) -> Tensor | None:
+        """The batch's conditions where the network takes them, in its dtype (None: it does
+        not; a network of conditions given a batch without is a one-line error)."""
+        if not self._takes_conditions():
+            return None
+        if conditions is None:
+            raise ValueError(f"the network takes {self.net.n_conditions} operating "
+                             "condition(s), the data has none: set data.condition_columns")
+        return conditions.to(self.dtype)
 
     def fit_normalization(self, x: Tensor, y: Tensor, *, warmup: int = 0,
-                          mask: Tensor | None = None) -> None:
+                          mask: Tensor | None = None, conditions: Tensor | None = None) -> None:
         """Fit the data-dependent operators (``plays``, ``pi_ls``, the families; without the
         first ``warmup`` samples), then the network's normalization, to training data
         (physical units), (batch, time); with ``mask`` ((batch, time) bool) on its samples
@@ -235,7 +262,9 @@ class InverseHysteresisModule(L.LightningModule):
         fit_data_dependent(self.net.operators, self._fitters, x, y, warmup=warmup, mask=mask)
         ref = next(iter(self.net.buffers()), None)
         dtype = ref.dtype if ref is not None else torch.get_default_dtype()
-        self.net.fit_normalization(x.to(dtype), y.to(dtype), mask=mask)
+        c = self._seen(conditions)
+        self.net.fit_normalization(x.to(dtype), y.to(dtype), mask=mask,
+                                   conditions=None if c is None else c.to(dtype))
         check_normalization(self.net)  # data too large for the dtype: refused here
         self.normalization_fitted.fill_(True)
         self._feature_cache.clear()
@@ -255,32 +284,42 @@ class InverseHysteresisModule(L.LightningModule):
             return False
         return not any(p.requires_grad for p in self.net.operators.parameters())
 
-    def _features(self, x: Tensor, y: Tensor, key: str) -> Tensor:
-        """Operator features of (x, y), cached when they depend on no trainable parameter."""
+    def _features(self, x: Tensor, y: Tensor, key: str,
+                  conditions: Tensor | None = None) -> Tensor:
+        """Operator features of (x, y) (and the conditions), cached when they depend on no
+        trainable parameter."""
         cached = self._feature_cache.get(key)
         if cached is not None:
-            cx, cy, feats = cached
+            cx, cy, cc, feats = cached
             if cx.shape == x.shape and cx.dtype == x.dtype and torch.equal(cx, x) and (
                 torch.equal(cy, y)
-            ):
+            ) and (cc is None) == (conditions is None) and (
+                    cc is None or torch.equal(cc, conditions)):
                 return feats
         with torch.no_grad():
-            feats, _ = self.net.features(x, target=y)
-        self._feature_cache[key] = (x.detach().clone(), y.detach().clone(), feats)
+            feats, _ = self.net.features(x, target=y, conditions=conditions)
+        self._feature_cache[key] = (x.detach().clone(), y.detach().clone(),
+                                    None if conditions is None else conditions.clone(), feats)
         return feats
 
-    def forward(self, x: Tensor, target: Tensor | None = None) -> Tensor:
-        """Model output for ``x`` (batch, time) or (time,); ``target`` for per-segment EIHOs."""
-        return self.net(x) if self._sequence else self.net(x, target=target)[0]
+    def forward(self, x: Tensor, target: Tensor | None = None,
+                conditions: Tensor | None = None) -> Tensor:
+        """Model output for ``x`` (batch, time) or (time,); ``target`` for per-segment EIHOs;
+        the conditions (batch, time, n) of a network that takes them."""
+        if self._sequence:
+            return self.net(x)
+        return self.net(x, target=target, conditions=self._seen(conditions))[0]
 
-    def _predict(self, x: Tensor, y: Tensor, key: str) -> Callable[[], Tensor]:
+    def _predict(self, x: Tensor, y: Tensor, key: str,
+                 conditions: Tensor | None = None) -> Callable[[], Tensor]:
         """A function computing the prediction for the whole batch, (batch, time)."""
         x = x.to(self.dtype)
         y = y.to(self.dtype)
+        c = self._seen(conditions)
         if self._fixed_operators():
-            feats = self._features(x, y, key)
+            feats = self._features(x, y, key, c)
             return lambda: self.net.head(feats)
-        return lambda: self.forward(x, y)
+        return lambda: self.forward(x, y, c)
 
     def _global_mean(self, value: Tensor) -> Tensor:
         if self.trainer.world_size > 1:
@@ -289,9 +328,9 @@ class InverseHysteresisModule(L.LightningModule):
 
     # --- training -----------------------------------------------------------------------
     def training_step(self, batch: Batch, batch_idx: int) -> Tensor | None:
-        x, y, scored = _unpack(batch)
+        x, y, scored, c = _unpack(batch)
         y = y.to(self.dtype)
-        full = self._predict(x, y, "train")
+        full = self._predict(x, y, "train", c)
 
         def predict() -> Tensor:  # the warm-up samples only run the operator states
             return scored(full())
@@ -330,13 +369,15 @@ class InverseHysteresisModule(L.LightningModule):
         check_training(self, self._last_loss)
 
     def _evaluate(self, batch: Batch, stage: str) -> dict[str, Tensor]:
-        x, y, scored = _unpack(batch)
+        x, y, scored, c = _unpack(batch)
         y = y.to(self.dtype)
         with torch.no_grad():
-            pred = self._predict(x, y, stage)()
+            pred = self._predict(x, y, stage, c)()
         metric = self.val_mse if stage == "val" else self.test_mse
         out = {"input": scored(x).reshape(-1), "target": scored(y).reshape(-1),
                "prediction": scored(pred).reshape(-1)}
+        if c is not None:  # the scored samples' conditions, (samples, n)
+            out["conditions"] = scored(c).reshape(-1, c.shape[-1])
         metric(out["prediction"], out["target"])
         self.log(f"{stage}_mse", metric, on_step=False, on_epoch=True, prog_bar=True)
         return out
@@ -391,10 +432,10 @@ class InverseHysteresisModule(L.LightningModule):
     def predict_step(self, batch: Batch, batch_idx: int) -> Tensor:
         """The model output over the whole batch, (batch, time). Inputs outside the
         training range are counted: a warning at the end says their share."""
-        x, y, scored = _unpack(batch)
+        x, y, scored, c = _unpack(batch)
         self._count_outside(scored(x).reshape(-1))
         with torch.no_grad():
-            return self._predict(x, y, "predict")()
+            return self._predict(x, y, "predict", c)()
 
     def optimizer_step(self, epoch: int, batch_idx: int, optimizer: Any,
                        optimizer_closure: Callable[[], Any] | None = None) -> None:

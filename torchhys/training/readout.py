@@ -43,13 +43,13 @@ def solvable(module: Any, datamodule: Any, trainer: Any) -> bool:
                               getattr(trainer, "limit_train_batches", None)))
 
 
-def _batches(loader: Any) -> list[tuple[Tensor, Tensor, Tensor]]:
+def _batches(loader: Any) -> list[tuple[Tensor, Tensor, Tensor, Tensor | None]]:
     out = []
     for batch in loader or []:
-        if not (isinstance(batch, (tuple, list)) and len(batch) == 4):
+        if not (isinstance(batch, (tuple, list)) and len(batch) in (4, 5)):
             raise ValueError("a direct readout needs (x, y, warmup, mask) batches")
-        x, y, _, mask = batch
-        out.append((x, y, mask.to(torch.bool)))
+        x, y, _, mask = batch[:4]
+        out.append((x, y, mask.to(torch.bool), batch[4] if len(batch) == 5 else None))
     return out
 
 
@@ -73,11 +73,12 @@ def direct_validation(module: InverseHysteresisModule, datamodule: L.LightningDa
     train = _batches(datamodule.train_dataloader())
     if len(train) != 1:
         raise ValueError(f"a direct readout needs one full training batch, got {len(train)}")
-    bx, by, mask = train[0]
-    solve_readout(module.net, Batch(bx.to(dtype), by.to(dtype), mask))
+    bx, by, mask, bc = train[0]
+    solve_readout(module.net, Batch(bx.to(dtype), by.to(dtype), mask, bc))
     errors = []
-    for bx, by, mask in _batches(datamodule.val_dataloader()):
-        e = module(bx.to(dtype), target=by.to(dtype)).to(torch.float64) - by.to(torch.float64)
+    for bx, by, mask, bc in _batches(datamodule.val_dataloader()):
+        e = (module(bx.to(dtype), target=by.to(dtype), conditions=bc).to(torch.float64)
+             - by.to(torch.float64))
         errors.append(e.square()[mask])
     squared = torch.cat(errors) if errors else torch.zeros(0, dtype=torch.float64)
     return float(squared.mean()) if squared.numel() else float("nan"), squared

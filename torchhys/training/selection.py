@@ -103,11 +103,12 @@ def _squared_errors(module: L.LightningModule, datamodule: L.LightningDataModule
     errors = []
     with torch.no_grad():
         for batch in datamodule.val_dataloader():
-            if not (isinstance(batch, (tuple, list)) and len(batch) == 4):
+            if not (isinstance(batch, (tuple, list)) and len(batch) in (4, 5)):
                 continue
-            x, y, _, mask = batch  # the data's float64, to the module's dtype
-            e = (module(x.to(module.dtype), target=y.to(module.dtype)).to(torch.float64)
-                 - y.to(torch.float64))
+            x, y, _, mask = batch[:4]  # the data's float64, to the module's dtype
+            c = batch[4] if len(batch) == 5 else None
+            e = (module(x.to(module.dtype), target=y.to(module.dtype), conditions=c)
+                 .to(torch.float64) - y.to(torch.float64))
             errors.append(e.square()[mask.to(torch.bool)])
     return torch.cat(errors) if errors else torch.zeros(0, dtype=torch.float64)
 
