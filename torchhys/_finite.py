@@ -149,7 +149,8 @@ def check_output(net: nn.Module, where: str, samples: int = 64) -> None:
     of the training output's standard deviations (``out_std``) from its mean (``out_mean``):
     a fit stopped as it diverged. A sequence model (a :class:`~torchhys.compose.Composed`,
     no ``out_std``) is run on the range as one sequence (batch 1); only its finiteness is
-    checked. Nothing is checked for a model that records no input range."""
+    checked. A network of operating conditions is run at their training ranges' ends and
+    middle (one row each). Nothing is checked for a model that records no input range."""
     lo, hi = float(net.in_min), float(net.in_max)
     if not (math.isfinite(lo) and math.isfinite(hi)):
         return
@@ -157,8 +158,14 @@ def check_output(net: nn.Module, where: str, samples: int = 64) -> None:
     x = torch.linspace(lo, hi, samples, dtype=torch.float64).to(dtype)
     x = torch.cat([x, x.flip(0)])
     sequence = not hasattr(net, "out_std")  # a sequence model (a Composed): y = net(x)
+    n = 0 if sequence else int(getattr(net, "n_conditions", 0) or 0)
     with torch.no_grad():
-        y = net(x[None])[0] if sequence else net(x)[0]
+        if n:  # rows at the conditions' low end, middle and high end
+            lo_c, hi_c = net.cond_min.to(dtype), net.cond_max.to(dtype)
+            c = torch.stack([lo_c, (lo_c + hi_c) / 2, hi_c])[:, None, :].expand(3, x.numel(), n)
+            y = net(x.expand(3, -1), conditions=c)[0]
+        else:
+            y = net(x[None])[0] if sequence else net(x)[0]
     bad = int((~torch.isfinite(y)).sum())
     if not bad and hasattr(net, "out_mean") and hasattr(net, "out_std"):
         mean, std = float(net.out_mean), float(net.out_std)

@@ -58,7 +58,8 @@ from torchhys.identification.specs import build_operators
 
 __all__ = ["build_net", "main"]
 
-_ARCH_KEYS = ("operator", "hidden", "activation", "operator_kwargs")
+_ARCH_KEYS = ("operator", "hidden", "activation", "operator_kwargs", "n_conditions",
+              "condition_degree")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -238,8 +239,11 @@ def build_net(ckpt: dict, arch: dict | None = None) -> torch.nn.Module:
     # {"fit": ...} dicts); the fitted families get their widths and weights from the state
     try:  # sizes that no estimate covers (a registered operator's n_states, n, ...)
         operators, _ = build_operators(arch["operator"], arch.get("operator_kwargs") or {})
+        degree = arch.get("condition_degree")
         net = InverseHysteresisNet(
             operators, arch["hidden"], activation=arch.get("activation") or "sigmoid",
+            n_conditions=(arch.get("n_conditions") or 0) if degree is not None else 0,
+            condition_degree=degree if degree is not None else 1,
         )
     except (MemoryError, RuntimeError) as err:
         if isinstance(err, RuntimeError) and "allocate" not in str(err):
@@ -301,6 +305,11 @@ def main(argv: list[str]) -> int:
         return 2
     clamp = (f"input clamped to [{float(comp.in_low):.6g}, {float(comp.in_high):.6g}]"
              if comp.clamp_input else "input not clamped")
+    if comp.n_conditions:
+        bounds = ", ".join(f"[{float(a):.6g}, {float(b):.6g}]"
+                           for a, b in zip(comp.cond_low, comp.cond_high, strict=True))
+        clamp += (f", {comp.n_conditions} condition(s) clamped to {bounds}"
+                  if comp.clamp_conditions else f", {comp.n_conditions} condition(s)")
     guard = {1: "increasing", -1: "decreasing", 0: "none"}[int(comp.direction)]
     dtype = str(comp.low.dtype).replace("torch.", "")
     print(f"wrote {args.out} ({args.format}, {dtype}); command limits [{float(comp.low):.6g}, "

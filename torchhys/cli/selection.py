@@ -32,7 +32,7 @@ from torch import Tensor
 from torchhys._checks import check_choice, check_int
 from torchhys.cli.quiet import quiet_requested
 from torchhys.selection.candidates import candidate_spec, is_direct, model_base, steps_readout
-from torchhys.selection.folds import CV_MODES, RECORDING
+from torchhys.selection.folds import CONDITION, CV_MODES, RECORDING
 from torchhys.selection.run import Record, record
 from torchhys.selection.scores import CandidateScore
 from torchhys.training.data import HysteresisDataModule
@@ -57,13 +57,16 @@ class SelectRecord(NamedTuple):
     mask: Tensor
     dtype: torch.dtype
     source: str
-    val: tuple[Tensor, Tensor, Tensor, Tensor] | None = None
+    val: tuple[Tensor, ...] | None = None
     epochs: int = 1000
     seconds: float | None = None
+    conditions: Tensor | None = None
+    """The training rows' operating conditions (rows, time, n), or None."""
 
     def record(self) -> Record:
         """The training split as :func:`torchhys.selection.select` reads it."""
-        return record(self.x, self.y, warmup=self.warmup, mask=self.mask, source=self.source)
+        return record(self.x, self.y, warmup=self.warmup, mask=self.mask, source=self.source,
+                      conditions=self.conditions)
 
     def val_record(self) -> Record | None:
         """The validation split as a record (None under cross-validation): each row runs
@@ -71,8 +74,9 @@ class SelectRecord(NamedTuple):
         scored on the validation samples only, as a Lightning validation scores it."""
         if self.val is None:
             return None
-        x, y, warmup, mask = self.val
-        return record(x, y, warmup=warmup, mask=mask.to(torch.bool), source=self.source)
+        x, y, warmup, mask = self.val[:4]
+        return record(x, y, warmup=warmup, mask=mask.to(torch.bool), source=self.source,
+                      conditions=self.val[4] if len(self.val) == 5 else None)
 
 
 def _one_device(trainer: Any) -> bool:
@@ -199,7 +203,8 @@ def select_record(configs: list[Any], sub: str, cv: object) -> tuple[SelectRecor
     batches = datamodule.batches("train")
     if not batches:
         return None, "no training batch"
-    x, y, warmup, mask = batches[0]
+    x, y, warmup, mask = batches[0][:4]
+    conditions = batches[0][4] if len(batches[0]) == 5 else None
     source = getattr(datamodule, "source", "the data")
     if cv == RECORDING and x.shape[0] < 2:  # the library's error, in the config's names
         raise ValueError(
@@ -216,7 +221,7 @@ def select_record(configs: list[Any], sub: str, cv: object) -> tuple[SelectRecor
         return None, ("trainer.max_time without trainer.max_epochs, and a model.schedule "
                       "(Lightning decays it over one epoch)")
     return SelectRecord(x, y, warmup, mask.to(torch.bool), dtype or torch.float32, source,
-                        val, steps, seconds), ""
+                        val, steps, seconds, conditions), ""
 
 
 def write_fold_logs(scores: Sequence[CandidateScore], root: Path) -> None:
@@ -259,10 +264,11 @@ ARGUMENTS: list[tuple[str, Any, str]] = [
      "fit: candidate model configurations, each a dict of model arguments that replace the "
      "model section's; the one of lowest validation MSE is fitted (table in "
      "<default_root_dir>/logs/version_<N>/selection.csv)"),
-    ("select_cv", int | Literal["recording"] | None,
+    ("select_cv", int | Literal["recording", "condition"] | None,
      "fit with model.select: score the candidates by blocked cross-validation with this many "
-     "contiguous blocks of the training part, or 'recording': hold each training recording "
-     "out once (default: on the validation split)"),
+     "contiguous blocks of the training part, 'recording': hold each training recording "
+     "out once, or 'condition': hold each operating condition's recordings out once "
+     "(data.condition_columns; default: on the validation split)"),
     ("select_cv_mode", Literal["blocked", "rolling"] | None,
      "fit with model.select_cv: 'blocked' (default) holds each block (recording) out once, "
      "fitted on all the others; 'rolling' validates each block (recording) after the first "
@@ -325,10 +331,11 @@ def check_candidates(select: object, valid: Sequence[str], *,
                 f"{list(valid)}"
             )
         candidates.append(dict(cand))
-    if cv is not None and cv != RECORDING:
+    if cv is not None and cv not in (RECORDING, CONDITION):
         if isinstance(cv, str):
-            raise ValueError(f"model.select_cv must be an int >= 2 (blocked cross-validation) "
-                             f"or {RECORDING!r} (leave one recording out), got {cv!r}")
+            raise ValueError(f"model.select_cv must be an int >= 2 (blocked cross-validation), "
+                             f"{RECORDING!r} (leave one recording out) or {CONDITION!r} "
+                             f"(leave one condition out), got {cv!r}")
         check_int(cv, "model.select_cv", minimum=2)
     if mode is not None:
         check_choice(mode, "model.select_cv_mode", CV_MODES)

@@ -89,7 +89,7 @@ from torchhys.selection import scores
 from torchhys.selection import select as select_candidates
 from torchhys.selection.candidates import is_direct, model_base
 from torchhys.selection.coverage import warn_coverage
-from torchhys.selection.folds import describe_cv
+from torchhys.selection.folds import CONDITION, describe_cv
 from torchhys.selection.jobs import check_budget, check_jobs, usable_cores
 from torchhys.selection.progress import SelectionProgress
 from torchhys.training.callbacks import BaselineComparison, PredictionWriter
@@ -141,6 +141,9 @@ class TorchhysCLI(LightningCLI):
         # built (see _select).
         for name, kind, text in cli_selection.ARGUMENTS:
             parser.add_argument(f"--model.{name}", type=kind, default=None, help=text)
+        # the network's operating conditions: as many as the data's condition columns
+        parser.link_arguments("data.condition_columns", "model.n_conditions",
+                              compute_fn=_count_conditions)
 
     def parse_arguments(self, parser, args) -> None:  # noqa: ANN001 (LightningCLI's)
         """Parse, then read and check ``--ckpt_path`` (a file) before anything is written:
@@ -261,12 +264,16 @@ class TorchhysCLI(LightningCLI):
                         rule=rule or "min", jobs=jobs, budget_s=budget, dtype=direct.dtype,
                         seed=seed, epochs=direct.epochs, seconds=direct.seconds,
                         progress=progress, source=direct.source, refit=False,
-                        val=direct.val_record())
+                        val=direct.val_record(), conditions=direct.conditions)
                     scored = result.scores
                     write_fold_logs(scored, folder / "selection")
                 else:  # a trainer section select cannot honour: a Lightning run each
                     from torchhys.training.selection import run_selection
 
+                    if cv == CONDITION:
+                        raise ValueError(f"model.select_cv={CONDITION!r} scores the candidates "
+                                         "by the library's selection, which this run cannot "
+                                         f"use: {reason}")
                     say_lightning(reason)
                     scored = run_selection(candidates, build, cv=cv, mode=mode, jobs=jobs,
                                            budget_s=budget, report=progress.scored)
@@ -336,6 +343,11 @@ class TorchhysCLI(LightningCLI):
         kwargs["callbacks"] = [c for c in kwargs.get("callbacks") or []
                                if not isinstance(c, ModelCheckpoint)]
         return self.model, self._get(self.config_init, "data"), self.trainer_class(**kwargs)
+
+
+def _count_conditions(columns: Any) -> int:
+    """``model.n_conditions`` of ``data.condition_columns`` (None: 0)."""
+    return 0 if columns is None else len(columns)
 
 
 def _on_gpu(trainer: Any) -> bool:
