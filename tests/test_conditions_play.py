@@ -351,6 +351,7 @@ class PlayModel(nn.Module):
 
     def forward(self, x: Tensor, conditions: Tensor) -> Tensor:
         p, _ = self.op(torch.cat([x.unsqueeze(-1), conditions], -1))
+        p = p.unsqueeze(-1) if p.dim() == x.dim() else p  # one feature: (batch, time)
         return self.b[0] + self.b[1] * x + p @ self.w
 
     def streaming_steps(self, dtype: torch.dtype) -> list:

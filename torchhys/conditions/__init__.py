@@ -3,7 +3,9 @@ pressure, a temperature): :class:`ScheduledReadout`. A conditioned model declare
 ``n_conditions`` (:class:`torchhys.protocols.Conditioned`); the compensator and the exports
 then take the conditions beside the input."""
 
+from torchhys.conditions.jiles_atherton import ConditionedJilesAtherton
 from torchhys.conditions.play import ConditionedBacklash
 from torchhys.conditions.scheduled import ScheduledReadout, legendre_basis
 
-__all__ = ["ConditionedBacklash", "ScheduledReadout", "legendre_basis"]
+__all__ = ["ConditionedBacklash", "ConditionedJilesAtherton", "ScheduledReadout",
+           "legendre_basis"]
