@@ -2,19 +2,23 @@
 
     python benchmarks/latency.py [--samples 5000] [--rounds 5] [--skip-aoti] [--c-only]
 
-Four compensators (weights do not matter for latency): the compensation benchmark's
-deployed EIHO network (``EIHO(a, rule="recent", output="branch")`` + 16 play operators of the
-input, 64 sigmoid units), the same with the level dominant-rule EIHO (its configuration before
+Four compensators (weights do not matter for latency): the compensation benchmark's deployed
+EIHO network (``EIHO(a, rule="recent", output="branch")`` + 16 play operators of the input,
+64 sigmoid units), the same with the level dominant-rule EIHO (its configuration before
 ``output="branch"``), a network of the 16 play operators alone, and the B-H compensator of
-``configs/measured.yaml``'s last candidate (40 stops through 4-segment characteristics beside
-the exact inverse of a 40-level graded Preisach model, one affine readout), and that B-H
-compensator's operators under a :class:`~torchhys.conditions.ScheduledReadout` of degree 2 in
-one and in two operating conditions (its conditioned form, fitted on a synthetic record whose
-loop moves with the conditions; C rows only, the conditions a slow signal inside their
-training ranges, passed to the step at every sample). ``--nets`` picks some (indices in this
-order, 0 to 5); with the unconditioned B-H compensator in the run, each conditioned row's
-median is also printed as a ratio to the unconditioned one's, path by path (the ratio of the
-medians, and the range of the rounds' ratios).
+``configs/measured.yaml``'s last candidate (40 stops through 4-segment characteristics
+beside the exact inverse of a 40-level graded Preisach model, one affine readout); then, in
+C rows only, conditioned forms taking one and two operating conditions: the B-H
+compensator's operators under a :class:`~torchhys.conditions.ScheduledReadout` of degree 2
+(fitted on a synthetic record whose loop moves with the conditions), and the deployed EIHO
+network's operators in an :class:`~torchhys.InverseHysteresisNet` of 64 sigmoid units with
+``n_conditions`` (its features times a Legendre basis of the conditions of total degree
+``--condition-degree``, default 1; random weights, the normalization fitted on that record).
+The conditions are a slow signal inside their training ranges, passed to the step at every
+sample. ``--nets`` picks some (indices in this order, 0 to 7); with a conditioned net's
+unconditioned one in the run, the conditioned row's median is also printed as a ratio to the
+unconditioned one's, path by path (the ratio of the medians, and the range of the rounds'
+ratios).
 Each path runs ``step`` on a batch of one, one thread;
 the C++ rows use deploy/cpp/controller (built on first use, ``--rate 0``), which times each
 step with a steady clock (TorchScript: the module frozen, ``step_explicit`` with the state
@@ -262,11 +266,12 @@ def models() -> dict[str, InverseHysteresisNet]:
     return nets
 
 
-#: the conditioned nets, after those of :func:`models` (C rows only): name, conditions
-CONDITIONED = (("40 stops + graded Preisach inverse, 1 condition", 1),
-               ("40 stops + graded Preisach inverse, 2 conditions", 2))
-#: the index of the unconditioned net the conditioned ones are compared with
-UNCONDITIONED = 3
+#: the conditioned nets, after those of :func:`models` (C rows only): name, conditions, the
+#: index of the unconditioned net of :func:`models` it is compared with
+CONDITIONED = (("40 stops + graded Preisach inverse, 1 condition", 1, 3),
+               ("40 stops + graded Preisach inverse, 2 conditions", 2, 3),
+               ("re-based EIHO (recent) + 16 plays, 1 condition", 1, 0),
+               ("re-based EIHO (recent) + 16 plays, 2 conditions", 2, 0))
 
 
 #: the conditions' training ranges (a coil voltage in V, a temperature in C, say)
@@ -280,10 +285,9 @@ def condition_signal(t: torch.Tensor, n: int, phase: float = 0.0) -> torch.Tenso
     return torch.stack(cols, 1)
 
 
-def scheduled(n: int) -> ScheduledReadout:
-    """The B-H compensator's operators (fresh ones) under a readout scheduled on n
-    conditions (degree 2), fitted on three rows of the models' input whose target's gain,
-    offset and play width move with the conditions."""
+def synthetic(n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Three rows of the models' input x (3, time), n conditions c (3, time, n) sweeping their
+    ranges, and a target y (3, time) whose gain, offset and play width move with them."""
     t = torch.linspace(0, 60, 2000)
     x = (70 * torch.sin(t) * torch.exp(-t / 60)).repeat(3, 1)
     c = torch.stack([condition_signal(t, n, phase=2.0 * r) for r in range(3)])
@@ -291,9 +295,27 @@ def scheduled(n: int) -> ScheduledReadout:
     s2 = s[1] if n > 1 else torch.zeros_like(s[0])
     play = Backlash(torch.tensor([8.0]))(x)[0][..., 0]
     y = ((1 + 0.3 * s[0] - 0.2 * s2) * x + (0.5 + 0.5 * s[0]) * play) / 24 + 0.5 * s[0] * s2
+    return x, c, y
+
+
+def scheduled(n: int) -> ScheduledReadout:
+    """The B-H compensator's operators (fresh ones) under a readout scheduled on n
+    conditions (degree 2), fitted on :func:`synthetic`'s record."""
     ops = [StopPrandtlIshlinskii(torch.linspace(1.75, 70.0, 40), torch.full((40, 4), 0.01)),
            preisach_inverse()]
-    return ScheduledReadout(ops, n, degree=2).fit(x, c, y)
+    return ScheduledReadout(ops, n, degree=2).fit(*synthetic(n))
+
+
+def conditioned_net(n: int, degree: int = 1) -> InverseHysteresisNet:
+    """The deployed EIHO network's operators (fresh ones) in a network of 64 sigmoid units
+    taking n conditions (a Legendre basis of total degree ``degree``): random weights, the
+    normalization (and the conditions' ranges) fitted on :func:`synthetic`'s record."""
+    x, c, y = synthetic(n)
+    net = InverseHysteresisNet(
+        [EIHO(a=0.5, rule="recent", output="branch"), Backlash(torch.linspace(0.0, 56.0, 16))],
+        hidden=64, n_conditions=n, condition_degree=degree)
+    net.fit_normalization(x, y, conditions=c)
+    return net
 
 
 def reference_times(n: int) -> torch.Tensor:
@@ -341,15 +363,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--nets", type=int, nargs="*", default=None,
                         help="indices of the compensators to time (default: all): 0-3 the "
                         "unconditioned ones, 4 and 5 the B-H compensator scheduled on 1 and 2 "
-                        "conditions (C rows only)")
+                        "conditions, 6 and 7 net 0 with 1 and 2 conditions (C rows only)")
+    parser.add_argument("--condition-degree", type=int, default=1,
+                        help="the Legendre basis's total degree of nets 6 and 7 (default 1)")
     parser.add_argument("--c-only", action="store_true",
                         help="the C rows only (no libtorch, no AOTI compile)")
     parser.add_argument("--skip-onnx", action="store_true", help="no ONNX Runtime row")
     parser.add_argument("--dtype", choices=["float64", "float32"], default="float64",
                         help="the compensators' dtype (default float64)")
     args = parser.parse_args(argv)
-    if args.samples < 200 or args.rounds < 1:
-        parser.error("--samples must be at least 200 and --rounds at least 1")
+    if args.samples < 200 or args.rounds < 1 or args.condition_degree < 1:
+        parser.error("--samples must be at least 200, --rounds and --condition-degree at "
+                     "least 1")
     torch.set_num_threads(1)
     dtype = getattr(torch, args.dtype)
     x = reference(args.samples).to(dtype)
@@ -396,10 +421,11 @@ def main(argv: list[str] | None = None) -> None:
 
                     runs.append((name, "AOTI, Python", run_aoti))
                 runs.append((name, "AOTI, C++", lambda p=aoti_path: time_cpp(binary, p, x, tmp)))
-        for k, (name, n) in enumerate(CONDITIONED, start=len(models())):
+        for k, (name, n, base) in enumerate(CONDITIONED, start=len(models())):
             if args.nets is not None and k not in args.nets:
                 continue
-            comp = StreamingCompensator(scheduled(n).to(dtype), limits=(-10.0, 10.0))
+            model = scheduled(n) if base == 3 else conditioned_net(n, args.condition_degree)
+            comp = StreamingCompensator(model.to(dtype), limits=(-10.0, 10.0))
             c = condition_signal(reference_times(args.samples), n).to(dtype)
             for path, flags in C_FLAGS.items():
                 exe = c_timer(comp, tmp / f"c{k}", flags)
@@ -426,25 +452,26 @@ def main(argv: list[str] | None = None) -> None:
 
 def ratios(runs: list[tuple[str, str, object]],
            results: list[list[tuple[float, float]]]) -> None:
-    """Print each conditioned C row's median over the unconditioned B-H compensator's on the
-    same path (the ratio of the medians of the round medians; the range of the rounds'
-    ratios), where both are in the run."""
-    base_name = list(models())[UNCONDITIONED]
-    base = {path: [r[0] for r in res] for (name, path, _), res in zip(runs, results, strict=True)
-            if name == base_name}
-    names = {name for name, _ in CONDITIONED}
+    """Print each conditioned C row's median over its unconditioned net's on the same path
+    (the ratio of the medians of the round medians; the range of the rounds' ratios), where
+    both are in the run."""
+    unconditioned = list(models())
+    medians = {(name, path): [r[0] for r in res]
+               for (name, path, _), res in zip(runs, results, strict=True)}
+    bases = {name: unconditioned[k] for name, _, k in CONDITIONED}
     lines = []
     for (name, path, _), res in zip(runs, results, strict=True):
-        if name not in names or path not in base:
+        if name not in bases or (bases[name], path) not in medians:
             continue
-        meds = [r[0] for r in res]
-        per_round = sorted(m / b for m, b in zip(meds, base[path], strict=True))
-        ratio = sorted(meds)[len(meds) // 2] / sorted(base[path])[len(meds) // 2]
+        meds, base = [r[0] for r in res], medians[bases[name], path]
+        per_round = sorted(m / b for m, b in zip(meds, base, strict=True))
+        ratio = sorted(meds)[len(meds) // 2] / sorted(base)[len(meds) // 2]
         spread = (f" (rounds {per_round[0]:.2f} to {per_round[-1]:.2f})" if len(meds) > 1
                   else "")
         lines.append(f"| {name} | {path} | {ratio:.2f}{spread} |")
     if lines:
-        print(f"\nconditioned over unconditioned ({base_name}), medians of the same run\n")
+        print("\nconditioned over unconditioned (the net without its conditions), medians of "
+              "the same run\n")
         print("| compensator | path | ratio |")
         print("|---|---|---|")
         print("\n".join(lines))
