@@ -1,6 +1,7 @@
 """A conditioned compensator as C99 (torchhys.deploy.c.to_c): the step takes the conditions
 (``NAME_step(s, x, conditions)``, ``NAME_N_CONDITIONS``, the ranges as macros) and its
-commands and counters equal the torch compensator's, compiled and run."""
+commands and counters equal the torch compensator's, compiled and run; the TorchScript,
+ONNX and AOTI (slow) files step with the conditions too."""
 
 from __future__ import annotations
 
@@ -119,8 +120,35 @@ def test_onnx_file_steps_with_conditions(tmp_path: Path) -> None:
         stepper.step(x[:, 0], c[:, 0, 0])
 
 
-def test_aoti_refuses_a_conditioned_model_in_one_line(tmp_path: Path) -> None:
-    from torchhys.deploy.export import to_aoti
-    _, _, m = _fitted()
-    with pytest.raises(ValueError, match=r"to_aoti: the model takes 1 condition"):
-        to_aoti(m, tmp_path / "comp.pt2")
+@pytest.mark.slow
+def test_aoti_package_steps_with_conditions_and_carries_them(tmp_path: Path) -> None:
+    """One compile (float64, batch 3): the package's step equals the torch compensator's
+    within 1e-12 on rows with a NaN condition and one far out of range, the counters equal
+    too; the metadata carries the conditions; a missing or wrong-shaped conditions argument
+    is a one-line error."""
+    from torchhys.deploy.export import load_aoti, to_aoti
+    x, c, m = _fitted()
+    path = to_aoti(m, tmp_path / "comp.pt2", direction="none", batch=3)
+    stepper = load_aoti(path)
+    meta = stepper.metadata
+    assert meta["n_conditions"] == "1"
+    assert float(meta["condition_low"]) == pytest.approx(-0.1)
+    assert float(meta["condition_high"]) == pytest.approx(2.1)
+    comp = StreamingCompensator(m, direction="none")
+    cs = c.clone()
+    cs[1, 7, 0] = float("nan")
+    cs[2, 9, 0] = 7.0
+    want = torch.stack([comp.step(x[:, k], cs[:, k]) for k in range(60)], 1)
+    got = torch.stack([stepper.step(x[:, k], cs[:, k]) for k in range(60)], 1)
+    assert float((got - want).abs().max()) <= 1e-12
+    assert float(got[1, 7]) == float(got[1, 6])  # held
+    assert stepper.nonfinite_count().tolist() == comp.nonfinite_count().tolist() == [0, 1, 0]
+    assert stepper.out_of_range_count().tolist() == comp.out_of_range_count().tolist()
+    assert stepper.out_of_range_count().tolist() == [0, 0, 1]
+    for call, message in [(lambda: stepper.step(x[:, 0]), r"^step: this package takes 1 "
+                           r"condition\(s\): pass conditions of shape \(3, 1\)$"),
+                          (lambda: stepper.step(x[:, 0], c[:, 0, 0]),
+                           r"^step: conditions must have shape \(3, 1\), got \(3,\)$")]:
+        with pytest.raises(ValueError, match=message) as info:
+            call()
+        assert "\n" not in str(info.value)

@@ -9,7 +9,8 @@ inputs held and counted. Neither needs torchhys to load.
   ``out_of_range_count()``;
   loads with ``torch.jit.load`` (Python) or ``torch::jit::load`` (C++).
 * :func:`to_aoti`: an AOTInductor package (``.pt2``) of the explicit-state step
-  ``(x_t, *state) -> (u_t, *state)``; load it with :func:`load_aoti` or
+  ``(x_t, *state) -> (u_t, *state)`` (``(x_t, conditions, *state)`` for a model with
+  operating conditions); load it with :func:`load_aoti` or
   ``torch::inductor::AOTIModelPackageLoader`` (C++).
 
 Both carry the same metadata (:func:`metadata`; the package's metadata, or the TorchScript
@@ -29,6 +30,10 @@ file's extra files of the same names), all strings:
                 ``0`` (no direction guard)
     dtype       the sample's and the command's dtype
     batch       the batch the state_spec is written for (static in an AOTI package)
+
+A conditioned compensator's (``docs/conditions.md``) adds :data:`CONDITION_KEYS`:
+``n_conditions``, and ``condition_low``, ``condition_high`` (the clamp's bounds of each
+condition, comma-separated).
 """
 
 from __future__ import annotations
@@ -258,9 +263,12 @@ def to_aoti(
 ) -> str:
     """Compile the explicit-state step with ``torch.export`` + AOTInductor into a package.
 
-    The package runs ``(x_t (batch,), *state) -> (u_t (batch,), *state)``. The fresh state
-    is all zeros; its shapes and dtypes, the counter's position and the limits are in the
-    package metadata (:func:`metadata`). Compiling takes a minute or more on a small CPU.
+    The package runs ``(x_t (batch,), *state) -> (u_t (batch,), *state)``; a conditioned
+    model's (``n_conditions > 0``, ``docs/conditions.md``) runs ``(x_t (batch,), conditions
+    (batch, n_conditions), *state) -> (u_t (batch,), *state)``, and its metadata adds
+    :data:`CONDITION_KEYS`. The fresh state is all zeros; its shapes and dtypes, the
+    counter's position and the limits are in the package metadata (:func:`metadata`).
+    Compiling takes a minute or more on a small CPU.
 
     Args:
         model, limits, initial_command, input_range, input_margin, direction: as
@@ -282,14 +290,13 @@ def to_aoti(
     comp = _compensator(model, limits, initial_command,
                         {"input_range": input_range, "input_margin": input_margin,
                          "direction": direction}).eval()
-    if comp.n_conditions > 0:
-        raise ValueError(f"to_aoti: the model takes {comp.n_conditions} condition(s), which "
-                         "the AOTI package does not carry yet: use to_torchscript, to_onnx "
-                         "or to_c")
     state = comp.initial_state(batch)
     x = torch.zeros(batch, dtype=comp.low.dtype)
+    # a conditioned model's step takes its conditions (batch, n) after x
+    cond = ([torch.zeros(batch, comp.n_conditions, dtype=comp.low.dtype)]
+            if comp.n_conditions > 0 else [])
     with torch.no_grad():
-        ep = torch.export.export(_ExplicitStep(comp), (x, *state), strict=False)
+        ep = torch.export.export(_ExplicitStep(comp), (x, *cond, *state), strict=False)
     configs = {**_aoti_defaults(comp.low.dtype), "aot_inductor.metadata": metadata(comp, batch),
                **(inductor_configs or {})}
     buffer = io.BytesIO()
@@ -309,7 +316,8 @@ class AOTIStepper:
     def __init__(self, path: str | os.PathLike) -> None:
         self.runner = torch._inductor.aoti_load_package(os.fspath(path))
         meta = self.runner.get_metadata()
-        self.metadata = {k: meta[k] for k in _METADATA_KEYS if k in meta}
+        self.metadata = {k: meta[k] for k in (*_METADATA_KEYS, *CONDITION_KEYS) if k in meta}
+        self.n_conditions = int(meta.get("n_conditions", "0"))
         self.spec = meta["state_spec"]
         self.counter = _position(meta["counter"])
         oor = meta.get("out_of_range", "")
@@ -324,23 +332,39 @@ class AOTIStepper:
         with self._lock:
             self.state = _parse_state_spec(self.spec)
 
-    def step(self, x_t: Tensor) -> Tensor:
-        """One sample, x_t (batch,) -> command (batch,).
+    def step(self, x_t: Tensor, conditions: Tensor | None = None) -> Tensor:
+        """One sample, x_t (batch,) (and, for a package with conditions, their values
+        (batch, n_conditions)) -> command (batch,).
 
         The compiled kernels index their inputs with the strides seen at export (dense,
-        row-major) and do not check them at run time, so the sample is made contiguous: a
-        strided view such as ``x[:, t]`` would otherwise be read as ``x[0, t:t + batch]``.
+        row-major) and do not check them at run time, so the sample and the conditions are
+        made contiguous: a strided view such as ``x[:, t]`` would otherwise be read as
+        ``x[0, t:t + batch]``.
 
         Raises:
-            ValueError: ``x_t`` is not of shape ``(batch,)`` with the compiled batch.
+            ValueError: ``x_t`` is not of shape ``(batch,)`` with the compiled batch;
+                conditions missing, given to a package without, or of another shape.
         """
         if x_t.dim() != 1 or x_t.shape[0] != self.batch:
             raise ValueError(
                 f"step expects shape ({self.batch},) (the compiled batch), got shape "
                 f"{tuple(x_t.shape)}"
             )
+        dtype = self.state[0].dtype
+        extra = []
+        if self.n_conditions > 0 or conditions is not None:
+            n = self.n_conditions
+            if conditions is None or n == 0:
+                raise ValueError("step: conditions given, but the package takes none" if n == 0
+                                 else f"step: this package takes {n} condition(s): pass "
+                                 f"conditions of shape ({self.batch}, {n})")
+            c = torch.as_tensor(conditions)
+            if tuple(c.shape) != (self.batch, n):
+                raise ValueError(f"step: conditions must have shape ({self.batch}, {n}), got "
+                                 f"{tuple(c.shape)}")
+            extra = [c.to(dtype).contiguous()]
         with self._lock:  # the state read, stepped and replaced by one thread at a time
-            out = self.runner(x_t.to(self.state[0].dtype).contiguous(), *self.state)
+            out = self.runner(x_t.to(dtype).contiguous(), *extra, *self.state)
             self.state = [s.contiguous() for s in out[1:]]
         return out[0]
 
