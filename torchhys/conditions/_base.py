@@ -17,8 +17,6 @@ from torchhys._checks import (
 from torchhys.conditions.basis import legendre_basis, total_degree
 from torchhys.operator import HysteresisOperator
 
-__all__ = ["ConditionedOperator", "schedule"]
-
 
 def schedule(c: Tensor, theta: Tensor, scale: Tensor, shift: Tensor,
              exponents: list[list[int]], degree: int) -> Tensor:
