@@ -1,7 +1,7 @@
 """The conditioned Jiles-Atherton model (torchhys.conditions.ConditionedJilesAtherton): against a
 float64 numpy loop, JilesAtherton at theta = 0, chunked calls, its step, gradcheck in x, raw
 and theta, the conformance suite (its example without conditions), bad input, and a model of
-it streamed by the compensator and compiled as C with its conditions."""
+it streamed by the compensator, compiled as C and run in ONNX Runtime with its conditions."""
 
 # no `from __future__ import annotations`: test_conditions_play's head is scripted
 import math
@@ -221,3 +221,20 @@ def test_a_model_streams_and_its_c_step_equals_the_torch_compensator(tmp_path: P
     u_c = torch.tensor([float(v) for v in out[:len(xs)]], dtype=DT)
     assert float((u_c - u).abs().max()) <= 1e-12 * float(u.abs().max())
     assert [int(v) for v in out[len(xs)].split()] == [2, 0]
+
+
+def test_the_onnx_step_equals_the_torch_compensator(tmp_path: Path) -> None:
+    pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnxscript")
+    from torchhys.deploy.export_onnx import load_onnx, to_onnx
+    x = _signal(B=3, T=200, n=2)
+    m = PlayModel(_op(2, 2, x=x))
+    xs, cs = x[1, :, 0].clone(), x[1, :, 1:].clone()
+    xs[50] = float("nan")
+    comp = StreamingCompensator(m, limits=LIMITS, direction="none")
+    u = torch.cat([comp.step(xs[k:k + 1], cs[k:k + 1]) for k in range(len(xs))])
+    stepper = load_onnx(to_onnx(m, tmp_path / "comp.onnx", direction="none", limits=LIMITS,
+                                batch=1))
+    got = torch.cat([stepper.step(xs[k:k + 1], cs[k:k + 1]) for k in range(len(xs))])
+    assert float((got - u).abs().max()) <= 1e-12 * float(u.abs().max())
+    assert stepper.nonfinite_count().tolist() == comp.nonfinite_count().tolist() == [1]
