@@ -32,6 +32,15 @@ module of operators, recurrent layers and elementwise maths) through the checks 
     from torchhys.testing import check_composed
 
     check_composed(lambda: MyModel().double())  # every check but AOTInductor's
+
+:func:`check_conditioned` runs a fitted model with operating conditions (``n_conditions >
+0``, ``docs/conditions.md``) on the caller's x (batch, time) and conditions (batch, time, n)
+through the checks of :data:`CONDITIONED_CHECKS`, the exported steps (TorchScript, C99,
+ONNX Runtime, AOTInductor when asked) among them::
+
+    from torchhys.testing import check_conditioned
+
+    check_conditioned(model, x, conditions)  # every check but AOTInductor's
 """
 
 import copy
@@ -46,8 +55,9 @@ import torchhys.registry as registry
 from torchhys.operator import HysteresisOperator
 
 __all__ = ["CHECKS", "COMPILE_CHECKS", "COMPOSED_ATOL", "COMPOSED_CHECKS",
-           "COMPOSED_COMPILE_CHECKS", "DEFAULT_CHECKS", "TORCH_CHECKS", "Example",
-           "check_composed", "check_conformance", "example_of"]
+           "COMPOSED_COMPILE_CHECKS", "CONDITIONED_CHECKS", "CONDITIONED_COMPILE_CHECKS",
+           "DEFAULT_CHECKS", "TORCH_CHECKS", "Example", "check_composed", "check_conditioned",
+           "check_conformance", "example_of"]
 
 CHECKS: dict[str, str] = {
     "protocol": "the example is an operator of its registered class",
@@ -118,6 +128,41 @@ COMPOSED_COMPILE_CHECKS = ("aoti",)
 COMPOSED_ATOL = 1e-12
 """The default tolerance of the composed step against the module (float64, relative to the
 output's scale): torch's fused recurrent kernels sum in another order than the step."""
+
+CONDITIONED_CHECKS: dict[str, str] = {
+    "protocol": "n_conditions matches the conditions' columns, cond_min < cond_max are "
+                "recorded (finite, (n,)), the compensator takes n conditions and clamps them "
+                "to that range widened by 5 %",
+    "chunked": "the model's forward in chunks of 1, 1, 2, 27 and the rest (the state "
+               "carried; where it takes a state) and the compensator's step_explicit in "
+               "chunks (bit for bit) equal one call; a row alone its row of a batch",
+    "step": "the compensator's step (no clamp, limits that never act) sample by sample "
+            "equals the model's sequence output (within atol), step_explicit the step "
+            "(commands and state bit for bit)",
+    "gradcheck": "gradcheck of the model's output in the conditions, and in x and the "
+                 "conditions unless no_gradcheck_x (float64, the first row's first 24 "
+                 "samples)",
+    "nan": "a NaN or inf condition, or a NaN input, holds the command, is counted and "
+           "leaves the state",
+    "bad_state": "a compensator state with a tensor too few or of another dtype, a model "
+                 "state with a block too many (where the forward takes one): one-line "
+                 "errors naming state; a state dict with a wrong-shaped cond_min loads nothing",
+    "conditions": "conditions missing, or one column too many, to the compensator's step "
+                  "and forward and to the model: one-line errors naming conditions",
+    "torchscript": "the TorchScript file's step and forward equal the torch compensator "
+                   "within 1e-12 (float64) with a NaN and an out-of-range condition and a "
+                   "NaN input, the counters and the state equal, its metadata the "
+                   "conditions' clamp",
+    "c": "the C99 step (compiled with cc -std=c99 -O2 -Wall -Wextra -Werror -pedantic) "
+         "equals the torch compensator within 1e-12 on the same inputs, the counters equal",
+    "onnx": "the ONNX file's step in ONNX Runtime equals the torch compensator within 1e-12 "
+            "on the same inputs, the counters, the state and the metadata equal; missing "
+            "or wrong-shaped conditions are one-line errors",
+    "aoti": "the AOTInductor package's step, as the ONNX file's",
+}
+"""The checks of a conditioned model by name (:func:`check_conditioned`): what each holds."""
+CONDITIONED_COMPILE_CHECKS = ("aoti",)
+"""The checks of a conditioned model that compile a program (tens of seconds on a CPU)."""
 
 
 @dataclass(frozen=True)
@@ -275,6 +320,63 @@ def check_composed(model: Any, *, atol: float = COMPOSED_ATOL, no_gradcheck: str
             text = str(e) if isinstance(e, AssertionError) else f"{type(e).__name__}: {e}"
             raise AssertionError(f"{case.label} fails the check {name!r} "
                                  f"({COMPOSED_CHECKS[name]}): {text}") from e
+    return results
+
+
+def check_conditioned(model: Any, x: torch.Tensor, conditions: torch.Tensor, *,
+                      atol: float = COMPOSED_ATOL, no_gradcheck_x: str | None = None,
+                      checks: Sequence[str] | None = None) -> dict[str, str | None]:
+    """Run a fitted model with operating conditions through :data:`CONDITIONED_CHECKS`.
+
+    Args:
+        model: the fitted model (each check uses a copy), or a function that builds one
+            (called after ``torch.manual_seed(0)`` for each check), float64: a module with
+            ``n_conditions``, ``cond_min``/``cond_max``, streaming steps
+            (``docs/conditions.md``) and ``forward(x, conditions=c)`` (``forward(x, state,
+            conditions=c)`` where it continues from a state) returning y or ``(y, state)``.
+        x: float64 (batch, time), time >= 40, inside the fitted input range.
+        conditions: float64 (batch, time, n_conditions), inside the fitted ranges.
+        atol: the compensator's step against the model's sequence output, the chunked and
+            the row-alone calls, relative to the output's scale (at least 1); 0: bit for bit.
+        no_gradcheck_x: why gradcheck in x does not apply (kinks in the samples, e.g. the
+            plays' corners), or None; gradcheck in the conditions runs either way.
+        checks: names of :data:`CONDITIONED_CHECKS`, in their order; None: all but
+            :data:`CONDITIONED_COMPILE_CHECKS`.
+
+    Returns:
+        Each check run -> None where it held, else why it does not apply (no C compiler,
+        no ONNX Runtime; gradcheck in the conditions only).
+
+    Raises:
+        AssertionError: a check that fails, naming the model, the check and what differs.
+        ValueError, TypeError: an unknown check; x or conditions not float64, finite, of
+            matching shapes; ``model`` of another type.
+    """
+    import torchhys._conformance_conditions as conditioned
+
+    names = (tuple(c for c in CONDITIONED_CHECKS if c not in CONDITIONED_COMPILE_CHECKS)
+             if checks is None else tuple(checks))
+    if isinstance(checks, str) or any(c not in CONDITIONED_CHECKS for c in names):
+        raise ValueError(f"checks must be names of torchhys.testing.CONDITIONED_CHECKS "
+                         f"{list(CONDITIONED_CHECKS)}, got {checks!r}")
+    x, conditions = conditioned.check_inputs(x, conditions)
+    if isinstance(model, torch.nn.Module):
+        build = lambda module=model: copy.deepcopy(module)  # noqa: E731
+    elif callable(model):
+        build = model
+    else:
+        raise TypeError(f"model must be an nn.Module or a function that builds one, got "
+                        f"{type(model).__name__}")
+    label = f"conditioned model {_name(build)}"
+    case = conditioned.ConditionedCase(label, build, x, conditions, atol, no_gradcheck_x)
+    results: dict[str, str | None] = {}
+    for name in names:
+        try:
+            results[name] = conditioned.RUNS[name](case)
+        except Exception as e:  # noqa: BLE001 (whatever the model raises fails the check)
+            text = str(e) if isinstance(e, AssertionError) else f"{type(e).__name__}: {e}"
+            raise AssertionError(f"{case.label} fails the check {name!r} "
+                                 f"({CONDITIONED_CHECKS[name]}): {text}") from e
     return results
 
 
