@@ -2,9 +2,10 @@
 (torchhys.testing.check_conditioned, CONDITIONED_CHECKS): the scheduled readout, the network
 with conditions, and the conditioned play and Jiles-Atherton operators under an affine
 readout (tests/test_conditions_play.PlayModel), one test a check and a model. Besides: the
-checks fail on a model whose step is not its forward, on an unfitted model and at a kink in
-x; bad arguments; AOTInductor's check (slow, one compile); and the compensator's state
-shapes, which step_explicit does not check (a strict xfail)."""
+checks fail on a model whose step is not its forward, on an unfitted model, at a kink in x,
+on a NaN condition not held, and on an export's other commands or counters; bad arguments;
+AOTInductor's check (slow, one compile); and the compensator's state shapes, which
+step_explicit does not check (a strict xfail)."""
 
 # no `from __future__ import annotations`: test_conditions_play's head is scripted
 
@@ -166,6 +167,25 @@ def test_the_nan_check_fails_when_a_nan_condition_is_not_held() -> None:
             check_conditioned(model, x, c, checks=["nan"])
     finally:
         StreamingCompensator._advance = original
+
+
+def test_the_export_comparison_fails_on_other_commands_or_counters() -> None:
+    """The parity checks' comparison (the C, ONNX, TorchScript and AOTI checks share it): a
+    step off by a relative 1e-11, or a counter off by one, fails."""
+    import torchhys._conformance_conditions as conditioned
+    model, x, c = _scheduled()
+    case = conditioned.ConditionedCase("m", lambda: model, x, c, 1e-12, None)
+
+    def torch_run(xs: Tensor, cs: Tensor) -> tuple:
+        return conditioned.stepped(StreamingCompensator(model, **conditioned.EXPORT), xs, cs)
+    conditioned._against(case, model, torch_run, "the same compensator")
+    off = [lambda xs, cs: (torch_run(xs, cs)[0] * (1 + 1e-11), *torch_run(xs, cs)[1:]),
+           lambda xs, cs: (torch_run(xs, cs)[0], [v + 1 for v in torch_run(xs, cs)[1]],
+                           torch_run(xs, cs)[2])]
+    for run, message in zip(off, [r"a step against the torch compensator", r"counters"],
+                            strict=True):
+        with pytest.raises(AssertionError, match=message):
+            conditioned._against(case, model, run, "a step")
 
 
 def test_bad_arguments_are_one_line_errors() -> None:
