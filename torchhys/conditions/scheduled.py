@@ -35,7 +35,7 @@ from torchhys.deploy.ranges import RANGES, training_ranges
 from torchhys.operator import HysteresisOperator
 from torchhys.step import OperatorStep
 
-__all__ = ["ScheduledReadout", "legendre_basis"]
+__all__ = ["ScheduledReadout"]
 
 
 class _ScheduledHead(nn.Module):
