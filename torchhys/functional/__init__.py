@@ -1,6 +1,7 @@
 """Pure tensor functions: the functional core of torchhys."""
 
 from torchhys.functional._branch import BranchState
+from torchhys.functional.adaptive import nlms_update, rls_update
 from torchhys.functional.backlash import backlash, play_step
 from torchhys.functional.drift import accumulated_variation, drift
 from torchhys.functional.eiho import NonCausalWarning, eiho, segment_coefficients, zhao_tan
@@ -27,6 +28,8 @@ from torchhys.functional.turning_points import (
 
 __all__: list[str] = [
     "BranchState",
+    "nlms_update",
+    "rls_update",
     "Branches",
     "accumulated_variation",
     "drift",
