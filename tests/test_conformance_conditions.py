@@ -5,7 +5,7 @@ readout (tests/test_conditions_play.PlayModel), one test a check and a model. Be
 checks fail on a model whose step is not its forward, on an unfitted model, at a kink in x,
 on a NaN condition not held, and on an export's other commands or counters; bad arguments;
 AOTInductor's check (slow, one compile); and the compensator's state shapes, which
-step_explicit does not check (a strict xfail)."""
+step_explicit checks."""
 
 # no `from __future__ import annotations`: test_conditions_play's head is scripted
 
@@ -208,10 +208,6 @@ def test_bad_arguments_are_one_line_errors() -> None:
         assert "\n" not in str(info.value)
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
-    "StreamingCompensator.step_explicit checks the state's number of tensors and dtypes, not "
-    "their shapes: a state of another width or batch fails inside torch (split_with_sizes, "
-    "a broadcast) with a message that does not name state"))
 def test_a_compensator_state_of_another_shape_is_a_one_line_error_naming_state() -> None:
     model, x, c = _scheduled()
     comp = StreamingCompensator(model, direction="none")

@@ -102,7 +102,7 @@ def test_aoti_batch_rows_equal_eager(dtype: torch.dtype, tmp_path: Path) -> None
            EIHO(a=(1.2, 0.8), rule="dominant", threshold=0.25, max_depth=6),
            Backlash([0.0, 0.4, 1.5])]
     net = net_of(ops, dtype, x)
-    path = to_aoti(net, tmp_path / "comp.pt2", limits=LIMITS, batch=x.shape[0])
+    path = to_aoti(net, tmp_path / "comp.pt2", limits=LIMITS, batch=x.shape[0], **RAW)
     runner = load_aoti(path)
     u = torch.stack([runner.step(x[:, t]) for t in range(x.shape[1])], 1)
     atol = 1e-6 if dtype == torch.float32 else 1e-12

@@ -262,7 +262,8 @@ class StreamingCompensator(nn.Module):
 
         Raises:
             ValueError: ``state`` has another number of tensors than :meth:`initial_state`,
-                or a tensor of another dtype (the message names it and the dtype expected);
+                or a tensor of another dtype or shape (the message names it and what was
+                expected);
                 conditions missing, given to a model without, or of another shape.
         """
         if len(state) != len(self.templates):
@@ -273,6 +274,12 @@ class StreamingCompensator(nn.Module):
                 raise ValueError("step_explicit: state[" + str(i) + "], " + self.state_names[i]
                                  + ", has dtype " + _dtype_name(state[i].dtype) + ", expected "
                                  + _dtype_name(self.templates[i].dtype))
+            want = self.templates[i].shape[1]
+            if state[i].dim() != 2 or state[i].shape[0] != x.shape[0] or state[i].shape[1] != want:
+                raise ValueError("step_explicit: state[" + str(i) + "], " + self.state_names[i]
+                                 + ", has shape " + str(list(state[i].shape)) + ", expected ["
+                                 + str(x.shape[0]) + ", " + str(want) + "] (x's batch and the "
+                                 "layout's columns)")
         c = conditions_of(x, conditions, self.n_conditions, self.low.dtype, "step_explicit", 2)
         return self._advance(x, state, c)
 
