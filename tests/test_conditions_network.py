@@ -180,3 +180,39 @@ def test_bad_conditions_are_one_line_errors() -> None:
         select([{"operator": None}], x, y, cv="condition")
     with pytest.raises(ValueError, match=r"conditions must have x's shape"):
         select([{"operator": None}], x, y, conditions=c[:, :10], cv=2)
+
+
+def test_a_conditioned_operator_inside_the_network_learns_its_widths(tmp_path: Path) -> None:
+    from torchhys.conditions import ConditionedBacklash
+    from torchhys.selection.candidates import train_full_batch
+
+    x, c, y = _plant(300)
+    half = torch.linspace(0.0, 0.2, 5, dtype=DT)  # half-widths of the plant's plays at c=0
+
+    def net_of() -> InverseHysteresisNet:
+        op = ConditionedBacklash(half.clone(), 1, degree=1).to(DT)
+        return InverseHysteresisNet([op], 1, activation="identity", n_conditions=1,
+                                    condition_degree=1).to(DT)
+
+    mask = torch.ones_like(x, dtype=torch.bool)
+    spec = {"optimizer": "lbfgs", "lr": 1.0, "schedule": None,
+            "optimizer_kwargs": {"max_iter": 50, "line_search_fn": "strong_wolfe"}}
+    losses = {}
+    for learn in (False, True):
+        net = net_of()
+        net.operators[0].theta.requires_grad_(learn)
+        net.fit_normalization(x, y, conditions=c)
+        solve_readout(net, Batch(x, y, mask, c))
+        if learn:
+            train_full_batch(net, spec, Batch(x, y, mask, c), epochs=10)
+        with torch.no_grad():
+            losses[learn] = float((net(x, conditions=c)[0] - y).square().mean())
+    # the widths move with the condition: learning theta fits the plant far better
+    assert losses[True] < 0.2 * losses[False]
+    assert float(net.operators[0].theta.abs().max()) > 0.05
+    comp = StreamingCompensator(net, direction="none", input_margin=0.0)
+    with torch.no_grad():
+        assert float((comp(x[3], c[3]) - net(x[3], conditions=c[3])[0]).abs().max()) < 1e-12
+    if CC is not None:
+        h, src = to_c(net, tmp_path, direction="none", input_margin=None)
+        assert "const torchhys_comp_real *conditions);" in h.read_text()

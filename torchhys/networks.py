@@ -62,6 +62,9 @@ class InverseHysteresisNet(AtomicLoad, nn.Module, Network, Deployable):
             with ``activation="identity"`` and ``hidden=1`` it is the affine readout whose
             weights are polynomials in the conditions
             (:class:`~torchhys.conditions.ScheduledReadout`'s model).
+            Its operators may be conditioned themselves (an operator of ``n_inputs = 1 +
+            n_conditions``, e.g. :class:`~torchhys.conditions.ConditionedBacklash`, given as
+            an instance): they read ``[x, conditions]``.
         condition_degree: the basis's total degree (>= 1) with conditions.
 
     Raises:
@@ -93,6 +96,7 @@ class InverseHysteresisNet(AtomicLoad, nn.Module, Network, Deployable):
         several = isinstance(operator, (list, tuple))
         specs = [] if operator is None else list(operator) if several else [operator]
         self.operators = nn.ModuleList([
+            s if self._takes_conditions(s) else
             make_operator(s, argument=f"operator[{i}]" if several else "operator",
                           **(operator_kwargs or {}) if isinstance(s, str) else {})
             for i, s in enumerate(specs)])
@@ -121,6 +125,20 @@ class InverseHysteresisNet(AtomicLoad, nn.Module, Network, Deployable):
         self.hidden = nn.Linear(n_features, hidden)
         self.activation = _ACTIVATIONS[activation]()
         self.output = nn.Linear(hidden, 1)
+
+    def _takes_conditions(self, op: object) -> bool:
+        """Whether ``op`` is a conditioned operator of this network's conditions (a
+        :class:`~torchhys.HysteresisOperator` of ``n_inputs == 1 + n_conditions``, e.g.
+        :class:`~torchhys.conditions.ConditionedBacklash`): it takes ``[x, conditions]``
+        (batch, time, 1 + n), and its step the compensator's ``[x, conditions]``."""
+        return (self.n_conditions > 0 and isinstance(op, HysteresisOperator)
+                and getattr(op, "n_inputs", 1) == 1 + self.n_conditions)
+
+    def _op_input(self, op: nn.Module, xb: Tensor, cb: Tensor | None) -> Tensor:
+        """What ``op`` reads: x (batch, time), or ``[x, conditions]`` for a conditioned one."""
+        if cb is not None and self._takes_conditions(op):
+            return torch.cat([xb.unsqueeze(-1), cb], -1)
+        return xb
 
     def _conditions(self, xb: Tensor, conditions: Tensor | None, squeezed: bool) -> Tensor | None:
         """``conditions`` as (batch, time, n) in x's dtype, checked against x (batch, time)."""
@@ -167,7 +185,7 @@ class InverseHysteresisNet(AtomicLoad, nn.Module, Network, Deployable):
         for i, op in enumerate(self.operators):
             prev = None if state is None else state[i]
             if op.causal:
-                f, s = op(xb, prev)
+                f, s = op(self._op_input(op, xb, cb), prev)
             else:  # a non-causal operator takes the target (the paper's per-segment EIHO)
                 f, s = op(xb, prev, target=yb, segment_a=segment_a)
             feats.append(f.unsqueeze(-1) if f.dim() == 2 else f)
@@ -250,7 +268,7 @@ class InverseHysteresisNet(AtomicLoad, nn.Module, Network, Deployable):
             self.cond_min.copy_(lo)
             self.cond_max.copy_(hi)
         for op in self.operators:
-            op.calibrate(xb)
+            op.calibrate(self._op_input(op, xb, cb))
         feats, _ = self.features(xb, target=yb, conditions=cb)
         flat = feats.reshape(-1, feats.shape[-1]) if m is None else feats[m]
         std = flat.std(dim=0)
