@@ -74,7 +74,7 @@ def controller() -> Path:
     return out / "controller"
 
 
-C_TIMER = r"""
+C_PRELUDE = r"""
 #define _POSIX_C_SOURCE 199309L
 #include <stdio.h>
 #include <stdlib.h>
@@ -93,7 +93,10 @@ static double now_ns(void)
     clock_gettime(CLOCK_MONOTONIC, &t);
     return (double)t.tv_sec * 1e9 + (double)t.tv_nsec;
 }
+"""
+"""The C timers' includes, sort comparator and clock."""
 
+C_TIMER = C_PRELUDE + r"""
 /* timer REF.bin: steps the compensator over the reference (binary doubles) once untimed,
    then, from a fresh state, once timing every step; prints median_us and p99_us */
 int main(int argc, char **argv)
@@ -127,26 +130,7 @@ int main(int argc, char **argv)
 }
 """
 
-C_TIMER_CONDITIONS = r"""
-#define _POSIX_C_SOURCE 199309L
-#include <stdio.h>
-#include <stdlib.h>
-#include <time.h>
-#include "comp.h"
-
-static int cmp(const void *a, const void *b)
-{
-    double x = *(const double *)a, y = *(const double *)b;
-    return (x > y) - (x < y);
-}
-
-static double now_ns(void)
-{
-    struct timespec t;
-    clock_gettime(CLOCK_MONOTONIC, &t);
-    return (double)t.tv_sec * 1e9 + (double)t.tv_nsec;
-}
-
+C_TIMER_CONDITIONS = C_PRELUDE + r"""
 /* timer REF.bin: the unconditioned timer's loops, the reference's samples being x and its
    comp_N_CONDITIONS conditions (binary doubles, interleaved); the conditions are converted
    to comp_real before the loops and passed to each step */

@@ -81,3 +81,21 @@ def conditions_of(x: Tensor, conditions: Tensor | None, n: int, dtype: torch.dty
                          "shape and one column per condition), got "
                          + str(list(conditions.shape)))
     return conditions.to(dtype)
+
+
+def file_conditions(conditions: object, n: int, batch: int, dtype: torch.dtype,
+                    kind: str) -> list[Tensor]:
+    """The conditions a loaded exported step (an AOTI package, an ONNX file: ``kind``)
+    takes beside x, checked: ``[conditions (batch, n)]`` contiguous in ``dtype``, or ``[]``
+    for a step without conditions (``n`` 0, none given)."""
+    if n == 0 and conditions is None:
+        return []
+    if conditions is None or n == 0:
+        raise ValueError(f"step: conditions given, but the {kind} takes none" if n == 0
+                         else f"step: this {kind} takes {n} condition(s): pass conditions of "
+                         f"shape ({batch}, {n})")
+    c = torch.as_tensor(conditions)
+    if tuple(c.shape) != (batch, n):
+        raise ValueError(f"step: conditions must have shape ({batch}, {n}), got "
+                         f"{tuple(c.shape)}")
+    return [c.to(dtype).contiguous()]

@@ -49,6 +49,7 @@ from torch import Tensor, nn
 
 from torchhys._atomic import atomic_write_files
 from torchhys._checks import check_int
+from torchhys.deploy._slots import file_conditions
 from torchhys.deploy.streaming import COUNTER, HELD, STATE_I, StreamingCompensator
 
 __all__ = [
@@ -351,18 +352,7 @@ class AOTIStepper:
                 f"{tuple(x_t.shape)}"
             )
         dtype = self.state[0].dtype
-        extra = []
-        if self.n_conditions > 0 or conditions is not None:
-            n = self.n_conditions
-            if conditions is None or n == 0:
-                raise ValueError("step: conditions given, but the package takes none" if n == 0
-                                 else f"step: this package takes {n} condition(s): pass "
-                                 f"conditions of shape ({self.batch}, {n})")
-            c = torch.as_tensor(conditions)
-            if tuple(c.shape) != (self.batch, n):
-                raise ValueError(f"step: conditions must have shape ({self.batch}, {n}), got "
-                                 f"{tuple(c.shape)}")
-            extra = [c.to(dtype).contiguous()]
+        extra = file_conditions(conditions, self.n_conditions, self.batch, dtype, "package")
         with self._lock:  # the state read, stepped and replaced by one thread at a time
             out = self.runner(x_t.to(dtype).contiguous(), *extra, *self.state)
             self.state = [s.contiguous() for s in out[1:]]

@@ -60,6 +60,7 @@ from torch import Tensor, nn
 from torchhys._checks import check_int
 from torchhys._version import __version__
 from torchhys.deploy._onnx_norms import norm_translations
+from torchhys.deploy._slots import file_conditions
 from torchhys.deploy.export import (
     _METADATA_KEYS,
     CONDITION_KEYS,
@@ -378,18 +379,7 @@ class ONNXStepper:
             raise ValueError(f"step expects shape ({self.batch},) (the exported batch), got "
                              f"shape {tuple(x_t.shape)}")
         x_t = x_t.to(self.dtype).contiguous()
-        extra = []
-        if self.n_conditions > 0 or conditions is not None:
-            n = self.n_conditions
-            if conditions is None or n == 0:
-                raise ValueError("step: conditions given, but the file takes none" if n == 0
-                                 else f"step: this file takes {n} condition(s): pass "
-                                 f"conditions of shape ({self.batch}, {n})")
-            c = torch.as_tensor(conditions)
-            if tuple(c.shape) != (self.batch, n):
-                raise ValueError(f"step: conditions must have shape ({self.batch}, {n}), got "
-                                 f"{tuple(c.shape)}")
-            extra = [c.to(self.dtype).contiguous()]
+        extra = file_conditions(conditions, self.n_conditions, self.batch, self.dtype, "file")
         with self._lock:  # the state read, stepped and replaced by one thread at a time
             feed = {name: t.numpy() for name, t in
                     zip(self.input_names, [x_t, *extra, *self.state], strict=True)}
