@@ -14,7 +14,12 @@ from torchhys._checks import (
     check_int,
     fitted_samples,
 )
-from torchhys.conditions.basis import condition_products, scaled_conditions, total_degree
+from torchhys.conditions.basis import (
+    condition_products,
+    scaled_conditions,
+    total_degree,
+    varying_range,
+)
 from torchhys.operator import AtomicLoad, HysteresisOperator
 from torchhys.protocols import Deployable, Network
 from torchhys.registry import make_operator
@@ -259,12 +264,9 @@ class InverseHysteresisNet(AtomicLoad, nn.Module, Network, Deployable):
             cs = cb.reshape(-1, self.n_conditions) if m is None else cb[m]
             if not bool(torch.isfinite(cs).all()):
                 raise ValueError("conditions must be finite in the fitted samples")
-            lo, hi = cs.amin(0), cs.amax(0)
-            flat = [i for i in range(self.n_conditions) if not bool(hi[i] > lo[i])]
-            if flat:
-                raise ValueError(f"condition {flat[0]} is constant over the fitted samples "
-                                 f"({float(lo[flat[0]])}): it cannot schedule the network "
-                                 "(drop it, or fit on several conditions)")
+            lo, hi = varying_range(cs, "condition {i} is constant over the fitted samples "
+                                   "({value}): it cannot schedule the network (drop it, or "
+                                   "fit on several conditions)")
             self.cond_min.copy_(lo)
             self.cond_max.copy_(hi)
         for op in self.operators:

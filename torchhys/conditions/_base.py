@@ -14,7 +14,7 @@ from torchhys._checks import (
     check_tensor,
     concrete,
 )
-from torchhys.conditions.basis import legendre_basis, total_degree
+from torchhys.conditions.basis import legendre_basis, total_degree, varying_range
 from torchhys.operator import HysteresisOperator
 
 
@@ -98,11 +98,8 @@ class ConditionedOperator(HysteresisOperator):
             return
         xb, _ = self._inputs(x)
         c = xb[..., 1:].reshape(-1, self.n_conditions)
-        lo, hi = c.amin(0), c.amax(0)
-        flat = [i for i in range(self.n_conditions) if not bool(hi[i] > lo[i])]
-        if flat:
-            raise ValueError(f"x: condition column {flat[0]} is constant ({float(lo[flat[0]])}) "
-                             f"over the calibration samples: it cannot scale {self._scales}")
+        lo, hi = varying_range(c, "x: condition column {i} is constant ({value}) over the "
+                                  "calibration samples: it cannot scale " + self._scales)
         self.cond_min.copy_(lo)
         self.cond_max.copy_(hi)
 

@@ -7,7 +7,8 @@ import itertools
 import torch
 from torch import Tensor
 
-__all__ = ["condition_products", "legendre_basis", "scaled_conditions", "total_degree"]
+__all__ = ["condition_products", "legendre_basis", "scaled_conditions", "total_degree",
+           "varying_range"]
 
 
 def total_degree(n: int, degree: int) -> list[list[int]]:
@@ -54,3 +55,14 @@ def condition_products(features: Tensor, c: Tensor, exponents: list[list[int]],
     phi = torch.cat([torch.ones_like(features[..., :1]), features], -1)
     prod = phi.unsqueeze(-1) * b.unsqueeze(-2)
     return prod.flatten(-2)[..., 1:]
+
+
+def varying_range(c: Tensor, message: str) -> tuple[Tensor, Tensor]:
+    """``(low, high)`` (n,) of conditions ``c`` (samples, n), each of which must vary: a
+    constant column i is a ``ValueError`` of ``message.format(i=i, value=...)`` (a constant
+    condition scales or schedules nothing)."""
+    lo, hi = c.amin(0), c.amax(0)
+    flat = [i for i in range(c.shape[-1]) if not bool(hi[i] > lo[i])]
+    if flat:
+        raise ValueError(message.format(i=flat[0], value=float(lo[flat[0]])))
+    return lo, hi

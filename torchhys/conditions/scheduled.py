@@ -30,7 +30,7 @@ from torchhys._checks import (
     concrete,
     fitted_samples,
 )
-from torchhys.conditions.basis import legendre_basis, total_degree
+from torchhys.conditions.basis import legendre_basis, total_degree, varying_range
 from torchhys.deploy.ranges import RANGES, training_ranges
 from torchhys.operator import HysteresisOperator
 from torchhys.step import OperatorStep
@@ -162,11 +162,8 @@ class ScheduledReadout(nn.Module):
         for name, v in (("x", xs), ("y", ys)):
             if v.numel() < 2 or float(v.std()) == 0.0:
                 raise ValueError(f"{name} is constant (or has < 2 samples): cannot fit")
-        lo, hi = cs.amin(0), cs.amax(0)
-        flat = [i for i in range(self.n_conditions) if not bool(hi[i] > lo[i])]
-        if flat:
-            raise ValueError(f"condition column {flat[0]} is constant over the fitted samples "
-                             f"({float(lo[flat[0]])}): it cannot schedule the readout")
+        lo, hi = varying_range(cs, "condition column {i} is constant over the fitted samples "
+                                   "({value}): it cannot schedule the readout")
         self.cond_min.copy_(lo)
         self.cond_max.copy_(hi)
         for op in self.operators:
