@@ -329,7 +329,9 @@ def config_selection(case: Case, conditions: bool = True) -> Predict:
     net = res.fit()
     ops, degree = res.chosen.overrides.get("operator"), res.chosen.overrides.get(
         "condition_degree")
-    name = "line" if ops is None else f"{ops[0]['n_widths']} stops, {ops[0]['segments']} seg"
+    name = "line" if ops is None else (
+        f"{ops[0]['n_widths']} stops, {ops[0]['segments']} seg" if ops[0]["fit"] == "stop_pi"
+        else f"{ops[0].get('n', '')} {ops[0]['fit']}")
     name += f", degree {degree}" if degree else ""
 
     def predict(xt: Tensor, cv: float) -> Tensor:
