@@ -238,3 +238,13 @@ def test_the_onnx_step_equals_the_torch_compensator(tmp_path: Path) -> None:
     got = torch.cat([stepper.step(xs[k:k + 1], cs[k:k + 1]) for k in range(len(xs))])
     assert float((got - u).abs().max()) <= 1e-12 * float(u.abs().max())
     assert stepper.nonfinite_count().tolist() == comp.nonfinite_count().tolist() == [1]
+
+
+def test_mu0_and_substeps_travel_in_the_state_dict() -> None:
+    saved = ConditionedJilesAtherton(1, mu0=2e-6, substeps=5)
+    fresh = ConditionedJilesAtherton(1)
+    fresh.load_state_dict(saved.state_dict())
+    assert (fresh.mu0, fresh.substeps) == (2e-6, 5)
+    bad = {**saved.state_dict(), "saved_substeps": torch.tensor(0)}
+    with pytest.raises(ValueError, match="saved_substeps"):
+        ConditionedJilesAtherton(1).load_state_dict(bad)

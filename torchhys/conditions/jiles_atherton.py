@@ -97,8 +97,8 @@ class ConditionedJilesAtherton(ConditionedOperator):
         ms, a, k, alpha, c: the parameters at ``theta = 0`` (as :class:`JilesAtherton`'s:
             positive, ``0 < c < 1``).
         mu0: input units per output unit of free space (4 pi 1e-7 for B in T, H in A/m).
-            Fixed (not in the state dict).
-        substeps: Euler steps per sample, >= 1. Fixed (not in the state dict).
+        substeps: Euler steps per sample, >= 1. ``mu0`` and ``substeps`` are saved in the
+            state dict (``saved_mu0``, ``saved_substeps``) and read back on load.
 
     Shape:
         - x: (batch, time, 1 + n_conditions) or (time, 1 + n_conditions): column 0 B, the
@@ -112,7 +112,8 @@ class ConditionedJilesAtherton(ConditionedOperator):
     """
 
     n_outputs: int = 1
-    constraints = {"raw": "finite", "theta": "finite"}
+    constraints = {"raw": "finite", "theta": "finite", "saved_mu0": "positive",
+                   "saved_substeps": "positive_integer"}
     _scales = "the parameters"
 
     def __init__(self, n_conditions: int = 1, *, degree: int = 1, ms: float = 1e6,
@@ -123,13 +124,31 @@ class ConditionedJilesAtherton(ConditionedOperator):
         if not values[4] < 1:
             raise ValueError(f"c must be in (0, 1), got {c!r}")
         self.mu0 = check_positive(mu0, "mu0")
-        self.substeps = check_int(substeps, "substeps", minimum=1)
+        # the fixed settings travel in the state dict (read back on load), as JilesAtherton's
+        self.register_buffer("saved_mu0", torch.tensor(self.mu0, dtype=torch.float64))
+        self.register_buffer("saved_substeps", torch.tensor(0))
+        self.substeps = substeps
         n = check_int(n_conditions, "n_conditions", minimum=0)
         k_basis = max(len(total_degree(n, check_int(degree, "degree", minimum=1))) - 1, 0)
         raw = [math.log(v) for v in values[:4]] + [math.log(values[4] / (1 - values[4]))]
         self.raw = nn.Parameter(torch.tensor(raw, dtype=torch.float64))
         self.theta = nn.Parameter(torch.zeros(5, k_basis, dtype=torch.float64))
         self._init_conditions(n, degree, torch.float64)
+
+    @property
+    def substeps(self) -> int:
+        """Euler steps per sample (kept in the ``saved_substeps`` buffer, read as a Python
+        int when set or loaded)."""
+        return self._substeps
+
+    @substeps.setter
+    def substeps(self, value: int) -> None:
+        self.saved_substeps.fill_(check_int(value, "substeps", minimum=1))
+        self._substeps = value
+
+    def after_load(self) -> None:
+        self.mu0 = float(self.saved_mu0)
+        self._substeps = int(self.saved_substeps)
 
     def parameters_at(self, conditions: Tensor) -> Tensor:
         """``(ms, a, k, alpha, c)`` (..., 5) at conditions (..., n_conditions)
