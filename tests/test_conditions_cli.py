@@ -169,3 +169,39 @@ def test_condition_columns_that_are_no_list_or_repeat_a_column(tmp_path, capsys,
     log = _write_log(tmp_path / "log.csv")
     line = _error(capsys, _config(tmp_path, log, condition_columns=["voltage_V", "response"]))
     assert "condition_columns" in line and "'response'" in line
+
+
+def test_lightning_runs_of_the_candidates_leave_one_condition_out(tmp_path, capsys,
+                                                                  monkeypatch) -> None:
+    """A trainer section select cannot honour (gradient clipping) trains each candidate by
+    Lightning on the folds of torchhys.training.folds.ConditionFold."""
+    from torchhys.data.files import read_recordings
+    from torchhys.training import HysteresisDataModule
+    from torchhys.training.folds import ConditionFold
+
+    monkeypatch.setattr(sys, "argv", ["torchhys"])
+    log = _write_log(tmp_path / "log.csv")
+    config = _config(tmp_path, log)
+    cfg = yaml.safe_load(config.read_text())
+    cfg["trainer"]["gradient_clip_val"] = 1.0
+    cfg["model"]["optimizer_kwargs"] = {}
+    cfg["model"]["select"] = [
+        {"operator": None, "hidden": 3, "activation": "tanh", "optimizer": "adam", "lr": 0.01},
+        {"operator": None, "hidden": 3, "activation": "tanh", "optimizer": "adam", "lr": 0.01,
+         "condition_degree": 1}]
+    config.write_text(yaml.safe_dump(cfg))
+    main(["fit", "--config", str(config)])
+    err = capsys.readouterr().err
+    assert "trained through Lightning: trainer.gradient_clip_val" in err
+    table = list(csv.DictReader((tmp_path / "runs" / "logs" / "version_0" /
+                                 "selection.csv").open()))
+    assert all(r["fold_5"] and r["val_mse"] != "nan" for r in table)
+    # the folds: each condition's training recordings held out together, with conditions
+    data = HysteresisDataModule(**{k: v for k, v in cfg["data"].items()})
+    fold = ConditionFold(data, 2)
+    assert fold.k == 5 and len(fold._val) == 5 and len(fold._train) == 5
+    assert set(fold._val[4].unique().tolist()) == {VOLTS[2]}
+    assert VOLTS[2] not in set(fold._train[4].unique().tolist())
+    assert fold.train_conditions().shape[:-1] == fold.train_tensors()[0].shape
+    assert len(read_recordings(log, input_column="response", target_column="command",
+                               run_column="recording")) == 10

@@ -89,7 +89,7 @@ from torchhys.selection import scores
 from torchhys.selection import select as select_candidates
 from torchhys.selection.candidates import is_direct, model_base
 from torchhys.selection.coverage import warn_coverage
-from torchhys.selection.folds import CONDITION, describe_cv
+from torchhys.selection.folds import describe_cv
 from torchhys.selection.jobs import check_budget, check_jobs, usable_cores
 from torchhys.selection.progress import SelectionProgress
 from torchhys.training.callbacks import BaselineComparison, PredictionWriter
@@ -270,10 +270,6 @@ class TorchhysCLI(LightningCLI):
                 else:  # a trainer section select cannot honour: a Lightning run each
                     from torchhys.training.selection import run_selection
 
-                    if cv == CONDITION:
-                        raise ValueError(f"model.select_cv={CONDITION!r} scores the candidates "
-                                         "by the library's selection, which this run cannot "
-                                         f"use: {reason}")
                     say_lightning(reason)
                     scored = run_selection(candidates, build, cv=cv, mode=mode, jobs=jobs,
                                            budget_s=budget, report=progress.scored)

@@ -5,6 +5,8 @@
   each training row cut into ``k`` contiguous blocks, each held out once;
 - leave one recording out (``select_cv="recording"``, :class:`RecordingFold`): each training
   recording held out once, whole, the candidate fitted on the others;
+- leave one condition out (``select_cv="condition"``, :class:`ConditionFold`): the training
+  recordings of each operating condition held out together;
 - either with a rolling origin (``select_cv_mode="rolling"``, :class:`RollingFold`,
   :func:`rolling_split`): each block (or recording) validated on a fit of those before it
   only.
@@ -21,9 +23,9 @@ from torch.utils.data import DataLoader
 
 from torchhys._checks import check_choice, check_int
 from torchhys.data.tensors import FitTensors
-from torchhys.selection.folds import CV_MODES, RECORDING, Fold, make_folds
+from torchhys.selection.folds import CONDITION, CV_MODES, RECORDING, Fold, make_folds
 
-__all__ = ["BlockFold", "RecordingFold", "RollingFold", "cv_fold"]
+__all__ = ["BlockFold", "ConditionFold", "RecordingFold", "RollingFold", "cv_fold"]
 
 
 def _one(items: list[Any]) -> Any:
@@ -33,29 +35,40 @@ def _one(items: list[Any]) -> Any:
 
 class _Fold(L.LightningDataModule):
     """A cross-validation fold of a datamodule's training batch: ``_train`` and ``_val``
-    batches ``(x, y, warmup, mask)``, ``_fit`` the :class:`FitTensors` that the
-    normalization and the data-dependent operators are fitted on, ``k`` folds, ``n_val``
-    held-out samples."""
+    batches ``(x, y, warmup, mask)`` (and their conditions, a fifth member, where the data
+    has them), ``_fit`` the :class:`FitTensors` that the normalization and the
+    data-dependent operators are fitted on, ``k`` folds, ``n_val`` held-out samples."""
 
     k: int
     n_val: int
-    _train: tuple[Tensor, Tensor, Tensor, Tensor]
-    _val: tuple[Tensor, Tensor, Tensor, Tensor]
+    _train: tuple[Tensor, ...]
+    _val: tuple[Tensor, ...]
     _fit: FitTensors
+    _fit_conditions: Tensor | None = None
 
     def _take(self, fold: Fold, warmup: Tensor, keep: list[int] | None = None,
-              val: int | None = None) -> None:
+              val: list[int] | None = None) -> None:
         """Hold ``fold`` (:func:`~torchhys.selection.folds.make_folds`) as Lightning batches:
         ``warmup`` the rows' first scored samples, ``keep`` and ``val`` the training and
-        held-out rows of a recording fold (None: every row in both)."""
+        held-out rows of a recording or condition fold (None: every row in both)."""
         self.n_val = int(fold.val.mask.sum())
         """Number of held-out (validation) samples."""
         w_train = warmup if keep is None else warmup[keep]
-        w_val = warmup if val is None else warmup[val:val + 1]
-        self._train = (fold.train.x, fold.train.y, w_train, fold.train.mask)
-        self._val = (fold.val.x, fold.val.y, w_val, fold.val.mask)
+        w_val = warmup if val is None else warmup[val]
+
+        def conditions(b: Any) -> tuple[Tensor, ...]:
+            return () if b.conditions is None else (b.conditions,)
+
+        self._train = (fold.train.x, fold.train.y, w_train, fold.train.mask,
+                       *conditions(fold.train))
+        self._val = (fold.val.x, fold.val.y, w_val, fold.val.mask, *conditions(fold.val))
         mask = None if bool(fold.fit.mask.all()) else fold.fit.mask
         self._fit = FitTensors(fold.fit.x, fold.fit.y, fold.warmup, mask)
+        self._fit_conditions = fold.fit.conditions
+
+    def train_conditions(self) -> Tensor | None:
+        """The conditions (rows, time, n) of :meth:`train_tensors`' rows (None: none)."""
+        return self._fit_conditions
 
     def train_tensors(self) -> tuple[Tensor, Tensor]:
         """The fold's training rows ``(x, y)``, (rows, time), to fit the normalization and
@@ -123,7 +136,8 @@ class BlockFold(_Fold):
             rolls = f" (k - 1 rolling folds of k={k} blocks)" if self.rolling else ""
             raise ValueError(f"fold must be in [0, {self.k}){rolls}, got {fold}")
         self._take(make_folds(x, y, warmup, mask, k, "rolling" if self.rolling else None,
-                              source=source)[fold], warmup)
+                              source=source, conditions=_train_conditions(data))[fold],
+                   warmup)
 
 
 def _train_batch(data: L.LightningDataModule) -> tuple[Tensor, Tensor, Tensor, Tensor, str]:
@@ -134,8 +148,14 @@ def _train_batch(data: L.LightningDataModule) -> tuple[Tensor, Tensor, Tensor, T
     source = getattr(data, "source", "the data")
     if not batches:
         raise ValueError(f"{source}: no training data")
-    x, y, warmup, mask = batches[0]
+    x, y, warmup, mask = batches[0][:4]
     return x, y, warmup, mask.to(torch.bool), source
+
+
+def _train_conditions(data: L.LightningDataModule) -> Tensor | None:
+    """The conditions of the training batch (its fifth member), or None."""
+    batch = data.batches("train")[0]
+    return batch[4] if len(batch) == 5 else None
 
 
 class RollingFold(BlockFold):
@@ -202,7 +222,7 @@ class RecordingFold(_Fold):
         data.setup("fit")
         batches = data.batches("train")
         source = getattr(data, "source", "the data")
-        x, y, warmup, mask = batches[0] if batches else (None,) * 4
+        x, y, warmup, mask = batches[0][:4] if batches else (None,) * 4
         n = 0 if x is None else x.shape[0]
         if n < 2:
             raise ValueError(
@@ -218,18 +238,52 @@ class RecordingFold(_Fold):
         keep, val = (list(range(fold + 1)), fold + 1) if rolling else (
             [r for r in range(n) if r != fold], fold)
         f = make_folds(x, y, warmup, mask, RECORDING, "rolling" if rolling else None,
-                       source=source)[fold]
-        self._take(f, warmup, keep, val)
+                       source=source, conditions=_train_conditions(data))[fold]
+        self._take(f, warmup, keep, [val])
+
+
+class ConditionFold(_Fold):
+    """Fold ``fold`` of leave-one-condition-out cross-validation inside a datamodule's
+    training part (``data.condition_columns``): the training recordings of the ``fold``-th
+    operating condition (in increasing order) held out together, the candidate fitted on
+    the others' (:func:`~torchhys.selection.folds.condition_groups`; with ``rolling``, each
+    condition after the first validated on a fit of those before it).
+
+    Raises:
+        ValueError: no conditions, a recording whose conditions vary, fewer than three
+            conditions, ``fold`` out of range.
+    """
+
+    def __init__(self, data: L.LightningDataModule, fold: int, *, rolling: bool = False) -> None:
+        super().__init__()
+        from torchhys.selection.folds import condition_groups
+
+        x, y, warmup, mask, source = _train_batch(data)
+        c = _train_conditions(data)
+        folds = make_folds(x, y, warmup, mask, CONDITION, "rolling" if rolling else None,
+                           source=source, conditions=c)
+        self.k = len(folds)
+        """Number of folds: the training conditions (one fewer with ``rolling``)."""
+        if not 0 <= fold < self.k:
+            raise ValueError(f"fold must be in [0, {self.k}), got {fold}")
+        groups = condition_groups(c, mask, source=source)
+        j = fold + 1 if rolling else fold
+        keep = sorted(r for g in (groups[:j] if rolling else groups[:j] + groups[j + 1:])
+                      for r in g)
+        self._take(folds[fold], warmup, keep, groups[j])
 
 
 def cv_fold(data: L.LightningDataModule, cv: int | str, fold: int,
             mode: str | None = None) -> _Fold:
     """Fold ``fold`` of the cross-validation ``select_cv=cv``, ``select_cv_mode=mode`` (None:
-    ``"blocked"``): a :class:`BlockFold`, :class:`RollingFold` or :class:`RecordingFold`
+    ``"blocked"``): a :class:`BlockFold`, :class:`RollingFold`, :class:`RecordingFold` or
+    :class:`ConditionFold`
     (its ``k`` the number of folds)."""
     rolling = check_choice(mode or "blocked", "model.select_cv_mode", CV_MODES) == "rolling"
     if cv == RECORDING:
         return RecordingFold(data, fold, rolling=rolling)
+    if cv == CONDITION:
+        return ConditionFold(data, fold, rolling=rolling)
     return RollingFold(data, cv, fold) if rolling else BlockFold(data, cv, fold)
 
 
