@@ -402,3 +402,51 @@ def test_conditions_benchmark_conditioned_model_pays_on_the_simulated_stage() ->
     assert conditioned <= 0.6 * unconditioned and conditioned < base, held
     assert number(held[6]) == pytest.approx(conditioned / unconditioned, abs=0.01)
     assert (held[7], held[8]) == ("<= 0.6", "PASS")
+
+
+def test_adaptation_benchmark_plants_and_static_row_match_the_batch_forms() -> None:
+    """Undrifted, the script's sample-by-sample plants equal the batch plants of
+    benchmarks/compensation.py (torchhys's backlash, RK4 Bouc-Wen, PiezoStage); the static row
+    stepped in the loop gives the inverse model's batch commands, saturated."""
+    import numpy as np
+    import torch
+
+    from torchhys.functional import backlash
+    from torchhys.plants import paper_plant_widths
+
+    bench = load_benchmark("adaptation.py")
+    comp = load_benchmark("compensation.py")
+    u = comp.training_input(6.0, 300).double()
+    for plant, batch in ((bench.PaperPlant, comp.paper_plant),
+                         (bench.BoucWenPlant, comp.bouc_wen_plant),
+                         (bench.StagePlant, comp.stage_plant)):
+        np.testing.assert_allclose(bench.simulate(plant(), u.numpy()), batch(u).numpy(),
+                                   rtol=1e-10, atol=1e-10, err_msg=plant.__name__)
+    drifted = bench.simulate(bench.PaperPlant(), u.numpy(), np.ones(len(u)))
+    np.testing.assert_allclose(drifted, 1.3 * backlash(
+        u, 1.4 * paper_plant_widths(torch.float64)).sum(-1).numpy(), rtol=1e-12)
+    fit = bench.identify("paper", 300)
+    ref = bench.reference(fit, 100)
+    _, cmd = bench.closed_loop(bench.PaperPlant(), bench.static_step(fit), ref, 0 * ref)
+    expected = fit.model(torch.from_numpy(ref))[0].clamp(*fit.limits).numpy()
+    np.testing.assert_allclose(cmd, expected, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.slow  # 16 closed-loop runs of 1198 samples, one sample at a time
+def test_adaptation_benchmark_baselines_track_and_drift_hurts_the_static_one() -> None:
+    out = run("adaptation.py", "--quick", "--plants", "paper", "bouc_wen")
+    assert "| plant | drift | method | RMSE (%) | RMSE 2nd half (%) |" in out
+    rows = table(out, "plant")
+    by = {(r[0], r[1], r[2]): (number(r[3]), number(r[4])) for r in rows}
+    assert len(rows) == len(by) == 2 * 4 * 2
+    assert {k[1] for k in by} == {"none", "ramp", "step", "thermal cycle"}
+    assert {k[2] for k in by} == {"static compensator", "static + PI"}
+    for plant, bound in (("paper", 0.1), ("bouc_wen", 2.0)):
+        static = by[plant, "none", "static compensator"]
+        pi = by[plant, "none", "static + PI"]
+        assert static[0] < bound, (plant, static)  # the plant is a PI model: near exact
+        assert pi[0] <= max(1.5 * static[0], static[0] + 0.05), (plant, pi, static)
+        for drift in ("ramp", "step"):
+            drifted = by[plant, drift, "static compensator"]
+            assert drifted[1] >= 2.0 * static[1], (plant, drift, drifted, static)
+            assert by[plant, drift, "static + PI"][1] < drifted[1], (plant, drift)
