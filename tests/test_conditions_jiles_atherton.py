@@ -170,10 +170,22 @@ def test_a_temperature_schedule_is_learned() -> None:
 
 @pytest.mark.slow
 def test_the_conformance_suite_passes_without_conditions() -> None:
-    """Every default check (9 s: JilesAtherton's Python loop under vmap and gradgradcheck)."""
+    """Every default check but vmap_params (below; 9 s: the Python loop under vmap and
+    gradgradcheck)."""
     example = Example(lambda: ConditionedJilesAtherton(0), bad_values={"raw": float("nan")})
-    got = check_conformance(ConditionedJilesAtherton, example)
-    assert got == dict.fromkeys(torchhys.testing.DEFAULT_CHECKS)
+    checks = [c for c in torchhys.testing.DEFAULT_CHECKS if c != "vmap_params"]
+    got = check_conformance(ConditionedJilesAtherton, example, checks=checks)
+    assert got == dict.fromkeys(checks)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
+    "as JilesAtherton's (tests/test_conformance.py): mu0 and substeps are read from their "
+    "saved buffers into Python numbers when loaded (after_load), so functional_call with "
+    "other buffers, and vmap over stacked ones, runs with the loaded values"))
+def test_vmap_over_stacked_buffers_is_jiles_athertons_known_defect() -> None:
+    example = Example(lambda: ConditionedJilesAtherton(0), bad_values={"raw": float("nan")})
+    check_conformance(ConditionedJilesAtherton, example, checks=["vmap_params"])
 
 
 def test_bad_arguments_and_input_are_one_line_errors() -> None:
