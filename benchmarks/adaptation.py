@@ -317,7 +317,7 @@ def plot(traces: dict, path: Path) -> None:
     for ax, (name, rows) in zip(axes[:, 0], traces.items(), strict=True):
         for method, err in rows.items():
             ax.plot(np.linspace(0, 1, len(err)), err, lw=0.7, label=method)
-        ax.set(title=f"{name}: gain +{GAIN_DRIFT:.0%} and loop width +{WIDTH_DRIFT:.0%}, "
+        ax.set(title=f"{name}: gain +{GAIN_DRIFT:.0%} and width factor +{WIDTH_DRIFT:.0%}, "
                      "ramped over the run", xlabel="run progress s", ylabel="error (% range)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
