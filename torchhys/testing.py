@@ -312,14 +312,22 @@ def check_composed(model: Any, *, atol: float = COMPOSED_ATOL, no_gradcheck: str
                         f"one, got {type(model).__name__}")
     label = f"composed model {_name(build)}"
     case = compose_conformance.ComposedCase(label, build, atol, no_gradcheck, dtype)
+    return _run_checks(case, names, compose_conformance.RUNS, COMPOSED_CHECKS)
+
+
+def _run_checks(case: Any, names: Sequence[str], runs: dict, described: dict
+                ) -> dict[str, str | None]:
+    """Each check of ``names`` run on ``case`` (``runs[name](case)``): None where it held or
+    why it does not apply; the first that fails an ``AssertionError`` naming the model, the
+    check (``described[name]``) and what differs."""
     results: dict[str, str | None] = {}
     for name in names:
         try:
-            results[name] = compose_conformance.RUNS[name](case)
+            results[name] = runs[name](case)
         except Exception as e:  # noqa: BLE001 (whatever the model raises fails the check)
             text = str(e) if isinstance(e, AssertionError) else f"{type(e).__name__}: {e}"
             raise AssertionError(f"{case.label} fails the check {name!r} "
-                                 f"({COMPOSED_CHECKS[name]}): {text}") from e
+                                 f"({described[name]}): {text}") from e
     return results
 
 
@@ -369,15 +377,7 @@ def check_conditioned(model: Any, x: torch.Tensor, conditions: torch.Tensor, *,
                         f"{type(model).__name__}")
     label = f"conditioned model {_name(build)}"
     case = conditioned.ConditionedCase(label, build, x, conditions, atol, no_gradcheck_x)
-    results: dict[str, str | None] = {}
-    for name in names:
-        try:
-            results[name] = conditioned.RUNS[name](case)
-        except Exception as e:  # noqa: BLE001 (whatever the model raises fails the check)
-            text = str(e) if isinstance(e, AssertionError) else f"{type(e).__name__}: {e}"
-            raise AssertionError(f"{case.label} fails the check {name!r} "
-                                 f"({CONDITIONED_CHECKS[name]}): {text}") from e
-    return results
+    return _run_checks(case, names, conditioned.RUNS, CONDITIONED_CHECKS)
 
 
 def _name(build: Callable[[], Any]) -> str:
