@@ -126,6 +126,19 @@ def compile_harness(folder: Path, prefix: str = "torchhys_comp",
     return exe
 
 
+def run_driver(folder: Path, driver: str, source: Path, rows: object) -> list[str]:
+    """A C driver (``driver``'s text, ``folder/main.c``) compiled with the generated
+    ``source`` (``cc -std=c99 -O2 -Wall -Werror``) and run on ``rows`` (each a sequence of
+    numbers, one line of stdin): its stdout's lines."""
+    (folder / "main.c").write_text(driver)
+    exe = folder / "run"
+    subprocess.run([CC, "-std=c99", "-O2", "-Wall", "-Werror", "-o", str(exe),
+                    str(folder / "main.c"), str(source), "-lm"], check=True)
+    lines = "\n".join(" ".join(repr(float(v)) for v in row) for row in rows)
+    return subprocess.run([str(exe)], input=lines, capture_output=True, text=True,
+                          check=True).stdout.split("\n")
+
+
 def run_c(exe: Path, x: np.ndarray, state: list[torch.Tensor] | None = None) -> dict:
     """The harness on ``x``: commands, the counters, LOW, HIGH, STATE_BYTES (and the final
     state, in the dtypes and shapes of ``state``, where the harness writes it)."""

@@ -7,7 +7,6 @@ condition columns."""
 from __future__ import annotations
 
 import csv
-import subprocess
 import sys
 from pathlib import Path
 
@@ -24,7 +23,7 @@ from torchhys.cli.main import main
 from torchhys.deploy.streaming import StreamingCompensator
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _export_helpers import CC, NO_CC  # noqa: E402
+from _export_helpers import CC, NO_CC, run_driver  # noqa: E402
 from test_conditions_export import DRIVER  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -115,16 +114,10 @@ def test_export_writes_a_c_step_that_takes_the_condition(fitted) -> None:
                         "--direction", "none"]) == 0
     header = (out / "torchhys_comp.h").read_text()
     assert "#define torchhys_comp_N_CONDITIONS 1" in header
-    (out / "main.c").write_text(DRIVER)
-    exe = out / "run"
-    subprocess.run([CC, "-std=c99", "-O2", "-o", str(exe), str(out / "main.c"),
-                    str(out / "torchhys_comp.c"), "-lm"], check=True)
     net = build_net(read_checkpoint(ckpt))
     t = torch.linspace(0, 10, 300, dtype=torch.float64)
     x, c = torch.sin(t) * 0.8, 1.5 + torch.sin(0.3 * t)  # a condition that moves
-    lines = "\n".join(f"{float(a)!r} {float(b)!r}" for a, b in zip(x, c, strict=True))
-    got = subprocess.run([str(exe)], input=lines, capture_output=True, text=True,
-                         check=True).stdout.split("\n")[1:301]
+    got = run_driver(out, DRIVER, out / "torchhys_comp.c", zip(x, c, strict=True))[1:301]
     comp = StreamingCompensator(net, direction="none")
     want = torch.stack([comp.step(x[k:k + 1], c[k].view(1, 1)) for k in range(300)])[:, 0]
     np.testing.assert_allclose([float(v) for v in got], want.detach().numpy(), rtol=0,

@@ -5,7 +5,6 @@ ONNX and AOTI (slow) files step with the conditions too."""
 
 from __future__ import annotations
 
-import subprocess
 import sys
 from pathlib import Path
 
@@ -16,7 +15,7 @@ from torchhys.deploy.c import to_c
 from torchhys.deploy.streaming import StreamingCompensator
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _export_helpers import CC, NO_CC  # noqa: E402
+from _export_helpers import CC, NO_CC, run_driver  # noqa: E402
 from test_conditions import _model, _record  # noqa: E402
 
 DRIVER = r"""
@@ -51,16 +50,10 @@ def test_the_c_step_takes_the_conditions(tmp_path: Path, dtype: torch.dtype) -> 
     m = _model().fit(x, c, y)
     h, src = to_c(m, tmp_path, direction="none", dtype=dtype)
     assert "const torchhys_comp_real *conditions);" in h.read_text()
-    (tmp_path / "main.c").write_text(DRIVER)
-    exe = tmp_path / "run"
-    subprocess.run([CC, "-std=c99", "-O2", "-Wall", "-Werror", "-o", str(exe),
-                    str(tmp_path / "main.c"), str(src), "-lm"], check=True)
     # one row at the middle condition, with a NaN condition and one far out of range
     xs, cs = x[1].clone(), c[1, :, 0].clone()
     cs[50], cs[80] = float("nan"), 10.0
-    lines = "\n".join(f"{float(a)!r} {float(b)!r}" for a, b in zip(xs, cs, strict=True))
-    out = subprocess.run([str(exe)], input=lines.replace("nan", "nan"), capture_output=True,
-                         text=True, check=True).stdout.split("\n")
+    out = run_driver(tmp_path, DRIVER, src, zip(xs, cs, strict=True))
     lo, hi, clo, chi = (float(v) for v in out[0].split())
     assert (lo, hi) == (0.0, 2.0)
     assert clo == pytest.approx(-0.1, abs=1e-7) and chi == pytest.approx(2.1, abs=1e-7)

@@ -5,7 +5,6 @@ it streamed by the compensator, compiled as C and run in ONNX Runtime with its c
 
 # no `from __future__ import annotations`: test_conditions_play's head is scripted
 import math
-import subprocess
 import sys
 from pathlib import Path
 
@@ -20,7 +19,7 @@ from torchhys.deploy.streaming import StreamingCompensator
 from torchhys.testing import Example, check_conformance
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _export_helpers import CC, NO_CC  # noqa: E402
+from _export_helpers import CC, NO_CC, run_driver  # noqa: E402
 from test_conditions_play import DRIVER, LIMITS, PlayModel, _signal  # noqa: E402
 
 DT = torch.float64
@@ -222,14 +221,7 @@ def test_a_model_streams_and_its_c_step_equals_the_torch_compensator(tmp_path: P
     comp = StreamingCompensator(m, limits=LIMITS, direction="none")
     u = torch.cat([comp.step(xs[k:k + 1], cs[k:k + 1]) for k in range(len(xs))])
     h, src = to_c(m, tmp_path, direction="none", limits=LIMITS)
-    (tmp_path / "main.c").write_text(DRIVER)
-    exe = tmp_path / "run"
-    subprocess.run([CC, "-std=c99", "-O2", "-Wall", "-Werror", "-o", str(exe),
-                    str(tmp_path / "main.c"), str(src), "-lm"], check=True)
-    lines = "\n".join(f"{float(a)!r} {float(b)!r} {float(c)!r}"
-                      for a, (b, c) in zip(xs, cs, strict=True))
-    out = subprocess.run([str(exe)], input=lines, capture_output=True, text=True,
-                         check=True).stdout.split("\n")
+    out = run_driver(tmp_path, DRIVER, src, ((a, *b) for a, b in zip(xs, cs, strict=True)))
     u_c = torch.tensor([float(v) for v in out[:len(xs)]], dtype=DT)
     assert float((u_c - u).abs().max()) <= 1e-12 * float(u.abs().max())
     assert [int(v) for v in out[len(xs)].split()] == [2, 0]

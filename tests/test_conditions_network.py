@@ -5,7 +5,6 @@ the folds' rows, the choice, the compensator and the compiled C against the netw
 
 from __future__ import annotations
 
-import subprocess
 import sys
 from pathlib import Path
 
@@ -22,7 +21,7 @@ from torchhys.selection.candidates import solve_readout
 from torchhys.selection.folds import Batch, make_folds
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _export_helpers import CC, NO_CC  # noqa: E402
+from _export_helpers import CC, NO_CC, run_driver  # noqa: E402
 from test_conditions_export import DRIVER  # noqa: E402
 
 DT = torch.float64
@@ -136,14 +135,8 @@ def test_the_c_step_of_the_conditioned_network(tmp_path: Path) -> None:
     net, x, c, _ = _fitted(2)
     h, src = to_c(net, tmp_path, direction="none")
     assert "const torchhys_comp_real *conditions);" in h.read_text()
-    (tmp_path / "main.c").write_text(DRIVER)
-    exe = tmp_path / "run"
-    subprocess.run([CC, "-std=c99", "-O2", "-Wall", "-Werror", "-o", str(exe),
-                    str(tmp_path / "main.c"), str(src), "-lm"], check=True)
     xs, cs = x[1, :200].clone(), (c[1, :200, 0] + 1.7 * torch.sin(x[1, :200])).clone()
-    lines = "\n".join(f"{float(a)!r} {float(b)!r}" for a, b in zip(xs, cs, strict=True))
-    out = subprocess.run([str(exe)], input=lines, capture_output=True, text=True,
-                         check=True).stdout.split("\n")
+    out = run_driver(tmp_path, DRIVER, src, zip(xs, cs, strict=True))
     u_c = torch.tensor([float(v) for v in out[1:201]], dtype=DT)
     comp = StreamingCompensator(net, direction="none")
     u = torch.stack([comp.step(xs[k:k + 1], cs[k].view(1, 1)) for k in range(200)], 1)[0]

@@ -7,7 +7,6 @@ Runtime with its conditions."""
 # no `from __future__ import annotations`: TorchScript reads _Head's class annotations
 
 import math
-import subprocess
 import sys
 from pathlib import Path
 
@@ -24,7 +23,7 @@ from torchhys.operator import check_operator
 from torchhys.testing import Example, check_conformance
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _export_helpers import CC, NO_CC  # noqa: E402
+from _export_helpers import CC, NO_CC, run_driver  # noqa: E402
 
 DT = torch.float64
 R = [0.0, 0.1, 0.25, 0.5]
@@ -432,14 +431,7 @@ def test_the_c_step_equals_the_torch_compensator(tmp_path: Path, dtype: torch.dt
     m, xs, cs = _sequence()
     h, src = to_c(m, tmp_path, direction="none", limits=LIMITS, dtype=dtype)
     assert "const torchhys_comp_real *conditions);" in h.read_text()
-    (tmp_path / "main.c").write_text(DRIVER)
-    exe = tmp_path / "run"
-    subprocess.run([CC, "-std=c99", "-O2", "-Wall", "-Werror", "-o", str(exe),
-                    str(tmp_path / "main.c"), str(src), "-lm"], check=True)
-    lines = "\n".join(f"{float(a)!r} {float(b)!r} {float(c)!r}"
-                      for a, (b, c) in zip(xs, cs, strict=True))
-    out = subprocess.run([str(exe)], input=lines, capture_output=True, text=True,
-                         check=True).stdout.split("\n")
+    out = run_driver(tmp_path, DRIVER, src, ((a, *b) for a, b in zip(xs, cs, strict=True)))
     u_c = torch.tensor([float(v) for v in out[:len(xs)]], dtype=DT)
     u, comp = _compensator_run(m, xs, cs, dtype)
     tol = 1e-12 if dtype == torch.float64 else 1e-5
