@@ -90,6 +90,19 @@ def test_torchscript_file_steps_with_conditions_and_carries_them(tmp_path: Path)
         loaded.step(x[:, 0])
 
 
+def _both_stepped(m: object, stepper: object, x: torch.Tensor, c: torch.Tensor) -> tuple:
+    """The torch compensator and a loaded file's stepper, each stepped 60 samples on rows
+    with a NaN condition (row 1, sample 7) and one far out of range (row 2, sample 9):
+    ``(comp, its commands, the stepper's)``."""
+    comp = StreamingCompensator(m, direction="none")
+    cs = c.clone()
+    cs[1, 7, 0] = float("nan")
+    cs[2, 9, 0] = 7.0
+    want = torch.stack([comp.step(x[:, k], cs[:, k]) for k in range(60)], 1)
+    got = torch.stack([stepper.step(x[:, k], cs[:, k]) for k in range(60)], 1)
+    return comp, want, got
+
+
 def test_onnx_file_steps_with_conditions(tmp_path: Path) -> None:
     pytest.importorskip("onnxruntime")
     pytest.importorskip("onnxscript")
@@ -98,12 +111,7 @@ def test_onnx_file_steps_with_conditions(tmp_path: Path) -> None:
     path = to_onnx(m, tmp_path / "comp.onnx", direction="none", batch=3)
     stepper = load_onnx(path)
     assert stepper.metadata["n_conditions"] == "1"
-    comp = StreamingCompensator(m, direction="none")
-    cs = c.clone()
-    cs[1, 7, 0] = float("nan")
-    cs[2, 9, 0] = 7.0
-    want = torch.stack([comp.step(x[:, k], cs[:, k]) for k in range(60)], 1)
-    got = torch.stack([stepper.step(x[:, k], cs[:, k]) for k in range(60)], 1)
+    comp, want, got = _both_stepped(m, stepper, x, c)
     assert float((got - want).abs().max()) <= 1e-12
     assert stepper.nonfinite_count().tolist() == comp.nonfinite_count().tolist() == [0, 1, 0]
     assert stepper.out_of_range_count().tolist() == comp.out_of_range_count().tolist()
@@ -127,12 +135,7 @@ def test_aoti_package_steps_with_conditions_and_carries_them(tmp_path: Path) -> 
     assert meta["n_conditions"] == "1"
     assert float(meta["condition_low"]) == pytest.approx(-0.1)
     assert float(meta["condition_high"]) == pytest.approx(2.1)
-    comp = StreamingCompensator(m, direction="none")
-    cs = c.clone()
-    cs[1, 7, 0] = float("nan")
-    cs[2, 9, 0] = 7.0
-    want = torch.stack([comp.step(x[:, k], cs[:, k]) for k in range(60)], 1)
-    got = torch.stack([stepper.step(x[:, k], cs[:, k]) for k in range(60)], 1)
+    comp, want, got = _both_stepped(m, stepper, x, c)
     assert float((got - want).abs().max()) <= 1e-12
     assert float(got[1, 7]) == float(got[1, 6])  # held
     assert stepper.nonfinite_count().tolist() == comp.nonfinite_count().tolist() == [0, 1, 0]

@@ -354,26 +354,26 @@ def _onnx(case: ConditionedCase) -> str | None:
         return f"ONNX Runtime parity needs {', '.join(missing)} (torchhys[onnx])"
     from torchhys.deploy.export_onnx import load_onnx, to_onnx
 
-    model = case.model()
-    with tempfile.TemporaryDirectory() as folder:
-        stepper = load_onnx(to_onnx(model, Path(folder) / "comp.onnx", batch=case.x.shape[0],
-                                    **EXPORT))
-    _against(case, model, lambda x, c: (*stepped(stepper, x, c), stepper.state),
-             "the ONNX file's step (ONNX Runtime)", stepper.metadata)
-    _stepper_errors(stepper, case, "the ONNX file's step")
-    return PASSED
+    return _file_step(case, to_onnx, load_onnx, "comp.onnx", "the ONNX file's step",
+                      " (ONNX Runtime)")
 
 
 def _aoti(case: ConditionedCase) -> str | None:
     from torchhys.deploy.export import load_aoti, to_aoti
 
+    return _file_step(case, to_aoti, load_aoti, "comp.pt2", "the AOTI package's step")
+
+
+def _file_step(case: ConditionedCase, export: Callable, load: Callable, name: str, what: str,
+               runner: str = "") -> str | None:
+    """The model exported (``export``, to ``name`` in a temporary folder) and loaded
+    (``load``): its stepper against the torch compensator, and its bad conditions refused."""
     model = case.model()
     with tempfile.TemporaryDirectory() as folder:
-        stepper = load_aoti(to_aoti(model, Path(folder) / "comp.pt2", batch=case.x.shape[0],
-                                    **EXPORT))
+        stepper = load(export(model, Path(folder) / name, batch=case.x.shape[0], **EXPORT))
         _against(case, model, lambda x, c: (*stepped(stepper, x, c), stepper.state),
-                 "the AOTI package's step", stepper.metadata)
-        _stepper_errors(stepper, case, "the AOTI package's step")
+                 what + runner, stepper.metadata)
+        _stepper_errors(stepper, case, what)
     return PASSED
 
 
