@@ -99,3 +99,28 @@ def file_conditions(conditions: object, n: int, batch: int, dtype: torch.dtype,
         raise ValueError(f"step: conditions must have shape ({batch}, {n}), got "
                          f"{tuple(c.shape)}")
     return [c.to(dtype).contiguous()]
+
+
+def layout_rows(slots: nn.ModuleList, guard: bool, clamp_input: bool
+                ) -> list[tuple[int, str, str, int, int]]:
+    """:meth:`~torchhys.deploy.streaming.StreamingCompensator.layout` of a compensator of
+    these steps (``slots``) and own columns: rows ``(tensor index, kind, block name, first
+    column, columns)``, the tensors numbered F 0, I 1, started 2, F64 3."""
+    STATE_F, STATE_I, STATE_STARTED, STATE_F64 = 0, 1, 2, 3  # as in streaming.py
+    rows = [(STATE_F, "float", "held command", 0, 1),
+            (STATE_I, "int64", "held-sample counter", 0, 1),
+            (STATE_STARTED, "bool", "started", 0, 1)]
+    col = {"float": 1, "float64": 0, "int64": 1}
+    tensor = {"float": STATE_F, "float64": STATE_F64, "int64": STATE_I}
+    for i, slot in enumerate(slots):
+        for block in slot.step.state_spec:
+            rows.append((tensor[block.kind], block.kind,
+                         f"step {i} ({type(slot.step).__name__}): {block.name}",
+                         col[block.kind], block.size))
+            col[block.kind] += block.size
+    if guard:
+        rows.append((STATE_F, "float", "last clamped input (direction guard)",
+                     col["float"], 1))
+    if clamp_input:
+        rows.append((STATE_I, "int64", "out-of-range counter", col["int64"], 1))
+    return rows

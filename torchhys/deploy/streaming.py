@@ -53,7 +53,14 @@ from torch import Tensor, nn
 
 from torchhys._checks import check_real
 from torchhys._deprecated import moved as _moved
-from torchhys.deploy._slots import _KIND_INDEX, _dtype_name, _model_dtype, _Slot, conditions_of
+from torchhys.deploy._slots import (
+    _KIND_INDEX,
+    _dtype_name,
+    _model_dtype,
+    _Slot,
+    conditions_of,
+    layout_rows,
+)
 from torchhys.deploy._threads import StepLock
 from torchhys.deploy.ranges import _check_limits, _condition_bounds, _direction, _input_bounds
 from torchhys.deploy.ranges import default_limits as _default_limits
@@ -287,6 +294,13 @@ class StreamingCompensator(nn.Module):
                  conditions: Tensor) -> tuple[Tensor, list[Tensor]]:
         """:meth:`step_explicit` of a state known to be of the layout (conditions (batch,
         n_conditions), or empty without conditions)."""
+        features, new, xc, cc = self._features(x, state, conditions)
+        return self._finish(x, state, conditions, self.head(features), new, xc, cc)
+
+    def _features(self, x: Tensor, state: list[Tensor], conditions: Tensor
+                  ) -> tuple[Tensor, list[list[Tensor]], Tensor, Tensor]:
+        """The head's features ``[x, conditions..., step features...]`` (batch, n) of one
+        sample, the steps' new blocks by kind, and the clamped x (batch, 1) and conditions."""
         F, I, started = state[self.STATE_F], state[self.STATE_I], state[self.STATE_STARTED]
         G = state[self.STATE_F64] if self.has_f64 else F
         xr = x.unsqueeze(1)
@@ -310,7 +324,17 @@ class StreamingCompensator(nn.Module):
         features = [xs]
         for slot in self.slots:
             features.append(slot(xs if slot.conditioned else xc, parts, new, started))
-        u = self.head(torch.cat(features, 1))
+        return torch.cat(features, 1), new, xc, cc
+
+    def _finish(self, x: Tensor, state: list[Tensor], conditions: Tensor, u: Tensor,
+                new: list[list[Tensor]], xc: Tensor, cc: Tensor
+                ) -> tuple[Tensor, list[Tensor]]:
+        """The command (batch,) and the new state from the head's output ``u`` (batch, 1)
+        and the steps' new blocks: the hold, the limits, the guard and the counters."""
+        F, I, started = state[self.STATE_F], state[self.STATE_I], state[self.STATE_STARTED]
+        G = state[self.STATE_F64] if self.has_f64 else F
+        xr = x.unsqueeze(1)
+        split_int = self.has_int or self.clamp_input
         # anything but a finite sample with a finite command holds the whole state (a
         # non-finite sample may still give a finite command through a saturating activation);
         # t - t is 0 exactly where t is finite (NaN for NaN and +/-inf): cheaper than isfinite.
@@ -466,20 +490,4 @@ class StreamingCompensator(nn.Module):
     def layout(self) -> list[tuple[int, str, str, int, int]]:
         """The state layout as rows ``(tensor index, kind, block name, first column,
         columns)``, the compensator's own columns included (for docs and loaders)."""
-        rows = [(STATE_F, "float", "held command", HELD[1], 1),
-                (STATE_I, "int64", "held-sample counter", COUNTER[1], 1),
-                (STATE_STARTED, "bool", "started", 0, 1)]
-        col = {"float": 1, "float64": 0, "int64": 1}
-        tensor = {"float": STATE_F, "float64": STATE_F64, "int64": STATE_I}
-        for i, slot in enumerate(self.slots):
-            for block in slot.step.state_spec:
-                rows.append((tensor[block.kind], block.kind,
-                             f"step {i} ({type(slot.step).__name__}): {block.name}",
-                             col[block.kind], block.size))
-                col[block.kind] += block.size
-        if self.guard:
-            rows.append((STATE_F, "float", "last clamped input (direction guard)",
-                         col["float"], 1))
-        if self.clamp_input:
-            rows.append((STATE_I, "int64", "out-of-range counter", col["int64"], 1))
-        return rows
+        return layout_rows(self.slots, self.guard, self.clamp_input)
