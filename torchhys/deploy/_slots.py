@@ -124,3 +124,23 @@ def layout_rows(slots: nn.ModuleList, guard: bool, clamp_input: bool
     if clamp_input:
         rows.append((STATE_I, "int64", "out-of-range counter", col["int64"], 1))
     return rows
+
+
+def check_state(x: Tensor, state: list[Tensor], templates: list[Tensor],
+                state_names: list[str]) -> None:
+    """ValueError unless ``state`` has the tensors of ``templates`` (dtype, columns) for x's
+    batch (a compensator's ``step_explicit``; the message names the tensor)."""
+    if len(state) != len(templates):
+        raise ValueError("step_explicit: state has " + str(len(state)) + " tensors, "
+                         "expected " + str(len(templates)) + " (initial_state)")
+    for i in range(len(templates)):
+        if state[i].dtype != templates[i].dtype:
+            raise ValueError("step_explicit: state[" + str(i) + "], " + state_names[i]
+                             + ", has dtype " + _dtype_name(state[i].dtype) + ", expected "
+                             + _dtype_name(templates[i].dtype))
+        want = templates[i].shape[1]
+        if state[i].dim() != 2 or state[i].shape[0] != x.shape[0] or state[i].shape[1] != want:
+            raise ValueError("step_explicit: state[" + str(i) + "], " + state_names[i]
+                             + ", has shape " + str(list(state[i].shape)) + ", expected ["
+                             + str(x.shape[0]) + ", " + str(want) + "] (x's batch and the "
+                             "layout's columns)")

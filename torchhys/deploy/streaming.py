@@ -55,9 +55,9 @@ from torchhys._checks import check_real
 from torchhys._deprecated import moved as _moved
 from torchhys.deploy._slots import (
     _KIND_INDEX,
-    _dtype_name,
     _model_dtype,
     _Slot,
+    check_state,
     conditions_of,
     layout_rows,
 )
@@ -273,22 +273,13 @@ class StreamingCompensator(nn.Module):
                 expected);
                 conditions missing, given to a model without, or of another shape.
         """
-        if len(state) != len(self.templates):
-            raise ValueError("step_explicit: state has " + str(len(state)) + " tensors, "
-                             "expected " + str(len(self.templates)) + " (initial_state)")
-        for i in range(len(self.templates)):
-            if state[i].dtype != self.templates[i].dtype:
-                raise ValueError("step_explicit: state[" + str(i) + "], " + self.state_names[i]
-                                 + ", has dtype " + _dtype_name(state[i].dtype) + ", expected "
-                                 + _dtype_name(self.templates[i].dtype))
-            want = self.templates[i].shape[1]
-            if state[i].dim() != 2 or state[i].shape[0] != x.shape[0] or state[i].shape[1] != want:
-                raise ValueError("step_explicit: state[" + str(i) + "], " + self.state_names[i]
-                                 + ", has shape " + str(list(state[i].shape)) + ", expected ["
-                                 + str(x.shape[0]) + ", " + str(want) + "] (x's batch and the "
-                                 "layout's columns)")
+        self._check_state(x, state)
         c = conditions_of(x, conditions, self.n_conditions, self.low.dtype, "step_explicit", 2)
         return self._advance(x, state, c)
+
+    def _check_state(self, x: Tensor, state: list[Tensor]) -> None:
+        """ValueError unless ``state`` has the layout's tensors for x's batch."""
+        check_state(x, state, self.templates, self.state_names)
 
     def _advance(self, x: Tensor, state: list[Tensor],
                  conditions: Tensor) -> tuple[Tensor, list[Tensor]]:
@@ -413,7 +404,7 @@ class StreamingCompensator(nn.Module):
             raise ValueError(
                 "step expects one sample per row, shape (batch,), got shape " + str(x_t.shape)
             )
-        c = conditions_of(x_t, conditions, self.n_conditions, self.low.dtype, "step", 2)
+        c = self._step_inputs(x_t, conditions)
         if self.stepping:
             raise RuntimeError(self.CONCURRENT)
         self.stepping = True  # read before the state is: no read while another step writes
@@ -434,6 +425,10 @@ class StreamingCompensator(nn.Module):
         self.n_steps += 1
         self.stepping = False
         return u
+
+    def _step_inputs(self, x_t: Tensor, conditions: Tensor | None) -> Tensor:
+        """The step's inputs besides x, checked: the conditions (batch, n) or empty."""
+        return conditions_of(x_t, conditions, self.n_conditions, self.low.dtype, "step", 2)
 
     @torch.jit.export
     def reset(self) -> None:
