@@ -316,6 +316,7 @@ class FoldedHead(nn.Module):
     def __init__(self, net: InverseHysteresisNet, dtype: torch.dtype) -> None:
         super().__init__()
         self.activation = copy.deepcopy(net.activation)
+        self.collapsed: bool = isinstance(net.activation, nn.Identity)
         with torch.no_grad():
             w1, b1 = net.hidden.weight.double(), net.hidden.bias.double()
             mean, std = net.in_mean.double(), net.in_std.double()
@@ -330,6 +331,24 @@ class FoldedHead(nn.Module):
     def forward(self, features: Tensor) -> Tensor:
         h = self.activation(torch.addmm(self.b1, features, self.w1t))
         return torch.addmm(self.b2, h, self.w2t)
+
+    def readout_basis(self, features: Tensor) -> Tensor:
+        """The affine readout's regressors (:class:`~torchhys.protocols.AffineReadout`):
+        ``[features, 1]`` with an identity activation (the two layers are one affine map),
+        else ``[hidden activations, 1]`` (the output layer is the readout)."""
+        h = features if self.collapsed else self.activation(
+            torch.addmm(self.b1, features, self.w1t))
+        return torch.cat([h, torch.ones_like(h[:, :1])], 1)
+
+    def readout_weights(self) -> Tensor:
+        """The readout's weights (m,) of :meth:`readout_basis` (the two layers' product and
+        bias with an identity activation, computed in float64)."""
+        if self.collapsed:
+            w2t = self.w2t.double()
+            w = torch.cat([self.w1t.double() @ w2t, self.b1.double().unsqueeze(0) @ w2t
+                           + self.b2.double()], 0)
+            return w.squeeze(1).to(self.w2t.dtype)
+        return torch.cat([self.w2t.squeeze(1), self.b2], 0)
 
 
 class ConditionedHead(nn.Module):
@@ -355,3 +374,13 @@ class ConditionedHead(nn.Module):
         c = z[:, 1:1 + self.n] * self.scale + self.shift
         f = torch.cat([z[:, :1], z[:, 1 + self.n:]], 1)
         return self.folded(condition_products(f, c, self.exponents, self.degree))
+
+    def readout_basis(self, z: Tensor) -> Tensor:
+        """:meth:`FoldedHead.readout_basis` of the features' products with the conditions."""
+        c = z[:, 1:1 + self.n] * self.scale + self.shift
+        f = torch.cat([z[:, :1], z[:, 1 + self.n:]], 1)
+        return self.folded.readout_basis(condition_products(f, c, self.exponents, self.degree))
+
+    def readout_weights(self) -> Tensor:
+        """:meth:`FoldedHead.readout_weights`."""
+        return self.folded.readout_weights()

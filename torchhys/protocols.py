@@ -37,8 +37,9 @@ from torch import Tensor, nn
 from torchhys.step import OperatorStep
 
 __all__ = [
-    "Conditioned", "Deployable", "Network", "SequenceModel", "check_deployable",
-    "check_network", "check_sequence_model", "missing_members", "n_conditions",
+    "AffineReadout", "Conditioned", "Deployable", "Network", "SequenceModel", "check_deployable",
+    "check_network", "check_readout", "check_sequence_model", "missing_members",
+    "n_conditions",
 ]
 
 
@@ -91,6 +92,24 @@ class Deployable(Protocol):
     def streaming_head(self, dtype: torch.dtype) -> nn.Module:
         """A module of the steps' features (batch, n) -> the command (batch, 1), physical
         units, in ``dtype``; written for TorchScript and ``torch.export``."""
+        ...
+
+
+@runtime_checkable
+class AffineReadout(Protocol):
+    """A compensator head (:meth:`Deployable.streaming_head`) whose command is affine in
+    weights of its own: ``head(f) == readout_basis(f) @ readout_weights()`` up to rounding,
+    what the adaptive compensator (:class:`~torchhys.deploy.adaptive.AdaptiveCompensator`)
+    updates online. Shapes: ``readout_basis``: the features (batch, n) -> (batch, m);
+    ``readout_weights()``: (m,), in the head's dtype.
+    """
+
+    def readout_basis(self, features: Tensor) -> Tensor:
+        """The readout's regressors of the head's features: (batch, n) -> (batch, m)."""
+        ...
+
+    def readout_weights(self) -> Tensor:
+        """The readout's weights (m,) of the fitted head."""
         ...
 
 
@@ -197,3 +216,17 @@ def check_deployable(obj: Any, argument: str = "model") -> Deployable:
     return _check(obj, argument, Deployable,
                   "streaming_steps(dtype) and streaming_head(dtype), as an "
                   "InverseHysteresisNet or a PrandtlIshlinskiiInverse has")
+
+
+def check_readout(head: Any, argument: str = "model") -> AffineReadout:
+    """``head``, checked to be an :class:`AffineReadout` (the adaptive compensator's need).
+
+    Raises:
+        ValueError: naming ``argument``: its head has no affine readout to adapt.
+    """
+    if isinstance(head, nn.Module) and not missing_members(head, AffineReadout):
+        return head
+    raise ValueError(f"{argument}: its compensator head ({type(head).__name__}) has no affine "
+                     "readout to adapt (torchhys.protocols.AffineReadout: readout_basis and "
+                     "readout_weights); adapt works on an InverseHysteresisNet or a "
+                     "ScheduledReadout, use adapt='none' for this model")

@@ -63,6 +63,19 @@ class _ScheduledHead(nn.Module):
         b = legendre_basis(c, self.exponents, self.degree)
         return (torch.mm(phi, self.weight) * b).sum(1, keepdim=True)
 
+    def readout_basis(self, z: Tensor) -> Tensor:
+        """The regressors ``phi_i b_j`` (batch, n_phi * n_basis), row-major as the weight
+        (:class:`~torchhys.protocols.AffineReadout`)."""
+        x = z[:, :1]
+        c = z[:, 1:1 + self.n] * self.scale + self.shift
+        phi = torch.cat([torch.ones_like(x), x, z[:, 1 + self.n:]], 1)
+        b = legendre_basis(c, self.exponents, self.degree)
+        return (phi.unsqueeze(2) * b.unsqueeze(1)).flatten(1)
+
+    def readout_weights(self) -> Tensor:
+        """The readout's weights, flattened row-major (n_phi * n_basis,)."""
+        return self.weight.flatten()
+
 
 class ScheduledReadout(nn.Module):
     """Operators on the input, an affine readout scheduled on the operating conditions.
