@@ -37,9 +37,9 @@ from torch import Tensor, nn
 from torchhys.step import OperatorStep
 
 __all__ = [
-    "AffineReadout", "Conditioned", "Deployable", "Network", "SequenceModel", "check_deployable",
-    "check_network", "check_readout", "check_sequence_model", "missing_members",
-    "n_conditions",
+    "AffineForm", "AffineReadout", "Conditioned", "Deployable", "Network", "SequenceModel",
+    "check_deployable", "check_network", "check_readout", "check_sequence_model",
+    "missing_members", "n_conditions",
 ]
 
 
@@ -110,6 +110,17 @@ class AffineReadout(Protocol):
 
     def readout_weights(self) -> Tensor:
         """The readout's weights (m,) of the fitted head."""
+        ...
+
+
+@runtime_checkable
+class AffineForm(Protocol):
+    """A deployable whose head has no affine readout of its own but which streams, equally,
+    as other steps and a head that has (:class:`AffineReadout`): the Prandtl-Ishlinskii
+    inverse (its plays and their weights). The adaptive compensator runs this form."""
+
+    def affine_form(self, dtype: torch.dtype) -> tuple[list[OperatorStep], nn.Module]:
+        """``(steps, head)``, in ``dtype``, equal to the model's own up to rounding."""
         ...
 
 

@@ -247,12 +247,15 @@ class _ExplicitStep(nn.Module):
         super().__init__()
         self.comp = comp
 
+        self.names = [name for name, _ in comp.example_inputs(1)]
+
     def forward(self, x: Tensor, *inputs: Tensor) -> tuple[Tensor, ...]:
-        """``(x, *state)``, or ``(x, conditions, *state)`` for a conditioned model."""
-        if self.comp.n_conditions > 0:
-            u, new = self.comp.step_explicit(x, list(inputs[1:]), inputs[0])
-        else:
-            u, new = self.comp.step_explicit(x, list(inputs))
+        """``(x, *state)``, or ``(x, *example inputs, *state)``: ``(x, conditions, *state)``
+        for a conditioned model, ``(x, [conditions,] measured_prev, applied_prev, *state)``
+        for an adaptive one (:meth:`StreamingCompensator.example_inputs`)."""
+        k = len(self.names)
+        u, new = self.comp.step_explicit(x, list(inputs[k:]),
+                                         **dict(zip(self.names, inputs[:k], strict=True)))
         return (u, *new)
 
 

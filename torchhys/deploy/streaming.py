@@ -245,6 +245,14 @@ class StreamingCompensator(nn.Module):
         if self.has_f64:
             self.templates.append(torch.zeros(1, sum(sizes[1]), dtype=torch.float64))
 
+    def example_inputs(self, batch: int) -> list[tuple[str, Tensor]]:
+        """The explicit step's inputs between x and the state, by name (zeros of their shape
+        for ``batch`` rows): ``[("conditions", (batch, n))]`` for a conditioned model, else
+        none; what the exporters trace and name."""
+        if self.n_conditions == 0:
+            return []
+        return [("conditions", torch.zeros(batch, self.n_conditions, dtype=self.low.dtype))]
+
     @torch.jit.export
     def initial_state(self, batch: int) -> list[Tensor]:
         """Fresh state for ``batch`` rows (all zeros): ``[F, I, started(, F64)]``."""

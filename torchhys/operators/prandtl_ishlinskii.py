@@ -20,7 +20,7 @@ from torchhys.functional.prandtl_ishlinskii import (
     prandtl_ishlinskii_inverse_parameters,
 )
 from torchhys.operator import HysteresisOperator
-from torchhys.operators.backlash import _Widths
+from torchhys.operators.backlash import PlayStep, _Widths
 from torchhys.protocols import Deployable
 from torchhys.registry import register_operator
 from torchhys.step import OperatorStep, StateBlock
@@ -267,6 +267,44 @@ class PrandtlIshlinskiiInverse(HysteresisOperator, Deployable):
     def streaming_head(self, dtype: torch.dtype) -> nn.Module:
         """The command is the step's feature (column 1 after the input's column 0)."""
         return FeatureColumn(1)
+
+    def affine_form(self, dtype: torch.dtype) -> tuple[list[OperatorStep], nn.Module]:
+        """The same compensator as the plays' outputs and a readout of them
+        (:class:`~torchhys.protocols.AffineForm`): ``[PlayStep(widths)]`` and
+        :class:`PIReadout` ``w0 x + sum_i w_i y_i``, the weights the adaptive compensator
+        updates (with a bias, 0 offline).
+
+        Raises:
+            ValueError: a purely linear inverse (no play operator).
+        """
+        if self.widths.numel() == 0:
+            raise ValueError("a purely linear PrandtlIshlinskiiInverse needs no compensator")
+        w = torch.cat([self.linear_weight.reshape(1), self.weights]).to(dtype)
+        return [PlayStep(self.widths.to(dtype))], PIReadout(w)
+
+
+class PIReadout(nn.Module):
+    """The readout ``[x, y_1..y_N] @ w`` of a Prandtl-Ishlinskii model's plays: a compensator
+    head with an affine readout (:class:`~torchhys.protocols.AffineReadout`; basis ``[x,
+    y.., 1]``, the bias's weight 0).
+
+    Shapes: ``forward(features)``: (batch, 1 + N) -> (batch, 1).
+    """
+
+    def __init__(self, weight: Tensor) -> None:
+        super().__init__()
+        self.register_buffer("weight", weight.detach().clone())
+
+    def forward(self, features: Tensor) -> Tensor:
+        return torch.mv(features, self.weight).unsqueeze(1)
+
+    def readout_basis(self, features: Tensor) -> Tensor:
+        """``[features, 1]`` (batch, N + 2)."""
+        return torch.cat([features, torch.ones_like(features[:, :1])], 1)
+
+    def readout_weights(self) -> Tensor:
+        """``[w0, w_1..w_N, 0]`` (N + 2,)."""
+        return torch.cat([self.weight, self.weight.new_zeros(1)])
 
 
 class FeatureColumn(nn.Module):
