@@ -48,8 +48,9 @@ import torch
 from torch import Tensor, nn
 
 from torchhys._atomic import atomic_write_files
-from torchhys._checks import check_int
+from torchhys._checks import check_choice, check_int
 from torchhys.deploy._slots import file_conditions
+from torchhys.deploy.adaptive import AdaptiveCompensator
 from torchhys.deploy.streaming import COUNTER, HELD, STATE_I, StreamingCompensator
 
 __all__ = [
@@ -67,16 +68,32 @@ _DEFAULTS: dict[str, Any] = {"limits": None, "input_range": None, "input_margin"
                              "direction": "auto"}
 
 
+#: the adaptive compensator's options and their defaults (``adapt="none"``: the static
+#: compensator; :class:`~torchhys.deploy.adaptive.AdaptiveCompensator`)
+ADAPT_DEFAULTS: dict[str, Any] = {"adapt": "none", "forgetting": 0.999, "adapt_bound": 0.5,
+                                  "dead_zone": 0.0, "excitation": 1e-3, "nlms_step": 0.5,
+                                  "initial_covariance": 1.0}
+
+
 def _compensator(
     model: nn.Module, limits: tuple[float, float] | None, initial_command: float,
     options: dict[str, Any],
 ) -> StreamingCompensator:
+    """The compensator of ``model`` with these options (those of :data:`ADAPT_DEFAULTS`
+    among them build an adaptive one), or ``model`` itself when it is one."""
+    options = dict(options)
+    adapt = {k: options.pop(k) for k in ADAPT_DEFAULTS if k in options}
     if isinstance(model, StreamingCompensator):
         given = [k for k, v in {"limits": limits, **options}.items() if v != _DEFAULTS[k]]
+        given += [k for k, v in adapt.items() if v != ADAPT_DEFAULTS[k]]
         if given:
             raise ValueError(f"{', '.join(given)}: fixed when the StreamingCompensator is "
                              "built; pass the model instead")
         return model
+    check_choice(adapt.get("adapt", "none"), "adapt", ["none", "rls", "nlms"])
+    if adapt.get("adapt", "none") != "none":
+        return AdaptiveCompensator(model, limits=limits, initial_command=initial_command,
+                                   **{**ADAPT_DEFAULTS, **adapt}, **options)
     return StreamingCompensator(model, limits=limits, initial_command=initial_command,
                                 **options)
 
