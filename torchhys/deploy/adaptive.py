@@ -340,7 +340,7 @@ class AdaptiveCompensator(StreamingCompensator):
             w_new, ok = nlms_update(w, z, z_last, target, self.w0, self.bound, self.nlms_step,
                                     1e-6, self.dead_zone, self.excitation)
         finite_pair = ((y - y) + (target - target)) == self.zero
-        ok = ok & had
+        ok = ok & had & finite_pair  # an infinite y is clamped: its regressors are finite
         if self.guard:  # the readout's change must go the device's way
             dy = yc.squeeze(1) - Z.narrow(1, m, 1).squeeze(1)
             du = ((z - z_last) * w_new).sum(1)
