@@ -303,3 +303,42 @@ def test_a_pair_of_the_wrong_shape_is_refused() -> None:
         comp(torch.zeros(1, 5, dtype=D), measured=torch.zeros(1, 5, dtype=D),
              applied=torch.zeros(5, dtype=D))
     assert int(comp.n_steps) == 0  # nothing stepped
+
+
+def conditioned_net() -> InverseHysteresisNet:
+    """Plays and a readout scheduled on one condition (degree 1), least squares."""
+    from torchhys.selection.candidates import solve_readout
+    from torchhys.selection.folds import Batch
+
+    y = torch.stack([signal(800, seed=s) for s in range(3)])
+    c = torch.linspace(0.0, 1.0, 3, dtype=D)[:, None, None].expand(3, 800, 1).contiguous()
+    u = pi_inverse()(y)[0] * (1.0 + 0.3 * c[..., 0])
+    net = InverseHysteresisNet([torchhys.Backlash(torch.tensor([0.3, 0.9]))], 1,
+                               activation="identity", n_conditions=1,
+                               condition_degree=1).double()
+    net.fit_normalization(y, u, conditions=c)
+    solve_readout(net, Batch(y, u, torch.ones_like(y, dtype=torch.bool), c))
+    return net
+
+
+@pytest.mark.parametrize("method", ["rls", "nlms"])
+def test_a_conditioned_network_adapts_with_its_conditions(method: str) -> None:
+    """The conditioned readout (features times the conditions' basis) adapts: without pairs
+    the static compensator's commands; with pairs of a changed gain it tracks them better;
+    the scripted module steps equally."""
+    net = conditioned_net()
+    kw = {"direction": "increasing", "input_range": (-2.5, 2.5), "limits": (-10.0, 10.0)}
+    x = signal(600, seed=20)
+    c = torch.full((600, 1), 0.5, dtype=D)
+    comp = AdaptiveCompensator(net, adapt=method, **kw)
+    static = StreamingCompensator(net, **kw)(x, c)
+    assert float((comp(x, c) - static).abs().max()) < 1e-12
+    scripted = torch.jit.script(AdaptiveCompensator(net, adapt=method, **kw))
+    u = 1.4 * pi_inverse()(x)[0]  # the device now needs 40 % more command
+    for t in range(1, 600):
+        args = (x[t:t + 1], c[t:t + 1], x[t - 1:t], u[t - 1:t])
+        assert torch.equal(comp.step(*args), scripted.step(*args))
+    assert int(comp.updates_count()) > 100
+    err_static = (static[300:] - u[300:]).square().mean()
+    adapted = comp(x, c, measured=torch.cat([x[:1], x[:-1]]), applied=torch.cat([u[:1], u[:-1]]))
+    assert float((adapted[300:] - u[300:]).square().mean()) < 0.3 * float(err_static)
