@@ -342,3 +342,19 @@ def test_a_conditioned_network_adapts_with_its_conditions(method: str) -> None:
     err_static = (static[300:] - u[300:]).square().mean()
     adapted = comp(x, c, measured=torch.cat([x[:1], x[:-1]]), applied=torch.cat([u[:1], u[:-1]]))
     assert float((adapted[300:] - u[300:]).square().mean()) < 0.3 * float(err_static)
+
+
+def test_the_streaming_compensator_with_adapt_is_the_adaptive_one() -> None:
+    import copy
+
+    kw = {"limits": (-10.0, 10.0), "direction": "increasing", "input_range": (-2.5, 2.5)}
+    comp = StreamingCompensator(pi_inverse(), adapt="nlms", nlms_step=0.3, **kw)
+    assert type(comp) is AdaptiveCompensator and not comp.rls and comp.nlms_step == 0.3
+    assert type(StreamingCompensator(pi_inverse(), adapt="none", **kw)) is StreamingCompensator
+    twin = copy.deepcopy(comp)
+    y = signal(200, seed=21)
+    for t in range(1, 200):
+        pair = {"measured_prev": y[t - 1:t], "applied_prev": 1.3 * y[t - 1:t]}
+        assert torch.equal(comp.step(y[t:t + 1], **pair), twin.step(y[t:t + 1], **pair))
+    with pytest.raises(ValueError, match="adapt must be one of"):
+        StreamingCompensator(pi_inverse(), adapt="lms", **kw)

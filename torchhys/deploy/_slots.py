@@ -7,7 +7,7 @@ from typing import Final
 import torch
 from torch import Tensor, nn
 
-from torchhys.step import STATE_KINDS, OperatorStep, custom_start
+from torchhys.step import STATE_KINDS, OperatorStep, check_step, custom_start
 
 #: position of each block kind in the per-kind lists (the order of STATE_KINDS)
 _KIND_INDEX = {kind: i for i, kind in enumerate(STATE_KINDS)}
@@ -144,3 +144,17 @@ def check_state(x: Tensor, state: list[Tensor], templates: list[Tensor],
                              + ", has shape " + str(list(state[i].shape)) + ", expected ["
                              + str(x.shape[0]) + ", " + str(want) + "] (x's batch and the "
                              "layout's columns)")
+
+
+def checked_step(step: object, i: int, n_conditions: int) -> OperatorStep:
+    """Streaming step ``i`` checked to be of the protocol, of one input or of
+    ``1 + n_conditions`` (a TypeError naming it otherwise)."""
+    if n_conditions == 0:
+        return check_step(step, f"streaming step {i}")
+    step = check_step(step, f"streaming step {i}", n_inputs=None)
+    m, n = step.n_inputs, n_conditions
+    if m != 1 and m != 1 + n:
+        raise TypeError(f"streaming step {i} ({type(step).__name__}) takes {m} input "
+                        f"columns, expected 1 (x) or {1 + n} (x and the {n} "
+                        "condition(s))")
+    return step

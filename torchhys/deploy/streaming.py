@@ -46,18 +46,19 @@ its own (a cascade) starts from its ``initial_state(x)`` instead.
 
 import math
 from collections.abc import Sequence
-from typing import Final
+from typing import Any, Final
 
 import torch
 from torch import Tensor, nn
 
-from torchhys._checks import check_real
+from torchhys._checks import check_choice, check_real
 from torchhys._deprecated import moved as _moved
 from torchhys.deploy._slots import (
     _KIND_INDEX,
     _model_dtype,
     _Slot,
     check_state,
+    checked_step,
     conditions_of,
     layout_rows,
 )
@@ -65,7 +66,7 @@ from torchhys.deploy._threads import StepLock
 from torchhys.deploy.ranges import _check_limits, _condition_bounds, _direction, _input_bounds
 from torchhys.deploy.ranges import default_limits as _default_limits
 from torchhys.protocols import check_deployable, n_conditions
-from torchhys.step import OperatorStep, check_step
+from torchhys.step import OperatorStep
 
 __all__ = ["COUNTER", "HELD", "STARTED", "STATE_F", "STATE_F64", "STATE_I", "StreamingCompensator"]
 
@@ -101,6 +102,8 @@ class StreamingCompensator(nn.Module):
             data have a clear one, :func:`~torchhys.deploy.ranges.default_direction`; else
             no guard), ``"increasing"``, ``"decreasing"`` (the command never moves against
             the input's direction, resp. with it), or ``"none"`` (no guard).
+        adapt: ``"none"`` (default), or ``"rls"`` / ``"nlms"``: the compensator built is an
+            :class:`~torchhys.deploy.adaptive.AdaptiveCompensator` (its options then too).
 
     Methods (all exported):
         ``forward(x)``: x (time,) or (batch, time) -> u of the same shape, from a fresh state
@@ -145,17 +148,27 @@ class StreamingCompensator(nn.Module):
         "use one compensator per thread, or a lock around its calls; reset() clears this "
         "after a step that failed")
 
+    def __new__(cls, *args: Any, adapt: str = "none", **kwargs: Any) -> "StreamingCompensator":
+        """``adapt="rls"`` or ``"nlms"`` (with the adaptive options) builds an
+        :class:`~torchhys.deploy.adaptive.AdaptiveCompensator`."""
+        if cls is StreamingCompensator and adapt != "none":
+            from torchhys.deploy.adaptive import AdaptiveCompensator
+            cls = AdaptiveCompensator
+        return super().__new__(cls)
+
     def __init__(
         self, model: nn.Module, *, limits: Sequence[float] | None = None,
         initial_command: float = 0.0, input_range: Sequence[float] | None = None,
         input_margin: float | None = 0.05, direction: str = "auto",
-        condition_ranges: Sequence[Sequence[float]] | None = None,
+        condition_ranges: Sequence[Sequence[float]] | None = None, adapt: str = "none",
     ) -> None:
+        check_choice(adapt, "adapt", ["none", "rls", "nlms"])
         super().__init__()
         check_deployable(model, "model")
         dtype = _model_dtype(model)
         self.n_conditions = n_conditions(model)
-        steps = [self._checked_step(s, i) for i, s in enumerate(model.streaming_steps(dtype))]
+        steps = [checked_step(s, i, self.n_conditions)
+                 for i, s in enumerate(model.streaming_steps(dtype))]
         self.head = model.streaming_head(dtype)
         low, high = _check_limits(_default_limits(model) if limits is None else limits)
         self.register_buffer("low", torch.tensor(low, dtype=dtype))
@@ -188,18 +201,6 @@ class StreamingCompensator(nn.Module):
         self.stepping, self.calls = False, 0
         self.state_names = ["F (the float columns)", "I (the int64 counters)",
                             "started", "F64 (the float64 columns)"]
-
-    def _checked_step(self, step: object, i: int) -> OperatorStep:
-        """A streaming step of the protocol, of one input or of ``1 + n_conditions``."""
-        if self.n_conditions == 0:
-            return check_step(step, f"streaming step {i}")
-        step = check_step(step, f"streaming step {i}", n_inputs=None)
-        m, n = step.n_inputs, self.n_conditions
-        if m != 1 and m != 1 + n:
-            raise TypeError(f"streaming step {i} ({type(step).__name__}) takes {m} input "
-                            f"columns, expected 1 (x) or {1 + n} (x and the {n} "
-                            "condition(s))")
-        return step
 
     def _layout(self, steps: list[OperatorStep], dtype: torch.dtype) -> None:
         """Pack the steps' blocks by kind (see the module docstring) and record, for each
