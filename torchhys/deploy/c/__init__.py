@@ -29,7 +29,16 @@ recursion)::
     PREFIX_STATE_BYTES                                 (sizeof(PREFIX_state))
 
 and a comment with the model, its training range, the torchhys version and the export
-options. The step is the TorchScript and AOTI files' step: saturation, a NaN or inf sample
+options. With ``adapt="rls"`` or ``"nlms"``
+(:class:`~torchhys.deploy.adaptive.AdaptiveCompensator`)
+the step is ``PREFIX_real PREFIX_step_adapt(PREFIX_state *s, PREFIX_real desired,
+[const PREFIX_real *conditions,] PREFIX_real measured_prev, PREFIX_real applied_prev)``,
+beside ``PREFIX_N_WEIGHTS``, ``void PREFIX_weights(const PREFIX_state *s, PREFIX_real *out)``
+(the readout's current weights) and ``PREFIX_updates_count``, ``PREFIX_skipped_count`` and
+``PREFIX_refused_count``; that source also includes ``<assert.h>``: its functions assert a
+non-NULL state (compiled out with ``NDEBUG``; the static step does not test it)
+(:mod:`torchhys.deploy.c._adaptive`).
+The step is the TorchScript and AOTI files' step: saturation, a NaN or inf sample
 held and counted, the input clamp and the direction guard. The source stops with an
 ``#error`` where ``__FAST_MATH__`` is defined (``-ffast-math``, ``-Ofast``: GCC, Clang);
 its tests of NaN and inf read the numbers' bits and its ``exp`` takes its rounding from

@@ -12,6 +12,8 @@ import torch
 from torch import nn
 
 from torchhys._version import __version__
+from torchhys.deploy.adaptive import AdaptiveCompensator
+from torchhys.deploy.c import _adaptive
 from torchhys.deploy.c._views import copy as copy_to_local
 from torchhys.deploy.c._writer import CTensor, Writer
 from torchhys.deploy.export import metadata
@@ -36,12 +38,20 @@ FAST_MATH_CHECK = ["#if defined(__FAST_MATH__)", f'#error "{FAST_MATH_ERROR}"', 
 MEMBERS = {STATE_F: "F", STATE_I: "I64", STATE_STARTED: "started", STATE_F64: "F64"}
 
 
+def state_members(comp: StreamingCompensator, n: int) -> list[str]:
+    """The C struct's member names of the ``n`` state tensors."""
+    if isinstance(comp, AdaptiveCompensator):
+        return _adaptive.members(comp)
+    return [MEMBERS.get(k, f"s{k}") for k in range(n)]
+
+
 def files(prefix: str, w: Writer, model: nn.Module, comp: StreamingCompensator,
           state: list[torch.Tensor], u: CTensor, outputs: list[CTensor], options: dict[str, Any]
           ) -> tuple[str, str]:
     """The header's and the source's text, from the step written into ``w`` (``u``: the
-    command, ``outputs``: the new state)."""
-    members = [MEMBERS.get(k, f"s{k}") for k in range(len(state))]
+    command, ``outputs``: the new state); an adaptive compensator's step is
+    ``PREFIX_step_adapt`` (:mod:`torchhys.deploy.c._adaptive`)."""
+    members = state_members(comp, len(state))
     fields, n_bytes = _struct(w, state, members)
     header = _header(prefix, model, comp, options, fields, n_bytes)
     return header, _source(prefix, w, comp, members, u, outputs)
@@ -81,7 +91,8 @@ def _struct(w: Writer, state: list[torch.Tensor], members: list[str]
     rows = [(t.element_size(), m, w.ctype(t.dtype), max(t.numel(), 1))
             for t, m in zip(state, members, strict=True)]
     rows.sort(key=lambda r: -r[0])
-    fields = [f"{'REAL' if m == 'F' else c} {m}[{n}];" for _, m, c, n in rows]
+    fields = [f"{'REAL' if m in _adaptive.REAL_MEMBERS else c} {m}[{n}];"
+              for _, m, c, n in rows]
     n_bytes = sum(size * n for size, _, _, n in rows)
     if n_bytes % 8:
         fields.append(f"uint8_t pad_[{8 - n_bytes % 8}];")
@@ -126,8 +137,15 @@ def _header(prefix: str, model: nn.Module, comp: StreamingCompensator, options: 
     clamp = (f"[{float(comp.in_low)!r}, {float(comp.in_high)!r}]" if comp.clamp_input
              else "none")
     opts = ", ".join(f"{k}={v!r}" for k, v in options.items())
+    adaptive = isinstance(comp, AdaptiveCompensator)
     layout = [f" *   {m}[{col}:{col + n}]  {name}" for k, _, name, col, n in comp.layout()
               for m in [MEMBERS.get(k, f"s{k}")]]
+    if adaptive:
+        layout += _adaptive.layout(comp)
+    use = [_adaptive.use_text(prefix, comp), ""] if adaptive else []
+    step = (_adaptive.signature(prefix, comp) + ";" if adaptive else
+            f"{prefix}_real {prefix}_step({prefix}_state *s, {prefix}_real x"
+            + (f", const {prefix}_real *conditions);" if comp.n_conditions else ");"))
     g = prefix.upper() + "_H"
     lines = [
         f"/* {prefix}.h: a torchhys compensator as dependency-free C99.",
@@ -136,8 +154,10 @@ def _header(prefix: str, model: nn.Module, comp: StreamingCompensator, options: 
             "edit.", "", *_describe(model), f"export options: {opts}",
             f"command limits [{float(comp.low)!r}, {float(comp.high)!r}], input clamp "
             f"{clamp}, direction guard {guard}", "",
-            f"Use: {prefix}_state s; {prefix}_init(&s); then u = {prefix}_step(&s, x"
-            + (", conditions" if comp.n_conditions else "") + ") once a "
+            f"Use: {prefix}_state s; {prefix}_init(&s); then u = {prefix}_step"
+            + ("_adapt" if adaptive else "") + "(&s, x"
+            + (", conditions" if comp.n_conditions else "")
+            + (", measured_prev, applied_prev" if adaptive else "") + ") once a "
             "sample. x is the desired output in physical units, u the saturated command"
             + (f" (conditions: the {comp.n_conditions} measured operating condition(s) of "
                "the sample, clamped to their training ranges widened by the margin and "
@@ -146,7 +166,7 @@ def _header(prefix: str, model: nn.Module, comp: StreamingCompensator, options: 
             "finite sample) and is counted; a finite sample outside the training input range "
             "(widened by the margin) is clamped and counted. Compile without -ffast-math or "
             "-Ofast (the source stops with an #error under them).",
-            "", "State layout (torchhys.deploy.streaming; batch 1):"]),
+            "", *use, "State layout (torchhys.deploy.streaming; batch 1):"]),
         *layout,
         " */",
         f"#ifndef {g}",
@@ -164,16 +184,17 @@ def _header(prefix: str, model: nn.Module, comp: StreamingCompensator, options: 
         f"#define {prefix}_HIGH (({prefix}_real){float(comp.high)!r})",
         f"#define {prefix}_STATE_BYTES {n_bytes}",
         *_condition_macros(prefix, model, comp),
+        *(_adaptive.macros(prefix, comp) if adaptive else []),
         "",
         "typedef struct {",
         *[f"    {f.replace('REAL', prefix + '_real')}" for f in fields],
         f"}} {prefix}_state;",
         "",
         f"void {prefix}_init({prefix}_state *s);",
-        f"{prefix}_real {prefix}_step({prefix}_state *s, {prefix}_real x"
-        + (f", const {prefix}_real *conditions);" if comp.n_conditions else ");"),
+        step,
         f"int64_t {prefix}_nonfinite_count(const {prefix}_state *s);",
         f"int64_t {prefix}_out_of_range_count(const {prefix}_state *s);",
+        *(_adaptive.prototypes(prefix) if adaptive else []),
         "",
         "#ifdef __cplusplus",
         "}",
@@ -218,10 +239,21 @@ def _source(prefix: str, w: Writer, comp: StreamingCompensator, members: list[st
     oor = meta["out_of_range"]
     decls, body = w.shared_locals()
     real = f"{prefix}_real"
+    adaptive = isinstance(comp, AdaptiveCompensator)
+    check = "    assert(s != NULL);" if adaptive else None
+    if adaptive:
+        step = [_adaptive.signature(prefix, comp), "{",
+                "    assert(s != NULL" + (" && conditions != NULL);" if comp.n_conditions
+                                          else ");"),
+                f"    const {real} x = desired;"]
+    else:
+        step = [f"{real} {prefix}_step({prefix}_state *s, {real} x"
+                + (f", const {real} *conditions)" if comp.n_conditions else ")"), "{"]
     lines = [
         f"/* {prefix}.c: generated by torchhys (torchhys.deploy.c.to_c); see {prefix}.h. */",
         f'#include "{prefix}.h"',
         "",
+        *(["#include <assert.h>"] if adaptive else []),
         "#include <math.h>",
         "#include <stdint.h>",
         "#include <string.h>",
@@ -236,12 +268,11 @@ def _source(prefix: str, w: Writer, comp: StreamingCompensator, members: list[st
         "",
         f"void {prefix}_init({prefix}_state *s)",
         "{",
+        *([check] if check else []),
         "    memset(s, 0, sizeof *s);",
         "}",
         "",
-        f"{real} {prefix}_step({prefix}_state *s, {real} x"
-        + (f", const {real} *conditions)" if comp.n_conditions else ")"),
-        "{",
+        *step,
         *[f"    {d}" for d in decls],
         f"    {real} u;",
         *body,
@@ -250,14 +281,17 @@ def _source(prefix: str, w: Writer, comp: StreamingCompensator, members: list[st
         "",
         f"int64_t {prefix}_nonfinite_count(const {prefix}_state *s)",
         "{",
+        *([check] if check else []),
         f"    return s->{members[STATE_I]}[{counter}];",
         "}",
         "",
         f"int64_t {prefix}_out_of_range_count(const {prefix}_state *s)",
         "{",
+        *([check] if check else []),
         f"    return s->{members[STATE_I]}[{oor.split(':')[1]}];" if oor else
         "    (void)s;\n    return 0;",
         "}",
         "",
+        *(_adaptive.functions(prefix, w, comp) if adaptive else []),
     ]
     return "\n".join(lines)

@@ -88,10 +88,13 @@ def _live(graph: fx.Graph, finite: dict[fx.Node, tuple[list[fx.Node], bool]]) ->
 
 
 def translate(ep: torch.export.ExportedProgram, w: Writer, members: list[str],
-              conditioned: bool = False) -> tuple[CTensor, list[CTensor]]:
+              conditioned: bool = False, inputs: list[str] | None = None
+              ) -> tuple[CTensor, list[CTensor]]:
     """Write the step's statements into ``w``: returns the command's and the new state's
-    tensors. The step's inputs are ``x``, the ``conditions`` array where ``conditioned``,
-    then the state's members."""
+    tensors. The step's inputs are ``x``, the ``conditions`` array where ``conditioned``
+    (or the C names of ``inputs`` where given: a one-element input is a C scalar, another
+    an array), then the state's members."""
+    between = (["conditions"] if conditioned else []) if inputs is None else list(inputs)
     sig = ep.graph_signature
     known = {}
     for spec in sig.input_specs:
@@ -114,9 +117,10 @@ def translate(ep: torch.export.ExportedProgram, w: Writer, members: list[str],
             else:
                 k = users.index(node.name)
                 val = node.meta["val"]
-                names = ["x", *(["conditions"] if conditioned else []),
-                         *(f"s->{m}" for m in members)]
+                names = ["x", *between, *(f"s->{m}" for m in members)]
                 base = names[k]
+                if 0 < k <= len(between) and val.numel() == 1 and val.dim() == 1:
+                    w.scalars.add(base)
                 env[node] = CTensor(val.dtype, tuple(val.shape),
                                     contiguous_strides(val.shape), base)
         elif node.op == "call_function":

@@ -251,7 +251,7 @@ POINTWISE: dict[str, Emitter] = {
     "div.Tensor": _op("({0} / {1})", 2), "div.Scalar": _op("({0} / {1})", 2),
     "div.Tensor_mode": _div_mode, "div.Scalar_mode": _div_mode,
     "addcmul.default": _addc("*"), "addcdiv.default": _addc("/"),
-    "neg.default": _op("(-{0})"),
+    "neg.default": _op("(-{0})"), "square.default": _op("({0} * {0})"),
     "abs.default": _op({"float": "fabs{f}({0})", "int": "(({0} < 0) ? -{0} : {0})"}),
     "sign.default": _op({"float": "(({T})((0 < {0}) - ({0} < 0)))",
                          "int": "(({T})((0 < {0}) - ({0} < 0)))"}),

@@ -1,5 +1,5 @@
 """C templates of :mod:`torchhys.deploy.c` that sum: reductions (``sum``, ``mean``,
-``amax``, ``amin``), matrix products and ``cumsum``. Registered in
+``amax``, ``amin``, ``all``, ``any``), matrix products and ``cumsum``. Registered in
 :mod:`torchhys.deploy.c._templates`.
 
 Reductions and matrix products add in index order (BLAS may not: rounding-level
@@ -116,6 +116,20 @@ def _extremum(kind: str) -> Emitter:
         f = w.helper(kind, spec.dtype)
         return _reduce(w, spec, x, dim, keepdim, lambda at: w.read(x, at),  # max(a, a) = a
                        f + "({acc}, {x})")
+    return emit
+
+
+def _logical(kind: str) -> Emitter:
+    """``all`` / ``any`` over ``dim`` (an int, a list, or None: every dim): an element is
+    true where it is nonzero (a NaN is true, as in torch)."""
+    init, op = ("1", "&&") if kind == "all" else ("0", "||")
+
+    def emit(w: Writer, spec: CTensor, x: CTensor, dim: int | Sequence[int] | None = None,
+             keepdim: bool = False) -> CTensor:
+        dims = None if dim is None else [dim] if isinstance(dim, int) else list(dim)
+        if x.numel == 0:
+            return constant(torch.full(spec.shape, kind == "all", dtype=torch.bool))
+        return _reduce(w, spec, x, dims, keepdim, init, f"({{acc}} {op} {{x}})")
     return emit
 
 
@@ -335,4 +349,5 @@ PRODUCTS: dict[str, Emitter] = {
     "addmm.default": _addmm, "mm.default": _matmul_core, "bmm.default": _matmul_core,
     "matmul.default": _matmul_core, "mv.default": _matmul_core, "dot.default": _matmul_core,
     "linear.default": _linear, "cumsum.default": _cumsum,
+    **{f"{k}.{v}": _logical(k) for k in ("all", "any") for v in ("default", "dim", "dims")},
 }

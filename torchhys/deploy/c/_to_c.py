@@ -12,10 +12,10 @@ from typing import Any
 import torch
 from torch import nn
 
-from torchhys.deploy.c._files import MEMBERS, files
+from torchhys.deploy.c._files import files, state_members
 from torchhys.deploy.c._graph import translate
 from torchhys.deploy.c._writer import Writer
-from torchhys.deploy.export import _compensator, _ExplicitStep, write_outputs
+from torchhys.deploy.export import ADAPT_DEFAULTS, _compensator, _ExplicitStep, write_outputs
 from torchhys.deploy.streaming import StreamingCompensator
 from torchhys.protocols import check_deployable
 
@@ -66,7 +66,9 @@ def to_c(
     model: nn.Module, out_dir: str | os.PathLike, *, prefix: str = DEFAULT_PREFIX,
     dtype: torch.dtype = torch.float64, limits: tuple[float, float] | None = None,
     initial_command: float = 0.0, input_range: tuple[float, float] | None = None,
-    input_margin: float | None = 0.05, direction: str = "auto",
+    input_margin: float | None = 0.05, direction: str = "auto", adapt: str = "none",
+    forgetting: float = 0.999, adapt_bound: float = 0.5, dead_zone: float = 0.0,
+    excitation: float = 1e-3, nlms_step: float = 0.5, initial_covariance: float = 1.0,
 ) -> tuple[Path, Path]:
     """Write the compensator of ``model`` as C99: ``out_dir/PREFIX.h`` and ``PREFIX.c``.
 
@@ -84,6 +86,14 @@ def to_c(
             another dtype is copied and converted, as ``model.to(dtype)``).
         limits, initial_command, input_range, input_margin, direction: as
             :func:`torchhys.deploy.export.to_torchscript`.
+        adapt: ``"none"`` (the static step ``PREFIX_step``), ``"rls"`` or ``"nlms"``: the
+            adaptive step ``PREFIX_step_adapt(s, desired, [conditions,] measured_prev,
+            applied_prev)`` of :class:`~torchhys.deploy.adaptive.AdaptiveCompensator`, with
+            ``PREFIX_N_WEIGHTS``, ``PREFIX_weights`` (the readout's current weights) and the
+            counters ``PREFIX_updates_count``, ``PREFIX_skipped_count`` and
+            ``PREFIX_refused_count``.
+        forgetting, adapt_bound, dead_zone, excitation, nlms_step, initial_covariance: the
+            adaptive compensator's options (used with ``adapt`` rls or nlms).
 
     Returns:
         ``(header_path, source_path)``.
@@ -99,22 +109,27 @@ def to_c(
         TypeError: see :class:`~torchhys.deploy.streaming.StreamingCompensator`.
     """
     prefix, folder = check_prefix(prefix), _check_out_dir(out_dir)
+    adaptive = {"adapt": adapt, "forgetting": forgetting, "adapt_bound": adapt_bound,
+                "dead_zone": dead_zone, "excitation": excitation, "nlms_step": nlms_step,
+                "initial_covariance": initial_covariance}
+    given = {k: v for k, v in adaptive.items() if v != ADAPT_DEFAULTS[k]}
     comp = _build(model, dtype, limits, initial_command,
                   {"input_range": input_range, "input_margin": input_margin,
-                   "direction": direction})
+                   "direction": direction, **given})
     state = comp.initial_state(1)
+    inputs = comp.example_inputs(1)
     with torch.no_grad():
-        conditions = ([torch.zeros(1, comp.n_conditions, dtype=dtype)]
-                      if comp.n_conditions > 0 else [])
         ep = torch.export.export(_ExplicitStep(comp),
-                                 (torch.zeros(1, dtype=dtype), *conditions, *state),
-                                 strict=False)
+                                 (torch.zeros(1, dtype=dtype), *(t for _, t in inputs),
+                                  *state), strict=False)
     w = Writer(prefix)
-    u, outputs = translate(ep, w, [MEMBERS.get(k, f"s{k}") for k in range(len(state))],
-                           conditioned=comp.n_conditions > 0)
+    u, outputs = translate(ep, w, state_members(comp, len(state)),
+                           inputs=[name for name, _ in inputs])
     options = {"dtype": str(dtype).replace("torch.", ""), "limits": limits,
                "initial_command": initial_command, "input_range": input_range,
                "input_margin": input_margin, "direction": direction}
+    if adapt != "none":
+        options.update(adaptive)
     header, source = files(prefix, w, model, comp, state, u, outputs, options)
     h_path, c_path = folder / f"{prefix}.h", folder / f"{prefix}.c"
     # both complete on the disk before either replaces its old version

@@ -143,6 +143,20 @@ def _movedim(w: Writer, spec: CTensor, x: CTensor, source: int | Sequence[int],
     return _permute(w, spec, x, [placed[d] if d in placed else next(rest) for d in range(n)])
 
 
+def _diagonal(w: Writer, spec: CTensor, x: CTensor, offset: int = 0, dim1: int = 0,
+              dim2: int = 1) -> CTensor:
+    """torch.diagonal: ``dim1`` and ``dim2`` dropped, their diagonal (``offset`` above the
+    main one when > 0, below when < 0) appended as the last dim."""
+    n = len(x.shape)
+    a, b = _dim(dim1, n), _dim(dim2, n)
+    start = x.offset + (offset * x.strides[b] if offset >= 0 else -offset * x.strides[a])
+    size = max(0, min(x.shape[a] - max(-offset, 0), x.shape[b] - max(offset, 0)))
+    rest = [d for d in range(n) if d not in (a, b)]
+    return x.view([x.shape[d] for d in rest] + [size],
+                  [x.strides[d] for d in rest] + [x.strides[a] + x.strides[b]],
+                  start if size else x.offset)
+
+
 def _dropout(w: Writer, spec: CTensor, x: CTensor, p: float = 0.5, train: bool | None = False
              ) -> CTensor:
     """Dropout of a module in eval mode: ``x``; in training mode (random) no template."""
@@ -180,7 +194,8 @@ VIEWS: dict[str, Emitter] = {
     "_unsafe_view.default": _reshape, "flatten.using_ints": _reshape,
     "unflatten.int": _reshape, "view_as.default": _reshape, "reshape_as.default": _reshape,
     "expand_as.default": lambda w, s, x, other: _expand(w, s, x, other.shape),
-    "movedim.int": _movedim, "dropout.default": _dropout, "chunk.default": _chunk,
+    "movedim.int": _movedim, "diagonal.default": _diagonal, "dropout.default": _dropout,
+    "chunk.default": _chunk,
     "unsafe_chunk.default": _chunk,
     "unsafe_split.Tensor": _split, "unsafe_split_with_sizes.default": _split_sizes,
     "tensor_split.sections": _tensor_split, "tensor_split.indices": _tensor_split,
