@@ -66,6 +66,7 @@ from benchmarks.compensation import (  # noqa: E402
     static_line,
     training_input,
 )
+from torchhys.deploy.adaptive import AdaptiveCompensator  # noqa: E402
 from torchhys.deploy.streaming import StreamingCompensator  # noqa: E402
 from torchhys.plants import default_stage_hysteresis, paper_plant_widths  # noqa: E402
 from torchhys.plants.bouc_wen import DEFAULTS as BW  # noqa: E402
@@ -240,8 +241,44 @@ def pi_step(fit: Fit, gains: tuple[float, float] | None = None, *, feedforward: 
     return step
 
 
-ROWS: dict[str, Callable[[Fit], Step]] = {"static compensator": static_step,
-                                          "static + PI": pi_step}
+#: the adaptive rows' options, chosen by ``benchmarks/adaptation_tuning.py`` on validation
+#: references (their own seed) of every plant, never on the scored one (docs/adaptation.md)
+ADAPTIVE: dict[str, dict[str, float]] = {
+    "rls": {"forgetting": 0.999, "adapt_bound": 0.5, "dead_zone": 0.0, "excitation": 1e-3},
+    "nlms": {"nlms_step": 0.5, "adapt_bound": 0.5, "dead_zone": 0.0, "excitation": 1e-3},
+}
+
+
+def adaptive_compensator(fit: Fit, adapt: str, **options: float) -> torch.jit.ScriptModule:
+    """The static row's inverse with its readout adapted online (TorchScript: half the
+    eager step's time). A Prandtl-Ishlinskii inverse records no input range or direction:
+    the record's output range and "increasing" are given."""
+    kwargs = {**ADAPTIVE[adapt], **options}
+    comp = AdaptiveCompensator(fit.model, adapt=adapt, limits=fit.limits,
+                               input_range=(float(fit.y.min()), float(fit.y.max())),
+                               direction="increasing", **kwargs)
+    return torch.jit.script(comp)
+
+
+def adaptive_step(fit: Fit, adapt: str = "rls", **options: float) -> Step:
+    """The adaptive compensator fed the measured response and the applied command."""
+    comp = adaptive_compensator(fit, adapt, **options)
+    buf = torch.zeros(3, 1, dtype=torch.float64)
+
+    def step(reference_t: float, measured_prev: float, applied_prev: float) -> float:
+        buf[0, 0], buf[1, 0], buf[2, 0] = reference_t, measured_prev, applied_prev
+        return float(comp.step(buf[0], measured_prev=buf[1], applied_prev=buf[2])[0])
+
+    step.compensator = comp  # type: ignore[attr-defined]
+    return step
+
+
+ROWS: dict[str, Callable[[Fit], Step]] = {
+    "static compensator": static_step,
+    "static + PI": pi_step,
+    "adaptive RLS": lambda fit: adaptive_step(fit, "rls"),
+    "adaptive NLMS": lambda fit: adaptive_step(fit, "nlms"),
+}
 
 
 def reference(fit: Fit, n: int, seed: int = 11) -> np.ndarray:
