@@ -244,8 +244,8 @@ def pi_step(fit: Fit, gains: tuple[float, float] | None = None, *, feedforward: 
 #: the adaptive rows' options, chosen by ``benchmarks/adaptation_tuning.py`` on validation
 #: references (their own seed) of every plant, never on the scored one (docs/adaptation.md)
 ADAPTIVE: dict[str, dict[str, float]] = {
-    "rls": {"forgetting": 0.999, "adapt_bound": 0.5, "dead_zone": 0.0, "excitation": 1e-3},
-    "nlms": {"nlms_step": 0.5, "adapt_bound": 0.5, "dead_zone": 0.0, "excitation": 1e-3},
+    "rls": {"forgetting": 0.995, "adapt_bound": 1.0, "dead_zone": 0.0, "excitation": 1e-2},
+    "nlms": {"nlms_step": 0.2, "adapt_bound": 0.5, "dead_zone": 0.0, "excitation": 1e-3},
 }
 
 

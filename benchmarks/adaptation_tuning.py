@@ -6,10 +6,10 @@ Each plant is identified as in the harness (its undrifted excitation record); ea
 set of the grid then runs in the closed loop on a validation reference (the harness's
 multisine with its own seed, :data:`SEED`, never the scored seed 11), undrifted and under the
 ramp. Scored per plant: the ratio of the adaptive row's second-half RMSE to the static
-compensator's on the same validation run. Chosen per update rule: among the option sets whose
-undrifted ratio stays at most :data:`NONE_LIMIT` on every plant, the one with the smallest
-worst-plant ramp ratio. The stage runs on a sixth of its reference's length (as the quick
-harness does) to keep the grid within minutes.
+compensator's on the same validation run. Chosen per update rule: the option set whose
+worst-plant undrifted ratio exceeds :data:`NONE_LIMIT` the least (none: among those within
+it on every plant), then the smallest worst-plant ramp ratio. The stage runs on a sixth of
+its reference's length (as the quick harness does) to keep the grid within minutes.
 """
 
 from __future__ import annotations
@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> None:
             print(f"| {adapt} | {options} | {cells} |", flush=True)
             worst_none = max(ratios[p, "none"] for p in args.plants)
             worst_ramp = max(ratios[p, "ramp"] for p in args.plants)
-            key = (worst_none > NONE_LIMIT, worst_ramp)
+            key = (max(worst_none - NONE_LIMIT, 0.0), worst_ramp)
             if best is None or key < best[0]:
                 best = (key, options)
         chosen[adapt] = best[1]

@@ -441,9 +441,12 @@ def test_adaptation_benchmark_baselines_track_and_drift_hurts_the_static_one() -
     assert "| plant | drift | method | RMSE (%) | RMSE 2nd half (%) |" in out
     rows = table(out, "plant")
     by = {(r[0], r[1], r[2]): (number(r[3]), number(r[4])) for r in rows}
-    assert len(rows) == len(by) == 2 * 4 * 2
+    assert len(rows) == len(by) == 2 * 4 * 4
     assert {k[1] for k in by} == {"none", "ramp", "step", "thermal cycle"}
-    assert {k[2] for k in by} == {"static compensator", "static + PI"}
+    assert {k[2] for k in by} == {"static compensator", "static + PI", "adaptive RLS",
+                                  "adaptive NLMS"}
+    for key, (whole, second) in by.items():  # the adaptive rows ran and stayed finite
+        assert math.isfinite(whole) and math.isfinite(second), key
     for plant, bound in (("paper", 0.1), ("bouc_wen", 2.0)):
         static = by[plant, "none", "static compensator"]
         pi = by[plant, "none", "static + PI"]
@@ -453,3 +456,27 @@ def test_adaptation_benchmark_baselines_track_and_drift_hurts_the_static_one() -
             drifted = by[plant, drift, "static compensator"]
             assert drifted[1] >= 2.0 * static[1], (plant, drift, drifted, static)
             assert by[plant, drift, "static + PI"][1] < drifted[1], (plant, drift)
+
+
+def test_adaptation_benchmark_adaptive_row_follows_a_gain_step() -> None:
+    """The paper plant's gain and width step up by 30 % and 40 % at the run's middle: the
+    adaptive NLMS row's second-half error is under half the static compensator's (which keeps
+    the undrifted fit), and undrifted it tracks within 1.1x the static one (+0.01 %)."""
+    import numpy as np
+
+    bench = load_benchmark("adaptation.py")
+    fit = bench.identify("paper", 200)
+    ref = bench.reference(fit, 200)
+    s = np.linspace(0.0, 1.0, len(ref))
+    half = len(ref) // 2
+    scores = {}
+    for drift in ("none", "step"):
+        for method in ("static", "adaptive"):
+            step = (bench.static_step(fit) if method == "static"
+                    else bench.adaptive_step(fit, "nlms"))
+            y, u = bench.closed_loop(bench.PaperPlant(), step, ref, bench.DRIFTS[drift](s))
+            assert (u >= fit.limits[0]).all() and (u <= fit.limits[1]).all()
+            scores[drift, method] = bench.rmse_pct(y[half:], ref[half:])
+    assert scores["step", "static"] > 2.0, scores  # the step hurts the static compensator
+    assert scores["step", "adaptive"] < 0.5 * scores["step", "static"], scores
+    assert scores["none", "adaptive"] <= 1.1 * scores["none", "static"] + 0.01, scores
