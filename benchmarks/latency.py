@@ -1,6 +1,8 @@
 """Per-sample step latency of the deployed compensator: Python, TorchScript, C++, AOTI, C, ONNX.
 
     python benchmarks/latency.py [--samples 5000] [--rounds 5] [--skip-aoti] [--c-only]
+    python benchmarks/latency.py --adaptive   (the C step static, RLS, NLMS:
+                                               benchmarks/latency_adaptive.py)
 
 Four compensators (weights do not matter for latency): the compensation benchmark's deployed
 EIHO network (``EIHO(a, rule="recent", output="branch")`` + 16 play operators of the input,
@@ -355,7 +357,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--skip-onnx", action="store_true", help="no ONNX Runtime row")
     parser.add_argument("--dtype", choices=["float64", "float32"], default="float64",
                         help="the compensators' dtype (default float64)")
+    parser.add_argument("--adaptive", action="store_true",
+                        help="the C step static against adaptive RLS and NLMS instead "
+                        "(benchmarks/latency_adaptive.py)")
     args = parser.parse_args(argv)
+    if args.adaptive:
+        if str(ROOT) not in sys.path:  # run as a file
+            sys.path.insert(0, str(ROOT))
+        from benchmarks.latency_adaptive import main as adaptive_main
+
+        adaptive_main(["--samples", str(args.samples), "--rounds", str(args.rounds)])
+        return
     if args.samples < 200 or args.rounds < 1 or args.condition_degree < 1:
         parser.error("--samples must be at least 200, --rounds and --condition-degree at "
                      "least 1")

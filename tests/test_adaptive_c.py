@@ -280,3 +280,37 @@ def test_the_new_templates_equal_torch(tmp_path: Path) -> None:
     for g_, r in zip(got, ref, strict=True):
         assert (np.isnan(g_) and np.isnan(r)) or (g_ == r and np.signbit(g_) == np.signbit(r)), (
             got, ref)
+
+
+def test_the_controller_in_adaptive_mode_equals_the_eager_compensator(tmp_path: Path) -> None:
+    """deploy/c/controller.c built with CFLAGS=-DCOMP_ADAPT (deploy/c/build.sh): REF.csv's
+    second column the measured response, the commands within 1e-12 of the eager closed
+    loop's, the counters and the logged weights (--log-every) equal."""
+    import os
+
+    root = Path(__file__).resolve().parents[1]
+    model = identity_net()
+    comp = AdaptiveCompensator(model, adapt="nlms", **OPTS)
+    n = 1200
+    ref = closed_loop(comp, n)
+    to_c(model, tmp_path, prefix="ad", adapt="nlms", **OPTS)
+    done = subprocess.run(["bash", str(root / "deploy" / "c" / "build.sh"), str(tmp_path),
+                           str(tmp_path), "ad"], capture_output=True, text=True,
+                          env={**os.environ, "CC": CC, "CFLAGS": "-DCOMP_ADAPT"})
+    assert done.returncode == 0, done.stderr
+    measured = [r[1] for r in ref["rows"][1:]] + [float("nan")]
+    (tmp_path / "ref.csv").write_text("y_ref,y_measured\n" + "".join(
+        f"{float(r[0])!r},{float(m)!r}\n" for r, m in zip(ref["rows"], measured, strict=True)))
+    run = subprocess.run([str(tmp_path / "controller"), str(tmp_path / "ref.csv"),
+                          str(tmp_path / "out.csv"), "--log-every", "500"],
+                         capture_output=True, text=True, check=True)
+    u = np.loadtxt(tmp_path / "out.csv", delimiter=",", skiprows=1)[:, 1]
+    assert gap(u, ref["u"]) <= 1e-12, gap(u, ref["u"])
+    lines = run.stdout.splitlines()
+    counts = next(line for line in lines if line.startswith("updates ")).split()
+    assert [int(v) for v in counts[1::2]] == ref["counts"][:3]
+    logged = [line.split() for line in lines if line.startswith("weights ")]
+    assert [int(row[1]) for row in logged] == [0, 500, 1000]
+    fresh = AdaptiveCompensator(model, adapt="nlms", **OPTS).offline_weights().tolist()
+    assert [float(v) for v in logged[0][2:]] == fresh  # the first step gets no pair
+    assert not np.allclose([float(v) for v in logged[2][2:]], comp.offline_weights().tolist())

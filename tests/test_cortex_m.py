@@ -101,3 +101,24 @@ def test_the_script_refuses_a_bad_model_in_one_line(tmp_path: Path) -> None:
     done = run_script(tmp_path, "--model", "lstm")
     assert done.returncode == 2
     assert done.stderr.strip() == "cortex_m4.sh: --model must be paper or composed, got 'lstm'"
+
+
+@pytest.mark.slow
+@needs_tools
+@needs_cc
+def test_the_nlms_adaptive_step_on_a_cortex_m4_under_qemu_equals_the_host(tmp_path: Path
+                                                                          ) -> None:
+    """--adapt nlms: the paper network's adaptive step (a pair at every sample) bit-equal
+    on QEMU and the host, the adaptive counters equal, the step's instruction count
+    printed."""
+    done = run_script(tmp_path, "--adapt", "nlms")
+    assert done.returncode == 0, done.stdout + done.stderr
+    out = done.stdout
+    match = re.search(r"QEMU against host cc: (\d+) commands, (\d+) bit-equal, .*updates "
+                      r"(\d+) skipped (\d+) refused (\d+) \(host: .*: agree", out)
+    assert match, out
+    assert int(match.group(1)) == 256 and int(match.group(3)) > 100  # it adapted
+    steps = re.search(r"step: (\d+) instructions on average over 256 steps", out)
+    assert steps and 1000 < int(steps.group(1)) < 1_000_000, out
+    header = (tmp_path / "gen" / "torchhys_comp.h").read_text()
+    assert "torchhys_comp_step_adapt" in header and "torchhys_comp_real P[" not in header

@@ -9,7 +9,8 @@
 # POSIX/Linux calls (clock_nanosleep, sched_setaffinity):
 #   cc -std=c99 -O2 -Wall -Wextra -Werror -pedantic -c GEN_DIR/PREFIX.c
 #   cc -std=c99 -O2 -D_GNU_SOURCE -I GEN_DIR controller.c PREFIX.o -lm
-# Environment: CC (default cc), CFLAGS (added to both, e.g. -O3 -march=native).
+# Environment: CC (default cc), CFLAGS (added to both, e.g. -O3 -march=native; -DCOMP_ADAPT
+# for files exported with adapt="rls" or "nlms": the controller's adaptive mode, controller.c).
 set -euo pipefail
 HERE=$(cd "$(dirname "$0")" && pwd)
 GEN=${1:?usage: build.sh GEN_DIR [OUT_DIR] [PREFIX]}

@@ -24,8 +24,17 @@
  * Build (deploy/c/build.sh GEN_DIR [OUT_DIR] [PREFIX]):
  *   cc -std=c99 -O2 -D_GNU_SOURCE -I GEN_DIR controller.c GEN_DIR/torchhys_comp.c -lm
  * -DCOMP=NAME -DCOMP_HEADER='"NAME.h"' for files exported with --prefix NAME. The generated
- * files stay pure C99; _GNU_SOURCE is for this file's POSIX and Linux calls. */
+ * files stay pure C99; _GNU_SOURCE is for this file's POSIX and Linux calls.
+ *
+ * Adaptive mode (-DCOMP_ADAPT, e.g. CFLAGS=-DCOMP_ADAPT build.sh ..., over files exported
+ * with adapt="rls" or "nlms"): REF.csv's second column is the response measured at each
+ * sample (after its command was applied; missing or "nan": none), and each sample calls
+ * NAME_step_adapt with the last sample's measured response and applied command. Every
+ * --log-every N samples (default 1000; 0: never) the readout's weights (NAME_weights) are
+ * copied out after the step, outside its timing, and printed after the loop ("weights K
+ * w0 w1 ..."), with the adaptive counters. */
 #include <errno.h>
+#include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -78,29 +87,51 @@ static double quantile_us(const int64_t *sorted, size_t n, double q)
     return (double)sorted[i < n ? i : n - 1] / 1000.0;
 }
 
-/* Reads the first column of every line that starts with a number. */
-static double *read_reference(FILE *in, size_t *n)
+/* Reads the first column of every line that starts with a number, and the second (a number
+ * after a comma or blanks; NAN where there is none) into *second when it is not NULL. */
+static double *read_reference(FILE *in, size_t *n, double **second)
 {
     char line[4096];
     size_t cap = 1024, k = 0;
     double *ref = malloc(cap * sizeof *ref);
-    while (ref && fgets(line, sizeof line, in)) {
-        char *end;
-        double v = strtod(line, &end);
+    double *col = second ? malloc(cap * sizeof *col) : NULL;
+    while (ref && (col || !second) && fgets(line, sizeof line, in)) {
+        char *end, *next;
+        double v = strtod(line, &end), y;
         if (end == line)
             continue; /* a header or an empty line */
+        while (*end == ' ' || *end == '\t')
+            ++end;
+        if (*end == ',')
+            ++end;
+        y = strtod(end, &next);
+        if (next == end)
+            y = NAN;
         if (k == cap) {
             double *more = realloc(ref, 2 * cap * sizeof *ref);
-            if (!more) {
-                free(ref);
-                return NULL;
-            }
+            if (!more)
+                break;
             ref = more;
+            if (second) {
+                more = realloc(col, 2 * cap * sizeof *col);
+                if (!more)
+                    break;
+                col = more;
+            }
             cap *= 2;
         }
+        if (second)
+            col[k] = y;
         ref[k++] = v;
     }
+    if (!ref || (second && !col) || !feof(in)) {
+        free(ref);
+        free(col);
+        return NULL;
+    }
     *n = k;
+    if (second)
+        *second = col;
     return ref;
 }
 
@@ -126,7 +157,12 @@ static int pin(long cpu)
 
 static int usage(const char *argv0)
 {
+#ifdef COMP_ADAPT
+    fprintf(stderr, "usage: %s REF.csv OUT.csv [--rate HZ] [--spin] [--cpu N] "
+            "[--log-every N]\n", argv0);
+#else
     fprintf(stderr, "usage: %s REF.csv OUT.csv [--rate HZ] [--spin] [--cpu N]\n", argv0);
+#endif
     return 2;
 }
 
@@ -139,6 +175,12 @@ int main(int argc, char **argv)
     int64_t *latency, *late, period = 0, start, next, t0, t1;
     FILE *in, *out, *report = stdout;
     NAME(_state) state, scratch;
+#ifdef COMP_ADAPT
+    double *measured = NULL;
+    NAME(_real) *logged = NULL;
+    long log_every = 1000;
+    size_t n_logged = 0, slots = 0;
+#endif
 
     if (argc < 3)
         return usage(argv[0]);
@@ -158,6 +200,14 @@ int main(int argc, char **argv)
                 fprintf(stderr, "controller: --cpu: not a CPU number: %s\n", argv[i]);
                 return 2;
             }
+#ifdef COMP_ADAPT
+        } else if (strcmp(argv[i], "--log-every") == 0 && i + 1 < argc) {
+            log_every = strtol(argv[++i], &end, 10);
+            if (*end || log_every < 0) {
+                fprintf(stderr, "controller: --log-every: not a count: %s\n", argv[i]);
+                return 2;
+            }
+#endif
         } else {
             fprintf(stderr, "controller: unknown option %s\n", argv[i]);
             return usage(argv[0]);
@@ -168,7 +218,17 @@ int main(int argc, char **argv)
         fprintf(stderr, "controller: REF.csv: cannot open %s: %s\n", argv[1], strerror(errno));
         return 1;
     }
-    ref = read_reference(in, &n);
+#ifdef COMP_ADAPT
+    ref = read_reference(in, &n, &measured);
+    slots = log_every > 0 ? n / (size_t)log_every + 1 : 0;
+    logged = malloc((slots ? slots : 1) * NAME(_N_WEIGHTS) * sizeof *logged);
+    if (!logged) {
+        fprintf(stderr, "controller: out of memory\n");
+        return 1;
+    }
+#else
+    ref = read_reference(in, &n, NULL);
+#endif
     if (in != stdin)
         fclose(in);
     cmd = malloc((n ? n : 1) * sizeof *cmd);
@@ -187,7 +247,12 @@ int main(int argc, char **argv)
 
     /* one step on a scratch state: the code and the weights are loaded before the loop */
     NAME(_init)(&scratch);
+#ifdef COMP_ADAPT
+    (void)NAME(_step_adapt)(&scratch, (NAME(_real))(n ? ref[0] : 0.0), (NAME(_real))NAN,
+                            (NAME(_real))NAN);
+#else
     (void)NAME(_step)(&scratch, (NAME(_real))(n ? ref[0] : 0.0));
+#endif
     NAME(_init)(&state);
 
     if (rate > 0)
@@ -203,8 +268,17 @@ int main(int argc, char **argv)
                 sleep_until_ns(next);
         }
         t0 = now_ns();
+#ifdef COMP_ADAPT
+        cmd[k] = (double)NAME(_step_adapt)(&state, (NAME(_real))ref[k],
+                                           (NAME(_real))(k ? measured[k - 1] : NAN),
+                                           (NAME(_real))(k ? cmd[k - 1] : NAN));
+        t1 = now_ns();
+        if (log_every > 0 && k % (size_t)log_every == 0 && n_logged < slots)
+            NAME(_weights)(&state, logged + NAME(_N_WEIGHTS) * n_logged++);
+#else
         cmd[k] = (double)NAME(_step)(&state, (NAME(_real))ref[k]);
         t1 = now_ns();
+#endif
         latency[k] = t1 - t0;
         late[k] = period > 0 ? t0 - next : 0;
         next += period;
@@ -240,6 +314,20 @@ int main(int argc, char **argv)
     }
     fprintf(report, "nonfinite %ld out_of_range %ld\n", (long)NAME(_nonfinite_count)(&state),
             (long)NAME(_out_of_range_count)(&state));
+#ifdef COMP_ADAPT
+    fprintf(report, "updates %ld skipped %ld refused %ld\n",
+            (long)NAME(_updates_count)(&state), (long)NAME(_skipped_count)(&state),
+            (long)NAME(_refused_count)(&state));
+    for (k = 0; k < n_logged; ++k) {
+        int j;
+        fprintf(report, "weights %lu", (unsigned long)(k * (size_t)log_every));
+        for (j = 0; j < NAME(_N_WEIGHTS); ++j)
+            fprintf(report, " %.17g", (double)logged[k * NAME(_N_WEIGHTS) + j]);
+        fprintf(report, "\n");
+    }
+    free(measured);
+    free(logged);
+#endif
     free(ref);
     free(cmd);
     free(latency);

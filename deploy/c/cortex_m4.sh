@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The generated C on a Cortex-M4 with hardware float, under QEMU, against the host's build.
 #
-#   deploy/c/cortex_m4.sh OUT_DIR [CKPT] [--model paper|composed]
+#   deploy/c/cortex_m4.sh OUT_DIR [CKPT] [--model paper|composed] [--adapt none|nlms|rls]
 #
 # 1. Writes the float32 C files of a small example compensator into OUT_DIR/gen and ref.h,
 #    the reference sequence compiled in as a const array. --model paper (the default):
@@ -10,6 +10,9 @@
 #    deploy/c/example_composed.py, a plain module (4 play operators beside the input -> an
 #    nn.GRU of 8 units -> nn.Linear, seeded, trained briefly on the same loop) through
 #    torchhys.compose.compose, and torch64.txt, the float64 compensator's commands.
+#    --adapt nlms (or rls; --model paper without CKPT): the adaptive step of the same network
+#    (to_c's adapt), mcu_main.c built with -DCOMP_ADAPT (a pair at every sample, the
+#    adaptive counters compared too).
 # 2. Cross-compiles mcu_main.c, the two generated files and the start-up (cortex_m4_startup.c,
 #    cortex_m4.ld: a 16-entry vector table, flash at 0x0, RAM at 0x20000000, FPU on, .data
 #    copied, .bss zeroed, then newlib's _start) with
@@ -17,6 +20,10 @@
 #    and semihosting through newlib's rdimon (--specs=rdimon.specs -lrdimon).
 # 3. Prints flash and RAM (arm-none-eabi-size): the compensator's object alone (code and
 #    weights, its step's stack from -fstack-usage) and the whole image (newlib's printf in it).
+#    Then the step's cost: QEMU runs with -icount shift=0 (one instruction a virtual ns) and
+#    mcu_main.c sums SysTick (25 MHz: 40 instructions a tick) around each step: printed as
+#    instructions per step (a Cortex-M4 takes about one cycle an instruction, more with
+#    flash wait states and FPU division or square root).
 # 4. Runs the image under QEMU (mps2-an386, semihosting), the same files built with the host's
 #    cc, and compares the commands: within 1e-4 of their scale (the float32 bound of
 #    docs/deployment.md), the counters equal. --model composed also compares the QEMU
@@ -29,13 +36,16 @@
 set -euo pipefail
 HERE=$(cd "$(dirname "$0")" && pwd)
 PY=${PYTHON:-python3}
-USAGE="usage: cortex_m4.sh OUT_DIR [CKPT] [--model paper|composed]"
+USAGE="usage: cortex_m4.sh OUT_DIR [CKPT] [--model paper|composed] [--adapt none|nlms|rls]"
 MODEL=paper
+ADAPT=none
 POS=()
 while (($#)); do
   case $1 in
     --model) MODEL=${2:?$USAGE}; shift 2 ;;
     --model=*) MODEL=${1#--model=}; shift ;;
+    --adapt) ADAPT=${2:?$USAGE}; shift 2 ;;
+    --adapt=*) ADAPT=${1#--adapt=}; shift ;;
     -*) echo "cortex_m4.sh: unknown option $1: $USAGE" >&2; exit 2 ;;
     *) POS+=("$1"); shift ;;
   esac
@@ -46,6 +56,13 @@ case $MODEL in
   paper) ;;
   composed) [[ -z $CKPT ]] || { echo "cortex_m4.sh: --model composed takes no CKPT" >&2; exit 2; } ;;
   *) echo "cortex_m4.sh: --model must be paper or composed, got '$MODEL'" >&2; exit 2 ;;
+esac
+case $ADAPT in
+  none) ;;
+  nlms|rls) [[ $MODEL == paper && -z $CKPT ]] || {
+    echo "cortex_m4.sh: --adapt takes the paper example (no CKPT, no --model composed)" >&2
+    exit 2; } ;;
+  *) echo "cortex_m4.sh: --adapt must be none, nlms or rls, got '$ADAPT'" >&2; exit 2 ;;
 esac
 ((${#POS[@]} <= 2)) || { echo "cortex_m4.sh: too many arguments: $USAGE" >&2; exit 2; }
 for tool in arm-none-eabi-gcc arm-none-eabi-size qemu-system-arm; do
@@ -64,16 +81,19 @@ rm -f "$GEN/torch64.txt"
 if [[ $MODEL == composed ]]; then
   "$PY" "$HERE/example_composed.py" "$GEN" --dtype float32 >/dev/null
 else
-  "$PY" "$HERE/example_comp.py" "$GEN" --dtype float32 ${CKPT:+--ckpt "$CKPT"} >/dev/null
+  "$PY" "$HERE/example_comp.py" "$GEN" --dtype float32 ${CKPT:+--ckpt "$CKPT"} \
+    --adapt "$ADAPT" >/dev/null
 fi
 
 # 2. the Cortex-M4 image
 MCU=(-mcpu=cortex-m4 -mthumb -mfloat-abi=hard -mfpu=fpv4-sp-d16 -O2)
 STRICT=(-std=c99 -Wall -Wextra -Werror -pedantic)
+MAIN_DEFS=()
+[[ $ADAPT == none ]] || MAIN_DEFS=(-DCOMP_ADAPT)
 arm-none-eabi-gcc "${MCU[@]}" "${STRICT[@]}" -ffunction-sections -fdata-sections \
   -fstack-usage -I "$GEN" -c "$GEN/torchhys_comp.c" -o "$OUT/torchhys_comp.o"
 arm-none-eabi-gcc "${MCU[@]}" "${STRICT[@]}" -ffunction-sections -fdata-sections \
-  -I "$GEN" -c "$HERE/mcu_main.c" -o "$OUT/mcu_main.o"
+  "${MAIN_DEFS[@]}" -I "$GEN" -c "$HERE/mcu_main.c" -o "$OUT/mcu_main.o"
 arm-none-eabi-gcc "${MCU[@]}" -std=gnu99 -Wall -Wextra -Werror -ffunction-sections \
   -fdata-sections -c "$HERE/cortex_m4_startup.c" -o "$OUT/startup.o"
 arm-none-eabi-gcc "${MCU[@]}" --specs=rdimon.specs -T "$HERE/cortex_m4.ld" \
@@ -92,9 +112,13 @@ echo "image (mcu.elf, with newlib and printf): flash $((text + data)) B, RAM $((
 
 # 4. QEMU against the host
 timeout "${QEMU_TIMEOUT:-120}" qemu-system-arm -M mps2-an386 -cpu cortex-m4 -nographic \
-  -monitor none -serial none -semihosting-config enable=on,target=native \
-  -kernel "$OUT/mcu.elf" >"$OUT/qemu.txt"
-"${CC:-cc}" -std=c99 -O2 -I "$GEN" -o "$OUT/host" "$HERE/mcu_main.c" "$GEN/torchhys_comp.c" -lm
+  -monitor none -serial none -semihosting-config enable=on,target=native -icount shift=0 \
+  -kernel "$OUT/mcu.elf" >"$OUT/qemu.txt" 2>"$OUT/qemu_err.txt"
+read -r _ ticks _ steps < <(grep '^ticks ' "$OUT/qemu_err.txt")
+echo "step: $((ticks * 40 / steps)) instructions on average over $steps steps (QEMU -icount," \
+  "SysTick ticks of 40 instructions)"
+"${CC:-cc}" -std=c99 -O2 "${MAIN_DEFS[@]}" -I "$GEN" -o "$OUT/host" "$HERE/mcu_main.c" \
+  "$GEN/torchhys_comp.c" -lm
 "$OUT/host" >"$OUT/host.txt"
 "$PY" - "$OUT/qemu.txt" "$OUT/host.txt" "$GEN/torch64.txt" <<'PYEOF'
 import os

@@ -1,7 +1,7 @@
 """Writes the C files of a small example compensator and a reference sequence header.
 
     python deploy/c/example_comp.py OUT_DIR [--ckpt CKPT] [--dtype float32|float64]
-                                    [--prefix NAME] [--samples N]
+                                    [--prefix NAME] [--samples N] [--adapt nlms|rls]
 
 Without ``--ckpt``: the network of ``configs/compensator.yaml`` (a re-based EIHO and 16 plays,
 64 sigmoid units), its normalization fitted with ``fit_normalization`` on a loop and its
@@ -70,9 +70,13 @@ def main() -> None:
     p.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     p.add_argument("--prefix", default="torchhys_comp")
     p.add_argument("--samples", type=int, default=256)
+    p.add_argument("--adapt", default="none", choices=["none", "rls", "nlms"],
+                   help="the adaptive step (to_c's adapt; the example network only)")
     a = p.parse_args()
     a.out_dir.mkdir(parents=True, exist_ok=True)
     dtype = getattr(torch, a.dtype)
+    if a.ckpt and a.adapt != "none":
+        p.error("--adapt takes the example network (no --ckpt)")
     if a.ckpt:
         subprocess.run([sys.executable, "-m", "torchhys", "export", "--ckpt", a.ckpt,
                         "--format", "c", "--out", str(a.out_dir), "--dtype", a.dtype,
@@ -80,7 +84,7 @@ def main() -> None:
         net = None
     else:
         net = example_network()
-        to_c(net, a.out_dir, prefix=a.prefix, dtype=dtype)
+        to_c(net, a.out_dir, prefix=a.prefix, dtype=dtype, adapt=a.adapt)
     # the reference covers the training input range the header states
     text = (a.out_dir / f"{a.prefix}.h").read_text()
     low, high = training_input_range(text, net)
