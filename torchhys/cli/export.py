@@ -3,6 +3,8 @@
     torchhys export --ckpt CKPT --format torchscript|aoti|c|onnx --out FILE|DIR [--limits LOW HIGH]
         [--input-margin M | --input-margin none] [--direction auto|increasing|decreasing|none]
         [--dtype float64|float32] [--prefix NAME] [--force]
+        [--adapt none|rls|nlms [--forgetting F] [--adapt-bound B] [--dead-zone D]
+         [--excitation E] [--nlms-step S] [--initial-covariance P]]
 
 ``--format c`` writes ``DIR/NAME.h`` and ``DIR/NAME.c`` (``--prefix``, default
 ``torchhys_comp``), dependency-free C99 (:func:`torchhys.deploy.c.to_c`); ``--dtype`` sets
@@ -19,6 +21,12 @@ The compensator clamps its input to the training input range widened by ``--inpu
 (a share of the range, default 0.05) and counts the samples it clamped; its command never
 moves against the direction of the target's trend in the training data (``--direction``):
 see :class:`torchhys.deploy.streaming.StreamingCompensator`.
+
+``--adapt rls`` or ``nlms`` exports the adaptive compensator
+(:class:`torchhys.deploy.adaptive.AdaptiveCompensator`, every format): its step also takes
+the last sample's measured response and applied command and moves the readout's weights
+(``--forgetting``, ``--adapt-bound``, ``--dead-zone``, ``--excitation``, ``--nlms-step``,
+``--initial-covariance``: its options). A model without an affine readout is refused.
 
 CKPT is a checkpoint of :class:`torchhys.training.InverseHysteresisModule` (Lightning's
 ``{"state_dict": {"net.*": ...}, "hyper_parameters": {...}}``; the network is rebuilt from
@@ -50,7 +58,7 @@ from torchhys.cli.plugins import import_modules
 from torchhys.compose import Composed
 from torchhys.compose.spec import build_composed, is_composed_spec
 from torchhys.deploy.c import DEFAULT_PREFIX, check_prefix, to_c
-from torchhys.deploy.export import to_aoti, to_torchscript
+from torchhys.deploy.export import ADAPT_DEFAULTS, to_aoti, to_torchscript
 from torchhys.deploy.export_onnx import to_onnx
 from torchhys.deploy.ranges import DIRECTIONS
 from torchhys.deploy.streaming import StreamingCompensator
@@ -84,6 +92,14 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--direction", choices=DIRECTIONS, default="auto",
                    help="the command never moves against this direction of the input "
                         "(default auto: the training data's; none: no guard)")
+    adapt = p.add_argument_group("online adaptation of the readout (--adapt rls or nlms)")
+    adapt.add_argument("--adapt", choices=("none", "rls", "nlms"), default="none",
+                       help="adapt the readout's weights online from the measured response "
+                            "(default none: the static compensator)")
+    for flag, text in _ADAPT_FLAGS.items():
+        name = flag[2:].replace("-", "_")
+        adapt.add_argument(flag, type=float, default=ADAPT_DEFAULTS[name],
+                           help=f"{text} (default {ADAPT_DEFAULTS[name]})")
     p.add_argument("--import", dest="imports", action="append", default=[], metavar="MODULE",
                    help="import this module first (repeatable): the operators it registers "
                         "can be named in the checkpoint's config")
@@ -106,6 +122,40 @@ def _parser() -> argparse.ArgumentParser:
 
 
 _DTYPES = {"float64": torch.float64, "float32": torch.float32}
+#: the adaptive compensator's options on the command line
+_ADAPT_FLAGS = {
+    "--forgetting": "RLS's forgetting factor, in (0, 1]",
+    "--adapt-bound": "the weights' box about the offline fit, a share of their scale (>= 0)",
+    "--dead-zone": "no update while the prediction error is within this (command units)",
+    "--excitation": "no update until the normalized regressors moved by more than this",
+    "--nlms-step": "NLMS's step size, in (0, 1]",
+    "--initial-covariance": "RLS's initial covariance of the normalized weights (> 0)",
+}
+
+
+def _adapt_options(args: argparse.Namespace) -> dict:
+    """The adaptive options of the command line ({} for --adapt none)."""
+    if args.adapt == "none":
+        return {}
+    return {"adapt": args.adapt, **{f[2:].replace("-", "_"): getattr(args, f[2:].replace(
+        "-", "_")) for f in _ADAPT_FLAGS}}
+
+
+def _compensator(net: torch.nn.Module, options: dict, adapt: dict) -> StreamingCompensator:
+    """The compensator of ``net``; an error in an adaptive option names its flag, a model
+    without an affine readout names ``--adapt``."""
+    try:
+        return StreamingCompensator(net, **options, **adapt)
+    except ValueError as err:
+        text = str(err)
+        for flag in _ADAPT_FLAGS:
+            name = flag[2:].replace("-", "_")
+            if adapt and text.startswith(name + " "):
+                raise ValueError(flag + text[len(name):]) from None
+        if adapt and text.startswith("model: its compensator head"):
+            raise ValueError(f"--adapt {adapt['adapt']}: the checkpoint's model{text[5:]}"
+                             ) from None
+        raise
 
 
 def _prefix(text: str) -> str:
@@ -286,10 +336,11 @@ def main(argv: list[str]) -> int:
                 check_output(net, f"--ckpt {args.ckpt}")  # or its overflowing ones
             if args.dtype is not None:
                 net = net.to(_DTYPES[args.dtype])
-            comp = StreamingCompensator(net, **options)
-        if args.format == "c":
+            adapt = _adapt_options(args)
+            comp = _compensator(net, options, adapt)
+        if args.format == "c":  # the adaptive keywords only when adapting
             written = to_c(net, args.out, prefix=args.prefix or DEFAULT_PREFIX,
-                           dtype=comp.low.dtype, **options)
+                           dtype=comp.low.dtype, **options, **adapt)
             args.out = " and ".join(str(p) for p in written)
         elif args.format == "onnx":
             try:
@@ -313,8 +364,17 @@ def main(argv: list[str]) -> int:
     guard = {1: "increasing", -1: "decreasing", 0: "none"}[int(comp.direction)]
     dtype = str(comp.low.dtype).replace("torch.", "")
     print(f"wrote {args.out} ({args.format}, {dtype}); command limits [{float(comp.low):.6g}, "
-          f"{float(comp.high):.6g}], {clamp}, direction {guard}")
+          f"{float(comp.high):.6g}], {clamp}, direction {guard}{_adapt_report(args)}")
     return 0
+
+
+def _adapt_report(args: argparse.Namespace) -> str:
+    """The report's words on the adaptation ("" without)."""
+    if args.adapt == "none":
+        return ""
+    rate = (f"forgetting {args.forgetting:.6g}" if args.adapt == "rls"
+            else f"step {args.nlms_step:.6g}")
+    return f", adaptation {args.adapt} ({rate}, bound {args.adapt_bound:.6g})"
 
 
 if __name__ == "__main__":

@@ -158,3 +158,84 @@ def checked_step(step: object, i: int, n_conditions: int) -> OperatorStep:
                         f"columns, expected 1 (x) or {1 + n} (x and the {n} "
                         "condition(s))")
     return step
+
+
+def file_pair(measured_prev: object, applied_prev: object, adaptive: bool, batch: int,
+              dtype: torch.dtype, kind: str) -> list[Tensor]:
+    """The last sample's pair a loaded exported step (``kind``: package, file) takes after
+    x and the conditions, checked: ``[measured_prev, applied_prev]`` (batch,) contiguous in
+    ``dtype``, NaN for a member not given (no update); ``[]`` for a static step (none
+    given)."""
+    given = [(n, v) for n, v in (("measured_prev", measured_prev),
+                                 ("applied_prev", applied_prev)) if v is not None]
+    if not adaptive:
+        if given:
+            raise ValueError(f"step: {given[0][0]} given, but the {kind} does not adapt "
+                             "(exported with adapt='none')")
+        return []
+    out = []
+    for name, value in (("measured_prev", measured_prev), ("applied_prev", applied_prev)):
+        if value is None:
+            out.append(torch.full((batch,), float("nan"), dtype=dtype))
+            continue
+        t = torch.as_tensor(value)
+        if tuple(t.shape) != (batch,):
+            raise ValueError(f"step: {name} must have shape ({batch},), got {tuple(t.shape)}")
+        out.append(t.to(dtype).contiguous())
+    return out
+
+
+class FileAdaptation:
+    """The readout's adaptation of a loaded exported step, from its metadata (the keys
+    ``ADAPT_KEYS`` of :mod:`torchhys.deploy.export`): where the weights and the counters
+    are in the state. ``adaptive`` is False for a static file."""
+
+    def __init__(self, meta: dict[str, str]) -> None:
+        self.adaptive = bool(meta.get("adapt", ""))
+        if self.adaptive:
+            self.weights, self.counts = int(meta["weights"]), int(meta["adapt_counts"])
+            self.w0 = torch.tensor([float(v) for v in meta["w0"].split(",")],
+                                   dtype=torch.float64)
+            self.inv_scale = torch.tensor([float(v) for v in meta["inv_scale"].split(",")],
+                                          dtype=torch.float64)
+
+    def weights_of(self, state: list[Tensor]) -> Tensor:
+        """The readout's current weights (batch, m) in the readout's units: ``(w0 +
+        state[weights]) * inv_scale`` in the state's dtype."""
+        self._need()
+        W = state[self.weights]
+        return (self.w0.to(W.dtype) + W) * self.inv_scale.to(W.dtype)
+
+    def count(self, state: list[Tensor], column: int) -> Tensor:
+        """A column of the adaptation's counters (0 applied, 1 skipped, 2 refused)."""
+        self._need()
+        return state[self.counts][:, column]
+
+    def _need(self) -> None:
+        if not self.adaptive:
+            raise ValueError("the file does not adapt (exported with adapt='none'): it has "
+                             "no adapted weights or adaptation counters")
+
+
+class AdaptiveStepper:
+    """The adaptation's readers of a loaded exported step (a mixin of the steppers that
+    keep ``state`` and ``adaptation``, a :class:`FileAdaptation`)."""
+
+    state: list[Tensor]
+    adaptation: FileAdaptation
+
+    def adapted_weights(self) -> Tensor:
+        """The readout's current weights (batch, n_weights), in the readout's units."""
+        return self.adaptation.weights_of(self.state)
+
+    def updates_count(self) -> Tensor:
+        """Updates applied, per row."""
+        return self.adaptation.count(self.state, 0)
+
+    def skipped_count(self) -> Tensor:
+        """Pairs skipped (measured_prev or applied_prev missing, NaN or inf), per row."""
+        return self.adaptation.count(self.state, 1)
+
+    def refused_count(self) -> Tensor:
+        """Updates refused by the direction rule, per row."""
+        return self.adaptation.count(self.state, 2)

@@ -34,6 +34,26 @@ file's extra files of the same names), all strings:
 A conditioned compensator's (``docs/conditions.md``) adds :data:`CONDITION_KEYS`:
 ``n_conditions``, and ``condition_low``, ``condition_high`` (the clamp's bounds of each
 condition, comma-separated).
+
+An adaptive compensator's (``adapt="rls"`` or ``"nlms"``,
+:class:`~torchhys.deploy.adaptive.AdaptiveCompensator`) step takes the last sample's pair
+after x (and the conditions): ``(x_t, [conditions,] measured_prev, applied_prev, *state)``,
+both (batch,), NaN for none (no update); its metadata adds :data:`ADAPT_KEYS`:
+
+    adapt       ``rls`` or ``nlms``
+    n_weights   the readout's number of weights m
+    weights     the index of the state tensor W (batch, m): the normalized weights minus
+                the offline fit's; the readout's weights are ``(w0 + W) * inv_scale``
+    covariance  the index of RLS's covariance P (batch, m*m) (``""`` for NLMS)
+    adapt_counts
+                the index of the counters (batch, 3): updates applied, pairs skipped,
+                updates refused
+    w0, inv_scale, bound
+                the offline normalized weights, the regressors' inverse scales and the
+                weights' box about w0 (each m values, comma-separated)
+    forgetting, adapt_bound, dead_zone, excitation, nlms_step, initial_covariance
+                the options (``adapt_bound`` recovered from ``bound``, to the dtype's
+                precision)
 """
 
 from __future__ import annotations
@@ -49,12 +69,12 @@ from torch import Tensor, nn
 
 from torchhys._atomic import atomic_write_files
 from torchhys._checks import check_choice, check_int
-from torchhys.deploy._slots import file_conditions
+from torchhys.deploy._slots import AdaptiveStepper, FileAdaptation, file_conditions, file_pair
 from torchhys.deploy.adaptive import AdaptiveCompensator
 from torchhys.deploy.streaming import COUNTER, HELD, STATE_I, StreamingCompensator
 
 __all__ = [
-    "CONDITION_KEYS", "AOTIStepper", "load_aoti", "load_torchscript", "metadata",
+    "ADAPT_KEYS", "CONDITION_KEYS", "AOTIStepper", "load_aoti", "load_torchscript", "metadata",
     "state_spec_string", "to_aoti", "to_torchscript",
 ]
 
@@ -98,6 +118,17 @@ def _compensator(
                                 **options)
 
 
+def adapt_options(adapt: str, forgetting: float, adapt_bound: float, dead_zone: float,
+                  excitation: float, nlms_step: float, initial_covariance: float
+                  ) -> dict[str, Any]:
+    """The exporters' adaptive keywords as the options of :func:`_compensator` (those of
+    :data:`ADAPT_DEFAULTS`), the defaults left out (a built compensator takes none)."""
+    given = {"adapt": adapt, "forgetting": forgetting, "adapt_bound": adapt_bound,
+             "dead_zone": dead_zone, "excitation": excitation, "nlms_step": nlms_step,
+             "initial_covariance": initial_covariance}
+    return {k: v for k, v in given.items() if v != ADAPT_DEFAULTS[k]}
+
+
 def _check_path(path: str | os.PathLike) -> str:
     """``path`` as a str, if a file can be written there (checked before any compile)."""
     if not isinstance(path, (str, os.PathLike)):
@@ -135,7 +166,9 @@ def write_outputs(files: list[tuple[str | os.PathLike, bytes]]) -> None:
 def to_torchscript(
     model: nn.Module, path: str | os.PathLike, *, limits: tuple[float, float] | None = None,
     initial_command: float = 0.0, input_range: tuple[float, float] | None = None,
-    input_margin: float | None = 0.05, direction: str = "auto",
+    input_margin: float | None = 0.05, direction: str = "auto", adapt: str = "none",
+    forgetting: float = 0.999, adapt_bound: float = 0.5, dead_zone: float = 0.0,
+    excitation: float = 1e-3, nlms_step: float = 0.5, initial_covariance: float = 1.0,
 ) -> torch.jit.ScriptModule:
     """Script the streaming compensator of ``model`` and save it to ``path``.
 
@@ -157,6 +190,11 @@ def to_torchscript(
         input_range, input_margin, direction: the input clamp and the direction guard, as
             :class:`~torchhys.deploy.streaming.StreamingCompensator` (defaults: its defaults, the
             model's recorded training input range with a 5 % margin and its direction).
+        adapt: ``"none"`` (the static compensator), ``"rls"`` or ``"nlms"``: the
+            :class:`~torchhys.deploy.adaptive.AdaptiveCompensator`, whose ``step(x_t,
+            conditions=None, measured_prev=None, applied_prev=None)`` adapts the readout.
+        forgetting, adapt_bound, dead_zone, excitation, nlms_step, initial_covariance: its
+            options (used with ``adapt`` rls or nlms; defaults :data:`ADAPT_DEFAULTS`).
 
     Returns:
         The scripted module (also saved). Its methods: ``forward(x)`` x (time,) or
@@ -171,7 +209,9 @@ def to_torchscript(
     path = _check_path(path)
     comp = _compensator(model, limits, initial_command,
                         {"input_range": input_range, "input_margin": input_margin,
-                         "direction": direction}).eval()
+                         "direction": direction, **adapt_options(
+                             adapt, forgetting, adapt_bound, dead_zone, excitation,
+                             nlms_step, initial_covariance)}).eval()
     with warnings.catch_warnings():
         warnings.filterwarnings(
             "ignore", message=r"`torch\.jit\.script` is deprecated", category=DeprecationWarning
@@ -190,7 +230,7 @@ def load_torchscript(path: str | os.PathLike) -> torch.jit.ScriptModule:
     works as well (no torchhys needed). The module's :func:`metadata` is attached as the
     dict ``module.torchhys_metadata`` (Python attribute, not scripted).
     """
-    files = dict.fromkeys((*_METADATA_KEYS, *CONDITION_KEYS), "")
+    files = dict.fromkeys((*_METADATA_KEYS, *CONDITION_KEYS, *ADAPT_KEYS), "")
     with warnings.catch_warnings():
         warnings.filterwarnings(
             "ignore", message=r"`torch\.jit\.load` is deprecated", category=DeprecationWarning
@@ -198,7 +238,7 @@ def load_torchscript(path: str | os.PathLike) -> torch.jit.ScriptModule:
         module = torch.jit.load(os.fspath(path), map_location="cpu", _extra_files=files)
     module.torchhys_metadata = {k: v.decode() if isinstance(v, bytes) else v
                                 for k, v in files.items()
-                                if k not in CONDITION_KEYS or v not in ("", b"")}
+                                if k in _METADATA_KEYS or v not in ("", b"")}
     return module
 
 
@@ -215,6 +255,33 @@ _METADATA_KEYS = ("state_spec", "n_state", "counter", "held", "low", "high", "in
 #: the metadata keys a conditioned compensator adds: the number of conditions and the
 #: clamp's bounds of each (comma-separated; -inf/inf without a clamp)
 CONDITION_KEYS = ("n_conditions", "condition_low", "condition_high")
+#: the metadata keys an adaptive compensator adds (the module docstring)
+ADAPT_KEYS = ("adapt", "n_weights", "weights", "covariance", "adapt_counts", "w0", "inv_scale",
+              "bound", "forgetting", "adapt_bound", "dead_zone", "excitation", "nlms_step",
+              "initial_covariance")
+
+
+def _floats(t: Tensor) -> str:
+    return ",".join(repr(float(v)) for v in t.flatten())
+
+
+def _adapt_metadata(comp: StreamingCompensator) -> dict[str, str]:
+    """The :data:`ADAPT_KEYS` of an adaptive compensator ({} for a static one)."""
+    if not isinstance(comp, AdaptiveCompensator):
+        return {}
+    n, w = len(comp.templates), 2 * comp.k
+    w0 = comp.w0.double()
+    scale = torch.clamp(w0.abs(), min=float(w0.square().mean().sqrt()))
+    ratio = comp.bound.double() / scale
+    digits = 15 if comp.low.dtype == torch.float64 else 7
+    bound = float(f"{float(ratio.median()) if bool((scale > 0).all()) else 0.0:.{digits}g}")
+    return {"adapt": "rls" if comp.rls else "nlms", "n_weights": str(comp.m),
+            "weights": str(w), "covariance": str(w + 1) if comp.rls else "",
+            "adapt_counts": str(n - 1), "w0": _floats(comp.w0),
+            "inv_scale": _floats(comp.inv_scale), "bound": _floats(comp.bound),
+            "forgetting": repr(comp.forgetting), "adapt_bound": repr(bound),
+            "dead_zone": repr(comp.dead_zone), "excitation": repr(comp.excitation),
+            "nlms_step": repr(comp.nlms_step), "initial_covariance": repr(comp.p0)}
 
 
 def metadata(comp: StreamingCompensator, batch: int = 1) -> dict[str, str]:
@@ -232,6 +299,7 @@ def metadata(comp: StreamingCompensator, batch: int = 1) -> dict[str, str]:
             "n_conditions": str(comp.n_conditions),
             "condition_low": ",".join(repr(float(v)) for v in comp.cond_low),
             "condition_high": ",".join(repr(float(v)) for v in comp.cond_high)}),
+        **_adapt_metadata(comp),
     }
 
 
@@ -280,14 +348,18 @@ def to_aoti(
     model: nn.Module, path: str | os.PathLike, *, limits: tuple[float, float] | None = None,
     initial_command: float = 0.0, input_range: tuple[float, float] | None = None,
     input_margin: float | None = 0.05, direction: str = "auto",
-    batch: int = 1, inductor_configs: dict[str, Any] | None = None,
+    batch: int = 1, inductor_configs: dict[str, Any] | None = None, adapt: str = "none",
+    forgetting: float = 0.999, adapt_bound: float = 0.5, dead_zone: float = 0.0,
+    excitation: float = 1e-3, nlms_step: float = 0.5, initial_covariance: float = 1.0,
 ) -> str:
     """Compile the explicit-state step with ``torch.export`` + AOTInductor into a package.
 
     The package runs ``(x_t (batch,), *state) -> (u_t (batch,), *state)``; a conditioned
     model's (``n_conditions > 0``, ``docs/conditions.md``) runs ``(x_t (batch,), conditions
     (batch, n_conditions), *state) -> (u_t (batch,), *state)``, and its metadata adds
-    :data:`CONDITION_KEYS`. The fresh state is all zeros; its shapes and dtypes, the
+    :data:`CONDITION_KEYS`. An adaptive one's (``adapt``) takes ``measured_prev`` and
+    ``applied_prev`` (batch,) after them, and its metadata adds :data:`ADAPT_KEYS`. The
+    fresh state is all zeros; its shapes and dtypes, the
     counter's position and the limits are in the package metadata (:func:`metadata`).
     Compiling takes a minute or more on a small CPU.
 
@@ -296,6 +368,8 @@ def to_aoti(
             :func:`to_torchscript`.
         path: output package (a name ending in ``.pt2``), written atomically: an old file
             there is replaced whole or, on an error, left as it was.
+        adapt, forgetting, adapt_bound, dead_zone, excitation, nlms_step,
+            initial_covariance: as :func:`to_torchscript`.
         batch: batch size the package is compiled for (static).
         inductor_configs: extra AOTInductor options; they override the defaults
             (in float32 ``max_autotune=True, max_autotune_gemm_backends="CPP"``: generated
@@ -310,14 +384,15 @@ def to_aoti(
     check_int(batch, "batch", minimum=1)
     comp = _compensator(model, limits, initial_command,
                         {"input_range": input_range, "input_margin": input_margin,
-                         "direction": direction}).eval()
+                         "direction": direction, **adapt_options(
+                             adapt, forgetting, adapt_bound, dead_zone, excitation,
+                             nlms_step, initial_covariance)}).eval()
     state = comp.initial_state(batch)
     x = torch.zeros(batch, dtype=comp.low.dtype)
-    # a conditioned model's step takes its conditions (batch, n) after x
-    cond = ([torch.zeros(batch, comp.n_conditions, dtype=comp.low.dtype)]
-            if comp.n_conditions > 0 else [])
+    # the inputs between x and the state: the conditions, the adaptive pair
+    extra = [t for _, t in comp.example_inputs(batch)]
     with torch.no_grad():
-        ep = torch.export.export(_ExplicitStep(comp), (x, *cond, *state), strict=False)
+        ep = torch.export.export(_ExplicitStep(comp), (x, *extra, *state), strict=False)
     configs = {**_aoti_defaults(comp.low.dtype), "aot_inductor.metadata": metadata(comp, batch),
                **(inductor_configs or {})}
     buffer = io.BytesIO()
@@ -326,9 +401,11 @@ def to_aoti(
     return path
 
 
-class AOTIStepper:
-    """Python runner of an AOTI package from :func:`to_aoti`: ``step``, ``reset``, counter.
-    Safe across threads: a lock makes ``step`` and ``reset`` run one at a time.
+class AOTIStepper(AdaptiveStepper):
+    """Python runner of an AOTI package from :func:`to_aoti`: ``step``, ``reset``, counter;
+    for an adaptive package ``adapted_weights()``, ``updates_count()``, ``skipped_count()``
+    and ``refused_count()``. Safe across threads: a lock makes ``step`` and ``reset`` run one
+    at a time.
 
     Args:
         path: the ``.pt2`` package.
@@ -337,7 +414,9 @@ class AOTIStepper:
     def __init__(self, path: str | os.PathLike) -> None:
         self.runner = torch._inductor.aoti_load_package(os.fspath(path))
         meta = self.runner.get_metadata()
-        self.metadata = {k: meta[k] for k in (*_METADATA_KEYS, *CONDITION_KEYS) if k in meta}
+        self.metadata = {k: meta[k] for k in (*_METADATA_KEYS, *CONDITION_KEYS, *ADAPT_KEYS)
+                         if k in meta}
+        self.adaptation = FileAdaptation(self.metadata)
         self.n_conditions = int(meta.get("n_conditions", "0"))
         self.spec = meta["state_spec"]
         self.counter = _position(meta["counter"])
@@ -353,9 +432,11 @@ class AOTIStepper:
         with self._lock:
             self.state = _parse_state_spec(self.spec)
 
-    def step(self, x_t: Tensor, conditions: Tensor | None = None) -> Tensor:
+    def step(self, x_t: Tensor, conditions: Tensor | None = None,
+             measured_prev: Tensor | None = None, applied_prev: Tensor | None = None) -> Tensor:
         """One sample, x_t (batch,) (and, for a package with conditions, their values
-        (batch, n_conditions)) -> command (batch,).
+        (batch, n_conditions); for an adaptive package the last sample's measured response
+        and applied command (batch,), None: no update) -> command (batch,).
 
         The compiled kernels index their inputs with the strides seen at export (dense,
         row-major) and do not check them at run time, so the sample and the conditions are
@@ -364,7 +445,8 @@ class AOTIStepper:
 
         Raises:
             ValueError: ``x_t`` is not of shape ``(batch,)`` with the compiled batch;
-                conditions missing, given to a package without, or of another shape.
+                conditions missing, given to a package without, or of another shape; a
+                member of the pair of another shape, or given to a static package.
         """
         if x_t.dim() != 1 or x_t.shape[0] != self.batch:
             raise ValueError(
@@ -373,6 +455,8 @@ class AOTIStepper:
             )
         dtype = self.state[0].dtype
         extra = file_conditions(conditions, self.n_conditions, self.batch, dtype, "package")
+        extra += file_pair(measured_prev, applied_prev, self.adaptation.adaptive, self.batch,
+                           dtype, "package")
         with self._lock:  # the state read, stepped and replaced by one thread at a time
             out = self.runner(x_t.to(dtype).contiguous(), *extra, *self.state)
             self.state = [s.contiguous() for s in out[1:]]

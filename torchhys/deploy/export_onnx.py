@@ -7,6 +7,11 @@ same function as an AOTI package (:func:`torchhys.deploy.export.to_aoti`)::
     inputs   x (batch,), state_0, ..., state_{k-1}
     outputs  u (batch,), new_state_0, ..., new_state_{k-1}   (the same order, shapes, dtypes)
 
+A conditioned model's file has the input ``conditions`` (batch, n) after x; an adaptive
+compensator's (``adapt="rls"`` or ``"nlms"``) ``measured_prev`` and ``applied_prev`` (batch,)
+after those (the last sample's response and applied command, NaN: no update), and its
+metadata the ``ADAPT_KEYS`` of :mod:`torchhys.deploy.export`.
+
 The caller keeps the state: it starts from the metadata's ``initial_state`` (all zeros) and
 feeds each step's new states to the next. The state tensors, their dtypes (the compensator's
 float dtype, ``int64``, ``bool`` and, for some operators, ``float64``) and their layout are
@@ -60,9 +65,10 @@ from torch import Tensor, nn
 from torchhys._checks import check_int
 from torchhys._version import __version__
 from torchhys.deploy._onnx_norms import norm_translations
-from torchhys.deploy._slots import file_conditions
+from torchhys.deploy._slots import AdaptiveStepper, FileAdaptation, file_conditions, file_pair
 from torchhys.deploy.export import (
     _METADATA_KEYS,
+    ADAPT_KEYS,
     CONDITION_KEYS,
     _check_path,
     _compensator,
@@ -70,6 +76,7 @@ from torchhys.deploy.export import (
     _parse_state_spec,
     _position,
     _write,
+    adapt_options,
     metadata,
 )
 
@@ -197,7 +204,9 @@ def to_onnx(
     model: nn.Module, path: str | os.PathLike, *, limits: tuple[float, float] | None = None,
     initial_command: float = 0.0, input_range: tuple[float, float] | None = None,
     input_margin: float | None = 0.05, direction: str = "auto", batch: int = 1,
-    opset: int | None = None,
+    opset: int | None = None, adapt: str = "none", forgetting: float = 0.999,
+    adapt_bound: float = 0.5, dead_zone: float = 0.0, excitation: float = 1e-3,
+    nlms_step: float = 0.5, initial_covariance: float = 1.0,
 ) -> str:
     """Export the explicit-state step of the compensator of ``model`` as an ONNX file.
 
@@ -209,6 +218,9 @@ def to_onnx(
             atomically: an old file there is replaced whole or, on an error, left as it was.
         batch: rows per step (static).
         opset: the ONNX opset (default: the exporter's).
+        adapt, forgetting, adapt_bound, dead_zone, excitation, nlms_step,
+            initial_covariance: as :func:`torchhys.deploy.export.to_torchscript`
+            (``adapt`` rls or nlms: the inputs ``measured_prev`` and ``applied_prev``).
 
     Returns:
         The path written.
@@ -225,22 +237,46 @@ def to_onnx(
     _require("onnx", "onnxscript")
     comp = _compensator(model, limits, initial_command,
                         {"input_range": input_range, "input_margin": input_margin,
-                         "direction": direction}).eval()
+                         "direction": direction, **adapt_options(
+                             adapt, forgetting, adapt_bound, dead_zone, excitation,
+                             nlms_step, initial_covariance)}).eval()
     state = comp.initial_state(batch)
     x = torch.zeros(batch, dtype=comp.low.dtype)
     names = [f"state_{i}" for i in range(len(state))]
-    # a conditioned model's step takes its conditions (batch, n) after x
-    cond = ([torch.zeros(batch, comp.n_conditions, dtype=comp.low.dtype)]
-            if comp.n_conditions > 0 else [])
-    inputs = (x, *cond, *state)
+    # the inputs between x and the state: the conditions, the adaptive pair
+    extra = comp.example_inputs(batch)
+    inputs = (x, *(t for _, t in extra), *state)
     with torch.no_grad(), _quiet_exporter():
         program = torch.export.export(_ExplicitStep(comp).eval(), inputs, strict=False)
+    meta = onnx_metadata(comp, batch)
+    try:
+        proto = _export_program(program, inputs, opset, ["x", *(n for n, _ in extra), *names],
+                                meta, optimize=True)
+        _check_runs(proto)
+    except ValueError as err:
+        # onnxscript's optimizer (0.7.2) can drop the shared bounds of two clamps of one
+        # value (the conditions' clamp on an adaptive compensator's two paths), leaving a
+        # node input that nothing defines: that graph is written unoptimized
+        if "is not a graph input, initializer, or output" not in str(err):
+            raise
+        proto = _export_program(program, inputs, opset, ["x", *(n for n, _ in extra), *names],
+                                meta, optimize=False)
+        _check_runs(proto)
+    _write(path, proto.SerializeToString())  # atomic: a full disk leaves the old file
+    return path
+
+
+def _export_program(program: Any, inputs: tuple[Tensor, ...], opset: int | None,
+                    input_names: list[str], meta: dict[str, str], optimize: bool) -> Any:
+    """The ONNX model proto of the exported ``program`` with the metadata ``meta``; an
+    operation without a translation is a one-line ValueError (:func:`_unsupported`)."""
+    outputs = ["u", *(f"new_{n}" for n in input_names if n.startswith("state_"))]
+    with torch.no_grad(), _quiet_exporter():
         try:
             onnx_program = torch.onnx.export(
-                program, inputs, dynamo=True, opset_version=opset,
-                input_names=["x", *(["conditions"] if cond else []), *names],
-                output_names=["u", *(f"new_{n}" for n in names)],
-                custom_translation_table=_translations(), verbose=False, optimize=True,
+                program, inputs, dynamo=True, opset_version=opset, input_names=input_names,
+                output_names=outputs, custom_translation_table=_translations(),
+                verbose=False, optimize=optimize,
             )
         except Exception as err:
             message = _unsupported(err)
@@ -248,12 +284,10 @@ def to_onnx(
                 raise
             raise ValueError(message) from None
     proto = onnx_program.model_proto
-    for key, value in onnx_metadata(comp, batch).items():
+    for key, value in meta.items():
         entry = proto.metadata_props.add()
         entry.key, entry.value = key, value
-    _check_runs(proto)
-    _write(path, proto.SerializeToString())  # atomic: a full disk leaves the old file
-    return path
+    return proto
 
 
 @contextlib.contextmanager
@@ -321,10 +355,12 @@ def _check_runs(proto: Any) -> None:
                          f"{first}") from None
 
 
-class ONNXStepper:
+class ONNXStepper(AdaptiveStepper):
     """Python runner of a file from :func:`to_onnx` over ONNX Runtime: ``step``, ``reset``,
-    the counters. The state is kept as torch tensors (``state``), in the file's layout.
-    Safe across threads: a lock makes ``step`` and ``reset`` run one at a time.
+    the counters (for an adaptive file ``adapted_weights()``, ``updates_count()``,
+    ``skipped_count()`` and ``refused_count()`` too). The state is kept as torch tensors
+    (``state``), in the file's layout. Safe across threads: a lock makes ``step`` and
+    ``reset`` run one at a time.
 
     Args:
         path: the ``.onnx`` file.
@@ -347,8 +383,9 @@ class ONNXStepper:
         if missing:
             raise ValueError(f"{os.fspath(path)}: not a torchhys ONNX compensator (its "
                              f"metadata lacks {', '.join(missing)})")
-        self.metadata = {k: meta[k] for k in (*ONNX_METADATA_KEYS, *CONDITION_KEYS)
-                         if k in meta}
+        self.metadata = {k: meta[k] for k in (*ONNX_METADATA_KEYS, *CONDITION_KEYS,
+                                              *ADAPT_KEYS) if k in meta}
+        self.adaptation = FileAdaptation(self.metadata)
         self.spec = meta["state_spec"]
         self.counter = _position(meta["counter"])
         oor = meta.get("out_of_range", "")
@@ -366,13 +403,16 @@ class ONNXStepper:
         with self._lock:
             self.state = _parse_state_spec(self.spec)
 
-    def step(self, x_t: Tensor, conditions: Tensor | None = None) -> Tensor:
+    def step(self, x_t: Tensor, conditions: Tensor | None = None,
+             measured_prev: Tensor | None = None, applied_prev: Tensor | None = None) -> Tensor:
         """One sample, x_t (batch,) (and, for a file with conditions, their values
-        (batch, n_conditions)) -> command (batch,).
+        (batch, n_conditions); for an adaptive file the last sample's measured response and
+        applied command (batch,), None: no update) -> command (batch,).
 
         Raises:
             ValueError: ``x_t`` is not of shape ``(batch,)`` with the exported batch;
-                conditions missing, given to a file without, or of another shape.
+                conditions missing, given to a file without, or of another shape; a member
+                of the pair of another shape, or given to a static file.
         """
         x_t = torch.as_tensor(x_t)
         if x_t.dim() != 1 or x_t.shape[0] != self.batch:
@@ -380,6 +420,8 @@ class ONNXStepper:
                              f"shape {tuple(x_t.shape)}")
         x_t = x_t.to(self.dtype).contiguous()
         extra = file_conditions(conditions, self.n_conditions, self.batch, self.dtype, "file")
+        extra += file_pair(measured_prev, applied_prev, self.adaptation.adaptive, self.batch,
+                           self.dtype, "file")
         with self._lock:  # the state read, stepped and replaced by one thread at a time
             feed = {name: t.numpy() for name, t in
                     zip(self.input_names, [x_t, *extra, *self.state], strict=True)}
