@@ -314,3 +314,96 @@ def test_the_controller_in_adaptive_mode_equals_the_eager_compensator(tmp_path: 
     fresh = AdaptiveCompensator(model, adapt="nlms", **OPTS).offline_weights().tolist()
     assert [float(v) for v in logged[0][2:]] == fresh  # the first step gets no pair
     assert not np.allclose([float(v) for v in logged[2][2:]], comp.offline_weights().tolist())
+
+
+def conditioned_net() -> InverseHysteresisNet:
+    """Two plays and an identity readout scheduled on one condition (degree 1), fitted by
+    least squares to the PI inverse's command scaled by 1 + 0.3 c."""
+    from torchhys.selection.candidates import solve_readout
+    from torchhys.selection.folds import Batch
+
+    y = torch.stack([torch.tensor(signal(800, seed=s), dtype=D) for s in range(3)])
+    c = torch.linspace(0.0, 1.0, 3, dtype=D)[:, None, None].expand(3, 800, 1).contiguous()
+    u = pi_inverse()(y)[0] * (1.0 + 0.3 * c[..., 0])
+    net = InverseHysteresisNet([torchhys.Backlash(torch.tensor([0.3, 0.9]))], 1,
+                               activation="identity", n_conditions=1,
+                               condition_degree=1).double()
+    net.fit_normalization(y, u, conditions=c)
+    solve_readout(net, Batch(y, u, torch.ones_like(y, dtype=torch.bool), c))
+    return net
+
+
+CONDITIONED_DRIVER = r"""
+#include <stdio.h>
+#include "cd.h"
+
+int main(void)
+{
+    static cd_state s;
+    double x, c, m, a;
+    cd_real cond[cd_N_CONDITIONS];
+    cd_init(&s);
+    while (scanf("%lf %lf %lf %lf", &x, &c, &m, &a) == 4) {
+        cond[0] = (cd_real)c;
+        printf("%.17g\n", (double)cd_step_adapt(&s, (cd_real)x, cond, (cd_real)m,
+                                                (cd_real)a));
+    }
+    printf("%lld %lld %lld\n", (long long)cd_updates_count(&s),
+           (long long)cd_skipped_count(&s), (long long)cd_refused_count(&s));
+    return 0;
+}
+"""
+
+
+@pytest.mark.parametrize("method", ["rls", "nlms"])
+def test_a_conditioned_adaptive_step_equals_the_eager_one(tmp_path: Path, method: str) -> None:
+    """PREFIX_step_adapt(s, desired, conditions, measured_prev, applied_prev) of a conditioned
+    network: within 1e-12 of the eager compensator over 1500 samples (the condition ramped,
+    a pair at every sample but the first), the counters equal; the guard set against the
+    device (decreasing) so that updates are refused too."""
+    net = conditioned_net()
+    kw = {"direction": "decreasing", "input_range": (-2.5, 2.5), "limits": (-10.0, 10.0)}
+    comp = AdaptiveCompensator(net, adapt=method, **kw)
+    n = 1500
+    x, c = signal(n, seed=3), np.linspace(0.0, 1.0, n)
+    rows, us, y_prev, u_prev = [], [], np.nan, np.nan
+    for t in range(n):
+        rows.append((x[t], c[t], y_prev, u_prev))
+        u = float(comp.step(torch.tensor([x[t]], dtype=D), torch.tensor([[c[t]]], dtype=D),
+                            torch.tensor([y_prev], dtype=D), torch.tensor([u_prev], dtype=D)))
+        us.append(u)
+        y_prev, u_prev = 1.1 * x[t] + 0.01 * np.sin(t), u
+    to_c(net, tmp_path, prefix="cd", adapt=method, **kw)
+    header = (tmp_path / "cd.h").read_text()
+    assert ("cd_real cd_step_adapt(cd_state *s, cd_real desired, const cd_real *conditions, "
+            "cd_real measured_prev, cd_real applied_prev);") in header
+    (tmp_path / "main.c").write_text(CONDITIONED_DRIVER)
+    subprocess.run([CC, *FLAGS, "-I", str(tmp_path), "-o", str(tmp_path / "run"),
+                    str(tmp_path / "main.c"), str(tmp_path / "cd.c"), "-lm"], check=True)
+    text = "\n".join(" ".join(repr(float(v)) for v in row) for row in rows)
+    out = subprocess.run([str(tmp_path / "run")], input=text, capture_output=True, text=True,
+                         check=True).stdout.splitlines()
+    assert gap([float(v) for v in out[:n]], us) <= 1e-12
+    counts = [int(v) for v in out[n].split()]
+    assert counts == [int(comp.updates_count()), int(comp.skipped_count()),
+                      int(comp.refused_count())]
+    assert counts[0] > 0 and counts[2] > 0, counts
+
+
+@pytest.mark.slow
+def test_the_adaptive_latency_benchmark_prints_its_rows() -> None:
+    """benchmarks/latency.py --adaptive: twelve rows (2 models x 2 builds x 3 steps), the
+    static rows' ratio 1, the adaptive rows' counters."""
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, str(root / "benchmarks" / "latency.py"), "--adaptive",
+                          "--samples", "300", "--rounds", "1"], cwd=root, capture_output=True,
+                         text=True, check=True, timeout=600).stdout
+    rows = [line.split("|")[1:-1] for line in out.splitlines()
+            if line.startswith("| ") and not line.startswith("| compensator")]
+    assert len(rows) == 12, out
+    for row in rows:
+        cells = [c.strip() for c in row]
+        assert (cells[5] == "1.00") == (cells[2] == "static"), cells
+        assert cells[2] == "static" or int(cells[6].split(" / ")[0]) > 0, cells
