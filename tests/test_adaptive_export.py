@@ -82,19 +82,20 @@ def counters(stepper) -> list[int]:
                                   stepper.refused_count)]
 
 
-def check_parity(eager: AdaptiveCompensator, stepper, data, meta: dict[str, str]) -> float:
-    """Steps both over ``data``: commands within TOL, equal counters, equal weights (from
+def check_parity(eager: AdaptiveCompensator, stepper, data, meta: dict[str, str],
+                 tol: float = TOL) -> float:
+    """Steps both over ``data``: commands within ``tol``, equal counters, equal weights (from
     the stepper's state at the metadata's ``weights`` index). Returns the largest gap."""
     want = steps(eager, data)
     got = steps(stepper, data)
     gap = float((want - got).abs().max())
-    assert gap <= TOL, gap
+    assert gap <= tol, gap
     counts = counters(eager)
     assert counters(stepper) == counts
     assert counts[2] > 100 and counts[3] > 20 and counts[0] > 0 and counts[1] > 0
     w = int(meta["weights"])
-    assert float((stepper.state[w] - eager.state[w]).abs().max()) <= TOL
-    assert float((stepper.adapted_weights() - eager.adapted_weights()).abs().max()) <= TOL
+    assert float((stepper.state[w] - eager.state[w]).abs().max()) <= tol
+    assert float((stepper.adapted_weights() - eager.adapted_weights()).abs().max()) <= tol
     moved = float((eager.adapted_weights()[0] - eager.offline_weights()).abs().max())
     assert moved > 1e-3  # the weights did adapt
     return gap
@@ -137,7 +138,11 @@ def test_1e4_samples_torchscript_and_onnx(tmp_path, name, method) -> None:
     module = load_torchscript(tmp_path / "a.pt")
     check_parity(compensator(name, method), module, data, module.torchhys_metadata)
     stepper = load_onnx(tmp_path / "a.onnx")
-    check_parity(compensator(name, method), stepper, data, stepper.metadata)
+    # ONNX Runtime's sums round otherwise than torch's, and RLS's gain amplifies that where
+    # the covariance is ill-conditioned: the conditioned RLS reached 3.0e-12 at one sample
+    # of 1e4 (|u| 1.35, the covariance's condition number 5e4); the others stay below 4e-14
+    tol = 1e-11 if name == "conditioned" else TOL
+    check_parity(compensator(name, method), stepper, data, stepper.metadata, tol)
 
 
 @pytest.mark.slow
