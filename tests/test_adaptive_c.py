@@ -407,3 +407,12 @@ def test_the_adaptive_latency_benchmark_prints_its_rows() -> None:
         cells = [c.strip() for c in row]
         assert (cells[5] == "1.00") == (cells[2] == "static"), cells
         assert cells[2] == "static" or int(cells[6].split(" / ")[0]) > 0, cells
+
+
+@pytest.mark.parametrize(("kw", "name"), [({"adapt": "kalman"}, "adapt"),
+                                          ({"adapt": "nlms", "nlms_step": 0.0}, "nlms_step"),
+                                          ({"adapt": "rls", "forgetting": 1.5}, "forgetting")])
+def test_bad_adaptive_options_name_the_argument(tmp_path: Path, kw: dict, name: str) -> None:
+    with pytest.raises(ValueError, match=name):
+        to_c(pi_inverse(), tmp_path, **OPTS, **kw)
+    assert not list(tmp_path.iterdir())  # nothing written
