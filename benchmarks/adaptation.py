@@ -376,10 +376,12 @@ def main(argv: list[str] | None = None) -> None:
     rows, traces = run(args.plants, args.quick, log)
     print("\n".join(log))
     print(f"\ntotal {time.perf_counter() - start:.0f} s\n")
-    print("| plant | drift | method | RMSE (%) | RMSE 2nd half (%) |")
-    print("|---|---|---|---|---|")
+    print("| plant | drift | method | RMSE (%) | RMSE 2nd half (%) | 2nd half / static |")
+    print("|---|---|---|---|---|---|")
+    static = {(r[0], r[1]): r[4] for r in rows if r[2] == "static compensator"}
     for name, drift, method, whole, second in rows:
-        print(f"| {name} | {drift} | {method} | {whole:.3f} | {second:.3f} |")
+        print(f"| {name} | {drift} | {method} | {whole:.3f} | {second:.3f} | "
+              f"{second / static[name, drift]:.3f} |")
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         plot(traces, args.out / "adaptation_ramp.png")

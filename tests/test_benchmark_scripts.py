@@ -438,7 +438,8 @@ def test_adaptation_benchmark_plants_and_static_row_match_the_batch_forms() -> N
 @pytest.mark.slow  # 16 closed-loop runs of 1198 samples, one sample at a time
 def test_adaptation_benchmark_baselines_track_and_drift_hurts_the_static_one() -> None:
     out = run("adaptation.py", "--quick", "--plants", "paper", "bouc_wen")
-    assert "| plant | drift | method | RMSE (%) | RMSE 2nd half (%) |" in out
+    assert ("| plant | drift | method | RMSE (%) | RMSE 2nd half (%) | 2nd half / static |"
+            in out)
     rows = table(out, "plant")
     by = {(r[0], r[1], r[2]): (number(r[3]), number(r[4])) for r in rows}
     assert len(rows) == len(by) == 2 * 4 * 4
