@@ -1,2 +1,4 @@
 """Deployment: the streaming compensator and its exporters (TorchScript, AOTInductor, C99,
 ONNX)."""
+
+import torchhys.deploy.adaptive  # noqa: F401  (StreamingCompensator(..., adapt=...) builds it)

@@ -63,7 +63,7 @@ from torch import Tensor, nn
 from torchhys._checks import check_choice, check_real
 from torchhys.deploy._slots import conditions_of
 from torchhys.deploy.ranges import RANGES, default_input_range
-from torchhys.deploy.streaming import StreamingCompensator
+from torchhys.deploy.streaming import _ADAPTIVE, StreamingCompensator
 from torchhys.functional.adaptive import nlms_update, rls_update
 from torchhys.protocols import AffineForm, check_readout
 from torchhys.step import OperatorStep
@@ -400,3 +400,4 @@ class AdaptiveCompensator(StreamingCompensator):
 # annotations: the static compensator's are the adaptive one's too
 AdaptiveCompensator.__annotations__ = {**StreamingCompensator.__annotations__,
                                        **AdaptiveCompensator.__annotations__}
+_ADAPTIVE.append(AdaptiveCompensator)  # StreamingCompensator(..., adapt=...) builds it

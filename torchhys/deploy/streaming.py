@@ -84,6 +84,10 @@ HELD = (STATE_F, 0)
 COUNTER = (STATE_I, 0)
 STARTED = (STATE_STARTED, 0)
 
+#: the class ``StreamingCompensator(..., adapt=...)`` builds (torchhys.deploy.adaptive's)
+_ADAPTIVE: list[type] = []
+
+
 class StreamingCompensator(nn.Module):
     """A causal feedforward compensator, one sample at a time, in physical units.
 
@@ -152,8 +156,7 @@ class StreamingCompensator(nn.Module):
         """``adapt="rls"`` or ``"nlms"`` (with the adaptive options) builds an
         :class:`~torchhys.deploy.adaptive.AdaptiveCompensator`."""
         if cls is StreamingCompensator and adapt != "none":
-            from torchhys.deploy.adaptive import AdaptiveCompensator
-            cls = AdaptiveCompensator
+            cls = _ADAPTIVE[0]  # torchhys.deploy (its __init__) imports and registers it
         return super().__new__(cls)
 
     def __init__(

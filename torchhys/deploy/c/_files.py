@@ -11,9 +11,9 @@ from typing import Any
 import torch
 from torch import nn
 
+import torchhys.deploy.c._adaptive as _adaptive
 from torchhys._version import __version__
 from torchhys.deploy.adaptive import AdaptiveCompensator
-from torchhys.deploy.c import _adaptive
 from torchhys.deploy.c._views import copy as copy_to_local
 from torchhys.deploy.c._writer import CTensor, Writer
 from torchhys.deploy.export import metadata
