@@ -28,26 +28,8 @@ import torch
 
 from torchhys import EIHO, Backlash, InverseHysteresisNet, PrandtlIshlinskii
 
-C_TIMER_ADAPT = r"""
-#define _POSIX_C_SOURCE 199309L
-#include <stdio.h>
-#include <stdlib.h>
-#include <time.h>
-#include "comp.h"
-
-static int cmp(const void *a, const void *b)
-{
-    double x = *(const double *)a, y = *(const double *)b;
-    return (x > y) - (x < y);
-}
-
-static double now_ns(void)
-{
-    struct timespec t;
-    clock_gettime(CLOCK_MONOTONIC, &t);
-    return (double)t.tv_sec * 1e9 + (double)t.tv_nsec;
-}
-
+#: the adaptive timer's main (after benchmarks.latency.C_PRELUDE: the includes, cmp, now_ns)
+C_TIMER_ADAPT_MAIN = r"""
 /* timer REF.bin: the adaptive step over the reference (binary doubles), the pair of each
    sample the last command and 1.02 times the last desired output plus 0.01; once untimed,
    then from a fresh state timing every step; prints median_us, p99_us and the counters */
@@ -111,13 +93,14 @@ def models() -> dict[str, tuple[torch.nn.Module, dict]]:
 def build(model: torch.nn.Module, options: dict, adapt: str, folder: Path,
           flags: list[str]) -> Path:
     """The C step (prefix ``comp``) in its timer, compiled with ``cc -std=c99 FLAGS``."""
-    from benchmarks.latency import C_TIMER
+    from benchmarks.latency import C_PRELUDE, C_TIMER
     from torchhys.deploy.c import to_c
 
     folder.mkdir(parents=True, exist_ok=True)
     if not (folder / "comp.c").exists():
         to_c(model, folder, prefix="comp", adapt=adapt, direction="increasing", **options)
-        (folder / "timer.c").write_text(C_TIMER if adapt == "none" else C_TIMER_ADAPT)
+        (folder / "timer.c").write_text(
+            C_TIMER if adapt == "none" else C_PRELUDE + C_TIMER_ADAPT_MAIN)
     exe = folder / ("timer" + "".join(flags).replace("=", "_").replace("-", "_"))
     subprocess.run([os.environ.get("CC", "cc"), "-std=c99", *flags, "-I", str(folder), "-o",
                     str(exe), str(folder / "timer.c"), str(folder / "comp.c"), "-lm"],
