@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 from _export_helpers import CC, FLAGS, FLOAT32_RTOL, NO_CC
+from test_adaptive_compensator import conditioned_net
 
 import torchhys
 from torchhys import InverseHysteresisNet, PrandtlIshlinskii
@@ -314,23 +315,6 @@ def test_the_controller_in_adaptive_mode_equals_the_eager_compensator(tmp_path: 
     fresh = AdaptiveCompensator(model, adapt="nlms", **OPTS).offline_weights().tolist()
     assert [float(v) for v in logged[0][2:]] == fresh  # the first step gets no pair
     assert not np.allclose([float(v) for v in logged[2][2:]], comp.offline_weights().tolist())
-
-
-def conditioned_net() -> InverseHysteresisNet:
-    """Two plays and an identity readout scheduled on one condition (degree 1), fitted by
-    least squares to the PI inverse's command scaled by 1 + 0.3 c."""
-    from torchhys.selection.candidates import solve_readout
-    from torchhys.selection.folds import Batch
-
-    y = torch.stack([torch.tensor(signal(800, seed=s), dtype=D) for s in range(3)])
-    c = torch.linspace(0.0, 1.0, 3, dtype=D)[:, None, None].expand(3, 800, 1).contiguous()
-    u = pi_inverse()(y)[0] * (1.0 + 0.3 * c[..., 0])
-    net = InverseHysteresisNet([torchhys.Backlash(torch.tensor([0.3, 0.9]))], 1,
-                               activation="identity", n_conditions=1,
-                               condition_degree=1).double()
-    net.fit_normalization(y, u, conditions=c)
-    solve_readout(net, Batch(y, u, torch.ones_like(y, dtype=torch.bool), c))
-    return net
 
 
 CONDITIONED_DRIVER = r"""
