@@ -320,7 +320,35 @@ def _searchsorted(spec: Any, seq: Any, values: Any, *, out_int32: bool = False,
     return _sym(out, spec)
 
 
+def _sort(spec: list, x: Any, dim: int = -1, descending: bool = False, *,
+          stable: bool | None = None) -> list[Sym]:
+    """Values and indices by rank: element i's rank is the number of elements before it
+    (smaller, or equal and earlier: a stable sort), and position k sums ``if_else(rank_i
+    == k, ...)`` over i (``n^2`` comparisons a line)."""
+    ca = casadi()
+    a = as_array(x)
+    d = _dim(dim, max(a.ndim, 1))
+    moved = np.moveaxis(a.reshape(a.shape or (1,)), d, -1)
+    values, indices = np.empty(moved.shape, dtype=object), np.empty(moved.shape, dtype=object)
+    before = ca.gt if descending else ca.lt
+    for p in np.ndindex(moved.shape[:-1]):
+        line = list(moved[p].flat)
+        ranks = [functools.reduce(operator.add, [
+            before(e, f) if j > i else ca.logic_or(before(e, f), ca.eq(e, f))
+            for j, e in enumerate(line) if j != i], ca.SX(0)) for i, f in enumerate(line)]
+        for k in range(len(line)):
+            hit = [ca.eq(r, k) for r in ranks]
+            values[p + (k,)] = functools.reduce(
+                operator.add, [select(h, f, 0) for h, f in zip(hit, line, strict=True)])
+            indices[p + (k,)] = functools.reduce(
+                operator.add, [select(h, i, 0) for i, h in enumerate(hit)])
+    return [_sym(np.moveaxis(values, -1, d), spec[0]),
+            _sym(np.moveaxis(indices, -1, d), spec[1])]
+
+
 INDEXING: dict[str, Translation] = {
+    "sort.default": _sort, "sort.stable": lambda s, x, *, stable=None, dim=-1,
+    descending=False: _sort(s, x, dim, descending),
     "gather.default": _gather, "index_select.default": _index_select,
     "scatter.src": _scatter, "scatter.value": _scatter, "index.Tensor": _index,
     "searchsorted.Tensor": _searchsorted,

@@ -51,18 +51,16 @@ def objects(elements: list[Any], shape: tuple[int, ...]) -> np.ndarray:
 
 
 def as_array(v: Any) -> Any:
-    """An operand as a numpy object array of SX (a known tensor's values as constants) or a
-    Python number (kept: numpy broadcasts it)."""
+    """An operand as a numpy object array of SX (a known tensor's values and a Python
+    number as constants)."""
     ca = casadi()
     if isinstance(v, Sym):
         return v.a
     if isinstance(v, torch.Tensor):
         flat = v.detach().to(torch.float64).reshape(-1).tolist()
         return objects([ca.SX(x) for x in flat], tuple(v.shape))
-    if isinstance(v, bool):
-        return ca.SX(float(v))
-    if isinstance(v, (int, float)):
-        return ca.SX(float(v))
+    if isinstance(v, (bool, int, float)):  # a 0-dim array: numpy must not see a bare SX
+        return objects([ca.SX(float(v))], ())
     return v
 
 
