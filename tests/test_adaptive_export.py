@@ -245,7 +245,13 @@ def test_python_exports_refuse_bad_options(tmp_path) -> None:
 
 
 def _ckpt(tmp_path: Path) -> tuple[Path, torch.nn.Module]:
+    """The CLI tests' network with its readout fitted to u = 0.5 x (least squares)."""
+    from torchhys.selection.candidates import solve_readout
+    from torchhys.selection.folds import Batch
+
     net = trained().double()
+    x = 3 * torch.sin(torch.linspace(0, 20, 400, dtype=D))
+    solve_readout(net, Batch(x[None], 0.5 * x[None], torch.ones(1, 400, dtype=torch.bool)))
     torch.save(lightning_ckpt(net), tmp_path / "m.ckpt")
     return tmp_path / "m.ckpt", net
 

@@ -43,6 +43,14 @@ def test_rls_without_forgetting_is_the_ridge_solution_around_the_start() -> None
     np.testing.assert_allclose(P.numpy(), np.linalg.inv(A), atol=1e-12)
 
 
+def test_rls_keeps_the_covariance_symmetric_bit_for_bit() -> None:
+    """No symmetrization pass: the rank-one update is symmetric element for element."""
+    z, t = _data(500, seed=7)
+    _, P = _run_rls(z, t, np.zeros(4), 1e-3, 0.95)
+    assert torch.equal(P, P.T)
+    assert float(P.diagonal().min()) > 0.0
+
+
 def test_rls_with_forgetting_is_exponentially_weighted_least_squares() -> None:
     z, t = _data(200)
     w0, delta, lam = np.zeros(4), 1.0, 0.97

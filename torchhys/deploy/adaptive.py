@@ -192,7 +192,6 @@ class AdaptiveCompensator(StreamingCompensator):
         self.register_buffer("w0", wn.to(dtype))
         self.register_buffer("bound", (bound * torch.clamp(wn.abs(), min=rms)).to(dtype))
         eye = torch.eye(self.m, dtype=torch.float64)
-        self.register_buffer("eye", eye.to(dtype))
         self.register_buffer("p_init", (p0 * eye).to(dtype))
         self.k = len(self.templates)
         base = [t.clone() for t in self.templates]
@@ -341,8 +340,10 @@ class AdaptiveCompensator(StreamingCompensator):
                 w, self.p_init + P.view(-1, m, m), z, z_last, target, self.w0, self.bound,
                 self.forgetting, self.dead_zone, self.excitation, self.trace_max)
             # a covariance that lost its positive diagonal (rounding) restarts from p0 I
-            diag = (P_full * self.eye).sum(2)
-            lost = (diag <= self.zero).any(1) | ((P_full - P_full) != self.zero).flatten(1).any(1)
+            # (the diagonal alone: from a finite P, a non-finite element of the update makes
+            # its row's or column's diagonal element non-finite or not positive)
+            diag = torch.diagonal(P_full, 0, 1, 2)
+            lost = ((diag <= self.zero) | ((diag - diag) != self.zero)).any(1)
             P_new = torch.where(lost.view(-1, 1, 1), self.p_init, P_full).flatten(1) - (
                 self.p_init.flatten().unsqueeze(0))
         else:

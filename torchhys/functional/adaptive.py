@@ -60,10 +60,11 @@ def rls_update(w: Tensor, P: Tensor, z: Tensor, z_prev: Tensor, target: Tensor,
     ok = _skip(z, z_prev, target, e, dead_zone, excitation)
     Pz = torch.matmul(P, z.unsqueeze(-1)).squeeze(-1)
     denom = forgetting + (z * Pz).sum(-1, keepdim=True)
-    k = Pz / denom
-    w_new = w + k * e.unsqueeze(-1)
-    P_new = (P - k.unsqueeze(-1) * Pz.unsqueeze(-2)) / forgetting
-    P_new = 0.5 * (P_new + P_new.transpose(-1, -2))  # symmetric against rounding
+    inv = 1.0 / denom
+    w_new = w + Pz * (e.unsqueeze(-1) * inv)
+    # (P - Pz Pz^T / denom) / forgetting: symmetric bit for bit where P is (Pz_i Pz_j ==
+    # Pz_j Pz_i), so no symmetrization pass
+    P_new = (P - (Pz.unsqueeze(-1) * Pz.unsqueeze(-2)) * inv.unsqueeze(-1)) * (1.0 / forgetting)
     trace = torch.diagonal(P_new, dim1=-2, dim2=-1).sum(-1)
     scale = torch.where(trace > trace_max, trace_max / trace, torch.ones_like(trace))
     P_new = P_new * scale.unsqueeze(-1).unsqueeze(-1)
