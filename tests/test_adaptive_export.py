@@ -189,7 +189,7 @@ def test_metadata_names_the_adaptation(tmp_path) -> None:
     assert meta["adapt"] == "rls" and meta["n_weights"] == str(m)
     assert meta["weights"] == str(2 * k) and meta["covariance"] == str(2 * k + 1)
     assert meta["adapt_counts"] == str(len(comp.initial_state(1)) - 1)
-    assert (meta["forgetting"], meta["adapt_bound"]) == ("0.999", "0.5")
+    assert (meta["forgetting"], meta["adapt_bound"]) == ("0.995", "0.5")
     state = comp.initial_state(1)
     assert int(meta["n_state"]) == len(state)
     assert state[int(meta["weights"])].shape == (1, m)

@@ -153,9 +153,9 @@ class AdaptiveCompensator(StreamingCompensator):
     p0: Final[float]
 
     def __init__(
-        self, model: nn.Module, *, adapt: str = "rls", forgetting: float = 0.999,
+        self, model: nn.Module, *, adapt: str = "rls", forgetting: float = 0.995,
         adapt_bound: float = 0.5, dead_zone: float = 0.0, excitation: float = 1e-3,
-        nlms_step: float = 0.5, initial_covariance: float = 1.0,
+        nlms_step: float = 0.2, initial_covariance: float = 1.0,
         limits: Sequence[float] | None = None, initial_command: float = 0.0,
         input_range: Sequence[float] | None = None, input_margin: float | None = 0.05,
         direction: str = "auto", condition_ranges: Sequence[Sequence[float]] | None = None,

@@ -90,8 +90,8 @@ _DEFAULTS: dict[str, Any] = {"limits": None, "input_range": None, "input_margin"
 
 #: the adaptive compensator's options and their defaults (``adapt="none"``: the static
 #: compensator; :class:`~torchhys.deploy.adaptive.AdaptiveCompensator`)
-ADAPT_DEFAULTS: dict[str, Any] = {"adapt": "none", "forgetting": 0.999, "adapt_bound": 0.5,
-                                  "dead_zone": 0.0, "excitation": 1e-3, "nlms_step": 0.5,
+ADAPT_DEFAULTS: dict[str, Any] = {"adapt": "none", "forgetting": 0.995, "adapt_bound": 0.5,
+                                  "dead_zone": 0.0, "excitation": 1e-3, "nlms_step": 0.2,
                                   "initial_covariance": 1.0}
 
 
@@ -167,8 +167,8 @@ def to_torchscript(
     model: nn.Module, path: str | os.PathLike, *, limits: tuple[float, float] | None = None,
     initial_command: float = 0.0, input_range: tuple[float, float] | None = None,
     input_margin: float | None = 0.05, direction: str = "auto", adapt: str = "none",
-    forgetting: float = 0.999, adapt_bound: float = 0.5, dead_zone: float = 0.0,
-    excitation: float = 1e-3, nlms_step: float = 0.5, initial_covariance: float = 1.0,
+    forgetting: float = 0.995, adapt_bound: float = 0.5, dead_zone: float = 0.0,
+    excitation: float = 1e-3, nlms_step: float = 0.2, initial_covariance: float = 1.0,
 ) -> torch.jit.ScriptModule:
     """Script the streaming compensator of ``model`` and save it to ``path``.
 
@@ -349,8 +349,8 @@ def to_aoti(
     initial_command: float = 0.0, input_range: tuple[float, float] | None = None,
     input_margin: float | None = 0.05, direction: str = "auto",
     batch: int = 1, inductor_configs: dict[str, Any] | None = None, adapt: str = "none",
-    forgetting: float = 0.999, adapt_bound: float = 0.5, dead_zone: float = 0.0,
-    excitation: float = 1e-3, nlms_step: float = 0.5, initial_covariance: float = 1.0,
+    forgetting: float = 0.995, adapt_bound: float = 0.5, dead_zone: float = 0.0,
+    excitation: float = 1e-3, nlms_step: float = 0.2, initial_covariance: float = 1.0,
 ) -> str:
     """Compile the explicit-state step with ``torch.export`` + AOTInductor into a package.
 

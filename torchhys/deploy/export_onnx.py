@@ -204,9 +204,9 @@ def to_onnx(
     model: nn.Module, path: str | os.PathLike, *, limits: tuple[float, float] | None = None,
     initial_command: float = 0.0, input_range: tuple[float, float] | None = None,
     input_margin: float | None = 0.05, direction: str = "auto", batch: int = 1,
-    opset: int | None = None, adapt: str = "none", forgetting: float = 0.999,
+    opset: int | None = None, adapt: str = "none", forgetting: float = 0.995,
     adapt_bound: float = 0.5, dead_zone: float = 0.0, excitation: float = 1e-3,
-    nlms_step: float = 0.5, initial_covariance: float = 1.0,
+    nlms_step: float = 0.2, initial_covariance: float = 1.0,
 ) -> str:
     """Export the explicit-state step of the compensator of ``model`` as an ONNX file.
 

@@ -67,8 +67,8 @@ def to_c(
     dtype: torch.dtype = torch.float64, limits: tuple[float, float] | None = None,
     initial_command: float = 0.0, input_range: tuple[float, float] | None = None,
     input_margin: float | None = 0.05, direction: str = "auto", adapt: str = "none",
-    forgetting: float = 0.999, adapt_bound: float = 0.5, dead_zone: float = 0.0,
-    excitation: float = 1e-3, nlms_step: float = 0.5, initial_covariance: float = 1.0,
+    forgetting: float = 0.995, adapt_bound: float = 0.5, dead_zone: float = 0.0,
+    excitation: float = 1e-3, nlms_step: float = 0.2, initial_covariance: float = 1.0,
 ) -> tuple[Path, Path]:
     """Write the compensator of ``model`` as C99: ``out_dir/PREFIX.h`` and ``PREFIX.c``.
 
