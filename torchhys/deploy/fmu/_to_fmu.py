@@ -170,8 +170,6 @@ def to_fmu(
     """
     if fmi not in (2, 3) or isinstance(fmi, bool):
         raise ValueError(f"fmi must be 2 or 3, got {fmi!r}")
-    if fmi == 3 and not FMI3:
-        raise ValueError("fmi=3: the FMI 3.0 wrapper is not available yet; give fmi=2")
     out = _check_path(path)
     prefix = check_prefix(out.stem if prefix is None else prefix)
     step_size, sample_period = periods(step_size, sample_period)
