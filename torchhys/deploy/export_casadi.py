@@ -30,7 +30,9 @@ from __future__ import annotations
 
 import math
 import os
+import tempfile
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -286,7 +288,11 @@ def save_casadi(fn: Any, path: str | os.PathLike) -> str:
     if not isinstance(fn, ca.Function):
         raise TypeError(f"fn must be a casadi.Function, got {type(fn).__name__}")
     path = _check_path(path)
-    write_outputs([(path, fn.serialize().encode())])
+    with tempfile.TemporaryDirectory() as folder:  # Function.save's bytes, then one write
+        scratch = os.path.join(folder, "function.casadi")
+        fn.save(scratch)
+        data = Path(scratch).read_bytes()
+    write_outputs([(path, data)])
     return path
 
 

@@ -2,13 +2,15 @@
 walks it (:mod:`torchhys.deploy.c._graph`): a translation per aten operation
 (:mod:`torchhys.deploy.casadi._ops`), the nodes whose tensors are all known (parameters,
 buffers, shapes) computed by torch, the step's ``t - t`` tests of non-finite values written
-as ``fabs(t) < inf`` (CasADi simplifies ``t - t`` to 0; the test is found by the C
-generator's :func:`~torchhys.deploy.c._finite.finite_test`), and every operation without a
+as ``fabs(t) < inf`` (CasADi simplifies ``t - t`` to 0; a comparison of a sum of them is
+found by the C generator's :func:`~torchhys.deploy.c._finite.finite_test`, any other
+``t - t`` is ``if_else(fabs(t) < inf, 0, NaN)``), and every operation without a
 translation named at once with the module and source line it came from."""
 
 from __future__ import annotations
 
 import functools
+import math
 from typing import Any
 
 import numpy as np
@@ -20,7 +22,15 @@ from torchhys.deploy.c._finite import finite_test
 from torchhys.deploy.c._graph import _live, _origin
 from torchhys.deploy.c._templates import SHAPE_ONLY
 from torchhys.deploy.casadi._ops import is_symbolic, translations, zeros_for
-from torchhys.deploy.casadi._values import Sym, Unsupported, as_array, casadi, finite, objects
+from torchhys.deploy.casadi._values import (
+    Sym,
+    Unsupported,
+    as_array,
+    casadi,
+    finite,
+    objects,
+    select,
+)
 
 
 def _stand_in(spec: Any) -> Any:
@@ -50,6 +60,17 @@ def _finite_test(spec: Any, terms: list[Any], ne: bool) -> Any:
         fin = functools.reduce(ca.logic_and, [finite(a[p]) for a in arrays])
         out.append(ca.logic_not(fin) if ne else fin)
     return Sym(objects(out, tuple(spec.shape)), torch.bool)
+
+
+_SUB = torch.ops.aten.sub.Tensor
+
+
+def _self_difference(spec: Any, t: Sym) -> Sym:
+    """``t - t`` (a test of non-finite values, summed or compared later): 0 where ``t`` is
+    finite, NaN where not (CasADi would simplify it to 0)."""
+    ca = casadi()
+    return Sym(objects([select(finite(e), ca.SX(0.0), ca.SX(math.nan)) for e in t.a.flat],
+                       tuple(spec.shape)), spec.dtype)
 
 
 def translate(ep: torch.export.ExportedProgram, inputs: list[Sym], who: str = "to_casadi"
@@ -94,6 +115,9 @@ def _node(node: fx.Node, env: dict, table: dict, missing: dict[str, str],
     if finite is not None:  # a t - t test: its operands are the t's
         return _finite_test(spec, [env[t] for t in finite[0]], finite[1])
     args, kwargs = fx.node.map_arg((node.args, node.kwargs), lambda n: env[n])
+    if (node.target == _SUB and len(node.args) == 2 and node.args[0] is node.args[1]
+            and not node.kwargs and isinstance(args[0], Sym)):
+        return _self_difference(spec, args[0])
     if node.target in SHAPE_ONLY or not is_symbolic((args, kwargs)):
         a, k = zeros_for(args), zeros_for(kwargs)
         out = node.target(*a, **k)  # known operands: torch computes it
