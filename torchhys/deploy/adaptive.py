@@ -34,9 +34,7 @@ threshold and RLS's initial covariance mean the same for every model. An update 
   :meth:`AdaptiveCompensator.refused_count`).
 
 An applied update keeps each normalized weight within ``adapt_bound`` times
-``max(|w0_i|, min(rms(w0), sd))`` of the offline fit's ``w0`` (``sd``: the standard deviation
-of the offline command over the sweep, so that a weight that is 0 offline cannot move the
-command by more than a share of its spread); RLS's covariance is kept at a trace of
+``max(|w0_i|, rms(w0))`` of the offline fit's ``w0``; RLS's covariance is kept at a trace of
 at most its initial one, and reset to the initial one where it lost positive diagonal.
 
 State (the static layout's tensors first, all zeros when fresh, see
@@ -119,7 +117,7 @@ class AdaptiveCompensator(StreamingCompensator):
             ``"nlms"`` (normalized LMS; state O(m), for small microcontrollers).
         forgetting: RLS's forgetting factor in (0, 1] (per applied update).
         adapt_bound: the weights' box around the offline fit, as a share of their scale
-            (the module docstring; >= 0; 0 freezes them).
+            (>= 0; 0 freezes them).
         dead_zone: no update while ``|error| <= dead_zone`` (command units, >= 0).
         excitation: no update until the normalized regressors moved by more than this
             since the last update (>= 0).
@@ -182,12 +180,11 @@ class AdaptiveCompensator(StreamingCompensator):
             w0 = self.head.readout_weights().double()
             sweep = (default_input_range(model) if input_range is None
                      else (float(input_range[0]), float(input_range[1])))
-            scale, spread = self._regressor_scale(w0, sweep)
+            scale = self._regressor_scale(w0.numel(), sweep)
             wn = w0 * scale  # the offline weights of the normalized regressors
         self.m = int(w0.numel())
         self.trace_max = p0 * self.m
-        # the floor of a small weight's box: rms(w0), but not over the command's spread
-        rms = min(float(wn.square().mean().sqrt()), spread)
+        rms = float(wn.square().mean().sqrt())
         self.register_buffer("inv_scale", (1.0 / scale).to(dtype))
         self.register_buffer("w0", wn.to(dtype))
         self.register_buffer("bound", (bound * torch.clamp(wn.abs(), min=rms)).to(dtype))
@@ -208,16 +205,13 @@ class AdaptiveCompensator(StreamingCompensator):
                             + ["measured " + n for n in self.state_names[:self.k]] + names)
         self.state = self.initial_state(1)
 
-    def _regressor_scale(self, w0: Tensor,
-                         sweep: tuple[float, float] | None) -> tuple[Tensor, float]:
+    def _regressor_scale(self, m: int, sweep: tuple[float, float] | None) -> Tensor:
         """Each regressor's root mean square (float64, (m,)) over a sweep of the training
-        input range (the module docstring), ones without a range or where a regressor is 0
-        over the sweep; and the standard deviation of the offline command ``basis @ w0``
-        over the sweep (inf without a range)."""
-        m = w0.numel()
+        input range (the module docstring); ones without a range, or where a regressor is
+        0 over the sweep."""
         if sweep is None or not (math.isfinite(sweep[0]) and math.isfinite(sweep[1])
                                  and sweep[1] > sweep[0]):
-            return torch.ones(m, dtype=torch.float64), math.inf
+            return torch.ones(m, dtype=torch.float64)
         lo, hi = sweep
         t = torch.linspace(0.0, 1.0, 2000, dtype=torch.float64)
         amp = 1.0 - 0.8 * t  # decaying triangles about the middle of the range
@@ -237,11 +231,8 @@ class AdaptiveCompensator(StreamingCompensator):
             f, new, xc, cc = self._features(x[i:i + 1], state, ci)
             rows.append(self.head.readout_basis(f).double())
             _, state = self._finish(x[i:i + 1], state, ci, self.head(f), new, xc, cc)
-        basis = torch.cat(rows, 0)
-        rms = basis.square().mean(0).sqrt()
-        spread = float((basis @ w0).std())
-        scale = torch.where(rms > 1e-12 * float(rms.max()), rms, torch.ones_like(rms))
-        return scale, spread if spread > 0.0 else math.inf
+        rms = torch.cat(rows, 0).square().mean(0).sqrt()
+        return torch.where(rms > 1e-12 * float(rms.max()), rms, torch.ones_like(rms))
 
     def example_inputs(self, batch: int) -> list[tuple[str, Tensor]]:
         """The static compensator's, then ``measured_prev`` and ``applied_prev`` (batch,)."""
