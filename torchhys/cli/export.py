@@ -1,14 +1,22 @@
 """``torchhys export``: a trained checkpoint to a deployable compensator file.
 
-    torchhys export --ckpt CKPT --format torchscript|aoti|c|onnx --out FILE|DIR [--limits LOW HIGH]
-        [--input-margin M | --input-margin none] [--direction auto|increasing|decreasing|none]
-        [--dtype float64|float32] [--prefix NAME] [--force]
+    torchhys export --ckpt CKPT --format torchscript|aoti|c|onnx|fmu --out FILE|DIR
+        [--limits LOW HIGH] [--input-margin M | --input-margin none]
+        [--direction auto|increasing|decreasing|none] [--dtype float64|float32]
+        [--prefix NAME] [--fmi 2|3] [--step-size S] [--sample-period T] [--force]
         [--adapt none|rls|nlms [--forgetting F] [--adapt-bound B] [--dead-zone D]
          [--excitation E] [--nlms-step S] [--initial-covariance P]]
 
 ``--format c`` writes ``DIR/NAME.h`` and ``DIR/NAME.c`` (``--prefix``, default
 ``torchhys_comp``), dependency-free C99 (:func:`torchhys.deploy.c.to_c`); ``--dtype`` sets
 the exported step's real type (default: the checkpoint's).
+
+``--format fmu`` writes ``NAME.fmu`` (``--out``, ending in ``.fmu``), a co-simulation FMU
+(``--fmi 2``, the default, or ``3``) whose binary is that C step
+(:func:`torchhys.deploy.export_fmu.to_fmu`): ``--prefix`` is its model identifier (default
+the file's stem), ``--sample-period`` the compensator's sample period in s and
+``--step-size`` the default communication step, an integer multiple of it (each defaults to
+the other, both to 1 s).
 
 The output is checked before anything is read or compiled: its folder exists and is
 writable, it is not the ``--ckpt`` file itself (refused even with ``--force``), and an
@@ -59,7 +67,9 @@ from torchhys.compose import Composed
 from torchhys.compose.spec import build_composed, is_composed_spec
 from torchhys.deploy.c import DEFAULT_PREFIX, check_prefix, to_c
 from torchhys.deploy.export import ADAPT_DEFAULTS, to_aoti, to_torchscript
+from torchhys.deploy.export_fmu import to_fmu
 from torchhys.deploy.export_onnx import to_onnx
+from torchhys.deploy.fmu._to_fmu import periods
 from torchhys.deploy.ranges import DIRECTIONS
 from torchhys.deploy.streaming import StreamingCompensator
 from torchhys.identification.specs import build_operators
@@ -74,14 +84,26 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="torchhys export", description=__doc__.splitlines()[0])
     accept_negative_numbers(p)  # --limits -5e-3 5e-3
     p.add_argument("--ckpt", type=Path, required=True, help="checkpoint or state dict file")
-    p.add_argument("--format", choices=("torchscript", "aoti", "c", "onnx"), required=True)
+    p.add_argument("--format", choices=("torchscript", "aoti", "c", "onnx", "fmu"),
+                   required=True)
     p.add_argument("--out", type=Path, required=True,
-                   help="output file (.pt, .pt2 or .onnx), or with --format c an existing folder")
+                   help="output file (.pt, .pt2, .onnx or .fmu), or with --format c an "
+                        "existing folder")
     p.add_argument("--dtype", choices=tuple(_DTYPES), default=None,
                    help="the exported step's real type (default: the checkpoint's)")
     p.add_argument("--prefix", type=_prefix, default=None,
                    help=f"--format c: the files' name and the C names' prefix (default "
-                        f"{DEFAULT_PREFIX})")
+                        f"{DEFAULT_PREFIX}); --format fmu: the model identifier (default the "
+                        "--out file's stem)")
+    fmu = p.add_argument_group("--format fmu")
+    fmu.add_argument("--fmi", type=int, choices=(2, 3), default=None,
+                     help="the FMI version (default 2)")
+    fmu.add_argument("--step-size", type=_positive, default=None, metavar="S",
+                     help="the default communication step in s, an integer multiple of the "
+                          "sample period (default the sample period)")
+    fmu.add_argument("--sample-period", type=_positive, default=None, metavar="T",
+                     help="the compensator's sample period in s (default the step size, "
+                          "or 1)")
     p.add_argument("--limits", type=float, nargs=2, metavar=("LOW", "HIGH"),
                    help="command saturation (default: the training output range)")
     p.add_argument("--initial-command", type=float, default=0.0,
@@ -165,6 +187,16 @@ def _prefix(text: str) -> str:
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (value > 0 and value != float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    return value
+
+
 def _margin(text: str) -> float | None:
     if text.strip().lower() == "none":
         return None
@@ -214,6 +246,8 @@ def check_out(args: argparse.Namespace) -> list[Path]:
         targets = [args.out / f"{prefix}.h", args.out / f"{prefix}.c"]
     else:
         folder, targets = args.out.parent, [args.out]
+        if args.format == "fmu" and args.out.suffix != ".fmu":
+            raise ValueError(f"--out {args.out} must end in .fmu (--format fmu)")
         if args.out.is_dir():
             raise ValueError(f"--out {args.out} is a folder; --format {args.format} writes one "
                              "file: give its name")
@@ -322,8 +356,9 @@ def main(argv: list[str]) -> int:
     """
     args = _parser().parse_args(argv)
     try:
-        if args.prefix is not None and args.format != "c":
-            raise ValueError(f"--prefix applies to --format c only, not {args.format}")
+        if args.prefix is not None and args.format not in ("c", "fmu"):
+            raise ValueError(f"--prefix applies to --format c and fmu only, not {args.format}")
+        fmu = _fmu_options(args)
         check_out(args)
         import_modules(args.imports, args.import_paths)
         ckpt = read_checkpoint(args.ckpt, "--ckpt", lightning=False)
@@ -342,6 +377,9 @@ def main(argv: list[str]) -> int:
             written = to_c(net, args.out, prefix=args.prefix or DEFAULT_PREFIX,
                            dtype=comp.low.dtype, **options, **adapt)
             args.out = " and ".join(str(p) for p in written)
+        elif args.format == "fmu":
+            to_fmu(net, args.out, dtype=comp.low.dtype, **fmu, **options)
+            args.out = f"{args.out} (FMI {fmu['fmi']}.0, model identifier {fmu['prefix']})"
         elif args.format == "onnx":
             try:
                 to_onnx(comp, args.out)
@@ -366,6 +404,28 @@ def main(argv: list[str]) -> int:
     print(f"wrote {args.out} ({args.format}, {dtype}); command limits [{float(comp.low):.6g}, "
           f"{float(comp.high):.6g}], {clamp}, direction {guard}{_adapt_report(args)}")
     return 0
+
+
+def _fmu_options(args: argparse.Namespace) -> dict:
+    """The FMU's options of the command line, checked ({} but for --format fmu, where the
+    FMU's flags are refused)."""
+    given = [f for f, v in (("--fmi", args.fmi), ("--step-size", args.step_size),
+                            ("--sample-period", args.sample_period)) if v is not None]
+    if args.format != "fmu":
+        if given:
+            raise ValueError(f"{given[0]} applies to --format fmu only, not {args.format}")
+        return {}
+    if args.adapt != "none":
+        raise ValueError("--adapt: the FMU exports the static step only (give --adapt none, "
+                         "or --format c for the adaptive C step)")
+    prefix = args.prefix or args.out.stem
+    try:
+        check_prefix(prefix)
+    except ValueError as err:
+        flag = "--prefix" if args.prefix else f"--out {args.out}: the file's stem (give --prefix)"
+        raise ValueError(f"{flag}: {err}") from None
+    step, period = periods(args.step_size, args.sample_period, ("--step-size", "--sample-period"))
+    return {"fmi": args.fmi or 2, "prefix": prefix, "step_size": step, "sample_period": period}
 
 
 def _adapt_report(args: argparse.Namespace) -> str:

@@ -47,19 +47,21 @@ def _positive(value: object, name: str) -> float:
     return float(value)
 
 
-def periods(step_size: float | None, sample_period: float | None) -> tuple[float, float]:
+def periods(step_size: float | None, sample_period: float | None,
+            names: tuple[str, str] = ("step_size", "sample_period")) -> tuple[float, float]:
     """``(step_size, sample_period)`` checked: each positive and finite, the step an integer
-    multiple of the sample period; one missing is the other, both missing 1 s."""
+    multiple of the sample period; one missing is the other, both missing 1 s. ``names``:
+    the two arguments' names in the messages."""
     if step_size is not None:
-        step_size = _positive(step_size, "step_size")
+        step_size = _positive(step_size, names[0])
     if sample_period is not None:
-        sample_period = _positive(sample_period, "sample_period")
+        sample_period = _positive(sample_period, names[1])
     sample_period = sample_period or step_size or 1.0
     step_size = step_size or sample_period
     ratio = step_size / sample_period
     if abs(ratio - round(ratio)) > MULTIPLE_TOLERANCE * max(1.0, ratio) or round(ratio) < 1:
-        raise ValueError(f"step_size {step_size!r} is not an integer multiple of the sample "
-                         f"period {sample_period!r}: the FMU runs whole samples")
+        raise ValueError(f"{names[0]} {step_size!r} is not an integer multiple of the sample "
+                         f"period ({names[1]}) {sample_period!r}: the FMU runs whole samples")
     return step_size, sample_period
 
 
