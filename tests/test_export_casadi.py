@@ -283,3 +283,54 @@ def test_without_casadi_the_error_names_the_extra(monkeypatch: pytest.MonkeyPatc
         to_casadi(net)
     assert str(err.value) == ('the CasADi export needs casadi: pip install '
                               '"torchhys[casadi]"')
+
+
+class _ManyOps(torch.nn.Module):
+    """Operations of the C templates that the registered operators do not use (x (1, 6))."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.bn = torch.nn.BatchNorm1d(6).double().eval()
+        with torch.no_grad():
+            self.bn.running_mean.copy_(torch.linspace(-0.2, 0.3, 6))
+            self.bn.running_var.copy_(torch.linspace(0.5, 2.0, 6))
+        self.register_buffer("knots", torch.linspace(-1.0, 1.0, 5, dtype=torch.float64))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        f = torch.nn.functional
+        a, b, c = torch.tensor_split(x, 3, dim=1)
+        outer = x.reshape(6, 1) * x.reshape(1, 6)
+        k = torch.searchsorted(self.knots, x.reshape(-1).contiguous()).clamp(0, 4)
+        parts = [
+            x.flip(1), torch.diagonal(outer, 1).reshape(1, -1), f.logsigmoid(x),
+            f.rms_norm(x, [6], eps=1e-6), self.bn(x), f.softmax(x, 1), f.log_softmax(x, 1),
+            f.layer_norm(x, [6]), f.gelu(x), f.softplus(x), f.elu(x), f.hardswish(x),
+            torch.remainder(x, 0.3), torch.fmod(x, 0.3), torch.atan2(x, a.sum() + 2.0),
+            x.cumsum(1), x.amax(1, keepdim=True), x.mean(1, keepdim=True),
+            (x > 0).any(1, keepdim=True).double(), (x > -2).all(1, keepdim=True).double(),
+            torch.where(x > b.mean(), x.sinh(), c.sum() ** 3),
+            x.sort(1).values, self.knots[k].reshape(1, -1), x.abs().pow(1.5),
+            torch.stack(x.unbind(1), 0).reshape(1, -1) * 2.0,
+            x.gather(1, (k % 6).reshape(1, -1)), x.index_select(1, 5 - k),
+        ]
+        return torch.cat(parts, 1)
+
+
+def test_the_c_templates_operations_translate_as_torch_computes() -> None:
+    from torchhys.deploy.casadi._values import Sym, objects
+    from torchhys.deploy.casadi._walk import translate
+
+    module = _ManyOps()
+    with torch.no_grad():
+        ep = torch.export.export(module, (torch.zeros(1, 6, dtype=torch.float64),),
+                                 strict=False)
+    xs = casadi.SX.sym("x", 6)
+    (out,) = translate(ep, [Sym(objects([xs[i] for i in range(6)], (1, 6)), torch.float64)])
+    fn = casadi.Function("many", [xs], [casadi.vertcat(*out.a.flat)])
+    g = np.random.default_rng(0)
+    for _ in range(20):
+        x = g.uniform(-1.5, 1.5, 6)
+        with torch.no_grad():
+            want = module(torch.tensor(x[None])).reshape(-1).numpy()
+        got = np.asarray(fn(x)).reshape(-1)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)

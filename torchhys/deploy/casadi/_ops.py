@@ -34,7 +34,10 @@ from torchhys.deploy.casadi._values import (
 
 
 def _sym(a: Any, spec: Any) -> Sym:
-    return Sym(sx(np.asarray(a, dtype=object).reshape(tuple(spec.shape))), spec.dtype)
+    """``a`` (an object array, or the bare element numpy returns for a 0-dim result) as a
+    Sym of ``spec``'s shape and dtype."""
+    a = a if isinstance(a, np.ndarray) else objects([a], ())
+    return Sym(sx(a.astype(object).reshape(tuple(spec.shape))), spec.dtype)
 
 
 def _dim(d: int, n: int) -> int:
@@ -110,7 +113,14 @@ VIEWS: dict[str, Translation] = {
     "expand.default": lambda s, x, *a, **k: _sym(np.broadcast_to(as_array(x), s.shape), s),
     "expand_as.default": lambda s, x, o: _sym(np.broadcast_to(as_array(x), s.shape), s),
     **{n: _pieces for n in ("split.Tensor", "split_with_sizes.default", "chunk.default",
-                            "unsafe_chunk.default", "unsafe_split.Tensor", "unbind.int")},
+                            "unsafe_chunk.default", "unsafe_split.Tensor",
+                            "unsafe_split_with_sizes.default", "tensor_split.sections",
+                            "tensor_split.indices")},
+    "unbind.int": lambda s, x, dim=0: _pieces(s, x, dim=dim),
+    "reshape_as.default": _same_order, "view_as.default": _same_order,
+    "flip.default": lambda s, x, dims: _sym(np.flip(as_array(x), axis=tuple(dims)), s),
+    "diagonal.default": lambda s, x, offset=0, dim1=0, dim2=1: _sym(
+        np.diagonal(as_array(x), offset, dim1, dim2), s),
     "cat.default": _join,
     "stack.default": lambda s, ts, dim=0: _join(s, ts, dim, stack=True),
 }
@@ -174,7 +184,26 @@ def _linear(spec: Any, x: Any, w: Any, b: Any = None) -> Sym:
     return _sym(out if b is None else out + as_array(b), spec)
 
 
+def _logical(fn_name: str) -> Translation:
+    """all / any: ``logic_and`` / ``logic_or`` over the axes (nonzero is true)."""
+    def translate(spec: Any, x: Any, dim: Any = None, keepdim: bool = False) -> Sym:
+        ca = casadi()
+        fn = np.frompyfunc(getattr(ca, fn_name), 2, 1)
+        a = np.frompyfunc(lambda e: ca.ne(e, 0), 1, 1)(as_array(x))
+        a = np.asarray(a, dtype=object) if isinstance(a, np.ndarray) else objects([a], ())
+        if a.ndim == 0:
+            return _sym(a, spec)
+        for d in sorted(_axes(dim, a.ndim), reverse=True):
+            a = fn.reduce(a, axis=d, keepdims=keepdim)
+            a = np.asarray(a, dtype=object) if isinstance(a, np.ndarray) else objects([a], ())
+        return _sym(a, spec)
+    return translate
+
+
 PRODUCTS: dict[str, Translation] = {
+    "all.default": _logical("logic_and"), "all.dim": _logical("logic_and"),
+    "all.dims": _logical("logic_and"), "any.default": _logical("logic_or"),
+    "any.dim": _logical("logic_or"), "any.dims": _logical("logic_or"),
     "sum.dim_IntList": _sum, "sum.default": lambda s, x, *, dtype=None: _sum(s, x),
     "mean.dim": _mean, "mean.default": lambda s, x, *, dtype=None: _mean(s, x),
     "amax.default": _extreme("fmax"), "amin.default": _extreme("fmin"),
@@ -219,7 +248,48 @@ def _layer_norm(spec: list, x: Any, shape: list[int], weight: Any = None, bias: 
     return _sym(out, spec)
 
 
+def _rms_norm(spec: Any, x: Any, shape: list[int], weight: Any = None,
+              eps: float | None = None) -> Sym:
+    ca = casadi()
+    a = as_array(x)
+    axes = tuple(range(a.ndim - len(shape), a.ndim))
+    eps = torch.finfo(spec.dtype).eps if eps is None else eps
+    ms = np.sum(a * a, axis=axes, keepdims=True) / math.prod(shape)
+    out = a * np.frompyfunc(lambda v: 1 / ca.sqrt(v + eps), 1, 1)(ms)
+    return _sym(out if weight is None else out * as_array(weight), spec)
+
+
+def _batch_norm(spec: Any, x: Any, weight: Any, bias: Any, mean: Any, var: Any,
+                training: bool, momentum: float, eps: float, cudnn_enabled: bool) -> Sym:
+    """An eval-mode batch norm: a per-channel (dimension 1) scale and shift."""
+    ca = casadi()
+    if training or mean is None or var is None:
+        raise Unsupported("a batch norm in training mode (batch statistics) has no CasADi "
+                          "translation: call model.eval() first")
+    a = as_array(x)
+    shape = (1, -1) + (1,) * (a.ndim - 2)
+    inv = np.frompyfunc(lambda v: 1 / ca.sqrt(v + eps), 1, 1)(as_array(var)).reshape(shape)
+    out = (a - as_array(mean).reshape(shape)) * inv
+    if weight is not None:
+        out = out * as_array(weight).reshape(shape)
+    if bias is not None:
+        out = out + as_array(bias).reshape(shape)
+    return _sym(out, spec)
+
+
+def _dropout(spec: Any, x: Any, p: float, train: bool | None) -> Sym:
+    if train:
+        raise Unsupported("dropout in training mode has no CasADi translation: call "
+                          "model.eval() first")
+    return _same_order(spec, x)
+
+
 NORMS: dict[str, Translation] = {
+    "rms_norm.default": _rms_norm, "batch_norm.default": _batch_norm,
+    "dropout.default": _dropout,
+    "log_sigmoid.default": lambda s, x: _sym(np.frompyfunc(
+        lambda e: casadi().fmin(e, 0) - casadi().log1p(casadi().exp(-casadi().fabs(e))), 1,
+        1)(as_array(x)), s),
     "softmax.int": _softmax(False), "_softmax.default": _softmax(False),
     "log_softmax.int": _softmax(True), "_log_softmax.default": _softmax(True),
     "layer_norm.default": _layer_norm,
