@@ -224,6 +224,28 @@ def test_c_equals_torchscript(name: str, dtype: str, torchscript_runs: Callable,
                           x, ts, dtype)
 
 
+FMU_FAST = ("backlash",)
+"""The operators that the FMU check runs on in the default run; the others with the slow
+tests."""
+
+
+@pytest.mark.skipif(CC is None or importlib.util.find_spec("fmpy") is None,
+                    reason='no C compiler, or FMPy missing: pip install "torchhys[fmu]"')
+@pytest.mark.parametrize("name", [pytest.param(*p.values, id=p.id, marks=[
+    *p.marks, *[pytest.mark.slow] * (p.values[0] not in FMU_FAST)]) for p in names("fmu")])
+def test_fmu_equals_torchscript(name: str, torchscript_runs: Callable, tmp_path: Path) -> None:
+    """The FMI 2.0 co-simulation FMU (``to_fmu``, float64), stepped one sample a
+    communication step through FMPy: the commands within RTOL of their scale, the counters
+    equal."""
+    from test_export_fmu import run_fmu
+
+    from torchhys.deploy.export_fmu import to_fmu
+
+    net, x, ts = torchscript_runs(name, "float64")
+    got = run_fmu(to_fmu(net, tmp_path / "comp.fmu"), x)
+    assert_as_torchscript(got, x, ts, "float64")
+
+
 @pytest.mark.skipif(bool(ONNX_MISSING), reason=f"{', '.join(ONNX_MISSING)} missing: pip "
                     'install "torchhys[onnx]"')
 @pytest.mark.parametrize("name, dtype", [

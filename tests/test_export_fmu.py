@@ -48,6 +48,8 @@ class Stepper:
         md = read_model_description(unzipdir)
         self.fmi = 2 if md.fmiVersion == "2.0" else 3
         self.vr = {v.name: v.valueReference for v in md.modelVariables}
+        self.period = next(float(v.start) for v in md.modelVariables
+                           if v.name == "sample_period")
         self.messages: list[str] = []
         kind = FMU2Slave if self.fmi == 2 else FMU3Slave
         self.fmu = kind(guid=md.guid, unzipDirectory=unzipdir, instanceName=name,
@@ -82,10 +84,12 @@ class Stepper:
         got = (self.fmu.getInteger if self.fmi == 2 else self.fmu.getInt64)(vrs)
         return int(got[0]), int(got[1])
 
-    def step(self, h: float = T) -> None:
+    def step(self, h: float | None = None) -> None:
+        """A communication step of ``h`` (default one sample period)."""
+        h = self.period if h is None else h
         self.fmu.doStep(currentCommunicationPoint=self.t, communicationStepSize=h)
-        self.k += round(h / T)
-        self.t = self.k * T
+        self.k += round(h / self.period)
+        self.t = self.k * self.period
 
     def run(self, x: np.ndarray, conditions: np.ndarray | None = None) -> np.ndarray:
         """The command after each sample of ``x`` (one sample a communication step)."""
