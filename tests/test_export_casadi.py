@@ -5,8 +5,10 @@ registered operator (most with the slow tests) and a composition; a conditioned 
 equals the torch compensator's; its Jacobians equal torch autograd's of the explicit step
 away from kinks; the C of ``Function.generate`` compiles with the C export's flags and,
 run by a small driver, gives the same commands; the forward model of an operator equals its
-sequence path and its Jacobian autograd's; ``NAME.casadi`` round-trips; an operation
-without a translation is named with its step; without casadi the error names the extra."""
+sequence path and its Jacobian autograd's; ``NAME.casadi`` round-trips; float32
+parameters step as the float32 file within 1e-4; the C templates' operations that no
+operator uses translate as torch computes them; an operation without a translation is
+named with its step; without casadi the error names the extra."""
 
 from __future__ import annotations
 
@@ -22,7 +24,15 @@ casadi = pytest.importorskip("casadi")
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _compose_models import CONFORMANCE, with_ranges  # noqa: E402
-from _export_helpers import CC, FLAGS, NO_CC, gap, record, run_torchscript  # noqa: E402
+from _export_helpers import (  # noqa: E402
+    CC,
+    FLAGS,
+    FLOAT32_RTOL,
+    NO_CC,
+    gap,
+    record,
+    run_torchscript,
+)
 from _helpers import loop_net  # noqa: E402
 
 from torchhys import Backlash, PrandtlIshlinskii  # noqa: E402
@@ -81,6 +91,22 @@ def _assert_as_torchscript(model: torch.nn.Module, tmp_path: Path) -> None:
                                   for n in NAMES])
 def test_casadi_step_equals_torchscript(name: str, tmp_path: Path) -> None:
     _assert_as_torchscript(_net(name), tmp_path)
+
+
+def test_float32_parameters_step_as_the_float32_file(tmp_path: Path) -> None:
+    """dtype=torch.float32: the parameters rounded to float32, the arithmetic in float64
+    (CasADi's only type), against the float32 TorchScript file within FLOAT32_RTOL; the
+    counters equal."""
+    net = _net("backlash")
+    x = record(float(net.in_min), float(net.in_max), n=N)
+    ts = run_torchscript(net, x, tmp_path / "comp.pt", torch.float32)
+    step = function_and_state(net, dtype=torch.float32)
+    assert step.layout[0].dtype == torch.float32
+    u, s = _stepped(step, x)
+    assert gap(u, ts["u"]) <= FLOAT32_RTOL
+    got = step.unflatten(s)
+    assert gap(got[0].double(), ts["state"][0].double()) <= FLOAT32_RTOL
+    assert torch.equal(got[1], ts["state"][1]) and torch.equal(got[2], ts["state"][2])
 
 
 @pytest.mark.parametrize("name", [pytest.param(n, marks=[pytest.mark.slow] * (
