@@ -196,12 +196,20 @@ def function_and_state(
                       comp.n_conditions)
 
 
-def to_casadi(model: nn.Module, **options: Any) -> Any:
+def to_casadi(
+    model: nn.Module, *, dtype: torch.dtype = torch.float64,
+    limits: tuple[float, float] | None = None, initial_command: float = 0.0,
+    input_range: tuple[float, float] | None = None, input_margin: float | None = 0.05,
+    direction: str = "auto", name: str = "torchhys_comp",
+) -> Any:
     """The compensator's step as a ``casadi.Function`` ``(x, state) -> (u, new_state)``
-    (``(x, conditions, state)`` with operating conditions); the options and the state's
-    layout: :func:`function_and_state` (whose ``initial_state`` is the fresh state: all
-    zeros, of length ``fn.size1_in("state")``)."""
-    return function_and_state(model, **options).function
+    (``(x, conditions, state)`` with operating conditions); the options, the errors and
+    the state's layout: :func:`function_and_state` (whose ``initial_state`` is the fresh
+    state: all zeros, of length ``fn.size1_in("state")``)."""
+    return function_and_state(model, dtype=dtype, limits=limits,
+                              initial_command=initial_command, input_range=input_range,
+                              input_margin=input_margin, direction=direction,
+                              name=name).function
 
 
 class _Forward(nn.Module):
@@ -274,10 +282,12 @@ def forward_function_and_state(
     return CasadiStep(fn, flatten(first), _layout(first, names))
 
 
-def to_casadi_forward(operator: nn.Module, **options: Any) -> Any:
+def to_casadi_forward(operator: nn.Module, *, dtype: torch.dtype = torch.float64,
+                      name: str = "torchhys_forward") -> Any:
     """The operator's forward model as a ``casadi.Function`` ``(u, state) -> (y,
-    new_state)``; the options and the state: :func:`forward_function_and_state`."""
-    return forward_function_and_state(operator, **options).function
+    new_state)``; the options, the errors and the state (its start at a first command
+    ``u0``): :func:`forward_function_and_state`."""
+    return forward_function_and_state(operator, dtype=dtype, name=name).function
 
 
 def save_casadi(fn: Any, path: str | os.PathLike) -> str:
