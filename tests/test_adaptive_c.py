@@ -150,20 +150,22 @@ def gap(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.max(np.abs(a - b)) / max(1.0, np.max(np.abs(b))))
 
 
-def check_parity(tmp_path: Path, name: str, method: str, n: int) -> None:
+def check_parity(tmp_path: Path, name: str, method: str, n: int, **options) -> list:
     model = MODELS[name]()
-    ref = closed_loop(AdaptiveCompensator(model, adapt=method, **OPTS), n)
-    to_c(model, tmp_path, prefix="ad", adapt=method, **OPTS)
+    opts = {**OPTS, **options}
+    ref = closed_loop(AdaptiveCompensator(model, adapt=method, **opts), n)
+    to_c(model, tmp_path, prefix="ad", adapt=method, **opts)
     got = run_c(tmp_path, ref["rows"])
     assert gap(got["u"], ref["u"]) <= 1e-12, gap(got["u"], ref["u"])
     assert gap(got["weights"], ref["weights"]) <= 1e-12
     assert got["counts"] == ref["counts"]
     updates, skipped, _, _, _ = ref["counts"]
     assert updates > n // 10 and skipped > 5  # the loop adapted and skipped
-    fresh = AdaptiveCompensator(model, adapt=method, **OPTS)
+    fresh = AdaptiveCompensator(model, adapt=method, **opts)
     assert not torch.equal(ref["weights"], fresh.offline_weights().double())
     assert torch.equal(got["reset_weights"], fresh.offline_weights().double())
     assert got["reset_counts"] == [0, 0, 0]
+    return got["counts"]
 
 
 @pytest.mark.parametrize("name", sorted(MODELS))
@@ -171,6 +173,12 @@ def check_parity(tmp_path: Path, name: str, method: str, n: int) -> None:
 def test_c_equals_the_eager_adaptive_compensator(tmp_path: Path, name: str,
                                                  method: str) -> None:
     check_parity(tmp_path, name, method, 2000)
+
+
+@pytest.mark.parametrize("method", ["rls", "nlms"])
+def test_c_without_a_direction_equals_the_eager_one(tmp_path: Path, method: str) -> None:
+    """No guard: no update is refused (the count stays 0 in both)."""
+    assert check_parity(tmp_path, "pi_inverse", method, 2000, direction="none")[2] == 0
 
 
 @pytest.mark.slow

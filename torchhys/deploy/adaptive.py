@@ -324,7 +324,7 @@ class AdaptiveCompensator(StreamingCompensator):
         _, measured_new = self._finish(y, measured, c, pred, new_m, yc, ccm)
         had = measured[self.STATE_STARTED].squeeze(1)  # a pair before this one
         z_last = Z.narrow(1, 0, m)
-        P = state[i + 1]
+        P = state[i + 1]  # RLS's covariance (NLMS: the next tensor, used by no output)
         P_new = P
         if self.rls:
             w_new, P_full, ok = rls_update(
@@ -347,7 +347,7 @@ class AdaptiveCompensator(StreamingCompensator):
             du = ((z - z_last) * w_new).sum(1)
             refused = ok & (du * dy * self.direction < self.zero)
         else:
-            refused = ok & (y != y)  # all False
+            refused = torch.zeros_like(ok)
         applied = ok & ~refused
         first = finite_pair & ~had
         a2 = applied.unsqueeze(1)
