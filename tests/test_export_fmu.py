@@ -22,7 +22,15 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _export_helpers import CC, NO_CC, gap, record, run_torchscript, training_range  # noqa: E402
+from _export_helpers import (  # noqa: E402
+    CC,
+    FLOAT32_RTOL,
+    NO_CC,
+    gap,
+    record,
+    run_torchscript,
+    training_range,
+)
 from test_export_cli import lightning_ckpt, trained  # noqa: E402
 
 fmpy = pytest.importorskip("fmpy", reason="the fmu extra (pip install 'torchhys[fmu]')")
@@ -278,6 +286,20 @@ def test_a_step_that_is_not_a_multiple_is_an_error(case: dict, fmi: int) -> None
     with pytest.raises(FMICallException):  # an output is not settable
         s.set(["command"], [1.0])
     s.close()
+
+
+def test_a_float32_step(case: dict, tmp_path: Path) -> None:
+    """dtype=torch.float32: the C step's real type is float (the inputs rounded to it), its
+    commands within the C export's float32 tolerance (1e-4 of the scale) of the float32
+    TorchScript file's, the counters equal."""
+    x = case["x"]
+    path = to_fmu(case["net"], tmp_path / "f32.fmu", dtype=torch.float32, limits=LIMITS)
+    with zipfile.ZipFile(path) as zf:
+        assert "typedef float f32_real;" in zf.read("sources/f32.h").decode()
+    ts = run_torchscript(case["net"], x, tmp_path / "f32.pt", torch.float32, limits=LIMITS)
+    got = run_fmu(path, x)
+    assert gap(got["u"], ts["u"]) <= FLOAT32_RTOL
+    assert (got["nonfinite"], got["out_of_range"]) == (ts["nonfinite"], ts["out_of_range"])
 
 
 def test_a_conditioned_model_takes_its_conditions(tmp_path: Path) -> None:
