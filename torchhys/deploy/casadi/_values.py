@@ -125,3 +125,15 @@ def finite(e: Any) -> Any:
     for NaN), which CasADi keeps (its ``e - e`` is simplified to 0)."""
     ca = casadi()
     return ca.fabs(e) < ca.inf
+
+
+def shaped(a: Any, spec: Any) -> Sym:
+    """``a`` (an object array, or the bare element numpy returns for a 0-dim result) as a
+    Sym of ``spec``'s shape and dtype."""
+    a = a if isinstance(a, np.ndarray) else objects([a], ())
+    return Sym(sx(a.astype(object).reshape(tuple(spec.shape))), spec.dtype)
+
+
+def axis(d: int, n: int) -> int:
+    """A dimension ``d`` of an ``n``-dimensional tensor, counted from 0."""
+    return d + n if d < 0 else d
