@@ -1,6 +1,6 @@
 # Set-up is automatic: every target below first runs scripts/setup.sh, which
 # creates .venv (unless a virtual environment is active), installs the CPU
-# wheel of torch when torch is missing, then the project with its train, onnx, fmu, casadi and dev extras.
+# wheel of torch when torch is missing, then the project with its train, onnx, fmu, casadi, fleet and dev extras.
 # A second run reuses the environment and starts quickly.
 SHELL := /bin/bash
 PYTHON := $(shell bash scripts/setup.sh --print-python)

@@ -7,7 +7,8 @@
 #   - installs the project (editable) with its train extra (Lightning, jsonargparse,
 #     torchmetrics, matplotlib: the `torchhys` command and `make reproduce`), its onnx extra
 #     (onnx, onnxscript, onnxruntime: the ONNX export and its checks), its fmu extra (FMPy:
-#     the FMU export's checks), its casadi extra (the CasADi export) and its dev extra (what
+#     the FMU export's checks), its casadi extra (the CasADi export), its fleet extra (Dask distributed:
+#     torchhys fleet) and its dev extra (what
 #     `make test` needs)
 # A stamp file makes a second run start in well under a second.
 set -euo pipefail
@@ -46,7 +47,7 @@ if ! "$PY" -c "import torch" 2>/dev/null; then
     # shellcheck disable=SC2086
     "$PY" -m pip install --quiet "$TORCH_PIN" ${TORCH_PIP_ARGS:-}
 fi
-echo "[setup] installing torchhys with its train, onnx, fmu, casadi and dev extras"
-"$PY" -m pip install --quiet -e ".[train,onnx,fmu,casadi,dev]"
+echo "[setup] installing torchhys with its train, onnx, fmu, casadi, fleet and dev extras"
+"$PY" -m pip install --quiet -e ".[train,onnx,fmu,casadi,fleet,dev]"
 touch "$STAMP"
 echo "[setup] done: $("$PY" -c 'import torch; print("torch", torch.__version__)')"
