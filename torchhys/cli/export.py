@@ -378,7 +378,7 @@ def main(argv: list[str]) -> int:
                            dtype=comp.low.dtype, **options, **adapt)
             args.out = " and ".join(str(p) for p in written)
         elif args.format == "fmu":
-            to_fmu(net, args.out, dtype=comp.low.dtype, **fmu, **options)
+            to_fmu(net, args.out, dtype=comp.low.dtype, **fmu, **options, **adapt)
             args.out = f"{args.out} (FMI {fmu['fmi']}.0, model identifier {fmu['prefix']})"
         elif args.format == "onnx":
             try:
@@ -415,9 +415,6 @@ def _fmu_options(args: argparse.Namespace) -> dict:
         if given:
             raise ValueError(f"{given[0]} applies to --format fmu only, not {args.format}")
         return {}
-    if args.adapt != "none":
-        raise ValueError("--adapt: the FMU exports the static step only (give --adapt none, "
-                         "or --format c for the adaptive C step)")
     prefix = args.prefix or args.out.stem
     try:
         check_prefix(prefix)

@@ -6,6 +6,8 @@ co-simulation calls; no third-party file is copied."""
 
 from __future__ import annotations
 
+import math
+
 from torchhys.deploy.fmu._variables import Variables
 
 CORE = r"""
@@ -25,15 +27,14 @@ CORE = r"""
 #define THYS_EXPORT
 #endif
 
-#define THYS_N_INPUTS @N_INPUTS@      /* desired, then the conditions */
+#define THYS_N_INPUTS @N_INPUTS@      /* desired, then the conditions (and measured_prev,
+                                         applied_prev for the adaptive step) */
 #define THYS_N_CONDITIONS @N_CONDITIONS@
 #define THYS_VR_DESIRED 0u
 #define THYS_VR_COMMAND 1u
-#define THYS_VR_FIRST_CONDITION 2u
+#define THYS_VR_FIRST_INPUT 2u         /* inputs[1] */
 #define THYS_VR_FIRST_CONSTANT @VR_FIRST_CONSTANT@u
 #define THYS_N_CONSTANTS @N_CONSTANTS@
-#define THYS_VR_NONFINITE @VR_NONFINITE@u
-#define THYS_VR_OUT_OF_RANGE @VR_OUT_OF_RANGE@u
 #define THYS_VR_TIME @VR_TIME@u
 #define THYS_SAMPLE_PERIOD @SAMPLE_PERIOD@
 #define THYS_TIME_TOLERANCE 1e-6     /* of a sample period */
@@ -91,6 +92,7 @@ static void thys_core_run(thys_core *c, int64_t n)
 @CONDITIONS_COPY@
     for (i = 0; i < n; ++i)
         c->command = (double)@STEP_CALL@;
+    (void)i;
     c->k += n;
 }
 
@@ -101,8 +103,8 @@ static int thys_core_get_real(const thys_core *c, unsigned vr, double *value)
         *value = c->inputs[0];
     else if (vr == THYS_VR_COMMAND)
         *value = c->command;
-    else if (vr >= THYS_VR_FIRST_CONDITION && vr < THYS_VR_FIRST_CONDITION + THYS_N_CONDITIONS)
-        *value = c->inputs[1 + (vr - THYS_VR_FIRST_CONDITION)];
+    else if (vr >= THYS_VR_FIRST_INPUT && vr < THYS_VR_FIRST_INPUT + THYS_N_INPUTS - 1)
+        *value = c->inputs[1 + (vr - THYS_VR_FIRST_INPUT)];
     else if (vr >= THYS_VR_FIRST_CONSTANT && vr < THYS_VR_FIRST_CONSTANT + THYS_N_CONSTANTS)
         *value = thys_constants[vr - THYS_VR_FIRST_CONSTANT];
     else if (vr == THYS_VR_TIME)
@@ -118,8 +120,8 @@ static int thys_core_set_real(thys_core *c, unsigned vr, double value)
 {
     if (vr == THYS_VR_DESIRED)
         c->inputs[0] = value;
-    else if (vr >= THYS_VR_FIRST_CONDITION && vr < THYS_VR_FIRST_CONDITION + THYS_N_CONDITIONS)
-        c->inputs[1 + (vr - THYS_VR_FIRST_CONDITION)] = value;
+    else if (vr >= THYS_VR_FIRST_INPUT && vr < THYS_VR_FIRST_INPUT + THYS_N_INPUTS - 1)
+        c->inputs[1 + (vr - THYS_VR_FIRST_INPUT)] = value;
     else if (vr == THYS_VR_COMMAND || vr == THYS_VR_TIME
              || (vr >= THYS_VR_FIRST_CONSTANT && vr < THYS_VR_FIRST_CONSTANT + THYS_N_CONSTANTS))
         return -2;
@@ -128,15 +130,15 @@ static int thys_core_set_real(thys_core *c, unsigned vr, double value)
     return 0;
 }
 
-/* a counter (the held non-finite samples, the clamped samples): 0, or -1 */
+/* a counter (the held non-finite samples, the clamped samples; the adaptive step's
+   updates, skipped pairs and refused updates): 0, or -1 */
 static int thys_core_get_count(const thys_core *c, unsigned vr, int64_t *value)
 {
-    if (vr == THYS_VR_NONFINITE)
-        *value = @P@_nonfinite_count(&c->s);
-    else if (vr == THYS_VR_OUT_OF_RANGE)
-        *value = @P@_out_of_range_count(&c->s);
-    else
+    switch (vr) {
+@COUNTS@
+    default:
         return -1;
+    }
     return 0;
 }
 
@@ -180,28 +182,37 @@ static void thys_format(char *buf, size_t size, const char *fmt, va_list args)
 
 
 def core_source(prefix: str, variables: Variables, token: str) -> str:
-    """The shared C of an FMU of the C step ``prefix`` and the ``variables``."""
+    """The shared C of an FMU of the C step ``prefix`` and the ``variables``; an adaptive
+    step gets the measured pair at the first sample of a communication step and NaN (no
+    pair, counted as skipped) at the others."""
     n_cond = variables.n_conditions
+    real = f"{prefix}_real"
+    args = [f"({real})c->inputs[0]"]
+    copy = ""
     if n_cond:
-        copy = (f"    {prefix}_real cond[THYS_N_CONDITIONS];\n"
+        copy = (f"    {real} cond[THYS_N_CONDITIONS];\n"
                 "    for (i = 0; i < THYS_N_CONDITIONS; ++i)\n"
-                f"        cond[i] = ({prefix}_real)c->inputs[1 + i];")
-        call = f"{prefix}_step(&c->s, ({prefix}_real)c->inputs[0], cond)"
-    else:
-        copy = ""
-        call = f"{prefix}_step(&c->s, ({prefix}_real)c->inputs[0])"
+                f"        cond[i] = ({real})c->inputs[1 + i];")
+        args.append("cond")
+    step = f"{prefix}_step"
+    if variables.adaptive:
+        step += "_adapt"
+        args += [f"i == 0 ? ({real})c->inputs[{1 + n_cond + k}] : ({real})NAN" for k in (0, 1)]
+    call = f"{step}(&c->s, {', '.join(args)})"
+    counts = []
+    for v in variables.counters:
+        counts += [f"    case {v.vr}u:", f"        *value = {prefix}_{v.name}(&c->s);",
+                   "        break;"]
     consts = variables.constants
     values = {
-        "N_INPUTS": str(1 + n_cond), "N_CONDITIONS": str(n_cond),
+        "N_INPUTS": str(len(variables.inputs)), "N_CONDITIONS": str(n_cond),
         "VR_FIRST_CONSTANT": str(consts[0].vr), "N_CONSTANTS": str(len(consts)),
-        "VR_NONFINITE": str(variables.counters[0].vr),
-        "VR_OUT_OF_RANGE": str(variables.counters[1].vr),
         "VR_TIME": str(variables.time.vr), "GUID": token,
         "SAMPLE_PERIOD": _literal(variables.sample_period),
         "CONSTANTS": ", ".join(_literal(v.start) for v in consts),
         "START_INPUTS": ", ".join(_literal(v.start) for v in variables.inputs),
         "INITIAL_COMMAND": _literal(variables.command.start),
-        "CONDITIONS_COPY": copy, "STEP_CALL": call, "P": prefix,
+        "CONDITIONS_COPY": copy, "STEP_CALL": call, "COUNTS": "\n".join(counts), "P": prefix,
     }
     text = CORE
     for key, value in values.items():
@@ -210,6 +221,8 @@ def core_source(prefix: str, variables: Variables, token: str) -> str:
 
 
 def _literal(value: float) -> str:
-    """A C double literal of ``value`` (finite: the constants are checked finite)."""
+    """A C double literal of ``value`` (NaN: the NAN of <math.h>; the constants are finite)."""
+    if math.isnan(value):
+        return "NAN"
     text = repr(float(value))
     return text if any(ch in text for ch in ".en") else text + ".0"

@@ -27,9 +27,11 @@ class Variable:
 
 @dataclass
 class Variables:
-    """The table: the inputs (desired, then the conditions), the command, the constants and
-    the two counters; value references unique over all types (0 the desired output, 1 the
-    command, 2.. the conditions, then the constants, then the counters)."""
+    """The table: the inputs (desired, then the conditions, then for an adaptive step the
+    last sample's measured response and applied command), the command, the constants and
+    the counters (two; five for an adaptive step); value references unique over all types (0
+    the desired output, 1 the command, 2.. the other inputs, then the constants, then the
+    counters, then time)."""
     inputs: list[Variable]
     command: Variable
     constants: list[Variable]
@@ -37,6 +39,7 @@ class Variables:
     time: Variable
     sample_period: float
     n_conditions: int = field(default=0)
+    adaptive: bool = field(default=False)
 
     @property
     def all(self) -> list[Variable]:
@@ -51,13 +54,15 @@ def condition_names(n: int) -> list[str]:
 
 
 def variables(comp: StreamingCompensator, sample_period: float,
-              units: Mapping[str, str] | None) -> Variables:
-    """The table of the compensator ``comp``; ``units`` maps variable names to units (a
-    name that is not a variable: ValueError)."""
+              units: Mapping[str, str] | None, adaptive: bool = False) -> Variables:
+    """The table of the compensator ``comp`` (``adaptive``: an
+    :class:`~torchhys.deploy.adaptive.AdaptiveCompensator`); ``units`` maps variable names
+    to units (a name that is not a variable: ValueError)."""
     n = comp.n_conditions
     cond = condition_names(n)
     units = dict(units or {})
-    real_names = ["desired", "command", *cond]
+    pair = ["measured_prev", "applied_prev"] if adaptive else []
+    real_names = ["desired", "command", *cond, *pair]
     known = [*real_names, "command_low", "command_high", "input_low", "input_high"]
     for name, unit in units.items():
         if name not in known:
@@ -78,6 +83,16 @@ def variables(comp: StreamingCompensator, sample_period: float,
     inputs += [Variable(name, 2 + k, "real", "input", "discrete", mid(k),
                         f"operating condition {k} (the C step's conditions[{k}])",
                         units.get(name)) for k, name in enumerate(cond)]
+    if adaptive:
+        inputs += [
+            Variable("measured_prev", 2 + n, "real", "input", "discrete", math.nan,
+                     "the response measured at the last sample (NaN: no pair, no update); "
+                     "used by the first sample of a communication step only", units.get(
+                         "measured_prev", units.get("desired"))),
+            Variable("applied_prev", 3 + n, "real", "input", "discrete", math.nan,
+                     "the command applied at the last sample (NaN: no pair, no update); used "
+                     "by the first sample of a communication step only", units.get(
+                         "applied_prev", units.get("command")))]
     command = Variable("command", 1, "real", "output", "discrete", float(comp.u0),
                        "the saturated command of the last sample (the initial command "
                        "before the first finite sample)", units.get("command"))
@@ -88,7 +103,7 @@ def variables(comp: StreamingCompensator, sample_period: float,
                     "(the training range widened by the input margin)"),
                    ("input_high", float(comp.in_high), "the desired output's clamp, high")]
     consts.append(("sample_period", sample_period, "the compensator's sample period (s)"))
-    vr = 2 + n
+    vr = 2 + n + len(pair)
     constants = []
     for name, value, text in consts:
         unit = "s" if name == "sample_period" else units.get(
@@ -102,7 +117,15 @@ def variables(comp: StreamingCompensator, sample_period: float,
         Variable("out_of_range_count", vr + 1, "count", "output", "discrete", 0,
                  "finite samples clamped (the desired output or a condition outside its "
                  "clamp)")]
-    time = Variable("time", vr + 2, "real", "independent", "continuous", None,
+    if adaptive:
+        counters += [
+            Variable("updates_count", vr + 2, "count", "output", "discrete", 0,
+                     "the readout's weight updates applied"),
+            Variable("skipped_count", vr + 3, "count", "output", "discrete", 0,
+                     "pairs skipped (not finite: no update)"),
+            Variable("refused_count", vr + 4, "count", "output", "discrete", 0,
+                     "updates refused (they would reverse the direction)")]
+    time = Variable("time", vr + len(counters), "real", "independent", "continuous", None,
                     "the simulation time (s): the start time plus the samples run times the "
                     "sample period", "s")
-    return Variables(inputs, command, constants, counters, time, sample_period, n)
+    return Variables(inputs, command, constants, counters, time, sample_period, n, adaptive)

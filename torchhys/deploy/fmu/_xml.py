@@ -20,7 +20,8 @@ def _attrs(**items: object) -> str:
 
 
 def _number(value: float) -> str:
-    return repr(float(value))
+    """An xs:double (NaN as XML Schema spells it)."""
+    return "NaN" if value != value else repr(float(value))
 
 
 def _units(variables: Variables) -> list[str]:
