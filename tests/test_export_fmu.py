@@ -283,6 +283,9 @@ def test_a_step_that_is_not_a_multiple_is_an_error(case: dict, fmi: int) -> None
                           limits=LIMITS)
     assert s.get(["command"])[0] == pytest.approx(ref["u"][-1], abs=1e-12)
     assert s.get(["time"])[0] == pytest.approx(3 * T)
+    s.set(["desired"], [float("nan")])  # three samples run: three NaN samples counted
+    s.step(3 * T)
+    assert s.counts()[0] == 3 and s.get(["time"])[0] == pytest.approx(6 * T)
     with pytest.raises(FMICallException):  # an output is not settable
         s.set(["command"], [1.0])
     s.close()
