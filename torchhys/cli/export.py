@@ -357,7 +357,8 @@ def main(argv: list[str]) -> int:
     args = _parser().parse_args(argv)
     try:
         if args.prefix is not None and args.format not in ("c", "fmu"):
-            raise ValueError(f"--prefix applies to --format c and fmu only, not {args.format}")
+            raise ValueError(f"--prefix applies to --format c only (or fmu: the model "
+                             f"identifier), not {args.format}")
         fmu = _fmu_options(args)
         check_out(args)
         import_modules(args.imports, args.import_paths)
