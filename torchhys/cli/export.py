@@ -67,9 +67,8 @@ from torchhys.compose import Composed
 from torchhys.compose.spec import build_composed, is_composed_spec
 from torchhys.deploy.c import DEFAULT_PREFIX, check_prefix, to_c
 from torchhys.deploy.export import ADAPT_DEFAULTS, to_aoti, to_torchscript
-from torchhys.deploy.export_fmu import to_fmu
+from torchhys.deploy.export_fmu import periods, to_fmu
 from torchhys.deploy.export_onnx import to_onnx
-from torchhys.deploy.fmu._to_fmu import periods
 from torchhys.deploy.ranges import DIRECTIONS
 from torchhys.deploy.streaming import StreamingCompensator
 from torchhys.identification.specs import build_operators
