@@ -360,3 +360,65 @@ def test_the_c_templates_operations_translate_as_torch_computes() -> None:
             want = module(torch.tensor(x[None])).reshape(-1).numpy()
         got = np.asarray(fn(x)).reshape(-1)
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+
+
+def _cli_ckpt(tmp_path: Path) -> tuple[Path, torch.nn.Module]:
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_export_cli import lightning_ckpt, trained
+
+    net = trained().double()
+    torch.save(lightning_ckpt(net), tmp_path / "m.ckpt")
+    return tmp_path / "m.ckpt", net
+
+
+def test_the_cli_writes_the_casadi_file_of_the_torchscript_step(tmp_path: Path,
+                                                                capsys) -> None:
+    from torchhys.cli.export import main
+
+    ckpt, _ = _cli_ckpt(tmp_path)
+    rc = main(["--ckpt", str(ckpt), "--format", "casadi", "--out", str(tmp_path / "c.casadi"),
+               "--limits", "-2", "2", "--prefix", "comp"])
+    assert rc == 0 and "c.casadi (casadi, float64)" in capsys.readouterr().out
+    rc = main(["--ckpt", str(ckpt), "--format", "torchscript", "--out", str(tmp_path / "c.pt"),
+               "--limits", "-2", "2"])
+    assert rc == 0
+    fn = load_casadi(tmp_path / "c.casadi")
+    assert fn.name() == "comp"
+    from torchhys.deploy.export import load_torchscript
+    module = load_torchscript(tmp_path / "c.pt")
+    x = 3.5 * np.sin(np.linspace(0.0, 25.0, 400))  # beyond the range: clamped
+    s = np.zeros(fn.size1_in(1))
+    worst = 0.0
+    for v in x:
+        u, s = fn(float(v), s)
+        want = module.step(torch.tensor([v], dtype=torch.float64))
+        worst = max(worst, abs(float(u) - float(want[0])))
+    assert worst <= 1e-12
+
+
+@pytest.mark.parametrize(("extra", "message"), [
+    (["--adapt", "rls"], "--adapt applies to the torchscript, aoti, c, onnx and fmu formats"),
+    ([], "must end in .casadi (--format casadi)"),
+])
+def test_the_cli_names_what_casadi_refuses(tmp_path: Path, capsys, extra: list,
+                                           message: str) -> None:
+    from torchhys.cli.export import main
+
+    ckpt, _ = _cli_ckpt(tmp_path)
+    out = tmp_path / ("c.casadi" if extra else "c.bin")
+    rc = main(["--ckpt", str(ckpt), "--format", "casadi", "--out", str(out), *extra])
+    err = capsys.readouterr().err
+    assert rc == 2 and message in err and len(err.strip().splitlines()) == 1, err
+    assert not out.exists()
+
+
+def test_the_cli_without_casadi_names_the_extra(tmp_path: Path, capsys,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    from torchhys.cli.export import main
+
+    ckpt, _ = _cli_ckpt(tmp_path)
+    monkeypatch.setitem(sys.modules, "casadi", None)
+    rc = main(["--ckpt", str(ckpt), "--format", "casadi", "--out", str(tmp_path / "c.casadi")])
+    err = capsys.readouterr().err
+    assert rc == 2 and 'pip install "torchhys[casadi]"' in err
+    assert len(err.strip().splitlines()) == 1, err

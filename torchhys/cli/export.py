@@ -1,6 +1,6 @@
 """``torchhys export``: a trained checkpoint to a deployable compensator file.
 
-    torchhys export --ckpt CKPT --format torchscript|aoti|c|onnx|fmu --out FILE|DIR
+    torchhys export --ckpt CKPT --format torchscript|aoti|c|onnx|fmu|casadi --out FILE|DIR
         [--limits LOW HIGH] [--input-margin M | --input-margin none]
         [--direction auto|increasing|decreasing|none] [--dtype float64|float32]
         [--prefix NAME] [--fmi 2|3] [--step-size S] [--sample-period T] [--force]
@@ -17,6 +17,11 @@ the exported step's real type (default: the checkpoint's).
 the file's stem), ``--sample-period`` the compensator's sample period in s and
 ``--step-size`` the default communication step, an integer multiple of it (each defaults to
 the other, both to 1 s).
+
+``--format casadi`` writes ``NAME.casadi`` (``--out``, ending in ``.casadi``), the step as a
+CasADi function ``(x, state) -> (u, new_state)`` saved by ``casadi.Function.save``
+(:func:`torchhys.deploy.export_casadi.to_casadi`; ``--prefix``: the function's name, default
+``torchhys_comp``); it needs the casadi extra and has no adaptive form.
 
 The output is checked before anything is read or compiled: its folder exists and is
 writable, it is not the ``--ckpt`` file itself (refused even with ``--force``), and an
@@ -67,6 +72,7 @@ from torchhys.compose import Composed
 from torchhys.compose.spec import build_composed, is_composed_spec
 from torchhys.deploy.c import DEFAULT_PREFIX, check_prefix, to_c
 from torchhys.deploy.export import ADAPT_DEFAULTS, to_aoti, to_torchscript
+from torchhys.deploy.export_casadi import save_casadi, to_casadi
 from torchhys.deploy.export_fmu import periods, to_fmu
 from torchhys.deploy.export_onnx import to_onnx
 from torchhys.deploy.ranges import DIRECTIONS
@@ -83,7 +89,7 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="torchhys export", description=__doc__.splitlines()[0])
     accept_negative_numbers(p)  # --limits -5e-3 5e-3
     p.add_argument("--ckpt", type=Path, required=True, help="checkpoint or state dict file")
-    p.add_argument("--format", choices=("torchscript", "aoti", "c", "onnx", "fmu"),
+    p.add_argument("--format", choices=("torchscript", "aoti", "c", "onnx", "fmu", "casadi"),
                    required=True)
     p.add_argument("--out", type=Path, required=True,
                    help="output file (.pt, .pt2, .onnx or .fmu), or with --format c an "
@@ -245,8 +251,9 @@ def check_out(args: argparse.Namespace) -> list[Path]:
         targets = [args.out / f"{prefix}.h", args.out / f"{prefix}.c"]
     else:
         folder, targets = args.out.parent, [args.out]
-        if args.format == "fmu" and args.out.suffix != ".fmu":
-            raise ValueError(f"--out {args.out} must end in .fmu (--format fmu)")
+        if args.format in ("fmu", "casadi") and args.out.suffix != f".{args.format}":
+            raise ValueError(f"--out {args.out} must end in .{args.format} "
+                             f"(--format {args.format})")
         if args.out.is_dir():
             raise ValueError(f"--out {args.out} is a folder; --format {args.format} writes one "
                              "file: give its name")
@@ -355,9 +362,12 @@ def main(argv: list[str]) -> int:
     """
     args = _parser().parse_args(argv)
     try:
-        if args.prefix is not None and args.format not in ("c", "fmu"):
+        if args.prefix is not None and args.format not in ("c", "fmu", "casadi"):
             raise ValueError(f"--prefix applies to --format c only (or fmu: the model "
-                             f"identifier), not {args.format}")
+                             f"identifier, casadi: the function's name), not {args.format}")
+        if args.format == "casadi" and args.adapt != "none":
+            raise ValueError("--adapt applies to the torchscript, aoti, c, onnx and fmu "
+                             "formats, not casadi (its function has no adaptive form)")
         fmu = _fmu_options(args)
         check_out(args)
         import_modules(args.imports, args.import_paths)
@@ -380,6 +390,13 @@ def main(argv: list[str]) -> int:
         elif args.format == "fmu":
             to_fmu(net, args.out, dtype=comp.low.dtype, **fmu, **options, **adapt)
             args.out = f"{args.out} (FMI {fmu['fmi']}.0, model identifier {fmu['prefix']})"
+        elif args.format == "casadi":
+            try:
+                fn = to_casadi(net, dtype=comp.low.dtype, name=args.prefix or DEFAULT_PREFIX,
+                               **options)
+            except ImportError as err:  # the casadi extra is missing: one line, a user error
+                raise ValueError(str(err)) from None
+            save_casadi(fn, args.out)
         elif args.format == "onnx":
             try:
                 to_onnx(comp, args.out)
