@@ -71,3 +71,9 @@ def test_import_torchhys_imports_no_lightning_and_no_training_package() -> None:
     )
     # outside the repository, so the checkout's folders are not on sys.path
     subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(sys.prefix))
+
+
+def test_the_wheel_marks_the_package_as_typed(wheel: zipfile.ZipFile) -> None:
+    """``torchhys/py.typed`` (PEP 561): type checkers read the package's annotations."""
+    assert (ROOT / "torchhys" / "py.typed").is_file()
+    assert "torchhys/py.typed" in wheel.namelist()

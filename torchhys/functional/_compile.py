@@ -5,7 +5,9 @@ Shared by the compiled kernels (:mod:`torchhys.functional._kernel` for the play 
 the source with IEEE-exact flags into ``$TORCHHYS_CACHE/kernels`` (default
 ``~/.cache/torchhys``), and every caller falls back to its pure-torch path, with the reason,
 when the kernel is disabled (``TORCHHYS_DISABLE_KERNEL=1``), no compiler is found or the build
-fails.
+fails. A missing compiler or a failed build is said once per process, in one line (a
+:class:`RuntimeWarning`, :func:`warn_fallback`): the slower path runs; the environment variable
+chooses it silently.
 
 Each kernel is also a torch custom op (``torch.ops.torchhys.*``, defined beside its kernel)
 whose implementation makes the same choice, at run time: tracing (``torch.compile``,
@@ -91,7 +93,11 @@ def build(name: str, source: str, *, what: str, fallback: str,
     cc = os.environ.get("CC", "cc")
     compiler = shutil.which(cc) or shutil.which("gcc")
     if compiler is None:
-        return None, f"no C compiler found (neither {cc!r} nor 'gcc' is on the PATH)"
+        reason = f"no C compiler found (neither {cc!r} nor 'gcc' is on the PATH)"
+        warn_fallback("compiler", f"{reason}: the compiled {what} and the other kernels are "
+                      "off, the slower pure-torch paths run (set CC to a C compiler, or "
+                      "TORCHHYS_DISABLE_KERNEL=1 to choose them without this warning)")
+        return None, reason
     digest = hashlib.sha256((source + " ".join(FLAGS)).encode()).hexdigest()[:16]
     lib_path = _cache_dir() / f"{name}_{digest}.so"
     try:
@@ -99,13 +105,31 @@ def build(name: str, source: str, *, what: str, fallback: str,
             _compile(compiler, name, source, lib_path)
         lib = ctypes.CDLL(str(lib_path))
     except (OSError, subprocess.SubprocessError) as err:
-        warnings.warn(f"torchhys: could not build the compiled {what} ({err}); using {fallback} "
-                      "instead", RuntimeWarning, stacklevel=5)
+        warn_fallback(what, f"could not build the compiled {what} ({err}); {fallback} runs "
+                      "instead (slower; TORCHHYS_DISABLE_KERNEL=1 chooses it without this "
+                      "warning)")
         return None, f"the kernel could not be built with {compiler} ({err})"
     for stem, types in (argtypes or {}).items():
         for suffix in SUFFIX.values():
             getattr(lib, f"{stem}_{suffix}").argtypes = list(types)
     return lib, None
+
+
+_warned: set[str] = set()
+"""The keys :func:`warn_fallback` has warned about in this process."""
+
+
+def warn_fallback(key: str, message: str) -> None:
+    """Warn once per process and ``key`` (``"compiler"``: every kernel at once; a kernel's
+    name: its failed build) that a slower path runs: one line, ``torchhys:0: RuntimeWarning:
+    <message>``, without the source line a warning from a file would echo (filters match the
+    module ``torchhys``). The message is made one line (a compiler's error may hold several)."""
+    if key in _warned:
+        return
+    _warned.add(key)
+    text = " ".join(message.split())
+    warnings.warn_explicit(text, RuntimeWarning, filename="torchhys", lineno=0,
+                           module="torchhys")
 
 
 def dispatched(*tensors: Tensor) -> bool:

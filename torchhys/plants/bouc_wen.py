@@ -35,7 +35,6 @@ import math
 
 import torch
 from torch import Tensor, nn
-from torchdiffeq import odeint
 
 from torchhys._checks import check_choice, check_int
 
@@ -151,6 +150,8 @@ def _adaptive(u: Tensor, t: Tensor, w0: Tensor, A: Tensor, beta: Tensor, gamma: 
         k = min(max(bisect.bisect_right(times, float(s.detach())) - 1, 0), last)
         p = w.abs().clamp_min(tiny).pow(n)
         return rates[k] * (A - (b_signed[k] * torch.sign(w) + gamma) * p)
+
+    from torchdiffeq import odeint  # on first use: it imports SciPy's integrate
 
     w = odeint(rhs, w0, t, method=method, rtol=rtol, atol=atol,
                options={"jump_t": t[1:-1]})
