@@ -1,10 +1,11 @@
 """The shipped compensator configs end to end: fitted with ``torchhys fit --config``, exported
-with ``torchhys export`` as TorchScript, C99 and ONNX, the C step (compiled with ``cc
--std=c99 -O2 -Wall -Wextra -Werror -pedantic``) and the ONNX step (ONNX Runtime) reproduce the
-TorchScript file's commands and final state within 1e-12 of their scale (float64) and its
-counters, on a record the model was not trained on: held-out measurements, then a stress
-record around the training range (turning points, ties, signed zeros, samples beyond the
-range, NaN and inf; tests/_export_helpers.py).
+with ``torchhys export`` as TorchScript, C99, FMU, CasADi and ONNX, the C step (compiled with
+``cc -std=c99 -O2 -Wall -Wextra -Werror -pedantic``), the FMU (FMPy, where the fmu extra is
+installed), the CasADi function (where casadi is) and the ONNX step (ONNX Runtime) reproduce
+the TorchScript file's commands and final state (the FMU: its commands and counters) within
+1e-12 of their scale (float64) and its counters, on a record the model was not trained on:
+held-out measurements, then a stress record around the training range (turning points, ties,
+signed zeros, samples beyond the range, NaN and inf; tests/_export_helpers.py).
 
 - ``configs/compensator.yaml`` (a re-based EIHO and 16 plays, 64 sigmoids): fitted 2 epochs
   on the first 400 rows of its example file; held out: the file's later rows.
@@ -19,6 +20,7 @@ Slow: the measured config tries its 11 candidates.
 from __future__ import annotations
 
 import csv
+import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +32,7 @@ from _export_helpers import (
     NO_CC,
     assert_equal_runs,
     compile_harness,
+    gap,
     record,
     run_c,
     stepped,
@@ -99,6 +102,25 @@ def test_a_fitted_config_in_c_and_onnx_equals_torchscript(config, tmp_path: Path
         assert "operators [StopPrandtlIshlinskii, PreisachInverse]" in header, header[:600]
     c = run_c(compile_harness(tmp_path, state=ts["state"]), x, ts["state"])
     gaps = {"c": assert_equal_runs(c, ts, FLOAT64_RTOL)}
+    if importlib.util.find_spec("fmpy") is not None:  # the fmu extra
+        from test_export_fmu import run_fmu
+
+        fmu = tmp_path / "comp.fmu"
+        assert export_main(["--ckpt", str(ckpt), "--format", "fmu", "--out", str(fmu)]) == 0
+        gaps["fmu"] = assert_equal_runs(run_fmu(fmu, x), ts, FLOAT64_RTOL)
+    if importlib.util.find_spec("casadi") is not None:  # the casadi extra
+        from torchhys.deploy.export_casadi import flatten, load_casadi
+
+        path = tmp_path / "comp.casadi"
+        assert export_main(["--ckpt", str(ckpt), "--format", "casadi", "--out", str(path)]) == 0
+        fn, flat, u = load_casadi(path), np.zeros(len(flatten(ts["state"]))), []
+        for v in x:
+            command, flat = fn(float(v), flat)
+            u.append(float(command))
+        gaps["casadi"] = max(gap(np.array(u), ts["u"]),
+                             gap(np.asarray(flat).reshape(-1), flatten(ts["state"])))
+        assert gaps["casadi"] <= FLOAT64_RTOL, gaps
+    capsys.readouterr()
     pytest.importorskip("onnxruntime", reason='no onnxruntime: pip install "torchhys[onnx]"')
     from torchhys.deploy.export_onnx import load_onnx
 
