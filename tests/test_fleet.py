@@ -284,3 +284,35 @@ def test_a_scheduler_and_a_worker_of_their_own_give_the_local_results(fleet, fol
         near = fleet.row(r["device"])
         for key in ("status", "candidate", "config", "ratio", "width", "gain"):
             assert r[key] == near[key], (r["device"], key)
+
+
+def test_the_command_runs_a_fleet_on_a_cluster_by_address(fleet, folder, client, tmp_path,
+                                                          capsys):
+    """``torchhys fleet`` with fit's options (a trainer option passed to every fit), sent
+    to the running cluster by its address: the rows of the library's run; an empty glob is
+    one line and status 2."""
+    from torchhys.cli.main import main
+
+    args = ["fleet", "--config", str(MEASURED), "--config", str(folder / "small.yaml"),
+            "--data.path", str(folder / "devices" / "unit[01].csv"), "--root",
+            str(tmp_path / "runs"), "--cluster", client.scheduler.address,
+            "--trainer.enable_model_summary=false", "--quiet"]
+    with pytest.raises(SystemExit) as done:
+        main(args)
+    assert done.value.code == 0
+    out = capsys.readouterr().out
+    assert "2 devices, 2 identified" in out and "fleet.csv" in out
+    with (tmp_path / "runs" / "fleet_0" / "fleet.csv").open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["device"] for r in rows] == ["unit0", "unit1"]
+    with fleet.csv.open(newline="") as fh:
+        library = {r["device"]: r for r in csv.DictReader(fh)}
+    for r in rows:
+        assert (r["ratio"], r["width"], r["candidate"]) == (
+            library[r["device"]]["ratio"], library[r["device"]]["width"],
+            library[r["device"]]["candidate"])
+    with pytest.raises(SystemExit) as bad:
+        main(["fleet", "--data.path", str(tmp_path / "none*.csv")])
+    assert bad.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("torchhys fleet: error: data.path") and "matches no file" in err[-1]

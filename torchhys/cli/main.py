@@ -47,7 +47,8 @@ TRAIN_PACKAGES = ("lightning", "jsonargparse", "torchmetrics", "matplotlib")
 INSTALL_TRAIN = 'pip install "torchhys[train]"'
 
 COMMANDS = ("fit", "validate", "test", "predict", "export")
-"""The subcommands: LightningCLI's four, and ``export``."""
+"""The subcommands: LightningCLI's four, and ``export`` (and ``fleet``, a fit per device:
+:mod:`torchhys.cli.fleet`)."""
 
 
 def missing_train_packages() -> list[str]:
@@ -127,6 +128,11 @@ def main(argv: list[str] | None = None) -> None:
 
 def _main(argv: list[str] | None) -> None:
     args, traceback = split_traceback_flag(sys.argv[1:] if argv is None else argv)
+    if args and args[0] == "fleet":  # each device a fit, given the command's options as they are
+        _training_commands()
+        from torchhys.cli.fleet import main as fleet_main
+
+        raise SystemExit(fleet_main(args[1:], traceback=traceback))
     try:
         args, modules = split_import_flags(args)
         args, paths = split_import_path_flags(args)
