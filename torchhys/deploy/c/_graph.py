@@ -87,6 +87,16 @@ def _live(graph: fx.Graph, finite: dict[fx.Node, tuple[list[fx.Node], bool]]) ->
     return live
 
 
+def known_tensors(ep: torch.export.ExportedProgram) -> dict[str, torch.Tensor]:
+    """The program's parameters, buffers and constant tensors by their placeholders' names."""
+    known = {}
+    for spec in ep.graph_signature.input_specs:
+        if spec.kind in (InputKind.PARAMETER, InputKind.BUFFER, InputKind.CONSTANT_TENSOR):
+            src = ep.state_dict if spec.target in ep.state_dict else ep.constants
+            known[spec.arg.name] = src[spec.target]
+    return known
+
+
 def translate(ep: torch.export.ExportedProgram, w: Writer, members: list[str],
               conditioned: bool = False, inputs: list[str] | None = None
               ) -> tuple[CTensor, list[CTensor]]:
@@ -96,11 +106,7 @@ def translate(ep: torch.export.ExportedProgram, w: Writer, members: list[str],
     an array), then the state's members."""
     between = (["conditions"] if conditioned else []) if inputs is None else list(inputs)
     sig = ep.graph_signature
-    known = {}
-    for spec in sig.input_specs:
-        if spec.kind in (InputKind.PARAMETER, InputKind.BUFFER, InputKind.CONSTANT_TENSOR):
-            src = ep.state_dict if spec.target in ep.state_dict else ep.constants
-            known[spec.arg.name] = src[spec.target]
+    known = known_tensors(ep)
     users = list(sig.user_inputs)
     env: dict[fx.Node, Any] = {}
     missing: dict[str, str] = {}

@@ -16,10 +16,9 @@ from typing import Any
 import numpy as np
 import torch
 from torch import fx
-from torch.export.graph_signature import InputKind
 
 from torchhys.deploy.c._finite import finite_test
-from torchhys.deploy.c._graph import _live, _origin
+from torchhys.deploy.c._graph import _live, _origin, known_tensors
 from torchhys.deploy.c._templates import SHAPE_ONLY
 from torchhys.deploy.casadi._ops import is_symbolic, translations, zeros_for
 from torchhys.deploy.casadi._values import (
@@ -79,11 +78,7 @@ def translate(ep: torch.export.ExportedProgram, inputs: list[Sym], who: str = "t
     order). Raises ValueError naming every aten operation without a translation and where
     it came from."""
     sig = ep.graph_signature
-    known = {}
-    for spec in sig.input_specs:
-        if spec.kind in (InputKind.PARAMETER, InputKind.BUFFER, InputKind.CONSTANT_TENSOR):
-            src = ep.state_dict if spec.target in ep.state_dict else ep.constants
-            known[spec.arg.name] = src[spec.target]
+    known = known_tensors(ep)
     users = list(sig.user_inputs)
     finite_tests = {n: t for n in ep.graph.nodes if (t := finite_test(
         n, lambda p: known.get(p.name) if p.op == "placeholder" else None)) is not None}
