@@ -78,6 +78,7 @@ from torchhys.cli.ckpt_paths import check_ckpt_path
 from torchhys.cli.config_yaml import check_config_aliases
 from torchhys.cli.config_yaml import install as install_bounded_yaml
 from torchhys.cli.errors import TRACEBACK_ENV, config_errors, report_user_error
+from torchhys.cli.loggers import expand_logger_names, prepare_loggers
 from torchhys.cli.negative_numbers import accept_negative_numbers
 from torchhys.cli.quiet import quiet_requested
 from torchhys.cli.run_dirs import RUN_DIR_ENV, reserve_run_dir
@@ -164,11 +165,13 @@ class TorchhysCLI(LightningCLI):
 
     def before_instantiate_classes(self) -> None:
         self._run_dir: tuple[Path, int | str | None] | None = None
+        cfg = self.config[self.subcommand] if self.subcommand else self.config
+        root = cfg["trainer"].get("default_root_dir") or "."
+        prepare_loggers(cfg["trainer"].get("logger"), root)  # csv, tensorboard: the default's
         self._select()
         cfg = self.config[self.subcommand] if self.subcommand else self.config
         trainer = cfg["trainer"]
         if trainer.get("logger") in (None, True):
-            root = trainer.get("default_root_dir") or "."
             trainer["logger"] = {
                 "class_path": "lightning.pytorch.loggers.CSVLogger",
                 "init_args": {"save_dir": root, "name": "logs"},
@@ -423,6 +426,12 @@ def run(args: list[str], *, from_sys_argv: bool, traceback: bool) -> None:
         SystemExit: 2 on a user error, 128 + the signal's number on an interrupt (model
             selection), and as LightningCLI exits (usage errors, ``--help``).
     """
+    try:
+        args = expand_logger_names(args)  # --trainer.logger tensorboard: its class path
+    except ValueError as exc:
+        if not report_user_error(f"torchhys {args[0] if args else ''}".strip(), exc, traceback):
+            raise
+        raise SystemExit(2) from None
     if from_sys_argv:
         sys.argv[1:] = args
         if traceback:
