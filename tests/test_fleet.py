@@ -191,6 +191,7 @@ def test_a_cluster_that_does_not_answer_is_one_line_within_the_timeout(folder, t
                        root=tmp_path, cluster=address, timeout=1.0, say=lambda s: None)
     assert "\n" not in str(err.value)
     assert time.perf_counter() - start < 10
+    assert list(tmp_path.iterdir()) == []  # no fleet folder left behind
     with pytest.raises(ClusterError, match="neither an address"):
         identify_fleet(str(folder / "devices" / "unit0.csv"), root=tmp_path,
                        cluster=str(tmp_path / "absent.json"), say=lambda s: None)
@@ -316,3 +317,15 @@ def test_the_command_runs_a_fleet_on_a_cluster_by_address(fleet, folder, client,
     assert bad.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("torchhys fleet: error: data.path") and "matches no file" in err[-1]
+
+
+@pytest.mark.slow
+def test_the_benchmark_quick_mode_flags_the_faulty_unit_only():
+    """benchmarks/fleet.py --quick: 7 simulated devices, the local cluster's rows equal to
+    the serial run's, the one faulty unit flagged and no good one."""
+    from benchmarks.fleet import main as bench
+
+    (row,) = bench(["--quick"])
+    assert row["devices"] == 7 and row["failed"] == 0 and row["identical"] == "yes"
+    assert row["faulty_flagged"] == 1.0 and row["good_flagged"] == 0.0
+    assert row["cluster_s"] > 0 and row["serial_s"] > 0

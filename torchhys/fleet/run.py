@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from torchhys.fleet.cluster import check_workers, connect
+from torchhys.fleet.cluster import ClusterError, check_workers, connect
 from torchhys.fleet.devices import check_columns, find_devices
 from torchhys.fleet.report import flag_outliers, plot_loops, summary, write_csv
 from torchhys.fleet.task import identify_device, read_result
@@ -114,6 +114,34 @@ def _failed(name: str, path: Any, run_dir: Path, reason: str) -> dict[str, Any]:
             "loop": None}
 
 
+def _run_tasks(client: Any, todo: list[tuple[Any, Path]], fit_args: list[str], retries: int,
+               tell: Callable[[str], None]) -> dict[str, dict[str, Any]]:
+    """Each device of ``todo`` a task on ``client``; their rows by device, as they finish
+    (a task that failed after its retries: a failed row with the exception's first line)."""
+    import distributed
+
+    futures = {}
+    for d, run_dir in todo:
+        f = client.submit(identify_device, d.name, str(Path(d.path).resolve()), str(run_dir),
+                          fit_args, key=f"fleet-{d.name}-{uuid.uuid4().hex}", pure=False,
+                          retries=retries)
+        futures[f] = (d, run_dir)
+    rows = {}
+    for n, f in enumerate(distributed.as_completed(futures), start=1):
+        d, run_dir = futures[f]
+        try:
+            row = f.result()
+        except Exception as err:  # noqa: BLE001 (the task's, after its retries)
+            text = str(err).strip().splitlines()[0] if str(err).strip() else ""
+            row = _failed(d.name, d.path, run_dir,
+                          f"{type(err).__name__} after {retries} retries: {text}")
+        rows[d.name] = row
+        what = (f"{row['family']} (candidate {row['candidate']}), ratio {row['ratio']:.3g}, "
+                f"{row['fit_s']:.1f} s" if row["status"] == "ok" else f"failed: {row['reason']}")
+        tell(f"torchhys fleet: [{n}/{len(todo)}] {d.name}: {what}")
+    return rows
+
+
 def _warm() -> None:
     import torchhys.cli.train  # noqa: F401 (Lightning and the command, imported)
 
@@ -191,30 +219,15 @@ def identify_fleet(data: str | os.PathLike | Sequence[str | os.PathLike] | Mappi
         tell(f"torchhys fleet: {len(devices) - len(todo) - len(bad)} devices already "
              f"identified in {folder}, {len(bad)} unusable, {len(todo)} to fit")
     if todo:
-        with connect(cluster, workers=workers, timeout=timeout, retries=retries) as client:
-            check_workers(client)
-            client.run(_warm)  # imported once per worker before the fits are timed
-            import distributed
-
-            futures = {}
-            for d, run_dir in todo:
-                f = client.submit(identify_device, d.name, str(Path(d.path).resolve()),
-                                  str(run_dir), fit_args, key=f"fleet-{d.name}-{uuid.uuid4().hex}",
-                                  pure=False, retries=retries)
-                futures[f] = (d, run_dir)
-            for n, f in enumerate(distributed.as_completed(futures), start=1):
-                d, run_dir = futures[f]
-                try:
-                    row = f.result()
-                except Exception as err:  # noqa: BLE001 (the task's, after its retries)
-                    text = str(err).strip().splitlines()[0] if str(err).strip() else ""
-                    row = _failed(d.name, d.path, run_dir,
-                                  f"{type(err).__name__} after {retries} retries: {text}")
-                rows[d.name] = row
-                what = (f"{row['family']} (candidate {row['candidate']}), ratio "
-                        f"{row['ratio']:.3g}, {row['fit_s']:.1f} s" if row["status"] == "ok"
-                        else f"failed: {row['reason']}")
-                tell(f"torchhys fleet: [{n}/{len(todo)}] {d.name}: {what}")
+        try:
+            with connect(cluster, workers=workers, timeout=timeout, retries=retries) as client:
+                check_workers(client)
+                client.run(_warm)  # imported once per worker before the fits are timed
+                rows.update(_run_tasks(client, todo, fit_args, retries, tell))
+        except ClusterError:
+            if resume is None:  # a cluster refused before any device ran: no fleet folder left
+                shutil.rmtree(folder, ignore_errors=True)
+            raise
     ordered = flag_outliers([rows[d.name] for d in devices])
     table = write_csv(ordered, folder / "fleet.csv")
     picture = plot_loops(ordered, folder / "loops.png")
