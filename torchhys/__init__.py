@@ -45,6 +45,7 @@ _LAZY_SUBPACKAGES = ("compose", "conditions", "deploy", "dynamics", "identificat
 """Subpackages loaded on first use (:func:`__getattr__`)."""
 
 _LAZY_NAMES = {
+    "Compensator": "torchhys.estimator",
     "fit_drift": "torchhys.identification.drift",
     "fit_generalized_pi": "torchhys.identification.generalized_pi",
     "fit_jiles_atherton": "torchhys.identification.jiles_atherton",
@@ -68,6 +69,7 @@ if TYPE_CHECKING:  # what a type checker and an editor see: the same names, eage
         signals,
         testing,
     )
+    from torchhys.estimator import Compensator
     from torchhys.identification.drift import fit_drift
     from torchhys.identification.generalized_pi import fit_generalized_pi
     from torchhys.identification.jiles_atherton import fit_jiles_atherton
@@ -118,6 +120,8 @@ __all__ = [
     "ZhaoTanOperator",
     # the network
     "InverseHysteresisNet",
+    # a compensator fitted from arrays in one call
+    "Compensator",
     # identification
     "fit_drift",
     "fit_generalized_pi",
