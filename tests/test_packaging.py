@@ -77,3 +77,14 @@ def test_the_wheel_marks_the_package_as_typed(wheel: zipfile.ZipFile) -> None:
     """``torchhys/py.typed`` (PEP 561): type checkers read the package's annotations."""
     assert (ROOT / "torchhys" / "py.typed").is_file()
     assert "torchhys/py.typed" in wheel.namelist()
+
+
+def test_the_wheel_holds_the_shipped_configs(wheel: zipfile.ZipFile) -> None:
+    """Every ``configs/*.yaml`` of the checkout, byte for byte, as ``torchhys/configs/`` (the
+    link in the checkout; ``torchhys fit --config measured`` reads it)."""
+    configs = sorted((ROOT / "configs").glob("*.yaml"))
+    assert len(configs) >= 9
+    shipped = sorted(n for n in wheel.namelist() if n.startswith("torchhys/configs/"))
+    assert shipped == [f"torchhys/configs/{c.name}" for c in configs]
+    for config in configs:
+        assert wheel.read(f"torchhys/configs/{config.name}") == config.read_bytes()

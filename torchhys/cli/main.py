@@ -26,6 +26,7 @@ from torchhys.cli.errors import (
     report_user_error,
     split_traceback_flag,
 )
+from torchhys.cli.info import INFO_COMMANDS, info_main
 from torchhys.cli.plugins import (
     IMPORT_ENV,
     IMPORT_PATH_ENV,
@@ -128,6 +129,8 @@ def main(argv: list[str] | None = None) -> None:
 
 def _main(argv: list[str] | None) -> None:
     args, traceback = split_traceback_flag(sys.argv[1:] if argv is None else argv)
+    if args and args[0] in INFO_COMMANDS:  # --version, configs: no extra, nothing read
+        raise SystemExit(info_main(args))
     if args and args[0] == "fleet":  # each device a fit, given the command's options as they are
         _training_commands()
         from torchhys.cli.fleet import main as fleet_main

@@ -77,6 +77,7 @@ from torchhys.cli.checks import check_config_files, check_optimizer_switch
 from torchhys.cli.ckpt_paths import check_ckpt_path
 from torchhys.cli.config_yaml import check_config_aliases
 from torchhys.cli.config_yaml import install as install_bounded_yaml
+from torchhys.cli.configs import require_config, resolve_config_names
 from torchhys.cli.errors import TRACEBACK_ENV, config_errors, report_user_error
 from torchhys.cli.loggers import expand_logger_names, prepare_loggers
 from torchhys.cli.negative_numbers import accept_negative_numbers
@@ -110,7 +111,9 @@ __all__ = ["TorchhysCLI", "read_config", "run"]
 _DESCRIPTION = (
     "Train and evaluate inverse-hysteresis models. Subcommands: fit, validate, test, "
     "predict (LightningCLI; any option can be overridden, e.g. --trainer.max_epochs=10), "
-    "export (a trained checkpoint to a deployable compensator: torchhys export --help)."
+    "export (a trained checkpoint to a deployable compensator: torchhys export --help). "
+    "torchhys configs lists the shipped configs, each usable by name (--config measured); "
+    "torchhys --version."
 )
 
 
@@ -428,6 +431,8 @@ def run(args: list[str], *, from_sys_argv: bool, traceback: bool) -> None:
     """
     try:
         args = expand_logger_names(args)  # --trainer.logger tensorboard: its class path
+        args = resolve_config_names(args)  # --config measured: the shipped file
+        require_config(args)
     except ValueError as exc:
         if not report_user_error(f"torchhys {args[0] if args else ''}".strip(), exc, traceback):
             raise
