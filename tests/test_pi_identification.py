@@ -157,3 +157,22 @@ def test_paper_plant_network_on_the_pi_operator_generalizes() -> None:
         torch.set_num_threads(n_threads)
     assert result.mse < 7e-4
     assert test < 1.5e-3
+
+
+def test_a_fit_no_better_than_a_line_warns_how_to_fix_it() -> None:
+    """Data far from zero (a PI model has no intercept): one warning naming the fix; the
+    same data centred: none."""
+    import warnings
+
+    from torchhys.identification.fitting import fit_prandtl_ishlinskii, play_width_grid
+
+    t = torch.linspace(0.0, 20.0, 800, dtype=torch.float64)
+    u = 2.0 * torch.sin(t) * (1.0 - 0.04 * t)
+    y = -100.0 + 0.8 * u + 0.05 * torch.sin(3.0 * t)
+    widths = play_width_grid(u, 6, power=2.0)
+    with pytest.warns(UserWarning, match="no better than a straight line with an intercept") as rec:
+        fit_prandtl_ishlinskii(u, y, widths, nonnegative=True)
+    assert "centre u and y" in str(rec[0].message) and "\n" not in str(rec[0].message)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit_prandtl_ishlinskii(u - u.mean(), y - y.mean(), widths, nonnegative=True)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
@@ -302,11 +303,29 @@ def fit_prandtl_ishlinskii(
         w = _pi_solve(m.gram / m.count, m.moment / m.count, ridge, True, floor)
     else:
         w = _pi_lstsq(A, target, ridge)
+    _warn_below_line(A, target, w)
     model = PrandtlIshlinskii(
         widths.detach().to(ub.dtype), w[1:].to(ub.dtype), linear_weight=float(w[0]),
         learnable=learnable, nonnegative=nonnegative,
     )
     return model.to(ub.device)
+
+
+def _warn_below_line(A: Tensor, target: Tensor, w: Tensor) -> None:
+    """Warn (one line) when the PI fit ``A w`` is no better than a straight line with an
+    intercept on the fitted samples: a PI model has no intercept, so data far from zero
+    (a response of -123 to -74 um) cannot be fitted without centring."""
+    A64, t64 = A.double(), target.double()
+    rmse = float((A64 @ w.double().reshape(-1, 1) - t64.reshape(-1, 1)).square().mean().sqrt())
+    design = torch.stack([A64[:, 0], torch.ones_like(A64[:, 0])], 1)
+    line = float((design @ torch.linalg.lstsq(design, t64.reshape(-1, 1)).solution
+                  - t64.reshape(-1, 1)).square().mean().sqrt())
+    if not rmse < line:
+        warnings.warn(f"fit_prandtl_ishlinskii: the fitted model (RMSE {rmse:.4g}) is no "
+                      f"better than a straight line with an intercept (RMSE {line:.4g}) on the "
+                      "fitted samples: a PI model has no intercept; centre u and y (subtract "
+                      "their means), or use torchhys.Compensator.fit, which adds one",
+                      UserWarning, stacklevel=3)
 
 
 def select_pi_ridge(
