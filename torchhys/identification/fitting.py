@@ -320,7 +320,8 @@ def _warn_below_line(A: Tensor, target: Tensor, w: Tensor) -> None:
     design = torch.stack([A64[:, 0], torch.ones_like(A64[:, 0])], 1)
     line = float((design @ torch.linalg.lstsq(design, t64.reshape(-1, 1)).solution
                   - t64.reshape(-1, 1)).square().mean().sqrt())
-    if not rmse < line:
+    exact = rmse <= 1e-9 * max(float(t64.abs().max()), 1e-300)  # a fit to rounding
+    if not (rmse < line or exact):
         warnings.warn(f"fit_prandtl_ishlinskii: the fitted model (RMSE {rmse:.4g}) is no "
                       f"better than a straight line with an intercept (RMSE {line:.4g}) on the "
                       "fitted samples: a PI model has no intercept; centre u and y (subtract "
