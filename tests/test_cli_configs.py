@@ -121,3 +121,22 @@ def test_only_fit_without_any_config_is_refused() -> None:
     require_config(["test", "--ckpt_path", "last"])  # the checkpoint's own hyperparameters
     with pytest.raises(ValueError, match="^fit needs a config"):
         require_config(["fit", "--data.path", "log.csv"])
+
+
+def test_version_and_configs_need_no_training_extra(tmp_path: Path) -> None:
+    """With Lightning, jsonargparse, torchmetrics and matplotlib unimportable (as
+    tests/test_packaging_extras.py simulates it), from a folder without configs/."""
+    import subprocess
+
+    from test_packaging_extras import BLOCKED, SITECUSTOMIZE
+
+    (tmp_path / "sitecustomize.py").write_text(SITECUSTOMIZE)
+    env = dict(os.environ, PYTHONPATH=str(tmp_path), TORCHHYS_TEST_BLOCK=",".join(BLOCKED))
+    outs = []
+    for args in (["--version"], ["configs"]):
+        proc = subprocess.run([sys.executable, "-m", "torchhys", *args], capture_output=True,
+                              text=True, env=env, cwd=tmp_path, timeout=300)
+        assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+        outs.append(proc.stdout)
+    assert outs[0] == f"torchhys {torchhys.__version__}\n"
+    assert outs[1].splitlines()[:len(FILES)] == describe_all()
