@@ -6,6 +6,7 @@
         [--prefix NAME] [--fmi 2|3] [--step-size S] [--sample-period T] [--force]
         [--adapt none|rls|nlms [--forgetting F] [--adapt-bound B] [--dead-zone D]
          [--excitation E] [--nlms-step S] [--initial-covariance P]]
+        [--config FILE] [--print_config]
 
 ``--format c`` writes ``DIR/NAME.h`` and ``DIR/NAME.c`` (``--prefix``, default
 ``torchhys_comp``), dependency-free C99 (:func:`torchhys.deploy.c.to_c`); ``--dtype`` sets
@@ -22,6 +23,10 @@ the other, both to 1 s).
 CasADi function ``(x, state) -> (u, new_state)`` saved by ``casadi.Function.save``
 (:func:`torchhys.deploy.export_casadi.to_casadi`; ``--prefix``: the function's name, default
 ``torchhys_comp``); it needs the casadi extra and has no adaptive form.
+
+The options are also spelled as ``torchhys fit`` spells them: with underscores
+(``--ckpt_path``, ``--input_margin``), from a YAML file of them (``--config FILE``, the
+command line's own options overriding it) and printed as one (``--print_config``).
 
 The output is checked before anything is read or compiled: its folder exists and is
 writable, it is not the ``--ckpt`` file itself (refused even with ``--force``), and an
@@ -67,6 +72,7 @@ from torchhys._memory import check_memory, format_bytes
 from torchhys.checkpoints import read_checkpoint
 from torchhys.cli.errors import config_errors, report_user_error
 from torchhys.cli.negative_numbers import accept_negative_numbers
+from torchhys.cli.options_file import parse
 from torchhys.cli.plugins import import_modules
 from torchhys.compose import Composed
 from torchhys.compose.spec import build_composed, is_composed_spec
@@ -360,7 +366,7 @@ def main(argv: list[str]) -> int:
     ``torchhys export: error: <message>`` (``--traceback``: raised instead); any other
     exception is a bug and propagates (:mod:`torchhys.cli.errors`).
     """
-    args = _parser().parse_args(argv)
+    args = parse(_parser(), argv, {"--ckpt_path": "--ckpt", "--ckpt-path": "--ckpt"})
     try:
         if args.prefix is not None and args.format not in ("c", "fmu", "casadi"):
             raise ValueError(f"--prefix applies to --format c only (or fmu: the model "
