@@ -160,6 +160,8 @@ def test_comparison_scores_the_baselines_on_the_test_split() -> None:
     assert comparison.results["test_mse"] == pytest.approx(logged["test_mse"], rel=1e-6)
     assert logged["test_ratio"] == pytest.approx(
         math.sqrt(logged["test_mse"] / min(line, poly)), rel=1e-6)
+    assert logged["test_rmse_pct"] == pytest.approx(
+        100 * math.sqrt(logged["test_mse"]) / np.ptp(tys[tm]), rel=1e-6)
 
 
 def test_torchhys_test_logs_the_comparison(monkeypatch, tmp_path: Path) -> None:
@@ -176,6 +178,11 @@ def test_torchhys_test_logs_the_comparison(monkeypatch, tmp_path: Path) -> None:
         (row,) = [r for r in csv.DictReader(fh) if r.get("test_ratio")]
     # an affine network of the input is the least-squares line: ratio 1
     assert float(row["test_ratio"]) == pytest.approx(1.0, rel=1e-6)
+    # the RMSE, the largest error and the RMSE in % of range beside the MSE, and the figure
+    assert float(row["test_rmse"]) == pytest.approx(math.sqrt(float(row["test_mse"])), rel=1e-6)
+    assert float(row["test_max_error"]) >= float(row["test_rmse"]) > 0.0
+    assert 0.0 < float(row["test_rmse_pct"]) < 100.0
+    assert (root / "logs/version_1/test_report.png").stat().st_size > 10_000
     with pytest.raises(ValueError, match="max_degree must be an int >= 1, got 0"):
         cli(monkeypatch, "test", "--config", str(config), f"--trainer.default_root_dir={root}",
             f"--ckpt_path={ckpt}", "--baselines.max_degree=0")

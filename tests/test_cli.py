@@ -45,7 +45,7 @@ def metrics(root: Path, version: int) -> list[dict]:
         return list(csv.DictReader(fh))
 
 
-def test_fit_validate_test_predict(monkeypatch, tiny: Path, tmp_path: Path) -> None:
+def test_fit_validate_test_predict(monkeypatch, tiny: Path, tmp_path: Path, capsys) -> None:
     root = tmp_path / "run"
     cli(monkeypatch, "fit", "--config", str(tiny), f"--trainer.default_root_dir={root}")
     (ckpt,) = checkpoints(root)
@@ -64,6 +64,12 @@ def test_fit_validate_test_predict(monkeypatch, tiny: Path, tmp_path: Path) -> N
         pred = list(csv.DictReader(fh))
     assert len(pred) == 630 and set(pred[0]) == {"sequence", "sample", "input", "target",
                                                   "prediction"}
+    said = capsys.readouterr().out
+    assert f"torchhys predict: wrote {root / 'predictions.csv'}\n" in said
+    cli(monkeypatch, "predict", "--config", str(tiny), f"--trainer.default_root_dir={root}",
+        f"--ckpt_path={ckpt}")  # again: it says that it replaced the file
+    assert (f"torchhys predict: wrote {root / 'predictions.csv'} (replacing the file that was "
+            "there)") in capsys.readouterr().out
 
 
 def full_and_resumed(monkeypatch, config: Path, root: Path, *, epochs: int) -> tuple[Path, Path]:

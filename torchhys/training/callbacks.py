@@ -36,7 +36,14 @@ class BaselineComparison(L.Callback):
       conditions: :func:`~torchhys.training.baselines.fit_condition_polynomial`, the
       baseline that sees what the model sees);
     - ``test_ratio``: the model's test RMSE over the better baseline's (below 1: the model
-      earns its place; the ``ratio`` of docs/real-data.md; 1 when both are 0).
+      earns its place; the ``ratio`` of docs/real-data.md; 1 when both are 0);
+    - ``test_rmse``, ``test_max_error`` and ``test_rmse_pct``: the model's RMSE, its largest
+      error and its RMSE in % of the tested targets' range (target units).
+
+    With ``report`` (the default) it also draws the test (the loop of target and prediction
+    against the input, the tracking and the baselines over the samples, the error over time)
+    into ``test_report.png`` in the run's log folder and prints where (rank 0, a trainer
+    with a logger; needs matplotlib).
 
     The tested samples are those of the batches the test ran (their scored inputs, targets
     and predictions, as :class:`~torchhys.training.InverseHysteresisModule`'s ``test_step``
@@ -52,13 +59,16 @@ class BaselineComparison(L.Callback):
 
     Args:
         max_degree: the highest polynomial degree tried (>= 1; 1: the line twice).
+        report: draw ``test_report.png`` (above).
     """
 
     KEYS = ("input", "target", "prediction")
     """What ``test_step`` returns: the scored samples of the batch, each flat."""
 
-    def __init__(self, max_degree: int = MAX_DEGREE) -> None:
+    def __init__(self, max_degree: int = MAX_DEGREE, report: bool = True) -> None:
         self.max_degree = check_int(max_degree, "max_degree", minimum=1)
+        self.report = bool(report)
+        self.report_path: Path | None = None
         self.results: dict[str, float] = {}
         self._tested: list[tuple[torch.Tensor, ...]] = []
 
@@ -104,11 +114,54 @@ class BaselineComparison(L.Callback):
         model, line_mse, poly_mse = mse(pred), mse(line(tx)), mse(poly_out)
         best = min(line_mse, poly_mse)
         ratio = math.sqrt(model / best) if best > 0 else (1.0 if model == 0 else math.inf)
+        span = float(ty.max() - ty.min()) if ty.numel() else 0.0
         self.results = {"test_mse": model, "test_line_mse": line_mse,
                         "test_poly_mse": poly_mse, "poly_degree": float(poly.degree),
-                        "test_ratio": ratio}
-        for key in ("test_line_mse", "test_poly_mse", "test_ratio"):
+                        "test_ratio": ratio, "test_rmse": math.sqrt(model),
+                        "test_max_error": float((pred - ty).abs().max()),
+                        "test_rmse_pct": 100.0 * math.sqrt(model) / span if span > 0
+                        else math.nan}
+        for key in ("test_line_mse", "test_poly_mse", "test_ratio", "test_rmse",
+                    "test_max_error", "test_rmse_pct"):
             pl_module.log(key, self.results[key], on_step=False, on_epoch=True, sync_dist=True)
+        if self.report and trainer.global_rank == 0 and trainer.log_dir is not None:
+            self._draw(trainer, tx, ty, pred, line(tx), poly_out)
+
+    def _draw(self, trainer: L.Trainer, x: torch.Tensor, y: torch.Tensor, pred: torch.Tensor,
+              line: torch.Tensor, poly: torch.Tensor) -> None:
+        """``test_report.png`` in the run's log folder (the class docstring)."""
+        try:
+            import matplotlib
+        except ImportError:  # the train extra holds it; a bare environment draws nothing
+            return
+        matplotlib.use("Agg", force=False)
+        import matplotlib.pyplot as plt
+
+        folder = Path(trainer.log_dir)
+        x, y, pred, line, poly = (v.numpy() for v in (x, y, pred, line, poly))
+        fig, (a, b, c) = plt.subplots(1, 3, figsize=(15, 4))
+        a.plot(x, y, color="0.6", lw=1, label="target")
+        a.plot(x, pred, color="C0", lw=1, label="model")
+        a.set(xlabel="input", ylabel="target", title="the loop (test samples)")
+        a.legend()
+        b.plot(y, color="0.6", lw=1, label="target")
+        b.plot(pred, color="C0", lw=1, label=f"model (RMSE {self.results['test_rmse']:.3g})")
+        b.plot(line, color="C1", lw=0.8, ls="--", label="straight line")
+        b.plot(poly, color="C2", lw=0.8, ls=":",
+               label=f"polynomial (degree {int(self.results['poly_degree'])})")
+        b.set(xlabel="test sample", ylabel="target", title="tracking and the baselines")
+        b.legend(fontsize=8)
+        c.plot(pred - y, lw=0.8)
+        c.set(xlabel="test sample", ylabel="model - target",
+              title=f"error (max {self.results['test_max_error']:.3g}, "
+                    f"{self.results['test_rmse_pct']:.3g} % of range RMSE)")
+        fig.tight_layout()
+        folder.mkdir(parents=True, exist_ok=True)
+        self.report_path = folder / "test_report.png"
+        fig.savefig(self.report_path, dpi=90)
+        plt.close(fig)
+        print(f"torchhys test: the test's loop, tracking and error in {self.report_path}",
+              flush=True)
 
 
 def _condition_rows(batches: list, T: int) -> torch.Tensor:
@@ -182,7 +235,10 @@ class PredictionWriter(BasePredictionWriter):
             f"condition_{k}" for k in range(n_cond)]
         self.path = Path(trainer.default_root_dir) / self.filename
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        replaced = self.path.exists()
         np.savetxt(self.path, np.concatenate(rows), delimiter=",", comments="",
                    header=",".join(["sequence", "sample", "input", "target", "prediction",
                                     *names]),
                    fmt=["%d", "%d", "%.10g", "%.10g", "%.10g"] + ["%.10g"] * n_cond)
+        print(f"torchhys predict: wrote {self.path}" + (" (replacing the file that was there)"
+                                                        if replaced else ""), flush=True)
