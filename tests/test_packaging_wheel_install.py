@@ -74,3 +74,26 @@ def test_the_readmes_commands_run_from_the_wheel(installed: Path, tmp_path: Path
     assert printed["model"]["select"] == measured["model"]["select"]
     assert printed["trainer"]["default_root_dir"] == measured["trainer"]["default_root_dir"]
     assert list(tmp_path.iterdir()) == []  # --print_config writes nothing
+
+
+def test_the_shipped_recordings_load_from_the_wheel(installed: Path, tmp_path: Path) -> None:
+    """``torchhys.datasets`` from the wheel: every shipped recording, byte for byte the
+    checkout's, and ``fit --config measured`` on its default data outside the checkout."""
+    import torchhys.datasets as datasets
+
+    for name, file in datasets.FILES.items():
+        got = installed / "torchhys" / "example_data" / file
+        assert got.read_bytes() == (ROOT / "examples" / "data" / file).read_bytes(), name
+    env = dict(os.environ, PYTHONPATH=str(installed))
+    code = ("import torchhys.datasets as d; r = d.load('piezo_micromanipulator'); "
+            "print(len(r['voltage_V']), d.path('bouc_wen'))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          cwd=tmp_path, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    n, where = proc.stdout.split()
+    assert int(n) == len(datasets.load("piezo_micromanipulator")["voltage_V"])
+    assert Path(where).is_relative_to(installed)
+    run(installed, tmp_path, "fit", "--config", "measured", "--trainer.max_epochs=1",
+        "--model.select=[{operator: null}]", "--trainer.enable_progress_bar=false",
+        f"--trainer.default_root_dir={tmp_path / 'run'}")
+    assert any((tmp_path / "run").glob("logs/version_0/checkpoints/*.ckpt"))

@@ -40,8 +40,8 @@ for _module in pkgutil.iter_modules(operators.__path__):
     importlib.import_module(f"{operators.__name__}.{_module.name}")
 del _module
 
-_LAZY_SUBPACKAGES = ("compose", "conditions", "deploy", "dynamics", "identification", "models",
-                     "optim", "plants", "selection", "signals", "testing")
+_LAZY_SUBPACKAGES = ("compose", "conditions", "datasets", "deploy", "dynamics", "identification",
+                     "models", "optim", "plants", "selection", "signals", "testing")
 """Subpackages loaded on first use (:func:`__getattr__`)."""
 
 _LAZY_NAMES = {
@@ -60,6 +60,7 @@ if TYPE_CHECKING:  # what a type checker and an editor see: the same names, eage
     from torchhys import (
         compose,
         conditions,
+        datasets,
         deploy,
         dynamics,
         identification,
@@ -81,6 +82,7 @@ __all__ = [
     # subpackages and modules
     "compose",
     "conditions",
+    "datasets",
     "deploy",
     "dynamics",
     "functional",

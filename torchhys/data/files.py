@@ -197,6 +197,9 @@ def read_recordings(
     paths = [path] if isinstance(path, (str, Path)) else list(path)
     if not paths:
         raise ValueError("path must name a file or a non-empty list of files, got []")
+    from torchhys.datasets import shipped_path  # a config's examples/data/... outside a checkout
+
+    paths = [shipped_path(p) or p for p in paths]
     options = (input_column, target_column, time_column, run_column, min_samples, encoding,
                delimiter, decimal, conds)
     for p in paths:
