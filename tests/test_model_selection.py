@@ -22,6 +22,7 @@ from torchhys.cli.selection import check_candidates, model_arguments
 from torchhys.deploy.export import load_torchscript
 from torchhys.selection import CandidateScore, best, standard_error
 from torchhys.selection.folds import block_split
+from torchhys.selection.progress import brief
 from torchhys.training import HysteresisDataModule, InverseHysteresisModule
 from torchhys.training.folds import BlockFold, RecordingFold
 
@@ -178,7 +179,7 @@ def test_candidate_runs_print_one_line_each(monkeypatch, capsys, tmp_path) -> No
     rows = table(tmp_path / "run")
     for line, row in zip(lines, rows, strict=True):
         assert f"val_mse {float(row['val_mse']):.6g}, 2 folds, " in line
-        assert line.endswith(row["config"])
+        assert line.endswith(": " + brief(json.loads(row["config"])))
     assert sum("GPU available" in r for r in records) == 1  # the final fit's
     assert sum("Trainable params" in r for r in records + [out]) == 1
     assert sum(r.startswith("Seed set to") for r in records) <= 2  # the CLI's, the final fit's
@@ -744,3 +745,37 @@ def test_the_command_and_a_lightning_run_solve_the_same_readouts(max_epochs) -> 
     run = trainer(max_epochs=max_epochs, max_time="00:00:00:05" if max_epochs == -1 else None)
     assert steps_readout(max_epochs) is solvable(module, fold, run) is (max_epochs != 0)
     assert not steps_readout(3, 0) and not solvable(module, fold, trainer(limit_train_batches=0))
+
+
+def test_brief_names_a_candidate_in_a_few_words() -> None:
+    assert brief({"operator": None}) == "straight line"
+    assert brief({"operator": [{"fit": "stop_pi", "n_widths": 40, "power": 2.0,
+                                "segments": 4}, {"fit": "preisach", "n": 40,
+                                                 "direction": "inverse"}]}) == \
+        "stop_pi 40/4 + preisach 40 inverse"
+    assert brief({"operator": [{"fit": "gpi", "n_widths": 10, "units": 4, "epochs": 200,
+                                "direction": "inverse"}]}) == "gpi 10/4 inverse epochs=200"
+    assert brief({"operator": "eiho", "hidden": 16, "lr": 0.1, "activation": "tanh"}) == \
+        "eiho, hidden=16, lr=0.1, ..."
+    assert brief({}) == "the base model"
+
+
+def test_the_time_left_is_smoothed_over_the_candidates(monkeypatch, capsys) -> None:
+    """Candidates of 1 s and 9 s in turn: the estimate blends the mean-based one with the
+    last estimate less the time since (half each)."""
+    import torchhys.selection.progress as progress
+
+    clock = [0.0]
+    monkeypatch.setattr(progress.time, "perf_counter", lambda: clock[0])
+    p = progress.SelectionProgress([{}] * 5, None)
+    p.starts(0, None)
+    clock[0] = 1.0
+    p.starts(1, None)  # one training of 1 s done: 4 left at 1 s
+    assert p.eta == (4.0, 1.0)
+    clock[0] = 10.0
+    p.starts(2, None)  # mean 5 s, 3 left: 15; the last less 9 s: 0 -> 7.5
+    assert p.eta == (7.5, 10.0)
+    clock[0] = 11.0
+    p.starts(3, None)  # mean 11/3, 2 left: 7.33; the last less 1 s: 6.5
+    assert p.eta[0] == pytest.approx(0.5 * (22.0 / 3.0 + 6.5))
+    assert "about 7 s left: the base model" in capsys.readouterr().out
