@@ -79,10 +79,20 @@ class SelectRecord(NamedTuple):
                       conditions=self.val[4] if len(self.val) == 5 else None)
 
 
-def _one_device(trainer: Any) -> bool:
+def one_device(trainer: Any) -> bool:
+    """Whether the trainer section runs on one device of one node without a distributed
+    strategy."""
     devices = trainer.get("devices")
     return (str(devices) in ("1", "[0]") and int(trainer.get("num_nodes") or 1) == 1
             and str(trainer.get("strategy") or "auto") == "auto")
+
+
+def distributed(trainer: Any) -> bool:
+    """Whether the trainer section may start several ranks: a strategy other than ``auto``,
+    several nodes, or devices other than one (``auto`` on one node counts as one)."""
+    auto = (str(trainer.get("devices")) == "auto" and int(trainer.get("num_nodes") or 1) == 1
+            and str(trainer.get("strategy") or "auto") == "auto")
+    return not (one_device(trainer) or auto)
 
 
 _NO_EFFECT = frozenset({
@@ -138,7 +148,7 @@ def trainer_reason(trainer: Any) -> str | None:
     accelerator = str(trainer.get("accelerator") or "auto")
     if accelerator != "cpu" and (accelerator != "auto" or torch.cuda.is_available()):
         return f"trainer.accelerator={accelerator!r} (select trains on the CPU)"
-    if not (_one_device(trainer) or str(trainer.get("devices")) == "auto"):
+    if not (one_device(trainer) or str(trainer.get("devices")) == "auto"):
         return (f"trainer.devices={trainer.get('devices')!r}, num_nodes="
                 f"{trainer.get('num_nodes')!r}, strategy={trainer.get('strategy')!r} (select "
                 "trains on one device, strategy 'auto')")
@@ -182,7 +192,7 @@ def select_record(configs: list[Any], sub: str, cv: object) -> tuple[SelectRecor
     epochs = trainer.get("max_epochs")
     reason = trainer_reason(trainer)
     if reason is not None:
-        if (dtype is None or not _one_device(trainer)
+        if (dtype is None or not one_device(trainer)
                 or not steps_readout(epochs, trainer.get("limit_train_batches"))):
             return None, reason
         for i, config in enumerate(configs):

@@ -249,6 +249,14 @@ class TorchhysCLI(LightningCLI):
                                      quiet=quiet_requested())
         if options["select_jobs"] == "auto" and _on_gpu(cfg["trainer"]):
             jobs = 1  # CUDA does not survive a fork
+        if jobs > 1 and cli_selection.distributed(cfg["trainer"]):
+            # a rank that forks selection workers hangs: each worker would start ranks of
+            # its own; every rank runs the candidates one after another instead
+            jobs = 1
+            if not quiet_requested():
+                print("torchhys fit: model.select_jobs falls back to 1 under a distributed or "
+                      "multi-device trainer (no fork from inside a rank)", file=sys.stderr,
+                      flush=True)
         jobs = min(jobs, len(candidates))
         if jobs > 1 and not quiet_requested():
             print(f"torchhys fit: candidates in {jobs} processes at a time, torch threads "
