@@ -329,3 +329,22 @@ def test_the_benchmark_quick_mode_flags_the_faulty_unit_only():
     assert row["devices"] == 7 and row["failed"] == 0 and row["identical"] == "yes"
     assert row["faulty_flagged"] == 1.0 and row["good_flagged"] == 0.0
     assert row["cluster_s"] > 0 and row["serial_s"] > 0
+
+
+def test_one_file_with_a_device_column_is_a_fleet(fleet, folder, client, tmp_path):
+    """The rows of unit0 and unit1 in one file with a ``serial`` column: each device split
+    into the fleet's folder and identified as its own file was (the same numbers)."""
+    lines = ["serial,time,command,response"]
+    for name in ("unit0", "unit1"):
+        with (folder / "devices" / f"{name}.csv").open() as fh:
+            lines += [f"{name},{row.strip()}" for row in list(fh)[1:]]
+    (tmp_path / "all.csv").write_text("\n".join(lines) + "\n")
+    result = identify_fleet(str(tmp_path / "all.csv"), device_column="serial",
+                            config=_configs(folder), root=tmp_path / "runs", cluster=client,
+                            say=lambda s: None)
+    assert [r["device"] for r in result.rows] == ["unit0", "unit1"]
+    assert (result.folder / "_data" / "unit0.csv").is_file()
+    for r in result.rows:
+        near = fleet.row(r["device"])
+        assert (r["candidate"], r["ratio"], r["width"], r["gain"]) == (
+            near["candidate"], near["ratio"], near["width"], near["gain"])
