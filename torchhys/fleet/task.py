@@ -11,7 +11,10 @@ device's run folder ``RUN`` (the fit's ``logs/version_0`` with ``selection.csv``
 ``checkpoints/last.ckpt``; the test's ``logs/version_1``), the commands' output in
 ``RUN/fit.log``, and the device's row of the report in ``RUN/result.json``, written last
 (atomically): a run folder holding it is finished (:func:`finished`), one without it is
-cleared before the device is fitted again.
+cleared before the device is fitted again. Each device starts as a process of its own
+would: the shared family fits of earlier devices dropped
+(:mod:`torchhys.identification._fit_cache`), the warning filters its commands add removed
+after them.
 
 A user error of the commands (a file that cannot be read, data a family cannot fit, ...:
 the one line ``torchhys fit: error: ...``) is the device's failure, with that line as its
@@ -29,6 +32,7 @@ import os
 import shutil
 import sys
 import time
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -121,11 +125,15 @@ def identify_device(name: str, path: str, run_dir: str, args: Sequence[str]) -> 
                            "gain": math.nan, "fit_s": math.nan, "checkpoint": "", "loop": None}
     common = [*args, "--data.path", str(path), "--trainer.default_root_dir", str(run),
               "--trainer.enable_progress_bar", "false"]
+    from torchhys.identification import _fit_cache
+
+    _fit_cache.clear()  # as in a process of its own: no family fitted for an earlier device
     start = time.perf_counter()
     saved_argv = sys.argv[:]
     try:
         sys.argv[:] = ["torchhys"]
-        with (run / "fit.log").open("w+") as log:
+        # the filters a fit adds (one per run folder) do not pile up in the worker
+        with (run / "fit.log").open("w+") as log, warnings.catch_warnings():
             error = _command(["fit", *common, "--model.select_jobs", "1"], log)
             row["fit_s"] = time.perf_counter() - start
             ckpt = run / "logs" / "version_0" / "checkpoints" / "last.ckpt"
