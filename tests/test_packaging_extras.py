@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+import torchhys.cli.commands as commands
 import torchhys.cli.main as command
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -205,7 +206,7 @@ def test_with_the_extra_the_command_runs_the_training_cli(monkeypatch) -> None:
     assert seen == [(["fit", "--config", "c.yaml"], {"from_sys_argv": False, "traceback": True}),
                     (["validate", "--config", "c.yaml"],
                      {"from_sys_argv": True, "traceback": False})]
-    assert command.missing_train_packages() == []
+    assert commands.missing_train_packages() == []
 
 
 def test_a_missing_dependency_of_the_extra_is_named(monkeypatch, capsys) -> None:

@@ -67,7 +67,7 @@ def _write_result(run_dir: Path, row: dict[str, Any]) -> None:
 
 def _command(args: Sequence[str], log: io.TextIOBase) -> str | None:
     """Run ``torchhys ARGS`` here, its output into ``log``; None, or its one-line user error."""
-    from torchhys.cli.main import main
+    from torchhys.cli.commands import main
 
     before = log.tell()
     with contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
