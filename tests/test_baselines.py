@@ -131,7 +131,8 @@ def test_constant_input_gives_the_mean() -> None:
     assert float(poly(torch.tensor([3.0]))) == pytest.approx(float(y.mean()))
 
 
-def test_comparison_scores_the_baselines_on_the_test_split() -> None:
+def test_comparison_scores_the_baselines_on_the_test_split(monkeypatch, tmp_path: Path) -> None:
+    monkeypatch.chdir(tmp_path)  # a trainer without a logger draws no report (here, or anywhere)
     torch.manual_seed(0)
     dm = HysteresisDataModule(simulation="paper", t_end=12.6, split=[0.6, 0.2, 0.2], warmup=60)
     module = InverseHysteresisModule(operator="zhao_tan", operator_kwargs={"scale": 1.8},
@@ -162,6 +163,7 @@ def test_comparison_scores_the_baselines_on_the_test_split() -> None:
         math.sqrt(logged["test_mse"] / min(line, poly)), rel=1e-6)
     assert logged["test_rmse_pct"] == pytest.approx(
         100 * math.sqrt(logged["test_mse"]) / np.ptp(tys[tm]), rel=1e-6)
+    assert comparison.report and list(tmp_path.rglob("*.png")) == []
 
 
 def test_torchhys_test_logs_the_comparison(monkeypatch, tmp_path: Path) -> None:

@@ -124,7 +124,7 @@ class BaselineComparison(L.Callback):
         for key in ("test_line_mse", "test_poly_mse", "test_ratio", "test_rmse",
                     "test_max_error", "test_rmse_pct"):
             pl_module.log(key, self.results[key], on_step=False, on_epoch=True, sync_dist=True)
-        if self.report and trainer.global_rank == 0 and trainer.log_dir is not None:
+        if self.report and trainer.global_rank == 0 and trainer.loggers:  # a run's folder
             self._draw(trainer, tx, ty, pred, line(tx), poly_out)
 
     def _draw(self, trainer: L.Trainer, x: torch.Tensor, y: torch.Tensor, pred: torch.Tensor,
