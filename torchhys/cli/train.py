@@ -123,7 +123,8 @@ class TorchhysCLI(LightningCLI):
     a :class:`~torchhys.training.callbacks.PredictionWriter` (``--predictions.filename``), a
     :class:`~torchhys.training.callbacks.BaselineComparison` in ``test`` (the line and the
     memoryless polynomial fitted on the training split, ``--baselines.max_degree``), a
-    checkpoint after every training epoch (``--checkpoint.*``; ``last.ckpt`` to resume), and
+    checkpoint after every training epoch, one file, ``last.ckpt`` (``--checkpoint.*``;
+    ``--checkpoint.save_top_k`` with ``--checkpoint.monitor`` to keep the best too), and
     model selection by validation in ``fit`` (``--model.select``, ``--model.select_cv``: see
     the module docstring)."""
 
@@ -138,8 +139,10 @@ class TorchhysCLI(LightningCLI):
         parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
         # checkpoints written to a temporary file beside them and renamed: a full disk or a
         # kill while saving leaves the previous last.ckpt whole (torchhys/training/checkpoint_io.py)
+        # one file per run, last.ckpt (--checkpoint.save_top_k 1 and a --checkpoint.monitor
+        # keep the best as well; without a monitor the top file was a copy of the last)
         parser.set_defaults({"checkpoint.save_on_train_epoch_end": True,
-                             "checkpoint.save_last": True,
+                             "checkpoint.save_last": True, "checkpoint.save_top_k": 0,
                              "trainer.plugins": [{"class_path": cli_selection.ATOMIC_IO}]})
         # Arguments of the command kept in the model section, removed before the module is
         # built (see _select).
