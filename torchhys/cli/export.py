@@ -1,6 +1,7 @@
 """``torchhys export``: a trained checkpoint to a deployable compensator file.
 
     torchhys export --ckpt CKPT --format torchscript|aoti|c|onnx|fmu|casadi --out FILE|DIR
+    torchhys export --fleet ROOT/fleet_N --format c|onnx|torchscript|fmu --out DIR [--shared]
         [--limits LOW HIGH] [--input-margin M | --input-margin none]
         [--direction auto|increasing|decreasing|none] [--dtype float64|float32]
         [--prefix NAME] [--fmi 2|3] [--step-size S] [--sample-period T] [--force]
@@ -18,6 +19,11 @@ the exported step's real type (default: the checkpoint's).
 the file's stem), ``--sample-period`` the compensator's sample period in s and
 ``--step-size`` the default communication step, an integer multiple of it (each defaults to
 the other, both to 1 s).
+
+``--fleet ROOT/fleet_N`` (instead of ``--ckpt``) exports every identified device of a
+``torchhys fleet``, one file a device into the folder ``--out``, or with ``--format c`` one
+step shared by them all with a table of each device's constants
+(:mod:`torchhys.cli.export_fleet`).
 
 ``--format casadi`` writes ``NAME.casadi`` (``--out``, ending in ``.casadi``), the step as a
 CasADi function ``(x, state) -> (u, new_state)`` saved by ``casadi.Function.save``
@@ -71,6 +77,7 @@ from torchhys._finite import check_output, check_weights
 from torchhys._memory import check_memory, format_bytes
 from torchhys.checkpoints import read_checkpoint
 from torchhys.cli.errors import config_errors, report_user_error
+from torchhys.cli.export_fleet import fleet_main
 from torchhys.cli.negative_numbers import accept_negative_numbers
 from torchhys.cli.options_file import parse
 from torchhys.cli.plugins import import_modules
@@ -95,6 +102,12 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="torchhys export", description=__doc__.splitlines()[0])
     accept_negative_numbers(p)  # --limits -5e-3 5e-3
     p.add_argument("--ckpt", type=Path, required=True, help="checkpoint or state dict file")
+    p.add_argument("--fleet", type=Path, default=None, metavar="DIR",
+                   help="instead of --ckpt: every identified device of a torchhys fleet "
+                        "folder (ROOT/fleet_N), into the folder --out (docs/fleet.md)")
+    p.add_argument("--shared", action=argparse.BooleanOptionalAction, default=None,
+                   help="--fleet --format c: one C step shared by every device with a table "
+                        "of each one's constants (default: where the devices allow it)")
     p.add_argument("--format", choices=("torchscript", "aoti", "c", "onnx", "fmu", "casadi"),
                    required=True)
     p.add_argument("--out", type=Path, required=True,
@@ -366,8 +379,15 @@ def main(argv: list[str]) -> int:
     ``torchhys export: error: <message>`` (``--traceback``: raised instead); any other
     exception is a bug and propagates (:mod:`torchhys.cli.errors`).
     """
-    args = parse(_parser(), argv, {"--ckpt_path": "--ckpt", "--ckpt-path": "--ckpt"})
+    parser = _parser()
+    if any(a == "--fleet" or a.startswith("--fleet=") for a in argv):
+        parser._option_string_actions["--ckpt"].required = False  # its own option's folder
+    args = parse(parser, argv, {"--ckpt_path": "--ckpt", "--ckpt-path": "--ckpt"})
+    if args.fleet is not None:
+        return fleet_main(args, build_net)
     try:
+        if args.shared is not None:
+            raise ValueError(f"--{'' if args.shared else 'no-'}shared applies to --fleet only")
         if args.prefix is not None and args.format not in ("c", "fmu", "casadi"):
             raise ValueError(f"--prefix applies to --format c only (or fmu: the model "
                              f"identifier, casadi: the function's name), not {args.format}")
