@@ -338,3 +338,51 @@ def test_a_folder_without_fleet_csv_and_existing_files(pair, tmp_path) -> None:
     assert rc == 2 and "exists; pass overwrite=True (--force)" in err
     assert _export("--fleet", str(pair), "--format", "torchscript", "--out", str(out),
                    "--force")[0] == 0
+
+
+REAL = """model:
+  select:
+    - operator: [{fit: stop_pi, n_widths: 8, power: 2.0, segments: 2}]
+  select_cv: 2
+"""
+"""Over configs/measured.yaml: one candidate (every device chooses one structure)."""
+
+
+@pytest.mark.slow
+@needs_cc
+def test_a_real_fleet_exports_one_shared_step(tmp_path, signal) -> None:
+    """``torchhys fleet`` of three simulated Bouc-Wen devices (a local Dask cluster), then
+    ``torchhys export --fleet``: the shared step of each device equals its own C file."""
+    pytest.importorskip("distributed")
+    from torchhys.fleet import identify_fleet
+    from torchhys.plants import bouc_wen
+    from torchhys.signals import multisine, time_grid, to_range
+
+    devs = tmp_path / "devices"
+    devs.mkdir()
+    t = time_grid(dt=0.01, t_end=20.0, dtype=torch.float64)
+    u = to_range(multisine(t, band=(0.2, 3.0), n_tones=8, seed=0), -6.0, 6.0)
+    for k, (a, g) in enumerate([(0.5, 1.0), (0.52, 0.98), (0.48, 1.03)]):
+        y = g * bouc_wen(u, t, A=a)
+        np.savetxt(devs / f"dev{k}.csv", torch.stack([t, u, y], 1).numpy(), delimiter=",",
+                   header="time,command,response", comments="", fmt="%.6f")
+    (tmp_path / "one.yaml").write_text(REAL)
+    root = Path(__file__).resolve().parents[1]
+    result = identify_fleet(str(devs / "*.csv"), root=tmp_path / "runs", workers=2,
+                            config=[root / "configs" / "measured.yaml", tmp_path / "one.yaml"],
+                            say=lambda s: None)
+    assert result.failed == []
+    out, sep = tmp_path / "c", tmp_path / "sep"
+    rc, text, err = _export("--fleet", str(result.folder), "--format", "c", "--out", str(out),
+                            "--prefix", "fl", "--shared")
+    assert rc == 0 and "one C step shared by 3 devices" in text, err
+    assert _export("--fleet", str(result.folder), "--format", "c", "--out", str(sep),
+                   "--prefix", "fl", "--no-shared")[0] == 0
+    x = record(-5.0, 5.0, n=1500)
+    got, _ = _run(out, SHARED_DRIVER, [out / "fl.c", out / "fl_params.c"], x, "fleet")
+    got = got.reshape(3, len(x))
+    for k in range(3):
+        own, _ = _run(sep, ONE_DRIVER.replace("NAME", f"fl_dev{k}"), [sep / f"fl_dev{k}.c"],
+                      x, f"run{k}")
+        assert np.array_equal(got[k], own), k
+    assert gap(got[0], got[1]) > 1e-4
