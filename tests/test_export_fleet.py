@@ -304,6 +304,20 @@ def test_fmu_writes_one_file_a_device_named_by_it(pair, tmp_path) -> None:
         assert 'modelIdentifier="fl_unit_2"' in z.read("modelDescription.xml").decode()
 
 
+@needs_cc
+def test_devices_of_equal_constants_share_every_table_and_p_is_unread(nets, tmp_path) -> None:
+    net = nets["unit0"]
+    done = export_fleet({"a": net, "b": net}, tmp_path, prefix="fl", shared=True)
+    assert done.shared and [p.name for p in done.files] == ["fl.h", "fl.c", "fl_params.c"]
+    source = (tmp_path / "fl.c").read_text()
+    assert "p->" not in source and "(void)p;" in source
+    for name in ("fl.c", "fl_params.c"):  # -Wextra: an unused parameter would be an error
+        done = subprocess.run([CC, *FLAGS, "-c", "-I", str(tmp_path), "-o",
+                               str(tmp_path / f"{name}.o"), str(tmp_path / name)],
+                              capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr
+
+
 def test_the_library_refuses_shared_for_other_formats(nets, tmp_path) -> None:
     with pytest.raises(ValueError, match="shared applies to format 'c' only"):
         export_fleet(nets, tmp_path, format="onnx", shared=True)
