@@ -28,7 +28,7 @@ the first difference.
 from __future__ import annotations
 
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -70,7 +70,7 @@ class ParamsWriter(Writer):
             self.fields.append((self._field_names[key], t.dtype, t.value.reshape(-1)))
         return f"p->{self._field_names[key]}"
 
-    def read(self, t: CTensor, idx: list[str]) -> str:
+    def read(self, t: CTensor, idx: Sequence[str]) -> str:
         if t.element is None and t.value is not None:
             return f"{self.array(t)}[{_index(t.offset, idx, t.strides)}]"
         return super().read(t, idx)
