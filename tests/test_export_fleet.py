@@ -234,12 +234,13 @@ def _object_sizes(sources: list[Path]) -> tuple[int, int]:
     return sum(s.stat().st_size for s in sources), total
 
 
-def sharing_saves(shared: Path, separate: Path) -> str:
-    """The bytes of the shared step and its params against one C file a device."""
+def sharing_saves(shared: Path, separate: Path, n: int = len(DEVICES)) -> str:
+    """The bytes of the shared step and its params (``shared``: ``fl.c``, ``fl_params.c``)
+    against one C file a device (``separate``: ``fl_*.c``) for ``n`` devices."""
     one = _object_sizes([shared / "fl.c", shared / "fl_params.c"])
     per = _object_sizes(sorted(separate.glob("fl_*.c")))
     step = _object_sizes([shared / "fl.c"])
-    return (f"{len(DEVICES)} devices: source {per[0]} B per device files, {one[0]} B shared; "
+    return (f"{n} devices: source {per[0]} B per device files, {one[0]} B shared; "
             f"objects {per[1]} B against {one[1]} B (the step {step[1]} B, once)")
 
 
