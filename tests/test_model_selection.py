@@ -149,7 +149,8 @@ def test_select_on_the_command_line(monkeypatch, tmp_path) -> None:
 def test_candidate_runs_print_one_line_each(monkeypatch, capsys, tmp_path) -> None:
     """The candidates' runs are quiet: no progress bar, model summary or device and seed
     messages per run (6 runs here), one progress line per candidate instead; the final fit
-    keeps the config's bar and summary."""
+    keeps the config's bar and summary (--verbose: its device and seed lines too)."""
+    monkeypatch.setenv("TORCHHYS_VERBOSE", "1")
     cfg = config(tmp_path, trainer={"enable_progress_bar": DROP, "enable_model_summary": DROP},
                  data={"split": [0.6, 0.0, 0.4]}, model={"select_cv": 2})
     records: list[str] = []

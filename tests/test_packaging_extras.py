@@ -22,7 +22,7 @@ TRAIN = ("lightning", "jsonargparse", "torchmetrics", "matplotlib")
 BLOCKED = (*TRAIN, "pytorch_lightning", "lightning_fabric", "lightning_utilities")
 LIGHTNING_SIDE = {"torchhys.training", "torchhys.reproduce", "torchhys.cli.train",
                   "torchhys.cli.checks", "torchhys.cli.ckpt_paths", "torchhys.cli.run_dirs",
-                  "torchhys.cli.selection"}
+                  "torchhys.cli.selection", "torchhys.cli.help_format"}
 """The modules (and packages) that need the train extra."""
 ERROR = ('torchhys: error: the torchhys command needs the training extra: '
          'pip install "torchhys[train]" (missing: {})')
@@ -203,9 +203,10 @@ def test_with_the_extra_the_command_runs_the_training_cli(monkeypatch) -> None:
     command.main(["fit", "--config", "c.yaml", "--traceback"])
     monkeypatch.setattr(sys, "argv", ["torchhys", "validate", "--config", "c.yaml"])
     command.main(None)
-    assert seen == [(["fit", "--config", "c.yaml"], {"from_sys_argv": False, "traceback": True}),
+    assert seen == [(["fit", "--config", "c.yaml"], {"from_sys_argv": False, "traceback": True,
+                                                     "help_all": False}),
                     (["validate", "--config", "c.yaml"],
-                     {"from_sys_argv": True, "traceback": False})]
+                     {"from_sys_argv": True, "traceback": False, "help_all": False})]
     assert commands.missing_train_packages() == []
 
 

@@ -9,8 +9,9 @@ reads a checkpoint as a spec plus weights and needs none of them.
 
 The options of the command itself are taken out here, before a subcommand reads the rest:
 ``--import MODULE`` and ``--import-path DIR`` (:mod:`torchhys.cli.plugins`), ``--threads N``
-(:mod:`torchhys.cli.threads`), ``--quiet`` (:mod:`torchhys.cli.quiet`), ``--traceback``
-(:mod:`torchhys.cli.errors`).
+(:mod:`torchhys.cli.threads`), ``--quiet`` (:mod:`torchhys.cli.quiet`), ``--verbose``
+(:mod:`torchhys.cli.verbose`), ``--traceback`` (:mod:`torchhys.cli.errors`), ``--help-all``
+(:mod:`torchhys.cli.help`).
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from torchhys.cli.errors import (
     report_user_error,
     split_traceback_flag,
 )
+from torchhys.cli.help import split_help_all_flag
 from torchhys.cli.info import INFO_COMMANDS, info_main
 from torchhys.cli.plugins import (
     IMPORT_ENV,
@@ -40,6 +42,7 @@ from torchhys.cli.plugins import (
 )
 from torchhys.cli.quiet import QUIET_ENV, QUIET_FLAG, quiet_requested
 from torchhys.cli.threads import THREADS_ENV, choose_threads, split_threads_flag
+from torchhys.cli.verbose import VERBOSE_ENV, VERBOSE_FLAG, default_output
 
 __all__ = ["COMMANDS", "INSTALL_TRAIN", "TRAIN_PACKAGES", "main", "missing_train_packages",
            "training_commands"]
@@ -102,14 +105,16 @@ def main(argv: list[str] | None = None) -> None:
     (:func:`~torchhys.cli.plugins.import_modules`; nothing is added to ``sys.path`` but
     the folders of ``--import-path DIR``). ``--threads N`` (or
     ``TORCHHYS_THREADS``) sets torch's threads, one by default
-    (:mod:`torchhys.cli.threads`).
+    (:mod:`torchhys.cli.threads`). ``--verbose`` (or ``TORCHHYS_VERBOSE``) keeps Lightning's
+    tips and Python's warning format (:mod:`torchhys.cli.verbose`); ``--help-all`` shows
+    every option where ``--help`` shows the most used (:mod:`torchhys.cli.help`).
 
     Args:
         argv: command-line arguments without the program name (``sys.argv[1:]`` if None).
 
     The environment variables it sets for the processes of a multi-process run
-    (``TORCHHYS_QUIET``, ``TORCHHYS_THREADS``, ``TORCHHYS_IMPORT``, ``TORCHHYS_IMPORT_PATH``,
-    ``TORCHHYS_TRACEBACK``) are restored when it returns.
+    (``TORCHHYS_QUIET``, ``TORCHHYS_VERBOSE``, ``TORCHHYS_THREADS``, ``TORCHHYS_IMPORT``,
+    ``TORCHHYS_IMPORT_PATH``, ``TORCHHYS_TRACEBACK``) are restored when it returns.
 
     Raises:
         SystemExit: 2 on a user error, and when a package of the ``train`` extra is missing
@@ -118,7 +123,8 @@ def main(argv: list[str] | None = None) -> None:
             errors, ``--help``); ``export``'s status.
     """
     saved = {k: os.environ.get(k)
-             for k in (QUIET_ENV, THREADS_ENV, IMPORT_ENV, IMPORT_PATH_ENV, TRACEBACK_ENV)}
+             for k in (QUIET_ENV, VERBOSE_ENV, THREADS_ENV, IMPORT_ENV, IMPORT_PATH_ENV,
+                       TRACEBACK_ENV)}
     try:
         _main(argv)
     finally:
@@ -137,11 +143,15 @@ def _main(argv: list[str] | None) -> None:
         args, modules = split_import_flags(args)
         args, paths = split_import_path_flags(args)
         args, threads = split_threads_flag(args)
+        args, help_all = split_help_all_flag(args)
         export = bool(args) and args[0] == "export"
         run = None if export else training_commands()
         if QUIET_FLAG in args:  # no progress lines (the ranks of a multi-process run too)
             args = [a for a in args if a != QUIET_FLAG]
             os.environ[QUIET_ENV] = "1"
+        if VERBOSE_FLAG in args:  # Lightning's tips, warnings' source lines (the ranks too)
+            args = [a for a in args if a != VERBOSE_FLAG]
+            os.environ[VERBOSE_ENV] = "1"
         sub = next((a for a in args if a in COMMANDS), None)
         # an explicit choice is passed to the ranks of a multi-process run as the variable
         if threads is not None:
@@ -161,8 +171,9 @@ def _main(argv: list[str] | None) -> None:
         os.environ[IMPORT_ENV] = ",".join(modules)  # for the ranks of a multi-process run
     if paths:
         os.environ[IMPORT_PATH_ENV] = os.pathsep.join(paths)
-    if run is None:
-        from torchhys.cli.export import main as export_main
+    with default_output(f"torchhys {sub}" if sub else "torchhys"):
+        if run is None:
+            from torchhys.cli.export import main as export_main
 
-        raise SystemExit(export_main(args[1:] + [TRACEBACK_FLAG] * traceback))
-    run(args, from_sys_argv=argv is None, traceback=traceback)
+            raise SystemExit(export_main(args[1:] + [TRACEBACK_FLAG] * traceback))
+        run(args, from_sys_argv=argv is None, traceback=traceback, help_all=help_all)

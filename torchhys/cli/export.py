@@ -80,6 +80,7 @@ from torchhys.cli.errors import config_errors, report_user_error
 from torchhys.cli.export_fleet import fleet_main
 from torchhys.cli.negative_numbers import accept_negative_numbers
 from torchhys.cli.options_file import parse
+from torchhys.cli.plain_text import plain
 from torchhys.cli.plugins import import_modules
 from torchhys.compose import Composed
 from torchhys.compose.spec import build_composed, is_composed_spec
@@ -99,7 +100,8 @@ _ARCH_KEYS = ("operator", "hidden", "activation", "operator_kwargs", "n_conditio
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="torchhys export", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="torchhys export",
+                                description=plain(__doc__.splitlines()[0]))
     accept_negative_numbers(p)  # --limits -5e-3 5e-3
     p.add_argument("--ckpt", type=Path, required=True, help="checkpoint or state dict file")
     p.add_argument("--fleet", type=Path, default=None, metavar="DIR",
@@ -109,7 +111,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="--fleet --format c: one C step shared by every device with a table "
                         "of each one's constants (default: where the devices allow it)")
     p.add_argument("--format", choices=("torchscript", "aoti", "c", "onnx", "fmu", "casadi"),
-                   required=True)
+                   required=True, help="the file's kind: TorchScript (.pt), AOTInductor "
+                   "(.pt2), C sources (a folder), ONNX (.onnx), an FMU (.fmu), CasADi (.casadi)")
     p.add_argument("--out", type=Path, required=True,
                    help="output file (.pt, .pt2, .onnx or .fmu), or with --format c an "
                         "existing folder")

@@ -79,6 +79,7 @@ from torchhys.cli.config_yaml import check_config_aliases
 from torchhys.cli.config_yaml import install as install_bounded_yaml
 from torchhys.cli.configs import require_config, resolve_config_names
 from torchhys.cli.errors import TRACEBACK_ENV, config_errors, report_user_error
+from torchhys.cli.help_format import parser_kwargs
 from torchhys.cli.loggers import expand_logger_names, prepare_loggers
 from torchhys.cli.negative_numbers import accept_negative_numbers
 from torchhys.cli.quiet import quiet_requested
@@ -425,7 +426,7 @@ def read_config(path: str | Path) -> dict[str, Any]:
     return cfg
 
 
-def run(args: list[str], *, from_sys_argv: bool, traceback: bool) -> None:
+def run(args: list[str], *, from_sys_argv: bool, traceback: bool, help_all: bool = False) -> None:
     """Run ``torchhys fit|validate|test|predict`` (:func:`torchhys.cli.main.main` calls it
     once it has taken out the command's own options).
 
@@ -435,6 +436,7 @@ def run(args: list[str], *, from_sys_argv: bool, traceback: bool) -> None:
             (DDP relaunches each rank with it), and ``traceback`` is passed to the ranks'
             processes as ``TORCHHYS_TRACEBACK``.
         traceback: user errors keep their traceback (``--traceback``).
+        help_all: ``--help`` shows every option, not the most used (:mod:`torchhys.cli.help`).
 
     Raises:
         SystemExit: 2 on a user error, 128 + the signal's number on an interrupt (model
@@ -466,7 +468,7 @@ def run(args: list[str], *, from_sys_argv: bool, traceback: bool) -> None:
             seed_everything_default=0,
             save_config_kwargs={"overwrite": True},
             trainer_defaults={"log_every_n_steps": 1},
-            parser_kwargs={"description": _DESCRIPTION},
+            parser_kwargs=parser_kwargs(_DESCRIPTION, TorchhysCLI.subcommands(), full=help_all),
         )
     except (Interrupted, KeyboardInterrupt) as exc:  # a signal during model selection
         if traceback:
