@@ -42,8 +42,7 @@ def checkpoints(root: Path, version: int = 0) -> list[Path]:
 
 
 def trained(ckpt: Path) -> tuple[int, int]:
-    """The epochs and steps a checkpoint was saved after (Lightning counts the finished
-    epoch in a checkpoint saved at its end)."""
+    """The epoch (from 0) and the step count a checkpoint was saved at."""
     saved = torch.load(ckpt, weights_only=True)
     return saved["epoch"], saved["global_step"]
 
@@ -57,7 +56,7 @@ def test_fit_validate_test_predict(monkeypatch, tiny: Path, tmp_path: Path, caps
     root = tmp_path / "run"
     cli(monkeypatch, "fit", "--config", str(tiny), f"--trainer.default_root_dir={root}")
     (ckpt,) = checkpoints(root)
-    assert ckpt.name == "last.ckpt" and trained(ckpt) == (3, 3)
+    assert ckpt.name == "last.ckpt" and trained(ckpt) == (2, 3)
     rows = metrics(root, 0)
     assert len([r for r in rows if r["train_loss"]]) == 3
     cli(monkeypatch, "validate", "--config", str(tiny), f"--trainer.default_root_dir={root}",
@@ -96,7 +95,7 @@ def full_and_resumed(monkeypatch, config: Path, root: Path, *, epochs: int) -> t
 
 def test_resume_ends_where_the_uninterrupted_run_ends(monkeypatch, tiny, tmp_path) -> None:
     full, resumed = full_and_resumed(monkeypatch, tiny, tmp_path, epochs=6)
-    assert trained(full) == trained(resumed) == (6, 6)
+    assert trained(full) == trained(resumed) == (5, 6)
     ca = torch.load(full, weights_only=True)
     cb = torch.load(resumed, weights_only=True)
     assert ca["state_dict"].keys() == cb["state_dict"].keys()
@@ -257,7 +256,7 @@ def test_fit_under_ddp_on_two_cpu_processes(monkeypatch, tmp_path: Path) -> None
     )
     assert proc.returncode == 0, proc.stderr[-4000:]
     (ref,), (got,) = checkpoints(single), checkpoints(ddp)
-    assert trained(ref) == trained(got) == (3, 3)
+    assert trained(ref) == trained(got) == (2, 3)
     sa = torch.load(ref, weights_only=True)["state_dict"]
     sb = torch.load(got, weights_only=True)["state_dict"]
     assert sa.keys() == sb.keys()

@@ -76,7 +76,7 @@ class Reference:
     by_epoch: dict[int, dict]
     """The uninterrupted fit's checkpoint after each epoch."""
     last: dict
-    """Its final ``last.ckpt``."""
+    """Its last epoch's checkpoint (what a run's final ``last.ckpt`` holds)."""
     epoch_seconds: float
     """Training time per epoch (from the run's config.yaml to its last.ckpt)."""
 
@@ -88,19 +88,20 @@ def reference(tmp_path_factory) -> Reference:
     config = small_config(root, "fit.yaml", **FIT)
     ckpt_dir = root / "checkpoints"
     with pytest.MonkeyPatch.context() as mp:
-        cli(mp, *fit_args(config, root, ckpt_dir, "--checkpoint.save_top_k=-1"))
-    by_epoch = {}
+        # one file per epoch, as the runs below write one (last.ckpt): the same time per epoch
+        cli(mp, *fit_args(config, root, ckpt_dir, "--checkpoint.save_top_k=-1"),
+            "--checkpoint.save_last=false")
+    by_epoch, files = {}, {}
     for path in ckpt_dir.glob("epoch=*.ckpt"):
         ckpt = torch.load(path, weights_only=True)
-        by_epoch[ckpt["epoch"]] = ckpt
-    assert sorted(by_epoch) == list(range(EPOCHS))
-    last = torch.load(ckpt_dir / "last.ckpt", weights_only=True)
-    assert_same_checkpoint(last, by_epoch[EPOCHS - 1])
+        by_epoch[ckpt["epoch"]], files[ckpt["epoch"]] = ckpt, path
+    assert sorted(by_epoch) == list(range(EPOCHS)) and not (ckpt_dir / "last.ckpt").exists()
+    last = by_epoch[EPOCHS - 1]
     # the weights still move at the end: a resume that lost state could not match by luck
     for k in ("net.hidden.weight", "net.output.weight"):
         assert not torch.equal(by_epoch[EPOCHS - 2]["state_dict"][k], last["state_dict"][k])
     started = (root / "logs/version_0/config.yaml").stat().st_mtime
-    seconds = (ckpt_dir / "last.ckpt").stat().st_mtime - started
+    seconds = files[EPOCHS - 1].stat().st_mtime - started
     return Reference(by_epoch, last, max(seconds, 0.05) / EPOCHS)
 
 
@@ -381,8 +382,8 @@ def test_torchhys_fit_keeps_last_ckpt_when_the_disk_fills(monkeypatch, tmp_path:
     last = ckpt_dir / "last.ckpt"
     before = last.read_bytes()
     temp_on_another_filesystem(monkeypatch, temp)
-    # room for the next epoch's checkpoint (saved first), not for last.ckpt after it
-    disk = FullDisk(monkeypatch, [ckpt_dir], room=len(before) + len(before) // 2)
+    # room for half of the next epoch's last.ckpt (the run's one checkpoint file)
+    disk = FullDisk(monkeypatch, [ckpt_dir], room=len(before) // 2)
     with pytest.raises((OSError, SystemExit)):
         cli(monkeypatch, *args, "--trainer.max_epochs=3", f"--ckpt_path={last}")
     assert len(disk.failed) == 1

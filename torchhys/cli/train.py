@@ -96,6 +96,7 @@ from torchhys.selection.folds import describe_cv
 from torchhys.selection.jobs import check_budget, check_jobs, usable_cores
 from torchhys.selection.progress import SelectionProgress
 from torchhys.training.callbacks import BaselineComparison, PredictionWriter
+from torchhys.training.run_checkpoint import RunCheckpoint
 from torchhys.training.data import HysteresisDataModule
 from torchhys.training.interrupts import (
     Interrupted,
@@ -137,11 +138,11 @@ class TorchhysCLI(LightningCLI):
         # test: the straight line and the memoryless polynomial beside the model
         parser.add_lightning_class_args(BaselineComparison, "baselines")
         # Full-batch runs often validate rarely: save at the end of every training epoch.
-        parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
+        parser.add_lightning_class_args(RunCheckpoint, "checkpoint")
         # checkpoints written to a temporary file beside them and renamed: a full disk or a
         # kill while saving leaves the previous last.ckpt whole (torchhys/training/checkpoint_io.py)
-        # one file per run, last.ckpt (--checkpoint.save_top_k 1 and a --checkpoint.monitor
-        # keep the best as well; without a monitor the top file was a copy of the last)
+        # one file per run, last.ckpt (torchhys/training/run_checkpoint.py;
+        # --checkpoint.save_top_k 1 and a --checkpoint.monitor keep the best as well)
         parser.set_defaults({"checkpoint.save_on_train_epoch_end": True,
                              "checkpoint.save_last": True, "checkpoint.save_top_k": 0,
                              "trainer.plugins": [{"class_path": cli_selection.ATOMIC_IO}]})
