@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -11,15 +10,10 @@ import lightning as L
 import numpy as np
 import torch
 from lightning.pytorch.callbacks import BasePredictionWriter
-from lightning.pytorch.utilities import rank_zero_warn
 
 from torchhys._checks import check_int
-from torchhys.training.baselines import (
-    MAX_DEGREE,
-    fit_condition_polynomial,
-    fit_polynomial,
-    max_degree,
-)
+from torchhys.training.baselines import MAX_DEGREE
+from torchhys.training.report import compare_baselines, draw_report
 
 __all__ = ["BaselineComparison", "PredictionWriter"]
 
@@ -88,104 +82,21 @@ class BaselineComparison(L.Callback):
         dm = getattr(trainer, "datamodule", None)
         if not self._tested or dm is None or not hasattr(dm, "batches"):
             return
-        train = dm.batches("train")
-        if not train:
+        comparison = compare_baselines(dm.batches("train"), self._tested, "test",
+                                       self.max_degree)
+        if comparison is None:
             return
-        x, y, mask = _rows(train)
-        top = min(self.max_degree, max_degree(mask))
-        if top < 1:
-            rank_zero_warn("baselines: the training split has too few scored samples to fit "
-                           "a straight line before its hold-out; no comparison")
-            return
-        line = fit_polynomial(x, y, mask, degrees=(1,))
-        tx, ty, pred = (torch.cat(v) for v in list(zip(*self._tested, strict=True))[:3])
-        conds = [t[3] for t in self._tested]
-        if all(c is not None for c in conds) and len(train[0]) == 5:
-            cx = _condition_rows(train, x.shape[-1])
-            poly = fit_condition_polynomial(x, cx, y, mask, degrees=range(1, min(5, top) + 1))
-            poly_out = poly(tx, torch.cat(conds))
-        else:
-            poly = fit_polynomial(x, y, mask, degrees=range(1, top + 1))
-            poly_out = poly(tx)
-
-        def mse(p: torch.Tensor) -> float:
-            return float((p - ty).square().mean())
-
-        model, line_mse, poly_mse = mse(pred), mse(line(tx)), mse(poly_out)
-        best = min(line_mse, poly_mse)
-        ratio = math.sqrt(model / best) if best > 0 else (1.0 if model == 0 else math.inf)
-        span = float(ty.max() - ty.min()) if ty.numel() else 0.0
-        self.results = {"test_mse": model, "test_line_mse": line_mse,
-                        "test_poly_mse": poly_mse, "poly_degree": float(poly.degree),
-                        "test_ratio": ratio, "test_rmse": math.sqrt(model),
-                        "test_max_error": float((pred - ty).abs().max()),
-                        "test_rmse_pct": 100.0 * math.sqrt(model) / span if span > 0
-                        else math.nan}
+        self.results = dict(comparison.results)
+        self.results["poly_degree"] = self.results.pop("test_poly_degree")
         for key in ("test_line_mse", "test_poly_mse", "test_ratio", "test_rmse",
                     "test_max_error", "test_rmse_pct"):
             pl_module.log(key, self.results[key], on_step=False, on_epoch=True, sync_dist=True)
         if self.report and trainer.global_rank == 0 and trainer.loggers:  # a run's folder
-            self._draw(trainer, tx, ty, pred, line(tx), poly_out)
-
-    def _draw(self, trainer: L.Trainer, x: torch.Tensor, y: torch.Tensor, pred: torch.Tensor,
-              line: torch.Tensor, poly: torch.Tensor) -> None:
-        """``test_report.png`` in the run's log folder (the class docstring)."""
-        try:
-            import matplotlib
-        except ImportError:  # the train extra holds it; a bare environment draws nothing
-            return
-        matplotlib.use("Agg", force=False)
-        import matplotlib.pyplot as plt
-
-        folder = Path(trainer.log_dir)
-        x, y, pred, line, poly = (v.numpy() for v in (x, y, pred, line, poly))
-        fig, (a, b, c) = plt.subplots(1, 3, figsize=(15, 4))
-        a.plot(x, y, color="0.6", lw=1, label="target")
-        a.plot(x, pred, color="C0", lw=1, label="model")
-        a.set(xlabel="input", ylabel="target", title="the loop (test samples)")
-        a.legend()
-        b.plot(y, color="0.6", lw=1, label="target")
-        b.plot(pred, color="C0", lw=1, label=f"model (RMSE {self.results['test_rmse']:.3g})")
-        b.plot(line, color="C1", lw=0.8, ls="--", label="straight line")
-        b.plot(poly, color="C2", lw=0.8, ls=":",
-               label=f"polynomial (degree {int(self.results['poly_degree'])})")
-        b.set(xlabel="test sample", ylabel="target", title="tracking and the baselines")
-        b.legend(fontsize=8)
-        c.plot(pred - y, lw=0.8)
-        c.set(xlabel="test sample", ylabel="model - target",
-              title=f"error (max {self.results['test_max_error']:.3g}, "
-                    f"{self.results['test_rmse_pct']:.3g} % of range RMSE)")
-        fig.tight_layout()
-        folder.mkdir(parents=True, exist_ok=True)
-        self.report_path = folder / "test_report.png"
-        fig.savefig(self.report_path, dpi=90)
-        plt.close(fig)
-        print(f"torchhys test: the test's loop, tracking and error in {self.report_path}",
-              flush=True)
-
-
-def _condition_rows(batches: list, T: int) -> torch.Tensor:
-    """The conditions (rows, T, n) of every batch's rows as :func:`_rows` pads them."""
-    def pad(c: torch.Tensor) -> torch.Tensor:
-        c = c.detach().to("cpu", torch.float64)
-        return torch.cat([c, c[:, -1:].expand(-1, T - c.shape[1], -1)], 1)
-
-    return torch.cat([pad(b[4]) for b in batches])
-
-
-def _rows(batches: list) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The rows of every ``(x, y, warmup, mask[, conditions])`` batch as one ``(x, y,
-    mask)``, each row padded at its end to the longest (padding not scored)."""
-    T = max(int(b[0].shape[-1]) for b in batches)
-
-    def pad(t: torch.Tensor, value: float | bool) -> torch.Tensor:
-        t = t.detach().to("cpu").reshape(-1, t.shape[-1])
-        return torch.nn.functional.pad(t, (0, T - t.shape[-1]), value=value)
-
-    x = torch.cat([pad(b[0].double(), 0.0) for b in batches])
-    y = torch.cat([pad(b[1].double(), 0.0) for b in batches])
-    mask = torch.cat([pad(b[3].bool(), False) for b in batches])
-    return x, y, mask
+            self.report_path = draw_report(Path(trainer.log_dir) / "test_report.png",
+                                           comparison, "test")
+            if self.report_path is not None:
+                print(f"torchhys test: the test's loop, tracking and error in "
+                      f"{self.report_path}", flush=True)
 
 
 class PredictionWriter(BasePredictionWriter):

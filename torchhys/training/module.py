@@ -368,16 +368,23 @@ class InverseHysteresisModule(L.LightningModule):
         :class:`~torchhys._finite.DivergedError`, before a checkpoint is saved."""
         check_training(self, self._last_loss)
 
-    def _evaluate(self, batch: Batch, stage: str) -> dict[str, Tensor]:
+    def scored_outputs(self, batch: Batch, stage: str = "val") -> dict[str, Tensor]:
+        """The batch's scored samples, each flat: ``input``, ``target``, ``prediction``, and
+        ``conditions`` (samples, n) where the batch has them; without gradient, nothing
+        logged (``stage``: the split the batch is of, ``"val"`` or ``"test"``)."""
         x, y, scored, c = _unpack(batch)
         y = y.to(self.dtype)
         with torch.no_grad():
             pred = self._predict(x, y, stage, c)()
-        metric = self.val_mse if stage == "val" else self.test_mse
         out = {"input": scored(x).reshape(-1), "target": scored(y).reshape(-1),
                "prediction": scored(pred).reshape(-1)}
         if c is not None:  # the scored samples' conditions, (samples, n)
             out["conditions"] = scored(c).reshape(-1, c.shape[-1])
+        return out
+
+    def _evaluate(self, batch: Batch, stage: str) -> dict[str, Tensor]:
+        out = self.scored_outputs(batch, stage)
+        metric = self.val_mse if stage == "val" else self.test_mse
         metric(out["prediction"], out["target"])
         self.log(f"{stage}_mse", metric, on_step=False, on_epoch=True, prog_bar=True)
         return out
