@@ -13,6 +13,12 @@ chosen candidate is the best of those scored. The processes die with the command
 however it ends (SIGKILL included) and ignore SIGINT; when the selection stops early (a
 signal, Ctrl-C, a candidate's error) the running ones are killed, not waited for
 (:func:`die_with_parent`, :func:`_stop`).
+
+Every wait on a process is bounded: a candidate that has not finished
+:func:`wait_timeout` seconds after its process started it (``TORCHHYS_TIMEOUT_S``, default
+:data:`DEFAULT_TIMEOUT_S`; a group sharing a process, that many per candidate) is a
+one-line :class:`SelectionTimeoutError` naming it, and the processes are killed; once all
+are scored, the idle processes get :data:`_EXIT_S` seconds to exit before they are killed.
 """
 
 from __future__ import annotations
@@ -28,13 +34,15 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeout
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
 import torch
 
-__all__ = ["AUTO_JOBS", "SelectionJobError", "check_budget", "check_jobs", "die_with_parent",
-           "run_candidates", "usable_cores"]
+__all__ = ["AUTO_JOBS", "DEFAULT_TIMEOUT_S", "TIMEOUT_ENV", "SelectionJobError",
+           "SelectionTimeoutError", "check_budget", "check_jobs", "die_with_parent",
+           "run_candidates", "usable_cores", "wait_timeout"]
 
 _SCORE: Callable[[int], Any] | None = None
 """The scoring function of the running selection, inherited by the forked processes."""
@@ -45,6 +53,38 @@ _SKIPPED: Callable[[int], Any] | None = None
 AUTO_JOBS = 4
 """The most processes of ``select_jobs: auto`` (each holds its own copy of the data and the
 fits: about 0.8 GiB at 1e5 samples, 4 GiB at 1e6)."""
+
+
+TIMEOUT_ENV = "TORCHHYS_TIMEOUT_S"
+"""The environment variable of the longest wait for a candidate's process, in seconds
+(``none``: no limit)."""
+DEFAULT_TIMEOUT_S = 6 * 3600.0
+"""Its default: six hours per candidate, far beyond a fit of this library's networks (a
+process that takes longer has most likely stopped: a deadlock after the fork)."""
+_EXIT_S = 30.0
+"""Seconds the idle processes get to exit after the last score before they are killed."""
+
+
+def wait_timeout() -> float | None:
+    """The longest wait for a candidate's process, in seconds: ``TORCHHYS_TIMEOUT_S``
+    (a finite number > 0, or ``none``: no limit), :data:`DEFAULT_TIMEOUT_S` where unset.
+
+    Raises:
+        ValueError: the variable holds anything else (naming it and the value).
+    """
+    text = os.environ.get(TIMEOUT_ENV, "").strip()
+    if not text:
+        return DEFAULT_TIMEOUT_S
+    if text.lower() == "none":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"{TIMEOUT_ENV} must be a finite number of seconds > 0 (or 'none': "
+                         f"no limit), got {text!r}")
+    return value
 
 
 def usable_cores() -> int:
@@ -62,6 +102,11 @@ def _can_fork() -> bool:
 class SelectionJobError(ValueError):
     """A process of ``select_jobs`` ended without a result (killed, e.g. out of memory): a
     one-line error that says to run fewer at a time."""
+
+
+class SelectionTimeoutError(SelectionJobError):
+    """A candidate's process did not finish within :func:`wait_timeout`: a one-line error
+    naming the candidate and the limit."""
 
 
 def check_jobs(value: object) -> int:
@@ -115,12 +160,23 @@ def _groups(n: int, together: Sequence[object] | None) -> list[list[int]]:
 def run_candidates(n: int, score: Callable[[int], Any], skipped: Callable[[int], Any], *,
                    report: Callable[[Any], None] | None = None, jobs: int = 1,
                    budget_s: float | None = None,
-                   together: Sequence[object] | None = None) -> list:
+                   together: Sequence[object] | None = None,
+                   describe: Callable[[int], str] | None = None,
+                   timeout_s: float | None = None) -> list:
     """``score(i)`` of the candidates ``i < n``, ``skipped(i)`` for those not started within
     ``budget_s``; ``jobs`` at a time (forked processes, threads divided); ``report`` called
     with each in order as soon as it and those before it are known. Consecutive candidates
     with the same ``together`` key (not None) run one after another in one process, where
-    they share their fits."""
+    they share their fits.
+
+    A process's candidates are waited for ``timeout_s`` seconds each (None:
+    :func:`wait_timeout`) from its start; ``describe(i)`` names candidate ``i`` in the
+    error then (after its index).
+
+    Raises:
+        SelectionJobError: a process ended without a result.
+        SelectionTimeoutError: a process did not finish in time (the processes are killed).
+    """
     global _SCORE, _SKIPPED
     jobs, budget_s = check_jobs(jobs), check_budget(budget_s)
     start = time.perf_counter()
@@ -140,43 +196,62 @@ def run_candidates(n: int, score: Callable[[int], Any], skipped: Callable[[int],
     except ValueError:
         raise ValueError("model.select_jobs > 1 needs processes started by fork (Linux, "
                          "macOS); set model.select_jobs: 1 here") from None
+    limit = wait_timeout() if timeout_s is None else timeout_s
     threads = max(1, torch.get_num_threads() // jobs)
     _SCORE, _SKIPPED = score, skipped
     before = set(multiprocessing.active_children())
     pool = ProcessPoolExecutor(jobs, mp_context=context, initializer=_start_worker,
                                initargs=(threads, os.getpid()))
     try:
-        pending: list = []  # (group, future or None: skipped), in order
+        pending: list = []  # (group, future or None: skipped, its deadline), in order
 
         def collect() -> None:
-            group, r = pending.pop(0)
+            group, r, deadline = pending.pop(0)
+            which = (f"candidate {group[0]}" if len(group) == 1
+                     else f"candidates {group[0]}-{group[-1]}")
             try:
-                scores = [skipped(j) for j in group] if r is None else r.result()
+                scores = [skipped(j) for j in group] if r is None else r.result(
+                    None if deadline is None else max(0.0, deadline - time.perf_counter()))
             except BrokenProcessPool:
-                which = (f"candidate {group[0]}" if len(group) == 1
-                         else f"candidates {group[0]}-{group[-1]}")
                 raise SelectionJobError(
                     f"model.select_jobs: the process scoring {which} ended without a "
                     f"result (killed: out of memory?); run fewer at a time "
                     f"(--model.select_jobs=1: all in the command's process)") from None
+            except FutureTimeout:
+                raise SelectionTimeoutError(_late(which, group, limit, describe)) from None
             for result in scores:
                 done(result)
 
         for group in _groups(n, together):
-            while sum(r is not None for _, r in pending) >= jobs:
+            while sum(r is not None for _, r, _ in pending) >= jobs:
                 collect()
-            pending.append((group, None if _spent(group[0], start, budget_s) else
-                            pool.submit(_score_group, group, start, budget_s)))
+            if _spent(group[0], start, budget_s):
+                pending.append((group, None, None))
+            else:  # a process is free: the group starts now
+                pending.append((group, pool.submit(_score_group, group, start, budget_s),
+                                None if limit is None
+                                else time.perf_counter() + limit * len(group)))
         while pending:
             collect()
     except BaseException:  # a signal, Ctrl-C, a candidate's error: nothing waits for the rest
         _stop(pool, set(multiprocessing.active_children()) - before)
         raise
     else:
-        pool.shutdown()
+        _finish(pool, set(multiprocessing.active_children()) - before)
     finally:
         _SCORE = _SKIPPED = None
     return results
+
+
+def _late(which: str, group: list[int], limit: float, describe: Callable[[int], str] | None
+          ) -> str:
+    """The message of a group not finished within ``limit`` seconds a candidate."""
+    named = "" if describe is None else " (" + "; ".join(describe(i) for i in group) + ")"
+    each = "" if len(group) == 1 else f" ({limit:g} s each, in one process)"
+    return (f"model selection: {which}{named} did not finish within "
+            f"{limit * len(group):g} s{each} in its process (model.select_jobs), which was "
+            f"stopped; allow more with {TIMEOUT_ENV}=SECONDS (or 'none'), or run "
+            f"--model.select_jobs=1 to see where it stops")
 
 
 def _start_worker(threads: int, parent: int) -> None:
@@ -184,6 +259,20 @@ def _start_worker(threads: int, parent: int) -> None:
     and ignores SIGINT (:func:`die_with_parent`)."""
     die_with_parent(parent)
     torch.set_num_threads(threads)
+
+
+def _finish(pool: ProcessPoolExecutor, workers: set) -> None:
+    """End the pool once every score is in: the idle processes get :data:`_EXIT_S` seconds
+    to exit, then are killed (the pool's own shutdown would wait for them without limit)."""
+    pool.shutdown(wait=False)
+    deadline = time.perf_counter() + _EXIT_S
+    for process in workers:
+        process.join(timeout=max(0.0, deadline - time.perf_counter()))
+    late = [p for p in workers if p.is_alive()]
+    for process in late:
+        process.kill()
+    for process in late:
+        process.join(timeout=5)
 
 
 def _stop(pool: ProcessPoolExecutor, workers: set) -> None:

@@ -51,6 +51,7 @@ from torchhys.selection.scores import (
     RULES,
     CandidateScore,
     best,
+    config_json,
     format_table,
     standard_error,
     write_table,
@@ -448,7 +449,8 @@ def select(candidates: Sequence[Mapping[str, Any]], x: Tensor, y: Tensor, *,
 
     scores = run_candidates(len(specs), score, skipped,
                             report=None if progress is None else progress.scored, jobs=jobs,
-                            budget_s=budget_s, together=[shared_key(c) for c in overrides])
+                            budget_s=budget_s, together=[shared_key(c) for c in overrides],
+                            describe=lambda i: config_json(overrides[i]))
     kept = getattr(scores[best(scores, rule).index], "network", None)
     scores = [CandidateScore(**{f.name: getattr(s, f.name) for f in fields(CandidateScore)})
               if isinstance(s, _Fitted) else s for s in scores]

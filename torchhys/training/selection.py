@@ -58,7 +58,7 @@ from torch import Tensor
 from torchhys.selection.coverage import warn_coverage
 from torchhys.selection.folds import RECORDING
 from torchhys.selection.run import score_folds, shared_key
-from torchhys.selection.scores import CandidateScore
+from torchhys.selection.scores import CandidateScore, config_json
 from torchhys.training.folds import cv_fold
 from torchhys.training.readout import direct_validation, solvable
 
@@ -171,7 +171,8 @@ def run_selection(candidates: Sequence[dict[str, Any]], build: Build, *,
         i, candidates[i], build, cv, mode), lambda i: CandidateScore(
         i, candidates[i], math.nan, error=f"skipped: model.select_budget_s={budget_s:g} "
         "spent before it started"), report=report, jobs=jobs, budget_s=budget_s,
-        together=[shared_key(c) for c in candidates])
+        together=[shared_key(c) for c in candidates],
+        describe=lambda i: config_json(candidates[i]))
 
 
 def score_candidate(i: int, overrides: dict[str, Any], build: Build, cv: int | str | None,
