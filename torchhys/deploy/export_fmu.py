@@ -86,6 +86,10 @@ def platform_folder(fmi: int) -> tuple[str, str]:
     return (f"{system}64" if fmi == 2 else f"{arch}-{system}"), suffix
 
 
+_COMPILE_S = 600
+"""Seconds the C compiler of an FMU's binary may take."""
+
+
 def _compile(sources: dict[str, bytes], prefix: str, suffix: str) -> bytes:
     cc = shutil.which("cc") or shutil.which("gcc")
     if cc is None:
@@ -97,8 +101,12 @@ def _compile(sources: dict[str, bytes], prefix: str, suffix: str) -> bytes:
             (folder / name).write_bytes(data)
         out = folder / f"{prefix}{suffix}"
         cfiles = [str(folder / n) for n in sources if n.endswith(".c")]
-        done = subprocess.run([cc, *CFLAGS, "-I", str(folder), "-o", str(out), *cfiles, "-lm"],
-                              capture_output=True, text=True, timeout=600)
+        try:
+            done = subprocess.run([cc, *CFLAGS, "-I", str(folder), "-o", str(out), *cfiles,
+                                   "-lm"], capture_output=True, text=True, timeout=_COMPILE_S)
+        except subprocess.TimeoutExpired:
+            raise RuntimeError(f"the FMU's sources did not compile within {_COMPILE_S} s "
+                               f"({cc}): the compiler was stopped") from None
         if done.returncode != 0:
             first = (done.stderr.strip().splitlines() or ["(no message)"])[0]
             raise RuntimeError(f"the FMU's sources did not compile ({cc}): {first}")

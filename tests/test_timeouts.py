@@ -1,6 +1,6 @@
-"""Every wait of model selection on its processes is bounded: a candidate that does not
-finish within ``TORCHHYS_TIMEOUT_S`` is a one-line error naming it, and its process is
-stopped (nothing hangs)."""
+"""Every wait of the command is bounded: a model selection candidate that does not finish
+within ``TORCHHYS_TIMEOUT_S`` is a one-line error naming it, and its process is stopped
+(nothing hangs); an FMU's compiler that does not finish is an error naming it."""
 
 from __future__ import annotations
 
@@ -94,3 +94,18 @@ def test_the_command_names_the_candidate_in_one_line(tmp_path: Path) -> None:
     assert len(errors) == 1 and "Traceback" not in proc.stderr, proc.stderr
     assert errors[0].startswith("torchhys fit: error: model selection: candidate 0 ({}) did "
                                 "not finish within 0.001 s"), errors
+
+
+def test_a_compiler_past_its_limit_is_named(monkeypatch) -> None:
+    """An FMU's binary: a compiler that does not finish is an error naming it and the
+    limit, not subprocess's traceback."""
+    from torchhys.deploy import export_fmu
+
+    def hang(cmd, **kwargs):
+        raise subprocess.TimeoutExpired(cmd, kwargs["timeout"])
+
+    monkeypatch.setattr(export_fmu.shutil, "which", lambda name: f"/usr/bin/{name}")
+    monkeypatch.setattr(export_fmu.subprocess, "run", hang)
+    with pytest.raises(RuntimeError, match=r"^the FMU's sources did not compile within "
+                       r"600 s \(/usr/bin/cc\): the compiler was stopped$"):
+        export_fmu._compile({"a.c": b"int x;"}, "comp", ".so")
