@@ -96,6 +96,7 @@ from torchhys.selection.folds import describe_cv
 from torchhys.selection.jobs import check_budget, check_jobs, usable_cores
 from torchhys.selection.progress import SelectionProgress
 from torchhys.training.callbacks import BaselineComparison, PredictionWriter
+from torchhys.training.report import FitReport
 from torchhys.training.run_checkpoint import RunCheckpoint
 from torchhys.training.data import HysteresisDataModule
 from torchhys.training.interrupts import (
@@ -125,6 +126,8 @@ class TorchhysCLI(LightningCLI):
     a :class:`~torchhys.training.callbacks.PredictionWriter` (``--predictions.filename``), a
     :class:`~torchhys.training.callbacks.BaselineComparison` in ``test`` (the line and the
     memoryless polynomial fitted on the training split, ``--baselines.max_degree``), a
+    :class:`~torchhys.training.report.FitReport` in ``fit`` (``fit_report.png``: the
+    fitted loop and the validation tracking beside the baselines), a
     checkpoint after every training epoch, one file, ``last.ckpt`` (``--checkpoint.*``;
     ``--checkpoint.save_top_k`` with ``--checkpoint.monitor`` to keep the best too), and
     model selection by validation in ``fit`` (``--model.select``, ``--model.select_cv``: see
@@ -137,6 +140,8 @@ class TorchhysCLI(LightningCLI):
         parser.add_lightning_class_args(PredictionWriter, "predictions")
         # test: the straight line and the memoryless polynomial beside the model
         parser.add_lightning_class_args(BaselineComparison, "baselines")
+        # fit: the fitted loop and the validation tracking beside them (fit_report.png)
+        parser.add_lightning_class_args(FitReport, "fit_report")
         # Full-batch runs often validate rarely: save at the end of every training epoch.
         parser.add_lightning_class_args(RunCheckpoint, "checkpoint")
         # checkpoints written to a temporary file beside them and renamed: a full disk or a

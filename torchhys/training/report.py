@@ -105,23 +105,24 @@ def draw_report(path: str | Path, comparison: Comparison, split: str) -> Path | 
     import matplotlib.pyplot as plt
 
     r = {k.removeprefix(f"{split}_"): v for k, v in comparison.results.items()}
+    name = {"val": "validation"}.get(split, split)
     x, y, pred, line, poly = (v.numpy() for v in (comparison.input, comparison.target,
                                                   comparison.prediction, comparison.line,
                                                   comparison.poly))
     fig, (a, b, c) = plt.subplots(1, 3, figsize=(15, 4))
     a.plot(x, y, color="0.6", lw=1, label="target")
     a.plot(x, pred, color="C0", lw=1, label="model")
-    a.set(xlabel="input", ylabel="target", title=f"the loop ({split} samples)")
+    a.set(xlabel="input", ylabel="target", title=f"the loop ({name} samples)")
     a.legend()
     b.plot(y, color="0.6", lw=1, label="target")
     b.plot(pred, color="C0", lw=1, label=f"model (RMSE {r['rmse']:.3g})")
     b.plot(line, color="C1", lw=0.8, ls="--", label="straight line")
     b.plot(poly, color="C2", lw=0.8, ls=":", label=f"polynomial (degree {int(r['poly_degree'])})")
-    b.set(xlabel=f"{split} sample", ylabel="target",
+    b.set(xlabel=f"{name} sample", ylabel="target",
           title=f"tracking and the baselines (ratio {r['ratio']:.3g})")
     b.legend(fontsize=8)
     c.plot(pred - y, lw=0.8)
-    c.set(xlabel=f"{split} sample", ylabel="model - target",
+    c.set(xlabel=f"{name} sample", ylabel="model - target",
           title=f"error (max {r['max_error']:.3g}, RMSE {r['rmse_pct']:.3g} % of range)")
     fig.tight_layout()
     path = Path(path)
