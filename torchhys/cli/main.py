@@ -12,8 +12,9 @@ reads a checkpoint as a spec plus weights and needs none of them. Both are answe
 
 The options of the command itself are taken out before a subcommand reads the rest:
 ``--import MODULE`` and ``--import-path DIR`` (:mod:`torchhys.cli.plugins`), ``--threads N``
-(:mod:`torchhys.cli.threads`), ``--quiet`` (:mod:`torchhys.cli.quiet`), ``--traceback``
-(:mod:`torchhys.cli.errors`).
+(:mod:`torchhys.cli.threads`), ``--quiet`` (:mod:`torchhys.cli.quiet`), ``--verbose``
+(:mod:`torchhys.cli.verbose`), ``--traceback`` (:mod:`torchhys.cli.errors`), ``--help-all``
+(:mod:`torchhys.cli.help`).
 """
 
 from __future__ import annotations
