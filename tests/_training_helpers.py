@@ -46,10 +46,12 @@ SMALL_CONFIG: dict[str, Any] = {
     "model": {"operator": "zhao_tan", "operator_kwargs": {"scale": 1.8}, "hidden": 8,
               "optimizer": "cg", "optimizer_kwargs": {"minstep": 0.0}},
     "data": {"simulation": "paper", "t_end": 6.3, "split": [0.6, 0.2, 0.2]},
+    "fit_report": {"enabled": False},
 }
 """The small ``torchhys fit`` config of the command-line tests: seeded, float64 on the CPU,
 quiet, the paper's simulated plant inverted by a Zhao-Tan operator and 8 sigmoids (CG, one
-full batch per epoch), validated only at the end of a short run."""
+full batch per epoch), validated only at the end of a short run, without fit_report.png
+(tests/test_fit_report.py draws it)."""
 
 LINE: dict[str, Any] = {"operator": None, "operator_kwargs": DROP, "hidden": 1,
                         "activation": "identity", "optimizer": "lbfgs",

@@ -59,7 +59,7 @@ def test_without_a_logger_nothing_is_drawn(tmp_path: Path, monkeypatch) -> None:
 
 def test_torchhys_fit_writes_the_report_and_says_where(monkeypatch, tmp_path: Path,
                                                        capsys) -> None:
-    config = small_config(tmp_path, "c.yaml")
+    config = small_config(tmp_path, "c.yaml", fit_report={"enabled": True})
     root = tmp_path / "run"
     cli(monkeypatch, "fit", "--config", str(config), f"--trainer.default_root_dir={root}")
     png = root / "logs/version_0/fit_report.png"
