@@ -109,3 +109,10 @@ def test_export_help_is_plain(monkeypatch, capsys) -> None:
     assert re.search(r"--format \{[^}]*\}\s+the file's kind", out)
     assert not ROLE_OR_LITERAL.search(out), ROLE_OR_LITERAL.search(out)
     assert _help(monkeypatch, capsys, "export", "--help-all") == out
+
+
+def test_a_class_help_is_plain(monkeypatch, capsys) -> None:
+    out = _help(monkeypatch, capsys, "fit", "--quiet", "--config", "compensator",
+                "--trainer.callbacks.help", "EarlyStopping")
+    assert "--trainer.callbacks.patience" in out
+    assert not ROLE_OR_LITERAL.search(out), ROLE_OR_LITERAL.search(out)

@@ -9,16 +9,18 @@ short usage line too.
 from __future__ import annotations
 
 import textwrap
-from argparse import SUPPRESS, Action, _SubParsersAction
+from argparse import SUPPRESS, Action, HelpFormatter, _SubParsersAction
 from collections.abc import Iterable
 from typing import Any
 
 from jsonargparse import DefaultHelpFormatter
+from lightning.pytorch.cli import LightningArgumentParser
 
 from torchhys.cli.help import SECTIONS, SHORT_OPTIONS, TEXTS, epilog, first_sentence
 from torchhys.cli.plain_text import plain
 
-__all__ = ["PlainHelpFormatter", "ShortHelpFormatter", "help_formatter", "parser_kwargs"]
+__all__ = ["PlainArgumentParser", "PlainHelpFormatter", "ShortHelpFormatter", "help_formatter",
+           "parser_kwargs"]
 
 
 class PlainHelpFormatter(DefaultHelpFormatter):
@@ -113,6 +115,16 @@ class ShortHelpFormatter(PlainHelpFormatter):
 
 
 _USAGE = "%(prog)s [-h] [-c CONFIG] [--SECTION.OPTION VALUE ...]"
+
+
+class PlainArgumentParser(LightningArgumentParser):
+    """LightningCLI's parser with :class:`PlainHelpFormatter` as its default formatter: the
+    help of a class (``--trainer.callbacks.help EarlyStopping``), which jsonargparse prints
+    from a new parser of the same type, is plain text too."""
+
+    def __init__(self, *args: Any, formatter_class: type[HelpFormatter] = PlainHelpFormatter,
+                 **kwargs: Any) -> None:
+        super().__init__(*args, formatter_class=formatter_class, **kwargs)
 
 
 def help_formatter(*, full: bool) -> type[DefaultHelpFormatter]:

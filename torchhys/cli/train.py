@@ -79,7 +79,7 @@ from torchhys.cli.config_yaml import check_config_aliases
 from torchhys.cli.config_yaml import install as install_bounded_yaml
 from torchhys.cli.configs import require_config, resolve_config_names
 from torchhys.cli.errors import TRACEBACK_ENV, config_errors, report_user_error
-from torchhys.cli.help_format import parser_kwargs
+from torchhys.cli.help_format import PlainArgumentParser, parser_kwargs
 from torchhys.cli.loggers import expand_logger_names, prepare_loggers
 from torchhys.cli.negative_numbers import accept_negative_numbers
 from torchhys.cli.quiet import quiet_requested
@@ -475,6 +475,7 @@ def run(args: list[str], *, from_sys_argv: bool, traceback: bool, help_all: bool
             save_config_kwargs={"overwrite": True},
             trainer_defaults={"log_every_n_steps": 1},
             parser_kwargs=parser_kwargs(_DESCRIPTION, TorchhysCLI.subcommands(), full=help_all),
+            parser_class=PlainArgumentParser,  # a class's help (--trainer.callbacks.help) too
         )
     except (Interrupted, KeyboardInterrupt) as exc:  # a signal during model selection
         if traceback:
