@@ -243,18 +243,26 @@ def test_measured_config_exports(measured_run: Path, tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_fit_under_ddp_on_two_cpu_processes(monkeypatch, tmp_path: Path) -> None:
     """``--trainer.strategy=ddp --trainer.devices=2``: the CLI relaunches itself per rank;
-    full-batch CG ends where a single process ends (data-dependent operators included)."""
-    cfg = small_config(tmp_path, "pi.yaml", model=PI_TINY)
+    full-batch CG ends where a single process ends (data-dependent operators included); the
+    fit's and the test's figures are drawn by rank 0 (every rank asks for the folder)."""
+    cfg = small_config(tmp_path, "pi.yaml", model=PI_TINY, fit_report={"enabled": True})
     single, ddp = tmp_path / "single", tmp_path / "ddp"
     cli(monkeypatch, "fit", "--config", str(cfg), f"--trainer.default_root_dir={single}")
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONWARNINGS": "ignore"}
-    proc = subprocess.run(
-        [sys.executable, "-m", "torchhys", "fit", "--config", str(cfg),
-         f"--trainer.default_root_dir={ddp}", "--trainer.strategy=ddp",
-         "--trainer.devices=2", "--trainer.accelerator=cpu"],
-        cwd=ROOT, env=env, capture_output=True, text=True, timeout=600, check=False,
-    )
-    assert proc.returncode == 0, proc.stderr[-4000:]
+
+    def under_ddp(*args: str) -> None:
+        proc = subprocess.run(
+            [sys.executable, "-m", "torchhys", *args, "--config", str(cfg),
+             f"--trainer.default_root_dir={ddp}", "--trainer.strategy=ddp",
+             "--trainer.devices=2", "--trainer.accelerator=cpu"],
+            cwd=ROOT, env=env, capture_output=True, text=True, timeout=600, check=False,
+        )
+        assert proc.returncode == 0, proc.stderr[-4000:]
+
+    under_ddp("fit")
+    assert (ddp / "logs/version_0/fit_report.png").stat().st_size > 10_000
+    under_ddp("test", f"--ckpt_path={ddp / 'logs/version_0/checkpoints/last.ckpt'}")
+    assert (ddp / "logs/version_1/test_report.png").stat().st_size > 10_000
     (ref,), (got,) = checkpoints(single), checkpoints(ddp)
     assert trained(ref) == trained(got) == (2, 3)
     sa = torch.load(ref, weights_only=True)["state_dict"]

@@ -91,9 +91,10 @@ class BaselineComparison(L.Callback):
         for key in ("test_line_mse", "test_poly_mse", "test_ratio", "test_rmse",
                     "test_max_error", "test_rmse_pct"):
             pl_module.log(key, self.results[key], on_step=False, on_epoch=True, sync_dist=True)
-        if self.report and trainer.global_rank == 0 and trainer.loggers:  # a run's folder
-            self.report_path = draw_report(Path(trainer.log_dir) / "test_report.png",
-                                           comparison, "test")
+        if self.report and trainer.loggers:  # a run's folder
+            folder = Path(trainer.log_dir)  # a broadcast: every rank asks, or rank 0 waits
+            if trainer.global_rank == 0:
+                self.report_path = draw_report(folder / "test_report.png", comparison, "test")
             if self.report_path is not None:
                 print(f"torchhys test: the test's loop, tracking and error in "
                       f"{self.report_path}", flush=True)

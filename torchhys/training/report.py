@@ -152,9 +152,11 @@ class FitReport(L.Callback):
 
     def on_fit_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         dm = getattr(trainer, "datamodule", None)
-        if (not self.enabled or trainer.global_rank != 0 or not trainer.loggers
-                or dm is None or not hasattr(dm, "batches")
+        if (not self.enabled or not trainer.loggers or dm is None or not hasattr(dm, "batches")
                 or not hasattr(pl_module, "scored_outputs")):
+            return
+        folder = Path(trainer.log_dir)  # a broadcast: every rank asks, or rank 0 waits forever
+        if trainer.global_rank != 0:
             return
         val = dm.batches("val")
         if not val:
@@ -170,8 +172,7 @@ class FitReport(L.Callback):
         if comparison is None:
             return
         self.results = comparison.results
-        self.report_path = draw_report(Path(trainer.log_dir) / "fit_report.png", comparison,
-                                       "val")
+        self.report_path = draw_report(folder / "fit_report.png", comparison, "val")
         if self.report_path is not None:
             print(f"torchhys fit: the fitted loop, the validation tracking and error in "
                   f"{self.report_path}", flush=True)
