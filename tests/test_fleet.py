@@ -21,6 +21,7 @@ import torch
 
 distributed = pytest.importorskip("distributed")
 
+from torchhys.cli.fleet import split_fleet_options  # noqa: E402
 from torchhys.fleet import ClusterError, find_devices, flag_outliers, identify_fleet  # noqa: E402
 from torchhys.fleet.cluster import check_workers, connect  # noqa: E402
 from torchhys.fleet.loops import loop_metrics  # noqa: E402
@@ -360,3 +361,31 @@ def test_the_local_cluster_s_workers_run_without_dask_s_profiler(client):
                 dask.config.get("distributed.worker.profile.enabled"))
 
     assert list(client.run(profiler).values()) == [(False, False)] * 2
+
+
+@pytest.mark.slow
+def test_a_device_that_does_not_finish_is_reported_within_the_device_timeout(folder, tmp_path):
+    """A plugin that sleeps when imported stands in for a fit that hangs: past
+    ``device_timeout`` the device is cancelled and is a failed row saying so; the fleet's
+    report is still written."""
+    (tmp_path / "hang.py").write_text("import time\ntime.sleep(60)\n")
+    start = time.perf_counter()
+    with connect(None, workers=1, retries=0) as own:  # its own: the sleeping worker dies with it
+        result = identify_fleet({"unit0": str(folder / "devices" / "unit0.csv")},
+                                config=_configs(folder), root=tmp_path / "runs", cluster=own,
+                                args=["--import-path", str(tmp_path), "--import", "hang"],
+                                device_timeout=3.0, say=lambda s: None)
+    assert time.perf_counter() - start < 45
+    (row,) = result.rows
+    assert row["status"] == "failed"
+    assert row["reason"].startswith("no device finished within 3 s")
+    assert "--device-timeout" in row["reason"]
+    assert result.csv.exists()
+
+
+def test_the_device_timeout_is_checked_and_read_from_the_command_line(folder, tmp_path):
+    with pytest.raises(ValueError, match="device_timeout must be a number of seconds > 0"):
+        identify_fleet({"unit0": str(folder / "devices" / "unit0.csv")}, root=tmp_path,
+                       device_timeout=0, say=lambda s: None)
+    options, _, _ = split_fleet_options(["--data.path", "x", "--device-timeout", "30"])
+    assert options["device_timeout"] == 30.0

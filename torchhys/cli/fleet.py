@@ -4,7 +4,8 @@ identifies it alone (:func:`torchhys.fleet.identify_fleet`; docs/fleet.md)::
     torchhys fleet --config configs/measured.yaml --data.path 'devices/*.csv' \\
         [--data.device_column COL] [--cluster tcp://HOST:8786 | SCHEDULER_FILE] \\
         [--root runs/fleet] [--workers N] [--retries 2] [--timeout 10] \\
-        [--resume runs/fleet/fleet_0] [any option of fit: --trainer.max_epochs 5 ...]
+        [--resume runs/fleet/fleet_0] [--device-timeout SECONDS] \\
+        [any option of fit: --trainer.max_epochs 5 ...]
 
 The fleet's own options are taken out here; every other option (``--config`` files, the
 data, model and trainer options, and the command's ``--import``, ``--import-path``,
@@ -26,10 +27,11 @@ __all__ = ["FLEET_OPTIONS", "main", "split_fleet_options"]
 
 FLEET_OPTIONS = {"--data.path": "data", "--data.device_column": "device_column",
                  "--cluster": "cluster", "--root": "root", "--workers": "workers",
-                 "--retries": "retries", "--timeout": "timeout", "--resume": "resume"}
+                 "--retries": "retries", "--timeout": "timeout", "--resume": "resume",
+                 "--device-timeout": "device_timeout"}
 """The fleet's own options and :func:`~torchhys.fleet.identify_fleet`'s argument of each."""
 
-_TYPES = {"workers": int, "retries": int, "timeout": float}
+_TYPES = {"workers": int, "retries": int, "timeout": float, "device_timeout": float}
 
 
 def split_fleet_options(argv: Sequence[str]) -> tuple[dict[str, object], list[str], list[str]]:

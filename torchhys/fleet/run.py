@@ -32,6 +32,7 @@ from torchhys.fleet.cluster import ClusterError, check_workers, connect
 from torchhys.fleet.devices import check_columns, find_devices
 from torchhys.fleet.report import flag_outliers, plot_loops, summary, write_csv
 from torchhys.fleet.task import identify_device, read_result
+from torchhys.selection.jobs import wait_timeout
 
 __all__ = ["FleetResult", "identify_fleet", "reserve_fleet_dir"]
 
@@ -115,9 +116,11 @@ def _failed(name: str, path: Any, run_dir: Path, reason: str) -> dict[str, Any]:
 
 
 def _run_tasks(client: Any, todo: list[tuple[Any, Path]], fit_args: list[str], retries: int,
-               tell: Callable[[str], None]) -> dict[str, dict[str, Any]]:
+               tell: Callable[[str], None], limit: float | None) -> dict[str, dict[str, Any]]:
     """Each device of ``todo`` a task on ``client``; their rows by device, as they finish
-    (a task that failed after its retries: a failed row with the exception's first line)."""
+    (a task that failed after its retries: a failed row with the exception's first line;
+    where no device finishes within ``limit`` seconds, the unfinished ones are cancelled
+    and each is a failed row saying so)."""
     import distributed
 
     futures = {}
@@ -126,19 +129,35 @@ def _run_tasks(client: Any, todo: list[tuple[Any, Path]], fit_args: list[str], r
                           fit_args, key=f"fleet-{d.name}-{uuid.uuid4().hex}", pure=False,
                           retries=retries)
         futures[f] = (d, run_dir)
-    rows = {}
-    for n, f in enumerate(distributed.as_completed(futures), start=1):
-        d, run_dir = futures[f]
+    rows: dict[str, dict[str, Any]] = {}
+    pending = list(futures)
+    while pending:
         try:
-            row = f.result()
-        except Exception as err:  # noqa: BLE001 (the task's, after its retries)
-            text = str(err).strip().splitlines()[0] if str(err).strip() else ""
-            row = _failed(d.name, d.path, run_dir,
-                          f"{type(err).__name__} after {retries} retries: {text}")
-        rows[d.name] = row
-        what = (f"{row['family']} (candidate {row['candidate']}), ratio {row['ratio']:.3g}, "
-                f"{row['fit_s']:.1f} s" if row["status"] == "ok" else f"failed: {row['reason']}")
-        tell(f"torchhys fleet: [{n}/{len(todo)}] {d.name}: {what}")
+            done, left = distributed.wait(pending, timeout=limit, return_when="FIRST_COMPLETED")
+        except TimeoutError:  # distributed's is one: nothing finished within the limit
+            names = [futures[f][0].name for f in pending]
+            client.cancel(pending)
+            reason = (f"no device finished within {limit:g} s (the longest wait for the "
+                      "next device: --device-timeout, TORCHHYS_TIMEOUT_S); cancelled")
+            tell(f"torchhys fleet: {reason}: {', '.join(names)}")
+            for f in pending:
+                d, run_dir = futures[f]
+                rows[d.name] = _failed(d.name, d.path, run_dir, reason)
+            break
+        pending = list(left)
+        for f in sorted(done, key=lambda f: futures[f][0].name):
+            d, run_dir = futures[f]
+            try:
+                row = f.result()
+            except Exception as err:  # noqa: BLE001 (the task's, after its retries)
+                text = str(err).strip().splitlines()[0] if str(err).strip() else ""
+                row = _failed(d.name, d.path, run_dir,
+                              f"{type(err).__name__} after {retries} retries: {text}")
+            rows[d.name] = row
+            what = (f"{row['family']} (candidate {row['candidate']}), ratio "
+                    f"{row['ratio']:.3g}, {row['fit_s']:.1f} s" if row["status"] == "ok"
+                    else f"failed: {row['reason']}")
+            tell(f"torchhys fleet: [{len(rows)}/{len(todo)}] {d.name}: {what}")
     return rows
 
 
@@ -152,6 +171,7 @@ def identify_fleet(data: str | os.PathLike | Sequence[str | os.PathLike] | Mappi
                    device_column: str | None = None, cluster: Any = None,
                    workers: int | None = None, retries: int = 2, timeout: float = 10.0,
                    resume: str | os.PathLike | None = None,
+                   device_timeout: float | None = None,
                    say: Callable[[str], None] | None = None) -> FleetResult:
     """Identify every device of a fleet, each as ``torchhys fit`` would alone, on Dask.
 
@@ -173,6 +193,10 @@ def identify_fleet(data: str | os.PathLike | Sequence[str | os.PathLike] | Mappi
             worker died) before the device is reported failed.
         timeout: seconds to wait for a cluster's scheduler.
         resume: an earlier fleet's folder to run into again (its finished devices kept).
+        device_timeout: the longest wait, in seconds, for the next device to finish; past
+            it the unfinished devices are cancelled and reported failed, saying so (default
+            :func:`torchhys.selection.jobs.wait_timeout`: ``TORCHHYS_TIMEOUT_S``, or six
+            hours; ``math.inf``: no limit).
         say: where progress lines go (default: stderr).
 
     Raises:
@@ -183,6 +207,12 @@ def identify_fleet(data: str | os.PathLike | Sequence[str | os.PathLike] | Mappi
     tell = say or (lambda s: print(s, file=sys.stderr, flush=True))
     if isinstance(retries, bool) or not isinstance(retries, int) or retries < 0:
         raise ValueError(f"retries must be a whole number >= 0, got {retries!r}")
+    limit = wait_timeout() if device_timeout is None else device_timeout
+    if limit is not None and (isinstance(limit, bool) or not isinstance(limit, (int, float))
+                              or math.isnan(limit) or limit <= 0):
+        raise ValueError(f"device_timeout must be a number of seconds > 0, got {limit!r}")
+    if limit is not None and math.isinf(limit):
+        limit = None
     fit_args = _fit_args(config, args)
     folder = None
     if resume is not None:
@@ -223,7 +253,7 @@ def identify_fleet(data: str | os.PathLike | Sequence[str | os.PathLike] | Mappi
             with connect(cluster, workers=workers, timeout=timeout, retries=retries) as client:
                 check_workers(client)
                 client.run(_warm)  # imported once per worker before the fits are timed
-                rows.update(_run_tasks(client, todo, fit_args, retries, tell))
+                rows.update(_run_tasks(client, todo, fit_args, retries, tell, limit))
         except ClusterError:
             if resume is None:  # a cluster refused before any device ran: no fleet folder left
                 shutil.rmtree(folder, ignore_errors=True)
