@@ -175,6 +175,10 @@ def _separate_run(data: Path, configs: list[Path], folder: Path, n: int,
 
     from torchhys.fleet import identify_fleet
 
+    if __name__ != "__main__":  # the workers (other machines) have no benchmarks/ to import
+        import cloudpickle
+
+        cloudpickle.register_pickle_by_value(sys.modules[__name__])
     with separate(folder / f"separate{n}", workers) as address:
         with distributed.Client(address, timeout=60) as client:
             client.run(_warm)  # the workers' imports, before the clock starts

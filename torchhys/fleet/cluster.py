@@ -12,8 +12,8 @@ The local cluster's workers run without Dask's statistical profiler
 (``distributed.worker.profile.enabled``, :data:`WORKER_CONFIG`): it samples the running
 task's stack every 10 ms and keeps a tree of it per second of work for the last 1000 s
 (``distributed.admin.low-level-log-length``), and a fit's stacks (Lightning, jsonargparse,
-torch) make that about 2.4 MiB a device fitted: a worker grew from about 520 MiB to 1 GiB
-over 250 devices with it, and stays within a few MiB without it. Workers started by hand
+torch) make that about 2 MiB a device fitted: a worker grew from about 515 MiB to 573 MiB
+over 30 devices with it, and by 7 MiB (all over its first 10) without it. Workers started by hand
 get the same with ``DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=False`` in their
 environment.
 
@@ -24,6 +24,7 @@ refuses workers of more than one thread, or several in one process (``processes=
 
 from __future__ import annotations
 
+import copy
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -81,12 +82,14 @@ def connect(cluster: Any = None, *, workers: int | None = None, timeout: float =
         n = usable_cores() if workers is None else workers
         if isinstance(n, bool) or not isinstance(n, int) or n < 1:
             raise ClusterError(f"workers must be a whole number >= 1, got {workers!r}")
-        # the nannies hand the settings in force when they start to their worker processes
-        with dask.config.set({"distributed.scheduler.allowed-failures": retries,
-                              **WORKER_CONFIG}):
+        # the workers' settings as a copy of their own: a nanny keeps this process's nested
+        # settings by reference, so a worker it restarts would get them back as they are
+        settings = copy.deepcopy(dask.config.config)
+        dask.config.set(WORKER_CONFIG, config=settings)
+        with dask.config.set({"distributed.scheduler.allowed-failures": retries}):
             local = distributed.LocalCluster(n_workers=n, threads_per_worker=1,
                                              processes=True, dashboard_address=None,
-                                             silence_logs=40)
+                                             silence_logs=40, config=settings)
         try:
             client = distributed.Client(local)
             try:
