@@ -96,8 +96,6 @@ from torchhys.selection.folds import describe_cv
 from torchhys.selection.jobs import check_budget, check_jobs, usable_cores
 from torchhys.selection.progress import SelectionProgress
 from torchhys.training.callbacks import BaselineComparison, PredictionWriter
-from torchhys.training.report import FitReport
-from torchhys.training.run_checkpoint import RunCheckpoint
 from torchhys.training.data import HysteresisDataModule
 from torchhys.training.interrupts import (
     Interrupted,
@@ -106,6 +104,8 @@ from torchhys.training.interrupts import (
     signals_raise,
 )
 from torchhys.training.module import InverseHysteresisModule
+from torchhys.training.report import FitReport
+from torchhys.training.run_checkpoint import RunCheckpoint
 
 install_bounded_yaml()  # aliases in configs expand to a bounded size
 
