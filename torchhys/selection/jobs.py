@@ -234,7 +234,7 @@ def run_candidates(n: int, score: Callable[[int], Any], skipped: Callable[[int],
         while pending:
             collect()
     except BaseException:  # a signal, Ctrl-C, a candidate's error: nothing waits for the rest
-        _stop(pool, set(multiprocessing.active_children()) - before)
+        _stop(pool, before)
         raise
     else:
         _finish(pool, set(multiprocessing.active_children()) - before)
@@ -275,13 +275,20 @@ def _finish(pool: ProcessPoolExecutor, workers: set) -> None:
         process.join(timeout=5)
 
 
-def _stop(pool: ProcessPoolExecutor, workers: set) -> None:
-    """End the pool now: queued candidates cancelled, the running ones' processes killed."""
+def _stop(pool: ProcessPoolExecutor, before: set) -> None:
+    """End the pool now: queued candidates cancelled, the running ones' processes killed
+    (every child process not in ``before``, asked again until none is left: the pool's
+    processes are not all listed at the moment it is stopped)."""
     pool.shutdown(wait=False, cancel_futures=True)
-    for process in workers:
-        process.kill()
-    for process in workers:
-        process.join(timeout=5)
+    deadline = time.perf_counter() + 5.0
+    while time.perf_counter() < deadline:
+        alive = [p for p in multiprocessing.active_children() if p not in before]
+        if not alive:
+            break
+        for process in alive:
+            process.kill()
+        for process in alive:
+            process.join(timeout=0.5)
 
 
 _PR_SET_PDEATHSIG = 1
