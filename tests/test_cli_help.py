@@ -111,6 +111,14 @@ def test_export_help_is_plain(monkeypatch, capsys) -> None:
     assert _help(monkeypatch, capsys, "export", "--help-all") == out
 
 
+def test_fleet_help_is_plain(monkeypatch, capsys) -> None:
+    out = _help(monkeypatch, capsys, "fleet", "--help")
+    assert out.startswith("torchhys fleet: a fleet of devices identified in one command")
+    assert "--device-timeout" in out and "--data.device_column" in out
+    assert not ROLE_OR_LITERAL.search(out), ROLE_OR_LITERAL.search(out)
+    assert _help(monkeypatch, capsys, "fleet", "--help-all") == out
+
+
 def test_a_class_help_is_plain(monkeypatch, capsys) -> None:
     out = _help(monkeypatch, capsys, "fit", "--quiet", "--config", "compensator",
                 "--trainer.callbacks.help", "EarlyStopping")

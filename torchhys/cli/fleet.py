@@ -14,6 +14,21 @@ lines go to stderr (not with ``--quiet``), the summary to stdout. A user error (
 glob, a cluster that does not answer, a bad option) is one line, ``torchhys fleet: error:
 ...``, exit status 2; devices that fail are rows of the report, the status 0 while at
 least one device is identified (1 when none is).
+
+The fleet's options:
+
+- ``--data.path GLOB|FILE``: the devices' recordings, a file each (named by its stem), or
+  one file with ``--data.device_column COL`` naming each row's device;
+- ``--cluster tcp://HOST:8786|SCHEDULER_FILE``: an existing Dask cluster (default: a local
+  cluster of ``--workers N`` processes, one per usable core);
+- ``--root DIR``: where ``fleet_N/`` goes (default runs/fleet); ``--resume DIR``: an earlier
+  fleet's folder, its finished devices kept;
+- ``--retries N``: retries of a device whose task failed or whose worker died (default 2);
+- ``--timeout S``: seconds to wait for the cluster's scheduler (default 10);
+- ``--device-timeout S``: the longest wait for the next device to finish (default
+  ``TORCHHYS_TIMEOUT_S``, else six hours).
+
+Then ``torchhys export --fleet ROOT/fleet_N --format c`` exports every device (docs/fleet.md).
 """
 
 from __future__ import annotations
@@ -21,6 +36,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from torchhys.cli.errors import report_user_error
+from torchhys.cli.plain_text import plain
 from torchhys.cli.quiet import QUIET_FLAG
 
 __all__ = ["FLEET_OPTIONS", "main", "split_fleet_options"]
@@ -72,8 +88,8 @@ def split_fleet_options(argv: Sequence[str]) -> tuple[dict[str, object], list[st
 
 def main(argv: Sequence[str], *, traceback: bool = False) -> int:
     """Run ``torchhys fleet`` (:func:`torchhys.cli.main.main` calls it); its exit status."""
-    if any(a in ("-h", "--help") for a in argv):
-        print(__doc__)
+    if any(a in ("-h", "--help", "--help-all") for a in argv):
+        print(plain(__doc__ or "").strip())
         return 0
     quiet = QUIET_FLAG in argv
     try:
