@@ -13,7 +13,7 @@ from lightning.pytorch.callbacks import BasePredictionWriter
 
 from torchhys._checks import check_int
 from torchhys.training.baselines import MAX_DEGREE
-from torchhys.training.report import compare_baselines, draw_report
+from torchhys.training.report import Scored, compare_baselines, draw_report, scored_samples
 
 __all__ = ["BaselineComparison", "PredictionWriter"]
 
@@ -64,7 +64,7 @@ class BaselineComparison(L.Callback):
         self.report = bool(report)
         self.report_path: Path | None = None
         self.results: dict[str, float] = {}
-        self._tested: list[tuple[torch.Tensor, ...]] = []
+        self._tested: list[Scored] = []
 
     def on_test_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._tested, self.results = [], {}
@@ -73,10 +73,7 @@ class BaselineComparison(L.Callback):
                           outputs: Any, batch: Any, batch_idx: int,
                           dataloader_idx: int = 0) -> None:
         if isinstance(outputs, Mapping) and all(k in outputs for k in self.KEYS):
-            got = [outputs[k].detach().reshape(-1).to("cpu", torch.float64) for k in self.KEYS]
-            c = outputs.get("conditions")
-            got.append(None if c is None else c.detach().to("cpu", torch.float64))
-            self._tested.append(tuple(got))
+            self._tested.append(scored_samples(outputs))
 
     def on_test_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         dm = getattr(trainer, "datamodule", None)

@@ -12,7 +12,7 @@ validation split).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,7 +29,7 @@ from torchhys.training.baselines import (
     max_degree,
 )
 
-__all__ = ["Comparison", "FitReport", "compare_baselines", "draw_report"]
+__all__ = ["Comparison", "FitReport", "compare_baselines", "draw_report", "scored_samples"]
 
 Scored = tuple[torch.Tensor, torch.Tensor, torch.Tensor, "torch.Tensor | None"]
 """A batch's scored samples: input, target, prediction (each flat) and conditions or None."""
@@ -164,7 +164,7 @@ class FitReport(L.Callback):
         was_training = pl_module.training
         pl_module.eval()
         try:
-            scored = [_flat(pl_module.scored_outputs(_to(b, pl_module.device), "val"))
+            scored = [scored_samples(pl_module.scored_outputs(_to(b, pl_module.device), "val"))
                       for b in val]
         finally:
             pl_module.train(was_training)
@@ -182,7 +182,10 @@ def _to(batch: Sequence[Any], device: torch.device) -> tuple[Any, ...]:
     return tuple(b.to(device) if isinstance(b, torch.Tensor) else b for b in batch)
 
 
-def _flat(out: dict[str, torch.Tensor]) -> Scored:
+def scored_samples(out: Mapping[str, torch.Tensor]) -> Scored:
+    """A batch's scored samples as :func:`compare_baselines` takes them, from what
+    ``InverseHysteresisModule.scored_outputs`` (and ``test_step``) returns: input, target and
+    prediction flat, conditions or None, on the CPU in float64."""
     def cpu(t: torch.Tensor) -> torch.Tensor:
         return t.detach().to("cpu", torch.float64)
 
