@@ -382,3 +382,12 @@ def test_magnetic_config_runs_on_the_ferrite_loops(monkeypatch, tmp_path: Path) 
     # measured: 0.96 A/m (the stop-type PI model, 40 thresholds, beside the Preisach inverse),
     # the line 11.8 A/m
     assert rmse < 2.0, rmse
+
+
+def test_the_run_keeps_lightnings_choices_of_save_last(monkeypatch, tiny, tmp_path) -> None:
+    """RunCheckpoint's save_last takes what Lightning's does (a bool or "link"), nothing else."""
+    with pytest.raises(SystemExit) as exit_:
+        cli(monkeypatch, "fit", "--config", str(tiny), f"--trainer.default_root_dir={tmp_path}",
+            "--checkpoint.save_last=foo")
+    assert exit_.value.code == 2
+    assert not (tmp_path / "logs").exists()

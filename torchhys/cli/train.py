@@ -146,10 +146,9 @@ class TorchhysCLI(LightningCLI):
         parser.add_lightning_class_args(RunCheckpoint, "checkpoint")
         # checkpoints written to a temporary file beside them and renamed: a full disk or a
         # kill while saving leaves the previous last.ckpt whole (torchhys/training/checkpoint_io.py)
-        # one file per run, last.ckpt (torchhys/training/run_checkpoint.py;
+        # one file per run, last.ckpt: RunCheckpoint's defaults (save_last, save_top_k 0;
         # --checkpoint.save_top_k 1 and a --checkpoint.monitor keep the best as well)
         parser.set_defaults({"checkpoint.save_on_train_epoch_end": True,
-                             "checkpoint.save_last": True, "checkpoint.save_top_k": 0,
                              "trainer.plugins": [{"class_path": cli_selection.ATOMIC_IO}]})
         # Arguments of the command kept in the model section, removed before the module is
         # built (see _select).

@@ -11,7 +11,7 @@ top-k checkpoint would have been saved, and nothing else; ``save_top_k`` >= 1 (w
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 import lightning as L
 from lightning.pytorch.callbacks import ModelCheckpoint
@@ -24,8 +24,8 @@ class RunCheckpoint(ModelCheckpoint):
     module docstring). Its arguments are Lightning's, with ``save_last=True`` and
     ``save_top_k=0`` by default."""
 
-    def __init__(self, *args: Any, save_last: bool | str | None = True, save_top_k: int = 0,
-                 **kwargs: Any) -> None:
+    def __init__(self, *args: Any, save_last: bool | Literal["link"] | None = True,
+                 save_top_k: int = 0, **kwargs: Any) -> None:
         super().__init__(*args, save_last=save_last, save_top_k=save_top_k, **kwargs)
         self._last_step_of_last = -1  # the global step last.ckpt was last written at
 
