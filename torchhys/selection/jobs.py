@@ -237,7 +237,7 @@ def run_candidates(n: int, score: Callable[[int], Any], skipped: Callable[[int],
         _stop(pool, before)
         raise
     else:
-        _finish(pool, set(multiprocessing.active_children()) - before)
+        _finish(pool, before)
     finally:
         _SCORE = _SKIPPED = None
     return results
@@ -261,28 +261,32 @@ def _start_worker(threads: int, parent: int) -> None:
     torch.set_num_threads(threads)
 
 
-def _finish(pool: ProcessPoolExecutor, workers: set) -> None:
+def _finish(pool: ProcessPoolExecutor, before: set) -> None:
     """End the pool once every score is in: the idle processes get :data:`_EXIT_S` seconds
     to exit, then are killed (the pool's own shutdown would wait for them without limit)."""
     pool.shutdown(wait=False)
-    deadline = time.perf_counter() + _EXIT_S
-    for process in workers:
-        process.join(timeout=max(0.0, deadline - time.perf_counter()))
-    late = [p for p in workers if p.is_alive()]
-    for process in late:
-        process.kill()
-    for process in late:
-        process.join(timeout=5)
+    _end_children(before, grace=_EXIT_S)
 
 
 def _stop(pool: ProcessPoolExecutor, before: set) -> None:
-    """End the pool now: queued candidates cancelled, the running ones' processes killed
-    (every child process not in ``before``, asked again until none is left: the pool's
-    processes are not all listed at the moment it is stopped)."""
+    """End the pool now: queued candidates cancelled, the running ones' processes killed."""
     pool.shutdown(wait=False, cancel_futures=True)
+    _end_children(before, grace=0.0)
+
+
+def _end_children(before: set, grace: float) -> None:
+    """End every child process not in ``before``: ``grace`` seconds to exit, then killed,
+    asked again until none is left (the pool's processes are not all listed at any one
+    moment: one missing from a single look was left running)."""
+    def children() -> list:
+        return [p for p in multiprocessing.active_children() if p not in before]
+
+    deadline = time.perf_counter() + grace
+    for process in children():
+        process.join(timeout=max(0.0, deadline - time.perf_counter()))
     deadline = time.perf_counter() + 5.0
     while time.perf_counter() < deadline:
-        alive = [p for p in multiprocessing.active_children() if p not in before]
+        alive = children()
         if not alive:
             break
         for process in alive:
