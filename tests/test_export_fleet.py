@@ -339,6 +339,19 @@ def test_bad_options_are_one_line_naming_them(pair, tmp_path, extra, message) ->
     assert rc == 2 and message in err and len(err.strip().splitlines()) == 1, err
 
 
+def test_the_devices_plugin_modules_are_imported(pair, tmp_path) -> None:
+    """--import applies to --fleet as to one --ckpt (a fleet of a plugin's operators)."""
+    rc, _, err = _export("--fleet", str(pair), "--format", "c", "--out", str(tmp_path / "o"),
+                         "--import", "torchhys_no_such_plugin")
+    assert rc == 2 and "torchhys_no_such_plugin" in err and len(err.strip().splitlines()) == 1
+    (tmp_path / "plugin_seen.py").write_text(
+        "from pathlib import Path\nPath(__file__).with_suffix('.seen').write_text('x')\n")
+    rc, _, err = _export("--fleet", str(pair), "--format", "c", "--out", str(tmp_path / "p"),
+                         "--import-path", str(tmp_path), "--import", "plugin_seen")
+    assert rc == 0, err
+    assert (tmp_path / "plugin_seen.seen").exists()
+
+
 def test_a_folder_without_fleet_csv_and_existing_files(pair, tmp_path) -> None:
     rc, _, err = _export("--fleet", str(tmp_path), "--format", "c", "--out", str(tmp_path))
     assert rc == 2 and f"--fleet {tmp_path}: no fleet.csv" in err

@@ -320,6 +320,19 @@ def check_size(arch: dict, state: dict) -> None:
                  "check the checkpoint's hyper_parameters (or --hidden)")
 
 
+def checked_net(ckpt: dict, what: str, dtype: str | None = None,
+                arch: dict | None = None) -> torch.nn.Module:
+    """:func:`build_net`, then its weights checked finite and its output on a sweep not
+    overflowing (a diverged fit's: :mod:`torchhys._finite`, naming ``what``), in ``dtype``
+    (``"float64"``, ``"float32"``; None: as saved). A TypeError is a user error."""
+    with config_errors():
+        net = build_net(ckpt, arch)
+        check_weights(net, what)  # a diverged fit's NaN weights
+        if isinstance(net, (InverseHysteresisNet, Composed)):
+            check_output(net, what)  # or its overflowing ones
+        return net if dtype is None else net.to(_DTYPES[dtype])
+
+
 def build_net(ckpt: dict, arch: dict | None = None) -> torch.nn.Module:
     """Rebuild the network of a Lightning checkpoint (or of a plain state dict + ``arch``),
     after :func:`check_size`; a composed model from its spec (``hyper_parameters["net"]``:
@@ -387,7 +400,7 @@ def main(argv: list[str]) -> int:
         parser._option_string_actions["--ckpt"].required = False  # its own option's folder
     args = parse(parser, argv, {"--ckpt_path": "--ckpt", "--ckpt-path": "--ckpt"})
     if args.fleet is not None:
-        return fleet_main(args, build_net)
+        return fleet_main(args, checked_net)
     try:
         if args.shared is not None:
             raise ValueError(f"--{'' if args.shared else 'no-'}shared applies to --fleet only")
@@ -404,12 +417,8 @@ def main(argv: list[str]) -> int:
         options = {"limits": args.limits, "initial_command": args.initial_command,
                    "input_margin": args.input_margin, "direction": args.direction}
         with config_errors():  # a TypeError here is in the options or the checkpoint
-            net = build_net(ckpt, None if "state_dict" in ckpt else _plain_arch(args))
-            check_weights(net, f"--ckpt {args.ckpt}")  # a diverged fit's NaN weights
-            if isinstance(net, (InverseHysteresisNet, Composed)):
-                check_output(net, f"--ckpt {args.ckpt}")  # or its overflowing ones
-            if args.dtype is not None:
-                net = net.to(_DTYPES[args.dtype])
+            net = checked_net(ckpt, f"--ckpt {args.ckpt}", args.dtype,
+                              None if "state_dict" in ckpt else _plain_arch(args))
             adapt = _adapt_options(args)
             comp = _compensator(net, options, adapt)
         if args.format == "c":  # the adaptive keywords only when adapting

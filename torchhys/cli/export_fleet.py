@@ -4,7 +4,7 @@ exported in one command (:func:`torchhys.deploy.export_fleet.export_fleet`).
     torchhys export --fleet ROOT/fleet_N --format c|onnx|torchscript|fmu --out DIR
         [--shared | --no-shared] [--prefix NAME] [--dtype float64|float32] [--limits LOW HIGH]
         [--input-margin M] [--direction D] [--initial-command U] [--fmi 2|3] [--step-size S]
-        [--sample-period T] [--force]
+        [--sample-period T] [--import MODULE] [--import-path DIR] [--force]
 
 ``--out`` is a folder (made where its parent exists). ``--format c`` writes one step shared
 by every device (``NAME.h``, ``NAME.c``, ``NAME_params.c``) where the devices chose one
@@ -18,16 +18,13 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import torch
 
-from torchhys import InverseHysteresisNet
-from torchhys._finite import check_output, check_weights
 from torchhys.checkpoints import read_checkpoint
-from torchhys.cli.errors import config_errors, report_user_error
-from torchhys.compose import Composed
+from torchhys.cli.errors import report_user_error
+from torchhys.cli.plugins import import_modules
 from torchhys.deploy.c import DEFAULT_PREFIX
 from torchhys.deploy.export_fleet import FORMATS, export_fleet, read_fleet
 
@@ -63,27 +60,23 @@ def _check(args: argparse.Namespace) -> None:
         args.out.mkdir()
 
 
-def _load(name: str, ckpt: Path, dtype: torch.dtype | None,
-          build_net: Callable[[dict[str, Any]], torch.nn.Module]) -> torch.nn.Module:
-    what = f"--fleet: device {name!r} ({ckpt})"
-    with config_errors():
-        net = build_net(read_checkpoint(ckpt, what, lightning=True))
-        check_weights(net, what)
-        if isinstance(net, (InverseHysteresisNet, Composed)):
-            check_output(net, what)
-    return net if dtype is None else net.to(dtype)
-
-
 def fleet_main(args: argparse.Namespace,
-               build_net: Callable[[dict[str, Any]], torch.nn.Module]) -> int:
+               checked_net: Callable[[dict[str, Any], str, str | None], torch.nn.Module]
+               ) -> int:
     """Run ``torchhys export --fleet`` on the parsed options of ``torchhys export``
-    (``build_net``: its :func:`torchhys.cli.export.build_net`); the exit status (0 ok, 2 a
-    user error, printed as one line)."""
+    (``checked_net``: its :func:`torchhys.cli.export.checked_net`, each device's network
+    built and checked as one ``--ckpt``'s is); the exit status (0 ok, 2 a user error,
+    printed as one line)."""
     try:
         _check(args)
+        import_modules(args.imports, args.import_paths)  # the devices' plugin operators
         fleet = read_fleet(args.fleet, what="--fleet")
         dtype = None if args.dtype is None else _DTYPES[args.dtype]
-        models = {n: _load(n, p, dtype, build_net) for n, p in fleet.checkpoints.items()}
+        models = {}
+        for name, path in fleet.checkpoints.items():
+            what = f"--fleet: device {name!r} ({path})"
+            models[name] = checked_net(read_checkpoint(path, what, lightning=True), what,
+                                       args.dtype)
         fmu = ({"fmi": args.fmi or 2, "step_size": args.step_size,
                 "sample_period": args.sample_period} if args.format == "fmu" else {})
         done = export_fleet(models, args.out, format=args.format,
